@@ -1,0 +1,311 @@
+"""Run configuration: frozen dataclasses, loaded with ``yaml.safe_load`` and validated.
+
+``configs/paper.yaml`` holds the paper's values (DESIGN §4–7); the dataclass defaults are
+the same values, so a missing key means "the paper's value". ``--set section.key=value``
+overrides one field; the value is parsed as YAML (``--set adapt.lr=1e-4``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+from mutualslam_cli.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    data_root: str | None = None
+    """Root for relative ``datasets.yaml`` paths; ``None`` → ``$MSLAM_DATA`` or the yaml's folder."""
+    max_frames: int = 0
+    """Use only the first N associated frames (0 = all)."""
+    stride: int = 1
+    """Use every k-th frame."""
+
+
+@dataclass(frozen=True)
+class VOConfig:
+    mode: Literal["svo", "gt"] = "svo"
+    """``svo``: our monocular front end; ``gt``: oracle keyframes from GT poses and depth."""
+    grid_size: int = 20
+    """Feature detection grid cell in pixels (paper: grid_size 20)."""
+    max_fts: int = 500
+    """Features per keyframe (paper: max_fts 500)."""
+    core_kfs: int = 5
+    """Keyframes in the windowed geometric BA (paper: core_kfs 5)."""
+    klt_window: int = 21
+    """KLT patch size in pixels."""
+    klt_levels: int = 3
+    """KLT pyramid levels above the base image."""
+    fb_threshold_px: float = 1.0
+    """Forward–backward KLT error above which a track is dropped."""
+    ransac_threshold_px: float = 2.0
+    """PnP-RANSAC inlier threshold."""
+    kf_min_parallax_px: float = 30.0
+    """Median feature displacement since the last keyframe that triggers a new keyframe."""
+    kf_min_tracked_ratio: float = 0.5
+    """Fraction of last keyframe's features still tracked below which a keyframe is made."""
+    min_tracked: int = 30
+    """Fewer inlier tracks than this is a tracking loss."""
+    gt_kf_every: int = 5
+    """Oracle front end: a keyframe every k frames."""
+    gt_max_points: int = 500
+    """Oracle front end: map points per keyframe (from GT depth at detected corners)."""
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    width: int = 640
+    """Network input width (Monodepth2 mono+stereo_640x192)."""
+    height: int = 192
+    """Network input height."""
+    min_depth: float = 0.1
+    """disp_to_depth minimum depth (Monodepth2)."""
+    max_depth: float = 100.0
+    """disp_to_depth maximum depth (Monodepth2)."""
+    weights: str | None = None
+    """Folder with encoder.pth/depth.pth; ``None`` → the ``mslam pretrain`` default model."""
+    fast: Literal["auto", "on", "off"] = "auto"
+    """bf16 autocast + channels-last: ``auto`` enables it where the CPU supports bf16."""
+
+
+@dataclass(frozen=True)
+class AdaptConfig:
+    scheme: str = "replay+ewc"
+    """Adaptation scheme (registry name); ``none`` keeps the pre-trained model."""
+    lr: float = 1e-3
+    """Adam learning rate (paper §IV)."""
+    lambda_sparse: float = 0.1
+    """λ1, weight of L_sparse (Eq. 8)."""
+    lambda_smooth: float = 0.1
+    """λ2, weight of L_smooth (Eq. 8)."""
+    alpha: float = 0.85
+    """SSIM/L1 balance α in pe (Eq. 5)."""
+    ewc_beta: float = 5e7
+    """β of Eq. 2."""
+    ewc_max_f: float = 1e-3
+    """max_F cap of Eq. 3 (applied as min, DESIGN §5)."""
+    mas_lambda: float = 0.5
+    """λ of Eq. 13 for MAS (Appendix B)."""
+    si_lambda: float = 1.0
+    """λ of Eq. 13 for SI (Appendix B)."""
+    si_xi: float = 1e-3
+    """ξ damping of SI's importance (Zenke et al.)."""
+    steps_per_keyframe: int = 2
+    """Optimiser steps per training keyframe; > 1 makes the regulariser act within a batch."""
+    anchor: Literal["previous_batch", "batch_start"] = "previous_batch"
+    """θ*: parameters after the previous batch (paper) or at the start of this batch."""
+    validate_every: int = 5
+    """m of Algorithm 1."""
+    patience: int = 3
+    """n of Algorithm 1."""
+    tau_val: float = 0.2
+    """τ_val of Algorithm 1 (threshold on L_val = L_sparse)."""
+    replay_capacity: int = 0
+    """Keyframes kept for replay (0 = all, stored at network resolution)."""
+
+
+@dataclass(frozen=True)
+class BAConfig:
+    enabled: bool = True
+    """Run map-point culling and global photometric BA when Algorithm 1 triggers it."""
+    gamma: float = 0.5
+    """γ of the culling rule (Eq. 10)."""
+    d_max: float = 1.5
+    """d_max of the culling rule, map units (Eq. 10)."""
+    patch: int = 3
+    """Photometric patch side in pixels."""
+    max_targets: int = 5
+    """Target keyframes per map point."""
+    iterations: int = 10
+    """Levenberg–Marquardt iterations."""
+    huber_delta: float = 0.1
+    """Huber threshold on intensities in [0, 1]."""
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    pcd_threshold: float = 0.1
+    """Relative error below which a depth pixel counts as correct (paper §IV-B)."""
+    max_depth: float = 10.0
+    """GT depth above this (metres) is not evaluated."""
+    stride: int = 1
+    """Evaluate depth on every k-th frame with GT depth."""
+    save_weights: bool = False
+    """Write the adapted weights into the result folder."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    seed: int = 0
+    """Seed of every random choice (replay sampling, RANSAC, init)."""
+    threads: int = 0
+    """torch/OpenCV threads (0 = all cores)."""
+    out: str = "results"
+    """Folder that receives ``<sequence>/<scheme>/seed<k>/``."""
+    data: DataConfig = field(default_factory=DataConfig)
+    vo: VOConfig = field(default_factory=VOConfig)
+    net: NetConfig = field(default_factory=NetConfig)
+    adapt: AdaptConfig = field(default_factory=AdaptConfig)
+    ba: BAConfig = field(default_factory=BAConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    """Check/convert one YAML value to the annotated type ``tp``."""
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        if value not in typing.get_args(tp):
+            raise ConfigError(f"{where}: {value!r} is not one of {list(typing.get_args(tp))}")
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, where)
+            except ConfigError as e:
+                errors.append(str(e))
+        raise ConfigError(errors[0] if errors else f"{where}: invalid value {value!r}")
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected true/false, got {value!r}")
+    if tp is int:
+        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return int(value)
+    if tp is float:
+        if isinstance(value, str):
+            try:
+                value = float(value)
+            except ValueError:
+                raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if value != value:
+            raise ConfigError(f"{where}: NaN is not allowed")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return str(value)
+    return value
+
+
+def _build(cls: type, data: Any, where: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys: {sorted(names)}")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        tp = hints[f.name]
+        key = f"{where}.{f.name}" if where else f.name
+        if dataclasses.is_dataclass(tp):
+            kwargs[f.name] = _build(tp, data[f.name] or {}, key)
+        else:
+            kwargs[f.name] = _coerce(data[f.name], tp, key)
+    return cls(**kwargs)
+
+
+def _validate(cfg: RunConfig) -> None:
+    checks = [
+        (cfg.adapt.lr > 0, "adapt.lr must be > 0"),
+        (cfg.adapt.validate_every >= 1, "adapt.validate_every (m) must be ≥ 1"),
+        (cfg.adapt.patience >= 1, "adapt.patience (n) must be ≥ 1"),
+        (cfg.adapt.steps_per_keyframe >= 1, "adapt.steps_per_keyframe must be ≥ 1"),
+        (0 <= cfg.adapt.alpha <= 1, "adapt.alpha must be in [0, 1]"),
+        (cfg.net.width % 32 == 0 and cfg.net.height % 32 == 0, "net.width and net.height must be multiples of 32"),
+        (0 < cfg.net.min_depth < cfg.net.max_depth, "net.min_depth must be in (0, net.max_depth)"),
+        (cfg.data.stride >= 1, "data.stride must be ≥ 1"),
+        (cfg.data.max_frames >= 0, "data.max_frames must be ≥ 0"),
+        (cfg.eval.pcd_threshold > 0, "eval.pcd_threshold must be > 0"),
+        (cfg.vo.grid_size >= 4 and cfg.vo.max_fts >= 10, "vo.grid_size ≥ 4 and vo.max_fts ≥ 10"),
+        (cfg.vo.core_kfs >= 2, "vo.core_kfs must be ≥ 2"),
+        (cfg.ba.patch % 2 == 1, "ba.patch must be odd"),
+    ]
+    for ok, msg in checks:
+        if not ok:
+            raise ConfigError(msg)
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain nested dict of a config (safe for ``yaml.safe_dump`` and JSON)."""
+    return dataclasses.asdict(cfg)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"adapt.lr=1e-4"`` → ``(["adapt", "lr"], 1e-4)``; the value is parsed as YAML."""
+    if "=" not in text:
+        raise ConfigError(f"--set {text!r}: expected key=value, e.g. adapt.lr=1e-4")
+    key, raw = text.split("=", 1)
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as e:
+        raise ConfigError(f"--set {text!r}: value is not valid YAML ({e})") from None
+    parts = [p for p in key.strip().split(".") if p]
+    if not parts:
+        raise ConfigError(f"--set {text!r}: empty key")
+    return parts, value
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
+    """Load a YAML config (default ``configs/paper.yaml``), apply ``--set`` overrides, validate.
+
+    Raises:
+        ConfigError: missing file, invalid YAML, unknown key, wrong type, invalid value.
+    """
+    path = Path(path) if path is not None else CONFIG_DIR / "paper.yaml"
+    data: dict[str, Any] = {}
+    if path.exists():
+        try:
+            loaded = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: expected a mapping of sections (seed, vo, net, adapt, ...)")
+        data = loaded or {}
+    elif path != CONFIG_DIR / "paper.yaml":
+        raise ConfigError(f"{path}: config file not found")
+    for ov in overrides or []:
+        parts, value = parse_override(ov)
+        node = data
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {ov!r}: {p} is not a section")
+        node[parts[-1]] = value
+    cfg = _build(RunConfig, data, "")
+    _validate(cfg)
+    return cfg
+
+
+def with_overrides(cfg: RunConfig, **sections: dict[str, Any]) -> RunConfig:
+    """Return ``cfg`` with some fields replaced: ``with_overrides(cfg, adapt={"scheme": "none"})``."""
+    data = to_dict(cfg)
+    for sec, vals in sections.items():
+        if isinstance(vals, dict):
+            data[sec].update(vals)
+        else:
+            data[sec] = vals
+    out = _build(RunConfig, data, "")
+    _validate(out)
+    return out

@@ -1,0 +1,106 @@
+"""The loaded-sequence type every loader returns and every stage reads frames from.
+
+Frames are streamed: a :class:`Sequence` holds paths and GT poses, never decoded images,
+so memory stays flat in sequence length.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import cv2
+import numpy as np
+
+from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Sequence:
+    """An associated RGB-D sequence on disk.
+
+    Attributes:
+        name: short name (used in result paths).
+        root: the sequence folder.
+        intrinsics: camera at the stored image resolution (``dist`` set for raw fr1).
+        depth_scale: raw depth units per metre; ``load_depth`` divides by it.
+        frames: associated frames in time order.
+        gt: full ground-truth trajectory as stored (not only at image times), or ``None``.
+        meta: facts decided while loading (``fy_sign``, ``fy_sign_errors``, ``format`` …),
+            written into manifests.
+    """
+
+    name: str
+    root: Path
+    intrinsics: Intrinsics
+    depth_scale: float
+    frames: list[FrameRef]
+    gt: Trajectory | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def has_gt_poses(self) -> bool:
+        """True when at least one frame has a GT pose."""
+        return any(f.pose is not None for f in self.frames)
+
+    @property
+    def has_depth(self) -> bool:
+        """True when at least one frame has a depth image."""
+        return any(f.depth_path is not None for f in self.frames)
+
+    def gt_at_frames(self) -> Trajectory | None:
+        """GT poses at the image times of the frames that have one, or ``None``."""
+        idx = [i for i, f in enumerate(self.frames) if f.pose is not None]
+        if not idx:
+            return None
+        return Trajectory(
+            np.array([self.frames[i].timestamp for i in idx]),
+            np.stack([self.frames[i].pose for i in idx]),  # type: ignore[misc]
+        )
+
+    def load_rgb(self, i: int) -> np.ndarray:
+        """Frame ``i`` as ``(H, W, 3)`` uint8 RGB."""
+        path = self.frames[i].rgb_path
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise DatasetError(f"{path}: cannot read image (expected a PNG/JPEG colour image)")
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def load_gray(self, i: int) -> np.ndarray:
+        """Frame ``i`` as ``(H, W)`` uint8 grey."""
+        path = self.frames[i].rgb_path
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise DatasetError(f"{path}: cannot read image (expected a PNG/JPEG colour image)")
+        return img
+
+    def load_depth(self, i: int) -> np.ndarray | None:
+        """Frame ``i`` depth as ``(H, W)`` float32 metres (0 = invalid), or ``None``.
+
+        Raises :class:`DatasetError` for a depth PNG that is not 16-bit single-channel.
+        """
+        path = self.frames[i].depth_path
+        if path is None:
+            return None
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise DatasetError(f"{path}: cannot read depth image (expected a 16-bit PNG)")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise DatasetError(
+                f"{path}: depth image is {raw.dtype} with {1 if raw.ndim == 2 else raw.shape[2]} "
+                f"channel(s); expected a 16-bit single-channel PNG ({self.depth_scale:g} = 1 m)"
+            )
+        return raw.astype(np.float32) / np.float32(self.depth_scale)
+
+    def iter_frames(self, with_depth: bool = False) -> Iterator[tuple[FrameRef, np.ndarray, np.ndarray | None]]:
+        """Yield ``(frame, rgb, depth_or_None)`` in order, one decoded frame at a time."""
+        for i, f in enumerate(self.frames):
+            yield f, self.load_rgb(i), (self.load_depth(i) if with_depth else None)

@@ -1,0 +1,40 @@
+"""Shared fixtures: real-data location, tolerances, seeded RNG."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# Tolerances in one place (STYLE §4): dtype -> (rtol, atol).
+TOL = {np.float32: (1e-4, 1e-5), np.float64: (1e-7, 1e-9)}
+
+_DEFAULT_SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def shared_data_root() -> Path | None:
+    """``$MSLAM_SHARED_DATA`` or ``../shared/data`` beside the repository, if present."""
+    root = Path(os.environ.get("MSLAM_SHARED_DATA", _DEFAULT_SHARED))
+    return root if root.is_dir() else None
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """Folder with the real sequences (tum_fr1_xyz, icl_lr_kt2, ...); skips when absent."""
+    root = shared_data_root()
+    if root is None:
+        pytest.skip("real sequences not found (set MSLAM_SHARED_DATA or provide ../shared/data)")
+    return root
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(0)
+
+
+def assert_close(actual, expected, dtype=np.float64) -> None:
+    """``np.testing.assert_allclose`` with the table's tolerance for ``dtype``."""
+    rtol, atol = TOL[dtype]
+    np.testing.assert_allclose(actual, expected, rtol=rtol, atol=atol)
