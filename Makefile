@@ -1,0 +1,52 @@
+# mslam — every install step lives here so a fresh machine (and CI) needs only `make`.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(VENV)/bin/pip
+MSLAM := $(VENV)/bin/mslam
+DEMO_DIR ?= results/demo
+PYTEST_ARGS ?=
+
+.PHONY: install demo test test-all bench lint clean weights
+
+install: $(VENV)/.installed
+
+# open3d-cpu needs libusb-1.0 at import time; install it from apt when missing.
+# The CPU torch wheel is installed first and pinned so nothing pulls a CUDA build.
+$(VENV)/.installed: pyproject.toml
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  echo "installing libusb-1.0-0 (needed by open3d)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PIP) install -q --disable-pip-version-check "torch==2.13.0" || \
+	  $(PIP) install -q --disable-pip-version-check "torch>=2.5,<2.14"
+	$(PIP) install -q --disable-pip-version-check "torch>=2.5,<2.14" -e ".[test]"
+	touch $@
+
+# The main job on the built-in default: a synthetic room sequence, the default model,
+# the paper's scheme (replay+ewc) with our VO front end, then the paper-style report.
+demo: install
+	$(MSLAM) synth $(DEMO_DIR)/data/room --scene room --frames 150 --size 640x480 --seed 0
+	$(MSLAM) run $(DEMO_DIR)/data/room --out $(DEMO_DIR) --force
+	$(MSLAM) report $(DEMO_DIR) --out $(DEMO_DIR)/report
+
+# CI: everything but `slow` (tests marked `data` run when ../shared/data exists, else skip).
+test: install
+	$(PY) -m pytest -q -m "not slow and not gpu" $(PYTEST_ARGS)
+
+test-all: install
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+bench: install
+	$(PY) -m mutualslam_cli.bench
+
+weights: install
+	$(MSLAM) pretrain
+
+lint: install
+	$(PY) -m ruff check mutualslam_cli tests || echo "ruff not installed: pip install ruff"
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

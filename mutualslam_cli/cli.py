@@ -1,0 +1,304 @@
+"""The ``mslam`` command line (typer + rich). Thin: parse, call the library, render.
+
+One error boundary: an :class:`~mutualslam_cli.errors.MslamError` becomes one red line and exit
+code 1; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from mutualslam_cli.config import ConfigError, RunConfig, load_config, with_overrides
+from mutualslam_cli.errors import MslamError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
+console = Console(stderr=False)
+err_console = Console(stderr=True)
+
+ConfigOpt = typer.Option(None, "--config", "-c", help="YAML config (default configs/paper.yaml).")
+SetOpt = typer.Option(None, "--set", "-s", help="Override one field: section.key=value (repeatable).")
+DataRootOpt = typer.Option(None, "--data-root", help="Root of relative datasets.yaml paths (default $MSLAM_DATA).")
+
+
+def _boundary(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Turn library errors into one red line and exit code 1."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except MslamError as e:
+            err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+            raise typer.Exit(1) from None
+
+    return wrapper
+
+
+@app.callback()
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details.")) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
+                        handlers=[RichHandler(console=err_console, show_path=False, show_time=False)])
+
+
+def _config(config: Optional[Path], sets: Optional[list[str]], data_root: Optional[str] = None) -> RunConfig:
+    cfg = load_config(config, sets or [])
+    if data_root:
+        cfg = with_overrides(cfg, data={"data_root": data_root})
+    return cfg
+
+
+def _progress() -> Progress:
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console, transient=False)
+
+
+def _fmt(v: Any, nd: int = 3) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}"
+    return str(v)
+
+
+# --------------------------------------------------------------------------- datasets
+
+
+@app.command()
+@_boundary
+def datasets(
+    name: Optional[str] = typer.Argument(None, help="A datasets.yaml name or a sequence folder (with --check)."),
+    check: bool = typer.Option(False, "--check", help="Verify files, intrinsics, GT coverage, fy sign."),
+    registry: Optional[Path] = typer.Option(None, "--registry", help="Another datasets.yaml."),
+    data_root: Optional[str] = DataRootOpt,
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """List datasets.yaml entries, or check one sequence (or all) with --check."""
+    from mutualslam_cli.datasets.check import check_sequence
+    from mutualslam_cli.datasets.registry import list_datasets
+
+    cfg = _config(config, sets, data_root)
+    specs = list_datasets(registry, data_root=cfg.data.data_root)
+    if not check:
+        t = Table("name", "format", "root", "exists", "fx fy cx cy", "depth scale", "GT", title="datasets.yaml")
+        for s in specs:
+            intr = " ".join(f"{v:g}" for v in s.intrinsics.as_list()) if s.intrinsics else "family/data"
+            t.add_row(s.name, s.format, str(s.root), "yes" if Path(s.root).is_dir() else "[dim]no[/]", intr,
+                      f"{s.depth_scale:g}", s.gt_file or "—")
+        console.print(t)
+        return
+    targets = [name] if name else [s.name for s in specs if Path(s.root).is_dir()]
+    if not targets:
+        raise MslamError("no dataset folder exists under the data root; set MSLAM_DATA or --data-root")
+    t = Table("name", "frames", "span s", "depth", "GT cover", "fx fy cx cy", "depth scale", "fy sign", "warnings",
+              title="dataset check")
+    for n in targets:
+        r = check_sequence(n, data_root=cfg.data.data_root, registry_path=registry)
+        t.add_row(r.name, str(r.frames), f"{r.time_span_s:.2f}", str(r.frames_with_depth),
+                  f"{100 * r.gt_coverage:.1f}%", " ".join(f"{v:g}" for v in r.intrinsics.as_list()),
+                  f"{r.depth_scale:g}", _fmt(getattr(r, "fy_sign", None)), "; ".join(r.warnings) or "—")
+    console.print(t)
+
+
+# --------------------------------------------------------------------------- synth
+
+
+@app.command()
+@_boundary
+def synth(
+    out: Path = typer.Argument(..., help="Output folder (TUM layout)."),
+    scene: str = typer.Option("room", "--scene", help="room | planar | far"),
+    frames: int = typer.Option(120, "--frames", "-n", min=2),
+    size: str = typer.Option("640x480", "--size", help="WIDTHxHEIGHT"),
+    seed: int = typer.Option(0, "--seed"),
+    domain: str = typer.Option("target", "--domain", help="target | source (pre-training domain)"),
+) -> None:
+    """Render a synthetic RGB-D sequence with exact depth and poses, in TUM layout."""
+    from mutualslam_cli.datasets import synthetic
+
+    try:
+        w, h = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--size {size!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+    if domain not in ("target", "source"):
+        raise ConfigError(f"--domain {domain!r}: expected target or source")
+    with _progress() as p:
+        task = p.add_task(f"render {scene}", total=frames, info="")
+        it = synthetic.iter_render(scene, frames, w, h, seed, domain)
+
+        def tracked():
+            for item in it:
+                yield item
+                p.advance(task)
+
+        path = synthetic.write_tum(tracked(), out, scene=scene, width=w, height=h, seed=seed, domain=domain)
+    console.print(f"wrote {frames} frames ({w}×{h}, scene {scene}, seed {seed}) to {path}")
+
+
+# --------------------------------------------------------------------------- ate
+
+
+@app.command()
+@_boundary
+def ate(
+    ref: Path = typer.Argument(..., help="Reference TUM trajectory (timestamp tx ty tz qx qy qz qw)."),
+    est: Path = typer.Argument(..., help="Estimated TUM trajectory."),
+    align: str = typer.Option("sim3", "--align", help="sim3 | se3 | none"),
+    max_dt: float = typer.Option(0.02, "--max-dt", help="Association threshold, seconds."),
+) -> None:
+    """ATE of two TUM-format trajectories (the pipeline's own code path)."""
+    from mutualslam_cli.datasets.associate import read_tum_trajectory
+    from mutualslam_cli.metrics.trajectory import ate as ate_fn
+
+    if align not in ("sim3", "se3", "none"):
+        raise ConfigError(f"--align {align!r}: expected sim3, se3 or none")
+    r = ate_fn(read_tum_trajectory(ref), read_tum_trajectory(est), align=align, max_dt=max_dt)  # type: ignore[arg-type]
+    t = Table("pairs", "align", "scale", "rmse m", "mean m", "median m", "max m", title=f"ATE {est.name} vs {ref.name}")
+    t.add_row(str(r.n_pairs), align, f"{r.scale:.6f}", f"{r.rmse:.6f}", f"{r.mean:.6f}", f"{r.median:.6f}",
+              f"{r.max:.6f}")
+    console.print(t)
+
+
+# --------------------------------------------------------------------------- pretrain
+
+
+@app.command()
+@_boundary
+def pretrain(
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for encoder.pth/depth.pth (default: the default model)."),
+    steps: int = typer.Option(3000, "--steps", min=1),
+    seed: int = typer.Option(0, "--seed"),
+    quick: bool = typer.Option(False, "--quick", help="A few steps at small size (smoke test)."),
+) -> None:
+    """Train the default depth network on the synthetic source domain (stand-in for KITTI pre-training)."""
+    from mutualslam_cli.adapt import pretrain as pt
+    from mutualslam_cli.adapt.weights import default_weights_dir
+
+    out = out or default_weights_dir()
+    kwargs = pt.QUICK if quick else {}
+    with _progress() as p:
+        total = kwargs.get("steps", steps)
+        task = p.add_task("pretrain", total=total, info="")
+
+        def cb(info: dict) -> None:
+            p.update(task, completed=info.get("step", 0), info=f"loss {info.get('loss', float('nan')):.4f}")
+
+        summary = pt.pretrain(out, **{"steps": steps, "seed": seed, **kwargs}, progress=cb)
+    console.print(f"saved the pre-trained model to {out} ({summary.get('time_s', 0):.0f} s)")
+
+
+# --------------------------------------------------------------------------- run
+
+
+def _render_summary(folder: Path, s: dict[str, Any]) -> None:
+    from mutualslam_cli.results import flatten
+
+    f = flatten(s)
+    t = Table("metric", "pre-trained", "adapted", title=f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}")
+    for label, key in (("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")):
+        t.add_row(label, _fmt(f.get(f"{key}.pretrained"), 2), _fmt(f.get(f"{key}.adapted"), 2))
+    console.print(t)
+    t2 = Table("ATE kf m", "ATE all m", "tracked", "keyframes", "map points", "map e_si", "depth ms", "fine-tune ms")
+    t2.add_row(_fmt(f.get("trajectory.ate_rmse_m.vo"), 4), _fmt(f.get("trajectory.ate_rmse_m.all_frames"), 4),
+               _fmt(f.get("vo.tracked_fraction"), 3), _fmt(f.get("vo.keyframes")), _fmt(f.get("map.points.vo")),
+               _fmt(f.get("map.esi.vo"), 3), _fmt(f.get("timing.depth_ms"), 1), _fmt(f.get("timing.finetune_ms"), 0))
+    console.print(t2)
+    console.print(f"results: {folder}")
+
+
+@app.command()
+@_boundary
+def run(
+    seq: str = typer.Argument(..., help="datasets.yaml name or sequence folder."),
+    scheme: Optional[str] = typer.Option(None, "--scheme", help="Adaptation scheme (default from config: replay+ewc)."),
+    vo: Optional[str] = typer.Option(None, "--vo", help="svo | gt (oracle front end)."),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="Folder with Monodepth2 encoder.pth/depth.pth."),
+    seed: Optional[int] = typer.Option(None, "--seed"),
+    out: Optional[Path] = typer.Option(None, "--out", help="Results root (default results/)."),
+    force: bool = typer.Option(False, "--force", help="Recompute a complete run."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+    data_root: Optional[str] = DataRootOpt,
+    registry: Optional[Path] = typer.Option(None, "--registry", help="Another datasets.yaml."),
+) -> None:
+    """One sequence, one scheme: front end → adaptation → evaluation → results/<seq>/<scheme>/seed<k>/."""
+    from mutualslam_cli.adapt.schemes import get_scheme
+    from mutualslam_cli.pipeline import run_sequence
+
+    cfg = _config(config, sets, data_root)
+    over: dict[str, dict[str, Any]] = {}
+    if scheme:
+        over["adapt"] = {"scheme": scheme}
+    if vo:
+        over["vo"] = {"mode": vo}
+    if weights:
+        over["net"] = {"weights": str(weights)}
+    cfg = with_overrides(cfg, **over)
+    if seed is not None:
+        cfg = with_overrides(cfg, seed=seed)  # type: ignore[arg-type]
+    get_scheme(cfg.adapt.scheme)  # unknown name → ConfigError listing valid ones, before any work
+    with _progress() as p:
+        tasks: dict[str, Any] = {}
+
+        def cb(stage: str, info: dict[str, Any]) -> None:
+            total = info.get("total", info.get("n_frames"))
+            if stage not in tasks:
+                tasks[stage] = p.add_task({"vo": "front end", "adapt": "adapt", "eval": "evaluate"}.get(stage, stage),
+                                          total=total, info="")
+            done = info.get("done", (info.get("frame", -1) + 1))
+            if stage == "vo":
+                text = f"kf {info.get('keyframes', 0)} · pts {info.get('tracked', 0)} · {info.get('state', '')}"
+                if info.get("fps"):
+                    text += f" · {info['fps']:.0f} fps"
+            elif stage == "adapt":
+                lv = info.get("val_loss")
+                text = f"{info.get('state', '')} · loss {_fmt(info.get('loss'), 4)} · L_val {_fmt(lv, 4)} · conv {info.get('n_converged', 0)}"
+            else:
+                text = ""
+            p.update(tasks[stage], completed=done, total=total, info=text)
+
+        r = run_sequence(seq, cfg, out=out, command=sys.argv, force=force, progress=cb, registry=registry)
+    if r.skipped:
+        console.print(f"[yellow]already complete[/] (use --force to recompute): {r.folder}")
+    _render_summary(r.folder, r.summary)
+
+
+# --------------------------------------------------------------------------- report
+
+
+@app.command()
+@_boundary
+def report(
+    results: list[Path] = typer.Argument(..., help="Result folders (searched recursively for summary.json)."),
+    out: Path = typer.Option(Path("results/report"), "--out", help="Folder for .md/.tex/.csv tables and PNG plots."),
+) -> None:
+    """The paper's tables and plots from result folders."""
+    from mutualslam_cli.report import build_tables, collect, write_report
+
+    rep = build_tables(collect(list(results)))
+    for name, tdf in rep.tables.items():
+        t = Table(*map(str, tdf.columns), title=rep.titles[name])
+        for row in tdf.itertuples(index=False):
+            t.add_row(*(_fmt(v, 3) if isinstance(v, float) else str(v) for v in row))
+        console.print(t)
+    paths = write_report(rep, out)
+    console.print(f"wrote {len(paths)} files to {out}")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

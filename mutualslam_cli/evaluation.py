@@ -1,0 +1,151 @@
+"""The evaluation stage (DESIGN §7): depth on every frame, trajectory, map.
+
+Each function takes plain inputs (a sequence, a front-end result, models) and returns plain
+tables/dicts; :mod:`mutualslam_cli.pipeline` calls them and writes the files.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from mutualslam_cli.config import RunConfig
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.metrics import depth as dm
+from mutualslam_cli.metrics import trajectory as tm
+from mutualslam_cli.errors import MslamError
+from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo.output import VOResult
+
+log = logging.getLogger(__name__)
+
+Predictor = Callable[[np.ndarray], np.ndarray]
+"""``(H, W, 3)`` uint8 RGB at sensor resolution → ``(h, w)`` float32 depth at network resolution."""
+
+
+def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConfig,
+                   keyframe_frames: set[int] | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
+    """Evaluate each model on every ``eval.stride``-th frame that has GT depth.
+
+    Args:
+        seq: the sequence (frames streamed one at a time).
+        predictors: model name (``pretrained``, ``adapted``) → depth predictor.
+        cfg: run config (``eval.pcd_threshold``, ``eval.max_depth``, ``eval.stride``).
+        keyframe_frames: frame indices that are keyframes (flagged in the table).
+        progress: called with ``(done, total)``.
+
+    Returns:
+        ``per_frame`` table (one row per evaluated frame: ``frame``, ``timestamp``, ``is_keyframe``,
+        ``<model>_pcd_{lsq,median,none}`` in percent, ``<model>_esi``, ``<model>_abs_rel``,
+        ``<model>_scale_{lsq,median}``, ``n_valid``, and ``<model>_pcd_lsq_running``), and the median
+        prediction time in ms per model.
+    """
+    frames = [i for i, f in enumerate(seq.frames) if f.depth_path is not None][:: max(1, cfg.eval.stride)]
+    rows = []
+    times: dict[str, list[float]] = {k: [] for k in predictors}
+    for n, i in enumerate(frames):
+        gt = seq.load_depth(i)
+        rgb = seq.load_rgb(i)
+        row: dict[str, float | int | bool] = {"frame": i, "timestamp": seq.frames[i].timestamp,
+                                               "is_keyframe": bool(keyframe_frames and i in keyframe_frames)}
+        for name, predict in predictors.items():
+            t0 = time.perf_counter()
+            pred = predict(rgb)
+            times[name].append((time.perf_counter() - t0) * 1e3)
+            m = dm.depth_frame_metrics(pred, gt, max_depth=cfg.eval.max_depth, threshold=cfg.eval.pcd_threshold)
+            row["n_valid"] = m["n_valid"]
+            for key, val in m.items():
+                if key != "n_valid":
+                    row[f"{name}_{key}"] = val
+        rows.append(row)
+        if progress:
+            progress(n + 1, len(frames))
+    table = pd.DataFrame(rows)
+    for name in predictors:
+        col = f"{name}_pcd_lsq"
+        if col in table:
+            table[f"{col}_running"] = dm.running_mean(table[col].to_numpy(dtype=float))
+    ms = {k: float(np.median(v)) if v else float("nan") for k, v in times.items()}
+    return table, ms
+
+
+def evaluate_trajectory(seq: Sequence, vo: VOResult) -> dict[str, object]:
+    """Sim(3)-aligned ATE of keyframes and of all tracked frames against the stored GT.
+
+    Re-initialised front ends (several segments) are aligned per segment (each has its own scale);
+    the result then says ``per_segment: True``.
+
+    Returns:
+        ``{"kf": AteResult|None, "all": AteResult|None, "notes": {...}}``.
+    """
+    out: dict[str, object] = {"kf": None, "all": None, "notes": {}}
+    notes: dict[str, str] = out["notes"]  # type: ignore[assignment]
+    if seq.gt is None or len(seq.gt) == 0:
+        notes["trajectory"] = "sequence has no GT poses"
+        return out
+    kf = vo.traj_kf
+    kf_seg = np.array([k.segment for k in vo.keyframes])
+    tracked = vo.frame_segment >= 0
+    all_seg = vo.frame_segment[tracked] if len(vo.frame_segment) == len(seq) else None
+    for key, traj, seg in (("kf", kf, kf_seg), ("all", vo.traj_all, all_seg)):
+        if len(traj) < 3:
+            notes[key] = f"only {len(traj)} poses"
+            continue
+        try:
+            if seg is not None and len(seg) == len(traj) and len(np.unique(seg)) > 1:
+                out[key] = tm.ate_segments(seq.gt, traj, seg)
+            else:
+                out[key] = tm.ate(seq.gt, traj, align="sim3")
+        except MslamError as e:
+            notes[key] = str(e)
+    return out
+
+
+def _lookup_gt_depth(seq: Sequence, frame_index: int, pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    depth = seq.load_depth(frame_index)
+    if depth is None:
+        return np.full(len(pixels), np.nan)
+    pix = pixels
+    raw = seq.intrinsics
+    if raw.dist is not None and len(pix):
+        K = intr.K()
+        rays = np.c_[(pix - K[:2, 2]) / np.array([K[0, 0], K[1, 1]]), np.ones(len(pix))]
+        pix, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), raw.K(), np.array(raw.dist))
+        pix = pix.reshape(-1, 2)
+    h, w = depth.shape
+    ui, vi = np.round(pix[:, 0]).astype(int), np.round(pix[:, 1]).astype(int)
+    ok = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    out = np.full(len(pix), np.nan)
+    out[ok] = depth[vi[ok], ui[ok]]
+    out[out <= 0] = np.nan
+    return out
+
+
+def map_esi(seq: Sequence, vo: VOResult, keep: np.ndarray | None = None) -> tuple[float, int]:
+    """e_si of map-point depths in their host keyframe against GT depth at the host pixel.
+
+    Args:
+        keep: optional boolean mask over ``vo.points`` (e.g. after culling).
+    Returns:
+        ``(e_si, n_points_with_gt)``; e_si is NaN when no point has GT depth.
+    """
+    pts = vo.points if keep is None else vo.points.subset(keep)
+    est, ref = [], []
+    for kf in vo.keyframes:
+        m = pts.host == kf.id
+        if not np.any(m):
+            continue
+        gt = _lookup_gt_depth(seq, kf.frame_index, pts.pixel[m], vo.intrinsics)
+        ok = np.isfinite(gt)
+        est.append(1.0 / pts.inv_depth[m][ok])
+        ref.append(gt[ok])
+    if not est or sum(len(e) for e in est) == 0:
+        return float("nan"), 0
+    e, r = np.concatenate(est), np.concatenate(ref)
+    return float(dm.esi(e, r)), int(len(e))

@@ -1,0 +1,356 @@
+"""One sequence, one scheme (DESIGN §1): front end → adaptation → culling + BA → evaluation → files.
+
+:func:`run_sequence` is what ``mslam run`` calls; every stage is a plain function too, so other
+tools can call them without the CLI. Progress goes to an optional callback
+``progress(stage, info)`` and to :mod:`logging`.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import logging
+import pickle
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+import torch
+
+from mutualslam_cli import results as res
+from mutualslam_cli.config import RunConfig, to_dict
+from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.evaluation import evaluate_depth, evaluate_trajectory, map_esi
+from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo.output import VOResult
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, dict[str, Any]], None]
+
+
+@dataclass
+class RunResult:
+    """What :func:`run_sequence` returns.
+
+    Attributes:
+        folder: the result folder.
+        summary: the ``summary.json`` content (nested dict).
+        skipped: True when the run was already complete and nothing was recomputed.
+    """
+
+    folder: Path
+    summary: dict[str, Any]
+    skipped: bool = False
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- front end
+
+
+def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
+    """Cache key of a front-end result: sequence identity + front-end and data config + seed."""
+    ident = {
+        "root": str(Path(seq.root).resolve()), "n": len(seq),
+        "first": seq.frames[0].timestamp if len(seq) else None,
+        "last": seq.frames[-1].timestamp if len(seq) else None,
+        "vo": to_dict(cfg.vo), "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
+        "seed": cfg.seed, "intr": seq.intrinsics.as_list(), "version": 1,
+    }
+    return hashlib.sha1(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
+                 progress: Progress | None = None) -> tuple[VOResult, bool]:
+    """Run (or load from cache) the front end selected by ``cfg.vo.mode``.
+
+    Returns:
+        ``(vo_result, from_cache)``.
+    """
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"{seq.name}-{cfg.vo.mode}-{vo_cache_key(seq, cfg)}.pkl"
+        if path.is_file():
+            try:
+                with open(path, "rb") as f:
+                    vo = pickle.load(f)
+                log.info("front end loaded from cache %s", path)
+                return vo, True
+            except Exception as e:  # noqa: BLE001 - a corrupt cache entry is recomputed
+                log.warning("ignoring unreadable VO cache %s (%s)", path, e)
+    cb = (lambda info: progress("vo", info)) if progress else None
+    if cfg.vo.mode == "gt":
+        from mutualslam_cli.vo.oracle import run_oracle
+
+        vo = run_oracle(seq, cfg.vo, seed=cfg.seed, progress=cb)
+    else:
+        from mutualslam_cli.vo.frontend import run_vo
+
+        vo = run_vo(seq, cfg.vo, seed=cfg.seed, progress=cb)
+    if path is not None:
+        res.atomic_write_bytes(path, pickle.dumps(vo, protocol=pickle.HIGHEST_PROTOCOL))
+    return vo, False
+
+
+# ----------------------------------------------------------------------------- network input
+
+
+def to_net_image(rgb: np.ndarray, width: int, height: int) -> torch.Tensor:
+    """``(H, W, 3)`` uint8 → ``(3, height, width)`` float32 in [0, 1] (area resampling)."""
+    small = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(small).permute(2, 0, 1).float().div_(255.0)
+
+
+def scale_pixels(uv: np.ndarray, src: Intrinsics, width: int, height: int) -> np.ndarray:
+    """Pixels at ``src`` resolution → pixels at ``width × height`` (pixel-centre convention)."""
+    s = np.array([width / src.width, height / src.height])
+    return (uv + 0.5) * s - 0.5
+
+
+def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Callable[[int], torch.Tensor]:
+    """A loader of keyframe images at network resolution, undistorted to ``vo.intrinsics``."""
+    raw = seq.intrinsics
+
+    def load(kf_id: int) -> torch.Tensor:
+        rgb = seq.load_rgb(vo.keyframes[kf_id].frame_index)
+        if raw.dist is not None:
+            rgb = cv2.undistort(rgb, raw.K(), np.array(raw.dist), None, vo.intrinsics.K())
+        return to_net_image(rgb, width, height)
+
+    return load
+
+
+def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool) -> Callable[[np.ndarray], np.ndarray]:
+    """Predictor for evaluation: raw RGB frame → depth at network resolution (float32, map units)."""
+    from mutualslam_cli.adapt.depthnet import predict_depth
+
+    def predict(rgb: np.ndarray) -> np.ndarray:
+        x = to_net_image(rgb, cfg.net.width, cfg.net.height)[None]
+        return predict_depth(net, x, fast=fast)[0]
+
+    return predict
+
+
+def load_network(cfg: RunConfig) -> torch.nn.Module:
+    """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default."""
+    from mutualslam_cli.adapt import weights
+
+    kw = {"min_depth": cfg.net.min_depth, "max_depth": cfg.net.max_depth}
+    if cfg.net.weights:
+        return weights.load_monodepth2(Path(cfg.net.weights), **kw)
+    return weights.load_default(**kw)
+
+
+def use_fast_path(cfg: RunConfig) -> bool:
+    """Resolve ``net.fast`` (auto → bf16 where the CPU supports it)."""
+    from mutualslam_cli.adapt.depthnet import fast_path_supported
+
+    return cfg.net.fast == "on" or (cfg.net.fast == "auto" and fast_path_supported())
+
+
+# ----------------------------------------------------------------------------- adaptation
+
+
+def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunConfig, fast: bool,
+                   progress: Progress | None = None) -> tuple[torch.nn.Module, list[dict[str, Any]], Any]:
+    """Feed the keyframes through Algorithm 1 with the configured scheme.
+
+    Returns:
+        ``(adapted_net, per_keyframe_rows, adapter)``; for scheme ``none`` the network is returned
+        unchanged with no rows and ``adapter`` is ``None``.
+    """
+    from mutualslam_cli.adapt.buffer import KeyframeSample
+    from mutualslam_cli.adapt.online import OnlineAdapter
+
+    if cfg.adapt.scheme == "none":
+        return net, [], None
+    w, h = cfg.net.width, cfg.net.height
+    K_net = torch.from_numpy(vo.intrinsics.scaled(w, h).K()).float()
+    ba_triggers: list[int] = []
+    adapter = OnlineAdapter(net, cfg.adapt, K_net, seed=cfg.seed, fast=fast,
+                            on_global_ba=lambda *a, **k: ba_triggers.append(len(ba_triggers)))
+    load = keyframe_images(seq, vo, w, h)
+    pw = vo.points_world()
+    rows = []
+    t0 = time.perf_counter()
+    for kf in vo.keyframes:
+        uv, d = vo.sparse_depth(kf.id, pw)
+        sample = KeyframeSample(
+            kf_id=kf.id, image=load(kf.id), K=K_net, pose=kf.pose,
+            uv=torch.from_numpy(scale_pixels(uv, vo.intrinsics, w, h)).float(),
+            depth=torch.from_numpy(d).float(),
+        )
+        info = adapter.add_keyframe(sample)
+        row = info if isinstance(info, dict) else dict(vars(info))
+        row = {k: (v.value if hasattr(v, "value") else v) for k, v in row.items()}
+        row["n_sparse"] = len(d)
+        rows.append(row)
+        if progress:
+            progress("adapt", {"done": kf.id + 1, "total": len(vo.keyframes), **row,
+                               "elapsed_s": time.perf_counter() - t0})
+    return adapter.net if hasattr(adapter, "net") else net, rows, adapter
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def _write_trajectories(folder: Path, vo: VOResult) -> None:
+    import io
+
+    for name, traj in (("traj_kf.txt", vo.traj_kf), ("traj_all.txt", vo.traj_all)):
+        buf = io.StringIO()
+        write_tum_trajectory(buf, traj)
+        res.atomic_write_text(folder / name, buf.getvalue())
+
+
+def _write_ply(path: Path, points: np.ndarray) -> None:
+    """ASCII PLY of ``(P, 3)`` points (readable by open3d, MeshLab, CloudCompare)."""
+    head = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n" \
+           "property float z\nend_header\n"
+    body = "\n".join(f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points)
+    res.atomic_write_text(path, head + body + ("\n" if len(points) else ""))
+
+
+def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Path | None = None,
+                 command: list[str] | None = None, force: bool = False,
+                 progress: Progress | None = None, registry: Path | None = None) -> RunResult:
+    """Run one sequence with one scheme and write ``<out>/<seq>/<scheme>/seed<k>/`` (DESIGN §8).
+
+    Args:
+        sequence: a ``datasets.yaml`` name, a folder, or a loaded :class:`Sequence`.
+        cfg: resolved configuration.
+        out: results root (default ``cfg.out``).
+        command: the command line, recorded in ``manifest.json``.
+        force: recompute even when the run is complete.
+        progress: ``progress(stage, info)`` with stages ``load``, ``vo``, ``adapt``, ``eval``.
+        registry: an alternative ``datasets.yaml``.
+
+    Returns:
+        :class:`RunResult`. A complete run (``summary.json`` present) is returned as is unless
+        ``force``.
+    """
+    t_start = time.perf_counter()
+    torch.manual_seed(cfg.seed)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+        cv2.setNumThreads(cfg.threads)
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    seq = sequence if isinstance(sequence, Sequence) else load_sequence(
+        sequence, data_root=cfg.data.data_root, registry_path=registry,
+        max_frames=cfg.data.max_frames, stride=cfg.data.stride)
+    timings["load_s"] = time.perf_counter() - t
+    out_root = Path(out if out is not None else cfg.out)
+    folder = res.run_dir(out_root, seq.name, cfg.adapt.scheme, cfg.seed)
+    if res.is_complete(folder) and not force:
+        log.info("%s is complete; skipping (use --force to recompute)", folder)
+        return RunResult(folder, res.read_summary(folder), skipped=True)
+    folder.mkdir(parents=True, exist_ok=True)
+    res.write_yaml(folder / "config.yaml", to_dict(cfg))
+    summary = res.Summary()
+
+    # Front end (cached per sequence + VO config: every scheme reuses it).
+    t = time.perf_counter()
+    vo, cached = run_frontend(seq, cfg, cache_dir=out_root / "_cache" / "vo", progress=progress)
+    timings["vo_s"] = time.perf_counter() - t
+    vo_time = float(vo.meta.get("time_s", timings["vo_s"]))
+    _write_trajectories(folder, vo)
+    summary.set("vo.keyframes", len(vo.keyframes))
+    summary.set("vo.tracked_fraction", vo.tracked_fraction)
+    if cfg.vo.mode == "gt":
+        summary.absent("timing.vo_fps", "oracle front end (--vo gt): no tracking to time")
+    else:
+        summary.set("timing.vo_fps", len(seq) / vo_time if vo_time > 0 else None)
+    summary.set("map.points.vo", len(vo.points))
+    pw = vo.points_world()
+    _write_ply(folder / "map_vo.ply", pw)
+
+    # Trajectory accuracy without BA.
+    traj = evaluate_trajectory(seq, vo)
+    for key, name in (("kf", "trajectory.ate_rmse_m.vo"), ("all", "trajectory.ate_rmse_m.all_frames")):
+        r = traj[key]
+        if r is None:
+            summary.absent(name, traj["notes"].get(key, traj["notes"].get("trajectory", "not computed")))  # type: ignore[union-attr]
+        else:
+            summary.set(name, float(r.rmse))
+    if cfg.vo.mode == "gt":
+        summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
+    esi_vo, n_gt = map_esi(seq, vo)
+    summary.set("map.esi.vo", esi_vo, "no map point has GT depth at its host pixel")
+
+    # Network: pre-trained model, then online adaptation.
+    net0 = load_network(cfg)
+    fast = use_fast_path(cfg)
+    net = copy.deepcopy(net0)
+    t = time.perf_counter()
+    net, kf_rows, adapter = run_adaptation(seq, vo, net, cfg, fast, progress)
+    timings["adapt_s"] = time.perf_counter() - t
+    ft_ms = [r.get("ms") for r in kf_rows if r.get("trained")]
+    summary.set("timing.finetune_ms", float(np.median(ft_ms)) if ft_ms else None,
+                "scheme 'none': no fine-tuning" if cfg.adapt.scheme == "none" else "no keyframe was trained on")
+    if kf_rows:
+        import pandas as pd
+
+        res.atomic_write_text(folder / "keyframes.csv", pd.DataFrame(kf_rows).to_csv(index=False))
+
+    # Global photometric BA with map-point culling: not available in this version.
+    n_trig = sum(bool(r.get("run_global_ba")) for r in kf_rows)
+    reason = ("global photometric BA with map-point culling is not implemented yet "
+              f"(Algorithm 1 requested it {n_trig} time(s))")
+    for key in ("trajectory.ate_rmse_m.ba", "map.points.culled", "map.points.ba", "map.esi.culled",
+                "map.esi.ba", "timing.ba_s"):
+        summary.absent(key, reason)
+
+    # Depth evaluation with the pre-trained and the final model on every frame with GT depth.
+    t = time.perf_counter()
+    predictors = {"pretrained": make_predictor(net0, cfg, fast), "adapted": make_predictor(net, cfg, fast)}
+    if cfg.adapt.scheme == "none":
+        predictors = {"pretrained": predictors["pretrained"]}
+    kf_frames = {k.frame_index for k in vo.keyframes}
+    cb = (lambda d, n: progress("eval", {"done": d, "total": n})) if progress else None
+    table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, cb)
+    timings["eval_s"] = time.perf_counter() - t
+    summary.set("timing.depth_ms", ms.get("pretrained"))
+    if len(table):
+        res.atomic_write_text(folder / "per_frame.csv", table.to_csv(index=False))
+    for model in ("pretrained", "adapted"):
+        src = model if model in predictors else "pretrained"
+        for scaling in ("lsq", "median"):
+            col = f"{src}_pcd_{scaling}"
+            val = float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
+            summary.set(f"depth.pcd.{scaling}.{model}", val, "no frame with valid GT depth")
+        col = f"{src}_esi"
+        val = float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
+        summary.set(f"depth.esi.{model}", val, "no frame with valid GT depth")
+    if cfg.adapt.scheme == "none":
+        summary.notes["depth.pcd.lsq.adapted"] = "scheme 'none': the adapted model is the pre-trained model"
+    summary.set("depth.frames_evaluated", int(len(table)))
+    if cfg.eval.save_weights and cfg.adapt.scheme != "none":
+        from mutualslam_cli.adapt.weights import save_monodepth2
+
+        save_monodepth2(net, folder / "weights", cfg.net.height, cfg.net.width)
+
+    timings["total_s"] = time.perf_counter() - t_start
+    summary.set("timing.total_s", timings["total_s"])
+    summary.set("vo.from_cache", cached)
+    summary.set("sequence.name", seq.name)
+    summary.set("sequence.frames", len(seq))
+    summary.set("scheme", cfg.adapt.scheme)
+    summary.set("seed", cfg.seed)
+    summary.set("vo.mode", cfg.vo.mode)
+    summary.set("depth.fast_path", fast)
+    res.write_json(folder / "manifest.json", res.manifest(command, cfg.seed, timings, {
+        "sequence": {"name": seq.name, "root": str(seq.root), "frames": len(seq), "meta": seq.meta,
+                     "intrinsics": seq.intrinsics.as_list()},
+        "vo_meta": {k: v for k, v in vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
+        "map_points_with_gt": n_gt,
+    }))
+    s = summary.to_dict()
+    res.write_json(folder / "summary.json", s)  # last: marks the run complete
+    return RunResult(folder, s, timings=timings)

@@ -1,0 +1,70 @@
+"""Config loading, overrides and validation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from mutualslam_cli.config import CONFIG_DIR, RunConfig, load_config, to_dict, with_overrides
+from mutualslam_cli.errors import ConfigError
+
+
+def test_paper_yaml_equals_dataclass_defaults():
+    # configs/paper.yaml must hold exactly the paper's values, which are the dataclass defaults.
+    assert to_dict(load_config(CONFIG_DIR / "paper.yaml")) == to_dict(RunConfig())
+
+
+def test_paper_values():
+    c = load_config()
+    assert (c.adapt.lr, c.adapt.lambda_sparse, c.adapt.lambda_smooth, c.adapt.alpha) == (1e-3, 0.1, 0.1, 0.85)
+    assert (c.adapt.ewc_beta, c.adapt.ewc_max_f, c.adapt.mas_lambda, c.adapt.si_lambda) == (5e7, 1e-3, 0.5, 1.0)
+    assert (c.adapt.validate_every, c.adapt.patience, c.adapt.tau_val) == (5, 3, 0.2)
+    assert (c.vo.grid_size, c.vo.max_fts, c.vo.core_kfs) == (20, 500, 5)
+    assert (c.ba.gamma, c.ba.d_max, c.ba.patch, c.ba.max_targets) == (0.5, 1.5, 3, 5)
+    assert (c.net.width, c.net.height, c.net.min_depth, c.net.max_depth) == (640, 192, 0.1, 100.0)
+
+
+def test_overrides_parse_yaml_values():
+    c = load_config(CONFIG_DIR / "smoke.yaml", ["adapt.lr=1e-4", "vo.mode=svo", "eval.save_weights=true"])
+    assert c.adapt.lr == 1e-4 and c.vo.mode == "svo" and c.eval.save_weights is True
+    assert c.net.width == 96  # from smoke.yaml
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("adapt.lrr=1", "unknown key"),
+        ("vo.mode=foo", "not one of"),
+        ("adapt.lr=abc", "expected a number"),
+        ("adapt.lr=.nan", "NaN"),
+        ("net.width=100", "multiples of 32"),
+        ("adapt.validate_every=0", "≥ 1"),
+        ("seed=1.5", "integer"),
+        ("nosection", "key=value"),
+    ],
+)
+def test_bad_overrides_raise_config_error(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [override])
+
+
+def test_bad_files(tmp_path: Path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("adapt: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
+    scalar = tmp_path / "scalar.yaml"
+    scalar.write_text("42\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(scalar)
+
+
+def test_resolved_config_round_trips(tmp_path: Path):
+    c = with_overrides(load_config(), adapt={"scheme": "replay+si"}, seed=3)
+    p = tmp_path / "config.yaml"
+    p.write_text(yaml.safe_dump(to_dict(c)))
+    assert load_config(p) == c
