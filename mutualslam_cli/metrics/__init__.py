@@ -1,1 +1,48 @@
-"""metrics."""
+"""Evaluation metrics (DESIGN §7): depth accuracy (PCD, e_si, abs_rel) and trajectory ATE.
+
+Library code only (numpy, OpenCV for resizing); each formula cites its source next to the line.
+"""
+
+from mutualslam_cli.metrics.depth import (
+    DepthStats,
+    depth_frame_metrics,
+    depth_stats,
+    esi,
+    percent_correct,
+    resize_to,
+    running_mean,
+    scale_factor,
+    valid_mask,
+)
+from mutualslam_cli.metrics.trajectory import (
+    AteResult,
+    GeometryError,
+    SegmentedAteResult,
+    associate_indices,
+    associate_trajectories,
+    ate,
+    ate_segments,
+    path_length,
+    umeyama,
+)
+
+__all__ = [
+    "AteResult",
+    "DepthStats",
+    "GeometryError",
+    "SegmentedAteResult",
+    "associate_indices",
+    "associate_trajectories",
+    "ate",
+    "ate_segments",
+    "depth_frame_metrics",
+    "depth_stats",
+    "esi",
+    "path_length",
+    "percent_correct",
+    "resize_to",
+    "running_mean",
+    "scale_factor",
+    "umeyama",
+    "valid_mask",
+]

@@ -1,0 +1,262 @@
+"""Depth accuracy: percent correct depth (PCD), scale-invariant error e_si, abs_rel (DESIGN §7).
+
+Conventions: depth in metres (or map units), ``(H, W)`` maps or ``(N,)`` point arrays;
+numpy arrays or torch tensors (converted to float64 numpy; leading size-1 dimensions of
+maps, e.g. ``(1, 1, H, W)``, are squeezed). A pixel is *valid* when its GT depth is finite,
+``> 0`` and ``<= max_depth`` **and** the prediction there is finite and ``> 0``. Statistics
+over an empty set are ``float('nan')``, never 0.
+
+Scaling protocols (monocular depth has no metric scale), named in every output:
+
+- ``median``: ``s = median(D_gt) / median(D)`` per frame (Zhou et al. 2017 / Monodepth2
+  ``evaluate_depth.py``; the paper's Table 2).
+- ``lsq``: ``s = Σ D·D_gt / Σ D²``, the least-squares fit of ``s·D`` to ``D_gt`` per frame
+  ("scaled to GT", the paper's Tables 1 and 3).
+- ``none``: ``s = 1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from mutualslam_cli.errors import ConfigError, ShapeError
+from mutualslam_cli.types import check_shape
+
+SCALINGS = ("lsq", "median", "none")
+PCD_THRESHOLD = 0.1
+"""Relative error below which a pixel counts as correct (paper §IV-B, after Luo et al.)."""
+MAX_DEPTH = 10.0
+"""GT depth above this (metres) is not evaluated (indoor sensors; DESIGN §7)."""
+
+Scaling = Literal["lsq", "median", "none"]
+
+
+def _as_array(x: Any) -> np.ndarray:
+    """numpy or torch → float64 numpy (detached, on CPU)."""
+    if hasattr(x, "detach"):  # torch.Tensor, without importing torch here
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def _as_map(x: Any, name: str) -> np.ndarray:
+    """float64 ``(H, W)`` map; leading size-1 dimensions are dropped."""
+    a = _as_array(x)
+    while a.ndim > 2 and a.shape[0] == 1:
+        a = a[0]
+    check_shape(a, ["H", "W"], name)
+    return a
+
+
+def _check_scaling(scaling: str) -> None:
+    if scaling not in SCALINGS:
+        raise ConfigError(f"unknown depth scaling {scaling!r}; valid: {', '.join(SCALINGS)}")
+
+
+def valid_mask(gt: Any, max_depth: float = MAX_DEPTH, pred: Any | None = None) -> np.ndarray:
+    """Pixels (or points) where the metrics are evaluated.
+
+    Args:
+        gt: ``(H, W)`` or ``(N,)`` GT depth; 0, negative or non-finite means missing.
+        max_depth: GT depth above this is ignored (metres).
+        pred: optional prediction of the same shape; it must also be finite and ``> 0``.
+
+    Returns:
+        bool array of ``gt``'s shape.
+    """
+    g = _as_array(gt)
+    with np.errstate(invalid="ignore"):
+        m = np.isfinite(g) & (g > 0) & (g <= max_depth)
+        if pred is not None:
+            p = _as_array(pred)
+            if p.shape != g.shape:
+                raise ShapeError(f"valid_mask: pred shape {p.shape} differs from gt shape {g.shape}")
+            m &= np.isfinite(p) & (p > 0)
+    return m
+
+
+def resize_to(pred: Any, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear resize of a depth map to ``shape = (H, W)`` (``cv2.INTER_LINEAR``), float64.
+
+    Returned unchanged (as float64) when it already has that shape.
+    """
+    p = _as_map(pred, "pred")
+    h, w = int(shape[0]), int(shape[1])
+    if p.shape == (h, w):
+        return p
+    return cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def scale_factor(pred: Any, gt: Any, mask: np.ndarray, scaling: Scaling) -> float:
+    """Scale ``s`` applied to ``pred`` before comparing with ``gt``, over ``mask``.
+
+    ``median``: ``median(gt)/median(pred)``; ``lsq``: ``Σ pred·gt / Σ pred²``; ``none``: 1.
+    Returns NaN for ``median``/``lsq`` when ``mask`` is empty.
+
+    Raises:
+        ConfigError: unknown ``scaling``.
+    """
+    _check_scaling(scaling)
+    if scaling == "none":
+        return 1.0
+    return _scale(_as_array(pred)[mask], _as_array(gt)[mask], scaling)
+
+
+def _scale(p: np.ndarray, g: np.ndarray, scaling: str) -> float:
+    """:func:`scale_factor` on the valid values only (1-D)."""
+    if scaling == "none":
+        return 1.0
+    if p.size == 0:
+        return float("nan")
+    if scaling == "median":
+        return float(np.median(g) / np.median(p))  # median scaling, Zhou et al. 2017 / Monodepth2
+    return float(np.dot(p, g) / np.dot(p, p))  # argmin_s Σ(s·p − g)²: d/ds = 0 ⇒ s = Σpg/Σp²
+
+
+def _pcd(p: np.ndarray, g: np.ndarray, s: float, threshold: float) -> float:
+    if p.size == 0:
+        return float("nan")
+    return float(100.0 * np.mean(np.abs(s * p - g) / g < threshold))  # paper §IV-B: |D − D_gt|/D_gt < 0.1
+
+
+def percent_correct(
+    pred: Any,
+    gt: Any,
+    scaling: Scaling,
+    threshold: float = PCD_THRESHOLD,
+    max_depth: float = MAX_DEPTH,
+) -> float:
+    """Percent correct depth (paper §IV-B): share of valid pixels with ``|s·D − D_gt|/D_gt < threshold``.
+
+    Args:
+        pred: ``(h, w)`` predicted depth (any resolution; resized bilinearly to GT's).
+        gt: ``(H, W)`` GT depth, metres; 0 = missing.
+        scaling: ``lsq`` | ``median`` | ``none`` (module docstring).
+        threshold: relative error bound (strict ``<``).
+        max_depth: GT depth above this is ignored.
+
+    Returns:
+        Percent in ``[0, 100]``; NaN when no pixel is valid.
+    """
+    g = _as_map(gt, "gt")
+    p = resize_to(pred, g.shape)
+    m = valid_mask(g, max_depth, p)
+    _check_scaling(scaling)
+    pv, gv = p[m], g[m]
+    return _pcd(pv, gv, _scale(pv, gv, scaling), threshold)
+
+
+def esi(pred: Any, gt: Any, mask: np.ndarray | None = None) -> float:
+    """Scale-invariant log error e_si (Eigen et al. 2014, eq. 4 with λ = 1; paper §IV-D).
+
+    ``e_si = sqrt(mean(d²) − mean(d)²)``, ``d = log z − log z*``; the same value as the
+    paper's inverse-depth form (``d`` only changes sign). Computed as the population
+    standard deviation of ``d``, which is algebraically identical and does not cancel
+    catastrophically (``pred = k·gt`` gives 0 to rounding).
+
+    Args:
+        pred: ``(H, W)`` depth map or ``(N,)`` map-point depths.
+        gt: same shape, GT depth.
+        mask: optional bool selection; pixels/points where either value is not finite or
+            ``<= 0`` are always excluded.
+
+    Returns:
+        e_si (dimensionless, log units); NaN when nothing is valid.
+    """
+    p, g = _as_array(pred), _as_array(gt)
+    if p.shape != g.shape:
+        raise ShapeError(f"esi: pred shape {p.shape} differs from gt shape {g.shape}")
+    m = valid_mask(g, np.inf, p)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != g.shape:
+            raise ShapeError(f"esi: mask shape {mask.shape} differs from gt shape {g.shape}")
+        m &= mask
+    return _esi(p[m], g[m])
+
+
+def _esi(p: np.ndarray, g: np.ndarray) -> float:
+    """:func:`esi` on valid (finite, positive) 1-D values."""
+    if p.size == 0:
+        return float("nan")
+    d = np.log(p) - np.log(g)  # d_i = log z_i − log z_i* (paper §IV-D)
+    return float(np.sqrt(np.mean((d - d.mean()) ** 2)))  # = sqrt(1/N Σd² − 1/N² (Σd)²), Eigen et al. 2014
+
+
+def abs_rel(pred: Any, gt: Any, mask: np.ndarray, scale: float = 1.0) -> float:
+    """Mean absolute relative error ``mean(|s·D − D_gt| / D_gt)`` (Eigen et al. 2014); NaN if empty."""
+    return _abs_rel(_as_array(pred)[mask], _as_array(gt)[mask], scale)
+
+
+def _abs_rel(p: np.ndarray, g: np.ndarray, scale: float) -> float:
+    if p.size == 0:
+        return float("nan")
+    return float(np.mean(np.abs(scale * p - g) / g))  # abs_rel, Eigen et al. 2014 §4
+
+
+@dataclass
+class DepthStats:
+    """Per-frame depth metrics (one row of ``per_frame.csv``).
+
+    Attributes:
+        pcd_lsq, pcd_median, pcd_none: percent correct under each scaling.
+        esi: scale-invariant log error over valid pixels.
+        abs_rel: mean absolute relative error after median scaling.
+        scale_lsq, scale_median: the per-frame scale factors.
+        n_valid: number of valid pixels (all values are NaN when 0).
+    """
+
+    pcd_lsq: float
+    pcd_median: float
+    pcd_none: float
+    esi: float
+    abs_rel: float
+    scale_lsq: float
+    scale_median: float
+    n_valid: int
+
+
+def depth_stats(
+    pred: Any, gt: Any, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD
+) -> DepthStats:
+    """All per-frame depth metrics of one prediction (resized to GT resolution first)."""
+    g = _as_map(gt, "gt")
+    p = resize_to(pred, g.shape)
+    m = valid_mask(g, max_depth, p)
+    pv, gv = p[m], g[m]
+    s_lsq = _scale(pv, gv, "lsq")
+    s_med = _scale(pv, gv, "median")
+    return DepthStats(
+        pcd_lsq=_pcd(pv, gv, s_lsq, threshold),
+        pcd_median=_pcd(pv, gv, s_med, threshold),
+        pcd_none=_pcd(pv, gv, 1.0, threshold),
+        esi=_esi(pv, gv),
+        abs_rel=_abs_rel(pv, gv, s_med),
+        scale_lsq=s_lsq,
+        scale_median=s_med,
+        n_valid=int(m.sum()),
+    )
+
+
+def depth_frame_metrics(
+    pred: Any, gt: Any, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD
+) -> dict[str, float | int]:
+    """:func:`depth_stats` as a plain dict (keys = :class:`DepthStats` fields) for ``per_frame.csv``."""
+    return asdict(depth_stats(pred, gt, max_depth, threshold))
+
+
+def running_mean(values: Any) -> np.ndarray:
+    """Mean over frames ``0..t`` for every ``t``, ignoring NaN (and inf) (the paper's accuracy-over-frames figure).
+
+    Returns:
+        ``(T,)`` float64; NaN until the first finite value.
+    """
+    v = _as_array(values).reshape(-1)
+    ok = np.isfinite(v)
+    total = np.cumsum(np.where(ok, v, 0.0))
+    count = np.cumsum(ok)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)

@@ -1,0 +1,461 @@
+"""Trajectory accuracy: timestamp association, Umeyama alignment, ATE (DESIGN §7).
+
+The absolute trajectory error follows Sturm et al., "A Benchmark for the Evaluation of
+RGB-D SLAM Systems", IROS 2012 (§VI-A): associate the estimated and the ground-truth poses
+by timestamp, align the estimate to the ground truth with the least-squares similarity
+(monocular, Sim(3)) or rigid (SE(3)) transform of Umeyama, "Least-Squares Estimation of
+Transformation Parameters Between Two Point Patterns", IEEE PAMI 13(4), 1991, and report
+statistics of the translational residuals.
+
+The numbers equal ``evo_ape tum REF EST -as --t_max_diff 0.02`` (evo 1.38.1, same pairs,
+same alignment, same statistics; ``tests/test_ate_evo.py`` checks it on real data). Note
+that the ``evo_ape`` command line defaults to ``--t_max_diff 0.01``; mslam's default is the
+TUM benchmark's 0.02 s.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from mutualslam_cli.errors import ConfigError, DatasetError, MslamError
+from mutualslam_cli.types import Trajectory, check_shape
+
+logger = logging.getLogger(__name__)
+
+ALIGNMENTS = ("sim3", "se3", "none")
+ASSOCIATIONS = ("nearest", "unique")
+DEFAULT_MAX_DT = 0.02
+"""Association window in seconds (TUM benchmark ``associate.py`` default)."""
+
+
+class GeometryError(MslamError):
+    """An alignment is degenerate (too few pairs, all positions identical or collinear)."""
+
+
+# --------------------------------------------------------------------------- association
+
+
+def _match_nearest(short: np.ndarray, long: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each stamp of ``short``, the nearest stamp of ``long`` within ``max_dt``.
+
+    Same decisions as evo's ``sync.matching_time_indices`` (v1.38): inclusive window
+    (``|dt| <= max_dt``), a tie between the two neighbours goes to the earlier one, and a
+    ``long`` stamp may be matched by several ``short`` stamps.
+    """
+    if len(long) == 0 or len(short) == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    if np.any(np.diff(long) < 0):  # unsorted: plain nearest search, as evo falls back to
+        diffs = np.abs(long[None, :] - short[:, None])
+        j = np.argmin(diffs, axis=1)
+        ok = diffs[np.arange(len(short)), j] <= max_dt
+        return np.nonzero(ok)[0], j[ok]
+    j_ub = np.minimum(np.searchsorted(long, short, side="right"), len(long) - 1)
+    diff_ub = long[j_ub] - short
+    diff_lb = np.where(j_ub > 0, short - long[np.maximum(j_ub - 1, 0)], np.inf)
+    in_range = (short >= long[0] - max_dt) & (short <= long[-1] + max_dt)
+    take_ub = (diff_ub <= max_dt) & (diff_ub < diff_lb)
+    take_lb = ~take_ub & (diff_lb <= max_dt) & (diff_lb <= diff_ub)
+    ok = in_range & (take_ub | take_lb)
+    j = np.where(take_ub, j_ub, j_ub - 1)
+    return np.nonzero(ok)[0], j[ok]
+
+
+def _match_unique(a: np.ndarray, b: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy one-to-one matching by increasing ``|dt|`` (TUM ``associate.py``), ``|dt| <= max_dt``."""
+    order_b = np.argsort(b, kind="stable")
+    bs = b[order_b]
+    lo = np.searchsorted(bs, a - max_dt, side="left")
+    hi = np.searchsorted(bs, a + max_dt, side="right")
+    cand = [(abs(a[i] - bs[k]), i, int(order_b[k])) for i in range(len(a)) for k in range(lo[i], hi[i])]
+    cand = [c for c in cand if c[0] <= max_dt]
+    cand.sort()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    pairs = []
+    for _, i, j in cand:
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((i, j))
+    pairs.sort()
+    if not pairs:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    ia, ib = np.array(pairs, dtype=int).T
+    return ia, ib
+
+
+def associate_indices(
+    ref_t: np.ndarray,
+    est_t: np.ndarray,
+    max_dt: float = DEFAULT_MAX_DT,
+    method: Literal["nearest", "unique"] = "nearest",
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs ``(i_ref, i_est)`` of associated timestamps.
+
+    Args:
+        ref_t: ``(N,)`` reference timestamps, seconds.
+        est_t: ``(M,)`` estimate timestamps, seconds.
+        max_dt: largest accepted ``|t_ref − t_est|`` (inclusive), seconds.
+        method: ``nearest`` — evo's ``associate_trajectories`` (nearest-time): every pose of
+            the trajectory with fewer poses (``est`` on a tie) takes its nearest stamp in the
+            other one; a pose of the longer trajectory can serve two pairs (rare; only when
+            the longer one is locally sparser). ``unique`` — TUM ``associate.py``: greedy
+            one-to-one matching by increasing ``|dt|``.
+
+    Returns:
+        Two int arrays of equal length ``K``, sorted by the shorter trajectory's index.
+    """
+    ref_t = np.asarray(ref_t, dtype=np.float64).reshape(-1)
+    est_t = np.asarray(est_t, dtype=np.float64).reshape(-1)
+    if method == "unique":
+        return _match_unique(ref_t, est_t, max_dt)
+    if method != "nearest":
+        raise ConfigError(f"unknown association method {method!r}; valid: {', '.join(ASSOCIATIONS)}")
+    if len(est_t) > len(ref_t):  # evo: start from the trajectory with fewer poses
+        i_ref, i_est = _match_nearest(ref_t, est_t, max_dt)
+    else:
+        i_est, i_ref = _match_nearest(est_t, ref_t, max_dt)
+    return i_ref, i_est
+
+
+def _no_overlap_message(ref: Trajectory, est: Trajectory, max_dt: float) -> str:
+    def span(t: np.ndarray) -> str:
+        return f"{t.min():.6f}–{t.max():.6f} s" if len(t) else "nothing (empty)"
+
+    return (
+        f"no timestamps of est within {max_dt:g} s of ref: est spans {span(est.timestamps)}, "
+        f"ref spans {span(ref.timestamps)}"
+    )
+
+
+def associate_trajectories(
+    ref: Trajectory,
+    est: Trajectory,
+    max_dt: float = DEFAULT_MAX_DT,
+    method: Literal["nearest", "unique"] = "nearest",
+) -> tuple[Trajectory, Trajectory]:
+    """Sub-trajectories ``(ref_sub, est_sub)`` of associated poses, pair ``k`` ↔ row ``k``.
+
+    See :func:`associate_indices` for the matching rule (default: evo's, so that the ATE
+    equals ``evo_ape``'s). Raises :class:`DatasetError` when no pair is found, naming both
+    time spans.
+    """
+    i_ref, i_est = associate_indices(ref.timestamps, est.timestamps, max_dt, method)
+    if len(i_ref) == 0:
+        raise DatasetError(_no_overlap_message(ref, est, max_dt))
+    logger.debug("associated %d of %d est / %d ref poses (max_dt %g s)", len(i_ref), len(est), len(ref), max_dt)
+    return ref.subset(i_ref), est.subset(i_est)
+
+
+# --------------------------------------------------------------------------- alignment
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """Similarity (or rigid) transform minimising ``Σ ‖dst_i − (s·R·src_i + t)‖²`` (Umeyama 1991).
+
+    Args:
+        src: ``(N, 3)`` points to move (estimated positions).
+        dst: ``(N, 3)`` target points (reference positions).
+        with_scale: estimate ``s`` (Sim(3)); otherwise ``s = 1`` (SE(3)).
+
+    Returns:
+        ``R`` ``(3, 3)`` rotation (det +1), ``t`` ``(3,)``, ``s`` float.
+
+    Raises:
+        ShapeError: shapes differ or are not ``(N, 3)``.
+        GeometryError: ``N < 3``, non-finite input, or a covariance of rank < 2 (all points
+            identical or collinear: the rotation is not determined).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    check_shape(src, ["N", 3], "umeyama src")
+    check_shape(dst, [len(src), 3], "umeyama dst")
+    n = len(src)
+    if n < 3:
+        raise GeometryError(f"Umeyama alignment needs at least 3 point pairs, got {n}")
+    if not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
+        raise GeometryError("Umeyama alignment: positions contain NaN or inf")
+    mu_src = src.mean(axis=0)  # Umeyama eq. 34
+    mu_dst = dst.mean(axis=0)  # Umeyama eq. 35
+    xs = src - mu_src
+    xd = dst - mu_dst
+    var_src = float(np.sum(xs * xs)) / n  # Umeyama eq. 36 (σ_x²)
+    cov = xd.T @ xs / n  # Umeyama eq. 38 (Σ_xy, dst × src)
+    u, d, vt = np.linalg.svd(cov)  # text between eqs. 38 and 39
+    tol = np.finfo(np.float64).eps * max(1.0, float(d[0]))
+    if np.count_nonzero(d > tol) < 2:
+        raise GeometryError(
+            f"degenerate alignment: covariance rank {np.count_nonzero(d > tol)} < 2 over {n} pairs "
+            "(positions identical or collinear)"
+        )
+    S = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:  # Umeyama eq. 43 (reflection → rotation)
+        S[2, 2] = -1.0
+    R = u @ S @ vt  # Umeyama eq. 40
+    s = float(np.trace(np.diag(d) @ S) / var_src) if with_scale else 1.0  # Umeyama eq. 42
+    t = mu_dst - s * R @ mu_src  # Umeyama eq. 41
+    return R, t, s
+
+
+def sim3_matrix(R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
+    """``(4, 4)`` matrix ``[[s·R, t], [0, 1]]``; applied to homogeneous positions."""
+    T = np.eye(4)
+    T[:3, :3] = s * np.asarray(R)
+    T[:3, 3] = t
+    return T
+
+
+# --------------------------------------------------------------------------- ATE
+
+
+@dataclass
+class AteResult:
+    """Absolute trajectory error of one estimate against a reference (metres).
+
+    Attributes:
+        rmse, mean, median, max, min, std: statistics of ``errors`` (``std`` is the
+            population standard deviation, as evo).
+        n_pairs: number of associated pose pairs used.
+        scale: the alignment scale ``s`` (1 for ``se3``/``none``).
+        align: ``sim3`` | ``se3`` | ``none``.
+        transform: ``(4, 4)`` ``[[s·R, t], [0, 1]]`` applied to the estimate's positions.
+        errors: ``(K,)`` per-pair ``‖p_ref − (s·R·p_est + t)‖``, metres.
+        ref_timestamps, est_timestamps: ``(K,)`` timestamps of the pairs.
+        ref_positions, est_aligned: ``(K, 3)`` positions of the pairs (estimate aligned).
+        max_dt: association window used, seconds.
+        n_ref, n_est: poses in the input trajectories.
+    """
+
+    rmse: float
+    mean: float
+    median: float
+    max: float
+    min: float
+    std: float
+    n_pairs: int
+    scale: float
+    align: str
+    transform: np.ndarray
+    errors: np.ndarray
+    ref_timestamps: np.ndarray
+    est_timestamps: np.ndarray
+    ref_positions: np.ndarray
+    est_aligned: np.ndarray
+    max_dt: float = DEFAULT_MAX_DT
+    n_ref: int = 0
+    n_est: int = 0
+
+    def summary(self) -> dict[str, Any]:
+        """Plain-value dict (no arrays) for ``summary.json``."""
+        keys = ("rmse", "mean", "median", "max", "min", "std", "n_pairs", "scale", "align", "max_dt", "n_ref", "n_est")
+        return {k: getattr(self, k) for k in keys}
+
+
+def _stats(errors: np.ndarray) -> dict[str, float]:
+    """RMSE, mean, median, max, min, std of translational errors (Sturm et al. 2012, eq. 3)."""
+    if len(errors) == 0:
+        nan = float("nan")
+        return dict(rmse=nan, mean=nan, median=nan, max=nan, min=nan, std=nan)
+    return dict(
+        rmse=float(np.sqrt(np.mean(errors**2))),  # ATE_RMSE, Sturm et al. 2012 eq. 3
+        mean=float(np.mean(errors)),
+        median=float(np.median(errors)),
+        max=float(np.max(errors)),
+        min=float(np.min(errors)),
+        std=float(np.std(errors)),
+    )
+
+
+def _align(p_ref: np.ndarray, p_est: np.ndarray, align: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Aligned estimate positions, transform, rotation and scale for one alignment mode."""
+    if align == "none":
+        return p_est.copy(), np.eye(4), np.eye(3), 1.0
+    R, t, s = umeyama(p_est, p_ref, with_scale=(align == "sim3"))
+    return s * p_est @ R.T + t, sim3_matrix(R, t, s), R, s
+
+
+def _check_align(align: str) -> None:
+    if align not in ALIGNMENTS:
+        raise ConfigError(f"unknown alignment {align!r}; valid: {', '.join(ALIGNMENTS)}")
+
+
+def ate(
+    ref: Trajectory,
+    est: Trajectory,
+    align: Literal["sim3", "se3", "none"] = "sim3",
+    max_dt: float = DEFAULT_MAX_DT,
+    association: Literal["nearest", "unique"] = "nearest",
+) -> AteResult:
+    """Absolute trajectory error (Sturm et al. 2012, §VI-A) of ``est`` against ``ref``.
+
+    Poses are associated by timestamp (:func:`associate_trajectories`), the estimate's
+    positions are aligned to the reference by Umeyama (``sim3`` for monocular VO, ``se3``,
+    or ``none``), and statistics of the position residuals are returned. Orientation is not
+    part of the error (translational ATE, as ``evo_ape`` with its default pose relation).
+
+    Raises:
+        ConfigError: unknown ``align`` or ``association``.
+        DatasetError: no pair within ``max_dt`` (the message gives both time spans).
+        GeometryError: ``sim3``/``se3`` with fewer than 3 pairs or degenerate positions.
+    """
+    _check_align(align)
+    ref_sub, est_sub = associate_trajectories(ref, est, max_dt, association)
+    p_ref, p_est = ref_sub.positions, est_sub.positions
+    aligned, T, _, s = _align(p_ref, p_est, align)
+    errors = np.linalg.norm(p_ref - aligned, axis=1)  # Sturm et al. 2012 eq. 2 (translation of F_i)
+    return AteResult(
+        **_stats(errors),
+        n_pairs=len(errors),
+        scale=s,
+        align=align,
+        transform=T,
+        errors=errors,
+        ref_timestamps=ref_sub.timestamps,
+        est_timestamps=est_sub.timestamps,
+        ref_positions=p_ref,
+        est_aligned=aligned,
+        max_dt=max_dt,
+        n_ref=len(ref),
+        n_est=len(est),
+    )
+
+
+@dataclass
+class SegmentAte:
+    """One segment of :func:`ate_segments`: id, pairs, and its RMSE/scale (NaN if skipped)."""
+
+    segment: int
+    n_pairs: int
+    rmse: float
+    scale: float
+    skipped: str | None = None
+
+
+@dataclass
+class SegmentedAteResult:
+    """ATE of a VO trajectory that re-initialised: every segment aligned on its own.
+
+    Attributes:
+        rmse, mean, median, max, min, std: over all pairs of the aligned segments (metres).
+        n_pairs: pairs in aligned segments; ``n_pairs_skipped``: pairs in skipped segments.
+        n_segments: segments with at least one pair; ``n_skipped``: of those, not aligned.
+        segments: one :class:`SegmentAte` per segment with pairs.
+        align: alignment used per segment.
+        errors, ref_timestamps, est_timestamps, segment_of_pair: ``(K,)`` per aligned pair.
+        note: a sentence saying the number is per-segment aligned (for reports).
+    """
+
+    rmse: float
+    mean: float
+    median: float
+    max: float
+    min: float
+    std: float
+    n_pairs: int
+    n_pairs_skipped: int
+    n_segments: int
+    n_skipped: int
+    segments: list[SegmentAte]
+    align: str
+    errors: np.ndarray
+    ref_timestamps: np.ndarray
+    est_timestamps: np.ndarray
+    segment_of_pair: np.ndarray
+    note: str = ""
+    per_segment_alignment: bool = field(default=True)
+
+    def summary(self) -> dict[str, Any]:
+        """Plain-value dict for ``summary.json``."""
+        keys = ("rmse", "mean", "median", "max", "min", "std", "n_pairs", "n_pairs_skipped", "n_segments",
+                "n_skipped", "align", "note", "per_segment_alignment")
+        out = {k: getattr(self, k) for k in keys}
+        out["segments"] = [vars(s).copy() for s in self.segments]
+        return out
+
+
+def ate_segments(
+    ref: Trajectory,
+    est: Trajectory,
+    segments: np.ndarray,
+    align: Literal["sim3", "se3", "none"] = "sim3",
+    max_dt: float = DEFAULT_MAX_DT,
+    association: Literal["nearest", "unique"] = "nearest",
+    min_pairs: int = 3,
+) -> SegmentedAteResult:
+    """ATE with a separate alignment (own scale) per VO segment between re-initialisations.
+
+    Pairs are associated once over the whole trajectory (same pairs as :func:`ate`), then
+    grouped by the segment id of their estimated pose. Segments with fewer than
+    ``min_pairs`` pairs or degenerate positions are skipped and counted.
+
+    Args:
+        segments: ``(M,)`` integer segment id of each pose of ``est``.
+
+    Raises:
+        ShapeError: ``segments`` does not have one entry per estimated pose.
+        DatasetError: no pair within ``max_dt``.
+        GeometryError: no segment could be aligned.
+    """
+    _check_align(align)
+    segments = np.asarray(segments).reshape(-1)
+    check_shape(segments, [len(est)], "segments (one id per est pose)")
+    i_ref, i_est = associate_indices(ref.timestamps, est.timestamps, max_dt, association)
+    if len(i_ref) == 0:
+        raise DatasetError(_no_overlap_message(ref, est, max_dt))
+    seg_of_pair = segments[i_est]
+    per: list[SegmentAte] = []
+    errs, t_ref, t_est, seg_ids = [], [], [], []
+    n_skipped_pairs = 0
+    for sid in np.unique(seg_of_pair):
+        k = np.nonzero(seg_of_pair == sid)[0]
+        p_ref, p_est = ref.positions[i_ref[k]], est.positions[i_est[k]]
+        try:
+            if align != "none" and len(k) < min_pairs:
+                raise GeometryError(f"{len(k)} pairs < {min_pairs}")
+            aligned, _, _, s = _align(p_ref, p_est, align)
+        except GeometryError as exc:
+            per.append(SegmentAte(int(sid), len(k), float("nan"), float("nan"), skipped=str(exc)))
+            n_skipped_pairs += len(k)
+            continue
+        e = np.linalg.norm(p_ref - aligned, axis=1)  # Sturm et al. 2012 eq. 2, per segment
+        per.append(SegmentAte(int(sid), len(k), float(np.sqrt(np.mean(e**2))), s))
+        errs.append(e)
+        t_ref.append(ref.timestamps[i_ref[k]])
+        t_est.append(est.timestamps[i_est[k]])
+        seg_ids.append(np.full(len(k), sid))
+    n_skipped = sum(1 for s in per if s.skipped)
+    if not errs:
+        raise GeometryError(
+            f"ATE per segment: none of {len(per)} segments could be aligned "
+            f"({'; '.join(f'segment {s.segment}: {s.skipped}' for s in per)})"
+        )
+    errors = np.concatenate(errs)
+    note = (
+        f"each of {len(per) - n_skipped} segments aligned separately ({align}, own scale); "
+        f"{n_skipped} segments ({n_skipped_pairs} pairs) skipped"
+    )
+    return SegmentedAteResult(
+        **_stats(errors),
+        n_pairs=len(errors),
+        n_pairs_skipped=n_skipped_pairs,
+        n_segments=len(per),
+        n_skipped=n_skipped,
+        segments=per,
+        align=align,
+        errors=errors,
+        ref_timestamps=np.concatenate(t_ref),
+        est_timestamps=np.concatenate(t_est),
+        segment_of_pair=np.concatenate(seg_ids),
+        note=note,
+    )
+
+
+def path_length(traj: Trajectory) -> float:
+    """Length of the polyline through the camera centres, metres (0 for < 2 poses)."""
+    if len(traj) < 2:
+        return 0.0
+    return float(np.sum(np.linalg.norm(np.diff(traj.positions, axis=0), axis=1)))

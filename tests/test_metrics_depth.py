@@ -1,0 +1,188 @@
+"""Closed-form checks of metrics.depth (STYLE §4): PCD under scalings, e_si, edges."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mutualslam_cli.errors import ConfigError, ShapeError
+from mutualslam_cli.metrics.depth import (
+    DepthStats,
+    abs_rel,
+    depth_frame_metrics,
+    esi,
+    percent_correct,
+    resize_to,
+    running_mean,
+    scale_factor,
+    valid_mask,
+)
+
+
+@pytest.fixture
+def gt() -> np.ndarray:
+    """(24, 32) GT depth in [0.5, 8] m with some missing (0) and too-far (> 10 m) pixels."""
+    rng = np.random.default_rng(0)
+    g = rng.uniform(0.5, 8.0, size=(24, 32))
+    g[0, :5] = 0.0
+    g[1, :3] = 12.0
+    return g
+
+
+def test_valid_mask_edges(gt: np.ndarray) -> None:
+    g = gt.copy()
+    g[2, 0], g[2, 1], g[2, 2] = np.nan, np.inf, -1.0
+    g[2, 3] = 10.0  # exactly max_depth is kept
+    pred = np.ones_like(g)
+    pred[3, 0], pred[3, 1], pred[3, 2] = 0.0, np.nan, -2.0
+    m = valid_mask(g, 10.0, pred)
+    assert m.dtype == bool and m.shape == g.shape
+    assert not m[0, :5].any() and not m[1, :3].any() and not m[2, :3].any() and not m[3, :3].any()
+    assert m[2, 3]
+    assert m.sum() == g.size - 5 - 3 - 3 - 3
+    assert valid_mask(g, 10.0)[3, :3].all()  # without pred only GT matters
+
+
+def test_pcd_without_scaling_closed_form(gt: np.ndarray) -> None:
+    assert percent_correct(1.05 * gt, gt, "none") == 100.0
+    assert percent_correct(1.2 * gt, gt, "none") == 0.0
+    assert percent_correct(0.85 * gt, gt, "none") == 0.0  # |0.85−1| = 0.15 ≥ 0.1
+
+
+@pytest.mark.parametrize("scaling", ["median", "lsq"])
+@pytest.mark.parametrize("k", [1.2, 0.3, 7.0])
+def test_pcd_with_scaling_removes_global_scale(gt: np.ndarray, scaling: str, k: float) -> None:
+    assert percent_correct(k * gt, gt, scaling) == 100.0  # type: ignore[arg-type]
+
+
+def test_pcd_counts_the_right_share(gt: np.ndarray) -> None:
+    pred = gt.copy()
+    m = valid_mask(gt, 10.0)
+    idx = np.flatnonzero(m)[:100]  # make exactly 100 valid pixels 50 % off
+    pred.flat[idx] *= 1.5
+    expected = 100.0 * (m.sum() - 100) / m.sum()
+    assert percent_correct(pred, gt, "none") == pytest.approx(expected)
+    # the threshold is configurable and strict: an error of exactly 0.125 (binary-exact) is wrong
+    assert percent_correct(pred, gt, "none", threshold=0.6) == 100.0
+    two = np.full((4, 4), 2.0)
+    assert percent_correct(1.125 * two, two, "none", threshold=0.125) == 0.0
+    assert percent_correct(1.125 * two, two, "none", threshold=0.126) == 100.0
+
+
+def test_lsq_scale_equals_analytic(gt: np.ndarray) -> None:
+    rng = np.random.default_rng(1)
+    pred = gt * rng.uniform(0.5, 1.5, size=gt.shape)
+    m = valid_mask(gt, 10.0, pred)
+    s = scale_factor(pred, gt, m, "lsq")
+    p, g = pred[m], gt[m]
+    s_np = np.linalg.lstsq(p[:, None], g, rcond=None)[0][0]
+    assert s == pytest.approx(s_np, rel=1e-12)
+    # it is the minimiser: nearby scales do worse
+    cost = lambda x: np.sum((x * p - g) ** 2)  # noqa: E731
+    assert cost(s) < cost(s * 1.001) and cost(s) < cost(s * 0.999)
+    assert scale_factor(pred, gt, m, "median") == pytest.approx(np.median(g) / np.median(p))
+    assert scale_factor(pred, gt, m, "none") == 1.0
+
+
+def test_unknown_scaling_lists_valid_ones(gt: np.ndarray) -> None:
+    with pytest.raises(ConfigError, match="lsq, median, none"):
+        percent_correct(gt, gt, "mean")  # type: ignore[arg-type]
+
+
+def test_empty_mask_gives_nan_not_zero(gt: np.ndarray) -> None:
+    far = np.full_like(gt, 50.0)
+    assert np.isnan(percent_correct(far, far, "none"))
+    assert np.isnan(percent_correct(far, far, "median"))
+    empty = np.zeros(gt.shape, dtype=bool)
+    assert np.isnan(scale_factor(gt, gt, empty, "lsq"))
+    assert np.isnan(esi(gt, gt, empty))
+    assert np.isnan(esi(np.zeros(5), np.zeros(5)))
+    assert np.isnan(abs_rel(gt, gt, empty))
+    row = depth_frame_metrics(far, far)
+    assert row["n_valid"] == 0 and all(np.isnan(v) for k, v in row.items() if k != "n_valid")
+
+
+@pytest.mark.parametrize("k", [1.0, 0.01, 0.37, 2.0, 1e3])
+def test_esi_zero_for_scaled_prediction(gt: np.ndarray, k: float) -> None:
+    assert esi(k * gt, gt) < 1e-12
+    pts = np.random.default_rng(2).uniform(0.1, 20.0, size=500)  # 1-D map points
+    assert esi(k * pts, pts) < 1e-12
+
+
+def test_esi_closed_form() -> None:
+    # d = log(p/g) takes ±a with equal counts: mean 0, e_si = a
+    g = np.ones(10)
+    a = 0.3
+    p = np.exp(np.r_[np.full(5, a), np.full(5, -a)])
+    assert esi(p, g) == pytest.approx(a, rel=1e-12)
+    assert esi(3.0 * p, g) == pytest.approx(a, rel=1e-12)
+    # equals the paper's formula sqrt(1/N Σd² − 1/N² (Σd)²) on random data
+    rng = np.random.default_rng(3)
+    g, p = rng.uniform(0.5, 5, 200), rng.uniform(0.5, 5, 200)
+    d = np.log(p) - np.log(g)
+    assert esi(p, g) == pytest.approx(np.sqrt(np.mean(d**2) - np.mean(d) ** 2), rel=1e-9)
+    # inverse depth gives the same value (d changes sign only)
+    assert esi(1 / p, 1 / g) == pytest.approx(esi(p, g), rel=1e-12)
+
+
+def test_esi_mask_and_shape_checks(gt: np.ndarray) -> None:
+    pred = gt.copy()
+    pred[5:, :] *= 2.0
+    mask = np.zeros(gt.shape, dtype=bool)
+    mask[:5] = True
+    assert esi(pred, gt, mask) < 1e-12
+    assert esi(pred, gt) > 0.1
+    with pytest.raises(ShapeError):
+        esi(pred[:3], gt)
+    with pytest.raises(ShapeError):
+        esi(pred, gt, mask[:3])
+
+
+def test_resize_to_gt_resolution() -> None:
+    small = np.arange(12, dtype=np.float32).reshape(3, 4) + 1.0
+    big = resize_to(small, (6, 8))
+    assert big.shape == (6, 8) and big.dtype == np.float64
+    # bilinear with pixel centres: a constant-gradient map stays a gradient, means agree
+    assert big.mean() == pytest.approx(small.mean(), rel=1e-6)
+    assert big[0, 0] == pytest.approx(1.0) and big[-1, -1] == pytest.approx(12.0)
+    np.testing.assert_array_equal(resize_to(small, (3, 4)), small)
+
+
+def test_pcd_with_prediction_at_other_resolution() -> None:
+    gt = np.full((48, 64), 2.0)
+    gt[:, 32:] = 4.0
+    pred = np.full((24, 32), 1.0)
+    pred[:, 16:] = 2.0  # half of GT everywhere, at half resolution
+    # bilinear blending at the step makes a 2-column band wrong; everything else is exact
+    assert percent_correct(pred, gt, "none") == 0.0
+    pcd = percent_correct(pred, gt, "median")
+    assert 90.0 <= pcd < 100.0
+    assert percent_correct(pred, gt, "median") == percent_correct(resize_to(pred, gt.shape), gt, "median")
+
+
+def test_accepts_torch_tensors(gt: np.ndarray) -> None:
+    pred_t = torch.from_numpy(1.2 * gt).float()[None, None]  # (1, 1, H, W) network output
+    gt_t = torch.from_numpy(gt)
+    assert percent_correct(pred_t, gt_t, "median") == 100.0
+    assert esi(pred_t[0, 0], gt_t) < 1e-6  # float32 input
+
+
+def test_depth_frame_metrics_row(gt: np.ndarray) -> None:
+    row = depth_frame_metrics(1.2 * gt, gt, max_depth=10.0, threshold=0.1)
+    assert set(row) == set(DepthStats.__dataclass_fields__)
+    assert row["pcd_none"] == 0.0 and row["pcd_median"] == 100.0 and row["pcd_lsq"] == 100.0
+    assert row["scale_median"] == pytest.approx(1 / 1.2) and row["scale_lsq"] == pytest.approx(1 / 1.2)
+    assert row["abs_rel"] == pytest.approx(0.0, abs=1e-12) and row["esi"] < 1e-12
+    assert row["n_valid"] == valid_mask(gt, 10.0).sum()
+    row2 = depth_frame_metrics(1.3 * gt, gt, max_depth=5.0)
+    assert row2["n_valid"] == valid_mask(gt, 5.0).sum() < row["n_valid"]
+
+
+def test_running_mean_ignores_nan() -> None:
+    v = np.array([np.nan, 10.0, np.nan, 20.0, 60.0])
+    r = running_mean(v)
+    assert np.isnan(r[0])
+    np.testing.assert_allclose(r[1:], [10.0, 10.0, 15.0, 30.0])
+    assert np.isnan(running_mean([np.nan, np.nan])).all()
+    assert running_mean([]).shape == (0,)
