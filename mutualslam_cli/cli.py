@@ -91,24 +91,35 @@ def datasets(
     cfg = _config(config, sets, data_root)
     specs = list_datasets(registry, data_root=cfg.data.data_root)
     if not check:
-        t = Table("name", "format", "root", "exists", "fx fy cx cy", "depth scale", "GT", title="datasets.yaml")
+        t = Table("name", "format", "found", "fx fy cx cy", "depth/m", title="datasets.yaml")
         for s in specs:
             intr = " ".join(f"{v:g}" for v in s.intrinsics.as_list()) if s.intrinsics else "family/data"
-            t.add_row(s.name, s.format, str(s.root), "yes" if Path(s.root).is_dir() else "[dim]no[/]", intr,
-                      f"{s.depth_scale:g}", s.gt_file or "—")
+            t.add_row(s.name, s.format, "yes" if Path(s.root).is_dir() else "[dim]no[/]", intr, f"{s.depth_scale:g}")
         console.print(t)
+        console.print("roots: relative to --data-root / $MSLAM_DATA (see datasets.yaml); `--check NAME` verifies one")
         return
     targets = [name] if name else [s.name for s in specs if Path(s.root).is_dir()]
     if not targets:
         raise MslamError("no dataset folder exists under the data root; set MSLAM_DATA or --data-root")
-    t = Table("name", "frames", "span s", "depth", "GT cover", "fx fy cx cy", "depth scale", "fy sign", "warnings",
-              title="dataset check")
     for n in targets:
         r = check_sequence(n, data_root=cfg.data.data_root, registry_path=registry)
-        t.add_row(r.name, str(r.frames), f"{r.time_span_s:.2f}", str(r.frames_with_depth),
-                  f"{100 * r.gt_coverage:.1f}%", " ".join(f"{v:g}" for v in r.intrinsics.as_list()),
-                  f"{r.depth_scale:g}", _fmt(getattr(r, "fy_sign", None)), "; ".join(r.warnings) or "—")
-    console.print(t)
+        t = Table("check", "value", title=f"{r.name} ({r.format})", title_justify="left")
+        intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
+        rows = [
+            ("root", r.root), ("frames", str(r.frames)), ("time span", f"{r.time_span_s:.2f}"),
+            ("frames with depth", str(r.frames_with_depth)),
+            ("GT coverage", f"{r.frames_with_gt} frames ({r.gt_coverage_pct:.1f} %)"),
+            ("intrinsics fx fy cx cy", intr + (" + distortion" if len(r.intrinsics) > 4 else "")),
+            ("image size", "×".join(map(str, r.image_size))), ("depth scale", f"{r.depth_scale:g} = 1 m"),
+            ("median depth", _fmt(r.median_depth_m, 2) + " m"),
+        ]
+        if r.fy_sign is not None:
+            errs = ", ".join(f"{k}: {v:.3g}" for k, v in (r.fy_sign_errors or {}).items())
+            rows.append(("fy sign", f"{r.fy_sign:+d}" + (f" (photometric error {errs})" if errs else "")))
+        rows.append(("warnings", "; ".join(r.warnings) or "none"))
+        for k, v in rows:
+            t.add_row(k, v)
+        console.print(t)
 
 
 # --------------------------------------------------------------------------- synth
@@ -131,6 +142,8 @@ def synth(
         w, h = (int(v) for v in size.lower().split("x"))
     except ValueError:
         raise ConfigError(f"--size {size!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+    if scene not in synthetic.SCENES:
+        raise ConfigError(f"--scene {scene!r}: unknown scene; valid scenes: {', '.join(synthetic.SCENES)}")
     if domain not in ("target", "source"):
         raise ConfigError(f"--domain {domain!r}: expected target or source")
     with _progress() as p:

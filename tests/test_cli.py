@@ -1,0 +1,113 @@
+"""The command line: one-line errors with exit code 1, and the commands that need no network."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mutualslam_cli.cli import app
+from synth import make_tum_dir
+
+runner = CliRunner()
+
+
+def _one_line_error(result, *needles: str) -> None:
+    assert result.exit_code == 1, result.output
+    assert "Traceback" not in result.output
+    lines = [ln for ln in result.output.splitlines() if ln.strip()]
+    text = " ".join(lines)
+    assert text.startswith("error:"), result.output
+    for n in needles:
+        assert n in text, (n, result.output)
+
+
+@pytest.fixture
+def tum_dir(tmp_path: Path) -> Path:
+    return make_tum_dir(tmp_path, scene="room", n=6, width=64, height=48)
+
+
+def test_check_good_folder(tum_dir: Path):
+    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    assert r.exit_code == 0, r.output
+    assert "6" in r.output and "100.0 %" in r.output
+
+
+def test_missing_rgb_txt(tum_dir: Path):
+    (tum_dir / "rgb.txt").unlink()
+    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    _one_line_error(r, "rgb.txt")
+
+
+def test_malformed_gt_line(tum_dir: Path):
+    gt = tum_dir / "groundtruth.txt"
+    lines = gt.read_text().splitlines()
+    idx = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    lines[idx + 1] = "0.1 1.0 2.0 oops"
+    gt.write_text("\n".join(lines) + "\n")
+    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    _one_line_error(r, "groundtruth.txt", f":{idx + 2}")
+
+
+def test_8bit_depth_png(tum_dir: Path):
+    first = sorted((tum_dir / "depth").iterdir())[0]
+    cv2.imwrite(str(first), np.full((48, 64), 100, np.uint8))
+    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    _one_line_error(r, first.name, "16-bit")
+
+
+def test_no_gt_overlap(tum_dir: Path):
+    gt = tum_dir / "groundtruth.txt"
+    out = []
+    for ln in gt.read_text().splitlines():
+        if ln.startswith("#") or not ln.strip():
+            out.append(ln)
+            continue
+        f = ln.split()
+        out.append(" ".join([f"{float(f[0]) + 1000:.6f}", *f[1:]]))
+    gt.write_text("\n".join(out) + "\n")
+    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    _one_line_error(r, "no GT overlap")
+
+
+def test_run_missing_folder(tmp_path: Path):
+    r = runner.invoke(app, ["run", str(tmp_path / "nope"), "--out", str(tmp_path / "res")])
+    _one_line_error(r)
+
+
+def test_run_unknown_scheme(tum_dir: Path, tmp_path: Path):
+    r = runner.invoke(app, ["run", str(tum_dir), "--scheme", "bogus", "--out", str(tmp_path / "res")])
+    _one_line_error(r, "replay+ewc")
+
+
+def test_bad_set_override(tum_dir: Path):
+    r = runner.invoke(app, ["run", str(tum_dir), "--set", "adapt.lr=abc"])
+    _one_line_error(r, "adapt.lr")
+
+
+def test_ate_command(tmp_path: Path):
+    ts = np.arange(20) / 30.0
+    pos = np.round(np.c_[np.cos(ts), np.sin(ts), ts], 3)  # exactly representable in the 6-decimal files
+    rows = [f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} 0 0 0 1" for t, (x, y, z) in zip(ts, pos)]
+    (tmp_path / "ref.txt").write_text("\n".join(rows) + "\n")
+    est = [f"{t:.6f} {2 * x + 1:.6f} {2 * y:.6f} {2 * z:.6f} 0 0 0 1" for t, (x, y, z) in zip(ts, pos)]
+    (tmp_path / "est.txt").write_text("\n".join(est) + "\n")
+    r = runner.invoke(app, ["ate", str(tmp_path / "ref.txt"), str(tmp_path / "est.txt")])
+    assert r.exit_code == 0, r.output
+    assert "0.000000" in r.output and "0.500000" in r.output  # rmse 0 after Sim(3), scale 1/2
+    r = runner.invoke(app, ["ate", str(tmp_path / "ref.txt"), str(tmp_path / "est.txt"), "--align", "none"])
+    assert r.exit_code == 0 and "0.000000 " not in r.output.split("none")[1][:40]
+    r = runner.invoke(app, ["ate", str(tmp_path / "ref.txt"), str(tmp_path / "missing.txt")])
+    _one_line_error(r, "missing.txt")
+
+
+def test_synth_command(tmp_path: Path):
+    r = runner.invoke(app, ["synth", str(tmp_path / "s"), "--scene", "planar", "--frames", "3", "--size", "64x48"])
+    assert r.exit_code == 0, r.output
+    assert len(list((tmp_path / "s" / "rgb").iterdir())) == 3
+    r = runner.invoke(app, ["synth", str(tmp_path / "t"), "--scene", "cave", "--frames", "3", "--size", "64x48"])
+    _one_line_error(r, "room")
