@@ -227,17 +227,29 @@ def depth_stats(
     p = resize_to(pred, g.shape)
     m = valid_mask(g, max_depth, p)
     pv, gv = p[m], g[m]
-    s_lsq = _scale(pv, gv, "lsq")
-    s_med = _scale(pv, gv, "median")
+    if pv.size == 0:
+        nan = float("nan")
+        return DepthStats(nan, nan, nan, nan, nan, nan, nan, 0)
+    # One pass over the ratio r = D / D_gt serves every metric (this runs on every frame):
+    # |s·D − D_gt| / D_gt = |s·r − 1|, and log z − log z* = log r.
+    r = pv / gv
+    s_lsq = float(np.dot(pv, gv) / np.dot(pv, pv))  # argmin_s Σ(s·p − g)² ⇒ s = Σpg/Σp²
+    s_med = float(np.median(gv) / np.median(pv))  # median scaling, Zhou et al. 2017 / Monodepth2
+    n = r.size
+
+    def pcd(scale: float) -> float:  # paper §IV-B: |s·D − D_gt|/D_gt < threshold
+        return 100.0 * np.count_nonzero(np.abs(scale * r - 1.0) < threshold) / n
+
+    d = np.log(r)  # d_i = log z_i − log z_i* (paper §IV-D)
     return DepthStats(
-        pcd_lsq=_pcd(pv, gv, s_lsq, threshold),
-        pcd_median=_pcd(pv, gv, s_med, threshold),
-        pcd_none=_pcd(pv, gv, 1.0, threshold),
-        esi=_esi(pv, gv),
-        abs_rel=_abs_rel(pv, gv, s_med),
+        pcd_lsq=pcd(s_lsq),
+        pcd_median=pcd(s_med),
+        pcd_none=pcd(1.0),
+        esi=float(np.std(d)),  # population std = sqrt(mean d² − (mean d)²), Eigen et al. 2014
+        abs_rel=float(np.mean(np.abs(s_med * r - 1.0))),  # abs_rel after median scaling
         scale_lsq=s_lsq,
         scale_median=s_med,
-        n_valid=int(m.sum()),
+        n_valid=int(n),
     )
 
 
