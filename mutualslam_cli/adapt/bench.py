@@ -1,0 +1,151 @@
+"""Micro-benchmarks of the depth network: prediction and one fine-tuning step (DESIGN §10).
+
+Timings are medians of wall-clock milliseconds after warm-up; they depend on the load of
+the machine, so treat them as indicative.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Any
+
+import torch
+
+from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, fast_path_supported, make_adam, prepare
+from mutualslam_cli.adapt.losses import train_loss
+
+
+def _setup(threads: int | None, seed: int) -> None:
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    torch.manual_seed(seed)
+
+
+def _median_ms(fn, repeats: int, warmup: int) -> tuple[float, list[float]]:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1000.0)
+    return statistics.median(times), times
+
+
+def bench_inference(width: int = 640, height: int = 192, repeats: int = 10, fast: bool = False,
+                    threads: int | None = None, batch: int = 1, warmup: int = 2, seed: int = 0,
+                    channels_last: bool | None = None) -> dict[str, Any]:
+    """Median time of one depth prediction (eval mode, no grad).
+
+    Returns:
+        ``{"ms": median, "times_ms": [...], "fast": bool, "width", "height", "threads"}``.
+    """
+    _setup(threads, seed)
+    net = prepare(DepthNet().eval(), fast, channels_last)
+    x = torch.rand(batch, 3, height, width)
+
+    def step() -> None:
+        with torch.no_grad(), fast_context(fast):
+            net.predict(x)
+
+    ms, times = _median_ms(step, repeats, warmup)
+    return {"ms": ms, "times_ms": times, "fast": fast, "width": width, "height": height,
+            "threads": torch.get_num_threads(), "bf16_supported": fast_path_supported()}
+
+
+def make_step_batch(width: int, height: int, n_points: int = 500, seed: int = 0) -> dict[str, Any]:
+    """A realistic fine-tuning batch: 2 targets (recent + replayed), 2 neighbours each, sparse points."""
+    g = torch.Generator().manual_seed(seed)
+    b = 2
+    K = torch.tensor([[0.58 * width, 0, width / 2 - 0.5], [0, 1.92 * height, height / 2 - 0.5], [0, 0, 1]])
+    T1, T2 = torch.eye(4), torch.eye(4)
+    T1[:3, 3] = torch.tensor([0.05, 0.0, 0.01])
+    T2[:3, 3] = torch.tensor([-0.05, 0.01, -0.01])
+    uv = torch.rand(b, n_points, 2, generator=g) * torch.tensor([width - 1.0, height - 1.0])
+    return {
+        "target": torch.rand(b, 3, height, width, generator=g),
+        "sources": [torch.rand(b, 3, height, width, generator=g) for _ in range(2)],
+        "K": K.expand(b, 3, 3).clone(),
+        "T_t2s": [T1.expand(b, 4, 4).clone(), T2.expand(b, 4, 4).clone()],
+        "uv": uv,
+        "d": 0.5 + 2.0 * torch.rand(b, n_points, generator=g),
+        "mask": torch.ones(b, n_points, dtype=torch.bool),
+    }
+
+
+def finetune_step(net: DepthNet, opt: torch.optim.Optimizer, batch: dict[str, Any], fast: bool,
+                  lambda_sparse: float = 0.1, lambda_smooth: float = 0.1) -> dict[str, float]:
+    """One Adam step of Eq. 9: network forward under :func:`fast_context`, loss in fp32."""
+    opt.zero_grad(set_to_none=True)
+    with fast_context(fast):
+        depth = net.predict(batch["target"])
+    loss, parts = train_loss(depth, batch["target"], batch["sources"], batch["K"], batch["T_t2s"],
+                             batch["uv"], batch["d"], batch["mask"], lambda_sparse, lambda_smooth)
+    loss.backward()
+    opt.step()
+    return parts
+
+
+def bench_finetune_step(width: int = 640, height: int = 192, repeats: int = 5, fast: bool = False,
+                        threads: int | None = None, warmup: int = 2, seed: int = 0,
+                        train_mode: bool = True, channels_last: bool | None = None) -> dict[str, Any]:
+    """Median time of one fine-tuning step on 2 keyframes (recent + replayed) × 2 neighbours.
+
+    The work is that of the online loop: one batched forward of the 2 targets, 4 warps
+    (each neighbour once), photometric + sparse + smoothness losses, backward, Adam step.
+
+    Returns:
+        ``{"ms": median, "times_ms": [...], "fast": bool, ...}``.
+    """
+    _setup(threads, seed)
+    net = prepare(DepthNet(), fast, channels_last).train(train_mode)
+    opt = make_adam(net.parameters(), lr=1e-4)
+    batch = make_step_batch(width, height, seed=seed)
+    ms, times = _median_ms(lambda: finetune_step(net, opt, batch, fast), repeats, warmup)
+    return {"ms": ms, "times_ms": times, "fast": fast, "width": width, "height": height,
+            "threads": torch.get_num_threads(), "bf16_supported": fast_path_supported()}
+
+
+def compare(width: int = 640, height: int = 192, repeats: int = 5, threads: int | None = 1) -> dict[str, Any]:
+    """fp32 (NCHW), fp32 + channels-last and the fast path side by side, plus bf16 accuracy.
+
+    ``threads=1`` by default: on a shared 2-core machine two OpenMP threads competing with
+    other processes are several times *slower* than one (measured; see the report).
+    """
+    variants = {"fp32": (False, False), "fp32_cl": (False, True), "fast": (True, True)}
+    out: dict[str, Any] = {"threads": threads, "bf16_supported": fast_path_supported()}
+    for name, (fast, cl) in variants.items():
+        if fast and not fast_path_supported():
+            continue
+        out[f"inference_{name}_ms"] = bench_inference(width, height, 2 * repeats, fast, threads,
+                                                      channels_last=cl)["ms"]
+        out[f"finetune_{name}_ms"] = bench_finetune_step(width, height, repeats, fast, threads,
+                                                         channels_last=cl)["ms"]
+    out["bf16_rel_depth_diff"] = bf16_depth_difference(width, height)
+    return out
+
+
+def bf16_depth_difference(width: int = 640, height: int = 192, net: DepthNet | None = None,
+                          images: torch.Tensor | None = None) -> dict[str, float] | None:
+    """Median and 99th-percentile of ``|D_bf16 − D_fp32| / D_fp32`` (None without bf16 support)."""
+    if not fast_path_supported():
+        return None
+    torch.manual_seed(0)
+    net = (net or DepthNet()).eval()
+    x = images if images is not None else torch.rand(1, 3, height, width)
+    with torch.no_grad():
+        ref = prepare(net, False).predict(x)
+        with fast_context(True):
+            got = prepare(net, True).predict(x)
+    prepare(net, False)
+    rel = ((got - ref).abs() / ref).flatten()
+    return {"median": float(rel.median()), "p99": float(torch.quantile(rel[:100000], 0.99)),
+            "max": float(rel.max())}
+
+
+if __name__ == "__main__":  # python -m mutualslam_cli.adapt.bench [threads]
+    import json
+    import sys
+
+    print(json.dumps(compare(threads=int(sys.argv[1]) if len(sys.argv) > 1 else 1), indent=1))

@@ -1,0 +1,214 @@
+"""The depth network wrapper (Monodepth2 ResNet-18 + decoder) and its CPU fast path.
+
+Fast path (DESIGN §10): bf16 autocast for the network and channels-last memory format,
+gated on a CPU that really runs bf16 (AVX512-BF16 or AMX); losses stay in fp32
+(:mod:`mutualslam_cli.adapt.losses` casts its inputs).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+from typing import Iterable, Iterator
+
+import numpy as np
+import torch
+from torch import nn
+
+from mutualslam_cli.adapt.networks import DepthDecoder, ResnetEncoder
+from mutualslam_cli.errors import ConfigError, ShapeError
+
+log = logging.getLogger(__name__)
+
+
+def disp_to_depth(disp: torch.Tensor, min_depth: float, max_depth: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Convert the network's sigmoid output to depth (Monodepth2, Godard et al. 2019, ``disp_to_depth``).
+
+    ``scaled = 1/max_depth + (1/min_depth − 1/max_depth)·disp``, ``depth = 1/scaled``.
+
+    Args:
+        disp: sigmoid output in [0, 1], any shape.
+        min_depth: depth at ``disp = 1`` (metres / map units).
+        max_depth: depth at ``disp = 0``.
+
+    Returns:
+        ``(scaled_disp, depth)``, both the shape of ``disp``.
+    """
+    min_disp, max_disp = 1.0 / max_depth, 1.0 / min_depth
+    scaled = min_disp + (max_disp - min_disp) * disp
+    return scaled, 1.0 / scaled
+
+
+class DepthNet(nn.Module):
+    """Monodepth2 depth network: RGB in [0, 1] → sigmoid disparity → depth.
+
+    The decoder always owns the four ``dispconv`` heads so that released Monodepth2 files
+    load key-for-key; ``scales`` only selects which disparities :meth:`forward_scales`
+    computes (default scale 0 only: no multi-scale cost).
+
+    Args:
+        min_depth: ``disp_to_depth`` minimum (Monodepth2: 0.1).
+        max_depth: ``disp_to_depth`` maximum (Monodepth2: 100).
+        scales: output scales of :meth:`forward_scales`.
+        num_layers: ResNet depth (18 for the released models).
+    """
+
+    def __init__(self, min_depth: float = 0.1, max_depth: float = 100.0, scales: Iterable[int] = (0,),
+                 num_layers: int = 18):
+        super().__init__()
+        if not 0 < min_depth < max_depth:
+            raise ConfigError(f"DepthNet: need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
+        self.min_depth = float(min_depth)
+        self.max_depth = float(max_depth)
+        self.scales = tuple(scales)
+        if any(s not in range(4) for s in self.scales):
+            raise ConfigError(f"DepthNet: scales must be in 0..3, got {self.scales}")
+        self.encoder = ResnetEncoder(num_layers)
+        self.decoder = DepthDecoder(self.encoder.num_ch_enc, scales=range(4))
+        self.channels_last = False
+
+    def _check(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dim() != 4 or x.shape[1] != 3:
+            raise ShapeError(f"DepthNet: expected input (B, 3, H, W), got {tuple(x.shape)}")
+        if x.shape[2] % 32 or x.shape[3] % 32 or min(x.shape[2:]) < 64:
+            raise ShapeError(f"DepthNet: H and W must be multiples of 32 and ≥ 64, got {tuple(x.shape[2:])}")
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        return x
+
+    def forward_scales(self, x: torch.Tensor, scales: Iterable[int] | None = None) -> dict[int, torch.Tensor]:
+        """Sigmoid disparities ``{s: (B, 1, H/2**s, W/2**s)}`` float32 for ``scales`` (default ``self.scales``)."""
+        x = self._check(x)
+        out = self.decoder(self.encoder(x), self.scales if scales is None else scales)
+        return {s: d.float().contiguous() for s, d in out.items()}
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Sigmoid disparity at scale 0.
+
+        Args:
+            x: ``(B, 3, H, W)`` RGB in [0, 1]; H, W multiples of 32, ≥ 64 (reflection padding
+                at stride 32 needs ≥ 2 cells).
+
+        Returns:
+            ``(B, 1, H, W)`` float32 in (0, 1) (float32 even under bf16 autocast).
+        """
+        return self.forward_scales(x, (0,))[0]
+
+    def predict(self, x: torch.Tensor) -> torch.Tensor:
+        """Differentiable depth ``(B, 1, H, W)`` = ``disp_to_depth(forward(x))[1]``."""
+        return disp_to_depth(self.forward(x), self.min_depth, self.max_depth)[1]
+
+
+@functools.lru_cache(maxsize=1)
+def fast_path_supported() -> bool:
+    """True when this CPU runs bf16 natively (AVX512-BF16 / AMX) and a bf16 matmul works.
+
+    Checks oneDNN availability, its bf16 support flag and that a real bf16 matmul and a
+    small autocast convolution agree with fp32 to bf16 precision. Cached.
+    """
+    try:
+        if not torch.backends.mkldnn.is_available():
+            return False
+        probe = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+        if probe is not None and not probe():
+            return False
+        g = torch.Generator().manual_seed(0)
+        a, b = torch.randn(64, 64, generator=g), torch.randn(64, 64, generator=g)
+        ref = a @ b
+        got = (a.bfloat16() @ b.bfloat16()).float()
+        if not torch.isfinite(got).all() or (got - ref).abs().max() > 0.05 * ref.abs().max():
+            return False
+        conv = nn.Conv2d(3, 4, 3)
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+            y = conv(torch.randn(1, 3, 8, 8, generator=g))
+        return y.dtype == torch.bfloat16
+    except Exception as exc:  # any failure means "not usable"
+        log.info("bf16 fast path unavailable: %s", exc)
+        return False
+
+
+def resolve_fast(mode: str | bool) -> bool:
+    """``NetConfig.fast`` (``auto`` | ``on`` | ``off`` or a bool) → whether to use the fast path."""
+    if isinstance(mode, bool):
+        return mode
+    if mode == "auto":
+        return fast_path_supported()
+    if mode in ("on", "off"):
+        return mode == "on"
+    raise ConfigError(f"net.fast: expected auto, on or off, got {mode!r}")
+
+
+@contextlib.contextmanager
+def fast_context(enabled: bool) -> Iterator[None]:
+    """``torch.autocast("cpu", torch.bfloat16)`` when ``enabled``, else nothing.
+
+    Use it around the network's forward pass only; the losses run in fp32 regardless.
+    """
+    if enabled:
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            yield
+    else:
+        yield
+
+
+def prepare(net: DepthNet, fast: bool, channels_last: bool | None = None) -> DepthNet:
+    """Put ``net`` in the memory format of the chosen path (in place; returns ``net``).
+
+    Args:
+        net: the network.
+        fast: the bf16 fast path will be used (see :func:`fast_context`).
+        channels_last: channels-last weights and inputs (oneDNN's preferred layout; also
+            ~1.3× faster in fp32 on this CPU, mostly through max-pool); default: ``fast``.
+    """
+    cl = bool(fast) if channels_last is None else bool(channels_last)
+    net.to(memory_format=torch.channels_last if cl else torch.contiguous_format)
+    net.channels_last = cl
+    return net
+
+
+def _to_batch(images: np.ndarray | torch.Tensor) -> torch.Tensor:
+    t = torch.as_tensor(np.asarray(images) if not isinstance(images, torch.Tensor) else images)
+    if t.dim() == 3 and t.shape[-1] == 3:  # (H, W, 3) image
+        t = t.permute(2, 0, 1)[None]
+    elif t.dim() == 4 and t.shape[-1] == 3 and t.shape[1] != 3:  # (B, H, W, 3)
+        t = t.permute(0, 3, 1, 2)
+    if t.dim() != 4 or t.shape[1] != 3:
+        raise ShapeError(f"predict_depth: expected (B, 3, H, W), (B, H, W, 3) or (H, W, 3), got {tuple(t.shape)}")
+    if t.dtype == torch.uint8:
+        return t.float() / 255.0
+    return t.float()
+
+
+def predict_depth(net: DepthNet, images: np.ndarray | torch.Tensor, fast: bool = False) -> np.ndarray:
+    """Inference helper: depth maps as numpy, no gradient, eval mode restored afterwards.
+
+    Args:
+        net: the network (its H×W must be multiples of 32; the caller resizes).
+        images: ``(B, 3, H, W)`` / ``(B, H, W, 3)`` / ``(H, W, 3)``, uint8 (0–255) or float in [0, 1].
+        fast: bf16 autocast (see :func:`fast_context`).
+
+    Returns:
+        ``(B, H, W)`` float32 depth in the network's units.
+    """
+    x = _to_batch(images)
+    was_training = net.training
+    net.eval()
+    try:
+        with torch.no_grad(), fast_context(fast):
+            depth = net.predict(x)
+    finally:
+        net.train(was_training)
+    return depth[:, 0].float().cpu().numpy()
+
+
+def make_adam(params: Iterable[torch.nn.Parameter], lr: float = 1e-3, **kwargs) -> torch.optim.Adam:
+    """Adam with the fused CPU kernel when available (≈4× faster step for the 15 M parameters).
+
+    Same update rule as ``torch.optim.Adam``; falls back to the default implementation.
+    """
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True, **kwargs)
+    except (RuntimeError, TypeError, ValueError):
+        return torch.optim.Adam(params, lr=lr, **kwargs)
