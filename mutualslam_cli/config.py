@@ -101,8 +101,12 @@ class AdaptConfig:
     """ξ damping of SI's importance (Zenke et al.)."""
     steps_per_keyframe: int = 2
     """Optimiser steps per training keyframe; > 1 makes the regulariser act within a batch."""
-    anchor: Literal["previous_batch", "batch_start"] = "previous_batch"
-    """θ*: parameters after the previous batch (paper) or at the start of this batch."""
+    anchor: Literal["previous_batch", "batch_start", "lagged"] = "previous_batch"
+    """θ*: parameters after the previous batch (paper; = start of this batch) or one batch earlier (lagged)."""
+    reg_mode: Literal["prox", "penalty"] = "prox"
+    """How EWC/MAS/SI enter the update: a proximal step after each Adam step, or added to the loss."""
+    val_scope: Literal["all", "current"] = "all"
+    """L_val over all validation keyframes so far, or only the arriving one."""
     validate_every: int = 5
     """m of Algorithm 1."""
     patience: int = 3

@@ -1,1 +1,31 @@
-"""adapt/schemes."""
+"""Adaptation schemes registry: ``SCHEMES[name]`` → :class:`Scheme` subclass (DESIGN §5).
+
+Add a scheme by subclassing :class:`Scheme` (batch selection + optional regulariser) and
+registering it here.
+"""
+
+from __future__ import annotations
+
+from mutualslam_cli.adapt.schemes.base import NoTraining, Scheme
+from mutualslam_cli.adapt.schemes.recent import Recent, RecentEWC
+from mutualslam_cli.adapt.schemes.replay import Replay, ReplayEWC, ReplayMAS, ReplaySI
+from mutualslam_cli.errors import ConfigError
+
+SCHEMES: dict[str, type[Scheme]] = {
+    cls.name: cls for cls in (NoTraining, Recent, Replay, RecentEWC, ReplayEWC, ReplayMAS, ReplaySI)
+}
+
+
+def get_scheme(name: str) -> Scheme:
+    """Instantiate the scheme registered as ``name``.
+
+    Raises:
+        ConfigError: unknown name (the message lists the valid ones).
+    """
+    try:
+        return SCHEMES[name]()
+    except KeyError:
+        raise ConfigError(f"adapt.scheme: unknown scheme {name!r}; valid schemes: {sorted(SCHEMES)}") from None
+
+
+__all__ = ["SCHEMES", "Scheme", "get_scheme"]

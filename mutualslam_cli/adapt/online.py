@@ -1,0 +1,294 @@
+"""The online adaptation loop: Algorithm 1 (state machine) driving Algorithm 2 (fine-tuning).
+
+One call of :meth:`OnlineAdapter.add_keyframe` = one tick of Algorithm 1 (see
+:mod:`mutualslam_cli.adapt.state`): a validation keyframe (every m-th) is stored and L_val is
+computed; any other keyframe is stored and the network is fine-tuned right away on the batch
+the scheme selects (newest keyframe first, e.g. + one replayed older keyframe).
+
+Choices the paper leaves open (documented here, DESIGN §5):
+
+- **Newest keyframe's photometric sources.** s ∈ {i−1, i+1} (Eq. 4), but K_{i+1} does not exist
+  yet when K_i arrives. We train on K_i immediately (Alg. 2: "get latest keyframe K_i … train on
+  K_i") with s = i−1 only; when K_i is later replayed (or is the second of a ``recent`` batch) it
+  has both neighbours. The first training keyframe has no neighbour and is not trained on.
+  Items of a batch with fewer sources than the others repeat one of theirs (the per-pixel minimum
+  over identical warps is unchanged), so the batch stays one forward pass.
+- **L_val** (Eq. 10) = L_sparse over *all validation keyframes so far* (``val_scope="all"``),
+  with the current model: early stopping (the paper's inspiration, §III-B) monitors a fixed
+  held-out set, the validation keyframes are exactly that set growing online, and the decision
+  gates global BA over the whole map, so forgetting of earlier places must raise L_val. Each
+  keyframe weighs equally. ``val_scope="current"`` uses only the arriving keyframe. Cost: one
+  forward pass per validation keyframe, every m keyframes.
+- **BatchNorm** stays in eval mode (running statistics frozen) during fine-tuning: batches have
+  1–2 images. Gradients still flow through every layer.
+- **Loss parts** in :class:`StepInfo` are those of the first optimiser step of the batch (the
+  loss at the parameters the keyframe arrived with); ``penalty`` is the regulariser's value at the
+  end of the batch (w.r.t. this batch's θ* and importance).
+- **Regulariser** (schemes ``ewc``, ``replay+ewc|mas|si``): applied as an exact proximal step
+  after each Adam step by default (``reg_mode="prox"``), or added to the loss (``"penalty"``, the
+  paper's literal form); see :mod:`mutualslam_cli.adapt.regularizers` for why.
+- Determinism: ``torch.manual_seed(seed)`` at construction, replay draws from a numpy Generator
+  seeded with ``seed`` and buffer eviction from one seeded with ``seed + 1``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Literal, Mapping
+
+import numpy as np
+import torch
+from torch import nn
+
+from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
+from mutualslam_cli.adapt.depthnet import fast_context
+from mutualslam_cli.adapt.regularizers import Regularizer, trainable
+from mutualslam_cli.adapt.schemes import get_scheme
+from mutualslam_cli.adapt.state import (Action, FineTuneDone, FsmParams, FsmState, TrainingKeyframe,
+                                        ValidationKeyframe, is_validation_index, step)
+from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.types import check_shape
+
+log = logging.getLogger(__name__)
+
+LossFn = Callable[..., tuple[torch.Tensor, dict[str, float]]]
+ValFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass
+class StepInfo:
+    """What one keyframe did to the adaptation.
+
+    Attributes:
+        kf_id: keyframe id. t: its arrival index (Alg. 1's t).
+        state: FSM mode after the tick (always ``"IDLE"`` in this synchronous loop).
+        is_validation: validation keyframe (not trained on).
+        trained: an optimiser step was taken.
+        batch: keyframe ids of the training batch (newest first).
+        loss: ``{"photo", "sparse", "smooth", "total", "penalty"}`` floats (empty if not trained).
+        l_val: L_val on validation keyframes (None otherwise; NaN if no sparse points).
+        n_converged: Alg. 1's counter after the tick.
+        run_global_ba: Alg. 1 requested global BA on this tick.
+        ms: wall time of the tick, milliseconds.
+    """
+
+    kf_id: int
+    t: int
+    state: str
+    is_validation: bool
+    trained: bool
+    batch: list[int] = field(default_factory=list)
+    loss: dict[str, float] = field(default_factory=dict)
+    l_val: float | None = None
+    n_converged: int = 0
+    run_global_ba: bool = False
+    ms: float = 0.0
+
+
+class OnlineAdapter:
+    """Online fine-tuning of a depth network from VO keyframes (paper Alg. 1 + Alg. 2).
+
+    Args:
+        net: module with ``predict(x (B, 3, H, W) in [0, 1]) -> depth (B, 1, H, W)``, differentiable.
+        cfg: adaptation settings (scheme, lr, λ1, λ2, α, regulariser constants, m, n, τ_val, …).
+        K_net: ``(3, 3)`` intrinsics at network resolution (default K of the samples).
+        seed: seed of every random choice of the loop.
+        fast: bf16 autocast around the forward pass (losses stay fp32).
+        on_global_ba: called with the :class:`StepInfo` when Alg. 1 sets ``run_global_ba``;
+            it may call :meth:`per_keyframe_val_loss`, :meth:`update_poses`, :meth:`update_sparse`.
+        loss_fn: L_train with the signature of :func:`mutualslam_cli.adapt.losses.train_loss`
+            (default: that function).
+        val_fn: L_sparse with the signature of :func:`mutualslam_cli.adapt.losses.sparse_depth_loss`.
+        val_scope: ``"all"`` validation keyframes so far (default) or ``"current"`` only.
+        reg_mode: ``"prox"`` (default) or ``"penalty"``, how the regulariser enters the update.
+
+    Raises:
+        ConfigError: unknown scheme, bad capacity or anchor.
+    """
+
+    def __init__(self, net: nn.Module, cfg: AdaptConfig, K_net: torch.Tensor | np.ndarray, seed: int = 0,
+                 fast: bool = False, on_global_ba: Callable[[StepInfo], None] | None = None, *,
+                 loss_fn: LossFn | None = None, val_fn: ValFn | None = None,
+                 val_scope: Literal["all", "current"] = "all", reg_mode: Literal["prox", "penalty"] = "prox") -> None:
+        if loss_fn is None or val_fn is None:
+            from mutualslam_cli.adapt import losses
+            loss_fn = loss_fn or losses.train_loss
+            val_fn = val_fn or losses.sparse_depth_loss
+        if val_scope not in ("all", "current"):
+            raise ValueError(f"val_scope must be 'all' or 'current', got {val_scope!r}")
+        self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32)
+        check_shape(self.K_net, [3, 3], "OnlineAdapter: K_net")
+        torch.manual_seed(seed)
+        self.net = net.eval()
+        self.cfg = cfg
+        self.fast = bool(fast)
+        self.on_global_ba = on_global_ba
+        self.loss_fn, self.val_fn, self.val_scope = loss_fn, val_fn, val_scope
+        self.scheme = get_scheme(cfg.scheme)
+        self.buffer = KeyframeBuffer(cfg.replay_capacity, seed=seed + 1)
+        self.rng = np.random.default_rng(seed)
+        self.params = trainable(net)
+        self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr) if self.scheme.trains else None
+        self.regularizer: Regularizer | None = self.scheme.make_regularizer(net, cfg, self._predict, reg_mode)
+        self.fsm_params = FsmParams(cfg.validate_every, cfg.patience, cfg.tau_val)
+        self.fsm = FsmState()
+        self.finetune_ms: list[float] = []
+        self.step_ms: list[float] = []
+        self.history: list[StepInfo] = []
+
+    # ------------------------------------------------------------------ public
+    def add_keyframe(self, sample: KeyframeSample) -> StepInfo:
+        """Consume one keyframe: one tick of Algorithm 1.
+
+        Args:
+            sample: the keyframe at network resolution (see :class:`KeyframeSample`).
+
+        Returns:
+            What happened (:class:`StepInfo`).
+
+        Raises:
+            ShapeError: malformed sample.
+        """
+        t0 = time.perf_counter()
+        t = self.fsm.t
+        info = StepInfo(kf_id=sample.kf_id, t=t, state=self.fsm.mode.value, is_validation=False, trained=False)
+        if is_validation_index(t, self.fsm_params.m):  # Alg. 1: t > 0 and t % m == 0
+            self.buffer.add(sample, training=False)
+            info.is_validation = True
+            info.l_val = self._l_val(sample.kf_id)
+            self.fsm, actions = step(self.fsm, ValidationKeyframe(info.l_val), self.fsm_params)
+            info.run_global_ba = Action.RUN_GLOBAL_BA in actions
+        else:
+            self.buffer.add(sample, training=True)
+            self.fsm, actions = step(self.fsm, TrainingKeyframe(), self.fsm_params)
+            if Action.FINE_TUNE in actions:
+                self._fine_tune(sample.kf_id, info)
+            self.fsm, _ = step(self.fsm, FineTuneDone(), self.fsm_params)
+        info.state = self.fsm.mode.value
+        info.n_converged = self.fsm.n_converged
+        info.ms = 1000.0 * (time.perf_counter() - t0)
+        self.history.append(info)
+        log.debug("kf %d t=%d val=%s trained=%s loss=%s l_val=%s n_conv=%d ba=%s", info.kf_id, t, info.is_validation,
+                  info.trained, info.loss, info.l_val, info.n_converged, info.run_global_ba)
+        if info.run_global_ba and self.on_global_ba is not None:
+            self.on_global_ba(info)
+        return info
+
+    def update_poses(self, poses: Mapping[int, np.ndarray]) -> int:
+        """Feed BA-refined ``T_wc`` back into training (paper §III-A); returns how many were known."""
+        return self.buffer.update_poses(poses)
+
+    def update_sparse(self, points: Mapping[int, tuple[torch.Tensor, torch.Tensor]]) -> int:
+        """Feed BA-refined sparse points ``{kf_id: (uv (M, 2), depth (M,))}`` back; returns how many were known."""
+        return self.buffer.update_sparse(points)
+
+    @torch.no_grad()
+    def per_keyframe_val_loss(self, ids: list[int] | None = None, chunk: int = 4) -> dict[int, float]:
+        """L_val (Eq. 10, = L_sparse) of stored keyframes with the current model.
+
+        Args:
+            ids: keyframe ids (default: every stored keyframe, training and validation).
+            chunk: images per forward pass.
+
+        Returns:
+            ``{kf_id: L_val}``; NaN for a keyframe without sparse points. Keyframes whose image
+            was evicted (``replay_capacity > 0``) are absent.
+        """
+        ids = [k for k in (self.buffer.all_ids if ids is None else ids) if k in self.buffer]
+        out: dict[int, float] = {}
+        for i in range(0, len(ids), chunk):
+            samples = [self.buffer.get(k) for k in ids[i:i + chunk]]
+            depth = self._predict(torch.stack([s.image for s in samples]))
+            for b, s in enumerate(samples):
+                if s.uv.shape[0] == 0:
+                    out[s.kf_id] = float("nan")
+                    continue
+                mask = torch.ones(1, s.uv.shape[0], dtype=torch.bool)
+                out[s.kf_id] = float(self.val_fn(depth[b:b + 1], s.uv[None], s.depth[None], mask))
+        return out
+
+    # ------------------------------------------------------------------ internals
+    def _predict(self, x: torch.Tensor) -> torch.Tensor:
+        """Forward pass under the bf16 context; returns float32 depth ``(B, 1, H, W)``."""
+        with fast_context(self.fast):
+            return self.net.predict(x).float()
+
+    def _l_val(self, kf_id: int) -> float:
+        """Alg. 1's L_val: mean per-keyframe L_sparse over the validation set (see module docstring)."""
+        ids = self.buffer.validation_ids if self.val_scope == "all" else [kf_id]
+        vals = [v for v in self.per_keyframe_val_loss(ids).values() if not math.isnan(v)]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    def _make_batch(self, ids: list[int]) -> dict[str, object] | None:
+        """Stack targets, sources, relative poses and padded sparse points of ``ids``."""
+        items = [(k, self.buffer.neighbours(k)) for k in ids]
+        items = [(k, n) for k, n in items if n]  # no photometric source → not trainable
+        if not items:
+            return None
+        samples = [self.buffer.get(k) for k, _ in items]
+        n_src = max(len(n) for _, n in items)
+        sources, T_t2s = [], []
+        for s in range(n_src):
+            imgs, poses = [], []
+            for tgt, (_, nb) in zip(samples, items):
+                src = self.buffer.get(nb[min(s, len(nb) - 1)])  # repeat a source when fewer
+                imgs.append(src.image)
+                poses.append(se3_inv(src.pose) @ tgt.pose)  # T_t2s = T_cw(src) · T_wc(tgt)
+            sources.append(torch.stack(imgs))
+            T_t2s.append(torch.as_tensor(np.stack(poses), dtype=torch.float32))
+        m = max(s.uv.shape[0] for s in samples)
+        uv = torch.zeros(len(samples), m, 2)
+        d = torch.zeros(len(samples), m)
+        mask = torch.zeros(len(samples), m, dtype=torch.bool)
+        for b, s in enumerate(samples):
+            n = s.uv.shape[0]
+            uv[b, :n], d[b, :n], mask[b, :n] = s.uv, s.depth, True
+        K = torch.stack([s.K.to(torch.float32) for s in samples])
+        return {"ids": [k for k, _ in items], "target": torch.stack([s.image for s in samples]), "sources": sources,
+                "T_t2s": T_t2s, "K": K, "uv": uv, "d": d, "mask": mask}
+
+    def _fine_tune(self, kf_id: int, info: StepInfo) -> None:
+        """Alg. 2 for one keyframe: ``steps_per_keyframe`` Adam steps on L_train (+ regulariser)."""
+        if not self.scheme.trains or self.optimizer is None:
+            return
+        batch = self._make_batch(self.scheme.select(self.buffer, kf_id, self.rng))
+        if batch is None:
+            return
+        t0 = time.perf_counter()
+        reg, cfg = self.regularizer, self.cfg
+        if reg is not None:
+            reg.before_batch(self.net)  # θ* (Alg. 2 line 4: θ_cpy = θ)
+        pen_val = 0.0
+        for s in range(cfg.steps_per_keyframe):
+            ts = time.perf_counter()
+            self.optimizer.zero_grad(set_to_none=True)
+            depth = self._predict(batch["target"])
+            loss, parts = self.loss_fn(depth, batch["target"], batch["sources"], batch["K"], batch["T_t2s"],
+                                       batch["uv"], batch["d"], batch["mask"], cfg.lambda_sparse,
+                                       cfg.lambda_smooth, cfg.alpha)
+            loss.backward()
+            grads = [p.grad.detach().clone() if p.grad is not None else torch.zeros_like(p) for p in self.params]
+            if reg is not None and reg.mode == "penalty":
+                pen = reg.penalty(self.net)  # Eq. 2 / Eq. 13 regulariser at the current θ
+                if pen.requires_grad:
+                    pen.backward()  # coupled: ∇(L_train + penalty) through Adam
+            self.optimizer.step()
+            if reg is not None:
+                if reg.mode == "prox":
+                    reg.prox(self.net, cfg.lr)  # decoupled: exact proximal step of the penalty
+                reg.after_step(self.net, grads)
+            if s == 0:
+                info.loss = {k: float(v) for k, v in parts.items()}
+            self.step_ms.append(1000.0 * (time.perf_counter() - ts))
+        if reg is not None:
+            with torch.no_grad():
+                pen_val = float(reg.penalty(self.net))  # distance from θ* left at the end of the batch
+            reg.after_batch(self.net, batch["target"][:1])  # consolidate (Alg. 2 line 7)
+        info.loss["penalty"] = pen_val
+        info.trained = True
+        info.batch = list(batch["ids"])
+        self.finetune_ms.append(1000.0 * (time.perf_counter() - t0))
