@@ -1,0 +1,72 @@
+"""Camera model of the front end: pinhole K plus optional radial-tangential distortion.
+
+The front end tracks in the raw (possibly distorted) image and immediately maps every
+tracked pixel to undistorted pixels of the pinhole camera with the same ``fx, fy, cx, cy``
+(OpenCV's ``k1 k2 p1 p2 k3`` model, as TUM fr1 publishes it). Everything downstream —
+poses, map points, ``VOResult`` pixels — refers to that pinhole camera. ``fy`` may be
+negative (ICL-NUIM); all maths goes through ``K`` and its inverse, never assumes ``fy > 0``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from mutualslam_cli.types import Intrinsics
+
+
+def pinhole(intr: Intrinsics) -> Intrinsics:
+    """The same camera without distortion (what ``VOResult.intrinsics`` holds)."""
+    return replace(intr, dist=None)
+
+
+def undistort_points(pix: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Raw pixels ``(N, 2)`` → undistorted pinhole pixels ``(N, 2)`` (same K).
+
+    A no-op copy when ``intr.dist`` is ``None``.
+    """
+    pix = np.asarray(pix, dtype=np.float64).reshape(-1, 2)
+    if intr.dist is None or len(pix) == 0:
+        return pix.copy()
+    K = intr.K()
+    out = cv2.undistortPoints(pix.reshape(-1, 1, 2), K, np.asarray(intr.dist, np.float64), P=K)
+    return out.reshape(-1, 2)
+
+
+def distort_points(pix: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Undistorted pinhole pixels ``(N, 2)`` → raw (distorted) pixels ``(N, 2)``.
+
+    Forward OpenCV radial-tangential model on normalised coordinates (Brown–Conrady):
+    ``x' = x·(1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2x²)``, likewise for ``y``.
+    Used to look GT depth up in the distorted depth images of TUM fr1.
+    """
+    pix = np.asarray(pix, dtype=np.float64).reshape(-1, 2)
+    if intr.dist is None or len(pix) == 0:
+        return pix.copy()
+    k1, k2, p1, p2, k3 = (list(intr.dist) + [0.0] * 5)[:5]
+    x = (pix[:, 0] - intr.cx) / intr.fx
+    y = (pix[:, 1] - intr.cy) / intr.fy
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 ** 3
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd * intr.fx + intr.cx, yd * intr.fy + intr.cy], axis=1)
+
+
+def to_normalized(pix: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pinhole pixels ``(N, 2)`` → normalised image coordinates ``(N, 2)`` (``K⁻¹ [u v 1]``)."""
+    pix = np.asarray(pix, dtype=np.float64).reshape(-1, 2)
+    return np.stack([(pix[:, 0] - K[0, 2]) / K[0, 0], (pix[:, 1] - K[1, 2]) / K[1, 1]], axis=1)
+
+
+def to_pixels(xn: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Normalised coordinates ``(N, 2)`` → pinhole pixels ``(N, 2)``."""
+    xn = np.asarray(xn, dtype=np.float64).reshape(-1, 2)
+    return np.stack([xn[:, 0] * K[0, 0] + K[0, 2], xn[:, 1] * K[1, 1] + K[1, 2]], axis=1)
+
+
+def focal_px(intr: Intrinsics) -> float:
+    """Mean absolute focal length in pixels (converts pixel thresholds to normalised units)."""
+    return 0.5 * (abs(intr.fx) + abs(intr.fy))

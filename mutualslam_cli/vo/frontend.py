@@ -1,0 +1,366 @@
+"""The monocular VO front end (the paper's SVO role, DESIGN §4): ``run_vo``.
+
+Per frame: decode → KLT (forward–backward checked) → PnP-RANSAC + robust refinement on the
+map-point tracks → depth-filter update of the seed tracks → promotion of converged seeds.
+Per keyframe (parallax / overlap policy): re-projection of lost window points, observations,
+grid detection of new seeds, windowed BA (solved on a worker thread, applied ``BA_LAG`` frames
+later). Decoding of the next frame runs on a second thread. Tracking loss re-initialises a
+new segment with its own scale (see :mod:`~mutualslam_cli.vo.bootstrap`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import numpy as np
+
+from mutualslam_cli.config import VOConfig
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.errors import ConfigError, DatasetError
+from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.vo import depth_filter as dfl
+from mutualslam_cli.vo.camera import distort_points, focal_px, to_normalized, undistort_points
+from mutualslam_cli.vo.features import detect_grid
+from mutualslam_cli.vo.bootstrap import InitMixin
+from mutualslam_cli.vo.mapper import Mapper
+from mutualslam_cli.vo.output import VOResult
+from mutualslam_cli.vo.reproject import reproject_points
+from mutualslam_cli.vo.result import build_result
+from mutualslam_cli.vo.state import Map, Tracks
+from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
+
+log = logging.getLogger(__name__)
+
+BA_LAG = 2
+"""Frames after a keyframe at which its windowed BA (solved on a worker thread) is applied."""
+
+KEEP_FACTOR = 2.0
+"""Map-point tracks farther than ``KEEP_FACTOR × ransac_threshold_px`` from their projection are dropped."""
+
+WEAK_FACTOR = 2
+"""Below ``WEAK_FACTOR × min_tracked`` PnP inliers, lost map points are re-projected and matched."""
+
+SEED_PREDICT_SIGMA = 0.05
+"""Seeds with σ below this fraction of their inverse-depth range are predicted from their mean depth."""
+
+STAGES = ("decode", "track", "pose", "filter", "keyframe", "local_ba")
+
+
+class _Frontend(InitMixin):
+    """State machine ``init`` → ``tracking`` → (loss) → ``init`` … over one sequence."""
+
+    def __init__(self, seq: Sequence, cfg: VOConfig, seed: int) -> None:
+        self.seq, self.cfg, self.seed = seq, cfg, seed
+        self.intr = seq.intrinsics
+        self.K = self.intr.K()
+        self.f = focal_px(self.intr)
+        self.thr = cfg.ransac_threshold_px / self.f
+        self.px_err_angle = 2.0 * np.arctan(0.5 / self.f)  # SVO: one-pixel bearing error
+        self.map = Map()
+        self.mapper = Mapper(self.map, self.K, cfg.core_kfs, self.thr)
+        self.tracks = Tracks.empty()
+        self.state = "init"
+        self.segment = -1
+        self.ref: dict | None = None
+        self.T_cw = np.eye(4)
+        self.vel = np.eye(4)
+        self.n_at_kf = 0
+        self.last_kf = -1
+        self.frame_seg = -np.ones(len(seq), np.int64)
+        self.frame_rel: dict[int, tuple[int, np.ndarray]] = {}
+        self.init_methods: list[str] = []
+        self.timing = {k: 0.0 for k in STAGES}
+        self.n_tracked = 0
+        self.kf_imgs: dict[int, np.ndarray] = {}
+        self.n_reprojected = 0
+        self.ba_due = 0
+
+    # ---------------------------------------------------------------- helpers
+    def _undist(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        px = undistort_points(raw, self.intr)
+        return px, to_normalized(px, self.K)
+
+    def _record(self, i: int) -> None:
+        """Store frame ``i``'s pose relative to the current reference keyframe."""
+        T_wc = se3_inv(self.T_cw)
+        self.frame_rel[i] = (self.last_kf, self.map.poses_cw()[self.last_kf] @ T_wc)
+        self.frame_seg[i] = self.segment
+
+    # ---------------------------------------------------------------- tracking
+    def _lost(self, i: int, gray: np.ndarray, why: str) -> None:
+        log.info("tracking lost at frame %d (%s)", i, why)
+        self._collect_ba()
+        self.state = "init"
+        self.tracks = Tracks.empty()
+        self._start_ref(i, gray)
+
+    def _track_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
+        cfg, m = self.cfg, self.map
+        if self.mapper.pending is not None and i >= self.ba_due:
+            self._collect_ba()
+        t0 = time.perf_counter()
+        T_prior = self.vel @ self.T_cw
+        pred = self._predict(self.tracks, T_prior)
+        raw, ok = klt_track(prev_pyr, pyr, self.tracks.raw, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px,
+                            pred=pred)
+        tr = self.tracks.select(ok)
+        tr.raw = raw[ok]
+        tr.px, tr.xn = self._undist(tr.raw)
+        t1 = time.perf_counter()
+        self.timing["track"] += t1 - t0
+        pm = np.flatnonzero(tr.pid >= 0)
+        T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], [T_prior, self.T_cw], self.thr, seed=self.seed + i)
+        if T is None or inl.sum() < WEAK_FACTOR * cfg.min_tracked:
+            # weak tracking: look for the window's lost map points before giving up
+            tr = self._reproject(tr, gray, T_prior if T is None else T)
+            pm = np.flatnonzero(tr.pid >= 0)
+            T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], [T_prior, self.T_cw], self.thr, seed=self.seed + i)
+        t2 = time.perf_counter()
+        self.timing["pose"] += t2 - t1
+        if T is None or inl.sum() < cfg.min_tracked:
+            self._lost(i, gray, f"{0 if T is None else int(inl.sum())} inliers")
+            return
+        # drop gross outliers only: tracks a few pixels off (rolling shutter, blur) stay alive
+        # and simply weigh less in the Huber refinement
+        e = reprojection_errors(T, m.Xw[tr.pid[pm]], tr.xn[pm])
+        keep = np.ones(len(tr), bool)
+        keep[pm[~(e < KEEP_FACTOR * self.thr)]] = False
+        tr = tr.select(keep)
+        self.vel = T @ se3_inv(self.T_cw)
+        self.T_cw = T
+        self.n_tracked = int(inl.sum())
+        # depth filter on the seed tracks
+        sm = np.flatnonzero(tr.pid < 0)
+        if len(sm):
+            T_wc = se3_inv(T)
+            T_hw = m.poses_cw()
+            T_hc = T_hw[tr.host[sm]] @ T_wc
+            f_c = np.c_[tr.xn[sm], np.ones(len(sm))]
+            f_c /= np.linalg.norm(f_c, axis=1, keepdims=True)
+            x, tau2, good = dfl.measure(tr.f_h[sm], f_c, T_hc, self.px_err_angle)
+            dfl.update_seeds(tr.seed, sm[good], x[good], tau2[good])
+            conv = sm[dfl.converged({k: v[sm] for k, v in tr.seed.items()})]
+            if len(conv):
+                self._promote(tr, conv)
+        self.tracks = tr
+        t3 = time.perf_counter()
+        self.timing["filter"] += t3 - t2
+        # keyframe policy: parallax since the last keyframe or lost overlap
+        at = tr.at_kf
+        ratio = at.sum() / max(self.n_at_kf, 1)
+        par = float(np.median(np.linalg.norm(tr.px[at] - tr.kf_px[at], axis=1))) if at.any() else 0.0
+        if par > cfg.kf_min_parallax_px or ratio < cfg.kf_min_tracked_ratio:
+            self._keyframe(i, gray)
+        self._record(i)
+
+    def _predict(self, tr: Tracks, T_cw: np.ndarray) -> np.ndarray:
+        """Raw pixels where the tracks should appear under the motion prior ``T_cw``.
+
+        Map points are projected from their world position, seeds from their current
+        depth-filter mean; guesses that fall behind the camera or off the image keep the
+        previous position (KLT's default start).
+        """
+        m = self.map
+        n = len(tr)
+        X = np.empty((n, 3))
+        pm = tr.pid >= 0
+        X[pm] = m.Xw[tr.pid[pm]]
+        sm = ~pm
+        if sm.any():
+            T_wh = m.poses_wc()[tr.host[sm]]
+            Xh = tr.f_h[sm] / tr.seed["mu"][sm, None]
+            X[sm] = np.einsum("nij,nj->ni", T_wh[:, :3, :3], Xh) + T_wh[:, :3, 3]
+        pc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        good = (pc[:, 2] > 1e-6) & (pm | (np.sqrt(tr.seed["sigma2"]) < SEED_PREDICT_SIGMA * tr.seed["z_range"]))
+        pred = tr.raw.astype(np.float64).copy()
+        if good.any():
+            px = pc[good, :2] / pc[good, 2:3] @ self.K[:2, :2].T + self.K[:2, 2]
+            pred[good] = distort_points(px, self.intr)
+        w, h = self.intr.width, self.intr.height
+        inside = (pred[:, 0] >= 0) & (pred[:, 0] <= w - 1) & (pred[:, 1] >= 0) & (pred[:, 1] <= h - 1)
+        bad = ~np.isfinite(pred).all(1) | ~inside
+        pred[bad] = tr.raw[bad]
+        shift = pred[good & ~bad] - tr.raw[good & ~bad]
+        if len(shift):  # uncertain seeds move with the median predicted flow
+            pred[~good] = tr.raw[~good] + np.median(shift, axis=0)
+        return pred.astype(np.float32)
+
+    def _promote(self, tr: Tracks, conv: np.ndarray) -> None:
+        """Converged seeds become map points (host observation + keyframes seen since)."""
+        m = self.map
+        f_h = tr.f_h[conv]
+        mu = tr.seed["mu"][conv]
+        rho_z = mu / f_h[:, 2]  # inverse distance along the bearing → inverse z-depth
+        sig_z = np.sqrt(tr.seed["sigma2"][conv]) / f_h[:, 2]
+        obs = []
+        for j in conv:
+            o = {int(tr.host[j]): tr.px_h[j]}
+            o.update({k: p for k, p in tr.obs[j]})
+            obs.append(o)
+        pids = m.add_points(tr.host[conv], tr.px_h[conv], f_h[:, :2] / f_h[:, 2:3], rho_z, sig_z, obs)
+        tr.pid[conv] = pids
+
+    def _new_seeds(self, kf: int, gray: np.ndarray) -> None:
+        """Detect features in empty grid cells of keyframe ``kf`` and start seeds for them."""
+        m, tr = self.map, self.tracks
+        pts = detect_grid(gray, self.cfg.grid_size, self.cfg.max_fts, occupied_px=tr.raw)
+        pm = tr.pid >= 0
+        if pm.any():
+            Xc = m.Xw[tr.pid[pm]] @ self.T_cw[:3, :3].T + self.T_cw[:3, 3]
+            z = Xc[:, 2][Xc[:, 2] > 0]
+        else:
+            z = np.array([1.0])
+        prior = dfl.SeedInit(float(np.median(z)), float(np.min(z)) if len(z) else 0.5)
+        n = len(pts)
+        if n:
+            new = Tracks.empty()
+            new.raw = pts.astype(np.float32)
+            new.px, new.xn = self._undist(pts)
+            new.pid = -np.ones(n, np.int64)
+            new.host = np.full(n, kf)
+            fh = np.c_[new.xn, np.ones(n)]
+            new.f_h = fh / np.linalg.norm(fh, axis=1, keepdims=True)
+            new.px_h = new.px.copy()
+            new.seed = dfl.new_seeds(n, prior)
+            new.kf_px, new.at_kf, new.obs = new.px.copy(), np.ones(n, bool), [[] for _ in range(n)]
+            tr = tr.extend(new)
+        tr.kf_px = tr.px.copy()
+        tr.at_kf = np.ones(len(tr), bool)
+        self.tracks = tr
+        self.n_at_kf = len(tr)
+
+    def _store_image(self, kf: int, gray: np.ndarray) -> None:
+        """Keep the grey images of the last ``core_kfs`` keyframes (reprojection sources)."""
+        self.kf_imgs[kf] = gray
+        for k in sorted(self.kf_imgs)[:-self.cfg.core_kfs]:
+            del self.kf_imgs[k]
+
+    def _reproject(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray) -> Tracks:
+        """Re-attach lost map points of the window to the current frame (see :mod:`reproject`)."""
+        m = self.map
+        seg = [k for k in range(len(m.kf_frame)) if m.kf_segment[k] == self.segment]
+        window = seg[-self.cfg.core_kfs:]
+        pids, raw = reproject_points(m, self.kf_imgs, gray, T_cw, tr.pid[tr.pid >= 0], window, self.intr,
+                                     self.cfg.klt_window, self.cfg.klt_levels, self.cfg.fb_threshold_px, self.thr)
+        if len(pids) == 0:
+            return tr
+        # do not double-book grid cells: drop seeds sharing a cell with a recovered point
+        g = self.cfg.grid_size
+        cell = lambda r: (r[:, 1] // g).astype(int) * 10000 + (r[:, 0] // g).astype(int)  # noqa: E731
+        rc = set(cell(raw).tolist())
+        keep = (tr.pid >= 0) | ~np.isin(cell(tr.raw), list(rc))
+        tr = tr.select(keep)
+        n = len(pids)
+        new = Tracks.empty()
+        new.raw = raw
+        new.px, new.xn = self._undist(raw)
+        new.pid = pids
+        new.host = np.array([m.host[p] for p in pids], np.int64)
+        new.f_h, new.px_h = np.zeros((n, 3)), np.zeros((n, 2))
+        new.seed = dfl.new_seeds(n, dfl.SeedInit(1.0, 0.5))
+        new.kf_px, new.at_kf, new.obs = new.px.copy(), np.zeros(n, bool), [[] for _ in range(n)]
+        self.n_reprojected += n
+        return tr.extend(new)
+
+    def _collect_ba(self) -> None:
+        """Apply the pending windowed BA (waiting for the worker if needed)."""
+        t0 = time.perf_counter()
+        bad = self.mapper.collect()
+        if len(bad) and len(self.tracks):
+            self.tracks = self.tracks.select(~np.isin(self.tracks.pid, bad))
+        self.timing["local_ba"] += time.perf_counter() - t0
+
+    def _keyframe(self, i: int, gray: np.ndarray) -> None:
+        self._collect_ba()
+        t0 = time.perf_counter()
+        self.tracks = self._reproject(self.tracks, gray, self.T_cw)
+        m, tr = self.map, self.tracks
+        kf = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(self.T_cw), self.segment)
+        for j in np.flatnonzero(tr.pid >= 0):
+            m.add_observation(int(tr.pid[j]), kf, tr.px[j])
+        for j in np.flatnonzero(tr.pid < 0):
+            tr.obs[j] = tr.obs[j] + [(kf, tr.px[j])]
+        t1 = time.perf_counter()
+        self.mapper.submit(kf, self.segment)  # solved on the worker, applied BA_LAG frames later
+        self.ba_due = i + BA_LAG
+        t2 = time.perf_counter()
+        self.last_kf = kf
+        self._new_seeds(kf, gray)
+        self._store_image(kf, gray)
+        self.timing["keyframe"] += (t1 - t0) + (time.perf_counter() - t2)
+        self.timing["local_ba"] += t2 - t1
+
+    # ---------------------------------------------------------------- main loop
+    def run(self, progress: Callable[[dict], None] | None) -> VOResult:
+        cfg = self.cfg
+        prev_pyr = None
+        n = len(self.seq)
+        t_start = time.perf_counter()
+        pool = ThreadPoolExecutor(max_workers=1)  # decodes frame i+1 while frame i is tracked
+        try:
+            nxt = pool.submit(self.seq.load_gray, 0)
+            for i in range(n):
+                t0 = time.perf_counter()
+                gray = nxt.result()
+                if i + 1 < n:
+                    nxt = pool.submit(self.seq.load_gray, i + 1)
+                pyr = build_pyramid(gray, cfg.klt_window, cfg.klt_levels)
+                self.timing["decode"] += time.perf_counter() - t0
+                if self.state == "init":
+                    self._init_step(i, gray, pyr, prev_pyr)
+                else:
+                    self._track_step(i, gray, pyr, prev_pyr)
+                prev_pyr = pyr
+                if progress is not None:
+                    el = time.perf_counter() - t_start
+                    progress({"frame": i, "n_frames": n, "keyframes": len(self.map.kf_frame),
+                              "tracked": self.n_tracked if self.state == "tracking" else 0,
+                              "fps": (i + 1) / el if el > 0 else 0.0, "state": self.state})
+            self._collect_ba()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+            self.mapper.close()
+        return build_result(self, time.perf_counter() - t_start)
+
+
+def run_vo(seq: Sequence, cfg: VOConfig, seed: int = 0,
+           progress: Callable[[dict], None] | None = None) -> VOResult:
+    """Run the monocular front end over a sequence.
+
+    Args:
+        seq: the sequence (frames are decoded one at a time).
+        cfg: VO options (grid, KLT, thresholds, keyframe policy, ``core_kfs``).
+        seed: seeds every RANSAC (OpenCV's RNG is reset per call): same seed → same output.
+        progress: called after every frame with ``{"frame", "n_frames", "keyframes",
+            "tracked", "fps", "state"}``.
+
+    Returns:
+        :class:`VOResult` in undistorted pinhole pixels; ``meta`` has ``n_reinit``, ``gaps``,
+        ``init_methods``, ``timing`` (ms per stage) and ``fps``.
+    """
+    if len(seq) == 0:
+        raise DatasetError(f"{seq.root}: sequence has no frames")
+    check_config(cfg)
+    return _Frontend(seq, cfg, seed).run(progress)
+
+
+def check_config(cfg: VOConfig) -> None:
+    """Raise :class:`ConfigError` for VO options the front end cannot work with."""
+    rules = [
+        ("grid_size", cfg.grid_size >= 4, "an integer ≥ 4 (pixels)"),
+        ("max_fts", cfg.max_fts >= max(cfg.min_tracked, 8), f"≥ min_tracked ({cfg.min_tracked}) and ≥ 8"),
+        ("min_tracked", cfg.min_tracked >= 6, "≥ 6 (PnP needs at least 6 matches)"),
+        ("core_kfs", cfg.core_kfs >= 2, "≥ 2 keyframes"),
+        ("klt_window", cfg.klt_window >= 5, "≥ 5 pixels"),
+        ("klt_levels", cfg.klt_levels >= 0, "≥ 0"),
+        ("fb_threshold_px", cfg.fb_threshold_px > 0, "> 0 pixels"),
+        ("ransac_threshold_px", cfg.ransac_threshold_px > 0, "> 0 pixels"),
+        ("kf_min_parallax_px", cfg.kf_min_parallax_px > 0, "> 0 pixels"),
+        ("kf_min_tracked_ratio", 0 < cfg.kf_min_tracked_ratio <= 1, "in (0, 1]"),
+    ]
+    for name, ok, expected in rules:
+        if not ok:
+            raise ConfigError(f"vo.{name} = {getattr(cfg, name)!r}: expected {expected}")

@@ -1,0 +1,193 @@
+"""Windowed geometric bundle adjustment over the last ``core_kfs`` keyframes.
+
+Unknowns: an SE(3) left increment per free keyframe and one inverse depth per point along
+its fixed host ray (the host pixel is a measurement, so the point's parametrisation matches
+``MapPoints``: host, pixel, inverse depth). Residuals: normalised reprojection errors of every
+non-host observation, robustified with the Huber loss (iteratively reweighted). Solver:
+Levenberg–Marquardt with analytic Jacobians and the Schur complement on the (diagonal)
+inverse-depth block (Triggs et al. 2000, "Bundle adjustment — a modern synthesis", §6).
+The oldest window keyframe and every older keyframe observing a window point stay fixed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def exp_so3(phi: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula, vectorised: ``(N, 3)`` axis-angle → ``(N, 3, 3)``."""
+    th = np.linalg.norm(phi, axis=1)
+    k = phi / np.maximum(th, 1e-12)[:, None]
+    K = np.zeros((len(phi), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    return np.eye(3)[None] + s * K + (1 - c) * (K @ K)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return S
+
+
+@dataclass
+class BAProblem:
+    """Inputs of one windowed BA.
+
+    Attributes:
+        T_cw: ``(K, 4, 4)`` world-to-camera of every involved keyframe.
+        free: ``(K,)`` bool, poses being optimised.
+        host: ``(P,)`` index into ``T_cw`` of each point's host.
+        ray: ``(P, 3)`` host bearing ``[x, y, 1]`` (normalised coordinates).
+        rho: ``(P,)`` inverse depth (``z``) in the host.
+        obs_pt, obs_kf: ``(M,)`` point and keyframe index of each non-host observation.
+        obs_xn: ``(M, 2)`` observed normalised coordinates.
+    """
+
+    T_cw: np.ndarray
+    free: np.ndarray
+    host: np.ndarray
+    ray: np.ndarray
+    rho: np.ndarray
+    obs_pt: np.ndarray
+    obs_kf: np.ndarray
+    obs_xn: np.ndarray
+
+
+def residuals(prob: BAProblem, T: np.ndarray, rho: np.ndarray, jac: bool = False):
+    """Reprojection residuals ``(M, 2)`` and, with ``jac``, the Jacobians.
+
+    Returns:
+        ``r`` and, if ``jac``: ``J_t`` ``(M, 2, 6)`` (target pose), ``J_h`` ``(M, 2, 6)``
+        (host pose), ``J_p`` ``(M, 2)`` (inverse depth), and the ``(M,)`` bool "in front" mask.
+    """
+    h, k, p = prob.host[prob.obs_pt], prob.obs_kf, prob.obs_pt
+    Rh, th = T[h, :3, :3], T[h, :3, 3]
+    Rt, tt = T[k, :3, :3], T[k, :3, 3]
+    ray = prob.ray[p]
+    Xh = ray / rho[p, None]
+    Xw = np.einsum("nji,nj->ni", Rh, Xh - th)
+    Xc = np.einsum("nij,nj->ni", Rt, Xw) + tt
+    front = Xc[:, 2] > 1e-6
+    z = np.where(front, Xc[:, 2], 1e-6)
+    uv = Xc[:, :2] / z[:, None]
+    r = uv - prob.obs_xn
+    if not jac:
+        return r, front
+    iz = 1.0 / z
+    Jpi = np.zeros((len(z), 2, 3))
+    Jpi[:, 0, 0] = iz
+    Jpi[:, 1, 1] = iz
+    Jpi[:, 0, 2] = -uv[:, 0] * iz
+    Jpi[:, 1, 2] = -uv[:, 1] * iz
+    A = np.zeros((len(z), 3, 6))
+    A[:, :, :3] = np.eye(3)
+    A[:, :, 3:] = -_skew(Xc)
+    J_t = Jpi @ A  # left increment of the target pose: dXc = [I | −[Xc]×] δ
+    B = np.zeros((len(z), 3, 6))
+    B[:, :, :3] = np.eye(3)
+    B[:, :, 3:] = -_skew(Xh)
+    RtRh = Rt @ np.transpose(Rh, (0, 2, 1))
+    J_h = -Jpi @ RtRh @ B  # host increment: Xw = T_h⁻¹ exp(−δ) Xh
+    J_p = np.einsum("nij,nj->ni", Jpi @ RtRh, -ray / (rho[p, None] ** 2))
+    return r, J_t, J_h, J_p, front
+
+
+def _robust_cost(r: np.ndarray, front: np.ndarray, huber: float) -> float:
+    e = np.linalg.norm(r, axis=1)
+    c = np.where(e < huber, 0.5 * e * e, huber * (e - 0.5 * huber))
+    return float(np.sum(np.where(front, c, 0.5 * huber * huber)))
+
+
+def _apply(T: np.ndarray, fi: np.ndarray, dc: np.ndarray) -> np.ndarray:
+    T = T.copy()
+    if len(fi):
+        d = dc.reshape(-1, 6)
+        inc = np.tile(np.eye(4), (len(fi), 1, 1))
+        inc[:, :3, :3] = exp_so3(d[:, 3:])
+        inc[:, :3, 3] = d[:, :3]
+        T[fi] = inc @ T[fi]
+        U, _, Vt = np.linalg.svd(T[fi, :3, :3])  # stay on SO(3)
+        T[fi, :3, :3] = U @ Vt
+    return T
+
+
+def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Levenberg–Marquardt on the window with a Schur complement on the points.
+
+    Args:
+        prob: the problem (see :class:`BAProblem`).
+        huber: Huber threshold in normalised units.
+        iters: LM iterations (accepted or rejected steps).
+
+    Returns:
+        New ``T_cw`` ``(K, 4, 4)``, new ``rho`` ``(P,)`` and stats (initial/final robust cost).
+    """
+    T, rho = prob.T_cw.copy(), prob.rho.copy()
+    fi = np.flatnonzero(prob.free)
+    F, P, M = len(fi), len(rho), len(prob.obs_pt)
+    if M == 0:
+        return T, rho, {"cost0": 0.0, "cost": 0.0, "iters": 0}
+    col = -np.ones(len(T), int)
+    col[fi] = np.arange(F)
+    ct, ch = col[prob.obs_kf], col[prob.host[prob.obs_pt]]
+    p = prob.obs_pt
+    r, front = residuals(prob, T, rho)
+    cost = cost0 = _robust_cost(r, front, huber)
+    lam = 1e-4
+    for _ in range(iters):
+        r, Jt, Jh, Jp, front = residuals(prob, T, rho, jac=True)
+        e = np.linalg.norm(r, axis=1)
+        w = np.where(e < huber, 1.0, huber / np.maximum(e, 1e-12)) * front  # IRLS Huber weights
+        Hcc = np.zeros((F, F, 6, 6))
+        Hcp = np.zeros((F, 6, P))
+        bc = np.zeros((F, 6))
+        Hpp = np.zeros(P)
+        bp = np.zeros(P)
+        np.add.at(Hpp, p, w * np.sum(Jp * Jp, 1))
+        np.add.at(bp, p, w * np.sum(Jp * r, 1))
+        for Ja, ca in ((Jt, ct), (Jh, ch)):
+            ma = ca >= 0
+            if not ma.any():
+                continue
+            Jaw = Ja[ma] * w[ma, None, None]
+            np.add.at(bc, ca[ma], np.einsum("nij,ni->nj", Jaw, r[ma]))
+            np.add.at(Hcp, (ca[ma], slice(None), p[ma]), np.einsum("nij,ni->nj", Jaw, Jp[ma]))
+            for Jb, cb in ((Jt, ct), (Jh, ch)):
+                mb = ma & (cb >= 0)
+                if not mb.any():
+                    continue
+                blk = np.einsum("nij,nik->njk", Ja[mb] * w[mb, None, None], Jb[mb])
+                np.add.at(Hcc, (ca[mb], cb[mb]), blk)
+        Hcc = Hcc.transpose(0, 2, 1, 3).reshape(6 * F, 6 * F)
+        Hcp = Hcp.reshape(6 * F, P)
+        bc = bc.reshape(-1)
+        accepted = False
+        for _try in range(4):
+            Hd = Hpp * (1 + lam) + 1e-12
+            Hc = Hcc + lam * np.diag(np.diag(Hcc)) + 1e-12 * np.eye(6 * F)
+            S = Hc - (Hcp / Hd) @ Hcp.T
+            g = bc - Hcp @ (bp / Hd)
+            try:
+                dc = -np.linalg.solve(S, g) if F else np.zeros(0)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            dp = -(bp + Hcp.T @ dc) / Hd
+            T_new = _apply(T, fi, dc)
+            rho_new = np.maximum(rho + dp, 1e-4)
+            r_new, f_new = residuals(prob, T_new, rho_new)
+            c_new = _robust_cost(r_new, f_new, huber)
+            if c_new < cost:
+                T, rho, cost = T_new, rho_new, c_new
+                lam = max(lam / 10, 1e-7)
+                accepted = True
+                break
+            lam *= 10
+        if not accepted:
+            break
+    return T, rho, {"cost0": cost0, "cost": cost}

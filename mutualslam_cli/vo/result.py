@@ -1,0 +1,75 @@
+"""Assembly of the front end's state into a :class:`VOResult` (DESIGN §4)."""
+
+from __future__ import annotations
+
+from itertools import combinations
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mutualslam_cli.types import Trajectory
+from mutualslam_cli.vo.camera import pinhole
+from mutualslam_cli.vo.output import Keyframe, MapPoints, VOResult
+
+if TYPE_CHECKING:
+    from mutualslam_cli.vo.frontend import _Frontend
+
+
+def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
+    """Untracked stretches ``[first, last]`` (inclusive frame indices)."""
+    out, start = [], None
+    for i, s in enumerate(frame_seg):
+        if s < 0 and start is None:
+            start = i
+        elif s >= 0 and start is not None:
+            out.append([start, i - 1])
+            start = None
+    if start is not None:
+        out.append([start, len(frame_seg) - 1])
+    return out
+
+
+def build_result(fe: "_Frontend", total_s: float) -> VOResult:
+    """Final keyframe poses, frame poses re-anchored on them, map points and covisibility."""
+    m = fe.map
+    kfs = [Keyframe(k, m.kf_frame[k], m.kf_time[k], m.kf_T_wc[k].copy(), m.kf_segment[k])
+           for k in range(len(m.kf_frame))]
+    idx = sorted(fe.frame_rel)
+    ts = np.array([fe.seq.frames[i].timestamp for i in idx])
+    poses = np.stack([m.kf_T_wc[fe.frame_rel[i][0]] @ fe.frame_rel[i][1] for i in idx]) if idx else np.zeros((0, 4, 4))
+    frame_seg = fe.frame_seg.copy()
+    n = len(m.host)
+    obs_k = [np.array(sorted(m.obs[p]), np.int64) for p in range(n)]
+    obs_px = [np.array([m.obs[p][k] for k in obs_k[p]], np.float64).reshape(-1, 2) for p in range(n)]
+    pts = MapPoints(np.arange(n, dtype=np.int64), np.array(m.host, np.int64).reshape(-1),
+                    np.array(m.px_h, np.float64).reshape(-1, 2), np.array(m.rho, np.float64).reshape(-1),
+                    np.array(m.sigma, np.float64).reshape(-1), obs_k, obs_px)
+    keep = (pts.inv_depth > 0) & np.isfinite(pts.inv_depth)
+    if not keep.all():
+        pts = pts.subset(keep)
+        pts.ids = np.arange(len(pts), dtype=np.int64)
+    covis: dict[int, dict[int, int]] = {k: {} for k in range(len(kfs))}
+    for o in pts.observations:
+        for a, b in combinations(o.tolist(), 2):
+            covis[a][b] = covis[a].get(b, 0) + 1
+            covis[b][a] = covis[b].get(a, 0) + 1
+    n_frames = len(frame_seg)
+    st = fe.mapper.stats
+    timing = {k: 1000.0 * v / max(n_frames, 1) for k, v in fe.timing.items()}
+    meta = {
+        "mode": "svo",
+        "n_reinit": max(fe.segment, 0),
+        "segments": fe.segment + 1,
+        "gaps": _gaps(frame_seg),
+        "init_methods": list(fe.init_methods),
+        "timing": timing,
+        "timing_unit": "ms per frame (mean over all frames)",
+        "fps": n_frames / total_s if total_s > 0 else float("nan"),
+        "time_s": total_s,
+        "reprojected": fe.n_reprojected,
+        "local_ba": {"runs": len(st),
+                     "mean_points": float(np.mean([s["points"] for s in st])) if st else 0.0,
+                     "mean_solve_ms": float(np.mean([s["solve_ms"] for s in st])) if st else 0.0,
+                     "threaded": fe.mapper.pool is not None},
+    }
+    return VOResult(kfs, pts, pinhole(fe.intr), Trajectory(ts, poses), frame_seg, covis, meta)

@@ -1,0 +1,164 @@
+"""Unit tests of the VO building blocks: camera model, detection, KLT, PnP, two-view
+initialisation, depth filter and windowed BA (all on synthetic inputs, fast)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo import depth_filter as dfl
+from mutualslam_cli.vo.camera import distort_points, to_normalized, to_pixels, undistort_points
+from mutualslam_cli.vo.features import detect_grid
+from mutualslam_cli.vo.initialization import initialize
+from mutualslam_cli.vo.local_ba import BAProblem, exp_so3, solve
+from mutualslam_cli.vo.tracking import estimate_pose, klt_track
+
+FR1 = Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633))
+
+
+def _pose(rng: np.random.Generator, rot: float, trans: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = exp_so3(rng.normal(0, rot, (1, 3)))[0]
+    T[:3, 3] = rng.normal(0, trans, 3)
+    return T
+
+
+def _project(T_cw: np.ndarray, X: np.ndarray) -> np.ndarray:
+    pc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+    return pc[:, :2] / pc[:, 2:3]
+
+
+def _texture(rng: np.random.Generator, h: int = 240, w: int = 320) -> np.ndarray:
+    img = cv2.resize(rng.integers(0, 255, (h // 8, w // 8)).astype(np.uint8), (w, h), interpolation=cv2.INTER_CUBIC)
+    return cv2.GaussianBlur(img, (5, 5), 1.0)
+
+
+def test_distortion_round_trip_fr1(rng):
+    pix = np.c_[rng.uniform(40, 600, 200), rng.uniform(40, 440, 200)]
+    und = undistort_points(pix, FR1)
+    assert np.abs(und - pix).max() > 1.0  # the model really moves points
+    np.testing.assert_allclose(distort_points(und, FR1), pix, atol=1e-3)
+
+
+def test_normalised_coordinates_negative_fy(rng):
+    icl = Intrinsics(481.2, -480.0, 319.5, 239.5, 640, 480)
+    pix = np.c_[rng.uniform(0, 640, 50), rng.uniform(0, 480, 50)]
+    xn = to_normalized(pix, icl.K())
+    assert np.all(np.sign(xn[:, 1]) == -np.sign(pix[:, 1] - 239.5))
+    np.testing.assert_allclose(to_pixels(xn, icl.K()), pix, atol=1e-9)
+
+
+def test_grid_detection_one_per_cell_and_occupancy(rng):
+    img = _texture(rng)
+    pts = detect_grid(img, 20, 500)
+    cells = set(zip((pts[:, 1] // 20).astype(int), (pts[:, 0] // 20).astype(int)))
+    assert len(cells) == len(pts) > 100
+    occupied = pts[:50]
+    more = detect_grid(img, 20, 500, occupied_px=occupied)
+    occ_cells = set(zip((occupied[:, 1] // 20).astype(int), (occupied[:, 0] // 20).astype(int)))
+    new_cells = set(zip((more[:, 1] // 20).astype(int), (more[:, 0] // 20).astype(int)))
+    assert not occ_cells & new_cells
+    assert len(detect_grid(img, 20, 60, occupied_px=occupied)) == 10
+    assert len(detect_grid(np.zeros_like(img), 20, 500)) == 0
+
+
+def test_klt_tracks_a_shift_and_rejects_textureless(rng):
+    img = _texture(rng)
+    img[:, 200:] = 128  # flat right part: nothing to track there
+    M = np.float32([[1, 0, 3.0], [0, 1, -2.0]])
+    moved = cv2.warpAffine(img, M, (img.shape[1], img.shape[0]), flags=cv2.INTER_CUBIC)
+    pts = np.float32([[60, 60], [100, 120], [150, 180], [250, 120], [280, 60]])
+    out, ok = klt_track(img, moved, pts, 21, 3, 1.0)
+    assert ok[:3].all()
+    np.testing.assert_allclose(out[:3] - pts[:3], [[3.0, -2.0]] * 3, atol=0.1)
+    assert not ok[3:].any()
+
+
+def test_pose_from_matches_with_outliers(rng):
+    X = np.c_[rng.uniform(-1, 1, (200, 2)), rng.uniform(2, 5, 200)]
+    T = _pose(rng, 0.05, 0.2)
+    xn = _project(T, X) + rng.normal(0, 0.3 / 500, (200, 2))
+    xn[:40] += rng.uniform(-0.1, 0.1, (40, 2))  # 20 % gross outliers
+    T_est, inl = estimate_pose(X, xn, [np.eye(4)], 2.0 / 500, seed=0)
+    assert T_est is not None
+    assert np.linalg.norm(T_est[:3, 3] - T[:3, 3]) < 5e-3
+    assert inl[40:].mean() > 0.95 and inl[:40].mean() < 0.2
+
+
+def _two_views(rng, planar: bool):
+    n = 300
+    if planar:
+        X = np.c_[rng.uniform(-1.5, 1.5, (n, 2)), np.full(n, 3.0)]
+    else:
+        X = np.c_[rng.uniform(-1.5, 1.5, (n, 2)), rng.uniform(2.0, 6.0, n)]
+    T1 = np.eye(4)
+    T1[:3, :3] = exp_so3(np.array([[0.0, 0.03, 0.01]]))[0]
+    T1[:3, 3] = [-0.3, 0.05, 0.02]
+    noise = 0.3 / 500
+    return X, T1, _project(np.eye(4), X) + rng.normal(0, noise, (n, 2)), _project(T1, X) + rng.normal(0, noise, (n, 2))
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_two_view_initialisation(rng, planar):
+    X, T1, x0, x1 = _two_views(rng, planar)
+    res = initialize(x0, x1, 2.0 / 500, seed=0)
+    assert res is not None
+    assert res.method == ("homography" if planar else "essential")
+    assert np.median(res.points0[:, 2]) == pytest.approx(1.0)  # map scaled to median depth 1
+    s = np.median(X[res.index, 2])
+    rel = np.linalg.norm(res.points0 * s - X[res.index], axis=1) / X[res.index, 2]
+    assert np.median(rel) < 0.02 and np.max(rel) < 0.1
+    np.testing.assert_allclose(res.T_10[:3, 3] * s, T1[:3, 3], atol=0.02)
+
+
+def test_depth_filter_converges_and_flags_outliers(rng):
+    n = 50
+    f_h = np.c_[rng.uniform(-0.3, 0.3, (n, 2)), np.ones(n)]
+    f_h /= np.linalg.norm(f_h, axis=1, keepdims=True)
+    dist = rng.uniform(1.0, 3.0, n)
+    s = dfl.new_seeds(n, dfl.SeedInit(2.0, 0.5))
+    for i in range(1, 30):
+        T_wc = np.eye(4)
+        T_wc[:3, 3] = [0.01 * i, 0.002 * i, 0.0]
+        Xc = f_h * dist[:, None] - T_wc[:3, 3]
+        f_c = Xc / np.linalg.norm(Xc, axis=1, keepdims=True)
+        f_c[:, :2] += rng.normal(0, 0.3 / 500, (n, 2))
+        if i % 3 == 0:  # every third frame, seeds 0-9 get an outlier measurement
+            f_c[:10, :2] += rng.uniform(0.02, 0.05, (10, 2))
+        x, tau2, ok = dfl.measure(f_h, f_c / np.linalg.norm(f_c, axis=1, keepdims=True),
+                                  np.repeat(T_wc[None], n, 0), 2 * np.arctan(0.5 / 500))
+        dfl.update_seeds(s, np.flatnonzero(ok), x[ok], tau2[ok])
+    conv = dfl.converged(s)
+    assert conv[10:].mean() > 0.9
+    np.testing.assert_allclose(1.0 / s["mu"][10:], dist[10:], rtol=0.02)
+    ratio = s["a"] / (s["a"] + s["b"])
+    assert ratio[:10].mean() < ratio[10:].mean()
+
+
+def test_windowed_ba_reduces_error(rng):
+    K, P = 5, 300
+    T = np.stack([np.eye(4)] * K)
+    for k in range(K):
+        T[k, :3, 3] = [-0.1 * k, 0.02 * k, 0.0]
+    X = np.c_[rng.uniform(-1, 1, (P, 2)), rng.uniform(2, 4, P)]
+    host = rng.integers(0, K, P)
+    ray = np.c_[np.array([_project(T[host[p]], X[p:p + 1])[0] for p in range(P)]), np.ones(P)]
+    rho = np.array([1.0 / (X[p] @ T[host[p], :3, :3].T + T[host[p], :3, 3])[2] for p in range(P)])
+    obs = [(p, k) for p in range(P) for k in range(K) if k != host[p]]
+    o_pt = np.array([o[0] for o in obs])
+    o_kf = np.array([o[1] for o in obs])
+    o_xn = np.stack([_project(T[k], X[p:p + 1])[0] for p, k in obs]) + rng.normal(0, 0.3 / 500, (len(obs), 2))
+    T0 = T.copy()
+    for k in range(2, K):  # kf 0 and 1 fixed: gauge and scale
+        T0[k] = _pose(rng, 0.01, 0.02) @ T0[k]
+    prob = BAProblem(T0, np.arange(K) >= 2, host, ray, rho * (1 + rng.normal(0, 0.05, P)), o_pt, o_kf, o_xn)
+    T_new, rho_new, st = solve(prob, 2.0 / 500, iters=10)
+    assert st["cost"] < 0.1 * st["cost0"]
+    err0 = max(np.linalg.norm(se3_inv(T0[k])[:3, 3] - se3_inv(T[k])[:3, 3]) for k in range(K))
+    err1 = max(np.linalg.norm(se3_inv(T_new[k])[:3, 3] - se3_inv(T[k])[:3, 3]) for k in range(K))
+    assert err1 < 0.2 * err0
+    np.testing.assert_allclose(T_new[:2], T0[:2])  # fixed poses untouched
+    assert np.median(np.abs(rho_new / rho - 1)) < 0.01
