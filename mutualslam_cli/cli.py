@@ -190,8 +190,11 @@ def ate(
 @_boundary
 def pretrain(
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for encoder.pth/depth.pth (default: the default model)."),
-    steps: int = typer.Option(3000, "--steps", min=1),
+    steps: int = typer.Option(1150, "--steps", min=1, help="Training steps (the shipped model: 1150)."),
+    batch_size: int = typer.Option(4, "--batch-size", min=1),
     seed: int = typer.Option(0, "--seed"),
+    threads: int = typer.Option(1, "--threads", min=1, help="torch threads (results depend on it slightly)."),
+    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop early and save after this long."),
     quick: bool = typer.Option(False, "--quick", help="A few steps at small size (smoke test)."),
 ) -> None:
     """Train the default depth network on the synthetic source domain (stand-in for KITTI pre-training)."""
@@ -199,16 +202,19 @@ def pretrain(
     from mutualslam_cli.adapt.weights import default_weights_dir
 
     out = out or default_weights_dir()
-    kwargs = pt.QUICK if quick else {}
+    kwargs: dict[str, Any] = {"steps": steps, "batch_size": batch_size, "seed": seed, "threads": threads,
+                              "max_minutes": max_minutes, "drop_fc": True, "pool_size": 240, "eval_frames": 6}
+    if quick:
+        kwargs.update(pt.QUICK)
     with _progress() as p:
-        total = kwargs.get("steps", steps)
-        task = p.add_task("pretrain", total=total, info="")
+        task = p.add_task("pretrain", total=kwargs["steps"], info="")
 
         def cb(info: dict) -> None:
             p.update(task, completed=info.get("step", 0), info=f"loss {info.get('loss', float('nan')):.4f}")
 
-        summary = pt.pretrain(out, **{"steps": steps, "seed": seed, **kwargs}, progress=cb)
-    console.print(f"saved the pre-trained model to {out} ({summary.get('time_s', 0):.0f} s)")
+        summary = pt.pretrain(out, progress=cb, **kwargs)
+    console.print(f"saved the pre-trained model to {out} ({summary.get('time_s', 0):.0f} s, "
+                  f"{summary.get('steps_done', summary.get('steps'))} steps)")
 
 
 # --------------------------------------------------------------------------- run
@@ -285,6 +291,58 @@ def run(
     if r.skipped:
         console.print(f"[yellow]already complete[/] (use --force to recompute): {r.folder}")
     _render_summary(r.folder, r.summary)
+
+
+# --------------------------------------------------------------------------- ablate
+
+
+@app.command()
+@_boundary
+def ablate(
+    seqs: list[str] = typer.Argument(..., help="datasets.yaml names or sequence folders."),
+    schemes: str = typer.Option("none,recent,replay,replay+ewc,replay+mas,replay+si", "--schemes",
+                                help="Comma-separated scheme names."),
+    seeds: str = typer.Option("0", "--seeds", help="Comma-separated seeds, or a range like 0-2."),
+    workers: int = typer.Option(1, "--workers", "-j", min=1, help="Local worker processes."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Results root (default results/)."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+    data_root: Optional[str] = DataRootOpt,
+    registry: Optional[Path] = typer.Option(None, "--registry", help="Another datasets.yaml."),
+) -> None:
+    """The grid sequences × schemes × seeds; complete runs are skipped, so a killed grid resumes."""
+    from mutualslam_cli.ablate import expand, run_grid
+    from mutualslam_cli.adapt.schemes import get_scheme
+
+    cfg = _config(config, sets, data_root)
+    names = [s.strip() for s in schemes.split(",") if s.strip()]
+    for n in names:
+        get_scheme(n)
+    try:
+        a, _, b = seeds.partition("-")
+        seed_list = list(range(int(a), int(b) + 1)) if b else [int(x) for x in seeds.split(",")]
+    except ValueError:
+        raise ConfigError(f"--seeds {seeds!r}: expected e.g. 0,1,2 or 0-2") from None
+    jobs = expand(list(seqs), names, seed_list)
+    failed = []
+    with _progress() as p:
+        task = p.add_task("grid", total=len(jobs), info="")
+
+        def done(o: Any) -> None:
+            if o.status == "failed":
+                failed.append(o)
+            p.update(task, advance=1, info=f"{o.job.sequence} {o.job.scheme} seed{o.job.seed}: {o.status}")
+
+        outcomes = run_grid(cfg, jobs, out or cfg.out, workers=workers, command=sys.argv, registry=registry,
+                            on_done=done)
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
+    console.print(f"{len(jobs)} jobs: {counts['done']} done, {counts['skipped']} already complete, "
+                  f"{counts['failed']} failed")
+    for o in failed:
+        err_console.print(f"[red]failed[/] {o.job.sequence} {o.job.scheme} seed{o.job.seed}: "
+                          f"{(o.error or '').splitlines()[0]}")
+    if failed:
+        raise typer.Exit(1)
 
 
 # --------------------------------------------------------------------------- report
