@@ -173,8 +173,12 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
     w, h = cfg.net.width, cfg.net.height
     K_net = torch.from_numpy(vo.intrinsics.scaled(w, h).K()).float()
     ba_triggers: list[int] = []
+    from mutualslam_cli.adapt.depthnet import prepare
+
+    net = prepare(net, fast)
     adapter = OnlineAdapter(net, cfg.adapt, K_net, seed=cfg.seed, fast=fast,
-                            on_global_ba=lambda *a, **k: ba_triggers.append(len(ba_triggers)))
+                            on_global_ba=lambda *a, **k: ba_triggers.append(len(ba_triggers)),
+                            val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode)
     load = keyframe_images(seq, vo, w, h)
     pw = vo.points_world()
     rows = []
