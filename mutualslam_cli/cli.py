@@ -281,8 +281,11 @@ def run(
                 if info.get("fps"):
                     text += f" · {info['fps']:.0f} fps"
             elif stage == "adapt":
-                lv = info.get("val_loss")
-                text = f"{info.get('state', '')} · loss {_fmt(info.get('loss'), 4)} · L_val {_fmt(lv, 4)} · conv {info.get('n_converged', 0)}"
+                lv = info.get("l_val")
+                lv = None if lv is None or lv != lv else lv
+                what = "validate" if info.get("is_validation") else ("fine-tune" if info.get("trained") else "wait")
+                text = (f"{what} · loss {_fmt(info.get('loss_total'), 4)} · L_val {_fmt(lv, 4)}"
+                        f" · converged {info.get('n_converged', 0)}")
             else:
                 text = ""
             p.update(tasks[stage], completed=done, total=total, info=text)

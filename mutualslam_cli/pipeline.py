@@ -191,14 +191,26 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
             depth=torch.from_numpy(d).float(),
         )
         info = adapter.add_keyframe(sample)
-        row = info if isinstance(info, dict) else dict(vars(info))
-        row = {k: (v.value if hasattr(v, "value") else v) for k, v in row.items()}
+        row = _step_row(info)
         row["n_sparse"] = len(d)
         rows.append(row)
         if progress:
             progress("adapt", {"done": kf.id + 1, "total": len(vo.keyframes), **row,
                                "elapsed_s": time.perf_counter() - t0})
     return adapter.net if hasattr(adapter, "net") else net, rows, adapter
+
+
+def _step_row(info: Any) -> dict[str, Any]:
+    """A flat CSV row from the adapter's step info (loss parts as ``loss_<part>`` columns)."""
+    row: dict[str, Any] = {}
+    for k, v in dict(vars(info)).items():
+        if isinstance(v, dict):
+            row.update({f"{k}_{p}": x for p, x in v.items()})
+        elif isinstance(v, (list, tuple)):
+            row[k] = " ".join(map(str, v))
+        else:
+            row[k] = v.value if hasattr(v, "value") else v
+    return row
 
 
 # ----------------------------------------------------------------------------- the run
