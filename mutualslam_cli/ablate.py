@@ -75,9 +75,12 @@ def prepare_frontends(cfg: RunConfig, sequences: list[str], seeds: list[int], ou
 
     for q, k in itertools.product(sequences, seeds):
         c = with_overrides(cfg, seed=k)  # type: ignore[arg-type]
-        seq = load_sequence(q, data_root=c.data.data_root, registry_path=registry,
-                            max_frames=c.data.max_frames, stride=c.data.stride)
-        run_frontend(seq, c, cache_dir=Path(out) / "_cache" / "vo")
+        try:
+            seq = load_sequence(q, data_root=c.data.data_root, registry_path=registry,
+                                max_frames=c.data.max_frames, stride=c.data.stride)
+            run_frontend(seq, c, cache_dir=Path(out) / "_cache" / "vo")
+        except MslamError as e:  # the sequence's jobs will fail with this message; the others go on
+            log.warning("front end for %s (seed %d) failed: %s", q, k, e)
 
 
 def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,

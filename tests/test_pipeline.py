@@ -85,3 +85,18 @@ def test_scheme_none_and_report(setup):
     assert {"depth.md", "depth.tex", "depth.csv", "ablation.csv", "report.md"} <= names
     assert "accuracy_over_frames.png" in names
     assert "—" in (tmp / "rep_out" / "map.md").read_text()  # absent values shown as absent
+
+
+def test_ablate_grid_resumes(setup):
+    from mutualslam_cli.ablate import expand, run_grid
+
+    tmp, seq = setup
+    cfg = _cfg(tmp)
+    jobs = expand([str(seq)], ["none", "replay"], [0])
+    first = run_grid(cfg, jobs, tmp / "grid")
+    assert sorted(o.status for o in first) == ["done", "done"]
+    (first[0].folder / "summary.json").unlink()  # as if that job had been killed before finishing
+    second = run_grid(cfg, jobs, tmp / "grid")
+    assert sorted(o.status for o in second) == ["done", "skipped"]
+    bad = run_grid(cfg, expand([str(tmp / "missing")], ["none"], [0]), tmp / "grid")
+    assert bad[0].status == "failed" and "missing" in bad[0].error

@@ -44,7 +44,7 @@ import torch
 from torch import nn
 
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
-from mutualslam_cli.adapt.depthnet import fast_context
+from mutualslam_cli.adapt.depthnet import fast_context, make_adam
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
 from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.adapt.state import (Action, FineTuneDone, FsmParams, FsmState, TrainingKeyframe,
@@ -132,7 +132,7 @@ class OnlineAdapter:
         self.buffer = KeyframeBuffer(cfg.replay_capacity, seed=seed + 1)
         self.rng = np.random.default_rng(seed)
         self.params = trainable(net)
-        self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr) if self.scheme.trains else None
+        self.optimizer = make_adam(self.params, lr=cfg.lr) if self.scheme.trains else None
         self.regularizer: Regularizer | None = self.scheme.make_regularizer(net, cfg, self._predict, reg_mode)
         self.fsm_params = FsmParams(cfg.validate_every, cfg.patience, cfg.tau_val)
         self.fsm = FsmState()
