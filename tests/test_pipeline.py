@@ -80,6 +80,9 @@ def test_scheme_none_and_report(setup):
     assert set(depth["scheme"]) == {"none", "recent"}
     none = depth[depth["scheme"] == "none"].iloc[0]
     assert none["PCD lsq pre"] == none["PCD lsq adapt"]  # 'none' keeps the pre-trained model
+    recent = depth[depth["scheme"] == "recent"].iloc[0]
+    assert recent["PCD lsq pre"] == none["PCD lsq pre"]  # the pre-trained evaluation is cached and reused
+    assert len(list((tmp / "rep" / "_cache" / "pretrained").glob("*.csv"))) == 1
     files = write_report(rep, tmp / "rep_out")
     names = {p.name for p in files}
     assert {"depth.md", "depth.tex", "depth.csv", "ablation.csv", "report.md"} <= names
