@@ -132,12 +132,15 @@ def synth(
     scene: str = typer.Option("room", "--scene", help="room | planar | far"),
     frames: int = typer.Option(120, "--frames", "-n", min=2),
     size: str = typer.Option("640x480", "--size", help="WIDTHxHEIGHT"),
-    seed: int = typer.Option(0, "--seed"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Default: the config's seed."),
     domain: str = typer.Option("target", "--domain", help="target | source (pre-training domain)"),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
 ) -> None:
     """Render a synthetic RGB-D sequence with exact depth and poses, in TUM layout."""
     from mutualslam_cli.datasets import synthetic
 
+    seed = _config(config, sets).seed if seed is None else seed
     try:
         w, h = (int(v) for v in size.lower().split("x"))
     except ValueError:
@@ -168,12 +171,15 @@ def ate(
     ref: Path = typer.Argument(..., help="Reference TUM trajectory (timestamp tx ty tz qx qy qz qw)."),
     est: Path = typer.Argument(..., help="Estimated TUM trajectory."),
     align: str = typer.Option("sim3", "--align", help="sim3 | se3 | none"),
-    max_dt: float = typer.Option(0.02, "--max-dt", help="Association threshold, seconds."),
+    max_dt: Optional[float] = typer.Option(None, "--max-dt", help="Association threshold, s (default eval.ate_max_dt)."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
 ) -> None:
     """ATE of two TUM-format trajectories (the pipeline's own code path)."""
     from mutualslam_cli.datasets.associate import read_tum_trajectory
     from mutualslam_cli.metrics.trajectory import ate as ate_fn
 
+    max_dt = _config(config, sets).eval.ate_max_dt if max_dt is None else max_dt
     if align not in ("sim3", "se3", "none"):
         raise ConfigError(f"--align {align!r}: expected sim3, se3 or none")
     r = ate_fn(read_tum_trajectory(ref), read_tum_trajectory(est), align=align, max_dt=max_dt)  # type: ignore[arg-type]
@@ -192,17 +198,21 @@ def pretrain(
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for encoder.pth/depth.pth (default: the default model)."),
     steps: int = typer.Option(1150, "--steps", min=1, help="Training steps (the shipped model: 1150)."),
     batch_size: int = typer.Option(4, "--batch-size", min=1),
-    seed: int = typer.Option(0, "--seed"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Default: the config's seed."),
     threads: int = typer.Option(1, "--threads", min=1, help="torch threads (results depend on it slightly)."),
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop early and save after this long."),
     quick: bool = typer.Option(False, "--quick", help="A few steps at small size (smoke test)."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
 ) -> None:
     """Train the default depth network on the synthetic source domain (stand-in for KITTI pre-training)."""
     from mutualslam_cli.adapt import pretrain as pt
     from mutualslam_cli.adapt.weights import default_weights_dir
 
+    cfg = _config(config, sets)
+    seed = cfg.seed if seed is None else seed
     out = out or default_weights_dir()
-    kwargs: dict[str, Any] = {"steps": steps, "batch_size": batch_size, "seed": seed, "threads": threads,
+    kwargs: dict[str, Any] = {"width": cfg.net.width, "height": cfg.net.height, "steps": steps, "batch_size": batch_size, "seed": seed, "threads": threads,
                               "max_minutes": max_minutes, "drop_fc": True, "pool_size": 240, "eval_frames": 6}
     if quick:
         kwargs.update(pt.QUICK)
@@ -355,11 +365,14 @@ def ablate(
 @_boundary
 def report(
     results: list[Path] = typer.Argument(..., help="Result folders (searched recursively for summary.json)."),
-    out: Path = typer.Option(Path("results/report"), "--out", help="Folder for .md/.tex/.csv tables and PNG plots."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for tables and plots (default <config out>/report)."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
 ) -> None:
     """The paper's tables and plots from result folders."""
     from mutualslam_cli.report import build_tables, collect, write_report
 
+    out = out or Path(_config(config, sets).out) / "report"
     rep = build_tables(collect(list(results)))
     for name, tdf in rep.tables.items():
         t = Table(*map(str, tdf.columns), title=rep.titles[name])

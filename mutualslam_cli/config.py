@@ -145,6 +145,8 @@ class EvalConfig:
     """Evaluate depth on every k-th frame with GT depth."""
     save_weights: bool = False
     """Write the adapted weights into the result folder."""
+    ate_max_dt: float = 0.02
+    """Trajectory association threshold in seconds (TUM benchmark)."""
 
 
 @dataclass(frozen=True)

@@ -75,7 +75,7 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
     return table, ms
 
 
-def evaluate_trajectory(seq: Sequence, vo: VOResult) -> dict[str, object]:
+def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = 0.02) -> dict[str, object]:
     """Sim(3)-aligned ATE of keyframes and of all tracked frames against the stored GT.
 
     Re-initialised front ends (several segments) are aligned per segment (each has its own scale);
@@ -99,9 +99,9 @@ def evaluate_trajectory(seq: Sequence, vo: VOResult) -> dict[str, object]:
             continue
         try:
             if seg is not None and len(seg) == len(traj) and len(np.unique(seg)) > 1:
-                out[key] = tm.ate_segments(seq.gt, traj, seg)
+                out[key] = tm.ate_segments(seq.gt, traj, seg, max_dt=max_dt)
             else:
-                out[key] = tm.ate(seq.gt, traj, align="sim3")
+                out[key] = tm.ate(seq.gt, traj, align="sim3", max_dt=max_dt)
         except MslamError as e:
             notes[key] = str(e)
     return out

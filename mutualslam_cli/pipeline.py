@@ -333,7 +333,7 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     _write_ply(folder / "map_vo.ply", pw)
 
     # Trajectory accuracy without BA.
-    traj = evaluate_trajectory(seq, vo)
+    traj = evaluate_trajectory(seq, vo, cfg.eval.ate_max_dt)
     for key, name in (("kf", "trajectory.ate_rmse_m.vo"), ("all", "trajectory.ate_rmse_m.all_frames")):
         r = traj[key]
         if r is None:
