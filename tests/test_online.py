@@ -118,7 +118,8 @@ def test_every_scheme_runs(scheme):
         assert trained == [] and ad.finetune_ms == []
         return
     assert not hist[0].trained  # first keyframe has no photometric neighbour
-    assert len(trained) == 9 and len(ad.finetune_ms) == 9 and len(ad.step_ms) == 18
+    steps = AdaptConfig().steps_per_keyframe
+    assert len(trained) == 9 and len(ad.finetune_ms) == 9 and len(ad.step_ms) == 9 * steps
     for h in trained:
         assert h.batch[0] == h.kf_id and all(math.isfinite(v) for v in h.loss.values())
         assert set(h.loss) >= {"photo", "sparse", "smooth", "total", "penalty"}
@@ -160,7 +161,8 @@ def test_global_ba_callback_when_expected():
 
 @pytest.mark.parametrize("real", [True])
 def test_replay_ewc_reduces_l_val(real):
-    ad = OnlineAdapter(make_net(real=real), AdaptConfig(scheme="replay+ewc"), K)
+    # Random initial weights: the paper's lr 1e-3 (our default 1e-4 is tuned for a pre-trained model).
+    ad = OnlineAdapter(make_net(real=real), AdaptConfig(scheme="replay+ewc", lr=1e-3, steps_per_keyframe=2), K)
     before = None
     for s in SCENE:
         ad.add_keyframe(s)

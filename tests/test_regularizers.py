@@ -207,7 +207,7 @@ def test_penalty_zero_at_anchor(scheme):
                                          ("replay+si", "replay"), ("ewc", "recent")])
 def test_regularizer_changes_trajectory_default_config(scheme, base, mode):
     a, b = run(scheme, mode=mode), run(base)
-    assert a.cfg.steps_per_keyframe == 2 and a.cfg.anchor == "previous_batch"  # defaults
+    assert a.cfg == AdaptConfig(scheme=scheme)  # the default configuration (steps, anchor, lr)
     assert [i.batch for i in a.history] == [i.batch for i in b.history]  # same data, same replay draws
     assert not torch.equal(flat(a.net), flat(b.net))
     assert max(i.loss.get("penalty", 0.0) for i in a.history) > 0

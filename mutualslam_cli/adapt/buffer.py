@@ -6,8 +6,9 @@ What is stored (DESIGN §5, paper §III-A/B):
   each), so BA-refined poses and points (:meth:`KeyframeBuffer.update_poses`,
   :meth:`KeyframeBuffer.update_sparse`) reach every keyframe that is still trained on or
   validated (paper §III-A: "the keyframe graph … is beneficial for improving the training loss").
-- Images are kept at network resolution as given (float32). With ``capacity == 0`` every image
-  is kept. With ``capacity = C > 0``:
+- Images are kept at network resolution, as uint8 when that is lossless (images decoded from
+  8-bit files, the pipeline's case: 4× less memory), else as given. With ``capacity == 0`` every
+  image is kept. With ``capacity = C > 0``:
 
   * training keyframes: the two most recent are always kept (the recent batch and the newest's
     photometric neighbour); older ones enter a *reservoir* of ``C − 2`` slots (Vitter's
@@ -126,7 +127,7 @@ class KeyframeBuffer:
         if self._meta and sample.kf_id <= max(self._meta):
             raise ValueError(f"keyframe ids must increase: got {sample.kf_id} after {max(self._meta)}")
         self._meta[sample.kf_id] = replace(sample, pose=np.asarray(sample.pose, dtype=np.float64))
-        self._images[sample.kf_id] = sample.image
+        self._images[sample.kf_id] = _compact(sample.image)
         if training:
             self._train.append(sample.kf_id)
             if self._train_res is not None and len(self._train) > 2:
@@ -170,7 +171,8 @@ class KeyframeBuffer:
         """
         if kf_id not in self._images:
             raise KeyError(f"keyframe {kf_id} is not stored (unknown or evicted)")
-        return replace(self._meta[kf_id], image=self._images[kf_id])
+        img = self._images[kf_id]
+        return replace(self._meta[kf_id], image=img.float().div_(255.0) if img.dtype == torch.uint8 else img)
 
     @property
     def training_ids(self) -> list[int]:
@@ -271,3 +273,11 @@ class KeyframeBuffer:
                 self._meta[k] = replace(self._meta[k], uv=uv, depth=d)
                 n += 1
         return n
+
+
+def _compact(image: torch.Tensor) -> torch.Tensor:
+    """``image`` as uint8 when ``round(255·x)/255 == x`` exactly (lossless), else unchanged."""
+    if image.dtype != torch.float32:
+        return image
+    q = (image * 255.0).round_().clamp_(0, 255).to(torch.uint8)
+    return q if torch.equal(q.float().div_(255.0), image) else image
