@@ -238,7 +238,7 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
     for label, key in (("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")):
         t.add_row(label, _fmt(f.get(f"{key}.pretrained"), 2), _fmt(f.get(f"{key}.adapted"), 2))
     console.print(t)
-    t2 = Table("ATE kf m", "ATE all m", "tracked", "keyframes", "map points", "map e_si", "depth ms", "fine-tune ms")
+    t2 = Table("ATE kf m", "ATE all m", "tracked", "keyframes", "map points", "map e_si", "depth ms", "ms/step")
     t2.add_row(_fmt(f.get("trajectory.ate_rmse_m.vo"), 4), _fmt(f.get("trajectory.ate_rmse_m.all_frames"), 4),
                _fmt(f.get("vo.tracked_fraction"), 3), _fmt(f.get("vo.keyframes")), _fmt(f.get("map.points.vo")),
                _fmt(f.get("map.esi.vo"), 3), _fmt(f.get("timing.depth_ms"), 1), _fmt(f.get("timing.finetune_ms"), 0))

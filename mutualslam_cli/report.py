@@ -38,7 +38,8 @@ TABLES: dict[str, tuple[str, list[tuple[str, str]]]] = {
         ("e_si VO", "map.esi.vo"), ("e_si culled", "map.esi.culled"), ("e_si BA", "map.esi.ba"),
     ]),
     "runtime": ("Runtime", [
-        ("VO fps", "timing.vo_fps"), ("depth ms", "timing.depth_ms"), ("fine-tune ms", "timing.finetune_ms"),
+        ("VO fps", "timing.vo_fps"), ("depth ms", "timing.depth_ms"), ("fine-tune ms/step", "timing.finetune_ms"),
+        ("fine-tune ms/keyframe", "timing.finetune_kf_ms"),
         ("BA s", "timing.ba_s"), ("total s", "timing.total_s"),
     ]),
 }
