@@ -10,7 +10,6 @@ import logging
 import time
 from typing import Callable
 
-import cv2
 import numpy as np
 import pandas as pd
 
@@ -20,6 +19,7 @@ from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.errors import MslamError
 from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo.camera import distort_points
 from mutualslam_cli.vo.output import VOResult
 
 log = logging.getLogger(__name__)
@@ -111,13 +111,7 @@ def _lookup_gt_depth(seq: Sequence, frame_index: int, pixels: np.ndarray, intr: 
     depth = seq.load_depth(frame_index)
     if depth is None:
         return np.full(len(pixels), np.nan)
-    pix = pixels
-    raw = seq.intrinsics
-    if raw.dist is not None and len(pix):
-        K = intr.K()
-        rays = np.c_[(pix - K[:2, 2]) / np.array([K[0, 0], K[1, 1]]), np.ones(len(pix))]
-        pix, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), raw.K(), np.array(raw.dist))
-        pix = pix.reshape(-1, 2)
+    pix = distort_points(pixels, seq.intrinsics)  # GT depth images are in the raw (distorted) image
     h, w = depth.shape
     ui, vi = np.round(pix[:, 0]).astype(int), np.round(pix[:, 1]).astype(int)
     ok = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)

@@ -20,6 +20,8 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import backproject, project, se3_inv, transform
 from mutualslam_cli.types import Intrinsics, Trajectory
+from mutualslam_cli.vo.camera import distort_points as _distort
+from mutualslam_cli.vo.camera import undistort_points as _undistort
 from mutualslam_cli.vo.output import Keyframe, MapPoints, VOResult
 
 log = logging.getLogger(__name__)
@@ -54,24 +56,6 @@ def grid_corners(gray: np.ndarray, grid_size: int, max_fts: int) -> np.ndarray:
     ok = best > max(thresh, 1e-6)
     order = np.argsort(-best[ok], kind="stable")[:max_fts]
     return np.stack([u[ok], v[ok]], axis=1)[order].astype(np.float64)
-
-
-def _undistort(pix: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    if intr.dist is None or len(pix) == 0:
-        return pix
-    K = intr.K()
-    out = cv2.undistortPoints(pix.reshape(-1, 1, 2).astype(np.float64), K, np.array(intr.dist), P=K)
-    return out.reshape(-1, 2)
-
-
-def _distort(pix: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """Pinhole pixels → raw (distorted) image pixels, for looking up GT depth."""
-    if intr.dist is None or len(pix) == 0:
-        return pix
-    K = intr.K()
-    rays = np.c_[(pix - K[:2, 2]) / np.array([K[0, 0], K[1, 1]]), np.ones(len(pix))]
-    out, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, np.array(intr.dist))
-    return out.reshape(-1, 2)
 
 
 def _lookup(depth: np.ndarray, pix: np.ndarray) -> np.ndarray:
