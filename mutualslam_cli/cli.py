@@ -377,7 +377,7 @@ def report(
     for name, tdf in rep.tables.items():
         t = Table(*map(str, tdf.columns), title=rep.titles[name])
         for row in tdf.itertuples(index=False):
-            t.add_row(*(_fmt(v, 3) if isinstance(v, float) else str(v) for v in row))
+            t.add_row(*(("—" if v != v else _fmt(v, 3)) if isinstance(v, float) else str(v) for v in row))
         console.print(t)
     paths = write_report(rep, out)
     console.print(f"wrote {len(paths)} files to {out}")
