@@ -18,7 +18,6 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.errors import MslamError
-from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import distort_points
 from mutualslam_cli.vo.output import VOResult
 
@@ -107,7 +106,8 @@ def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = 0.02) -> di
     return out
 
 
-def _lookup_gt_depth(seq: Sequence, frame_index: int, pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
+def _lookup_gt_depth(seq: Sequence, frame_index: int, pixels: np.ndarray) -> np.ndarray:
+    """GT depth (m) at pinhole ``pixels`` ``(N, 2)`` of a frame; NaN where missing."""
     depth = seq.load_depth(frame_index)
     if depth is None:
         return np.full(len(pixels), np.nan)
@@ -135,7 +135,7 @@ def map_esi(seq: Sequence, vo: VOResult, keep: np.ndarray | None = None) -> tupl
         m = pts.host == kf.id
         if not np.any(m):
             continue
-        gt = _lookup_gt_depth(seq, kf.frame_index, pts.pixel[m], vo.intrinsics)
+        gt = _lookup_gt_depth(seq, kf.frame_index, pts.pixel[m])
         ok = np.isfinite(gt)
         est.append(1.0 / pts.inv_depth[m][ok])
         ref.append(gt[ok])

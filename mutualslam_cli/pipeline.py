@@ -378,13 +378,13 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     cb = (lambda d, n: progress("eval", {"done": d, "total": n})) if progress else None
     table, ms = evaluate_models(seq, net0, None if cfg.adapt.scheme == "none" else net, cfg, fast, kf_frames,
                                 out_root / "_cache" / "pretrained", cb)
-    predictors = {k: None for k in ("pretrained", "adapted") if f"{k}_pcd_lsq" in table}
+    evaluated = {k for k in ("pretrained", "adapted") if f"{k}_pcd_lsq" in table}
     timings["eval_s"] = time.perf_counter() - t
     summary.set("timing.depth_ms", ms.get("adapted", ms.get("pretrained")))
     if len(table):
         res.atomic_write_text(folder / "per_frame.csv", table.to_csv(index=False))
     for model in ("pretrained", "adapted"):
-        src = model if model in predictors else "pretrained"
+        src = model if model in evaluated else "pretrained"
         for scaling in ("lsq", "median"):
             col = f"{src}_pcd_{scaling}"
             val = float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
