@@ -66,34 +66,37 @@ def residuals(prob: BAProblem, T: np.ndarray, rho: np.ndarray, jac: bool = False
         (host pose), ``J_p`` ``(M, 2)`` (inverse depth), and the ``(M,)`` bool "in front" mask.
     """
     h, k, p = prob.host[prob.obs_pt], prob.obs_kf, prob.obs_pt
-    Rh, th = T[h, :3, :3], T[h, :3, 3]
-    Rt, tt = T[k, :3, :3], T[k, :3, 3]
+    # host-to-target transforms for every keyframe pair (K is small), gathered per observation
+    R_all, t_all = T[:, :3, :3], T[:, :3, 3]
+    R_pair = np.einsum("aij,bkj->abik", R_all, R_all)  # R_a R_bᵀ
+    t_pair = t_all[:, None, :] - np.einsum("abij,bj->abi", R_pair, t_all)
+    R, t = R_pair[k, h], t_pair[k, h]
     ray = prob.ray[p]
     Xh = ray / rho[p, None]
-    Xw = np.einsum("nji,nj->ni", Rh, Xh - th)
-    Xc = np.einsum("nij,nj->ni", Rt, Xw) + tt
+    Xc = np.einsum("nij,nj->ni", R, Xh) + t
     front = Xc[:, 2] > 1e-6
     z = np.where(front, Xc[:, 2], 1e-6)
-    uv = Xc[:, :2] / z[:, None]
-    r = uv - prob.obs_xn
+    iz = 1.0 / z
+    u, v = Xc[:, 0] * iz, Xc[:, 1] * iz
+    r = np.stack([u, v], 1) - prob.obs_xn
     if not jac:
         return r, front
-    iz = 1.0 / z
-    Jpi = np.zeros((len(z), 2, 3))
-    Jpi[:, 0, 0] = iz
-    Jpi[:, 1, 1] = iz
-    Jpi[:, 0, 2] = -uv[:, 0] * iz
-    Jpi[:, 1, 2] = -uv[:, 1] * iz
-    A = np.zeros((len(z), 3, 6))
-    A[:, :, :3] = np.eye(3)
-    A[:, :, 3:] = -_skew(Xc)
-    J_t = Jpi @ A  # left increment of the target pose: dXc = [I | −[Xc]×] δ
-    B = np.zeros((len(z), 3, 6))
-    B[:, :, :3] = np.eye(3)
-    B[:, :, 3:] = -_skew(Xh)
-    RtRh = Rt @ np.transpose(Rh, (0, 2, 1))
-    J_h = -Jpi @ RtRh @ B  # host increment: Xw = T_h⁻¹ exp(−δ) Xh
-    J_p = np.einsum("nij,nj->ni", Jpi @ RtRh, -ray / (rho[p, None] ** 2))
+    n = len(z)
+    # target (left increment): dXc = [I | −[Xc]×] δ  →  rows of d(u, v)/dδ
+    J_t = np.empty((n, 2, 6))
+    J_t[:, 0, 0], J_t[:, 0, 1], J_t[:, 0, 2] = iz, 0.0, -u * iz
+    J_t[:, 0, 3], J_t[:, 0, 4], J_t[:, 0, 5] = -u * v, 1 + u * u, -v
+    J_t[:, 1, 0], J_t[:, 1, 1], J_t[:, 1, 2] = 0.0, iz, -v * iz
+    J_t[:, 1, 3], J_t[:, 1, 4], J_t[:, 1, 5] = -(1 + v * v), u * v, u
+    # G = dπ/dXc · R_pair: the projection's derivative with respect to the host-frame point
+    G = np.empty((n, 2, 3))
+    G[:, 0] = iz[:, None] * (R[:, 0] - u[:, None] * R[:, 2])
+    G[:, 1] = iz[:, None] * (R[:, 1] - v[:, None] * R[:, 2])
+    # host increment: Xw = T_h⁻¹ exp(−δ) Xh → dXh = −[I | −[Xh]×] δ; gᵀ[X]× = (g × X)ᵀ
+    J_h = np.empty((n, 2, 6))
+    J_h[:, :, :3] = -G
+    J_h[:, :, 3:] = np.cross(G, Xh[:, None, :])
+    J_p = np.einsum("nij,nj->ni", G, -ray / (rho[p, None] ** 2))
     return r, J_t, J_h, J_p, front
 
 
@@ -143,29 +146,22 @@ def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np
         r, Jt, Jh, Jp, front = residuals(prob, T, rho, jac=True)
         e = np.linalg.norm(r, axis=1)
         w = np.where(e < huber, 1.0, huber / np.maximum(e, 1e-12)) * front  # IRLS Huber weights
-        Hcc = np.zeros((F, F, 6, 6))
-        Hcp = np.zeros((F, 6, P))
-        bc = np.zeros((F, 6))
-        Hpp = np.zeros(P)
-        bp = np.zeros(P)
-        np.add.at(Hpp, p, w * np.sum(Jp * Jp, 1))
-        np.add.at(bp, p, w * np.sum(Jp * r, 1))
+        # camera Jacobian of every residual over the free poses (dense: F ≤ core_kfs), then
+        # H_cc = Jcᵀ W Jc, H_cp and the point blocks accumulated per point with bincount
+        Jc = np.zeros((M, 2, F, 6))
         for Ja, ca in ((Jt, ct), (Jh, ch)):
-            ma = ca >= 0
-            if not ma.any():
-                continue
-            Jaw = Ja[ma] * w[ma, None, None]
-            np.add.at(bc, ca[ma], np.einsum("nij,ni->nj", Jaw, r[ma]))
-            np.add.at(Hcp, (ca[ma], slice(None), p[ma]), np.einsum("nij,ni->nj", Jaw, Jp[ma]))
-            for Jb, cb in ((Jt, ct), (Jh, ch)):
-                mb = ma & (cb >= 0)
-                if not mb.any():
-                    continue
-                blk = np.einsum("nij,nik->njk", Ja[mb] * w[mb, None, None], Jb[mb])
-                np.add.at(Hcc, (ca[mb], cb[mb]), blk)
-        Hcc = Hcc.transpose(0, 2, 1, 3).reshape(6 * F, 6 * F)
-        Hcp = Hcp.reshape(6 * F, P)
-        bc = bc.reshape(-1)
+            ma = np.flatnonzero(ca >= 0)
+            Jc[ma, :, ca[ma], :] = Ja[ma]  # host ≠ target: the two never share a block
+        Jc = Jc.reshape(M, 2, 6 * F)
+        Jcw = Jc * w[:, None, None]
+        Jc2, Jcw2 = Jc.reshape(2 * M, 6 * F), Jcw.reshape(2 * M, 6 * F)
+        Hcc = Jcw2.T @ Jc2
+        bc = Jcw2.T @ r.reshape(-1)
+        v = np.einsum("nij,ni->nj", Jcw, Jp)  # (M, 6F): each residual's share of H_cp
+        Hcp = np.stack([np.bincount(p, weights=v[:, j], minlength=P) for j in range(6 * F)]) \
+            if F else np.zeros((0, P))
+        Hpp = np.bincount(p, weights=w * np.sum(Jp * Jp, 1), minlength=P)
+        bp = np.bincount(p, weights=w * np.sum(Jp * r, 1), minlength=P)
         accepted = False
         for _try in range(4):
             Hd = Hpp * (1 + lam) + 1e-12
