@@ -41,8 +41,9 @@ class VOConfig:
     """Features per keyframe (paper: max_fts 500)."""
     core_kfs: int = 5
     """Keyframes in the windowed geometric BA (paper: core_kfs 5)."""
-    klt_window: int = 21
-    """KLT patch size in pixels."""
+    klt_window: int = 17
+    """KLT patch size in pixels (the backward check uses ~¾ of it). 17 tracks as well as the
+    common 21 on the shared sequences at ~30 % less KLT time (make bench)."""
     klt_levels: int = 3
     """KLT pyramid levels above the base image."""
     fb_threshold_px: float = 1.0
@@ -54,7 +55,7 @@ class VOConfig:
     kf_min_tracked_ratio: float = 0.5
     """Fraction of last keyframe's features still tracked below which a keyframe is made."""
     min_tracked: int = 30
-    """Fewer inlier tracks than this is a tracking loss."""
+    """Fewer map-point tracks than this within 2 × ``ransac_threshold_px`` of the pose is a tracking loss."""
     gt_kf_every: int = 5
     """Oracle front end: a keyframe every k frames."""
     gt_max_points: int = 500

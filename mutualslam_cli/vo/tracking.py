@@ -12,6 +12,13 @@ import numpy as np
 KLT_ITERS = 10
 """Lucas–Kanade iterations per pyramid level (with a motion-model start, 10 suffice)."""
 
+PRED_LEVELS = 1
+"""Pyramid levels the forward KLT pass searches around a motion-model guess (capture range
+≈ 2^(L+1)·win/2 px ≈ 40 px at 21 px windows); failures are re-tracked with all levels."""
+
+STEP_TOL = 1e-6
+"""Pose refinement stops when the SE(3) increment is smaller (normalised units: ~5e-4 px at f = 500)."""
+
 RANSAC_TRIGGER = 0.9
 """Share of matches a refined prior must explain (within 2× threshold) to skip PnP-RANSAC."""
 
@@ -23,6 +30,29 @@ Pyramid = np.ndarray
 def build_pyramid(gray: np.ndarray, win: int, levels: int) -> Pyramid:
     """The per-frame KLT input (see :data:`Pyramid`)."""
     return np.ascontiguousarray(gray)
+
+
+def _fb_pass(prev: Pyramid, cur: Pyramid, p0: np.ndarray, guess: np.ndarray | None, win: int, levels: int,
+             back_levels: int, fb_threshold_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """One forward KLT pass from ``p0`` (``(N, 1, 2)`` float32) and its backward check."""
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, KLT_ITERS, 0.03)
+    flags = 0 if guess is None else cv2.OPTFLOW_USE_INITIAL_FLOW
+    if guess is not None:
+        guess = guess.copy()  # OpenCV writes the result into the initial-flow array
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, guess, winSize=(win, win), maxLevel=levels,
+                                          criteria=crit, flags=flags)
+    # the backward pass starts from p1 itself (no initial flow), so it cannot inherit the answer,
+    # searches the full pyramid and uses a smaller window (a consistency check, not the
+    # measurement: ~60 % of the cost)
+    wb = max(9, (3 * win // 4) | 1)
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, winSize=(wb, wb), maxLevel=back_levels,
+                                           criteria=crit)
+    h, w = cur.shape[:2]
+    p1 = p1.reshape(-1, 2)
+    fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
+    ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (fb < fb_threshold_px)
+    ok &= (p1[:, 0] >= 2) & (p1[:, 0] <= w - 3) & (p1[:, 1] >= 2) & (p1[:, 1] <= h - 3)
+    return p1, ok
 
 
 def klt_track(
@@ -38,7 +68,9 @@ def klt_track(
 
     A track is kept when both directions converge, it stays inside the image and the
     forward–backward round trip lands within ``fb_threshold_px`` of the start
-    (Kalal et al. 2010, "Forward-Backward Error").
+    (Kalal et al. 2010, "Forward-Backward Error"). With guesses (``pred``) the forward pass
+    searches only :data:`PRED_LEVELS` pyramid levels around them; tracks failing that cheap
+    pass are tracked again over all ``levels``, so a poor guess costs time, not the track.
 
     Args:
         prev_pyr, cur_pyr: frames from :func:`build_pyramid`.
@@ -54,24 +86,14 @@ def klt_track(
     if n == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
     p0 = np.ascontiguousarray(pts, np.float32).reshape(-1, 1, 2)
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, KLT_ITERS, 0.03)
-    flags = 0
-    guess = None
-    if pred is not None:
-        guess = np.ascontiguousarray(pred, np.float32).reshape(-1, 1, 2).copy()
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_pyr, cur_pyr, p0, guess, winSize=(win, win),
-                                          maxLevel=levels, criteria=crit, flags=flags)
-    # the backward pass starts from p1 itself (no initial flow), so it cannot inherit the answer
-    # and uses a smaller window (a consistency check, not the measurement: ~½ the cost)
-    wb = max(9, (2 * win // 3) | 1)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur_pyr, prev_pyr, p1, None, winSize=(wb, wb),
-                                           maxLevel=levels, criteria=crit)
-    h, w = cur_pyr.shape[:2]
-    p1 = p1.reshape(-1, 2)
-    fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
-    ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (fb < fb_threshold_px)
-    ok &= (p1[:, 0] >= 2) & (p1[:, 0] <= w - 3) & (p1[:, 1] >= 2) & (p1[:, 1] <= h - 3)
+    guess = None if pred is None else np.ascontiguousarray(pred, np.float32).reshape(-1, 1, 2)
+    if guess is None or levels <= PRED_LEVELS:
+        return _fb_pass(prev_pyr, cur_pyr, p0, guess, win, levels, levels, fb_threshold_px)
+    p1, ok = _fb_pass(prev_pyr, cur_pyr, p0, guess, win, PRED_LEVELS, levels, fb_threshold_px)
+    retry = np.flatnonzero(~ok)
+    if len(retry):
+        p1r, okr = _fb_pass(prev_pyr, cur_pyr, p0[retry], guess[retry], win, levels, levels, fb_threshold_px)
+        p1[retry], ok[retry] = p1r, okr
     return p1, ok
 
 
@@ -122,37 +144,31 @@ def refine_pose(
     T = orthonormalize(T_cw)
     for _ in range(iters):
         pc = Xw @ T[:3, :3].T + T[:3, 3]
-        z = pc[:, 2]
-        ok = z > 1e-6
+        ok = pc[:, 2] > 1e-6
         if ok.sum() < 6:
             break
-        pc, obs = pc[ok], xn[ok]
+        if not ok.all():
+            pc, obs = pc[ok], xn[ok]
+        else:
+            obs = xn
         iz = 1.0 / pc[:, 2]
         x, y = pc[:, 0] * iz, pc[:, 1] * iz
-        r = np.stack([x - obs[:, 0], y - obs[:, 1]], 1)
-        e = np.linalg.norm(r, axis=1)
+        rx, ry = x - obs[:, 0], y - obs[:, 1]
+        e = np.sqrt(rx * rx + ry * ry)
         w = np.where(e < huber, 1.0, huber / np.maximum(e, 1e-12))
-        # d(x, y)/d(ρ, φ) for P' = exp(δ) P: dP = [I | −[P]×] δ
-        J = np.zeros((len(pc), 2, 6))
-        J[:, 0, 0] = iz
-        J[:, 0, 2] = -x * iz
-        J[:, 1, 1] = iz
-        J[:, 1, 2] = -y * iz
-        J[:, 0, 3] = -x * y
-        J[:, 0, 4] = 1 + x * x
-        J[:, 0, 5] = -y
-        J[:, 1, 3] = -(1 + y * y)
-        J[:, 1, 4] = x * y
-        J[:, 1, 5] = x
-        Jw = J * w[:, None, None]
-        H = np.einsum("nij,nik->jk", Jw, J)
-        g = np.einsum("nij,ni->j", Jw, r)
+        # rows of d(x, y)/d(ρ, φ) for P' = exp(δ) P: dP = [I | −[P]×] δ
+        zero = np.zeros_like(x)
+        Jx = np.stack([iz, zero, -x * iz, -x * y, 1 + x * x, -y], 1)
+        Jy = np.stack([zero, iz, -y * iz, -(1 + y * y), x * y, x], 1)
+        Jxw, Jyw = Jx * w[:, None], Jy * w[:, None]
+        H = Jxw.T @ Jx + Jyw.T @ Jy
+        g = Jxw.T @ rx + Jyw.T @ ry
         try:
             delta = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
         except np.linalg.LinAlgError:
             break
         T = _exp_se3(delta) @ T
-        if np.linalg.norm(delta) < 1e-8:
+        if np.linalg.norm(delta) < STEP_TOL:
             break
     return orthonormalize(T)
 
@@ -173,11 +189,11 @@ def estimate_pose(
 ) -> tuple[np.ndarray | None, np.ndarray]:
     """Pose from 3D–2D matches: robust refinement from priors, PnP-RANSAC when they fail.
 
-    Each prior (constant-velocity prediction, previous pose) is refined with Huber IRLS;
-    when the best explains fewer than ``RANSAC_TRIGGER`` of the matches within twice the
-    threshold, PnP-RANSAC (AP3P minimal solver,
-    threshold ``thr``) adds a hypothesis. The hypothesis with the lowest Huber cost wins:
-    side-stepping the translation/rotation local minima a single start can fall into.
+    The priors (constant-velocity prediction, previous pose) are refined with Huber IRLS,
+    best-fitting first, until one puts ``RANSAC_TRIGGER`` of the matches within twice the
+    threshold; when none does, PnP-RANSAC (AP3P minimal solver, threshold ``thr``) adds a
+    hypothesis. The hypothesis with the lowest Huber cost wins: side-stepping the
+    translation/rotation local minima a single start can fall into.
 
     Args:
         Xw: ``(N, 3)`` world points; xn: ``(N, 2)`` normalised observations.
@@ -191,8 +207,15 @@ def estimate_pose(
     n = len(Xw)
     if n < 6:
         return None, np.zeros(n, bool)
-    cands = [refine_pose(T, Xw, xn, huber=thr, iters=10) for T in T_priors]
-    frac = max(np.mean(reprojection_errors(T, Xw, xn) < 2 * thr) for T in cands)
+    # the prior that already fits best is refined first; the others only when it falls short
+    order = np.argsort([huber_cost(T, Xw, xn, thr) for T in T_priors], kind="stable")
+    cands: list[np.ndarray] = []
+    frac = 0.0
+    for j in order:
+        cands.append(refine_pose(T_priors[j], Xw, xn, huber=thr, iters=10))
+        frac = max(frac, float(np.mean(reprojection_errors(cands[-1], Xw, xn) < 2 * thr)))
+        if frac >= RANSAC_TRIGGER:
+            break
     if frac < RANSAC_TRIGGER:
         cv2.setRNGSeed(seed)
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
