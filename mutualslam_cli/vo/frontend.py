@@ -22,6 +22,7 @@ from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
 from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.heap import retain_freed_memory
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.camera import distort_points, focal_px, to_normalized, undistort_points
 from mutualslam_cli.vo.features import detect_grid
@@ -349,6 +350,7 @@ def run_vo(seq: Sequence, cfg: VOConfig, seed: int = 0,
     if len(seq) == 0:
         raise DatasetError(f"{seq.root}: sequence has no frames")
     check_config(cfg)
+    retain_freed_memory()  # per-frame buffers reuse mapped pages instead of faulting new ones
     # numpy's OpenBLAS would spin up its own threads for the BA's products and busy-wait on
     # both cores, starving the tracker and the decoder (measured: ~40 % more CPU per frame)
     with threadpool_limits(limits=1, user_api="blas"):
