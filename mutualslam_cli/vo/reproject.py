@@ -62,7 +62,8 @@ def reproject_points(
         sel = np.flatnonzero(src_of == k)
         src_raw = distort_points(np.array([m.obs[pids[j]][k] for j in sel]), intr).astype(np.float32)
         pred = distort_points(px[sel], intr).astype(np.float32)
-        raw, good = klt_track(kf_imgs[k], gray, src_raw, win, levels, fb_px, pred=pred)
+        # a match must land within ``thr`` of its prediction: no full-pyramid retry
+        raw, good = klt_track(kf_imgs[k], gray, src_raw, win, levels, fb_px, pred=pred, retry=False)
         if not good.any():
             continue
         xn = to_normalized(undistort_points(raw[good], intr), K)

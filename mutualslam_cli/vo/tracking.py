@@ -63,6 +63,7 @@ def klt_track(
     levels: int,
     fb_threshold_px: float,
     pred: np.ndarray | None = None,
+    retry: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Track raw pixels from the previous to the current frame (Lucas–Kanade, Bouguet's pyramid).
 
@@ -78,6 +79,8 @@ def klt_track(
         win, levels: KLT window size (px) and pyramid levels.
         fb_threshold_px: maximum forward–backward error.
         pred: optional ``(N, 2)`` initial guesses in the current frame.
+        retry: re-track failures of the guided pass over all levels (off when a match far
+            from its guess would be rejected anyway).
 
     Returns:
         ``(N, 2)`` float32 pixels in the current frame and an ``(N,)`` bool mask of good tracks.
@@ -90,10 +93,10 @@ def klt_track(
     if guess is None or levels <= PRED_LEVELS:
         return _fb_pass(prev_pyr, cur_pyr, p0, guess, win, levels, levels, fb_threshold_px)
     p1, ok = _fb_pass(prev_pyr, cur_pyr, p0, guess, win, PRED_LEVELS, levels, fb_threshold_px)
-    retry = np.flatnonzero(~ok)
-    if len(retry):
-        p1r, okr = _fb_pass(prev_pyr, cur_pyr, p0[retry], guess[retry], win, levels, levels, fb_threshold_px)
-        p1[retry], ok[retry] = p1r, okr
+    again = np.flatnonzero(~ok) if retry else np.zeros(0, int)
+    if len(again):
+        p1r, okr = _fb_pass(prev_pyr, cur_pyr, p0[again], guess[again], win, levels, levels, fb_threshold_px)
+        p1[again], ok[again] = p1r, okr
     return p1, ok
 
 
