@@ -27,6 +27,7 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.evaluation import evaluate_depth, evaluate_trajectory, map_esi
+from mutualslam_cli.heap import retain_freed_memory
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.output import VOResult
 
@@ -298,6 +299,7 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     """
     t_start = time.perf_counter()
     torch.manual_seed(cfg.seed)
+    retain_freed_memory()  # image-sized buffers reuse pages (VO, warps, evaluation)
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
         cv2.setNumThreads(cfg.threads)

@@ -13,7 +13,7 @@ from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.camera import distort_points, to_normalized, to_pixels, undistort_points
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.initialization import initialize
-from mutualslam_cli.vo.local_ba import BAProblem, exp_so3, solve
+from mutualslam_cli.vo.local_ba import BAProblem, exp_so3, residuals, solve
 from mutualslam_cli.vo.tracking import estimate_pose, klt_track
 
 FR1 = Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633))
@@ -75,6 +75,24 @@ def test_klt_tracks_a_shift_and_rejects_textureless(rng):
     assert ok[:3].all()
     np.testing.assert_allclose(out[:3] - pts[:3], [[3.0, -2.0]] * 3, atol=0.1)
     assert not ok[3:].any()
+
+
+def test_klt_guided_pass_recovers_from_a_bad_guess(rng):
+    """A guess far outside the guided pass's 1-level capture range costs a retry, not the track."""
+    img = _texture(rng)
+    M = np.float32([[1, 0, 6.0], [0, 1, 4.0]])
+    moved = cv2.warpAffine(img, M, (img.shape[1], img.shape[0]), flags=cv2.INTER_CUBIC)
+    pts = np.float32([[80, 60], [120, 100], [160, 140], [200, 160], [240, 120]])
+    good = pts + [6.0, 4.0]
+    bad = pts + [6.0 - 30.0, 4.0 + 30.0]  # ~40 px off: beyond the 2-level guided search
+    out, ok = klt_track(img, moved, pts, 17, 3, 1.0, pred=good)
+    assert ok.all()
+    np.testing.assert_allclose(out, good, atol=0.1)
+    out_r, ok_r = klt_track(img, moved, pts, 17, 3, 1.0, pred=bad)
+    assert ok_r.all()
+    np.testing.assert_allclose(out_r, good, atol=0.1)
+    _, ok_n = klt_track(img, moved, pts, 17, 3, 1.0, pred=bad, retry=False)
+    assert not ok_n.all()  # without the retry the guided pass alone loses (some of) them
 
 
 def test_pose_from_matches_with_outliers(rng):
@@ -162,3 +180,38 @@ def test_windowed_ba_reduces_error(rng):
     assert err1 < 0.2 * err0
     np.testing.assert_allclose(T_new[:2], T0[:2])  # fixed poses untouched
     assert np.median(np.abs(rho_new / rho - 1)) < 0.01
+
+
+def test_ba_jacobians_match_finite_differences(rng):
+    """Analytic target/host/inverse-depth Jacobians against central differences."""
+    K, P = 3, 20
+    T = np.stack([_pose(rng, 0.05, 0.1) for _ in range(K)])
+    host = rng.integers(0, K, P)
+    ray = np.c_[rng.uniform(-0.4, 0.4, (P, 2)), np.ones(P)]
+    rho = rng.uniform(0.3, 0.6, P)
+    o_pt = np.arange(P)
+    o_kf = (host + 1 + rng.integers(0, K - 1, P)) % K  # never the host
+    prob = BAProblem(T, np.ones(K, bool), host, ray, rho, o_pt, o_kf, rng.normal(0, 0.1, (P, 2)))
+    _, J_t, J_h, J_p, front = residuals(prob, T, rho, jac=True)
+    assert front.all()
+    eps = 1e-6
+
+    def moved(k: int, d: np.ndarray) -> np.ndarray:
+        T2 = T.copy()
+        inc = np.eye(4)
+        inc[:3, :3] = exp_so3(d[None, 3:])[0]
+        inc[:3, 3] = d[:3]
+        T2[k] = inc @ T[k]
+        return T2
+
+    for m in range(P):
+        for j in range(6):
+            d = np.zeros(6)
+            d[j] = eps
+            for k, J in ((o_kf[m], J_t), (host[m], J_h)):
+                num = (residuals(prob, moved(k, d), rho)[0][m] - residuals(prob, moved(k, -d), rho)[0][m]) / (2 * eps)
+                np.testing.assert_allclose(J[m, :, j], num, atol=1e-6)
+        dr = np.zeros(P)
+        dr[m] = eps
+        num = (residuals(prob, T, rho + dr)[0][m] - residuals(prob, T, rho - dr)[0][m]) / (2 * eps)
+        np.testing.assert_allclose(J_p[m], num, atol=1e-6)

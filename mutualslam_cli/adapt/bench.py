@@ -14,9 +14,11 @@ import torch
 
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, fast_path_supported, make_adam, prepare
 from mutualslam_cli.adapt.losses import train_loss
+from mutualslam_cli.heap import retain_freed_memory
 
 
 def _setup(threads: int | None, seed: int) -> None:
+    retain_freed_memory()  # as in `mslam run`
     if threads is not None:
         torch.set_num_threads(int(threads))
     torch.manual_seed(seed)

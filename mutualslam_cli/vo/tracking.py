@@ -71,7 +71,8 @@ def klt_track(
     forward–backward round trip lands within ``fb_threshold_px`` of the start
     (Kalal et al. 2010, "Forward-Backward Error"). With guesses (``pred``) the forward pass
     searches only :data:`PRED_LEVELS` pyramid levels around them; tracks failing that cheap
-    pass are tracked again over all ``levels``, so a poor guess costs time, not the track.
+    pass are tracked again over all ``levels`` from their previous position, so a poor guess
+    costs time, not the track.
 
     Args:
         prev_pyr, cur_pyr: frames from :func:`build_pyramid`.
@@ -95,7 +96,8 @@ def klt_track(
     p1, ok = _fb_pass(prev_pyr, cur_pyr, p0, guess, win, PRED_LEVELS, levels, fb_threshold_px)
     again = np.flatnonzero(~ok) if retry else np.zeros(0, int)
     if len(again):
-        p1r, okr = _fb_pass(prev_pyr, cur_pyr, p0[again], guess[again], win, levels, levels, fb_threshold_px)
+        # the guess may be what failed: the retry starts from the previous position (no guess)
+        p1r, okr = _fb_pass(prev_pyr, cur_pyr, p0[again], None, win, levels, levels, fb_threshold_px)
         p1[again], ok[again] = p1r, okr
     return p1, ok
 
