@@ -29,6 +29,7 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.evaluation import evaluate_depth, evaluate_trajectory, map_esi
 from mutualslam_cli.heap import retain_freed_memory
 from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo.frontend import FRONTEND_VERSION
 from mutualslam_cli.vo.output import VOResult
 
 log = logging.getLogger(__name__)
@@ -62,7 +63,7 @@ def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
         "first": seq.frames[0].timestamp if len(seq) else None,
         "last": seq.frames[-1].timestamp if len(seq) else None,
         "vo": to_dict(cfg.vo), "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
-        "seed": cfg.seed, "intr": seq.intrinsics.as_list(), "version": 1,
+        "seed": cfg.seed, "intr": seq.intrinsics.as_list(), "version": FRONTEND_VERSION,
     }
     return hashlib.sha1(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
 

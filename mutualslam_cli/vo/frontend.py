@@ -36,6 +36,9 @@ from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, 
 
 log = logging.getLogger(__name__)
 
+FRONTEND_VERSION = 2
+"""Bumped whenever the front end's output changes for the same config (invalidates VO caches)."""
+
 BA_LAG = 4
 """Frames after a keyframe at which its windowed BA (solved on a worker thread) is applied:
 enough for the worker to finish on a 2-core machine, so the tracker rarely waits for it."""
