@@ -215,3 +215,22 @@ def test_ba_jacobians_match_finite_differences(rng):
         dr[m] = eps
         num = (residuals(prob, T, rho + dr)[0][m] - residuals(prob, T, rho - dr)[0][m]) / (2 * eps)
         np.testing.assert_allclose(J_p[m], num, atol=1e-6)
+
+
+@pytest.mark.parametrize("baseline, expect_wait", [(0.04, True), (0.5, False)])
+def test_init_waits_while_a_low_parallax_motion_fits_as_well(rng, baseline, expect_wait):
+    """Forward motion: with a short baseline the true motion has < 1° parallax, so a rival
+    (any hypothesis fitting as well) cannot be ruled out and initialisation must wait."""
+    from mutualslam_cli.vo.initialization import _check, _rival_too_short
+
+    n = 300
+    X = np.c_[rng.uniform(-1.5, 1.5, (n, 2)), rng.uniform(2.0, 6.0, n)]
+    T = np.eye(4)
+    T[:3, 3] = [0.02 * baseline, 0.0, -baseline]  # mostly along the optical axis
+    x0 = X[:, :2] / X[:, 2:3] + rng.normal(0, 0.3 / 500, (n, 2))
+    x1 = _project(T, X) + rng.normal(0, 0.3 / 500, (n, 2))
+    T_unit = T.copy()
+    T_unit[:3, 3] /= np.linalg.norm(T[:3, 3])
+    _, _, par, _ = _check(x0, x1, T_unit, 2.0 / 500)
+    assert (par < 1.0) == expect_wait  # the premise: short baseline ⇔ parallax below 1°
+    assert _rival_too_short(x0, x1, 2.0 / 500, T_unit, [T_unit], 30) == expect_wait
