@@ -26,6 +26,23 @@ TARGETS = {
 }
 
 
+def reference_ms(repeats: int = 7) -> float:
+    """Median time (ms) of a fixed pure-Python workload: a yardstick of the machine's speed.
+
+    This machine's speed drifts by tens of percent over minutes (shared host); recording the
+    yardstick at the start and end of a bench run lets a reader compare runs made at
+    different times (a slower yardstick means every figure of that run is pessimistic).
+    """
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        acc = 0
+        for i in range(1_000_000):
+            acc += i & 7
+        times.append(1000.0 * (time.perf_counter() - t0))
+    return statistics.median(times)
+
+
 def _render(quick: bool) -> dict[str, Any]:
     from mutualslam_cli.datasets.synthetic import bench_render
 
@@ -111,6 +128,9 @@ def _table(res: dict[str, Any]) -> str:
     for what, v, tgt in rows:
         if v is not None:
             lines.append(f"| {what} | {v:.3g} | {tgt} |")
+    if "reference_ms_start" in res:
+        lines.append(f"\nmachine yardstick (fixed Python loop, ms; lower = faster): {res['reference_ms_start']:.0f} at the "
+                     f"start, {res.get('reference_ms_end', float('nan')):.0f} at the end")
     if "vo_ms_per_frame" in res:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in res["vo_ms_per_frame"].items())
         lines.append(f"\nVO per-stage ms/frame: {stages}")
@@ -127,13 +147,15 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(a.threads)
-    res: dict[str, Any] = {"cpu_count": os.cpu_count(), "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+    res: dict[str, Any] = {"cpu_count": os.cpu_count(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+                           "reference_ms_start": reference_ms()}
     for part in (lambda: _render(a.quick), lambda: _loader_and_vo(a.quick), lambda: _network(a.quick, a.threads)):
         res.update(part())
         print(_table(res).splitlines()[-1], file=sys.stderr, flush=True)
     if a.memory:
         res.update(_memory(60))
     res["self_peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    res["reference_ms_end"] = reference_ms()
     print(_table(res))
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(res, indent=2, default=str) + "\n")
