@@ -1,0 +1,151 @@
+"""Global photometric BA: Jacobians, zero residual, Schur step, convergence, gauge, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mutualslam_cli.ba import photometric as ph
+from mutualslam_cli.ba.bench import perturb, synthetic_problem
+from mutualslam_cli.errors import ConfigError, ShapeError
+
+
+@pytest.fixture(scope="module")
+def scene():
+    prob, _ = synthetic_problem(n_kf=6, n_points=600, hw=(120, 160), seed=0)
+    return prob
+
+
+def _centres(T: np.ndarray) -> np.ndarray:
+    return np.stack([-t[:3, :3].T @ t[:3, 3] for t in T])
+
+
+def test_jacobians_match_central_differences():
+    prob, _ = synthetic_problem(n_kf=5, n_points=150, hw=(96, 128), fy_sign=-1.0, seed=3)
+    prob = perturb(prob, np.random.default_rng(3))
+    prob.affine[:] = np.random.default_rng(2).normal(scale=0.1, size=prob.affine.shape)
+    d = ph._Data(prob, 3, 2.0)
+    T, ab, rho = prob.T_cw, prob.affine, prob.inv_depth
+    r, valid, _, Jc, Jp = ph.residuals(d, T, ab, rho, jac=True)
+    obs = np.flatnonzero(valid.all(1))[:15]
+    assert len(obs) == 15
+    eps = 1e-6
+    for c in range(16):  # host (ρ, φ, a, b) then target (ρ, φ, a, b)
+        kfs = d.h if c < 8 else d.t
+        for j in obs:
+            out = []
+            for s in (1, -1):
+                dc = np.zeros(len(T) * 8)
+                dc[kfs[j] * 8 + c % 8] = s * eps
+                T2, ab2, _ = ph._apply(T, ab, rho, dc, 0.0, np.array([kfs[j]]))
+                out.append(ph.residuals(d, T2, ab2, rho)[0][j])
+            num = (out[0] - out[1]) / (2 * eps)
+            np.testing.assert_allclose(Jc[j, :, c], num, rtol=1e-4, atol=1e-6 * np.abs(num).max() + 1e-9)
+    h = 1e-6 * rho
+    rp = ph.residuals(d, T, ab, rho + h)[0]
+    rm = ph.residuals(d, T, ab, rho - h)[0]
+    num = (rp - rm) / (2 * h[d.p])[:, None]
+    np.testing.assert_allclose(Jp[obs], num[obs], rtol=1e-4, atol=1e-6 * np.abs(num[obs]).max())
+
+
+def test_zero_residual_at_truth(scene):
+    d = ph._Data(scene, 3, 2.0)
+    r, valid, counted = ph.residuals(d, scene.T_cw, scene.affine, scene.inv_depth)
+    assert valid.mean() > 0.99
+    # only the bilinear interpolation error of the rendered images remains
+    assert np.sqrt(np.mean(r[valid] ** 2)) < 5e-4
+    assert np.mean(r[valid] ** 2) < 1e-6
+    assert np.abs(r[valid]).max() < 3e-3
+
+
+def test_schur_step_equals_dense_solve(scene):
+    prob = dataclasses.replace(scene, host=scene.host[:80], pixel=scene.pixel[:80],
+                               inv_depth=scene.inv_depth[:80])
+    keep = prob.obs_pt < 80
+    prob = dataclasses.replace(prob, obs_pt=prob.obs_pt[keep], obs_kf=prob.obs_kf[keep])
+    prob = perturb(prob, np.random.default_rng(4))
+    d = ph._Data(prob, 3, 2.0)
+    T, ab, rho = prob.T_cw, prob.affine, prob.inv_depth
+    nk, P = len(T), len(rho)
+    ne = ph.normal_equations(d, T, ab, rho, 0.1)
+    cols, lam = np.arange(8, nk * 8), 1e-3
+    dc, dp = ne.step(lam, cols)
+    r, valid, _, Jc, Jp = ph.residuals(d, T, ab, rho, jac=True)
+    M, S = r.shape
+    J = np.zeros((M, S, nk * 8 + P))
+    for m in range(M):
+        J[m, :, d.h[m] * 8:d.h[m] * 8 + 8] += Jc[m, :, :8]
+        J[m, :, d.t[m] * 8:d.t[m] * 8 + 8] += Jc[m, :, 8:]
+        J[m, :, nk * 8 + d.p[m]] = Jp[m]
+    a = np.abs(r)
+    w = (np.where(a < 0.1, 1.0, 0.1 / np.maximum(a, 1e-12)) * valid).ravel()
+    J = J.reshape(M * S, -1)
+    H, b = J.T @ (J * w[:, None]), J.T @ (w * r.ravel())
+    idx = np.r_[cols, nk * 8 + np.arange(P)]
+    Hk, nc = H[np.ix_(idx, idx)], len(cols)
+    dg = np.diag(Hk).copy()
+    Hk[np.diag_indices_from(Hk)] += np.r_[lam * np.maximum(dg[:nc], 1e-6) + 1e-9, lam * dg[nc:] + 1e-12]
+    x = -np.linalg.solve(Hk, b[idx])
+    np.testing.assert_allclose(dc[cols], x[:nc], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(dp, x[nc:], rtol=1e-6, atol=1e-9)
+
+
+def test_solve_recovers_poses_depths_affine_and_scale(scene):
+    rng = np.random.default_rng(1)
+    start = perturb(scene, rng, trans=0.015, rot_deg=0.5, rho_rel=0.03)
+    images = start.images.copy()
+    images[3] = 1.1 * images[3] + 0.02  # brightness change of one keyframe
+    start = dataclasses.replace(start, images=images)
+    res = ph.solve(start, iterations=20)
+    c_true, c0, c1 = _centres(scene.T_cw), _centres(start.T_cw), _centres(res.T_cw)
+    err0 = np.linalg.norm(c0 - c_true, axis=1)[1:]
+    err1 = np.linalg.norm(c1 - c_true, axis=1)[1:]
+    assert err1.mean() * 5 <= err0.mean()
+    rot0 = [np.linalg.norm(a[:3, :3].T @ b[:3, :3] - np.eye(3)) for a, b in zip(start.T_cw, scene.T_cw)]
+    rot1 = [np.linalg.norm(a[:3, :3].T @ b[:3, :3] - np.eye(3)) for a, b in zip(res.T_cw, scene.T_cw)]
+    assert np.mean(rot1) * 5 <= np.mean(rot0)
+    e_rho0 = np.abs(start.inv_depth / scene.inv_depth - 1).mean()
+    e_rho1 = np.abs(res.inv_depth / scene.inv_depth - 1).mean()
+    assert e_rho1 * 3 <= e_rho0
+    # DSO model: I_3 − b_3 = exp(a_3 − a_h)(I_h − b_h) with a = b = 0 elsewhere
+    a3, b3 = res.affine[3]
+    I = np.linspace(0.1, 0.9, 9)
+    np.testing.assert_allclose(np.exp(a3) * I + b3, 1.1 * I + 0.02, atol=5e-3)
+    assert np.abs(np.delete(res.affine, 3, axis=0)).max() < 0.01
+    np.testing.assert_array_equal(res.T_cw[0], start.T_cw[0])
+    np.testing.assert_array_equal(res.affine[0], start.affine[0])
+    costs = np.array(res.stats["costs"])
+    assert np.all(np.diff(costs) <= 0) and costs[-1] < 0.01 * costs[0]
+    assert res.stats["accepted"] >= 1 and res.stats["iterations"] >= 1
+    s0, s1 = np.linalg.norm(c0[1] - c0[0]), np.linalg.norm(c1[1] - c1[0])
+    assert abs(s1 / s0 - 1) < 0.01
+
+
+def test_fixed_keyframes_stay_put(scene):
+    start = perturb(scene, np.random.default_rng(2))
+    free = np.ones(len(scene.T_cw), bool)
+    free[[0, 2]] = False
+    res = ph.solve(dataclasses.replace(start, free=free), iterations=3)
+    np.testing.assert_array_equal(res.T_cw[2], start.T_cw[2])
+    assert not np.allclose(res.T_cw[4], start.T_cw[4])
+
+
+@pytest.mark.parametrize("change, err, match", [
+    (lambda p: dict(pixel=p.pixel[:-1]), ShapeError, "pixel"),
+    (lambda p: dict(T_cw=p.T_cw[:-1]), ShapeError, "T_cw"),
+    (lambda p: dict(obs_kf=np.r_[p.host[p.obs_pt[:1]], p.obs_kf[1:]]), ConfigError, "equals the host"),
+    (lambda p: dict(T_cw=np.where(np.arange(4) == 3, np.nan, p.T_cw)), ConfigError, "NaN"),
+    (lambda p: dict(free=np.ones(len(p.T_cw), bool)), ConfigError, "keyframe 0"),
+    (lambda p: dict(inv_depth=-p.inv_depth), ConfigError, "inverse depths"),
+])
+def test_bad_input_raises(scene, change, err, match):
+    bad = dataclasses.replace(scene, **change(scene))
+    with pytest.raises(err, match=match):
+        ph.solve(bad, iterations=1)
+
+
+def test_too_many_targets_raises(scene):
+    with pytest.raises(ConfigError, match="max_targets"):
+        ph.solve(scene, iterations=1, max_targets=2)
