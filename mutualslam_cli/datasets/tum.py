@@ -29,8 +29,11 @@ from mutualslam_cli.types import FrameRef, Intrinsics, SequenceSpec, Trajectory
 
 log = logging.getLogger(__name__)
 
-# TUM RGB-D calibration page: ROS-default-free values per camera family. fr1/fr2 images are
-# not undistorted in the files (OpenCV k1 k2 p1 p2 k3 given); fr3 images are.
+# TUM RGB-D calibration page: ROS-default-free values per camera family, as the page rounds
+# them (cross-checked against the 6-decimal values other TUM loaders carry, e.g. fr2
+# 520.908620 521.007327 325.141442 249.701764 / 0.231222 −0.784899 −0.003257 −0.000105
+# 0.917205). fr1/fr2 images are not undistorted in the files (OpenCV k1 k2 p1 p2 k3 given);
+# fr3 images are.
 FAMILY_INTRINSICS: dict[str, tuple[float, float, float, float, tuple[float, ...] | None]] = {
     "fr1": (517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
     "fr2": (520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
