@@ -379,52 +379,22 @@ def _apply(T, ab, rho, dc, dp, fidx):
     return T, ab, np.maximum(rho + dp, 1e-6)
 
 
-def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = 0.1, patch: int = 3,
-          max_targets: int = 5, scale_weight: float = 1e4, margin: float = 2.0,
-          lambda0: float = 1e-3, max_tries: int = 4, affine: bool = True,
-          callback: Callable[[int, float], None] | None = None) -> PhotoBAResult:
-    """Levenberg–Marquardt photometric BA with a Schur complement on the inverse depths.
-
-    Args:
-        prob: the problem (see :class:`PhotoBAProblem`).
-        iterations: LM iterations (each tries at most ``max_tries`` damping values).
-        huber_delta: Huber threshold in intensity units.
-        patch: side of the square residual pattern, pixels.
-        max_targets: largest allowed number of targets per point.
-        scale_weight: ``w_s · s_0²`` of the scale prior ``w_s (‖c_1 − c_0‖ − s_0)²``, i.e. the
-            cost of a relative scale error of 1.
-        margin: pixels at the border where a projection is invalid.
-        lambda0: initial LM damping.
-        max_tries: damping increases per iteration before giving up.
-        affine: optimise the affine brightness ``(a, b)`` (else keep it fixed).
-        callback: called as ``callback(iteration, cost)`` after each iteration.
-
-    Returns:
-        :class:`PhotoBAResult`; the total robust cost never increases across accepted steps.
-    """
-    t0 = time.perf_counter()
-    free = validate(prob, max_targets)
-    if patch < 1 or patch % 2 == 0:
-        raise ConfigError(f"solve: patch must be a positive odd integer, got {patch}")
-    d = _Data(prob, patch, margin)
-    T = np.asarray(prob.T_cw, float).copy()
-    ab = np.asarray(prob.affine, float).copy()
-    rho = np.asarray(prob.inv_depth, float).copy()
+def _solve_level(d: _Data, T, ab, rho, fidx, cols, s0, iterations, huber_delta, scale_weight,
+                 lambda0, max_tries, callback, it_offset=0):
+    """LM iterations at one resolution; returns ``(T, ab, rho, costs, iterations, accepted)``.
+    ``s0`` is the scale-prior baseline (from the input state, shared by all levels)."""
     nk = d.nk
-    fidx = np.flatnonzero(free)
-    cols = (fidx[:, None] * NP + np.arange(NP if affine else 6)).ravel()
     k1 = int(fidx[0]) if len(fidx) else -1  # scale prior on the first free keyframe
     c0 = _centre(T[0])
-    s0 = float(np.linalg.norm(_centre(T[k1]) - c0)) if k1 > 0 else 0.0
     ws = scale_weight / s0**2 if s0 > 1e-9 else 0.0
 
     def total(T_, res_):
         e = np.linalg.norm(_centre(T_[k1]) - c0) - s0 if ws else 0.0
         return _huber(res_[0], res_[2], d.host_ok, huber_delta) + ws * e * e
 
-    res = residuals(d, T, ab, rho, jac=True)  # trial states keep their Jacobians for reuse
-    cost = cost0 = total(T, res)
-    costs, accepted, lam, it = [cost0], 0, lambda0, 0
+    res = residuals(d, T, ab, rho, jac=iterations > 0)  # trial states keep Jacobians for reuse
+    cost = total(T, res)
+    costs, accepted, lam, it = [cost], 0, lambda0, 0
     for it in range(1, iterations + 1):
         ne = normal_equations(d, T, ab, rho, huber_delta, res)
         if ws:  # scale prior: ∂c_k/∂ρ_k = −R_kᵀ under the left increment, ∂c_k/∂φ_k = 0
@@ -454,9 +424,81 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = 0.1, 
         costs.append(cost)
         log.debug("photometric BA it %d cost %.6g lambda %.1e accepted %s", it, cost, lam, ok)
         if callback is not None:
-            callback(it, cost)
+            callback(it_offset + it, cost)
         if not ok:
             break
-    stats = {"cost0": float(cost0), "cost": float(cost), "costs": [float(c) for c in costs], "iterations": it,
-             "accepted": accepted, "seconds": time.perf_counter() - t0}
+    return T, ab, rho, costs, it, accepted
+
+
+def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = 0.1, patch: int = 3,
+          max_targets: int = 5, scale_weight: float = 1e4, margin: float = 2.0,
+          lambda0: float = 1e-3, max_tries: int = 4, affine: bool = True,
+          callback: Callable[[int, float], None] | None = None, levels: int = 1,
+          coarse_iterations: int = 5) -> PhotoBAResult:
+    """Levenberg–Marquardt photometric BA with a Schur complement on the inverse depths,
+    optionally coarse-to-fine over an image pyramid (:mod:`mutualslam_cli.ba.pyramid`).
+
+    Args:
+        prob: the problem (see :class:`PhotoBAProblem`).
+        iterations: LM iterations at full resolution (each tries at most ``max_tries`` dampings).
+        huber_delta: Huber threshold in intensity units.
+        patch: side of the square residual pattern, pixels of each level.
+        max_targets: largest allowed number of targets per point.
+        scale_weight: ``w_s · s_0²`` of the scale prior ``w_s (‖c_1 − c_0‖ − s_0)²``, i.e. the
+            cost of a relative scale error of 1 (``s_0`` from the input, shared by all levels).
+        margin: pixels (of each level) at the border where a projection is invalid.
+        lambda0: initial LM damping (reset at each level).
+        max_tries: damping increases per iteration before giving up (ends that level).
+        affine: optimise the affine brightness ``(a, b)`` (else keep it fixed).
+        callback: ``callback(iteration, cost)`` after each iteration (iterations count across
+            levels; the cost is the current level's).
+        levels: pyramid levels. 1 (default): full resolution only, bit-identical to the solver
+            before the pyramid existed. ``L > 1``: ``coarse_iterations`` at each level
+            ``L−1 … 1`` (resolution / 2^level), then ``iterations`` at full resolution. An
+            iteration costs about the same at every level (it scales with points, not pixels).
+        coarse_iterations: LM iterations at each coarse level.
+
+    Returns:
+        :class:`PhotoBAResult`. Within each level the robust cost never increases across
+        accepted steps; costs of different levels are not comparable. ``stats``: ``cost0`` and
+        ``cost`` full-resolution costs of the input and final states (``cost <= cost0``),
+        ``costs`` the full-resolution stage's sequence, ``levels`` per level (coarsest first)
+        ``{level, shape, costs, iterations, accepted}``, ``iterations``/``accepted`` totals.
+    """
+    from mutualslam_cli.ba import pyramid  # local import: pyramid refers back to this module
+
+    t0 = time.perf_counter()
+    free = validate(prob, max_targets)
+    if patch < 1 or patch % 2 == 0:
+        raise ConfigError(f"solve: patch must be a positive odd integer, got {patch}")
+    if coarse_iterations < 0:
+        raise ConfigError(f"solve: coarse_iterations must be >= 0, got {coarse_iterations}")
+    stack = pyramid.build(np.asarray(prob.images), levels)
+    state = tuple(np.asarray(x, float).copy() for x in (prob.T_cw, prob.affine, prob.inv_depth))
+    fidx = np.flatnonzero(free)
+    cols = (fidx[:, None] * NP + np.arange(NP if affine else 6)).ravel()
+    k1 = int(fidx[0]) if len(fidx) else -1
+    T = state[0]
+    s0 = float(np.linalg.norm(_centre(T[k1]) - _centre(T[0]))) if k1 > 0 else 0.0
+
+    def run(d, T_, ab_, rho_, n, offset):
+        return _solve_level(d, T_, ab_, rho_, fidx, cols, s0, n, huber_delta, scale_weight,
+                            lambda0, max_tries, callback, offset)
+
+    def make_data(p):
+        return _Data(p, patch, margin)
+
+    per_level, n_it, n_acc, cost0 = [], 0, 0, None
+    if levels > 1:
+        state, per_level, n_it, n_acc, d, cost0 = pyramid.coarse_to_fine(
+            prob, stack, state, coarse_iterations, make_data, run)
+    else:
+        d = make_data(prob)
+    T, ab, rho, costs, it, acc = run(d, *state, iterations, n_it)
+    costs = [float(c) for c in costs]
+    per_level.append({"level": 0, "shape": stack[0].shape[1:], "costs": costs,
+                      "iterations": it, "accepted": acc})
+    stats = {"cost0": float(costs[0] if cost0 is None else cost0), "cost": costs[-1],
+             "costs": costs, "iterations": n_it + it, "accepted": n_acc + acc,
+             "levels": per_level, "seconds": time.perf_counter() - t0}
     return PhotoBAResult(T, ab, rho, stats)
