@@ -29,6 +29,8 @@ err_console = Console(stderr=True)
 ConfigOpt = typer.Option(None, "--config", "-c", help="YAML config (default configs/paper.yaml).")
 SetOpt = typer.Option(None, "--set", "-s", help="Override one field: section.key=value (repeatable).")
 DataRootOpt = typer.Option(None, "--data-root", help="Root of relative datasets.yaml paths (default $MSLAM_DATA).")
+RegistryOpt = typer.Option(None, "--registry", help="Another datasets.yaml.")
+ResultsOutOpt = typer.Option(None, "--out", help="Results root (default results/).")
 
 
 def _boundary(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -79,7 +81,7 @@ def _fmt(v: Any, nd: int = 3) -> str:
 def datasets(
     name: Optional[str] = typer.Argument(None, help="A datasets.yaml name or a sequence folder (with --check)."),
     check: bool = typer.Option(False, "--check", help="Verify files, intrinsics, GT coverage, fy sign."),
-    registry: Optional[Path] = typer.Option(None, "--registry", help="Another datasets.yaml."),
+    registry: Optional[Path] = RegistryOpt,
     data_root: Optional[str] = DataRootOpt,
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
@@ -254,12 +256,12 @@ def run(
     vo: Optional[str] = typer.Option(None, "--vo", help="svo | gt (oracle front end)."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="Folder with Monodepth2 encoder.pth/depth.pth."),
     seed: Optional[int] = typer.Option(None, "--seed"),
-    out: Optional[Path] = typer.Option(None, "--out", help="Results root (default results/)."),
+    out: Optional[Path] = ResultsOutOpt,
     force: bool = typer.Option(False, "--force", help="Recompute a complete run."),
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
     data_root: Optional[str] = DataRootOpt,
-    registry: Optional[Path] = typer.Option(None, "--registry", help="Another datasets.yaml."),
+    registry: Optional[Path] = RegistryOpt,
 ) -> None:
     """One sequence, one scheme: front end → adaptation → evaluation → results/<seq>/<scheme>/seed<k>/."""
     from mutualslam_cli.adapt.schemes import get_scheme
@@ -317,11 +319,11 @@ def ablate(
                                 help="Comma-separated scheme names."),
     seeds: str = typer.Option("0", "--seeds", help="Comma-separated seeds, or a range like 0-2."),
     workers: int = typer.Option(1, "--workers", "-j", min=1, help="Local worker processes."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Results root (default results/)."),
+    out: Optional[Path] = ResultsOutOpt,
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
     data_root: Optional[str] = DataRootOpt,
-    registry: Optional[Path] = typer.Option(None, "--registry", help="Another datasets.yaml."),
+    registry: Optional[Path] = RegistryOpt,
 ) -> None:
     """The grid sequences × schemes × seeds; complete runs are skipped, so a killed grid resumes."""
     from mutualslam_cli.ablate import expand, run_grid

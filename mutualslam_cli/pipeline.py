@@ -29,7 +29,7 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.evaluation import evaluate_depth, evaluate_trajectory, map_esi
 from mutualslam_cli.heap import retain_freed_memory
 from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.frontend import FRONTEND_VERSION
+from mutualslam_cli.vo.frontend import FRONTEND_VERSION, run_vo
 from mutualslam_cli.vo.output import VOResult
 
 log = logging.getLogger(__name__)
@@ -92,8 +92,6 @@ def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
 
         vo = run_oracle(seq, cfg.vo, seed=cfg.seed, progress=cb)
     else:
-        from mutualslam_cli.vo.frontend import run_vo
-
         vo = run_vo(seq, cfg.vo, seed=cfg.seed, progress=cb)
     if path is not None:
         res.atomic_write_bytes(path, pickle.dumps(vo, protocol=pickle.HIGHEST_PROTOCOL))

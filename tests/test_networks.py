@@ -27,13 +27,7 @@ DEC_LAST = ["decoder.12.conv.bias", "decoder.13.conv.weight", "decoder.13.conv.b
 RESNET18_PARAMS = 11_689_512  # torchvision resnet18 incl. fc
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """CPU is shared: one torch thread avoids OpenMP oversubscription stalls."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see conftest
 
 
 def test_encoder_keys_match_monodepth2():

@@ -14,13 +14,7 @@ from mutualslam_cli.adapt.pretrain import FramePool, _batch, pretrain, silog_los
 from mutualslam_cli.adapt.weights import load_monodepth2
 from mutualslam_cli.errors import ConfigError
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """CPU is shared: one torch thread avoids OpenMP oversubscription stalls."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # see conftest
 
 
 QUICK = {**QUICK_CFG, "steps": 3, "pool_size": 2, "scenes": ("planar", "room"), "fast": False, "threads": 1}

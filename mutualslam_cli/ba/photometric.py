@@ -32,7 +32,7 @@ from typing import Callable
 import numpy as np
 
 from mutualslam_cli.errors import ConfigError, ShapeError
-from mutualslam_cli.vo.local_ba import exp_so3
+from mutualslam_cli.vo.local_ba import left_update
 
 log = logging.getLogger(__name__)
 NP = 8  # unknowns per keyframe: (ρx, ρy, ρz, φx, φy, φz, a, b)
@@ -367,14 +367,9 @@ def _centre(T: np.ndarray) -> np.ndarray:
 
 
 def _apply(T, ab, rho, dc, dp, fidx):
-    T, ab = T.copy(), ab.copy()
+    ab = ab.copy()
     d = dc.reshape(-1, NP)[fidx]
-    inc = np.tile(np.eye(4), (len(fidx), 1, 1))
-    inc[:, :3, :3] = exp_so3(d[:, 3:6])
-    inc[:, :3, 3] = d[:, :3]
-    T[fidx] = inc @ T[fidx]
-    U, _, Vt = np.linalg.svd(T[fidx, :3, :3])  # stay on SO(3)
-    T[fidx, :3, :3] = U @ Vt
+    T = left_update(T, fidx, d[:, :6])
     ab[fidx] += d[:, 6:]
     return T, ab, np.maximum(rho + dp, 1e-6)
 

@@ -106,17 +106,22 @@ def _robust_cost(r: np.ndarray, front: np.ndarray, huber: float) -> float:
     return float(np.sum(np.where(front, c, 0.5 * huber * huber)))
 
 
-def _apply(T: np.ndarray, fi: np.ndarray, dc: np.ndarray) -> np.ndarray:
+def left_update(T: np.ndarray, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``T[idx] ← exp(d) · T[idx]`` for left increments ``d`` ``(len(idx), 6)`` = ``(ρ, φ)``,
+    rotations projected back onto SO(3) (SVD); returns an updated copy of ``T`` ``(K, 4, 4)``."""
     T = T.copy()
-    if len(fi):
-        d = dc.reshape(-1, 6)
-        inc = np.tile(np.eye(4), (len(fi), 1, 1))
-        inc[:, :3, :3] = exp_so3(d[:, 3:])
+    if len(idx):
+        inc = np.tile(np.eye(4), (len(idx), 1, 1))
+        inc[:, :3, :3] = exp_so3(d[:, 3:6])
         inc[:, :3, 3] = d[:, :3]
-        T[fi] = inc @ T[fi]
-        U, _, Vt = np.linalg.svd(T[fi, :3, :3])  # stay on SO(3)
-        T[fi, :3, :3] = U @ Vt
+        T[idx] = inc @ T[idx]
+        U, _, Vt = np.linalg.svd(T[idx, :3, :3])  # stay on SO(3)
+        T[idx, :3, :3] = U @ Vt
     return T
+
+
+def _apply(T: np.ndarray, fi: np.ndarray, dc: np.ndarray) -> np.ndarray:
+    return left_update(T, fi, dc.reshape(-1, 6))
 
 
 def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np.ndarray, dict]:
