@@ -85,19 +85,19 @@ class AdaptConfig:
     lr: float = 1e-4
     """Adam learning rate (paper §IV: 1e-3; 1e-4 here, see configs/paper.yaml)."""
     lambda_sparse: float = 0.1
-    """λ1, weight of L_sparse (Eq. 8)."""
+    """λ1, weight of L_sparse (Eq. 7)."""
     lambda_smooth: float = 0.1
-    """λ2, weight of L_smooth (Eq. 8)."""
+    """λ2, weight of L_smooth (Eq. 7)."""
     alpha: float = 0.85
-    """SSIM/L1 balance α in pe (Eq. 5)."""
+    """SSIM/L1 balance α in pe (Eq. 4)."""
     ewc_beta: float = 5e7
-    """β of Eq. 2."""
+    """β of Eq. 1."""
     ewc_max_f: float = 1e-3
-    """max_F cap of Eq. 3 (applied as min, DESIGN §5)."""
+    """max_F cap of Eq. 2 (applied as min, DESIGN §5)."""
     mas_lambda: float = 0.5
-    """λ of Eq. 13 for MAS (Appendix B)."""
+    """λ of Eq. 19 for MAS (Appendix B)."""
     si_lambda: float = 1.0
-    """λ of Eq. 13 for SI (Appendix B)."""
+    """λ of Eq. 19 for SI (Appendix B)."""
     si_xi: float = 1e-3
     """ξ damping of SI's importance (Zenke et al.)."""
     steps_per_keyframe: int = 8

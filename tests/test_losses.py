@@ -1,4 +1,4 @@
-"""Warp (Eq. 6) and losses (Eq. 4, 5, 7, 8, 9): gradients, synthetic geometry, edge cases."""
+"""Warp (Eq. 5) and losses (Eq. 3, 4, 6, 7, 8): gradients, synthetic geometry, edge cases."""
 
 from __future__ import annotations
 
@@ -70,7 +70,7 @@ def test_warp_gt_geometry_reconstructs_target(fy_sign):
     pe_bad = float(photometric_error(It, warped_bad)[valid_bad].mean())
     assert pe_gt < 0.01
     assert pe_bad > 5 * pe_gt
-    # and the full Eq. 4 loss agrees
+    # and the full Eq. 3 loss agrees
     assert float(photometric_loss(It, [Is], Dt, K, [T])) < 0.01
 
 

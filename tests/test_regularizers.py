@@ -125,7 +125,7 @@ def test_ewc_penalty_value_by_hand():
     ewc.before_batch(m)
     with torch.no_grad():
         m.w += torch.tensor([0.1, -0.2], dtype=torch.float64)
-    expected = 4.0 / 2 * (0.25 * 0.1 ** 2 + 0.01 * 0.2 ** 2)  # β/2 Σ F̂ (θ − θ*)², Eq. 2
+    expected = 4.0 / 2 * (0.25 * 0.1 ** 2 + 0.01 * 0.2 ** 2)  # β/2 Σ F̂ (θ − θ*)², Eq. 1
     assert abs(float(ewc.penalty(m).detach()) - expected) < 1e-12
 
 
@@ -138,7 +138,7 @@ def test_mas_importance_by_hand():
     mas.before_batch(m)
     mas.after_batch(m, xs[1:])
     w = m.w.detach()
-    hand = sum((2 * (w * x).sum() * x).abs() for x in xs) / 2  # mean_j |∂(w·x_j)²/∂w|, Eq. 14
+    hand = sum((2 * (w * x).sum() * x).abs() for x in xs) / 2  # mean_j |∂(w·x_j)²/∂w|, Eq. 20
     torch.testing.assert_close(mas.weights[0], hand)
 
 
@@ -157,7 +157,7 @@ def test_si_importance_by_hand():
         omega -= g * dth  # ω −= g·Δθ
     si.after_batch(m)
     total = steps[0][1].double() + steps[1][1].double()
-    torch.testing.assert_close(si.weights[0], omega.clamp(min=0) / (total ** 2 + 0.1))  # Eq. 15
+    torch.testing.assert_close(si.weights[0], omega.clamp(min=0) / (total ** 2 + 0.1))  # Eq. 21
 
 
 def test_prox_step_by_hand():

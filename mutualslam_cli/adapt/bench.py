@@ -78,7 +78,7 @@ def make_step_batch(width: int, height: int, n_points: int = 500, seed: int = 0)
 
 def finetune_step(net: DepthNet, opt: torch.optim.Optimizer, batch: dict[str, Any], fast: bool,
                   lambda_sparse: float = 0.1, lambda_smooth: float = 0.1) -> dict[str, float]:
-    """One Adam step of Eq. 9: network forward under :func:`fast_context`, loss in fp32."""
+    """One Adam step of Eq. 8: network forward under :func:`fast_context`, loss in fp32."""
     opt.zero_grad(set_to_none=True)
     with fast_context(fast):
         depth = net.predict(batch["target"])

@@ -49,7 +49,7 @@ class KeyframeSample:
         K: ``(3, 3)`` intrinsics at network resolution.
         pose: ``(4, 4)`` ``T_wc`` in the map frame (may be updated later by BA).
         uv: ``(M, 2)`` pixels ``(u, v)`` of the sparse map points at network resolution.
-        depth: ``(M,)`` their depth in map units (D_sparse of Eq. 7).
+        depth: ``(M,)`` their depth in map units (D_sparse of Eq. 6).
     """
 
     kf_id: int
@@ -201,7 +201,7 @@ class KeyframeBuffer:
         return [self._train[j] for j in (i - 1, i + 1) if 0 <= j < len(self._train)]
 
     def neighbours(self, kf_id: int) -> list[int]:
-        """Stored photometric sources of training keyframe ``kf_id``: s ∈ {i−1, i+1} (Eq. 5).
+        """Stored photometric sources of training keyframe ``kf_id``: s ∈ {i−1, i+1} (Eq. 4).
 
         Only *training* keyframes adjacent in time count; for the newest keyframe that is just
         the previous one. Empty for the first training keyframe or an unknown id.

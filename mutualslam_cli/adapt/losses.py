@@ -1,10 +1,10 @@
-"""Training losses of the online adaptation (paper §III-B, Eq. 4–9).
+"""Training losses of the online adaptation (paper §III-B, Eq. 3–8).
 
 Everything here runs in fp32 even inside a bf16 autocast region: inputs in half
 precision are promoted to float32 (float64 inputs stay float64, for gradcheck) and
 autocast is disabled inside each function.
 
-Averaging convention for batches (Eq. 9 averages L_train over the recent and the replayed
+Averaging convention for batches (Eq. 8 averages L_train over the recent and the replayed
 keyframe): every term is a mean per image, then the mean over the images of the batch
 (images without any valid pixel / sparse point are left out of that term's mean).
 
@@ -93,7 +93,7 @@ def ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 @_fp32
 def photometric_error(target: torch.Tensor, warped: torch.Tensor, alpha: float = 0.85) -> torch.Tensor:
-    """Per-pixel photometric error ``pe`` (Eq. 5): ``α/2·(1 − SSIM) + (1 − α)·|I_i − I_{s→i}|₁``.
+    """Per-pixel photometric error ``pe`` (Eq. 4): ``α/2·(1 − SSIM) + (1 − α)·|I_i − I_{s→i}|₁``.
 
     Channels are averaged (Monodepth2).
 
@@ -106,15 +106,15 @@ def photometric_error(target: torch.Tensor, warped: torch.Tensor, alpha: float =
     """
     target, warped = _f(target), _f(warped)
     l1 = (target - warped).abs().mean(1, keepdim=True)
-    return alpha * ssim(target, warped).mean(1, keepdim=True) + (1 - alpha) * l1  # Eq. 5
+    return alpha * ssim(target, warped).mean(1, keepdim=True) + (1 - alpha) * l1  # Eq. 4
 
 
 @_fp32
 def photometric_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: torch.Tensor, K: torch.Tensor,
                      T_t2s: list[torch.Tensor], alpha: float = 0.85) -> torch.Tensor:
-    """Minimum reprojection loss L_photo (Eq. 4) over the adjacent views.
+    """Minimum reprojection loss L_photo (Eq. 3) over the adjacent views.
 
-    Each source is warped once with the target depth (Eq. 6); per pixel, the minimum
+    Each source is warped once with the target depth (Eq. 5); per pixel, the minimum
     ``pe`` over the sources in which it projects validly is kept, and the loss is the mean
     over pixels valid in at least one source (per image, then over images).
 
@@ -124,7 +124,7 @@ def photometric_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: t
         depth: ``(B, 1, H, W)`` predicted depth of the target.
         K: ``(B, 3, 3)`` intrinsics at this resolution.
         T_t2s: per source, ``(B, 4, 4)`` target-camera → source-camera transform.
-        alpha: α of Eq. 5.
+        alpha: α of Eq. 4.
 
     Returns:
         0-d tensor; 0 (with a graph) when no pixel is valid anywhere.
@@ -139,7 +139,7 @@ def photometric_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: t
         check_shape(t, [target.shape[0], 4, 4], f"photometric_loss.T_t2s[{i}]")
     target, depth = _f(target), _f(depth)
     b, n = target.shape[0], len(sources)
-    # all sources in one batched warp: each neighbour is warped exactly once (Eq. 6)
+    # all sources in one batched warp: each neighbour is warped exactly once (Eq. 5)
     src = torch.cat([_f(x).to(target.dtype) for x in sources], 0)
     T = torch.cat([_f(t) for t in T_t2s], 0)
     warped, valid = warp(src, depth.repeat(n, 1, 1, 1), _f(K).repeat(n, 1, 1), T)
@@ -147,7 +147,7 @@ def photometric_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: t
     pe = torch.cat(pe.split(b, 0), 1)                                          # (B, S, H, W)
     valid = torch.cat(valid.split(b, 0), 1)
     big = torch.full_like(pe, 1e4)
-    pe_min = torch.where(valid, pe, big).min(1, keepdim=True).values  # argmin over s, Eq. 4
+    pe_min = torch.where(valid, pe, big).min(1, keepdim=True).values  # argmin over s, Eq. 3
     return _masked_mean_per_image(pe_min, valid.any(1, keepdim=True))
 
 
@@ -163,7 +163,7 @@ def sample_depth(depth: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 
 @_fp32
 def sparse_depth_loss(depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Sparse inverse-depth loss L_sparse (Eq. 7): mean ``|1/D(p) − 1/D_sparse(p)|`` over map points.
+    """Sparse inverse-depth loss L_sparse (Eq. 6): mean ``|1/D(p) − 1/D_sparse(p)|`` over map points.
 
     Args:
         depth: ``(B, 1, H, W)`` predicted depth.
@@ -186,13 +186,13 @@ def sparse_depth_loss(depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, ma
         return depth.sum() * 0.0
     pred = sample_depth(depth, uv)
     d_safe = torch.where(mask, d, torch.ones_like(d))
-    err = (1.0 / pred - 1.0 / d_safe).abs()  # Eq. 7
+    err = (1.0 / pred - 1.0 / d_safe).abs()  # Eq. 6
     return _masked_mean_per_image(err, mask)
 
 
 @_fp32
 def smoothness_loss(depth: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
-    """Edge-aware smoothness L_smooth (Eq. 8) on **mean-normalised inverse depth**.
+    """Edge-aware smoothness L_smooth (Eq. 7) on **mean-normalised inverse depth**.
 
     The paper writes ∂D; like Monodepth2 (which the paper follows for its loss) we apply
     it to ``disp / mean(disp)`` with ``disp = 1/D``: that is invariant to the scale of the
@@ -215,7 +215,7 @@ def smoothness_loss(depth: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     gdy = (disp[..., :-1, :] - disp[..., 1:, :]).abs()
     gix = (image[..., :, :-1] - image[..., :, 1:]).abs().mean(1, keepdim=True)
     giy = (image[..., :-1, :] - image[..., 1:, :]).abs().mean(1, keepdim=True)
-    return (gdx * torch.exp(-gix)).mean() + (gdy * torch.exp(-giy)).mean()  # Eq. 8
+    return (gdx * torch.exp(-gix)).mean() + (gdy * torch.exp(-giy)).mean()  # Eq. 7
 
 
 @_fp32
@@ -223,7 +223,7 @@ def train_loss(depth: torch.Tensor, target: torch.Tensor, sources: list[torch.Te
                T_t2s: list[torch.Tensor], uv: torch.Tensor, d: torch.Tensor, mask: torch.Tensor,
                lambda_sparse: float = 0.1, lambda_smooth: float = 0.1,
                alpha: float = 0.85) -> tuple[torch.Tensor, dict[str, float]]:
-    """L_train = L_photo + λ1·L_sparse + λ2·L_smooth (Eq. 9), averaged over the batch images.
+    """L_train = L_photo + λ1·L_sparse + λ2·L_smooth (Eq. 8), averaged over the batch images.
 
     Args:
         depth: ``(B, 1, H, W)`` predicted depth of the targets (e.g. B = 2: recent + replayed).
@@ -232,7 +232,7 @@ def train_loss(depth: torch.Tensor, target: torch.Tensor, sources: list[torch.Te
         K: ``(B, 3, 3)`` intrinsics at this resolution.
         T_t2s: per source ``(B, 4, 4)`` target → source camera transforms (VO poses).
         uv, d, mask: sparse map points, see :func:`sparse_depth_loss`.
-        lambda_sparse: λ1 (paper 0.1). lambda_smooth: λ2 (paper 0.1). alpha: α of Eq. 5.
+        lambda_sparse: λ1 (paper 0.1). lambda_smooth: λ2 (paper 0.1). alpha: α of Eq. 4.
 
     Returns:
         ``(loss, parts)`` with ``parts = {"photo", "sparse", "smooth", "total"}`` as floats.
@@ -240,7 +240,7 @@ def train_loss(depth: torch.Tensor, target: torch.Tensor, sources: list[torch.Te
     l_photo = photometric_loss(target, sources, depth, K, T_t2s, alpha)
     l_sparse = sparse_depth_loss(depth, uv, d, mask)
     l_smooth = smoothness_loss(depth, target)
-    total = l_photo + lambda_sparse * l_sparse + lambda_smooth * l_smooth  # Eq. 9
+    total = l_photo + lambda_sparse * l_sparse + lambda_smooth * l_smooth  # Eq. 8
     parts = {"photo": float(l_photo.detach()), "sparse": float(l_sparse.detach()),
              "smooth": float(l_smooth.detach()), "total": float(total.detach())}
     return total, parts

@@ -7,13 +7,13 @@ the scheme selects (newest keyframe first, e.g. + one replayed older keyframe).
 
 Choices the paper leaves open (documented here, DESIGN §5):
 
-- **Newest keyframe's photometric sources.** s ∈ {i−1, i+1} (Eq. 4), but K_{i+1} does not exist
+- **Newest keyframe's photometric sources.** s ∈ {i−1, i+1} (Eq. 3), but K_{i+1} does not exist
   yet when K_i arrives. We train on K_i immediately (Alg. 2: "get latest keyframe K_i … train on
   K_i") with s = i−1 only; when K_i is later replayed (or is the second of a ``recent`` batch) it
   has both neighbours. The first training keyframe has no neighbour and is not trained on.
   Items of a batch with fewer sources than the others repeat one of theirs (the per-pixel minimum
   over identical warps is unchanged), so the batch stays one forward pass.
-- **L_val** (Eq. 10) = L_sparse over *all validation keyframes so far* (``val_scope="all"``),
+- **L_val** (Eq. 9) = L_sparse over *all validation keyframes so far* (``val_scope="all"``),
   with the current model: early stopping (the paper's inspiration, §III-B) monitors a fixed
   held-out set, the validation keyframes are exactly that set growing online, and the decision
   gates global BA over the whole map, so forgetting of earlier places must raise L_val. Each
@@ -188,7 +188,7 @@ class OnlineAdapter:
 
     @torch.no_grad()
     def per_keyframe_val_loss(self, ids: list[int] | None = None, chunk: int = 4) -> dict[int, float]:
-        """L_val (Eq. 10, = L_sparse) of stored keyframes with the current model.
+        """L_val (Eq. 9, = L_sparse) of stored keyframes with the current model.
 
         Args:
             ids: keyframe ids (default: every stored keyframe, training and validation).
@@ -273,7 +273,7 @@ class OnlineAdapter:
             loss.backward()
             grads = [p.grad.detach().clone() if p.grad is not None else torch.zeros_like(p) for p in self.params]
             if reg is not None and reg.mode == "penalty":
-                pen = reg.penalty(self.net)  # Eq. 2 / Eq. 13 regulariser at the current θ
+                pen = reg.penalty(self.net)  # Eq. 1 / Eq. 19 regulariser at the current θ
                 if pen.requires_grad:
                     pen.backward()  # coupled: ∇(L_train + penalty) through Adam
             self.optimizer.step()

@@ -1,12 +1,12 @@
-"""Parameter-importance regularisers for online adaptation: EWC, MAS, SI (paper Eq. 2–3, 13–15).
+"""Parameter-importance regularisers for online adaptation: EWC, MAS, SI (paper Eq. 1–2, 19–21).
 
 All three add ``c · Σ_i w_i (θ_i − θ*_i)²`` to L_train and differ in the importance ``w``:
 
-- **EWC** (Kirkpatrick et al. 2017; paper Eq. 2–3, Alg. 2): ``c = β/2``, ``w = F̂``; ``F`` sums the
+- **EWC** (Kirkpatrick et al. 2017; paper Eq. 1–2, Alg. 2): ``c = β/2``, ``w = F̂``; ``F`` sums the
   empirical Fisher of each batch (squared gradients of L_train, averaged over the batch's
   optimiser steps), ``j`` counts batches, ``F̂ = min(F / j, max_F)``. The paper prints ``max`` but
   calls max_F "the maximum value of F̂"; a literal max with β = 5e7 freezes the net (DESIGN §5).
-- **MAS** (Aljundi et al. 2018; Appendix B Eq. 13–14): ``c = λ``, ``w = Ω`` = mean over samples of
+- **MAS** (Aljundi et al. 2018; Appendix B Eq. 19–20): ``c = λ``, ``w = Ω`` = mean over samples of
   ``|∂ mean(G(x)²) / ∂θ|``. G is the *inverse* depth map: the CNN's own output is a disparity
   (depth is an affine-in-inverse post-processing, Monodepth2 ``disp_to_depth``); with G = depth
   the importance scales with depth³ and far pixels dominate it (measured: Ω up to 1e4 on a 2 m
@@ -14,7 +14,7 @@ All three add ``c · Σ_i w_i (θ_i − θ*_i)²`` to L_train and differ in the 
   does not depend on the image size. One sample per batch: the batch's *newest*
   keyframe, evaluated at the end of the batch (MAS computes Ω at the consolidated parameters);
   replayed keyframes are not counted twice.
-- **SI** (Zenke et al. 2017; Appendix B Eq. 13, 15): ``c = λ``; per step ``ω −= g · Δθ`` (g = gradient
+- **SI** (Zenke et al. 2017; Appendix B Eq. 19, 21): ``c = λ``; per step ``ω −= g · Δθ`` (g = gradient
   of L_train, the path integral), at the end of a batch ``Ω += max(ω, 0) / ((Δθ_batch)² + ξ)`` and
   ``ω = 0``. Negative contributions (steps that raised the loss) are clipped to 0 so the penalty
   stays a convex quadratic.
@@ -28,7 +28,7 @@ Two independent choices make it act; both are options, the defaults are marked:
 
 - ``"prox"`` (**default**): Adam steps on L_train only, then the exact proximal step of the
   penalty with step size lr, ``θ ← θ* + (θ − θ*) / (1 + 2·lr·c·w)`` (forward–backward splitting).
-  The iteration has the same fixed points as minimising Eq. 2 / Eq. 13, acts on *every* step
+  The iteration has the same fixed points as minimising Eq. 1 / Eq. 19, acts on *every* step
   (also the first, also with ``steps_per_keyframe = 1``), and its part of the update only shrinks
   θ − θ*, never pushes past θ*. Coupled into Adam instead, a quadratic this stiff (β·F̂ up to 5e4)
   is normalised by √v̂ and stored in Adam's momentum, which keeps moving θ on the next batch's
@@ -113,7 +113,7 @@ class Regularizer:
             self.star = now  # θ after the previous batch = at the start of this one (paper)
 
     def penalty(self, model: nn.Module) -> torch.Tensor:
-        """``c Σ_i w_i (θ_i − θ*_i)²`` (Eq. 2 for EWC with c = β/2, Eq. 13 for MAS/SI); scalar, differentiable."""
+        """``c Σ_i w_i (θ_i − θ*_i)²`` (Eq. 1 for EWC with c = β/2, Eq. 19 for MAS/SI); scalar, differentiable."""
         params = trainable(model)
         total = params[0].new_zeros(()) if params else torch.zeros(())
         for p, w, s in zip(params, self.weights, self.star):
@@ -138,11 +138,11 @@ class Regularizer:
 
 
 class EWC(Regularizer):
-    """EWC adapted to single-task online fine-tuning (paper Eq. 2–3, Alg. 2).
+    """EWC adapted to single-task online fine-tuning (paper Eq. 1–2, Alg. 2).
 
     Args:
         model: network.
-        beta: β of Eq. 2 (paper 5e7).
+        beta: β of Eq. 1 (paper 5e7).
         max_f: cap of F̂ (paper max_F = 1e-3, applied as min; DESIGN §5).
         anchor: see module docstring.
     """
@@ -151,9 +151,9 @@ class EWC(Regularizer):
 
     def __init__(self, model: nn.Module, beta: float, max_f: float, anchor: str = "previous_batch",
                  mode: str = "prox") -> None:
-        super().__init__(model, beta / 2.0, anchor, mode)  # Eq. 2: Σ β/2 F̂ (θ − θ*)²
+        super().__init__(model, beta / 2.0, anchor, mode)  # Eq. 1: Σ β/2 F̂ (θ − θ*)²
         self.max_f = float(max_f)
-        self.fisher_sum = [torch.zeros_like(w) for w in self.weights]  # F of Eq. 3
+        self.fisher_sum = [torch.zeros_like(w) for w in self.weights]  # F of Eq. 2
         self._batch_f = [torch.zeros_like(w) for w in self.weights]
         self._steps = 0
 
@@ -173,16 +173,16 @@ class EWC(Regularizer):
             return
         super().after_batch(model, newest)
         for F, fb, w in zip(self.fisher_sum, self._batch_f, self.weights):
-            F.add_(fb / self._steps)  # Eq. 3: F = F + F^(j)
-            torch.clamp(F / self.batches, max=self.max_f, out=w)  # Eq. 3: F̂ = min(F / j, max_F)
+            F.add_(fb / self._steps)  # Eq. 2: F = F + F^(j)
+            torch.clamp(F / self.batches, max=self.max_f, out=w)  # Eq. 2: F̂ = min(F / j, max_F)
 
 
 class MAS(Regularizer):
-    """Memory Aware Synapses (Aljundi et al. 2018; paper Appendix B Eq. 14).
+    """Memory Aware Synapses (Aljundi et al. 2018; paper Appendix B Eq. 20).
 
     Args:
         model: network.
-        lam: λ of Eq. 13 (paper 0.5).
+        lam: λ of Eq. 19 (paper 0.5).
         predict: ``x (B, 3, H, W) -> depth (B, 1, H, W)`` (float32 output, differentiable); the
             function G whose squared norm defines the importance.
         anchor: see module docstring.
@@ -211,16 +211,16 @@ class MAS(Regularizer):
                     o.add_(g.abs())  # |∂‖G‖²/∂θ|
             self.samples += 1
         for w, o in zip(self.weights, self.omega_sum):
-            torch.div(o, self.samples, out=w)  # Eq. 14: Ω = 1/N Σ_j |…|
+            torch.div(o, self.samples, out=w)  # Eq. 20: Ω = 1/N Σ_j |…|
 
 
 class SI(Regularizer):
-    """Synaptic Intelligence (Zenke et al. 2017; paper Appendix B Eq. 15).
+    """Synaptic Intelligence (Zenke et al. 2017; paper Appendix B Eq. 21).
 
     Args:
         model: network.
-        lam: λ of Eq. 13 (paper 1.0).
-        xi: damping ξ of Eq. 15.
+        lam: λ of Eq. 19 (paper 1.0).
+        xi: damping ξ of Eq. 21.
         anchor: see module docstring.
     """
 
@@ -250,7 +250,7 @@ class SI(Regularizer):
         super().after_batch(model, newest)
         for w, o, start, p in zip(self.weights, self.omega, self._batch_start, trainable(model)):
             total = p.detach() - start  # Δθ over the batch (the task)
-            w.add_(torch.clamp(o, min=0) / (total ** 2 + self.xi))  # Eq. 15: Ω += ω / (Δθ² + ξ)
+            w.add_(torch.clamp(o, min=0) / (total ** 2 + self.xi))  # Eq. 21: Ω += ω / (Δθ² + ξ)
             o.zero_()
 
 

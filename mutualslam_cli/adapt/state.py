@@ -101,7 +101,7 @@ class TrainingKeyframe:
 
 @dataclass(frozen=True)
 class ValidationKeyframe:
-    """A validation keyframe arrived; ``l_val`` is L_val (Eq. 10) with the current model."""
+    """A validation keyframe arrived; ``l_val`` is L_val (Eq. 9) with the current model."""
 
     l_val: float
 

@@ -1,4 +1,4 @@
-"""Inverse warping of a source image into the target view (paper Eq. 6).
+"""Inverse warping of a source image into the target view (paper Eq. 5).
 
 Pixel convention (``types.py``): ``(u, v)`` = (column, row) with the origin at the centre
 of the top-left pixel, so ``grid_sample`` is used with ``align_corners=True``.
@@ -25,7 +25,7 @@ def pixel_grid(b: int, h: int, w: int, dtype: torch.dtype, device: torch.device 
 
 
 def project_to_source(depth_t: torch.Tensor, K: torch.Tensor, T_t2s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Source-image pixel of every target pixel: ``p' ~ K T_{t→s} D(p) K⁻¹ p`` (Eq. 6).
+    """Source-image pixel of every target pixel: ``p' ~ K T_{t→s} D(p) K⁻¹ p`` (Eq. 5).
 
     Args:
         depth_t: ``(B, 1, H, W)`` target depth.
@@ -51,7 +51,7 @@ def project_to_source(depth_t: torch.Tensor, K: torch.Tensor, T_t2s: torch.Tenso
 
 
 def warp(src: torch.Tensor, depth_t: torch.Tensor, K: torch.Tensor, T_t2s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Reconstruct the target view from ``src``: ``I_{s→i}(p) = I_s(p')`` (Eq. 6), bilinear.
+    """Reconstruct the target view from ``src``: ``I_{s→i}(p) = I_s(p')`` (Eq. 5), bilinear.
 
     Args:
         src: ``(B, C, H, W)`` source image.

@@ -150,7 +150,7 @@ def percent_correct(
 
 
 def esi(pred: Any, gt: Any, mask: np.ndarray | None = None) -> float:
-    """Scale-invariant log error e_si (Eigen et al. 2014, eq. 4 with λ = 1; paper §IV-D).
+    """Scale-invariant log error e_si (paper Eq. 13, §IV-D; Eigen et al. 2014, eq. 4 with λ = 1).
 
     ``e_si = sqrt(mean(d²) − mean(d)²)``, ``d = log z − log z*``; the same value as the
     paper's inverse-depth form (``d`` only changes sign). Computed as the population

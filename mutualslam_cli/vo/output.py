@@ -129,7 +129,7 @@ class VOResult:
 
         Returns:
             pixels ``(M, 2)`` and depths ``(M,)`` (map units, > 0, inside the image) — the
-            D_sparse of Eq. 7.
+            D_sparse of Eq. 6.
         """
         pw = self.points_world() if points_w is None else points_w
         sel = np.array([kf_id in obs for obs in self.points.observations], dtype=bool)
