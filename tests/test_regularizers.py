@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from mutualslam_cli.adapt.buffer import KeyframeSample
+from mutualslam_cli.adapt.depthnet import make_adam
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.adapt.regularizers import EWC, MAS, SI, make_regularizer, trainable
 from mutualslam_cli.config import AdaptConfig
@@ -161,23 +162,65 @@ def test_si_importance_by_hand():
 
 
 def test_prox_step_by_hand():
+    """One proximal step in Adam's metric: θ* + (x − θ*) / (1 + 2·P·c·w), P = lr / (√v̂ + ε)."""
     m = Linear([1.0, 2.0])
     ewc = EWC(m, beta=4.0, max_f=1.0)
     ewc.before_batch(m)
     ewc.after_step(m, [torch.tensor([0.5, 0.1], dtype=torch.float64)])
     ewc.after_batch(m)  # F̂ = [0.25, 0.01], θ* will be [1, 2]
     ewc.before_batch(m)
-    with torch.no_grad():
-        m.w += torch.tensor([0.1, -0.2], dtype=torch.float64)  # x = θ after the Adam step
-    ewc.prox(m, lr=0.5)
-    # argmin β/2 F̂ (θ − θ*)² + (θ − x)² / (2 lr) = θ* + (x − θ*) / (1 + lr β F̂)
-    expected = torch.tensor([1.0 + 0.1 / (1 + 0.5 * 4.0 * 0.25), 2.0 - 0.2 / (1 + 0.5 * 4.0 * 0.01)],
-                            dtype=torch.float64)
+    opt = torch.optim.Adam([m.w], lr=0.5, betas=(0.9, 0.99), eps=1e-8)
+    m.w.grad = torch.tensor([-0.2, 0.4], dtype=torch.float64)
+    opt.step()  # first step: v̂ = g², so P = lr / (|g| + ε)
+    x = m.w.detach().clone()
+    ewc.prox(m, opt)
+    P = 0.5 / (torch.tensor([0.2, 0.4], dtype=torch.float64) + 1e-8)
+    star = torch.tensor([1.0, 2.0], dtype=torch.float64)
+    expected = star + (x - star) / (1 + 2 * P * (4.0 / 2) * torch.tensor([0.25, 0.01], dtype=torch.float64))
     torch.testing.assert_close(m.w.detach(), expected)
-    # it is the minimiser: the objective's gradient vanishes there
-    x = torch.tensor([1.1, 1.8], dtype=torch.float64)
-    grad = 4.0 * ewc.weights[0] * (m.w.detach() - ewc.star[0]) + (m.w.detach() - x) / 0.5
-    assert float(grad.abs().max()) < 1e-12
+    # it minimises β/2 F̂ (θ − θ*)² + (θ − x)² / (2P): that objective's gradient vanishes there
+    grad = 4.0 * ewc.weights[0] * (m.w.detach() - star) + (m.w.detach() - x) / P
+    assert float(grad.abs().max()) < 1e-9
+
+
+class Vector(nn.Module):
+    def __init__(self, n):
+        super().__init__()
+        self.w = nn.Parameter(torch.zeros(n))
+
+
+@pytest.mark.parametrize("kind", ["ewc", "mas", "si"])
+def test_prox_minimises_the_penalised_quadratic(kind):
+    """Adam + prox converges to argmin of L_train + c·w·(θ − θ*)², the closed form, at every curvature.
+
+    L_train = Σ_k a_k/2 (θ_k − 1)², θ* = 0, c·w = 10 ⇒ θ_k = a_k / (a_k + 20). Each coordinate is an
+    independent 1-D problem under Adam. The scalar-lr prox (correct only for SGD) settles at
+    ≈ 1/(2cw) = 0.05 for all three curvatures instead.
+    """
+    a = torch.tensor([1e-3, 1.0, 100.0])
+    m = Vector(3)
+    reg = {"ewc": lambda: EWC(m, beta=2.0, max_f=1.0), "mas": lambda: MAS(m, lam=0.5, predict=lambda x: x),
+           "si": lambda: SI(m, lam=1.0, xi=0.1)}[kind]()
+    reg.before_batch(m)  # θ* = 0
+    reg.weights[0].fill_(10.0 / reg.coef)  # c·w = 10 whatever the regulariser's constant
+    opt = make_adam([m.w], lr=1e-3)  # the optimiser the online loop uses
+    for _ in range(3000):
+        opt.zero_grad()
+        (0.5 * a * (m.w - 1.0) ** 2).sum().backward()
+        opt.step()
+        reg.prox(m, opt)
+    closed = a / (a + 20.0)
+    got = m.w.detach()
+    torch.testing.assert_close(got, closed, rtol=1e-3, atol=1e-6)
+    # and it is a minimiser of the penalised objective: its gradient vanishes there
+    assert float((a * (got - 1.0) + 20.0 * got).abs().max()) < 0.05
+
+
+def test_prox_needs_adam():
+    m = Linear([1.0])
+    ewc = EWC(m, beta=2.0, max_f=1.0)
+    with pytest.raises(ConfigError):
+        ewc.prox(m, torch.optim.SGD([m.w], lr=0.1))
 
 
 def test_make_regularizer_errors():

@@ -24,7 +24,7 @@ Choices the paper leaves open (documented here, DESIGN §5):
 - **Loss parts** in :class:`StepInfo` are those of the first optimiser step of the batch (the
   loss at the parameters the keyframe arrived with); ``penalty`` is the regulariser's value at the
   end of the batch (w.r.t. this batch's θ* and importance).
-- **Regulariser** (schemes ``ewc``, ``replay+ewc|mas|si``): applied as an exact proximal step
+- **Regulariser** (schemes ``ewc``, ``replay+ewc|mas|si``): applied as a proximal step in
   after each Adam step by default (``reg_mode="prox"``), or added to the loss (``"penalty"``, the
   paper's literal form); see :mod:`mutualslam_cli.adapt.regularizers` for why.
 - Determinism: ``torch.manual_seed(seed)`` at construction, replay draws from a numpy Generator
@@ -279,7 +279,7 @@ class OnlineAdapter:
             self.optimizer.step()
             if reg is not None:
                 if reg.mode == "prox":
-                    reg.prox(self.net, cfg.lr)  # decoupled: exact proximal step of the penalty
+                    reg.prox(self.net, self.optimizer)  # decoupled: proximal step of the penalty in Adam's metric
                 reg.after_step(self.net, grads)
             if s == 0:
                 info.loss = {k: float(v) for k, v in parts.items()}
