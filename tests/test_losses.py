@@ -183,3 +183,87 @@ def test_gradcheck_sparse_and_smooth():
     mask = torch.tensor([[True, True, False]])
     assert torch.autograd.gradcheck(lambda dd: sparse_depth_loss(dd, uv, d, mask), (depth,))
     assert torch.autograd.gradcheck(lambda dd: smoothness_loss(dd, t), (depth,))
+
+
+# ---- exact values of SSIM and pe (Eq. 4) against an independent numpy reference -----------------
+
+_C1, _C2 = 0.01 ** 2, 0.03 ** 2  # Wang et al. 2004 constants for images in [0, 1]
+
+
+def _ssim_np(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """SSIM (not the dissimilarity) of ``(C, H, W)`` images from its definition: 3×3 mean windows
+    on reflection-padded images (``np.pad(mode="reflect")`` = torch ``reflect``: the edge is not repeated)."""
+    h, w = x.shape[1:]
+
+    def box(a: np.ndarray) -> np.ndarray:
+        a = np.pad(a, ((0, 0), (1, 1), (1, 1)), mode="reflect")
+        return sum(a[:, i:i + h, j:j + w] for i in range(3) for j in range(3)) / 9.0
+
+    mx, my = box(x), box(y)
+    vx, vy, cxy = box(x * x) - mx ** 2, box(y * y) - my ** 2, box(x * y) - mx * my
+    return ((2 * mx * my + _C1) * (2 * cxy + _C2)) / ((mx ** 2 + my ** 2 + _C1) * (vx + vy + _C2))
+
+
+def _pe_np(x: np.ndarray, y: np.ndarray, alpha: float) -> np.ndarray:
+    """Eq. 4 per pixel, channels averaged: α/2·(1 − SSIM) + (1 − α)·|x − y|  →  ``(H, W)``."""
+    return (alpha / 2 * (1 - _ssim_np(x, y)) + (1 - alpha) * np.abs(x - y)).mean(0)
+
+
+def test_ssim_is_the_half_dissimilarity_closed_form_on_constant_images():
+    # constant images: all local variances/covariances are 0, so SSIM = (2ab + C1) / (a² + b² + C1)
+    a = np.array([0.2, 0.9, 0.5])
+    b = np.array([0.6, 0.1, 0.5])  # the third channel is identical
+    x = torch.tensor(a, dtype=torch.float64).view(1, 3, 1, 1).expand(1, 3, 5, 7).contiguous()
+    y = torch.tensor(b, dtype=torch.float64).view(1, 3, 1, 1).expand(1, 3, 5, 7).contiguous()
+    s = (2 * a * b + _C1) / (a ** 2 + b ** 2 + _C1)
+    got = ssim(x, y)
+    assert got.shape == (1, 3, 5, 7)
+    for c in range(3):
+        np.testing.assert_allclose(got[0, c].numpy(), (1 - s[c]) / 2, rtol=0, atol=1e-12)
+    assert float(got[0, 2].abs().max()) == 0.0  # identical channel: exactly the minimum, 0
+
+
+def test_ssim_extremes_identical_is_zero_and_matches_numpy_reference():
+    g = torch.Generator().manual_seed(5)
+    x = torch.rand(2, 3, 9, 11, generator=g, dtype=torch.float64)
+    y = torch.rand(2, 3, 9, 11, generator=g, dtype=torch.float64)
+    assert float(ssim(x, x).abs().max()) == 0.0  # identical images → dissimilarity exactly 0 (SSIM = 1)
+    assert float(photometric_error(x, x).abs().max()) == 0.0
+    # anti-correlated structure (y = 1 − x on a checkerboard): SSIM ≈ −1 → dissimilarity close to its max 1
+    cb = torch.tensor((np.indices((8, 8)).sum(0) % 2).astype(np.float64))[None, None]
+    assert float(ssim(cb, 1 - cb).min()) > 0.95
+    for i in range(2):  # general case, borders included (reflection padding)
+        np.testing.assert_allclose(ssim(x, y)[i].numpy(), (1 - _ssim_np(x[i].numpy(), y[i].numpy())) / 2,
+                                   rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("alpha", [0.85, 0.3])
+def test_pe_equals_eq4_on_constant_images(alpha):
+    # hand-computable: per channel SSIM = (2ab + C1)/(a² + b² + C1), L1 = |a − b|; pe averages channels
+    a = np.array([0.2, 0.9, 0.5])
+    b = np.array([0.6, 0.1, 0.45])
+    x = torch.tensor(a, dtype=torch.float64).view(1, 3, 1, 1).expand(1, 3, 4, 6).contiguous()
+    y = torch.tensor(b, dtype=torch.float64).view(1, 3, 1, 1).expand(1, 3, 4, 6).contiguous()
+    s = (2 * a * b + _C1) / (a ** 2 + b ** 2 + _C1)
+    want = float(np.mean(alpha / 2 * (1 - s) + (1 - alpha) * np.abs(a - b)))
+    got = photometric_error(x, y, alpha)
+    assert got.shape == (1, 1, 4, 6)
+    np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=1e-12)
+    # float32 inputs (the training path): σ² = E[x²] − μ² cancels in fp32 (error ~ eps·μ² ≈ 5e-8, against
+    # C2 = 9e-4 in a flat window), so flat regions are only good to ~2e-5; still far below the SSIM term
+    np.testing.assert_allclose(photometric_error(x.float(), y.float(), alpha).numpy(), want, rtol=0, atol=5e-5)
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.3, 0.85, 1.0])
+def test_pe_equals_eq4_numpy_reference(alpha):
+    # α = 1 isolates the SSIM term (α/2·(1 − SSIM)), α = 0 the L1 term; 0.3 and 0.85 pin the mix
+    g = torch.Generator().manual_seed(11)
+    x = torch.rand(2, 3, 10, 13, generator=g, dtype=torch.float64)
+    y = (0.6 * x + 0.4 * torch.rand(2, 3, 10, 13, generator=g, dtype=torch.float64)).clamp(0, 1)
+    got = photometric_error(x, y, alpha)
+    assert got.shape == (2, 1, 10, 13)
+    for i in range(2):
+        want = _pe_np(x[i].numpy(), y[i].numpy(), alpha)
+        np.testing.assert_allclose(got[i, 0].numpy(), want, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(photometric_error(x.float(), y.float(), alpha)[i, 0].numpy(), want,
+                                   rtol=0, atol=1e-5)  # fp32 rounding of the local variances

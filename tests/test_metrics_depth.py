@@ -11,6 +11,7 @@ from mutualslam_cli.metrics.depth import (
     DepthStats,
     abs_rel,
     depth_frame_metrics,
+    depth_stats,
     esi,
     percent_correct,
     resize_to,
@@ -186,3 +187,110 @@ def test_running_mean_ignores_nan() -> None:
     np.testing.assert_allclose(r[1:], [10.0, 10.0, 15.0, 30.0])
     assert np.isnan(running_mean([np.nan, np.nan])).all()
     assert running_mean([]).shape == (0,)
+
+
+# ---- depth_stats with an error that is NOT one global scale (lsq and median scales differ) --------
+
+
+def _ref_stats(pred: np.ndarray, gt: np.ndarray, max_depth: float = 10.0, thr: float = 0.1) -> dict[str, float]:
+    """Independent numpy reference from the module docstring / DESIGN §7 definitions."""
+    with np.errstate(invalid="ignore"):
+        m = np.isfinite(gt) & (gt > 0) & (gt <= max_depth) & np.isfinite(pred) & (pred > 0)
+    p, g = pred[m], gt[m]
+    s_lsq = float(np.linalg.lstsq(p[:, None], g, rcond=None)[0][0])  # argmin_s Σ(s·p − g)²
+    s_med = float(np.median(g) / np.median(p))
+    rel = lambda s: np.abs(s * p - g) / g  # noqa: E731
+    d = np.log(p) - np.log(g)
+    return {
+        "pcd_lsq": 100.0 * np.mean(rel(s_lsq) < thr),
+        "pcd_median": 100.0 * np.mean(rel(s_med) < thr),
+        "pcd_none": 100.0 * np.mean(rel(1.0) < thr),
+        "esi": float(np.sqrt(np.mean(d ** 2) - np.mean(d) ** 2)),  # paper Eq. 13
+        "abs_rel": float(np.mean(rel(s_med))),  # after median scaling
+        "scale_lsq": s_lsq,
+        "scale_median": s_med,
+        "n_valid": int(m.sum()),
+        "_margin": float(min(np.abs(rel(s) - thr).min() for s in (s_lsq, s_med, 1.0))),
+    }
+
+
+def _assert_row(row: dict, ref: dict) -> None:
+    assert set(row) == set(DepthStats.__dataclass_fields__)
+    assert row["n_valid"] == ref["n_valid"]
+    for k in ("scale_lsq", "scale_median", "esi", "abs_rel"):
+        assert row[k] == pytest.approx(ref[k], rel=1e-9), k
+    for k in ("pcd_lsq", "pcd_median", "pcd_none"):
+        assert row[k] == pytest.approx(ref[k], abs=1e-9), k
+
+
+def test_depth_stats_two_region_error_hand_computed() -> None:
+    # left half: pred = gt = 2 (ratio 1); right half: gt = 4, pred = 6 (ratio 1.5); 30 valid pixels each
+    gt = np.full((8, 8), 2.0)
+    gt[:, 4:] = 4.0
+    pred = np.where(gt == 2.0, 2.0, 6.0)
+    gt[0, 0], gt[0, 7] = 0.0, 12.0  # missing / beyond max_depth (one per half)
+    pred[1, 0], pred[1, 7] = np.nan, -1.0  # invalid predictions (one per half)
+    st = depth_frame_metrics(pred, gt)
+    # s_lsq = Σpg/Σp² = (2·2 + 6·4)/(2² + 6²) = 0.7; s_med = median(g)/median(p) = 3/4 (even count)
+    assert st["n_valid"] == 60
+    assert st["scale_lsq"] == pytest.approx(0.7, rel=1e-12)
+    assert st["scale_median"] == pytest.approx(0.75, rel=1e-12)
+    assert st["pcd_lsq"] == 50.0  # 0.7·1 = 0.7 (30 % off), 0.7·1.5 = 1.05 (5 % off: correct)
+    assert st["pcd_median"] == 0.0  # 0.75 (25 % off), 0.75·1.5 = 1.125 (12.5 % off)
+    assert st["pcd_none"] == 50.0  # ratio 1 correct, 1.5 not
+    assert st["abs_rel"] == pytest.approx((0.25 + 0.125) / 2, rel=1e-12)
+    assert st["esi"] == pytest.approx(np.log(1.5) / 2, rel=1e-12)  # d ∈ {0, log 1.5}, equal counts
+    _assert_row(st, _ref_stats(pred, gt))
+
+
+def _ramp_gt(h: int = 24, w: int = 32) -> np.ndarray:
+    """GT depth ramping 0.5 → 9.5 m over the image, with missing and too-far pixels."""
+    v, u = np.mgrid[0:h, 0:w]
+    g = 0.5 + 9.0 * (v * w + u) / (h * w - 1)
+    g[0, :5] = 0.0
+    g[1, :3] = 12.0
+    return g
+
+
+def test_depth_stats_depth_dependent_error_matches_reference() -> None:
+    gt = _ramp_gt()
+    pred = gt * (0.8 + 0.1 * gt)  # relative error grows with depth: no single scale fits
+    pred[2, :2] = [np.nan, -1.0]
+    ref = _ref_stats(pred, gt)
+    assert ref["_margin"] > 1e-6  # no pixel sits on the PCD threshold (robust to rounding)
+    # the case tells the scales, the three PCD columns and std/mean/rms of d apart (else a swap hides)
+    assert abs(ref["scale_lsq"] - ref["scale_median"]) > 0.05
+    assert len({round(ref[k], 6) for k in ("pcd_lsq", "pcd_median", "pcd_none")}) == 3
+    m = valid_mask(gt, 10.0, pred)
+    d = np.log(pred[m] / gt[m])
+    assert abs(ref["esi"] - abs(d.mean())) > 0.01 and abs(ref["esi"] - np.sqrt(np.mean(d ** 2))) > 0.01
+    row = depth_frame_metrics(pred, gt)
+    _assert_row(row, ref)
+    # depth_stats (the dataclass) and the dict row the pipeline writes are the same numbers
+    assert depth_stats(pred, gt).__dict__ == row
+    # the per-metric functions agree with the row
+    assert percent_correct(pred, gt, "lsq") == pytest.approx(row["pcd_lsq"], abs=1e-9)
+    assert percent_correct(pred, gt, "median") == pytest.approx(row["pcd_median"], abs=1e-9)
+    assert esi(pred, gt, m) == pytest.approx(row["esi"], rel=1e-9)
+    assert abs_rel(pred, gt, m, row["scale_median"]) == pytest.approx(row["abs_rel"], rel=1e-9)
+    # max_depth and threshold are honoured
+    _assert_row(depth_frame_metrics(pred, gt, max_depth=6.0, threshold=0.2), _ref_stats(pred, gt, 6.0, 0.2))
+
+
+def test_depth_frame_metrics_resizes_prediction_to_gt_first() -> None:
+    import cv2
+
+    gt = _ramp_gt(24, 32)
+    v, u = np.mgrid[0:12, 0:16].astype(np.float64)
+    small = 0.4 + 0.02 * (u + 16 * v) * (1.0 + 0.01 * u)  # (12, 16) network-resolution prediction
+    small *= 1.0 + 0.3 * (u >= 8)  # with a step, so the interpolation (bilinear) matters
+    small_t = torch.from_numpy(small).float()[None, None]  # as the network returns it
+    up = cv2.resize(small_t[0, 0].numpy().astype(np.float64), (32, 24), interpolation=cv2.INTER_LINEAR)
+    ref = _ref_stats(up, gt)
+    assert ref["_margin"] > 1e-6 and abs(ref["scale_lsq"] - ref["scale_median"]) > 0.05
+    nearest = _ref_stats(cv2.resize(small, (32, 24), interpolation=cv2.INTER_NEAREST), gt)
+    assert abs(nearest["pcd_median"] - ref["pcd_median"]) > 1.0  # the case tells the interpolations apart
+    assert len({round(ref[k], 6) for k in ("pcd_lsq", "pcd_median", "pcd_none")}) == 3
+    _assert_row(depth_frame_metrics(small_t, gt), ref)
+    _assert_row(depth_frame_metrics(small, gt), _ref_stats(
+        cv2.resize(small, (32, 24), interpolation=cv2.INTER_LINEAR), gt))
