@@ -18,10 +18,14 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.errors import MslamError
-from mutualslam_cli.vo.camera import distort_points
+from mutualslam_cli.vo.camera import Undistorter, distort_points
 from mutualslam_cli.vo.output import VOResult
 
 log = logging.getLogger(__name__)
+
+#: Version of the depth evaluation's protocol (in the pre-trained evaluation's cache key).
+#: 2: frames and GT depth are undistorted to the pinhole camera the network is trained in.
+EVAL_VERSION = 2
 
 Predictor = Callable[[np.ndarray], np.ndarray]
 """``(H, W, 3)`` uint8 RGB at sensor resolution → ``(h, w)`` float32 depth at network resolution."""
@@ -32,9 +36,13 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
                    progress: Callable[[int, int], None] | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
     """Evaluate each model on every ``eval.stride``-th frame that has GT depth.
 
+    Frames and their GT depth are first brought to the pinhole camera the network is trained in
+    (:class:`~mutualslam_cli.vo.camera.Undistorter`: the same geometry as the training keyframes;
+    without lens distortion this changes nothing).
+
     Args:
         seq: the sequence (frames streamed one at a time).
-        predictors: model name (``pretrained``, ``adapted``) → depth predictor.
+        predictors: model name (``pretrained``, ``adapted``) → depth predictor (given pinhole frames).
         cfg: run config (``eval.pcd_threshold``, ``eval.max_depth``, ``eval.stride``).
         keyframe_frames: frame indices that are keyframes (flagged in the table).
         progress: called with ``(done, total)``.
@@ -48,9 +56,10 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
     frames = [i for i, f in enumerate(seq.frames) if f.depth_path is not None][:: max(1, cfg.eval.stride)]
     rows = []
     times: dict[str, list[float]] = {k: [] for k in predictors}
+    und = Undistorter(seq.intrinsics)
     for n, i in enumerate(frames):
-        gt = seq.load_depth(i)
-        rgb = seq.load_rgb(i)
+        gt = und.depth(seq.load_depth(i))
+        rgb = und.image(seq.load_rgb(i))
         row: dict[str, float | int | bool] = {"frame": i, "timestamp": seq.frames[i].timestamp,
                                                "is_keyframe": bool(keyframe_frames and i in keyframe_frames)}
         for name, predict in predictors.items():
@@ -72,6 +81,25 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
             table[f"{col}_running"] = dm.running_mean(table[col].to_numpy(dtype=float))
     ms = {k: float(np.median(v)) if v else float("nan") for k, v in times.items()}
     return table, ms
+
+
+def depth_means(table: pd.DataFrame, model: str, suffix: str = "") -> dict[str, float | None]:
+    """Means over the rows of ``table`` of one model's per-frame depth metrics.
+
+    Args:
+        table: per-frame rows of :func:`evaluate_depth` (or a selection of them).
+        model: column prefix (``pretrained`` or ``adapted``).
+        suffix: appended to the metric name (``_nonkf`` → ``pcd_nonkf.lsq``).
+
+    Returns:
+        ``{"pcd<suffix>.lsq": %, "pcd<suffix>.median": %, "esi<suffix>": log units}``; ``None``
+        where no row has the value (no frame with valid GT depth).
+    """
+    def mean(col: str) -> float | None:
+        return float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
+
+    return {f"pcd{suffix}.lsq": mean(f"{model}_pcd_lsq"), f"pcd{suffix}.median": mean(f"{model}_pcd_median"),
+            f"esi{suffix}": mean(f"{model}_esi")}
 
 
 def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = 0.02) -> dict[str, object]:

@@ -26,9 +26,10 @@ from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.evaluation import evaluate_depth, evaluate_trajectory, map_esi
+from mutualslam_cli.evaluation import EVAL_VERSION, depth_means, evaluate_depth, evaluate_trajectory, map_esi
 from mutualslam_cli.heap import retain_freed_memory
 from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION, run_vo
 from mutualslam_cli.vo.output import VOResult
 
@@ -114,20 +115,21 @@ def scale_pixels(uv: np.ndarray, src: Intrinsics, width: int, height: int) -> np
 
 
 def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Callable[[int], torch.Tensor]:
-    """A loader of keyframe images at network resolution, undistorted to ``vo.intrinsics``."""
-    raw = seq.intrinsics
+    """A loader of keyframe images at network resolution, undistorted to ``vo.intrinsics``.
+
+    The same :class:`~mutualslam_cli.vo.camera.Undistorter` geometry as the evaluation's
+    (:func:`mutualslam_cli.evaluation.evaluate_depth`).
+    """
+    und = Undistorter(seq.intrinsics)
 
     def load(kf_id: int) -> torch.Tensor:
-        rgb = seq.load_rgb(vo.keyframes[kf_id].frame_index)
-        if raw.dist is not None:
-            rgb = cv2.undistort(rgb, raw.K(), np.array(raw.dist), None, vo.intrinsics.K())
-        return to_net_image(rgb, width, height)
+        return to_net_image(und.image(seq.load_rgb(vo.keyframes[kf_id].frame_index)), width, height)
 
     return load
 
 
 def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool) -> Callable[[np.ndarray], np.ndarray]:
-    """Predictor for evaluation: raw RGB frame → depth at network resolution (float32, map units)."""
+    """Predictor for evaluation: RGB frame (pinhole geometry) → depth at network resolution (float32, map units)."""
     from mutualslam_cli.adapt.depthnet import predict_depth
 
     def predict(rgb: np.ndarray) -> np.ndarray:
@@ -236,6 +238,7 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
 
     key = hashlib.sha1(json.dumps({
         "model": _model_digest(net0), "net": to_dict(cfg.net), "eval": to_dict(cfg.eval), "fast": fast,
+        "version": EVAL_VERSION,
         "root": str(Path(seq.root).resolve()), "frames": [f.timestamp for f in seq.frames],
     }, sort_keys=True, default=str).encode()).hexdigest()[:16]
     path = Path(cache_dir) / f"{seq.name}-{key}.csv" if cache_dir is not None else None
@@ -386,13 +389,12 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         res.atomic_write_text(folder / "per_frame.csv", table.to_csv(index=False))
     for model in ("pretrained", "adapted"):
         src = model if model in evaluated else "pretrained"
-        for scaling in ("lsq", "median"):
-            col = f"{src}_pcd_{scaling}"
-            val = float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
-            summary.set(f"depth.pcd.{scaling}.{model}", val, "no frame with valid GT depth")
-        col = f"{src}_esi"
-        val = float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
-        summary.set(f"depth.esi.{model}", val, "no frame with valid GT depth")
+        # all frames (the paper's figure) and frames the adaptation never saw (not keyframes)
+        for group, rows, why in (("", table, "no frame with valid GT depth"),
+                                 ("_nonkf", table[~table["is_keyframe"]] if len(table) else table,
+                                  "no non-keyframe with valid GT depth")):
+            for key, val in depth_means(rows, src, group).items():
+                summary.set(f"depth.{key}.{model}", val, why)
     if cfg.adapt.scheme == "none":
         summary.notes["depth.pcd.lsq.adapted"] = "scheme 'none': the adapted model is the pre-trained model"
     summary.set("depth.frames_evaluated", int(len(table)))

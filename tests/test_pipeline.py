@@ -55,6 +55,14 @@ def test_run_writes_complete_result(setup):
     assert len(pf) == 12 and {"pretrained_pcd_lsq", "adapted_pcd_lsq", "adapted_pcd_lsq_running"} <= set(pf.columns)
     kf = pd.read_csv(f / "keyframes.csv")
     assert len(kf) == flat["vo.keyframes"] and kf["trained"].any()
+    # What generalises: the same means over the frames that are not keyframes (never trained on).
+    unseen = pf[~pf["is_keyframe"]]
+    assert 0 < len(unseen) < len(pf)
+    for model in ("pretrained", "adapted"):
+        assert flat[f"depth.pcd_nonkf.lsq.{model}"] == pytest.approx(unseen[f"{model}_pcd_lsq"].mean())
+        assert flat[f"depth.pcd_nonkf.median.{model}"] == pytest.approx(unseen[f"{model}_pcd_median"].mean())
+        assert flat[f"depth.esi_nonkf.{model}"] == pytest.approx(unseen[f"{model}_esi"].mean())
+        assert flat[f"depth.pcd.lsq.{model}"] == pytest.approx(pf[f"{model}_pcd_lsq"].mean())
     m = json.loads((f / "manifest.json").read_text())
     assert m["seed"] == 0 and "torch" in m["versions"] and m["timings_s"]["total_s"] > 0
 

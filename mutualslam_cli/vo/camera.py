@@ -70,3 +70,46 @@ def to_pixels(xn: np.ndarray, K: np.ndarray) -> np.ndarray:
 def focal_px(intr: Intrinsics) -> float:
     """Mean absolute focal length in pixels (converts pixel thresholds to normalised units)."""
     return 0.5 * (abs(intr.fx) + abs(intr.fy))
+
+
+class Undistorter:
+    """Resamples raw frames of a distorted camera into its pinhole camera (:func:`pinhole`, same K).
+
+    Training keyframes, evaluation frames and their GT depth all go through one of these, so the
+    network is trained and scored in one image geometry (TUM fr1's radial distortion is strong).
+    Colour is resampled bilinearly (as ``cv2.undistort``); depth by the nearest raw pixel, so no
+    depth is invented across an edge. Pixels with no raw source are 0 (= missing depth).
+    Without distortion both methods return their input unchanged.
+
+    Args:
+        intr: the raw camera (``dist`` may be ``None``).
+    """
+
+    def __init__(self, intr: Intrinsics) -> None:
+        self.intr = intr
+        self.active = intr.dist is not None
+        self._maps: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def _map(self, h: int, w: int, kind: int) -> tuple[np.ndarray, np.ndarray]:
+        """Remap tables for an image of ``h × w`` (the camera scaled to it when it differs)."""
+        key = (h, w, kind)
+        if key not in self._maps:
+            intr = self.intr if (w, h) == (self.intr.width, self.intr.height) else self.intr.scaled(w, h)
+            K = intr.K()
+            self._maps[key] = cv2.initUndistortRectifyMap(K, np.asarray(self.intr.dist, np.float64), None, K,
+                                                          (w, h), kind)
+        return self._maps[key]
+
+    def image(self, rgb: np.ndarray) -> np.ndarray:
+        """``(H, W, 3)`` uint8 raw → ``(H, W, 3)`` uint8 pinhole (bilinear)."""
+        if not self.active:
+            return rgb
+        maps = self._map(*rgb.shape[:2], cv2.CV_16SC2)  # the tables cv2.undistort uses
+        return cv2.remap(rgb, *maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+    def depth(self, depth: np.ndarray) -> np.ndarray:
+        """``(H, W)`` float depth (m, 0 = missing) raw → pinhole (nearest raw pixel)."""
+        if not self.active:
+            return depth
+        maps = self._map(*depth.shape[:2], cv2.CV_32FC1)  # float tables: the exact nearest pixel
+        return cv2.remap(depth, *maps, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
