@@ -253,7 +253,9 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
 def run(
     seq: str = typer.Argument(..., help="datasets.yaml name or sequence folder."),
     scheme: Optional[str] = typer.Option(None, "--scheme", help="Adaptation scheme (default from config: replay+ewc)."),
-    vo: Optional[str] = typer.Option(None, "--vo", help="svo | gt (oracle front end)."),
+    vo: Optional[str] = typer.Option(
+        None, "--vo", help="svo | gt (pose oracle: our VO's tracks with GT poses) | "
+                           "gt-depth (GT poses and GT sparse depth: an upper bound)."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="Folder with Monodepth2 encoder.pth/depth.pth."),
     seed: Optional[int] = typer.Option(None, "--seed"),
     out: Optional[Path] = ResultsOutOpt,

@@ -33,8 +33,12 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class VOConfig:
-    mode: Literal["svo", "gt"] = "svo"
-    """``svo``: our monocular front end; ``gt``: oracle keyframes from GT poses and depth."""
+    mode: Literal["svo", "gt", "gt-depth"] = "svo"
+    """``svo``: our monocular front end. ``gt``: pose oracle — our front end's keyframes and
+    tracks with GT keyframe poses, map points re-triangulated from the tracks (metric, at our
+    map's density; :mod:`~mutualslam_cli.vo.pose_oracle`). ``gt-depth``: GT poses and map
+    points sampled from GT depth at ~5× our map's density, an upper bound that also leaks
+    GT depth (:mod:`~mutualslam_cli.vo.oracle`)."""
     grid_size: int = 20
     """Feature detection grid cell in pixels (paper: grid_size 20)."""
     max_fts: int = 500
@@ -57,9 +61,9 @@ class VOConfig:
     min_tracked: int = 30
     """Fewer map-point tracks than this within 2 × ``ransac_threshold_px`` of the pose is a tracking loss."""
     gt_kf_every: int = 5
-    """Oracle front end: a keyframe every k frames."""
+    """``gt-depth`` oracle: a keyframe every k frames."""
     gt_max_points: int = 500
-    """Oracle front end: map points per keyframe (from GT depth at detected corners)."""
+    """``gt-depth`` oracle: map points per keyframe (from GT depth at detected corners)."""
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,8 @@
 """What a front end hands to adaptation, BA and evaluation (DESIGN §4).
 
-Both front ends (``svo`` and the ``gt`` oracle) return a :class:`VOResult`. Everything is
+Every front end returns a :class:`VOResult`: ``svo`` (our monocular VO), ``gt`` (the pose
+oracle: our VO's keyframes and tracks with GT poses, points re-triangulated in metres) and
+``gt-depth`` (GT poses and points sampled from GT depth, an upper bound). Everything is
 numpy so it pickles into the VO cache and crosses process boundaries cheaply.
 """
 
@@ -44,7 +46,8 @@ class MapPoints:
         host: ``(P,)`` int64 host keyframe id (the keyframe the point was created in).
         pixel: ``(P, 2)`` float64 pixel ``(u, v)`` in the host keyframe.
         inv_depth: ``(P,)`` float64 inverse depth in the host keyframe, 1/map units.
-        sigma: ``(P,)`` float64 standard deviation of ``inv_depth`` (filter output; 0 for the oracle).
+        sigma: ``(P,)`` float64 standard deviation of ``inv_depth`` (filter output; from the
+            triangulation for ``gt``; 0 for ``gt-depth``).
         observations: list of ``(P_i,)`` int64 arrays: keyframe ids that observe point i
             (host included).
         obs_pixels: list of ``(P_i, 2)`` float64 measured pixels, same order as ``observations``.
