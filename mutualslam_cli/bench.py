@@ -98,7 +98,7 @@ def _memory(frames: int) -> dict[str, Any]:
                     "try:\n    app(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
                     "print('PEAK', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
             t0 = time.perf_counter()
-            r = subprocess.run([sys.executable, "-c", code, "run", str(seq), "--vo", "gt", "--out",
+            r = subprocess.run([sys.executable, "-c", code, "run", str(seq), "--vo", "gt-depth", "--out",
                                 str(Path(tmp) / "res"), "--force"], capture_output=True, text=True)
             peak_kb = int(r.stdout.rsplit("PEAK", 1)[1].split()[0]) if "PEAK" in r.stdout else None
             out[f"peak_rss_gb_{n}_frames"] = peak_kb / 1024**2 if peak_kb else None

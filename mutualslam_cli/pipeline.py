@@ -13,7 +13,7 @@ import json
 import logging
 import pickle
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -31,9 +31,14 @@ from mutualslam_cli.heap import retain_freed_memory
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION, run_vo
+from mutualslam_cli.vo.oracle import run_oracle
+from mutualslam_cli.vo.pose_oracle import run_pose_oracle
 from mutualslam_cli.vo.output import VOResult
 
 log = logging.getLogger(__name__)
+
+#: Version of the oracle front ends in their cache key (2: ``gt`` = pose oracle, ``gt-depth`` = depth oracle).
+ORACLE_VERSION = 2
 
 Progress = Callable[[str, dict[str, Any]], None]
 
@@ -66,6 +71,8 @@ def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
         "vo": to_dict(cfg.vo), "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
         "seed": cfg.seed, "intr": seq.intrinsics.as_list(), "version": FRONTEND_VERSION,
     }
+    if cfg.vo.mode != "svo":  # "gt" was the depth oracle before version 2 of the oracles
+        ident["oracle_version"] = ORACLE_VERSION
     return hashlib.sha1(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -88,9 +95,10 @@ def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
             except Exception as e:  # noqa: BLE001 - a corrupt cache entry is recomputed
                 log.warning("ignoring unreadable VO cache %s (%s)", path, e)
     cb = (lambda info: progress("vo", info)) if progress else None
-    if cfg.vo.mode == "gt":
-        from mutualslam_cli.vo.oracle import run_oracle
-
+    if cfg.vo.mode == "gt":  # pose oracle: our VO's tracks (cached like any svo run) re-triangulated with GT poses
+        svo, _ = run_frontend(seq, replace(cfg, vo=replace(cfg.vo, mode="svo")), cache_dir, progress)
+        vo = run_pose_oracle(seq, cfg.vo, seed=cfg.seed, progress=cb, vo=svo)
+    elif cfg.vo.mode == "gt-depth":
         vo = run_oracle(seq, cfg.vo, seed=cfg.seed, progress=cb)
     else:
         vo = run_vo(seq, cfg.vo, seed=cfg.seed, progress=cb)
@@ -328,8 +336,8 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     _write_trajectories(folder, vo)
     summary.set("vo.keyframes", len(vo.keyframes))
     summary.set("vo.tracked_fraction", vo.tracked_fraction)
-    if cfg.vo.mode == "gt":
-        summary.absent("timing.vo_fps", "oracle front end (--vo gt): no tracking to time")
+    if cfg.vo.mode != "svo":
+        summary.absent("timing.vo_fps", f"oracle front end (--vo {cfg.vo.mode}): no tracking to time")
     else:
         summary.set("timing.vo_fps", len(seq) / vo_time if vo_time > 0 else None)
     summary.set("map.points.vo", len(vo.points))
@@ -346,7 +354,7 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
             summary.set(name, float(r.rmse))
             if getattr(r, "note", None):  # re-initialised VO: each segment aligned on its own
                 summary.notes[name] = r.note
-    if cfg.vo.mode == "gt":
+    if cfg.vo.mode != "svo":
         summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
     esi_vo, n_gt = map_esi(seq, vo)
     summary.set("map.esi.vo", esi_vo, "no map point has GT depth at its host pixel")
