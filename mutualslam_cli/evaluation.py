@@ -6,14 +6,20 @@ tables/dicts; :mod:`mutualslam_cli.pipeline` calls them and writes the files.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import time
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import pandas as pd
+import torch
 
-from mutualslam_cli.config import RunConfig
+from mutualslam_cli import results as res
+from mutualslam_cli.adapt.inputs import make_predictor
+from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics import trajectory as tm
@@ -83,23 +89,49 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
     return table, ms
 
 
-def depth_means(table: pd.DataFrame, model: str, suffix: str = "") -> dict[str, float | None]:
-    """Means over the rows of ``table`` of one model's per-frame depth metrics.
+def model_digest(net: torch.nn.Module) -> str:
+    """Short SHA-1 of a model's state dict (names and values): the identity of its weights."""
+    h = hashlib.sha1()
+    for k, v in net.state_dict().items():
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
 
-    Args:
-        table: per-frame rows of :func:`evaluate_depth` (or a selection of them).
-        model: column prefix (``pretrained`` or ``adapted``).
-        suffix: appended to the metric name (``_nonkf`` → ``pcd_nonkf.lsq``).
+
+def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module | None, cfg: RunConfig, fast: bool,
+                    kf_frames: set[int], cache_dir: Path | None = None,
+                    progress: Callable[[int, int], None] | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
+    """Depth evaluation of the pre-trained model and (unless ``None``) the adapted one.
+
+    The pre-trained model's rows do not depend on the scheme, so they are cached per sequence,
+    model weights and evaluation settings and reused by every scheme's run.
 
     Returns:
-        ``{"pcd<suffix>.lsq": %, "pcd<suffix>.median": %, "esi<suffix>": log units}``; ``None``
-        where no row has the value (no frame with valid GT depth).
+        ``(per_frame_table, median_ms_per_prediction)``; the table has an ``is_keyframe`` column.
     """
-    def mean(col: str) -> float | None:
-        return float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
-
-    return {f"pcd{suffix}.lsq": mean(f"{model}_pcd_lsq"), f"pcd{suffix}.median": mean(f"{model}_pcd_median"),
-            f"esi{suffix}": mean(f"{model}_esi")}
+    key = hashlib.sha1(json.dumps({
+        "model": model_digest(net0), "net": to_dict(cfg.net), "eval": to_dict(cfg.eval), "fast": fast,
+        "version": EVAL_VERSION,
+        "root": str(Path(seq.root).resolve()), "frames": [f.timestamp for f in seq.frames],
+    }, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    path = Path(cache_dir) / f"{seq.name}-{key}.csv" if cache_dir is not None else None
+    cached = pd.read_csv(path) if path is not None and path.is_file() else None
+    predictors = {}
+    if cached is None:
+        predictors["pretrained"] = make_predictor(net0, cfg, fast)
+    if net is not None:
+        predictors["adapted"] = make_predictor(net, cfg, fast)
+    if not predictors:  # scheme none with a cached pre-trained evaluation
+        table, ms = cached.copy(), {}
+    else:
+        table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, progress)
+    if cached is None and path is not None and len(table):
+        cols = ["frame", "timestamp", "n_valid"] + [c for c in table.columns if c.startswith("pretrained_")]
+        res.atomic_write_text(path, table[cols].to_csv(index=False))
+    elif cached is not None and predictors:
+        table = cached.merge(table.drop(columns=["timestamp", "n_valid"]), on="frame", how="left")
+    table["is_keyframe"] = table["frame"].isin(kf_frames)
+    return table, ms
 
 
 def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = 0.02) -> dict[str, object]:

@@ -15,21 +15,21 @@ import pickle
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
-import numpy as np
+import pandas as pd
 import torch
 
 from mutualslam_cli import results as res
+from mutualslam_cli.adapt.inputs import load_network, use_fast_path
+from mutualslam_cli.adapt.stage import Progress, run_adaptation
+from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.evaluation import EVAL_VERSION, depth_means, evaluate_depth, evaluate_trajectory, map_esi
+from mutualslam_cli.evaluation import evaluate_models, evaluate_trajectory, map_esi
 from mutualslam_cli.heap import retain_freed_memory
-from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION, run_vo
 from mutualslam_cli.vo.oracle import run_oracle
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
@@ -39,8 +39,6 @@ log = logging.getLogger(__name__)
 
 #: Version of the oracle front ends in their cache key (2: ``gt`` = pose oracle, ``gt-depth`` = depth oracle).
 ORACLE_VERSION = 2
-
-Progress = Callable[[str, dict[str, Any]], None]
 
 
 @dataclass
@@ -107,186 +105,7 @@ def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
     return vo, False
 
 
-# ----------------------------------------------------------------------------- network input
-
-
-def to_net_image(rgb: np.ndarray, width: int, height: int) -> torch.Tensor:
-    """``(H, W, 3)`` uint8 → ``(3, height, width)`` float32 in [0, 1] (area resampling)."""
-    small = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
-    return torch.from_numpy(small).permute(2, 0, 1).float().div_(255.0)
-
-
-def scale_pixels(uv: np.ndarray, src: Intrinsics, width: int, height: int) -> np.ndarray:
-    """Pixels at ``src`` resolution → pixels at ``width × height`` (pixel-centre convention)."""
-    s = np.array([width / src.width, height / src.height])
-    return (uv + 0.5) * s - 0.5
-
-
-def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Callable[[int], torch.Tensor]:
-    """A loader of keyframe images at network resolution, undistorted to ``vo.intrinsics``.
-
-    The same :class:`~mutualslam_cli.vo.camera.Undistorter` geometry as the evaluation's
-    (:func:`mutualslam_cli.evaluation.evaluate_depth`).
-    """
-    und = Undistorter(seq.intrinsics)
-
-    def load(kf_id: int) -> torch.Tensor:
-        return to_net_image(und.image(seq.load_rgb(vo.keyframes[kf_id].frame_index)), width, height)
-
-    return load
-
-
-def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool) -> Callable[[np.ndarray], np.ndarray]:
-    """Predictor for evaluation: RGB frame (pinhole geometry) → depth at network resolution (float32, map units)."""
-    from mutualslam_cli.adapt.depthnet import predict_depth
-
-    def predict(rgb: np.ndarray) -> np.ndarray:
-        x = to_net_image(rgb, cfg.net.width, cfg.net.height)[None]
-        return predict_depth(net, x, fast=fast)[0]
-
-    return predict
-
-
-def load_network(cfg: RunConfig) -> torch.nn.Module:
-    """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default."""
-    from mutualslam_cli.adapt import weights
-
-    kw = {"min_depth": cfg.net.min_depth, "max_depth": cfg.net.max_depth}
-    if cfg.net.weights:
-        return weights.load_monodepth2(Path(cfg.net.weights), **kw)
-    return weights.load_default(**kw)
-
-
-def use_fast_path(cfg: RunConfig) -> bool:
-    """Resolve ``net.fast`` (auto → bf16 where the CPU supports it)."""
-    from mutualslam_cli.adapt.depthnet import fast_path_supported
-
-    return cfg.net.fast == "on" or (cfg.net.fast == "auto" and fast_path_supported())
-
-
-# ----------------------------------------------------------------------------- adaptation
-
-
-def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunConfig, fast: bool,
-                   progress: Progress | None = None) -> tuple[torch.nn.Module, list[dict[str, Any]], Any]:
-    """Feed the keyframes through Algorithm 1 with the configured scheme.
-
-    Returns:
-        ``(adapted_net, per_keyframe_rows, adapter)``; for scheme ``none`` the network is returned
-        unchanged with no rows and ``adapter`` is ``None``.
-    """
-    from mutualslam_cli.adapt.buffer import KeyframeSample
-    from mutualslam_cli.adapt.online import OnlineAdapter
-
-    if cfg.adapt.scheme == "none":
-        return net, [], None
-    w, h = cfg.net.width, cfg.net.height
-    K_net = torch.from_numpy(vo.intrinsics.scaled(w, h).K()).float()
-    ba_triggers: list[int] = []
-    from mutualslam_cli.adapt.depthnet import prepare
-
-    net = prepare(net, fast)
-    adapter = OnlineAdapter(net, cfg.adapt, K_net, seed=cfg.seed, fast=fast,
-                            on_global_ba=lambda *a, **k: ba_triggers.append(len(ba_triggers)),
-                            val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode)
-    load = keyframe_images(seq, vo, w, h)
-    pw = vo.points_world()
-    rows = []
-    t0 = time.perf_counter()
-    for kf in vo.keyframes:
-        uv, d = vo.sparse_depth(kf.id, pw)
-        sample = KeyframeSample(
-            kf_id=kf.id, image=load(kf.id), K=K_net, pose=kf.pose,
-            uv=torch.from_numpy(scale_pixels(uv, vo.intrinsics, w, h)).float(),
-            depth=torch.from_numpy(d).float(),
-        )
-        info = adapter.add_keyframe(sample)
-        row = _step_row(info)
-        row["n_sparse"] = len(d)
-        rows.append(row)
-        if progress:
-            progress("adapt", {"done": kf.id + 1, "total": len(vo.keyframes), **row,
-                               "elapsed_s": time.perf_counter() - t0})
-    return adapter.net if hasattr(adapter, "net") else net, rows, adapter
-
-
-def _step_row(info: Any) -> dict[str, Any]:
-    """A flat CSV row from the adapter's step info (loss parts as ``loss_<part>`` columns)."""
-    row: dict[str, Any] = {}
-    for k, v in dict(vars(info)).items():
-        if isinstance(v, dict):
-            row.update({f"{k}_{p}": x for p, x in v.items()})
-        elif isinstance(v, (list, tuple)):
-            row[k] = " ".join(map(str, v))
-        else:
-            row[k] = v.value if hasattr(v, "value") else v
-    return row
-
-
-def _model_digest(net: torch.nn.Module) -> str:
-    h = hashlib.sha1()
-    for k, v in net.state_dict().items():
-        h.update(k.encode())
-        h.update(v.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()[:16]
-
-
-def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module | None, cfg: RunConfig, fast: bool,
-                    kf_frames: set[int], cache_dir: Path | None = None,
-                    progress: Callable[[int, int], None] | None = None) -> tuple[Any, dict[str, float]]:
-    """Depth evaluation of the pre-trained model and (unless ``None``) the adapted one.
-
-    The pre-trained model's rows do not depend on the scheme, so they are cached per sequence,
-    model weights and evaluation settings and reused by every scheme's run.
-
-    Returns:
-        ``(per_frame_table, median_ms_per_prediction)``.
-    """
-    import pandas as pd
-
-    key = hashlib.sha1(json.dumps({
-        "model": _model_digest(net0), "net": to_dict(cfg.net), "eval": to_dict(cfg.eval), "fast": fast,
-        "version": EVAL_VERSION,
-        "root": str(Path(seq.root).resolve()), "frames": [f.timestamp for f in seq.frames],
-    }, sort_keys=True, default=str).encode()).hexdigest()[:16]
-    path = Path(cache_dir) / f"{seq.name}-{key}.csv" if cache_dir is not None else None
-    cached = pd.read_csv(path) if path is not None and path.is_file() else None
-    predictors = {}
-    if cached is None:
-        predictors["pretrained"] = make_predictor(net0, cfg, fast)
-    if net is not None:
-        predictors["adapted"] = make_predictor(net, cfg, fast)
-    if not predictors:  # scheme none with a cached pre-trained evaluation
-        table, ms = cached.copy(), {}
-    else:
-        table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, progress)
-    if cached is None and path is not None and len(table):
-        cols = ["frame", "timestamp", "n_valid"] + [c for c in table.columns if c.startswith("pretrained_")]
-        res.atomic_write_text(path, table[cols].to_csv(index=False))
-    elif cached is not None and predictors:
-        table = cached.merge(table.drop(columns=["timestamp", "n_valid"]), on="frame", how="left")
-    table["is_keyframe"] = table["frame"].isin(kf_frames)
-    return table, ms
-
-
 # ----------------------------------------------------------------------------- the run
-
-
-def _write_trajectories(folder: Path, vo: VOResult) -> None:
-    import io
-
-    for name, traj in (("traj_kf.txt", vo.traj_kf), ("traj_all.txt", vo.traj_all)):
-        buf = io.StringIO()
-        write_tum_trajectory(buf, traj)
-        res.atomic_write_text(folder / name, buf.getvalue())
-
-
-def _write_ply(path: Path, points: np.ndarray) -> None:
-    """ASCII PLY of ``(P, 3)`` points (readable by open3d, MeshLab, CloudCompare)."""
-    head = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n" \
-           "property float z\nend_header\n"
-    body = "\n".join(f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points)
-    res.atomic_write_text(path, head + body + ("\n" if len(points) else ""))
 
 
 def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Path | None = None,
@@ -328,52 +147,27 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     res.write_yaml(folder / "config.yaml", to_dict(cfg))
     summary = res.Summary()
 
-    # Front end (cached per sequence + VO config: every scheme reuses it).
+    # Front end (cached per sequence + VO config: every scheme reuses it), trajectory and map.
     t = time.perf_counter()
     vo, cached = run_frontend(seq, cfg, cache_dir=out_root / "_cache" / "vo", progress=progress)
     timings["vo_s"] = time.perf_counter() - t
-    vo_time = float(vo.meta.get("time_s", timings["vo_s"]))
-    _write_trajectories(folder, vo)
-    summary.set("vo.keyframes", len(vo.keyframes))
-    summary.set("vo.tracked_fraction", vo.tracked_fraction)
-    if cfg.vo.mode != "svo":
-        summary.absent("timing.vo_fps", f"oracle front end (--vo {cfg.vo.mode}): no tracking to time")
-    else:
-        summary.set("timing.vo_fps", len(seq) / vo_time if vo_time > 0 else None)
-    summary.set("map.points.vo", len(vo.points))
-    pw = vo.points_world()
-    _write_ply(folder / "map_vo.ply", pw)
-
-    # Trajectory accuracy without BA.
-    traj = evaluate_trajectory(seq, vo, cfg.eval.ate_max_dt)
-    for key, name in (("kf", "trajectory.ate_rmse_m.vo"), ("all", "trajectory.ate_rmse_m.all_frames")):
-        r = traj[key]
-        if r is None:
-            summary.absent(name, traj["notes"].get(key, traj["notes"].get("trajectory", "not computed")))  # type: ignore[union-attr]
-        else:
-            summary.set(name, float(r.rmse))
-            if getattr(r, "note", None):  # re-initialised VO: each segment aligned on its own
-                summary.notes[name] = r.note
-    if cfg.vo.mode != "svo":
-        summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
+    res.write_trajectories(folder, vo.traj_kf, vo.traj_all)
+    res.write_ply(folder / "map_vo.ply", vo.points_world())
     esi_vo, n_gt = map_esi(seq, vo)
-    summary.set("map.esi.vo", esi_vo, "no map point has GT depth at its host pixel")
+    res.summarise_frontend(summary, keyframes=len(vo.keyframes), tracked_fraction=vo.tracked_fraction,
+                           map_points=len(vo.points), vo_mode=cfg.vo.mode, frames=len(seq),
+                           vo_time_s=float(vo.meta.get("time_s", timings["vo_s"])),
+                           traj=evaluate_trajectory(seq, vo, cfg.eval.ate_max_dt), map_esi=esi_vo)
 
     # Network: pre-trained model, then online adaptation.
     net0 = load_network(cfg)
     fast = use_fast_path(cfg)
-    net = copy.deepcopy(net0)
     t = time.perf_counter()
-    net, kf_rows, adapter = run_adaptation(seq, vo, net, cfg, fast, progress)
+    net, kf_rows, adapter = run_adaptation(seq, vo, copy.deepcopy(net0), cfg, fast, progress)
     timings["adapt_s"] = time.perf_counter() - t
-    why = "scheme 'none': no fine-tuning" if cfg.adapt.scheme == "none" else "no keyframe was trained on"
-    step_ms = list(getattr(adapter, "step_ms", []) or [])
-    kf_ms = list(getattr(adapter, "finetune_ms", []) or [])
-    summary.set("timing.finetune_ms", float(np.median(step_ms)) if step_ms else None, why)  # one optimiser step
-    summary.set("timing.finetune_kf_ms", float(np.median(kf_ms)) if kf_ms else None, why)  # all steps of a keyframe
+    res.summarise_adaptation(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
+                             adapter.finetune_ms if adapter else [])
     if kf_rows:
-        import pandas as pd
-
         res.atomic_write_text(folder / "keyframes.csv", pd.DataFrame(kf_rows).to_csv(index=False))
 
     # Global photometric BA with map-point culling: not available in this version.
@@ -386,29 +180,14 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
 
     # Depth evaluation with the pre-trained and the final model on every frame with GT depth.
     t = time.perf_counter()
-    kf_frames = {k.frame_index for k in vo.keyframes}
     cb = (lambda d, n: progress("eval", {"done": d, "total": n})) if progress else None
-    table, ms = evaluate_models(seq, net0, None if cfg.adapt.scheme == "none" else net, cfg, fast, kf_frames,
-                                out_root / "_cache" / "pretrained", cb)
-    evaluated = {k for k in ("pretrained", "adapted") if f"{k}_pcd_lsq" in table}
+    table, ms = evaluate_models(seq, net0, None if cfg.adapt.scheme == "none" else net, cfg, fast,
+                                {k.frame_index for k in vo.keyframes}, out_root / "_cache" / "pretrained", cb)
     timings["eval_s"] = time.perf_counter() - t
-    summary.set("timing.depth_ms", ms.get("adapted", ms.get("pretrained")))
     if len(table):
         res.atomic_write_text(folder / "per_frame.csv", table.to_csv(index=False))
-    for model in ("pretrained", "adapted"):
-        src = model if model in evaluated else "pretrained"
-        # all frames (the paper's figure) and frames the adaptation never saw (not keyframes)
-        for group, rows, why in (("", table, "no frame with valid GT depth"),
-                                 ("_nonkf", table[~table["is_keyframe"]] if len(table) else table,
-                                  "no non-keyframe with valid GT depth")):
-            for key, val in depth_means(rows, src, group).items():
-                summary.set(f"depth.{key}.{model}", val, why)
-    if cfg.adapt.scheme == "none":
-        summary.notes["depth.pcd.lsq.adapted"] = "scheme 'none': the adapted model is the pre-trained model"
-    summary.set("depth.frames_evaluated", int(len(table)))
+    res.summarise_depth(summary, table, ms, cfg.adapt.scheme)
     if cfg.eval.save_weights and cfg.adapt.scheme != "none":
-        from mutualslam_cli.adapt.weights import save_monodepth2
-
         save_monodepth2(net, folder / "weights", cfg.net.height, cfg.net.width)
 
     timings["total_s"] = time.perf_counter() - t_start

@@ -10,21 +10,25 @@ A run is complete when ``summary.json`` exists; it is written last.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
 import platform
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
+import pandas as pd
 import yaml
 
 from mutualslam_cli import __version__
+from mutualslam_cli.atomic import atomic_write_bytes, atomic_write_text  # noqa: F401 - re-exported for callers
+from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.types import Trajectory
 
 #: Keys other tools read from ``summary.json`` (dotted paths), DESIGN §8.
 SUMMARY_KEYS: tuple[str, ...] = (
@@ -50,27 +54,6 @@ def run_dir(out: str | Path, sequence: str, scheme: str, seed: int) -> Path:
 def is_complete(folder: Path) -> bool:
     """A run is complete when its ``summary.json`` exists."""
     return (Path(folder) / "summary.json").is_file()
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Text version of :func:`atomic_write_bytes` (UTF-8)."""
-    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def _plain(x: Any) -> Any:
@@ -209,3 +192,100 @@ def read_summary(folder: Path) -> dict[str, Any]:
         raise DatasetError(f"{path}: no summary.json (run incomplete or not a result folder)") from None
     except json.JSONDecodeError as e:
         raise DatasetError(f"{path}: not valid JSON ({e})") from None
+
+
+# ----------------------------------------------------------------------------- files of a run
+
+
+def write_trajectories(folder: Path, traj_kf: Trajectory, traj_all: Trajectory) -> None:
+    """``traj_kf.txt`` and ``traj_all.txt`` in TUM format (atomic)."""
+    for name, traj in (("traj_kf.txt", traj_kf), ("traj_all.txt", traj_all)):
+        buf = io.StringIO()
+        write_tum_trajectory(buf, traj)
+        atomic_write_text(folder / name, buf.getvalue())
+
+
+def write_ply(path: Path, points: np.ndarray) -> None:
+    """ASCII PLY of ``(P, 3)`` points (readable by open3d, MeshLab, CloudCompare)."""
+    head = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n" \
+           "property float z\nend_header\n"
+    body = "\n".join(f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points)
+    atomic_write_text(path, head + body + ("\n" if len(points) else ""))
+
+
+# ----------------------------------------------------------------------------- summary assembly
+
+
+def summarise_frontend(summary: Summary, *, keyframes: int, tracked_fraction: float, map_points: int,
+                       vo_mode: str, frames: int, vo_time_s: float, traj: dict[str, Any],
+                       map_esi: float) -> None:
+    """``vo.*``, ``timing.vo_fps``, ``map.points.vo``, ``trajectory.ate_rmse_m.{vo,all_frames}``, ``map.esi.vo``.
+
+    Args:
+        traj: :func:`mutualslam_cli.evaluation.evaluate_trajectory`'s result (``kf``, ``all``, ``notes``).
+        vo_time_s: the front end's own run time (seconds).
+    """
+    summary.set("vo.keyframes", keyframes)
+    summary.set("vo.tracked_fraction", tracked_fraction)
+    if vo_mode != "svo":
+        summary.absent("timing.vo_fps", f"oracle front end (--vo {vo_mode}): no tracking to time")
+    else:
+        summary.set("timing.vo_fps", frames / vo_time_s if vo_time_s > 0 else None)
+    summary.set("map.points.vo", map_points)
+    for key, name in (("kf", "trajectory.ate_rmse_m.vo"), ("all", "trajectory.ate_rmse_m.all_frames")):
+        r = traj[key]
+        if r is None:
+            summary.absent(name, traj["notes"].get(key, traj["notes"].get("trajectory", "not computed")))
+        else:
+            summary.set(name, float(r.rmse))
+            if getattr(r, "note", None):  # re-initialised VO: each segment aligned on its own
+                summary.notes[name] = r.note
+    if vo_mode != "svo":
+        summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
+    summary.set("map.esi.vo", map_esi, "no map point has GT depth at its host pixel")
+
+
+def summarise_adaptation(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float]) -> None:
+    """``timing.finetune_ms`` (median per optimiser step) and ``timing.finetune_kf_ms`` (per keyframe)."""
+    why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
+    summary.set("timing.finetune_ms", float(np.median(step_ms)) if step_ms else None, why)
+    summary.set("timing.finetune_kf_ms", float(np.median(keyframe_ms)) if keyframe_ms else None, why)
+
+
+def depth_means(table: pd.DataFrame, model: str, suffix: str = "") -> dict[str, float | None]:
+    """Means over the rows of ``table`` of one model's per-frame depth metrics.
+
+    Args:
+        table: per-frame rows of :func:`mutualslam_cli.evaluation.evaluate_depth` (or a selection).
+        model: column prefix (``pretrained`` or ``adapted``).
+        suffix: appended to the metric name (``_nonkf`` → ``pcd_nonkf.lsq``).
+
+    Returns:
+        ``{"pcd<suffix>.lsq": %, "pcd<suffix>.median": %, "esi<suffix>": log units}``; ``None``
+        where no row has the value (no frame with valid GT depth).
+    """
+    def mean(col: str) -> float | None:
+        return float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
+
+    return {f"pcd{suffix}.lsq": mean(f"{model}_pcd_lsq"), f"pcd{suffix}.median": mean(f"{model}_pcd_median"),
+            f"esi{suffix}": mean(f"{model}_esi")}
+
+
+def summarise_depth(summary: Summary, table: pd.DataFrame, ms: dict[str, float], scheme: str) -> None:
+    """``timing.depth_ms`` and ``depth.{pcd,esi}[_nonkf].*.{pretrained,adapted}`` from the per-frame table.
+
+    All frames (the paper's figure) and the frames the adaptation never saw (not keyframes). For
+    scheme ``none`` the adapted values are the pre-trained model's.
+    """
+    summary.set("timing.depth_ms", ms.get("adapted", ms.get("pretrained")))
+    evaluated = {k for k in ("pretrained", "adapted") if f"{k}_pcd_lsq" in table}
+    for model in ("pretrained", "adapted"):
+        src = model if model in evaluated else "pretrained"
+        for group, rows, why in (("", table, "no frame with valid GT depth"),
+                                 ("_nonkf", table[~table["is_keyframe"]] if len(table) else table,
+                                  "no non-keyframe with valid GT depth")):
+            for key, val in depth_means(rows, src, group).items():
+                summary.set(f"depth.{key}.{model}", val, why)
+    if scheme == "none":
+        summary.notes["depth.pcd.lsq.adapted"] = "scheme 'none': the adapted model is the pre-trained model"
+    summary.set("depth.frames_evaluated", int(len(table)))

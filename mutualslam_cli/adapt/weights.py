@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from mutualslam_cli.adapt.depthnet import DepthNet
+from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -112,9 +113,8 @@ def load_monodepth2(folder: Path, **net_kwargs: Any) -> DepthNet:
 
 
 def _atomic_save(obj: dict[str, Any], path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def save_monodepth2(net: DepthNet, folder: Path, height: int, width: int, *, half: bool = False,

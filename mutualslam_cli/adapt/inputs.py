@@ -1,0 +1,73 @@
+"""What the depth network is given: images at network resolution, sparse pixels, the model itself.
+
+One place turns sensor frames into network input, for training keyframes and for evaluation
+alike, so both see the same geometry (pinhole, :class:`~mutualslam_cli.vo.camera.Undistorter`)
+and the same resampling (area).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+
+from mutualslam_cli.adapt import weights
+from mutualslam_cli.adapt.depthnet import fast_path_supported, predict_depth
+from mutualslam_cli.config import RunConfig
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo.camera import Undistorter
+from mutualslam_cli.vo.output import VOResult
+
+
+def to_net_image(rgb: np.ndarray, width: int, height: int) -> torch.Tensor:
+    """``(H, W, 3)`` uint8 → ``(3, height, width)`` float32 in [0, 1] (area resampling)."""
+    small = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(small).permute(2, 0, 1).float().div_(255.0)
+
+
+def scale_pixels(uv: np.ndarray, src: Intrinsics, width: int, height: int) -> np.ndarray:
+    """Pixels ``(N, 2)`` at ``src`` resolution → pixels at ``width × height`` (pixel-centre convention)."""
+    s = np.array([width / src.width, height / src.height])
+    return (uv + 0.5) * s - 0.5
+
+
+def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Callable[[int], torch.Tensor]:
+    """A loader ``kf_id → (3, height, width)`` of keyframe images, undistorted to ``vo.intrinsics``.
+
+    The same :class:`~mutualslam_cli.vo.camera.Undistorter` geometry as the evaluation's
+    (:func:`mutualslam_cli.evaluation.evaluate_depth`).
+    """
+    und = Undistorter(seq.intrinsics)
+
+    def load(kf_id: int) -> torch.Tensor:
+        return to_net_image(und.image(seq.load_rgb(vo.keyframes[kf_id].frame_index)), width, height)
+
+    return load
+
+
+def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool) -> Callable[[np.ndarray], np.ndarray]:
+    """Predictor for evaluation: ``(H, W, 3)`` uint8 frame (pinhole geometry) → ``(h, w)`` float32 depth
+    at network resolution (map units)."""
+
+    def predict(rgb: np.ndarray) -> np.ndarray:
+        x = to_net_image(rgb, cfg.net.width, cfg.net.height)[None]
+        return predict_depth(net, x, fast=fast)[0]
+
+    return predict
+
+
+def load_network(cfg: RunConfig) -> torch.nn.Module:
+    """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default."""
+    kw = {"min_depth": cfg.net.min_depth, "max_depth": cfg.net.max_depth}
+    if cfg.net.weights:
+        return weights.load_monodepth2(Path(cfg.net.weights), **kw)
+    return weights.load_default(**kw)
+
+
+def use_fast_path(cfg: RunConfig) -> bool:
+    """Resolve ``net.fast`` (auto → bf16 where the CPU supports it)."""
+    return cfg.net.fast == "on" or (cfg.net.fast == "auto" and fast_path_supported())
