@@ -1,6 +1,9 @@
 """Rigid-body and camera geometry in numpy (float64). Torch versions live in ``adapt``.
 
-Quaternions are ``(qx, qy, qz, qw)`` as in TUM files; poses are 4×4 ``T_wc``.
+Quaternions are ``(qx, qy, qz, qw)`` as in TUM files; poses are 4×4 ``T_wc``. The SO(3)/SE(3)
+increments (:func:`exp_so3`, :func:`left_update`) are shared by the windowed geometric BA
+(:mod:`mutualslam_cli.vo.local_ba`) and the global photometric BA (:mod:`mutualslam_cli.ba`),
+which both optimise world-to-camera ``T_cw`` by left increments ``(ρ, φ)``.
 """
 
 from __future__ import annotations
@@ -127,3 +130,35 @@ def project(points_c: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4×4 transform to points ``(N, 3)``."""
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+def exp_so3(phi: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula, vectorised: ``(N, 3)`` axis-angle → ``(N, 3, 3)``."""
+    th = np.linalg.norm(phi, axis=1)
+    k = phi / np.maximum(th, 1e-12)[:, None]
+    K = np.zeros((len(phi), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    return np.eye(3)[None] + s * K + (1 - c) * (K @ K)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return S
+
+
+def left_update(T: np.ndarray, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``T[idx] ← exp(d) · T[idx]`` for left increments ``d`` ``(len(idx), 6)`` = ``(ρ, φ)``,
+    rotations projected back onto SO(3) (SVD); returns an updated copy of ``T`` ``(K, 4, 4)``."""
+    T = T.copy()
+    if len(idx):
+        inc = np.tile(np.eye(4), (len(idx), 1, 1))
+        inc[:, :3, :3] = exp_so3(d[:, 3:6])
+        inc[:, :3, 3] = d[:, :3]
+        T[idx] = inc @ T[idx]
+        U, _, Vt = np.linalg.svd(T[idx, :3, :3])  # stay on SO(3)
+        T[idx, :3, :3] = U @ Vt
+    return T

@@ -7,13 +7,13 @@ import cv2
 import numpy as np
 import pytest
 
-from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.geometry import exp_so3, se3_inv
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.camera import distort_points, to_normalized, to_pixels, undistort_points
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.initialization import initialize
-from mutualslam_cli.vo.local_ba import BAProblem, exp_so3, residuals, solve
+from mutualslam_cli.vo.local_ba import BAProblem, residuals, solve
 from mutualslam_cli.vo.tracking import estimate_pose, klt_track
 
 FR1 = Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633))

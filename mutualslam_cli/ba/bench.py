@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from mutualslam_cli.ba.photometric import PhotoBAProblem, solve
-from mutualslam_cli.vo.local_ba import exp_so3
+from mutualslam_cli.geometry import exp_so3
 
 # fronto-parallel panels z = depth (y down, z forward), each limited to a box in (x, y), so
 # 3×3 patches sharing one inverse depth are exact: (depth, x_min, x_max, y_min, y_max)

@@ -12,14 +12,12 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
+from mutualslam_cli.ba.problem import PhotoBAProblem
 from mutualslam_cli.errors import ConfigError
-
-if TYPE_CHECKING:  # pragma: no cover
-    from mutualslam_cli.ba.photometric import PhotoBAProblem
 
 log = logging.getLogger(__name__)
 
@@ -62,8 +60,8 @@ def build(images: np.ndarray, levels: int, min_size: int = 16) -> list[np.ndarra
     return out
 
 
-def level_problem(prob: "PhotoBAProblem", images: np.ndarray, level: int, T_cw: np.ndarray,
-                  affine: np.ndarray, inv_depth: np.ndarray) -> "PhotoBAProblem":
+def level_problem(prob: PhotoBAProblem, images: np.ndarray, level: int, T_cw: np.ndarray,
+                  affine: np.ndarray, inv_depth: np.ndarray) -> PhotoBAProblem:
     """Copy of ``prob`` at pyramid ``level`` with the given images ``(K, H_l, W_l)`` and state:
     intrinsics and host pixels ``(P, 2)`` rescaled; poses, affine, inverse depths unchanged
     (they do not depend on the resolution)."""
@@ -73,7 +71,7 @@ def level_problem(prob: "PhotoBAProblem", images: np.ndarray, level: int, T_cw: 
                                affine=affine, inv_depth=inv_depth, pixel=pixel)
 
 
-def coarse_to_fine(prob: "PhotoBAProblem", stack: list[np.ndarray], state: tuple,
+def coarse_to_fine(prob: PhotoBAProblem, stack: list[np.ndarray], state: tuple,
                    coarse_iterations: int, make_data: Callable, run_level: Callable):
     """Run the levels coarser than full resolution, coarsest first, and guard the result.
 

@@ -15,23 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def exp_so3(phi: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula, vectorised: ``(N, 3)`` axis-angle → ``(N, 3, 3)``."""
-    th = np.linalg.norm(phi, axis=1)
-    k = phi / np.maximum(th, 1e-12)[:, None]
-    K = np.zeros((len(phi), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
-    return np.eye(3)[None] + s * K + (1 - c) * (K @ K)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return S
+from mutualslam_cli.geometry import left_update
 
 
 @dataclass
@@ -104,20 +88,6 @@ def _robust_cost(r: np.ndarray, front: np.ndarray, huber: float) -> float:
     e = np.linalg.norm(r, axis=1)
     c = np.where(e < huber, 0.5 * e * e, huber * (e - 0.5 * huber))
     return float(np.sum(np.where(front, c, 0.5 * huber * huber)))
-
-
-def left_update(T: np.ndarray, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """``T[idx] ← exp(d) · T[idx]`` for left increments ``d`` ``(len(idx), 6)`` = ``(ρ, φ)``,
-    rotations projected back onto SO(3) (SVD); returns an updated copy of ``T`` ``(K, 4, 4)``."""
-    T = T.copy()
-    if len(idx):
-        inc = np.tile(np.eye(4), (len(idx), 1, 1))
-        inc[:, :3, :3] = exp_so3(d[:, 3:6])
-        inc[:, :3, 3] = d[:, :3]
-        T[idx] = inc @ T[idx]
-        U, _, Vt = np.linalg.svd(T[idx, :3, :3])  # stay on SO(3)
-        T[idx, :3, :3] = U @ Vt
-    return T
 
 
 def _apply(T: np.ndarray, fi: np.ndarray, dc: np.ndarray) -> np.ndarray:
