@@ -12,7 +12,8 @@ from mutualslam_cli.datasets.associate import (
     write_tum_trajectory,
 )
 from mutualslam_cli.datasets.check import CheckReport, bench_loader, check_all, check_sequence
-from mutualslam_cli.datasets.icl_nuim import decide_fy_sign, load_icl, load_icl_loop
+from mutualslam_cli.datasets.fy_sign import decide_fy_sign
+from mutualslam_cli.datasets.icl_nuim import load_icl, load_icl_loop
 from mutualslam_cli.datasets.registry import (
     detect_format,
     get_spec,
