@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mutualslam_cli.datasets.associate import (
+    MAX_DT,
     associate,
     poses_at,
     read_list_file,
@@ -63,6 +64,13 @@ def test_associate_max_dt_is_strict_and_offset_applies():
     assert associate([0.0], [0.025], max_dt=0.03) == [(0, 0)]
     assert associate([0.0], [1.01], offset=-1.0) == [(0, 0)]
     assert associate([], [1.0]) == []
+
+
+def test_associate_window_excludes_a_pair_exactly_max_dt_apart():
+    # exact binary fractions, so |dt| == max_dt holds in floating point (TUM associate.py: `<`)
+    assert associate([1.0], [1.03125], max_dt=0.03125) == []
+    assert associate([1.0], [1.03125], max_dt=0.0625) == [(0, 0)]
+    assert MAX_DT == 0.02
 
 
 def test_associate_result_sorted_by_first_timestamp_for_unsorted_input():

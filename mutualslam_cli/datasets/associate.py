@@ -28,7 +28,9 @@ from mutualslam_cli.types import Trajectory
 PathOrStream = Union[str, os.PathLike, IO[str]]
 
 MAX_DT = 0.02
-"""Association tolerance in seconds (TUM benchmark ``associate.py`` default)."""
+"""Association window in seconds (TUM benchmark ``associate.py`` default): RGB↔depth pairing
+(:func:`associate`) and the default of the ATE's estimate↔reference association
+(:mod:`mutualslam_cli.metrics.trajectory`)."""
 
 MAX_GT_GAP = 0.1
 """GT interpolation: both bracketing GT samples must lie within this many seconds of the image
@@ -182,7 +184,11 @@ def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = MAX_DT, offset
     """Greedy unique nearest-timestamp association (TUM benchmark ``associate.py``).
 
     All pairs with ``|a − (b + offset)| < max_dt`` are sorted by that difference and taken
-    greedily, each element used at most once.
+    greedily, each element used at most once. The package's one greedy association: RGB ↔
+    depth in the TUM-layout loader, and ``association="unique"`` of the ATE
+    (:func:`mutualslam_cli.metrics.trajectory.associate_indices`). The window is strict, as in
+    the benchmark script: a pair exactly ``max_dt`` apart is not associated (the ATE's default,
+    evo's nearest-stamp matching, is inclusive instead).
 
     Args:
         ts_a: ``(N,)`` timestamps of the first stream (seconds).

@@ -1,8 +1,10 @@
-"""Evaluation metrics (DESIGN §7): depth accuracy (PCD, e_si, abs_rel) and trajectory ATE.
+"""Evaluation metrics (DESIGN §7): depth accuracy (PCD, e_si, abs_rel) and trajectory ATE
+(association and statistics in :mod:`.trajectory`, Umeyama alignment in :mod:`.alignment`).
 
 Library code only (numpy, OpenCV for resizing); each formula cites its source next to the line.
 """
 
+from mutualslam_cli.metrics.alignment import GeometryError, umeyama
 from mutualslam_cli.metrics.depth import (
     DepthStats,
     depth_frame_metrics,
@@ -16,14 +18,12 @@ from mutualslam_cli.metrics.depth import (
 )
 from mutualslam_cli.metrics.trajectory import (
     AteResult,
-    GeometryError,
     SegmentedAteResult,
     associate_indices,
     associate_trajectories,
     ate,
     ate_segments,
     path_length,
-    umeyama,
 )
 
 __all__ = [

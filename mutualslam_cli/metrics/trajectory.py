@@ -1,11 +1,13 @@
-"""Trajectory accuracy: timestamp association, Umeyama alignment, ATE (DESIGN §7).
+"""Trajectory accuracy: timestamp association and ATE (DESIGN §7).
 
 The absolute trajectory error follows Sturm et al., "A Benchmark for the Evaluation of
 RGB-D SLAM Systems", IROS 2012 (§VI-A): associate the estimated and the ground-truth poses
 by timestamp, align the estimate to the ground truth with the least-squares similarity
 (monocular, Sim(3)) or rigid (SE(3)) transform of Umeyama, "Least-Squares Estimation of
 Transformation Parameters Between Two Point Patterns", IEEE PAMI 13(4), 1991, and report
-statistics of the translational residuals.
+statistics of the translational residuals. The alignment itself is
+:mod:`mutualslam_cli.metrics.alignment`; the greedy one-to-one association (``unique``) is the
+package's one :func:`mutualslam_cli.datasets.associate.associate`.
 
 The numbers equal ``evo_ape tum REF EST -as --t_max_diff 0.02`` (evo 1.38.1, same pairs,
 same alignment, same statistics; ``tests/test_ate_evo.py`` checks it on real data). Note
@@ -21,19 +23,20 @@ from typing import Any, Literal
 
 import numpy as np
 
-from mutualslam_cli.errors import ConfigError, DatasetError, MslamError
+from mutualslam_cli.datasets.associate import MAX_DT, associate
+from mutualslam_cli.errors import ConfigError, DatasetError
+from mutualslam_cli.metrics.alignment import (  # noqa: F401  (ALIGNMENTS, umeyama: importable from here too)
+    ALIGNMENTS,
+    GeometryError,
+    align_positions,
+    check_alignment,
+    umeyama,
+)
 from mutualslam_cli.types import Trajectory, check_shape
 
 logger = logging.getLogger(__name__)
 
-ALIGNMENTS = ("sim3", "se3", "none")
 ASSOCIATIONS = ("nearest", "unique")
-DEFAULT_MAX_DT = 0.02
-"""Association window in seconds (TUM benchmark ``associate.py`` default)."""
-
-
-class GeometryError(MslamError):
-    """An alignment is degenerate (too few pairs, all positions identical or collinear)."""
 
 
 # --------------------------------------------------------------------------- association
@@ -64,34 +67,10 @@ def _match_nearest(short: np.ndarray, long: np.ndarray, max_dt: float) -> tuple[
     return np.nonzero(ok)[0], j[ok]
 
 
-def _match_unique(a: np.ndarray, b: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Greedy one-to-one matching by increasing ``|dt|`` (TUM ``associate.py``), ``|dt| <= max_dt``."""
-    order_b = np.argsort(b, kind="stable")
-    bs = b[order_b]
-    lo = np.searchsorted(bs, a - max_dt, side="left")
-    hi = np.searchsorted(bs, a + max_dt, side="right")
-    cand = [(abs(a[i] - bs[k]), i, int(order_b[k])) for i in range(len(a)) for k in range(lo[i], hi[i])]
-    cand = [c for c in cand if c[0] <= max_dt]
-    cand.sort()
-    used_a: set[int] = set()
-    used_b: set[int] = set()
-    pairs = []
-    for _, i, j in cand:
-        if i not in used_a and j not in used_b:
-            used_a.add(i)
-            used_b.add(j)
-            pairs.append((i, j))
-    pairs.sort()
-    if not pairs:
-        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    ia, ib = np.array(pairs, dtype=int).T
-    return ia, ib
-
-
 def associate_indices(
     ref_t: np.ndarray,
     est_t: np.ndarray,
-    max_dt: float = DEFAULT_MAX_DT,
+    max_dt: float = MAX_DT,
     method: Literal["nearest", "unique"] = "nearest",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs ``(i_ref, i_est)`` of associated timestamps.
@@ -99,20 +78,27 @@ def associate_indices(
     Args:
         ref_t: ``(N,)`` reference timestamps, seconds.
         est_t: ``(M,)`` estimate timestamps, seconds.
-        max_dt: largest accepted ``|t_ref − t_est|`` (inclusive), seconds.
+        max_dt: largest accepted ``|t_ref − t_est|``, seconds (inclusive for ``nearest``, as
+            evo; strict for ``unique``, as TUM ``associate.py``).
         method: ``nearest`` — evo's ``associate_trajectories`` (nearest-time): every pose of
             the trajectory with fewer poses (``est`` on a tie) takes its nearest stamp in the
             other one; a pose of the longer trajectory can serve two pairs (rare; only when
             the longer one is locally sparser). ``unique`` — TUM ``associate.py``: greedy
-            one-to-one matching by increasing ``|dt|``.
+            one-to-one matching by increasing ``|dt|``
+            (:func:`mutualslam_cli.datasets.associate.associate`).
 
     Returns:
-        Two int arrays of equal length ``K``, sorted by the shorter trajectory's index.
+        Two int arrays of equal length ``K``, sorted by the shorter trajectory's index
+        (``unique``: by the reference index).
     """
     ref_t = np.asarray(ref_t, dtype=np.float64).reshape(-1)
     est_t = np.asarray(est_t, dtype=np.float64).reshape(-1)
     if method == "unique":
-        return _match_unique(ref_t, est_t, max_dt)
+        pairs = sorted(associate(ref_t, est_t, max_dt))  # by reference index
+        if not pairs:
+            return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+        i_ref, i_est = np.array(pairs, dtype=int).T
+        return i_ref, i_est
     if method != "nearest":
         raise ConfigError(f"unknown association method {method!r}; valid: {', '.join(ASSOCIATIONS)}")
     if len(est_t) > len(ref_t):  # evo: start from the trajectory with fewer poses
@@ -135,7 +121,7 @@ def _no_overlap_message(ref: Trajectory, est: Trajectory, max_dt: float) -> str:
 def associate_trajectories(
     ref: Trajectory,
     est: Trajectory,
-    max_dt: float = DEFAULT_MAX_DT,
+    max_dt: float = MAX_DT,
     method: Literal["nearest", "unique"] = "nearest",
 ) -> tuple[Trajectory, Trajectory]:
     """Sub-trajectories ``(ref_sub, est_sub)`` of associated poses, pair ``k`` ↔ row ``k``.
@@ -149,64 +135,6 @@ def associate_trajectories(
         raise DatasetError(_no_overlap_message(ref, est, max_dt))
     logger.debug("associated %d of %d est / %d ref poses (max_dt %g s)", len(i_ref), len(est), len(ref), max_dt)
     return ref.subset(i_ref), est.subset(i_est)
-
-
-# --------------------------------------------------------------------------- alignment
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> tuple[np.ndarray, np.ndarray, float]:
-    """Similarity (or rigid) transform minimising ``Σ ‖dst_i − (s·R·src_i + t)‖²`` (Umeyama 1991).
-
-    Args:
-        src: ``(N, 3)`` points to move (estimated positions).
-        dst: ``(N, 3)`` target points (reference positions).
-        with_scale: estimate ``s`` (Sim(3)); otherwise ``s = 1`` (SE(3)).
-
-    Returns:
-        ``R`` ``(3, 3)`` rotation (det +1), ``t`` ``(3,)``, ``s`` float.
-
-    Raises:
-        ShapeError: shapes differ or are not ``(N, 3)``.
-        GeometryError: ``N < 3``, non-finite input, or a covariance of rank < 2 (all points
-            identical or collinear: the rotation is not determined).
-    """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    check_shape(src, ["N", 3], "umeyama src")
-    check_shape(dst, [len(src), 3], "umeyama dst")
-    n = len(src)
-    if n < 3:
-        raise GeometryError(f"Umeyama alignment needs at least 3 point pairs, got {n}")
-    if not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
-        raise GeometryError("Umeyama alignment: positions contain NaN or inf")
-    mu_src = src.mean(axis=0)  # Umeyama eq. 34
-    mu_dst = dst.mean(axis=0)  # Umeyama eq. 35
-    xs = src - mu_src
-    xd = dst - mu_dst
-    var_src = float(np.sum(xs * xs)) / n  # Umeyama eq. 36 (σ_x²)
-    cov = xd.T @ xs / n  # Umeyama eq. 38 (Σ_xy, dst × src)
-    u, d, vt = np.linalg.svd(cov)  # text between eqs. 38 and 39
-    tol = np.finfo(np.float64).eps * max(1.0, float(d[0]))
-    if np.count_nonzero(d > tol) < 2:
-        raise GeometryError(
-            f"degenerate alignment: covariance rank {np.count_nonzero(d > tol)} < 2 over {n} pairs "
-            "(positions identical or collinear)"
-        )
-    S = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:  # Umeyama eq. 43 (reflection → rotation)
-        S[2, 2] = -1.0
-    R = u @ S @ vt  # Umeyama eq. 40
-    s = float(np.trace(np.diag(d) @ S) / var_src) if with_scale else 1.0  # Umeyama eq. 42
-    t = mu_dst - s * R @ mu_src  # Umeyama eq. 41
-    return R, t, s
-
-
-def sim3_matrix(R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
-    """``(4, 4)`` matrix ``[[s·R, t], [0, 1]]``; applied to homogeneous positions."""
-    T = np.eye(4)
-    T[:3, :3] = s * np.asarray(R)
-    T[:3, 3] = t
-    return T
 
 
 # --------------------------------------------------------------------------- ATE
@@ -245,7 +173,7 @@ class AteResult:
     est_timestamps: np.ndarray
     ref_positions: np.ndarray
     est_aligned: np.ndarray
-    max_dt: float = DEFAULT_MAX_DT
+    max_dt: float = MAX_DT
     n_ref: int = 0
     n_est: int = 0
 
@@ -270,24 +198,11 @@ def _stats(errors: np.ndarray) -> dict[str, float]:
     )
 
 
-def _align(p_ref: np.ndarray, p_est: np.ndarray, align: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Aligned estimate positions, transform, rotation and scale for one alignment mode."""
-    if align == "none":
-        return p_est.copy(), np.eye(4), np.eye(3), 1.0
-    R, t, s = umeyama(p_est, p_ref, with_scale=(align == "sim3"))
-    return s * p_est @ R.T + t, sim3_matrix(R, t, s), R, s
-
-
-def _check_align(align: str) -> None:
-    if align not in ALIGNMENTS:
-        raise ConfigError(f"unknown alignment {align!r}; valid: {', '.join(ALIGNMENTS)}")
-
-
 def ate(
     ref: Trajectory,
     est: Trajectory,
     align: Literal["sim3", "se3", "none"] = "sim3",
-    max_dt: float = DEFAULT_MAX_DT,
+    max_dt: float = MAX_DT,
     association: Literal["nearest", "unique"] = "nearest",
 ) -> AteResult:
     """Absolute trajectory error (Sturm et al. 2012, §VI-A) of ``est`` against ``ref``.
@@ -302,10 +217,10 @@ def ate(
         DatasetError: no pair within ``max_dt`` (the message gives both time spans).
         GeometryError: ``sim3``/``se3`` with fewer than 3 pairs or degenerate positions.
     """
-    _check_align(align)
+    check_alignment(align)
     ref_sub, est_sub = associate_trajectories(ref, est, max_dt, association)
     p_ref, p_est = ref_sub.positions, est_sub.positions
-    aligned, T, _, s = _align(p_ref, p_est, align)
+    aligned, T, _, s = align_positions(p_ref, p_est, align)
     errors = np.linalg.norm(p_ref - aligned, axis=1)  # Sturm et al. 2012 eq. 2 (translation of F_i)
     return AteResult(
         **_stats(errors),
@@ -382,7 +297,7 @@ def ate_segments(
     est: Trajectory,
     segments: np.ndarray,
     align: Literal["sim3", "se3", "none"] = "sim3",
-    max_dt: float = DEFAULT_MAX_DT,
+    max_dt: float = MAX_DT,
     association: Literal["nearest", "unique"] = "nearest",
     min_pairs: int = 3,
 ) -> SegmentedAteResult:
@@ -400,7 +315,7 @@ def ate_segments(
         DatasetError: no pair within ``max_dt``.
         GeometryError: no segment could be aligned.
     """
-    _check_align(align)
+    check_alignment(align)
     segments = np.asarray(segments).reshape(-1)
     check_shape(segments, [len(est)], "segments (one id per est pose)")
     i_ref, i_est = associate_indices(ref.timestamps, est.timestamps, max_dt, association)
@@ -416,7 +331,7 @@ def ate_segments(
         try:
             if align != "none" and len(k) < min_pairs:
                 raise GeometryError(f"{len(k)} pairs < {min_pairs}")
-            aligned, _, _, s = _align(p_ref, p_est, align)
+            aligned, _, _, s = align_positions(p_ref, p_est, align)
         except GeometryError as exc:
             per.append(SegmentAte(int(sid), len(k), float("nan"), float("nan"), skipped=str(exc)))
             n_skipped_pairs += len(k)
