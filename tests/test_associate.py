@@ -113,6 +113,18 @@ def test_write_trajectory_to_path_is_atomic_and_readable(tmp_path, rng):
     np.testing.assert_allclose(read_tum_trajectory(out).positions, traj.positions, atol=1e-12)
 
 
+def test_write_trajectory_header_comments_and_fixed_decimals():
+    traj = Trajectory(np.array([0.0, 1 / 30]), np.stack([np.eye(4)] * 2))
+    traj.poses[1, :3, 3] = [1.0, -2.0, 0.5]
+    buf = io.StringIO()
+    write_tum_trajectory(buf, traj, comments=("ground truth", "made by a test"), time_format=".6f", value_format=".9f")
+    assert buf.getvalue() == (
+        "# ground truth\n# made by a test\n# timestamp tx ty tz qx qy qz qw\n"
+        "0.000000 0.000000000 0.000000000 0.000000000 0.000000000 0.000000000 0.000000000 1.000000000\n"
+        "0.033333 1.000000000 -2.000000000 0.500000000 0.000000000 0.000000000 0.000000000 1.000000000\n"
+    )
+
+
 def test_trajectory_malformed_line_names_file_and_line(tmp_path):
     p = tmp_path / "groundtruth.txt"
     p.write_text("# ground truth\n1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 1\n")

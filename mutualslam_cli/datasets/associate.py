@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Union
@@ -152,19 +153,35 @@ def read_tum_trajectory(src: PathOrStream) -> Trajectory:
     return Trajectory(arr[:, 0], pose_from_tq(arr[:, 1:4], arr[:, 4:8]))
 
 
-def format_tum_trajectory(traj: Trajectory) -> str:
-    """TUM text of a trajectory, full float precision (``repr`` round-trips exactly)."""
+def _fmt(v: float, spec: str | None) -> str:
+    return repr(float(v)) if spec is None else format(float(v), spec)
+
+
+def format_tum_trajectory(
+    traj: Trajectory, comments: Iterable[str] = (), time_format: str | None = None, value_format: str | None = None
+) -> str:
+    """TUM text of a trajectory: ``timestamp tx ty tz qx qy qz qw`` per line (``qw ≥ 0``).
+
+    Args:
+        traj: ``(N,)`` timestamps (seconds) and ``(N, 4, 4)`` ``T_wc`` (translation in metres).
+        comments: header lines written as ``# <line>`` before the ``# timestamp tx ty …`` line.
+        time_format, value_format: :func:`format` specs (e.g. ``".6f"``) of the timestamp and
+            of the seven pose numbers; ``None``: full float precision (``repr`` round-trips exactly).
+    """
     q = rot_to_quat(traj.poses[:, :3, :3]) if len(traj) else np.zeros((0, 4))
-    out = ["# timestamp tx ty tz qx qy qz qw"]
+    out = [f"# {c}" for c in comments] + ["# timestamp tx ty tz qx qy qz qw"]
     for t, T, qq in zip(traj.timestamps, traj.poses, q):
-        vals = [t, *T[:3, 3], *qq]
-        out.append(" ".join(repr(float(v)) for v in vals))
+        out.append(" ".join([_fmt(t, time_format)] + [_fmt(v, value_format) for v in (*T[:3, 3], *qq)]))
     return "\n".join(out) + "\n"
 
 
-def write_tum_trajectory(dst: PathOrStream, traj: Trajectory) -> None:
-    """Write a trajectory in TUM format; atomic for paths (temporary file, then rename)."""
-    text = format_tum_trajectory(traj)
+def write_tum_trajectory(
+    dst: PathOrStream, traj: Trajectory, comments: Iterable[str] = (), time_format: str | None = None,
+    value_format: str | None = None,
+) -> None:
+    """Write a trajectory in TUM format (:func:`format_tum_trajectory`); atomic for paths
+    (temporary file, then rename), written as is to a stream."""
+    text = format_tum_trajectory(traj, comments, time_format, value_format)
     if not isinstance(dst, (str, os.PathLike)):
         dst.write(text)
         return

@@ -2,9 +2,11 @@
 
 Scenes are unions of axis-aligned boxes: an enclosing box seen from inside (the room) plus
 boxes seen from outside (furniture, panels, pillars). Each frame is ray-cast analytically
-(slab method, Kay & Kajiya 1986): camera rays ``d = R_wc K⁻¹ [u, v, 1]ᵀ`` have unit camera
-z, so the ray parameter at the hit *is* the z-depth. Texture coordinates come from the hit
-point and are sampled from a mip-mapped atlas (:mod:`textures`) with ``cv2.remap``.
+(slab method, Kay & Kajiya 1986; :mod:`~mutualslam_cli.datasets.raycast`): camera rays
+``d = R_wc K⁻¹ [u, v, 1]ᵀ`` have unit camera z, so the ray parameter at the hit *is* the
+z-depth. Texture coordinates come from the hit point and are sampled from a mip-mapped atlas
+(:mod:`textures`) with ``cv2.remap``. This module owns the sequences: scene setup, camera
+path, rendering frame by frame, and writing the TUM RGB-D layout.
 
 World frame: z up; the camera follows a smooth handheld-like path (sums of low-frequency
 sinusoids with seed-dependent phases), OpenCV camera axes (x right, y down, z forward).
@@ -32,13 +34,12 @@ import cv2
 import numpy as np
 
 from mutualslam_cli.datasets import scenes as _scenes
+from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.datasets.raycast import Renderer
 from mutualslam_cli.datasets.scenes import SCENES, SceneDef, camera_pose
-from mutualslam_cli.datasets.textures import N_LEVELS, STYLES, Atlas, build_atlas, face_texture
-
-assert N_LEVELS == 4, "_Renderer._shade blends mip levels 0..3"
+from mutualslam_cli.datasets.textures import STYLES, build_atlas, face_texture
 from mutualslam_cli.errors import ConfigError
-from mutualslam_cli.geometry import rot_to_quat
-from mutualslam_cli.types import Intrinsics, check_shape
+from mutualslam_cli.types import Intrinsics, Trajectory, check_shape
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +49,6 @@ __all__ = ["SCENES", "SyntheticSequence", "render_sequence", "iter_render", "wri
 FPS = 30.0
 DEPTH_SCALE = 5000.0
 """TUM depth PNG units per metre."""
-_BOX_EDGES = [(i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit]
 _REF_PPM = 300.0
 """Nominal texel density (texels/m at 640×480) at which texture features have their base size."""
 MAX_PNG_DEPTH = 13.1
@@ -98,176 +98,8 @@ def _check_args(scene: str, n_frames: int, width: int, height: int, domain: str)
         raise ConfigError(f"image size {width}×{height}: expected 8..4096 pixels per side")
 
 
-class _Renderer:
-    """Ray-caster of one scene at one resolution (precomputed rays, atlas)."""
-
-    def __init__(self, scene: SceneDef, atlas: Atlas, intr: Intrinsics) -> None:
-        self.scene, self.atlas, self.intr = scene, atlas, intr
-        W, H = intr.width, intr.height
-        self.xn = ((np.arange(W, dtype=np.float64) - intr.cx) / intr.fx).astype(np.float32)
-        self.yn = ((np.arange(H, dtype=np.float64) - intr.cy) / intr.fy).astype(np.float32)
-        # |K⁻¹[u, v, 1]| per pixel (rotation-invariant): ray length per unit z-depth.
-        self.rnorm = np.sqrt(1.0 + self.xn[None, :] ** 2 + self.yn[:, None] ** 2).astype(np.float32)
-        self.f_pix = float(np.sqrt(abs(intr.fx * intr.fy)))
-        # Per-face lookup tables for cv2.LUT (face id is uint8 → ≤ 256 faces, 42 boxes).
-        F = len(scene.face_axis)
-        if F > 256:
-            raise ConfigError(f"synthetic scene has {F} faces; at most 256 are supported")
-        self.a_idx = np.array([(1, 0, 0)[k] for k in scene.face_axis])  # in-plane axes per face
-        self.b_idx = np.array([(2, 2, 1)[k] for k in scene.face_axis])
-        self.lut = {}
-        for name, val, dt in (("axis", scene.face_axis, np.uint8), ("scale", atlas.scale, np.float32),
-                              ("ox", atlas.ox + np.float32(0.5), np.float32),
-                              ("oy", atlas.oy + np.float32(0.5), np.float32)):
-            t = np.zeros((1, 256), dt)
-            t[0, :F] = val
-            self.lut[name] = t
-
-    def _rays(self, R: np.ndarray) -> list[np.ndarray]:
-        """World ray directions (3 × ``(H, W)`` float32), camera z component = 1."""
-        out = []
-        for k in range(3):
-            row = (R[k, 0] * self.xn).astype(np.float32)[None, :]
-            col = (R[k, 1] * self.yn + R[k, 2]).astype(np.float32)[:, None]
-            out.append(row + col)
-        return out
-
-    def render(self, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One frame: ``(H, W, 3)`` uint8 RGB and ``(H, W)`` float32 z-depth (metres)."""
-        R, o = T_wc[:3, :3], T_wc[:3, 3]
-        d = self._rays(R)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = [np.float32(1.0) / dk for dk in d]
-            depth, fid = self._enclosure(o, inv)
-            for b in range(1, len(self.scene.boxes)):
-                self._box(b, T_wc, o, inv, depth, fid)
-        return self._shade(o, d, depth, fid), depth
-
-    def _enclosure(self, o: np.ndarray, inv: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Exit of the rays from the enclosing box (camera inside): depth and face id."""
-        lo, hi = self.scene.boxes[0].lo, self.scene.boxes[0].hi
-        ts, sides = [], []
-        for k in range(3):
-            # Camera inside: hi − o > 0 > lo − o, so the exit is the positive one of the two.
-            t = np.maximum(np.float32(hi[k] - o[k]) * inv[k], np.float32(lo[k] - o[k]) * inv[k])
-            ts.append(t)
-            sides.append((inv[k] > 0).view(np.uint8))
-        depth = np.minimum(np.minimum(ts[0], ts[1]), ts[2])
-        m0 = ts[0] == depth
-        m1 = ts[1] == depth
-        fid = np.where(m0, sides[0], np.where(m1, sides[1] + np.uint8(2), sides[2] + np.uint8(4)))
-        return depth, fid
-
-    def _roi(self, b: int, T_wc: np.ndarray) -> tuple[slice, slice] | None:
-        """Image rows/cols that box ``b`` can cover (its projected corners' bounding box)."""
-        box = self.scene.boxes[b]
-        corners = np.array([[x, y, z] for x in (box.lo[0], box.hi[0]) for y in (box.lo[1], box.hi[1])
-                            for z in (box.lo[2], box.hi[2])])
-        pc = (corners - T_wc[:3, 3]) @ T_wc[:3, :3]
-        zn = 1e-3
-        front = pc[:, 2] >= zn
-        if not front.any():
-            return None
-        pts = [pc[front]]
-        if not front.all():
-            # Clip the box by the plane z = zn: add where its edges cross it (corners i, j
-            # differ in one coordinate bit). The hull of the projections bounds the image.
-            for i, j in _BOX_EDGES:
-                if front[i] != front[j]:
-                    a_, b_ = pc[i], pc[j]
-                    pts.append((a_ + (zn - a_[2]) / (b_[2] - a_[2]) * (b_ - a_))[None])
-        pv = np.concatenate(pts)
-        H, W = self.intr.height, self.intr.width
-        u = self.intr.fx * pv[:, 0] / pv[:, 2] + self.intr.cx
-        v = self.intr.fy * pv[:, 1] / pv[:, 2] + self.intr.cy
-        u, v = np.clip(u, -2.0, W + 2.0), np.clip(v, -2.0, H + 2.0)
-        c0, c1 = max(0, int(np.floor(u.min())) - 1), min(W, int(np.ceil(u.max())) + 2)
-        r0, r1 = max(0, int(np.floor(v.min())) - 1), min(H, int(np.ceil(v.max())) + 2)
-        if c0 >= c1 or r0 >= r1:
-            return None
-        return slice(r0, r1), slice(c0, c1)
-
-    def _box(self, b: int, T_wc: np.ndarray, o: np.ndarray, inv: list[np.ndarray],
-             depth: np.ndarray, fid: np.ndarray) -> None:
-        """Z-buffer the entry points of the rays into box ``b`` (seen from outside)."""
-        roi = self._roi(b, T_wc)
-        if roi is None:
-            return
-        box = self.scene.boxes[b]
-        tn, tf, sides = [], None, []
-        for k in range(3):
-            ik = inv[k][roi]
-            t1 = np.float32(box.lo[k] - o[k]) * ik
-            t2 = np.float32(box.hi[k] - o[k]) * ik
-            tn.append(np.minimum(t1, t2))
-            far = np.maximum(t1, t2)
-            tf = far if tf is None else np.minimum(tf, far)
-            sides.append((ik < 0).view(np.uint8))  # entering through the hi face when moving towards −axis
-        tnear = np.maximum(np.maximum(tn[0], tn[1]), tn[2])
-        hit = (tnear < tf) & (tnear > 1e-4) & (tnear < depth[roi])
-        if not hit.any():
-            return
-        m0, m1 = tn[0] == tnear, tn[1] == tnear
-        base = np.uint8(6 * b)
-        local = np.where(m0, sides[0] + base,
-                         np.where(m1, sides[1] + (base + np.uint8(2)), sides[2] + (base + np.uint8(4))))
-        np.copyto(depth[roi], tnear, where=hit)
-        np.copyto(fid[roi], local, where=hit)
-
-    def _shade(self, o: np.ndarray, d: list[np.ndarray], depth: np.ndarray, fid: np.ndarray) -> np.ndarray:
-        """Trilinear atlas lookup at the hit points: ``(H, W, 3)`` uint8."""
-        at, lut = self.atlas, self.lut
-        axis = cv2.LUT(fid, lut["axis"])
-        ax0, ax2 = axis == 0, axis == 2
-        # In-plane coordinates (a, b): x-faces (y, z), y-faces (x, z), z-faces (x, y).
-        # Level-0 texel (+0.5) of the hit o + depth·d: (o_a + depth·d_a)·scale + ox + 0.5, with the
-        # per-face constant o_a·scale + ox + 0.5 folded into a per-frame lookup table.
-        F = len(self.a_idx)
-        cx, cy = np.zeros((1, 256), np.float32), np.zeros((1, 256), np.float32)
-        cx[0, :F] = o[self.a_idx] * at.scale + lut["ox"][0, :F]
-        cy[0, :F] = o[self.b_idx] * at.scale + lut["oy"][0, :F]
-        sc = cv2.LUT(fid, lut["scale"])
-        x0 = np.where(ax0, d[1], d[0])
-        x0 *= depth
-        x0 *= sc
-        x0 += cv2.LUT(fid, cx)
-        y0 = np.where(ax2, d[1], d[2])
-        y0 *= depth
-        y0 *= sc
-        y0 += cv2.LUT(fid, cy)
-        # Texel footprint (texels per pixel): a pixel spans depth / (|d|·f) metres across the
-        # ray; on the surface that is stretched by 1/cosθ (cosθ = |d_axis| / |d|) along one
-        # axis; isotropic estimate = geometric mean → depth·scale / (f·sqrt(|d|·|d_axis|)).
-        dn = np.abs(np.where(ax0, d[0], np.where(ax2, d[2], d[1])))
-        dn *= self.rnorm
-        np.maximum(dn, np.float32(1e-6), out=dn)
-        foot = depth * sc
-        foot /= np.sqrt(dn, out=dn)
-        foot *= np.float32(1.0 / self.f_pix)
-        # Mip level l0 ∈ {0, 1, 2} and its scale s0 = 2^-l0; blend weight linear in the
-        # footprint between levels l0 and l0 + 1 (Williams 1983, trilinear filtering).
-        s0 = np.float32(1.0) - np.float32(0.5) * (foot >= 2) - np.float32(0.25) * (foot >= 4)
-        frac = foot * s0
-        frac -= 1.0
-        np.clip(frac, 0.0, 1.0, out=frac)
-        # Level-0 texel → level-l texel: x_l = (x0 + 0.5)·2^-l − 0.5 + origin_l.
-        xa = x0 * s0
-        ya = y0 * s0
-        W0, H0 = np.float32(at.w0), np.float32(at.h0)
-        xb = xa * np.float32(0.5)
-        xb += W0 - np.float32(0.5)
-        yb = ya * np.float32(0.5)
-        yb += H0 * (np.float32(1.0) - s0) - np.float32(0.5)
-        xa += W0 * (s0 < 1) - np.float32(0.5)
-        ya += np.maximum(H0 * (np.float32(1.0) - 2 * s0), 0) - np.float32(0.5)
-        img_a = cv2.remap(at.image, xa, ya, cv2.INTER_LINEAR)
-        img_b = cv2.remap(at.image, xb, yb, cv2.INTER_LINEAR)
-        out = cv2.blendLinear(img_a, img_b, np.float32(1.0) - frac, frac)
-        return cv2.cvtColor(out, cv2.COLOR_RGBA2RGB)
-
-
 @functools.lru_cache(maxsize=2)
-def _setup(scene: str, width: int, height: int, seed: int, domain: str) -> tuple[SceneDef, _Renderer]:
+def _setup(scene: str, width: int, height: int, seed: int, domain: str) -> tuple[SceneDef, Renderer]:
     """Scene layout, textures and renderer (cached: texture synthesis dominates setup)."""
     intr = synthetic_intrinsics(width, height)
     sdef = _scenes.build_scene(scene, seed, domain)
@@ -283,7 +115,7 @@ def _setup(scene: str, width: int, height: int, seed: int, domain: str) -> tuple
         textures.append(face_texture(tex_rng, sdef.face_w[f], sdef.face_h[f], max(ppm, 4.0), style, fs))
     atlas = build_atlas(textures, sdef.face_amin, sdef.face_bmin,
                         np.array([max(p * res, 4.0) for p in sdef.face_ppm]), sdef.face_brightness)
-    return sdef, _Renderer(sdef, atlas, intr)
+    return sdef, Renderer(sdef, atlas, intr)
 
 
 def iter_render(
@@ -363,7 +195,8 @@ def write_tum(seq_or_iter: SyntheticSequence | Iterable[tuple[int, np.ndarray, n
     what = f"mslam synth scene={scene} domain={domain} seed={seed}"
     rgb_lines = ["# color images", f"# {what}", "# timestamp filename"]
     dep_lines = ["# depth maps", f"# {what}", "# timestamp filename"]
-    gt_lines = ["# ground truth trajectory", f"# {what}", "# timestamp tx ty tz qx qy qz qw"]
+    gt_times: list[float] = []
+    gt_poses: list[np.ndarray] = []
     n_written = 0
     for i, rgb, depth, T in frames:
         if intrinsics is None:
@@ -378,15 +211,18 @@ def write_tum(seq_or_iter: SyntheticSequence | Iterable[tuple[int, np.ndarray, n
         cv2.imwrite(str(out / "depth" / f"{ts}.png"), np.round(d * DEPTH_SCALE).astype(np.uint16))
         rgb_lines.append(f"{ts} rgb/{ts}.png")
         dep_lines.append(f"{ts} depth/{ts}.png")
-        q = rot_to_quat(T[:3, :3])
-        t = T[:3, 3]
-        gt_lines.append(f"{ts} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
+        gt_times.append(i / fps)
+        gt_poses.append(T)
         if on_frame is not None:
             on_frame(i)
     if n_written == 0:
         raise ConfigError(f"write_tum {out}: no frames to write (expected ≥ 1 frame)")
-    for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", dep_lines), ("groundtruth.txt", gt_lines)):
+    for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", dep_lines)):
         (out / name).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    # A plain file like its neighbours (no temporary file, default mode): a stream, not a path.
+    with open(out / "groundtruth.txt", "w", encoding="utf-8") as f:
+        write_tum_trajectory(f, Trajectory(np.asarray(gt_times), np.stack(gt_poses)),
+                             comments=("ground truth trajectory", what), time_format=".6f", value_format=".9f")
     k = intrinsics
     assert k is not None
     (out / "intrinsics.txt").write_text(f"{k.fx:.6f} {k.fy:.6f} {k.cx:.6f} {k.cy:.6f} {k.width} {k.height}\n",
