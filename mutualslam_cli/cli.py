@@ -1,7 +1,9 @@
 """The ``mslam`` command line (typer + rich). Thin: parse, call the library, render.
 
 One error boundary: an :class:`~mutualslam_cli.errors.MslamError` becomes one red line and exit
-code 1; anything else is a bug and keeps its traceback.
+code 1; anything else is a bug and keeps its traceback (including the project's programming errors
+:class:`~mutualslam_cli.errors.ShapeError` and :class:`~mutualslam_cli.errors.TransitionError`,
+which are deliberately not ``MslamError``).
 """
 
 from __future__ import annotations
@@ -18,8 +20,8 @@ from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mutualslam_cli.config import ConfigError, RunConfig, load_config, with_overrides
-from mutualslam_cli.errors import MslamError
+from mutualslam_cli.config import RunConfig, load_config, with_overrides
+from mutualslam_cli.errors import ConfigError, MslamError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
@@ -34,7 +36,8 @@ ResultsOutOpt = typer.Option(None, "--out", help="Results root (default results/
 
 
 def _boundary(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Turn library errors into one red line and exit code 1."""
+    """Turn a user error (:class:`MslamError`) into one red line and exit code 1; let anything
+    else (a bug, e.g. :class:`~mutualslam_cli.errors.ShapeError`) through with its traceback."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:

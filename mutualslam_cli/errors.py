@@ -1,7 +1,24 @@
-"""Exception hierarchy: every error a user can cause is an :class:`MslamError`.
+"""Every exception class of mslam, in one place.
 
-The CLI turns an ``MslamError`` into one red line and exit code 1; anything else is a bug
-and keeps its traceback.
+Two families, told apart by what the CLI does with them:
+
+- :class:`MslamError` and its subclasses: errors a user (or the data) can cause. The CLI turns
+  one into one red line and exit code 1; :mod:`~mutualslam_cli.ablate` records it as a failed
+  job.
+
+  - :class:`DatasetError`: a sequence on disk is missing, malformed or inconsistent.
+  - :class:`ConfigError`: a setting (config file, ``--set``, a constructor argument that comes
+    from one) is invalid.
+  - :class:`GeometryError`: an alignment is degenerate (too few pairs, collinear positions).
+  - :class:`KeyframeError`: the keyframe buffer cannot serve a keyframe id (unknown, evicted,
+    or not increasing).
+
+- Programming errors, deliberately *not* ``MslamError`` so that they keep their traceback:
+
+  - :class:`ShapeError` (a ``ValueError``): an array or tensor does not have the documented
+    shape (:func:`~mutualslam_cli.types.check_shape`).
+  - :class:`TransitionError` (a ``RuntimeError``): an event that Algorithm 1 does not allow in
+    the current state (:mod:`~mutualslam_cli.adapt.state`).
 """
 
 from __future__ import annotations
@@ -19,12 +36,34 @@ class DatasetError(MslamError):
 
 
 class ConfigError(MslamError):
-    """A configuration file or ``--set`` override is invalid."""
+    """A configuration file, ``--set`` override or setting-valued argument is invalid."""
+
+
+class GeometryError(MslamError):
+    """An alignment is degenerate (too few pairs, all positions identical or collinear)."""
+
+
+class KeyframeError(MslamError, ValueError):
+    """The keyframe buffer cannot serve a keyframe id.
+
+    Raised by :class:`~mutualslam_cli.adapt.buffer.KeyframeBuffer` for an id that is not stored
+    (unknown or evicted; formerly ``KeyError``) and for an id that does not increase (formerly
+    ``ValueError``). It stays a ``ValueError`` so callers that caught the old out-of-order error
+    keep working.
+    """
 
 
 class TrackingLost(MslamError):
-    """The VO front end lost track; the pipeline re-initialises and records a gap."""
+    """Reserved: the VO front end lost track (never raised; the front end re-initialises and
+    records a gap). Kept because the package re-exports it (``mutualslam_cli.__all__``)."""
 
 
-class ShapeError(MslamError, ValueError):
-    """An array or tensor does not have the documented shape."""
+class ShapeError(ValueError):
+    """An array or tensor does not have the documented shape.
+
+    A programming error, not an :class:`MslamError`: the CLI lets it through with its traceback.
+    """
+
+
+class TransitionError(RuntimeError):
+    """An event that Algorithm 1 does not allow in the current state (a caller bug)."""

@@ -7,9 +7,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import typer
 from typer.testing import CliRunner
 
-from mutualslam_cli.cli import app
+from mutualslam_cli.cli import _boundary, app
+from mutualslam_cli.errors import ConfigError, GeometryError, ShapeError, TransitionError
 from synth import make_tum_dir
 
 runner = CliRunner()
@@ -110,3 +112,34 @@ def test_synth_command(tmp_path: Path):
     assert len(list((tmp_path / "s" / "rgb").iterdir())) == 3
     r = runner.invoke(app, ["synth", str(tmp_path / "t"), "--scene", "cave", "--frames", "3", "--size", "64x48"])
     _one_line_error(r, "room")
+
+
+@pytest.mark.parametrize("exc", [ConfigError("adapt.lr: bad"), GeometryError("degenerate")])
+def test_boundary_turns_user_errors_into_exit_1(exc):
+    def fail():
+        raise exc
+
+    with pytest.raises(typer.Exit) as info:
+        _boundary(fail)()
+    assert info.value.exit_code == 1
+
+
+@pytest.mark.parametrize("exc", [ShapeError("x: expected shape [3], got (2,)"), TransitionError("bug"),
+                                 KeyError("bug")])
+def test_boundary_lets_bugs_through(exc):
+    def fail():
+        raise exc
+
+    with pytest.raises(type(exc)):
+        _boundary(fail)()
+
+
+def test_shape_error_in_a_command_keeps_its_traceback(tum_dir: Path, tmp_path: Path, monkeypatch):
+    def boom(*args, **kwargs):
+        raise ShapeError("Trajectory.poses: expected shape [3, 4, 4], got (3, 3, 3)")
+
+    monkeypatch.setattr("mutualslam_cli.pipeline.run_sequence", boom)
+    r = runner.invoke(app, ["run", str(tum_dir), "--out", str(tmp_path / "res")])
+    assert isinstance(r.exception, ShapeError), r.output
+    assert not r.output.lstrip().startswith("error:")
+    assert r.exc_info is not None and r.exc_info[2] is not None  # the traceback is kept

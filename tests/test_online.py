@@ -15,6 +15,7 @@ from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.adapt.regularizers import trainable
 from mutualslam_cli.adapt.schemes import SCHEMES
 from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.geometry import se3_inv
 
 torch.set_num_threads(1)
@@ -209,3 +210,10 @@ def test_real_depthnet_fast_path_runs():
     for s in SCENE[:3]:
         info = ad.add_keyframe(s)
     assert info.trained and all(math.isfinite(v) for v in info.loss.values())
+
+
+def test_bad_settings_are_config_errors():
+    with pytest.raises(ConfigError, match="val_scope"):
+        OnlineAdapter(make_net(), AdaptConfig(), K, val_scope="some")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="validate_every"):
+        OnlineAdapter(make_net(), AdaptConfig(validate_every=0), K)

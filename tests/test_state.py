@@ -6,6 +6,7 @@ import math
 
 import pytest
 
+from mutualslam_cli import errors
 from mutualslam_cli.adapt.state import (Action, FineTuneDone, FsmParams, FsmState, Mode, TrainingKeyframe,
                                         TransitionError, ValidationKeyframe, is_validation_index, step)
 
@@ -90,5 +91,13 @@ def test_never_converged_never_ba():
 
 
 def test_params_reject_bad_m():
-    with pytest.raises(ValueError):
+    with pytest.raises(errors.ConfigError, match="validate_every"):
         FsmParams(m=0)
+    with pytest.raises(errors.ConfigError, match="patience"):
+        FsmParams(n=0)
+
+
+def test_transition_error_is_a_bug_not_a_user_error():
+    """Lives in errors.py, still importable from adapt.state, and keeps its traceback in the CLI."""
+    assert TransitionError is errors.TransitionError
+    assert issubclass(TransitionError, RuntimeError) and not issubclass(TransitionError, errors.MslamError)

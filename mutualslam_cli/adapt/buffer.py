@@ -33,7 +33,7 @@ from typing import Mapping
 import numpy as np
 import torch
 
-from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.errors import ConfigError, KeyframeError
 from mutualslam_cli.types import check_shape
 
 log = logging.getLogger(__name__)
@@ -121,11 +121,11 @@ class KeyframeBuffer:
 
         Raises:
             ShapeError: malformed sample.
-            ValueError: ``kf_id`` not larger than every stored id.
+            KeyframeError: ``kf_id`` not larger than every stored id.
         """
         sample.validate()
         if self._meta and sample.kf_id <= max(self._meta):
-            raise ValueError(f"keyframe ids must increase: got {sample.kf_id} after {max(self._meta)}")
+            raise KeyframeError(f"keyframe ids must increase: got {sample.kf_id} after {max(self._meta)}")
         self._meta[sample.kf_id] = replace(sample, pose=np.asarray(sample.pose, dtype=np.float64))
         self._images[sample.kf_id] = _compact(sample.image)
         if training:
@@ -167,10 +167,10 @@ class KeyframeBuffer:
         """The stored sample (with the latest pose and sparse points).
 
         Raises:
-            KeyError: unknown id or image evicted.
+            KeyframeError: unknown id or image evicted.
         """
         if kf_id not in self._images:
-            raise KeyError(f"keyframe {kf_id} is not stored (unknown or evicted)")
+            raise KeyframeError(f"keyframe {kf_id} is not stored (unknown or evicted)")
         img = self._images[kf_id]
         return replace(self._meta[kf_id], image=img.float().div_(255.0) if img.dtype == torch.uint8 else img)
 

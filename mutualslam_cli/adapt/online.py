@@ -50,6 +50,7 @@ from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.adapt.state import (Action, FineTuneDone, FsmParams, FsmState, TrainingKeyframe,
                                         ValidationKeyframe, is_validation_index, step)
 from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.types import check_shape
 
@@ -107,7 +108,7 @@ class OnlineAdapter:
         reg_mode: ``"prox"`` (default) or ``"penalty"``, how the regulariser enters the update.
 
     Raises:
-        ConfigError: unknown scheme, bad capacity or anchor.
+        ConfigError: unknown scheme, bad capacity, anchor, ``val_scope`` or FSM constants.
     """
 
     def __init__(self, net: nn.Module, cfg: AdaptConfig, K_net: torch.Tensor | np.ndarray, seed: int = 0,
@@ -119,7 +120,7 @@ class OnlineAdapter:
             loss_fn = loss_fn or losses.train_loss
             val_fn = val_fn or losses.sparse_depth_loss
         if val_scope not in ("all", "current"):
-            raise ValueError(f"val_scope must be 'all' or 'current', got {val_scope!r}")
+            raise ConfigError(f"adapt.val_scope = {val_scope!r}: expected 'all' or 'current'")
         self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32)
         check_shape(self.K_net, [3, 3], "OnlineAdapter: K_net")
         torch.manual_seed(seed)

@@ -41,6 +41,8 @@ from dataclasses import dataclass, replace
 from enum import Enum
 from typing import Union
 
+from mutualslam_cli.errors import ConfigError, TransitionError
+
 
 class Mode(str, Enum):
     """The two states of Algorithm 1."""
@@ -54,10 +56,6 @@ class Action(str, Enum):
 
     FINE_TUNE = "fine_tune"
     RUN_GLOBAL_BA = "run_global_ba"
-
-
-class TransitionError(RuntimeError):
-    """An event that Algorithm 1 does not allow in the current state (a caller bug)."""
 
 
 @dataclass(frozen=True)
@@ -76,7 +74,8 @@ class FsmParams:
 
     def __post_init__(self) -> None:
         if self.m < 1 or self.n < 1:
-            raise ValueError(f"FsmParams: m and n must be >= 1, got m={self.m}, n={self.n}")
+            raise ConfigError(f"FsmParams: m (adapt.validate_every) and n (adapt.patience) must be >= 1, "
+                              f"got m={self.m}, n={self.n}")
 
 
 @dataclass(frozen=True)
