@@ -30,7 +30,7 @@ from mutualslam_cli.vo.bootstrap import InitMixin
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.output import VOResult
 from mutualslam_cli.vo.reproject import reproject_points
-from mutualslam_cli.vo.result import build_result
+from mutualslam_cli.vo.result import RunStats, build_result
 from mutualslam_cli.vo.state import Map, Tracks
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 
@@ -332,7 +332,14 @@ class _Frontend(InitMixin):
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
             self.mapper.close()
-        return build_result(self, time.perf_counter() - t_start)
+        return self._result(time.perf_counter() - t_start)
+
+    def _result(self, total_s: float) -> VOResult:
+        """The run's :class:`VOResult` (see :func:`~mutualslam_cli.vo.result.build_result`)."""
+        stats = RunStats(segment=self.segment, init_methods=self.init_methods, timing=self.timing, total_s=total_s,
+                         reprojected=self.n_reprojected, ba_stats=self.mapper.stats,
+                         ba_threaded=self.mapper.pool is not None)
+        return build_result(self.map, self.seq.frames, self.frame_rel, self.frame_seg, self.intr, stats)
 
 
 def run_vo(seq: Sequence, cfg: VOConfig, seed: int = 0,

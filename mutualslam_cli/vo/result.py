@@ -1,18 +1,45 @@
-"""Assembly of the front end's state into a :class:`VOResult` (DESIGN §4)."""
+"""Assembly of the front end's state into a :class:`VOResult` (DESIGN §4).
+
+Knows the map, the per-frame records and a :class:`RunStats`, not the front end itself: the
+front end (:mod:`~mutualslam_cli.vo.frontend`) imports this module, never the other way round.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence as Seq
+from dataclasses import dataclass
 from itertools import combinations
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.types import Trajectory
+from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
 from mutualslam_cli.vo.camera import pinhole
 from mutualslam_cli.vo.output import Keyframe, MapPoints, VOResult
+from mutualslam_cli.vo.state import Map
 
-if TYPE_CHECKING:
-    from mutualslam_cli.vo.frontend import _Frontend
+
+@dataclass(frozen=True)
+class RunStats:
+    """What the front end counted and timed over one run (becomes ``VOResult.meta``).
+
+    Attributes:
+        segment: index of the last tracking segment (-1: never initialised).
+        init_methods: how each segment was initialised, in order.
+        timing: seconds per stage, summed over all frames.
+        total_s: wall time of the whole run.
+        reprojected: map points re-attached by re-projection.
+        ba_stats: one dict per windowed BA (``points``, ``solve_ms``, …).
+        ba_threaded: whether the windowed BA ran on a worker thread.
+    """
+
+    segment: int
+    init_methods: Seq[str]
+    timing: dict[str, float]
+    total_s: float
+    reprojected: int
+    ba_stats: Seq[dict[str, Any]]
+    ba_threaded: bool
 
 
 def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
@@ -29,15 +56,24 @@ def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
     return out
 
 
-def build_result(fe: "_Frontend", total_s: float) -> VOResult:
-    """Final keyframe poses, frame poses re-anchored on them, map points and covisibility."""
-    m = fe.map
+def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, np.ndarray]],
+                 frame_seg: np.ndarray, intr: Intrinsics, stats: RunStats) -> VOResult:
+    """Final keyframe poses, frame poses re-anchored on them, map points and covisibility.
+
+    Args:
+        m: the front end's map (keyframes, points, observations).
+        frames: the sequence's frames (for their timestamps).
+        frame_rel: tracked frame index → (reference keyframe, its ``T_kf,c``).
+        frame_seg: ``(N,)`` tracking segment of every frame, -1 where untracked.
+        intr: the sequence's (possibly distorted) intrinsics; the result is in their pinhole camera.
+        stats: counters and timings of the run.
+    """
     kfs = [Keyframe(k, m.kf_frame[k], m.kf_time[k], m.kf_T_wc[k].copy(), m.kf_segment[k])
            for k in range(len(m.kf_frame))]
-    idx = sorted(fe.frame_rel)
-    ts = np.array([fe.seq.frames[i].timestamp for i in idx])
-    poses = np.stack([m.kf_T_wc[fe.frame_rel[i][0]] @ fe.frame_rel[i][1] for i in idx]) if idx else np.zeros((0, 4, 4))
-    frame_seg = fe.frame_seg.copy()
+    idx = sorted(frame_rel)
+    ts = np.array([frames[i].timestamp for i in idx])
+    poses = np.stack([m.kf_T_wc[frame_rel[i][0]] @ frame_rel[i][1] for i in idx]) if idx else np.zeros((0, 4, 4))
+    frame_seg = frame_seg.copy()
     n = len(m.host)
     obs_k = [np.array(sorted(m.obs[p]), np.int64) for p in range(n)]
     obs_px = [np.array([m.obs[p][k] for k in obs_k[p]], np.float64).reshape(-1, 2) for p in range(n)]
@@ -54,22 +90,23 @@ def build_result(fe: "_Frontend", total_s: float) -> VOResult:
             covis[a][b] = covis[a].get(b, 0) + 1
             covis[b][a] = covis[b].get(a, 0) + 1
     n_frames = len(frame_seg)
-    st = fe.mapper.stats
-    timing = {k: 1000.0 * v / max(n_frames, 1) for k, v in fe.timing.items()}
+    st = stats.ba_stats
+    total_s = stats.total_s
+    timing = {k: 1000.0 * v / max(n_frames, 1) for k, v in stats.timing.items()}
     meta = {
         "mode": "svo",
-        "n_reinit": max(fe.segment, 0),
-        "segments": fe.segment + 1,
+        "n_reinit": max(stats.segment, 0),
+        "segments": stats.segment + 1,
         "gaps": _gaps(frame_seg),
-        "init_methods": list(fe.init_methods),
+        "init_methods": list(stats.init_methods),
         "timing": timing,
         "timing_unit": "ms per frame (mean over all frames)",
         "fps": n_frames / total_s if total_s > 0 else float("nan"),
         "time_s": total_s,
-        "reprojected": fe.n_reprojected,
+        "reprojected": stats.reprojected,
         "local_ba": {"runs": len(st),
                      "mean_points": float(np.mean([s["points"] for s in st])) if st else 0.0,
                      "mean_solve_ms": float(np.mean([s["solve_ms"] for s in st])) if st else 0.0,
-                     "threaded": fe.mapper.pool is not None},
+                     "threaded": stats.ba_threaded},
     }
-    return VOResult(kfs, pts, pinhole(fe.intr), Trajectory(ts, poses), frame_seg, covis, meta)
+    return VOResult(kfs, pts, pinhole(intr), Trajectory(ts, poses), frame_seg, covis, meta)
