@@ -55,7 +55,7 @@ def _loader_and_vo(quick: bool) -> dict[str, Any]:
     from mutualslam_cli.datasets.check import bench_loader
     from mutualslam_cli.datasets.registry import load_sequence
     from mutualslam_cli.errors import MslamError
-    from mutualslam_cli.vo.bench import bench_vo
+    from mutualslam_cli.vo_bench import bench_vo
 
     try:
         seq = load_sequence("tum_fr1_xyz")
