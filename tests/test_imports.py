@@ -1,9 +1,12 @@
-"""Library code never imports the CLI toolkits (typer, rich)."""
+"""Library code never imports the CLI toolkits (typer, rich); the package has no import cycles."""
 
 from __future__ import annotations
 
+import ast
+import itertools
 import subprocess
 import sys
+from pathlib import Path
 
 
 def test_library_does_not_import_typer_or_rich():
@@ -17,3 +20,183 @@ def test_library_does_not_import_typer_or_rich():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "", f"library imported {out.stdout.strip()}"
+
+
+# --------------------------------------------------------------------------- import graph
+
+PACKAGE = "mutualslam_cli"
+ROOT = Path(__file__).resolve().parents[1] / PACKAGE
+
+
+def _module_names(root: Path = ROOT) -> dict[str, Path]:
+    """Every module of the package: dotted name → file (a package is its ``__init__.py``)."""
+    out = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = (PACKAGE,) + path.relative_to(root).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
+    """Intra-package modules ``name`` imports anywhere in its file (module level, in functions,
+    under ``TYPE_CHECKING``): ``from a import b`` counts as importing ``a.b`` when ``b`` is a
+    module, else ``a``; relative imports are resolved against ``name``'s package."""
+    is_pkg = path.name == "__init__.py"
+    package = name.split(".") if is_pkg else name.split(".")[:-1]
+    found: set[str] = set()
+
+    def add(target: str) -> None:
+        # `import a.b.c.d` where d is an attribute: the longest prefix that is a module
+        while target and target not in modules:
+            target = target.rpartition(".")[0]
+        if target and target != name:
+            found.add(target)
+
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name == PACKAGE or alias.name.startswith(PACKAGE + "."):
+                    add(alias.name)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[: len(package) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if not (target == PACKAGE or target.startswith(PACKAGE + ".")):
+                continue
+            for alias in node.names:
+                sub = f"{target}.{alias.name}"
+                add(sub if sub in modules else target)
+    return found
+
+
+def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """Module → the intra-package modules it imports."""
+    modules = _module_names(root)
+    return {name: _imports(name, path, modules) for name, path in modules.items()}
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[tuple[list[str], list[str]]]:
+    """Every strongly connected component of more than one module (Tarjan), each as
+    ``(cycle, component)``: ``cycle`` is a shortest ``[a, b, …, a]`` through the component's
+    first module, ``component`` all its modules, sorted; components in a stable order."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    sccs: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                sccs.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    out = []
+    for comp in sorted(sccs):
+        members, start = set(comp), comp[0]
+        prev: dict[str, str] = {start: start}
+        frontier, last = [start], None
+        while last is None:  # breadth first from start until an arrow leads back to it
+            nxt = []
+            for v in frontier:
+                if start in graph[v]:
+                    last = v
+                    break
+                for w in sorted(graph[v] & members):
+                    if w not in prev:
+                        prev[w] = v
+                        nxt.append(w)
+            frontier = nxt
+        path = [last]
+        while path[-1] != start:
+            path.append(prev[path[-1]])
+        out.append((path[::-1] + [start], comp))
+    return out
+
+
+def _describe(cycles: list[tuple[list[str], list[str]]]) -> str:
+    lines = []
+    for cycle, comp in cycles:
+        lines.append(" → ".join(cycle))
+        if len(comp) > len(cycle) - 1:
+            lines.append(f"    (one tangle with: {', '.join(m for m in comp if m not in cycle)})")
+    return "\n".join(lines)
+
+
+def test_cycle_finder_on_a_known_graph():
+    g = {"a": {"b"}, "b": {"c", "x"}, "c": {"a"}, "d": {"a", "e"}, "e": {"d", "b"}, "f": set(), "x": set()}
+    assert import_cycles(g) == [(["a", "b", "c", "a"], ["a", "b", "c"]), (["d", "e", "d"], ["d", "e"])]
+    g = {"a": {"b"}, "b": {"a", "c"}, "c": {"b"}}
+    assert import_cycles(g) == [(["a", "b", "a"], ["a", "b", "c"])]
+    assert "one tangle with: c" in _describe(import_cycles(g))
+    assert import_cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_import_graph_resolves_relative_and_submodule_imports(tmp_path: Path):
+    pkg = tmp_path / PACKAGE
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "top.py").write_text("import os\n\ndef f():\n    from mutualslam_cli.sub import leaf\n")
+    (pkg / "sub" / "__init__.py").write_text("from . import other\n")
+    (pkg / "sub" / "leaf.py").write_text("from .other import X\nimport mutualslam_cli.top\n")
+    (pkg / "sub" / "other.py").write_text(
+        "from typing import TYPE_CHECKING\nfrom mutualslam_cli.sub import Y\n"
+        "if TYPE_CHECKING:\n    from ..sub import leaf as _leaf\n")
+    g = import_graph(pkg)
+    P = PACKAGE
+    assert g == {
+        P: set(),
+        f"{P}.top": {f"{P}.sub.leaf"},
+        f"{P}.sub": {f"{P}.sub.other"},
+        f"{P}.sub.leaf": {f"{P}.sub.other", f"{P}.top"},
+        f"{P}.sub.other": {f"{P}.sub", f"{P}.sub.leaf"},
+    }
+    (cycle, comp), = import_cycles(g)
+    assert cycle == [f"{P}.sub", f"{P}.sub.other", f"{P}.sub"]
+    assert comp == [f"{P}.sub", f"{P}.sub.leaf", f"{P}.sub.other", f"{P}.top"]
+
+
+def test_no_import_cycles():
+    """Every import arrow inside the package points one way (a cycle couples its modules and
+    breaks as soon as one of them imports the other at module level)."""
+    cycles = import_cycles(import_graph())
+    assert not cycles, "import cycles inside the package:\n" + _describe(cycles)
+
+
+def test_no_import_cycles_between_subpackages():
+    """Layers: collapsed to the package's top-level parts (``vo``, ``adapt``, ``evaluation``, …), the
+    arrows still point one way, e.g. ``vo`` never imports a module that imports ``vo``."""
+    def top(m: str) -> str:
+        return ".".join(m.split(".")[:2])
+
+    modules = import_graph()
+    graph: dict[str, set[str]] = {}
+    for m, deps in modules.items():
+        graph.setdefault(top(m), set()).update(top(d) for d in deps if top(d) != top(m))
+    cycles = import_cycles(graph)
+    steps = {(a, b) for cycle, _ in cycles for a, b in itertools.pairwise(cycle)}
+    arrows = sorted(f"{m} → {d}" for m, deps in modules.items() for d in deps if (top(m), top(d)) in steps)
+    assert not cycles, ("import cycles between parts of the package:\n" + _describe(cycles)
+                        + "\nmade of:\n" + "\n".join(arrows))
