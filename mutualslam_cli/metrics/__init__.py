@@ -4,7 +4,8 @@
 Library code only (numpy, OpenCV for resizing); each formula cites its source next to the line.
 """
 
-from mutualslam_cli.metrics.alignment import GeometryError, umeyama
+from mutualslam_cli.errors import GeometryError
+from mutualslam_cli.metrics.alignment import umeyama
 from mutualslam_cli.metrics.depth import (
     DepthStats,
     depth_frame_metrics,

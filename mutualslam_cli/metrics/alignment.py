@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from mutualslam_cli.errors import ConfigError, MslamError
+from mutualslam_cli.errors import ConfigError, GeometryError
 from mutualslam_cli.types import check_shape
 
+__all__ = ["ALIGNMENTS", "GeometryError", "align_positions", "check_alignment", "sim3_matrix", "umeyama"]
+
 ALIGNMENTS = ("sim3", "se3", "none")
-
-
-class GeometryError(MslamError):
-    """An alignment is degenerate (too few pairs, all positions identical or collinear)."""
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> tuple[np.ndarray, np.ndarray, float]:

@@ -24,10 +24,9 @@ from typing import Any, Literal
 import numpy as np
 
 from mutualslam_cli.datasets.associate import MAX_DT, associate
-from mutualslam_cli.errors import ConfigError, DatasetError
+from mutualslam_cli.errors import ConfigError, DatasetError, GeometryError
 from mutualslam_cli.metrics.alignment import (  # noqa: F401  (ALIGNMENTS, umeyama: importable from here too)
     ALIGNMENTS,
-    GeometryError,
     align_positions,
     check_alignment,
     umeyama,
