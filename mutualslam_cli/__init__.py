@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import logging
 
-from mutualslam_cli.errors import ConfigError, DatasetError, MslamError, ShapeError, TrackingLost
+from mutualslam_cli.errors import ConfigError, DatasetError, MslamError, ShapeError
 
 __version__ = "0.1.0"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
-__all__ = ["ConfigError", "DatasetError", "MslamError", "ShapeError", "TrackingLost", "__version__"]
+__all__ = ["ConfigError", "DatasetError", "MslamError", "ShapeError", "__version__"]

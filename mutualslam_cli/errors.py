@@ -43,19 +43,13 @@ class GeometryError(MslamError):
     """An alignment is degenerate (too few pairs, all positions identical or collinear)."""
 
 
-class KeyframeError(MslamError, ValueError):
+class KeyframeError(MslamError):
     """The keyframe buffer cannot serve a keyframe id.
 
     Raised by :class:`~mutualslam_cli.adapt.buffer.KeyframeBuffer` for an id that is not stored
     (unknown or evicted; formerly ``KeyError``) and for an id that does not increase (formerly
-    ``ValueError``). It stays a ``ValueError`` so callers that caught the old out-of-order error
-    keep working.
+    ``ValueError``).
     """
-
-
-class TrackingLost(MslamError):
-    """Reserved: the VO front end lost track (never raised; the front end re-initialises and
-    records a gap). Kept because the package re-exports it (``mutualslam_cli.__all__``)."""
 
 
 class ShapeError(ValueError):

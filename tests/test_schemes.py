@@ -10,7 +10,7 @@ import torch
 
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
 from mutualslam_cli.adapt.schemes import SCHEMES, get_scheme
-from mutualslam_cli.errors import ConfigError, ShapeError
+from mutualslam_cli.errors import ConfigError, KeyframeError, ShapeError
 
 
 def sample(k: int, m: int = 3) -> KeyframeSample:
@@ -129,5 +129,5 @@ def test_bad_sample_and_order():
     with pytest.raises(ShapeError):
         b.add(bad, training=True)
     b.add(sample(3), training=True)
-    with pytest.raises(ValueError):
+    with pytest.raises(KeyframeError):
         b.add(sample(2), training=True)

@@ -10,7 +10,7 @@ import pytest
 
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.vo.bench import vo_accuracy
+from mutualslam_cli.vo_bench import vo_accuracy
 from mutualslam_cli.vo.frontend import run_vo
 
 pytestmark = pytest.mark.data
