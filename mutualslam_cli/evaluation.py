@@ -20,6 +20,7 @@ import torch
 from mutualslam_cli import results as res
 from mutualslam_cli.adapt.inputs import make_predictor
 from mutualslam_cli.config import RunConfig, to_dict
+from mutualslam_cli.datasets.associate import MAX_DT
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics import trajectory as tm
@@ -134,7 +135,7 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
     return table, ms
 
 
-def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = 0.02) -> dict[str, object]:
+def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = MAX_DT) -> dict[str, object]:
     """Sim(3)-aligned ATE of keyframes and of all tracked frames against the stored GT.
 
     Re-initialised front ends (several segments) are aligned per segment (each has its own scale);

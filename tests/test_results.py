@@ -57,3 +57,19 @@ def test_run_dir_layout(tmp_path: Path):
     d = res.run_dir(tmp_path, "tum_fr1_xyz", "replay+ewc", 2)
     assert d == tmp_path / "tum_fr1_xyz" / "replay+ewc" / "seed2"
     assert not res.is_complete(d)
+
+
+def test_atomic_writes_have_the_usual_permissions(tmp_path):
+    """Result files are readable like any other output (mkstemp alone would leave them 0600)."""
+    import stat
+
+    from mutualslam_cli import atomic
+
+    path = tmp_path / "x.txt"
+    atomic.atomic_write_text(path, "hello")
+    assert path.read_text() == "hello"
+    plain = tmp_path / "plain.txt"
+    with open(plain, "w") as f:  # what open() gives under this process's umask
+        f.write("x")
+    assert stat.S_IMODE(path.stat().st_mode) == stat.S_IMODE(plain.stat().st_mode) == 0o666 & ~atomic._UMASK
+    assert not list(tmp_path.glob(".x.txt.*"))  # no temporary file left behind

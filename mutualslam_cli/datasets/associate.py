@@ -14,7 +14,6 @@ Every reader accepts a path or a text stream (``io.StringIO``) and raises
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +21,7 @@ from typing import IO, Union
 
 import numpy as np
 
+from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import interpolate_pose, pose_from_tq, rot_to_quat
 from mutualslam_cli.types import Trajectory
@@ -185,16 +185,7 @@ def write_tum_trajectory(
     if not isinstance(dst, (str, os.PathLike)):
         dst.write(text)
         return
-    path = Path(dst)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(dst, text)
 
 
 def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = MAX_DT, offset: float = 0.0) -> list[tuple[int, int]]:
