@@ -32,8 +32,8 @@ demo: install
 	$(MSLAM) run $(DEMO_DIR)/data/room --out $(DEMO_DIR) --force
 	$(MSLAM) report $(DEMO_DIR) --out $(DEMO_DIR)/report
 
-# CI: everything but `slow` (tests marked `data` run when ../shared/data exists, else skip).
-test: install
+# CI: lint, then everything but `slow` (tests marked `data` run when ../shared/data exists, else skip).
+test: install lint
 	$(PY) -m pytest -q -m "not slow and not gpu" $(PYTEST_ARGS)
 
 test-all: install
@@ -45,8 +45,9 @@ bench: install
 weights: install
 	$(MSLAM) pretrain
 
+# The rule set lives in pyproject.toml ([tool.ruff.lint]); a finding fails the target (and `make test`).
 lint: install
-	$(PY) -m ruff check mutualslam_cli tests || echo "ruff not installed: pip install ruff"
+	$(PY) -m ruff check mutualslam_cli tests
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

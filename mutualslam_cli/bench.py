@@ -129,7 +129,8 @@ def _table(res: dict[str, Any]) -> str:
         if v is not None:
             lines.append(f"| {what} | {v:.3g} | {tgt} |")
     if "reference_ms_start" in res:
-        lines.append(f"\nmachine yardstick (fixed Python loop, ms; lower = faster): {res['reference_ms_start']:.0f} at the "
+        lines.append("\nmachine yardstick (fixed Python loop, ms; lower = faster): "
+                     f"{res['reference_ms_start']:.0f} at the "
                      f"start, {res.get('reference_ms_end', float('nan')):.0f} at the end")
     if "vo_ms_per_frame" in res:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in res["vo_ms_per_frame"].items())

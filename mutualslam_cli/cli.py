@@ -176,7 +176,8 @@ def ate(
     ref: Path = typer.Argument(..., help="Reference TUM trajectory (timestamp tx ty tz qx qy qz qw)."),
     est: Path = typer.Argument(..., help="Estimated TUM trajectory."),
     align: str = typer.Option("sim3", "--align", help="sim3 | se3 | none"),
-    max_dt: Optional[float] = typer.Option(None, "--max-dt", help="Association threshold, s (default eval.ate_max_dt)."),
+    max_dt: Optional[float] = typer.Option(None, "--max-dt",
+                                           help="Association threshold, s (default eval.ate_max_dt)."),
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
@@ -200,7 +201,8 @@ def ate(
 @app.command()
 @_boundary
 def pretrain(
-    out: Optional[Path] = typer.Option(None, "--out", help="Folder for encoder.pth/depth.pth (default: the default model)."),
+    out: Optional[Path] = typer.Option(None, "--out",
+                                       help="Folder for encoder.pth/depth.pth (default: the default model)."),
     steps: int = typer.Option(1150, "--steps", min=1, help="Training steps (the shipped model: 1150)."),
     batch_size: int = typer.Option(4, "--batch-size", min=1),
     seed: Optional[int] = typer.Option(None, "--seed", help="Default: the config's seed."),
@@ -217,7 +219,8 @@ def pretrain(
     cfg = _config(config, sets)
     seed = cfg.seed if seed is None else seed
     out = out or default_weights_dir()
-    kwargs: dict[str, Any] = {"width": cfg.net.width, "height": cfg.net.height, "steps": steps, "batch_size": batch_size, "seed": seed, "threads": threads,
+    kwargs: dict[str, Any] = {"width": cfg.net.width, "height": cfg.net.height, "steps": steps,
+                              "batch_size": batch_size, "seed": seed, "threads": threads,
                               "max_minutes": max_minutes, "drop_fc": True, "pool_size": 240, "eval_frames": 6}
     if quick:
         kwargs.update(pt.QUICK)
@@ -239,7 +242,8 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
     from mutualslam_cli.results import flatten
 
     f = flatten(s)
-    t = Table("metric", "pre-trained", "adapted", title=f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}")
+    t = Table("metric", "pre-trained", "adapted",
+              title=f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}")
     for label, key in (("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")):
         t.add_row(label, _fmt(f.get(f"{key}.pretrained"), 2), _fmt(f.get(f"{key}.adapted"), 2))
     console.print(t)
@@ -372,7 +376,8 @@ def ablate(
 @_boundary
 def report(
     results: list[Path] = typer.Argument(..., help="Result folders (searched recursively for summary.json)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Folder for tables and plots (default <config out>/report)."),
+    out: Optional[Path] = typer.Option(None, "--out",
+                                       help="Folder for tables and plots (default <config out>/report)."),
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
 ) -> None:

@@ -72,7 +72,8 @@ def write_tum_dir(root: Path, n: int = 6, fy: float = F, depth_bits: int = 16, g
     (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
     if gt:
         gts = times if gt_times is None else np.asarray(gt_times)
-        write_tum_trajectory(root / "groundtruth.txt", Trajectory(gts, np.stack([POSES[k % len(POSES)] for k in range(len(gts))])))
+        poses = np.stack([POSES[k % len(POSES)] for k in range(len(gts))])
+        write_tum_trajectory(root / "groundtruth.txt", Trajectory(gts, poses))
     if intrinsics_txt:
         (root / "intrinsics.txt").write_text(f"{F} {fy} {(W - 1) / 2} {(H - 1) / 2} {W} {H}\n")
     return root
@@ -90,7 +91,8 @@ def write_icl_dir(root: Path, n: int = 6, first: int = 0, fy: float = -F, gt_fro
         lines.append(f"{k} depth/{k}.png {k} rgb/{k}.png")
     (root / "associations.txt").write_text("\n".join(lines) + "\n")
     ks = np.arange(max(first, gt_from), first + n)
-    write_tum_trajectory(root / "scene.gt.freiburg", Trajectory(ks.astype(float), np.stack([POSES[k % len(POSES)] for k in ks])))
+    poses = np.stack([POSES[k % len(POSES)] for k in ks])
+    write_tum_trajectory(root / "scene.gt.freiburg", Trajectory(ks.astype(float), poses))
     return root
 
 
@@ -177,7 +179,8 @@ def test_8bit_depth_png_raises_in_check(tmp_path):
 
 def test_no_gt_overlap_message(tmp_path):
     root = write_tum_dir(tmp_path / "seq_fr1", gt_times=np.arange(6) * 0.1 + 500.0)
-    with pytest.raises(DatasetError, match=r"no GT overlap: images span 100\.0+–100\.50+ s, GT spans 500\.0+–500\.50+ s"):
+    msg = r"no GT overlap: images span 100\.0+–100\.50+ s, GT spans 500\.0+–500\.50+ s"
+    with pytest.raises(DatasetError, match=msg):
         load_sequence(root)
 
 
@@ -289,7 +292,8 @@ def test_ray_to_z_centre_and_corner():
 # ----------------------------------------------------------------------------- registry
 def test_autodetect_unknown_folder_lists_what_was_looked_for(tmp_path):
     (tmp_path / "junk").mkdir()
-    with pytest.raises(DatasetError, match=r"looked for associations\.txt \+ \*\.gt\.freiburg .*rgb\.txt .*scene_00_NNNN\.png"):
+    msg = r"looked for associations\.txt \+ \*\.gt\.freiburg .*rgb\.txt .*scene_00_NNNN\.png"
+    with pytest.raises(DatasetError, match=msg):
         load_sequence(tmp_path / "junk")
 
 

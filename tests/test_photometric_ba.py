@@ -117,8 +117,8 @@ def test_solve_recovers_poses_depths_affine_and_scale(scene):
     assert e_rho1 * 3 <= e_rho0
     # DSO model: I_3 − b_3 = exp(a_3 − a_h)(I_h − b_h) with a = b = 0 elsewhere
     a3, b3 = res.affine[3]
-    I = np.linspace(0.1, 0.9, 9)
-    np.testing.assert_allclose(np.exp(a3) * I + b3, 1.1 * I + 0.02, atol=5e-3)
+    grey = np.linspace(0.1, 0.9, 9)
+    np.testing.assert_allclose(np.exp(a3) * grey + b3, 1.1 * grey + 0.02, atol=5e-3)
     assert np.abs(np.delete(res.affine, 3, axis=0)).max() < 0.01
     np.testing.assert_array_equal(res.T_cw[0], start.T_cw[0])
     np.testing.assert_array_equal(res.affine[0], start.affine[0])

@@ -286,7 +286,8 @@ def pretrain(out_dir: Path, steps: int, width: int = 640, height: int = 192, bat
     return record
 
 
-def evaluate_pcd(net: DepthNet, width: int, height: int, n_frames: int, scenes: Sequence[str] = ("room", "planar", "far"),
+def evaluate_pcd(net: DepthNet, width: int, height: int, n_frames: int,
+                 scenes: Sequence[str] = ("room", "planar", "far"),
                  fast: bool = False, domain: str = "target", seeds: Sequence[int] = (0,),
                  stride: int = 5) -> dict[str, float]:
     """Mean per-frame PCD (median scaling, DESIGN §7) on synthetic sequences, per scene and overall.

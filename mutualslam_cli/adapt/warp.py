@@ -50,7 +50,8 @@ def project_to_source(depth_t: torch.Tensor, K: torch.Tensor, T_t2s: torch.Tenso
     return uv, pts_s[:, 2:3].reshape(b, 1, h, w)
 
 
-def warp(src: torch.Tensor, depth_t: torch.Tensor, K: torch.Tensor, T_t2s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def warp(src: torch.Tensor, depth_t: torch.Tensor, K: torch.Tensor,
+         T_t2s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Reconstruct the target view from ``src``: ``I_{s→i}(p) = I_s(p')`` (Eq. 5), bilinear.
 
     Args:

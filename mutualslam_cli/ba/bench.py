@@ -3,7 +3,8 @@
 ``python -m mutualslam_cli.ba.bench`` builds 100 keyframes × 10 000 points (≤ 5 targets, 3×3
 patch), perturbs poses and inverse depths, runs 10 LM iterations three times and prints the
 median wall time (``--levels L`` adds ``--coarse-iterations`` per coarser pyramid level,
-each costing about as much as a full-resolution iteration). The scene is a few textured planes rendered by analytic ray–plane
+each costing about as much as a full-resolution iteration). The scene is a few textured planes rendered by analytic
+ray–plane
 intersection, so residuals vanish (up to bilinear interpolation) at the true state.
 """
 

@@ -130,7 +130,8 @@ def check_all(names: list[str] | None = None, registry_path: str | os.PathLike |
     """Check several registry entries; a failing entry gives its exception instead of a report."""
     from mutualslam_cli.datasets.registry import list_datasets
 
-    specs = list_datasets(registry_path, data_root) if names is None else [get_spec(n, registry_path, data_root) for n in names]
+    specs = (list_datasets(registry_path, data_root) if names is None
+             else [get_spec(n, registry_path, data_root) for n in names])
     out: list[CheckReport | Exception] = []
     for spec in specs:
         try:

@@ -72,7 +72,8 @@ def load_icl(spec: SequenceSpec) -> Sequence:
     if not root.is_dir():
         raise DatasetError(f"{root}: sequence folder not found (registry entry '{spec.name}')")
     if not (root / "associations.txt").is_file():
-        raise DatasetError(f"{root / 'associations.txt'}: not found (expected lines 'idx depth/idx.png idx rgb/idx.png')")
+        raise DatasetError(f"{root / 'associations.txt'}: not found "
+                           "(expected lines 'idx depth/idx.png idx rgb/idx.png')")
     times, rgb, depth, assoc = frames_from_associations(root, depth_first=True)
     if len(rgb) == 0:
         raise DatasetError(f"{root / 'associations.txt'}: empty sequence: no frames listed")
@@ -82,7 +83,8 @@ def load_icl(spec: SequenceSpec) -> Sequence:
     intr = _icl_intrinsics(spec, image_size(rgb[0]))
     meta: dict[str, Any] = {"format": "icl", "association": assoc, "gt_file": gt_name, "intrinsics_source":
                             "spec" if spec.intrinsics is not None else "ICL-NUIM default"}
-    seq = Sequence(spec.name, root, intr, float(spec.depth_scale), make_frames(times, rgb, list(depth), poses), gt, meta)
+    frames = make_frames(times, rgb, list(depth), poses)
+    seq = Sequence(spec.name, root, intr, float(spec.depth_scale), frames, gt, meta)
     return apply_fy_sign(seq, spec.extra.get("fy_sign", "auto"), fallback=_spec_sign(spec))
 
 
@@ -124,7 +126,7 @@ def read_povray_camera(path: Path) -> np.ndarray:
     the file's (ICL-NUIM living room: metres).
     """
     vals: dict[str, np.ndarray] = {}
-    for k, raw in enumerate(path.read_text().splitlines(), start=1):
+    for raw in path.read_text().splitlines():
         if "=" not in raw:
             continue
         key, val = raw.split("=", 1)
@@ -135,7 +137,8 @@ def read_povray_camera(path: Path) -> np.ndarray:
         if len(pos) != 3 or len(d) != 3 or len(up) != 3:
             raise KeyError
     except KeyError:
-        raise DatasetError(f"{path}: expected POV-Ray camera lines 'cam_pos = [x, y, z]'', 'cam_dir = …', 'cam_up = …'") from None
+        raise DatasetError(f"{path}: expected POV-Ray camera lines "
+                           "'cam_pos = [x, y, z]', 'cam_dir = …', 'cam_up = …'") from None
     z = d / np.linalg.norm(d)
     x = np.cross(up, z)
     x /= np.linalg.norm(x)

@@ -108,7 +108,10 @@ def frames_from_associations(root: Path, depth_first: bool) -> tuple[np.ndarray,
     ta = listing.timestamps
     pa = [c[0] for c in listing.columns]
     pb = [c[2] for c in listing.columns]
-    rgb_rel, depth_rel, times = (pb, pa, np.array([float(c[1]) for c in listing.columns])) if depth_first else (pa, pb, ta)
+    if depth_first:
+        rgb_rel, depth_rel, times = pb, pa, np.array([float(c[1]) for c in listing.columns])
+    else:
+        rgb_rel, depth_rel, times = pa, pb, ta
     rgb = check_files(root, listing, rgb_rel, entries)
     depth = check_files(root, listing, depth_rel, entries)
     meta = {"source": "associations.txt", "pairs": len(listing), "depth_first": depth_first}

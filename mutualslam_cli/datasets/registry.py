@@ -90,7 +90,8 @@ def spec_from_entry(name: str, entry: dict[str, Any], registry_file: Path,
         if depth_scale <= 0:
             raise ValueError
     except (TypeError, ValueError):
-        raise DatasetError(f"{where}: depth_scale must be a positive number, got {entry.get('depth_scale')!r}") from None
+        raise DatasetError(f"{where}: depth_scale must be a positive number, "
+                           f"got {entry.get('depth_scale')!r}") from None
     extra = {k: v for k, v in entry.items() if k not in _KNOWN_KEYS}
     gt = entry.get("gt")
     return SequenceSpec(name, resolve_root(str(entry["root"]), registry_file, data_root), fmt, intr,

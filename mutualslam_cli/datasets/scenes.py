@@ -124,7 +124,7 @@ def _place(rng: np.random.Generator, boxes: list[Box], n: int, region_lo, region
         hi_xy = lo_xy + size[:2]
         if np.all(lo_xy < keepout_hi) and np.all(hi_xy > keepout_lo):
             continue
-        if any(np.all(lo_xy < h + 0.05) and np.all(hi_xy > l - 0.05) for l, h in placed):
+        if any(np.all(lo_xy < h + 0.05) and np.all(hi_xy > lo - 0.05) for lo, h in placed):
             continue
         placed.append((lo_xy, hi_xy))
         lo = np.array([lo_xy[0], lo_xy[1], z0])

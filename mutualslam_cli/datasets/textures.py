@@ -290,7 +290,7 @@ def build_atlas(textures: list[np.ndarray], a_min: np.ndarray, b_min: np.ndarray
     image[:, :W0] = base
     lx, ly = [0.0], [0.0]
     lvl, yy = base, 0
-    for lev in range(1, N_LEVELS):
+    for _ in range(1, N_LEVELS):
         lvl = cv2.resize(lvl, (lvl.shape[1] // 2, lvl.shape[0] // 2), interpolation=cv2.INTER_AREA)
         image[yy:yy + lvl.shape[0], W0:W0 + lvl.shape[1]] = lvl
         lx.append(float(W0))

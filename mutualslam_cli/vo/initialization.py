@@ -174,7 +174,8 @@ def _rival_too_short(x0: np.ndarray, x1: np.ndarray, thr: float, T_best: np.ndar
             continue
         T = _two_view_ba(x0, x1, T, Xh, gh, thr)
         Xh, gh, par, _ = _check(x0, x1, T, thr)
-        if gh.sum() >= min_points and par < MIN_PARALLAX_DEG and _cost(x0, x1, T, Xh, thr) <= PLAUSIBLE_COST_RATIO * c_best:
+        if (gh.sum() >= min_points and par < MIN_PARALLAX_DEG
+                and _cost(x0, x1, T, Xh, thr) <= PLAUSIBLE_COST_RATIO * c_best):
             return True
     return False
 

@@ -124,7 +124,8 @@ def run_oracle(seq: Sequence, cfg: VOConfig, seed: int = 0,
         if len(cand) == 0:
             continue
         uv, z = project(transform(se3_inv(kf.pose), pw[cand]), K)
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= pin.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= pin.height - 1)
+        inside = ((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= pin.width - 1)
+                  & (uv[:, 1] >= 0) & (uv[:, 1] <= pin.height - 1))
         dz = _lookup(depths[k], _distort(uv, intr))
         vis = inside & (dz > 0) & (np.abs(dz - z) < OBS_DEPTH_TOL * np.maximum(z, 1e-6))
         for i, p in zip(cand[vis], uv[vis]):
