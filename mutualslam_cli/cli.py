@@ -277,16 +277,9 @@ def run(
     from mutualslam_cli.pipeline import run_sequence
 
     cfg = _config(config, sets, data_root)
-    over: dict[str, dict[str, Any]] = {}
-    if scheme:
-        over["adapt"] = {"scheme": scheme}
-    if vo:
-        over["vo"] = {"mode": vo}
-    if weights:
-        over["net"] = {"weights": str(weights)}
-    cfg = with_overrides(cfg, **over)
-    if seed is not None:
-        cfg = with_overrides(cfg, seed=seed)  # type: ignore[arg-type]
+    over = {"adapt": {"scheme": scheme} if scheme else None, "vo": {"mode": vo} if vo else None,
+            "net": {"weights": str(weights)} if weights else None, "seed": seed}
+    cfg = with_overrides(cfg, **{k: v for k, v in over.items() if v is not None})  # type: ignore[arg-type]
     get_scheme(cfg.adapt.scheme)  # unknown name → ConfigError listing valid ones, before any work
     with _progress() as p:
         tasks: dict[str, Any] = {}
