@@ -125,7 +125,11 @@ class AdaptConfig:
 @dataclass(frozen=True)
 class BAConfig:
     enabled: bool = True
-    """Run map-point culling and global photometric BA when Algorithm 1 triggers it."""
+    """Run map-point culling and global photometric BA when Algorithm 1 triggers it and once at
+    the end of the run (``false``: neither, the VO map and trajectory as they are)."""
+    culling: bool = True
+    """Cull map points with the adapted depth (Eq. 10) before each BA; ``false`` = BA without
+    culling (the paper's Table 5 middle rows)."""
     gamma: float = 0.5
     """γ of the culling rule (Eq. 10)."""
     d_max: float = 1.5
