@@ -197,9 +197,9 @@ def read_summary(folder: Path) -> dict[str, Any]:
 # ----------------------------------------------------------------------------- files of a run
 
 
-def write_trajectories(folder: Path, traj_kf: Trajectory, traj_all: Trajectory) -> None:
-    """``traj_kf.txt`` and ``traj_all.txt`` in TUM format (atomic)."""
-    for name, traj in (("traj_kf.txt", traj_kf), ("traj_all.txt", traj_all)):
+def write_trajectories(folder: Path, traj_kf: Trajectory, traj_all: Trajectory, suffix: str = "") -> None:
+    """``traj_kf<suffix>.txt`` and ``traj_all<suffix>.txt`` in TUM format (atomic)."""
+    for name, traj in ((f"traj_kf{suffix}.txt", traj_kf), (f"traj_all{suffix}.txt", traj_all)):
         buf = io.StringIO()
         write_tum_trajectory(buf, traj)
         atomic_write_text(folder / name, buf.getvalue())
@@ -232,7 +232,15 @@ def summarise_frontend(summary: Summary, *, keyframes: int, tracked_fraction: fl
     else:
         summary.set("timing.vo_fps", frames / vo_time_s if vo_time_s > 0 else None)
     summary.set("map.points.vo", map_points)
-    for key, name in (("kf", "trajectory.ate_rmse_m.vo"), ("all", "trajectory.ate_rmse_m.all_frames")):
+    _set_ate(summary, traj, {"kf": "trajectory.ate_rmse_m.vo", "all": "trajectory.ate_rmse_m.all_frames"})
+    if vo_mode != "svo":
+        summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
+    summary.set("map.esi.vo", map_esi, "no map point has GT depth at its host pixel")
+
+
+def _set_ate(summary: Summary, traj: dict[str, Any], names: dict[str, str]) -> None:
+    """RMSE of :func:`~mutualslam_cli.evaluation.evaluate_trajectory`'s ``kf``/``all`` under ``names``."""
+    for key, name in names.items():
         r = traj[key]
         if r is None:
             summary.absent(name, traj["notes"].get(key, traj["notes"].get("trajectory", "not computed")))
@@ -240,9 +248,51 @@ def summarise_frontend(summary: Summary, *, keyframes: int, tracked_fraction: fl
             summary.set(name, float(r.rmse))
             if getattr(r, "note", None):  # re-initialised VO: each segment aligned on its own
                 summary.notes[name] = r.note
-    if vo_mode != "svo":
-        summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
-    summary.set("map.esi.vo", map_esi, "no map point has GT depth at its host pixel")
+
+
+#: ``summary.json`` keys of culling and global BA (DESIGN §8).
+BA_KEYS = ("trajectory.ate_rmse_m.ba", "map.points.culled", "map.points.ba", "map.esi.culled", "map.esi.ba",
+           "timing.ba_s")
+
+
+def summarise_ba_absent(summary: Summary, reason: str, requested: int) -> None:
+    """Every BA key ``null`` with ``reason``; ``ba.requested``: Algorithm 1's requests."""
+    for key in BA_KEYS:
+        summary.absent(key, reason)
+    summary.set("ba.triggers", 0)
+    summary.set("ba.requested", requested)
+
+
+def summarise_ba(summary: Summary, *, traj: dict[str, Any], points_culled: int | None, esi_culled: float,
+                 points_ba: int, esi_ba: float, ba_s: float, runs: list[dict[str, Any]], requested: int,
+                 no_culling: str | None = None) -> None:
+    """Culling and global BA (paper Tables 4–5): ``trajectory.ate_rmse_m.{ba,all_frames_ba}``,
+    ``map.{points,esi}.{culled,ba}``, ``timing.ba_s`` and ``ba.*``.
+
+    Args:
+        traj: :func:`~mutualslam_cli.evaluation.evaluate_trajectory` of the map after the final BA.
+        points_culled, esi_culled: the front end's map without every point culled (its own depths).
+        points_ba, esi_ba: the map after the final BA.
+        ba_s: seconds of every culling + BA (Algorithm 1's triggers and the final one).
+        runs: ``stats`` of each :func:`~mutualslam_cli.ba.global_ba.run_global_ba`, the final last.
+        requested: times Algorithm 1 requested global BA.
+        no_culling: why there was no culling (``map.*.culled`` are then null with it).
+    """
+    _set_ate(summary, traj, {"kf": "trajectory.ate_rmse_m.ba", "all": "trajectory.ate_rmse_m.all_frames_ba"})
+    if no_culling:
+        summary.absent("map.points.culled", no_culling)
+        summary.absent("map.esi.culled", no_culling)
+    else:
+        summary.set("map.points.culled", points_culled)
+        summary.set("map.esi.culled", esi_culled, "no kept map point has GT depth at its host pixel")
+    summary.set("map.points.ba", points_ba)
+    summary.set("map.esi.ba", esi_ba, "no map point has GT depth at its host pixel after BA")
+    summary.set("timing.ba_s", ba_s)
+    summary.set("ba.triggers", len(runs) - 1)
+    summary.set("ba.requested", requested)
+    final = runs[-1]
+    for key in ("n_rehosted", "n_refined", "n_unrefined", "n_targets", "iterations", "cost0", "cost"):
+        summary.set(f"ba.final.{key}", final[key])
 
 
 def summarise_adaptation(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float]) -> None:

@@ -32,22 +32,34 @@ def _cfg(tmp: Path, *extra: str):
     return load_config(CONFIG_DIR / "smoke.yaml", [f"net.weights={tmp / 'weights'}", *extra])
 
 
-def test_run_writes_complete_result(setup):
+@pytest.fixture(scope="module")
+def default_run(setup):
     tmp, seq = setup
-    r = run_sequence(seq, _cfg(tmp), out=tmp / "res", command=["test"])
+    return run_sequence(seq, _cfg(tmp), out=tmp / "res", command=["test"])
+
+
+def test_run_writes_complete_result(setup, default_run):
+    tmp, seq = setup
+    r = default_run
     f = r.folder
     assert f == tmp / "res" / seq.name / "replay+ewc" / "seed0"
     for name in ("config.yaml", "manifest.json", "traj_kf.txt", "traj_all.txt", "per_frame.csv", "summary.json",
-                 "keyframes.csv", "map_vo.ply"):
+                 "keyframes.csv", "map_vo.ply", "map_culled.ply", "map_ba.ply", "traj_kf_ba.txt", "traj_all_ba.txt"):
         assert (f / name).is_file(), name
     s = json.loads((f / "summary.json").read_text())
     flat = res.flatten(s)
     for k in res.SUMMARY_KEYS:
         assert k in flat
         assert flat[k] is not None or k in s["notes"], f"{k} is null without a reason"
-    # Depth metrics are real numbers in percent; BA is absent with a reason, not 0.
+    # Depth metrics are real numbers in percent.
     assert 0 <= flat["depth.pcd.lsq.adapted"] <= 100 and 0 <= flat["depth.pcd.median.pretrained"] <= 100
-    assert flat["map.points.ba"] is None and "not implemented" in s["notes"]["map.points.ba"]
+    # Culling + global BA ran once, at the end (the smoke run's Algorithm 1 never requests it).
+    assert flat["ba.requested"] == 0 and flat["ba.triggers"] == 0 and flat["timing.ba_s"] > 0
+    assert 0 < flat["map.points.ba"] == flat["map.points.culled"] <= flat["map.points.vo"]
+    assert flat["trajectory.ate_rmse_m.ba"] is not None and flat["map.esi.ba"] is not None
+    assert len(read_tum_trajectory(f / "traj_kf_ba.txt")) == flat["vo.keyframes"]
+    assert len(read_tum_trajectory(f / "traj_all_ba.txt")) == len(read_tum_trajectory(f / "traj_all.txt"))
+    assert json.loads((f / "manifest.json").read_text())["ba_runs"][-1]["keyframes"] == flat["vo.keyframes"]
     # Oracle keyframe poses are GT: ATE ~ 0 (written and re-read in TUM format).
     assert flat["trajectory.ate_rmse_m.vo"] < 1e-4
     assert len(read_tum_trajectory(f / "traj_kf.txt")) == flat["vo.keyframes"]
@@ -65,6 +77,26 @@ def test_run_writes_complete_result(setup):
         assert flat[f"depth.pcd.lsq.{model}"] == pytest.approx(pf[f"{model}_pcd_lsq"].mean())
     m = json.loads((f / "manifest.json").read_text())
     assert m["seed"] == 0 and "torch" in m["versions"] and m["timings_s"]["total_s"] > 0
+
+
+def test_ba_switches(setup, default_run):
+    tmp, seq = setup
+    on = res.flatten(default_run.summary)
+    # ba.enabled=false: today's run without culling and BA, every BA key null with the reason
+    off = run_sequence(seq, _cfg(tmp, "ba.enabled=false"), out=tmp / "off")
+    flat = res.flatten(off.summary)
+    for k in res.BA_KEYS:
+        assert flat[k] is None and off.summary["notes"][k] == "disabled (ba.enabled=false)"
+    assert not list(off.folder.glob("*_ba.*")) and not (off.folder / "map_culled.ply").exists()
+    same = [k for k in on if not k.startswith(("timing.", "ba.", "notes")) and k not in res.BA_KEYS
+            and not k.endswith("_ba")]
+    assert {k: flat[k] for k in same} == {k: on[k] for k in same}
+    # ba.culling=false: BA of the whole front-end map, culled figures null with the reason
+    nc = run_sequence(seq, _cfg(tmp, "ba.culling=false"), out=tmp / "nocull")
+    flat = res.flatten(nc.summary)
+    assert flat["map.points.culled"] is None and "ba.culling=false" in nc.summary["notes"]["map.points.culled"]
+    assert flat["map.points.ba"] == flat["map.points.vo"] and flat["map.esi.ba"] is not None
+    assert (nc.folder / "map_ba.ply").exists() and not (nc.folder / "map_culled.ply").exists()
 
 
 def test_complete_run_is_skipped_and_deterministic(setup):
