@@ -96,6 +96,10 @@ def test_culling_removes_gross_outliers_and_keeps_inliers(scene):
     assert centre_err(r.vo, prob).max() < 1e-3  # outliers gone: the BA converges as without them
     no = run(as_vo(start), prob, deps, cull=False)  # BA without culling keeps every point
     assert no.keep.all() and no.stats["n_culled"] == 0 and no.stats["n_judged"] == 0
+    # an inverse depth the BA would change by more than ×2 keeps its value before BA, counted
+    change = np.abs(np.log(no.vo.points.inv_depth / start.inv_depth))
+    assert change.max() < np.log(gba.MAX_CHANGE) and no.stats["n_diverged"] > 0
+    assert no.stats["n_refined"] + no.stats["n_unrefined"] == len(prob.host)
 
 
 def test_rehosting_is_exact_and_culls_in_the_best_validated_keyframe(scene, monkeypatch):
