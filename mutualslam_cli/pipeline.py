@@ -48,8 +48,8 @@ ORACLE_VERSION = 2
 #: any resolution (it scales with points × targets), the images take 4× less memory (300 TUM
 #: keyframes: 92 MB instead of 370 MB), the area-averaged images widen the convergence basin, and
 #: on tum_fr1_xyz (16 keyframes, 659 points, GT depth as the CNN) it gave keyframe ATE 13.2 mm and
-#: map e_si 0.119 where full resolution gave 13.9 mm and 0.142, in 0.5 s either way. Not the
-#: network resolution: 640×192 squeezes a 4:3 image vertically by 2.5.
+#: map e_si 0.113 where full resolution gave 13.9 mm and 0.118, in about the same time (0.5 s on an
+#: idle core). Not the network resolution: 640×192 squeezes a 4:3 image vertically by 2.5.
 BA_SCALE = 0.5
 
 
