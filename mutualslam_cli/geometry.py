@@ -143,13 +143,6 @@ def exp_so3(phi: np.ndarray) -> np.ndarray:
     return np.eye(3)[None] + s * K + (1 - c) * (K @ K)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return S
-
-
 def left_update(T: np.ndarray, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
     """``T[idx] ← exp(d) · T[idx]`` for left increments ``d`` ``(len(idx), 6)`` = ``(ρ, φ)``,
     rotations projected back onto SO(3) (SVD); returns an updated copy of ``T`` ``(K, 4, 4)``."""
