@@ -182,25 +182,53 @@ def _lookup_gt_depth(seq: Sequence, frame_index: int, pixels: np.ndarray) -> np.
     return out
 
 
+def map_log_depth_errors(seq: Sequence, vo: VOResult, keep: np.ndarray | None = None) -> np.ndarray:
+    """Signed log-depth error of each map point in its host keyframe: ``d_i = log z_i − log z_i*``.
+
+    ``z_i`` is the point's depth in its host keyframe (map units: a monocular map carries its own
+    log scale in every ``d_i``), ``z_i*`` the GT depth at the host pixel (m).
+
+    Args:
+        keep: optional boolean mask over ``vo.points`` (e.g. after culling).
+    Returns:
+        ``(P,)`` float64, one value per (kept) point in ``vo.points`` order (the order of
+        :meth:`VOResult.points_world`); NaN where the host frame has no GT depth at the pixel.
+    """
+    pts = vo.points if keep is None else vo.points.subset(keep)
+    out = np.full(len(pts), np.nan)
+    for kf in vo.keyframes:
+        m = pts.host == kf.id
+        if not np.any(m):
+            continue
+        gt = _lookup_gt_depth(seq, kf.frame_index, pts.pixel[m])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = -np.log(pts.inv_depth[m]) - np.log(gt)  # log(1/ρ) − log z*
+        d[~np.isfinite(gt) | ~(pts.inv_depth[m] > 0)] = np.nan
+        out[m] = d
+    return out
+
+
+def esi_of_log_errors(d: np.ndarray) -> tuple[float, int]:
+    """e_si of per-point log errors ``d`` ``(P,)`` (NaN = no GT): the population standard deviation
+    of the finite ones, :func:`~mutualslam_cli.metrics.depth.esi`'s formula.
+
+    Returns:
+        ``(e_si, n_finite)``; e_si is NaN when no value is finite.
+    """
+    d = np.asarray(d, dtype=float)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return float("nan"), 0
+    return float(np.sqrt(np.mean((d - d.mean()) ** 2))), int(d.size)
+
+
 def map_esi(seq: Sequence, vo: VOResult, keep: np.ndarray | None = None) -> tuple[float, int]:
-    """e_si of map-point depths in their host keyframe against GT depth at the host pixel.
+    """e_si of map-point depths in their host keyframe against GT depth at the host pixel
+    (:func:`map_log_depth_errors` then :func:`esi_of_log_errors`).
 
     Args:
         keep: optional boolean mask over ``vo.points`` (e.g. after culling).
     Returns:
         ``(e_si, n_points_with_gt)``; e_si is NaN when no point has GT depth.
     """
-    pts = vo.points if keep is None else vo.points.subset(keep)
-    est, ref = [], []
-    for kf in vo.keyframes:
-        m = pts.host == kf.id
-        if not np.any(m):
-            continue
-        gt = _lookup_gt_depth(seq, kf.frame_index, pts.pixel[m])
-        ok = np.isfinite(gt)
-        est.append(1.0 / pts.inv_depth[m][ok])
-        ref.append(gt[ok])
-    if not est or sum(len(e) for e in est) == 0:
-        return float("nan"), 0
-    e, r = np.concatenate(est), np.concatenate(ref)
-    return float(dm.esi(e, r)), int(len(e))
+    return esi_of_log_errors(map_log_depth_errors(seq, vo, keep))

@@ -26,12 +26,13 @@ from mutualslam_cli import results as res
 from mutualslam_cli.adapt.inputs import keyframe_images, load_network, use_fast_path
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.adapt.stage import GlobalBA, Progress, depth_predictor, run_adaptation
+from mutualslam_cli.ba.culling import inject_outliers
 from mutualslam_cli.ba.global_ba import run_global_ba
 from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.evaluation import evaluate_models, evaluate_trajectory, map_esi
+from mutualslam_cli.evaluation import esi_of_log_errors, evaluate_models, evaluate_trajectory, map_log_depth_errors
 from mutualslam_cli.heap import retain_freed_memory
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION, run_vo
@@ -78,7 +79,8 @@ def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
         "root": str(Path(seq.root).resolve()), "n": len(seq),
         "first": seq.frames[0].timestamp if len(seq) else None,
         "last": seq.frames[-1].timestamp if len(seq) else None,
-        "vo": to_dict(cfg.vo), "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
+        "vo": {k: v for k, v in to_dict(cfg.vo).items() if k != "inject_outliers"},
+        "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
         "seed": cfg.seed, "intr": seq.intrinsics.as_list(), "version": FRONTEND_VERSION,
     }
     if cfg.vo.mode != "svo":  # "gt" was the depth oracle before version 2 of the oracles
@@ -176,18 +178,20 @@ def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Modu
 
 def write_ba_results(folder: Path, summary: res.Summary, seq: Sequence, vo: VOResult, vo_ba: VOResult,
                      cfg: RunConfig, record: BALog, requested: int, ba_s: float) -> None:
-    """``map_culled.ply`` (the front end's map without the culled points), ``map_ba.ply``,
-    ``traj_{kf,all}_ba.txt`` and the BA part of the summary (:func:`results.summarise_ba`)."""
+    """``map_culled.ply`` (the front end's map without the culled points), ``map_ba.ply`` (both
+    coloured by each point's log-depth error), ``traj_{kf,all}_ba.txt`` and the BA part of the
+    summary (:func:`results.summarise_ba`)."""
     keep = ~np.isin(vo.points.ids, np.fromiter(record.culled, np.int64, len(record.culled)))
     no_culling = ("disabled (ba.culling=false): BA without culling" if not cfg.ba.culling else
                   "scheme 'none': no adapted network to cull with" if cfg.adapt.scheme == "none" else None)
+    err, err_ba = map_log_depth_errors(seq, vo), map_log_depth_errors(seq, vo_ba)
     if no_culling is None:
-        res.write_ply(folder / "map_culled.ply", vo.points_world()[keep])
-    res.write_ply(folder / "map_ba.ply", vo_ba.points_world())
+        res.write_ply(folder / "map_culled.ply", vo.points_world()[keep], err[keep])
+    res.write_ply(folder / "map_ba.ply", vo_ba.points_world(), err_ba)
     res.write_trajectories(folder, vo_ba.traj_kf, vo_ba.traj_all, suffix="_ba")
     res.summarise_ba(summary, traj=evaluate_trajectory(seq, vo_ba, cfg.eval.ate_max_dt),
-                     points_culled=int(keep.sum()), esi_culled=map_esi(seq, vo, keep)[0],
-                     points_ba=len(vo_ba.points), esi_ba=map_esi(seq, vo_ba)[0], ba_s=ba_s,
+                     points_culled=int(keep.sum()), esi_culled=esi_of_log_errors(err[keep])[0],
+                     points_ba=len(vo_ba.points), esi_ba=esi_of_log_errors(err_ba)[0], ba_s=ba_s,
                      runs=record.runs, requested=requested, no_culling=no_culling)
 
 
@@ -237,9 +241,11 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     t = time.perf_counter()
     vo, cached = run_frontend(seq, cfg, cache_dir=out_root / "_cache" / "vo", progress=progress)
     timings["vo_s"] = time.perf_counter() - t
+    vo, injected = inject_outliers(vo, cfg.vo.inject_outliers, cfg.seed)  # test knob, off by default
     res.write_trajectories(folder, vo.traj_kf, vo.traj_all)
-    res.write_ply(folder / "map_vo.ply", vo.points_world())
-    esi_vo, n_gt = map_esi(seq, vo)
+    err_vo = map_log_depth_errors(seq, vo)  # per point log z − log z*: the map's colours and its e_si
+    res.write_ply(folder / "map_vo.ply", vo.points_world(), err_vo)
+    esi_vo, n_gt = esi_of_log_errors(err_vo)
     res.summarise_frontend(summary, keyframes=len(vo.keyframes), tracked_fraction=vo.tracked_fraction,
                            map_points=len(vo.points), vo_mode=cfg.vo.mode, frames=len(seq),
                            vo_time_s=float(vo.meta.get("time_s", timings["vo_s"])),
@@ -268,6 +274,9 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         timings["ba_final_s"] = time.perf_counter() - t
         trigger_s = float(sum(r.get("ba_s", 0.0) for r in kf_rows))
         write_ba_results(folder, summary, seq, vo, vo_ba, cfg, record, requested, trigger_s + timings["ba_final_s"])
+    if len(injected):
+        culls = step is not None and cfg.ba.culling and cfg.adapt.scheme != "none"
+        res.summarise_outliers(summary, vo.points.ids, injected, record.culled if culls else None)
 
     # Depth evaluation with the pre-trained and the final model on every frame with GT depth.
     t = time.perf_counter()

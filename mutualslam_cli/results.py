@@ -28,6 +28,7 @@ import yaml
 from mutualslam_cli import __version__
 from mutualslam_cli.atomic import atomic_write_bytes, atomic_write_text  # noqa: F401 - re-exported for callers
 from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.map_ply import read_ply, write_ply  # noqa: F401 - the map files of a run
 from mutualslam_cli.types import Trajectory
 
 #: Keys other tools read from ``summary.json`` (dotted paths), DESIGN §8.
@@ -205,14 +206,6 @@ def write_trajectories(folder: Path, traj_kf: Trajectory, traj_all: Trajectory, 
         atomic_write_text(folder / name, buf.getvalue())
 
 
-def write_ply(path: Path, points: np.ndarray) -> None:
-    """ASCII PLY of ``(P, 3)`` points (readable by open3d, MeshLab, CloudCompare)."""
-    head = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n" \
-           "property float z\nend_header\n"
-    body = "\n".join(f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in points)
-    atomic_write_text(path, head + body + ("\n" if len(points) else ""))
-
-
 # ----------------------------------------------------------------------------- summary assembly
 
 
@@ -293,6 +286,25 @@ def summarise_ba(summary: Summary, *, traj: dict[str, Any], points_culled: int |
     final = runs[-1]
     for key in ("n_rehosted", "n_refined", "n_unrefined", "n_diverged", "n_targets", "iterations", "cost0", "cost"):
         summary.set(f"ba.final.{key}", final[key])
+
+
+def summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, culled: set[int] | None) -> None:
+    """``map.outliers.{injected,culled}`` and ``map.inliers.kept`` of a run with ``vo.inject_outliers``.
+
+    Args:
+        ids: ``(P,)`` ids of every map point; injected: ids of the corrupted ones.
+        culled: ids of every culled point (``None``: this run did not cull).
+    """
+    bad = np.isin(ids, injected)
+    summary.set("map.outliers.injected", int(bad.sum()))
+    if culled is None:
+        why = "no culling in this run (ba.enabled=false, ba.culling=false or scheme 'none')"
+        summary.absent("map.outliers.culled", why)
+        summary.absent("map.inliers.kept", why)
+        return
+    gone = np.isin(ids, np.fromiter(culled, np.int64, len(culled)))
+    summary.set("map.outliers.culled", float(gone[bad].mean()) if bad.any() else None, "no outlier injected")
+    summary.set("map.inliers.kept", float((~gone[~bad]).mean()) if (~bad).any() else None, "every point is an outlier")
 
 
 def summarise_adaptation(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float]) -> None:

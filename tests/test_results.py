@@ -73,3 +73,87 @@ def test_atomic_writes_have_the_usual_permissions(tmp_path):
         f.write("x")
     assert stat.S_IMODE(path.stat().st_mode) == stat.S_IMODE(plain.stat().st_mode) == 0o666 & ~atomic._UMASK
     assert not list(tmp_path.glob(".x.txt.*"))  # no temporary file left behind
+
+
+# ----------------------------------------------------------------------------- map PLYs
+
+
+def _fake_map():
+    """Two keyframes at the origin, four points: host pixel, inverse depth (map units); GT depth
+    2 m everywhere except a hole (0) at the last point's pixel."""
+    from types import SimpleNamespace
+
+    from mutualslam_cli.types import Intrinsics, Trajectory
+    from mutualslam_cli.vo.output import Keyframe, MapPoints, VOResult
+
+    intr = Intrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
+    depth = np.full((24, 32), 2.0)
+    depth[20, 30] = 0.0  # no GT here
+    seq = SimpleNamespace(intrinsics=intr, load_depth=lambda i: depth)
+    kfs = [Keyframe(k, k, float(k), np.eye(4)) for k in range(2)]
+    # depths 2·e^{+0.6}, 2·e^{-0.6}, 2 (d = 0.6, -0.6, 0) and one point over the hole
+    z = np.array([2 * np.exp(0.6), 2 * np.exp(-0.6), 2.0, 3.0])
+    pts = MapPoints(np.arange(4), np.array([0, 0, 1, 1]), np.array([[5.0, 5], [10, 12], [20, 3], [30, 20]]),
+                    1 / z, np.zeros(4), [np.array([0])] * 4, [np.zeros((1, 2))] * 4)
+    vo = VOResult(kfs, pts, intr, Trajectory(np.zeros(0), np.zeros((0, 4, 4))), np.zeros(0, int))
+    return seq, vo
+
+
+def test_map_log_depth_errors_and_esi_are_one_computation():
+    from mutualslam_cli.evaluation import map_esi, map_log_depth_errors
+    from mutualslam_cli.metrics.depth import esi
+
+    seq, vo = _fake_map()
+    d = map_log_depth_errors(seq, vo)
+    np.testing.assert_allclose(d[:3], [0.6, -0.6, 0.0], atol=1e-12)
+    assert np.isnan(d[3])
+    e, n = map_esi(seq, vo)
+    assert n == 3 and e == pytest.approx(esi(1 / vo.points.inv_depth[:3], np.full(3, 2.0)))
+    keep = np.array([True, False, True, True])
+    np.testing.assert_array_equal(map_log_depth_errors(seq, vo, keep), d[keep])
+
+
+def test_map_ply_round_trip_through_open3d(tmp_path: Path):
+    import open3d as o3d
+
+    from mutualslam_cli import map_ply
+    from mutualslam_cli.evaluation import map_log_depth_errors
+
+    seq, vo = _fake_map()
+    d = map_log_depth_errors(seq, vo)  # mean over GT points is 0: colours show d itself
+    pts = vo.points_world()
+    res.write_ply(tmp_path / "map_vo.ply", pts, d)
+    assert not list(tmp_path.glob(".map_vo.ply.*"))  # no temporary file left behind
+    pc = o3d.io.read_point_cloud(str(tmp_path / "map_vo.ply"))  # the plain legacy reader
+    np.testing.assert_allclose(np.asarray(pc.points), pts, rtol=0, atol=1e-12)
+    want = np.array([map_ply.ERROR_FAR, map_ply.ERROR_NEAR, map_ply.ERROR_ZERO, map_ply.NO_GT])
+    np.testing.assert_allclose(np.asarray(pc.colors), want, atol=0.6 / 255)
+    p2, c2, e2 = res.read_ply(tmp_path / "map_vo.ply")
+    np.testing.assert_allclose(p2, pts, atol=1e-12)
+    np.testing.assert_allclose(c2, want, atol=0.6 / 255)
+    np.testing.assert_allclose(e2, d, atol=1e-6)  # NaN where there is no GT
+    # half the saturation error is half way to red; an offset shared by every point (scale) is removed
+    half = map_ply.error_colours(np.array([0.25, -0.25, np.nan]) + 3.0)
+    np.testing.assert_allclose(half[0], (np.array(map_ply.ERROR_ZERO) + map_ply.ERROR_FAR) / 2)
+    np.testing.assert_allclose(half[2], map_ply.NO_GT)
+
+
+def test_map_ply_empty_and_old_and_bad(tmp_path: Path):
+    from mutualslam_cli.errors import DatasetError
+
+    res.write_ply(tmp_path / "empty.ply", np.zeros((0, 3)), np.zeros(0))
+    p, c, e = res.read_ply(tmp_path / "empty.ply")
+    assert p.shape == (0, 3)
+    old = tmp_path / "old.ply"  # the xyz-only ASCII maps of earlier runs
+    old.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                   "property float z\nend_header\n1 2 3\n4 5 6\n")
+    p, c, e = res.read_ply(old)
+    np.testing.assert_allclose(p, [[1, 2, 3], [4, 5, 6]])
+    assert c is None and e is None
+    res.write_ply(tmp_path / "grey.ply", p)  # without errors: every point "no GT"
+    assert res.read_ply(tmp_path / "grey.ply")[2] is None
+    (tmp_path / "bad.ply").write_text("not a ply\n")
+    with pytest.raises(DatasetError, match="bad.ply"):
+        res.read_ply(tmp_path / "bad.ply")
+    with pytest.raises(DatasetError, match="missing.ply"):
+        res.read_ply(tmp_path / "missing.ply")
