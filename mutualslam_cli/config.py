@@ -64,6 +64,10 @@ class VOConfig:
     """``gt-depth`` oracle: a keyframe every k frames."""
     gt_max_points: int = 500
     """``gt-depth`` oracle: map points per keyframe (from GT depth at detected corners)."""
+    inject_outliers: float = 0.0
+    """Test knob (issue 9): after the front end, this fraction of map points (seeded) gets a gross
+    depth error, ×2 or ×0.4, so culling can be measured against known outliers. 0 = off. Not
+    part of the front-end cache key (applied to the cached map)."""
 
 
 @dataclass(frozen=True)
@@ -255,6 +259,7 @@ def _validate(cfg: RunConfig) -> None:
         (cfg.eval.pcd_threshold > 0, "eval.pcd_threshold must be > 0"),
         (cfg.vo.grid_size >= 4 and cfg.vo.max_fts >= 10, "vo.grid_size ≥ 4 and vo.max_fts ≥ 10"),
         (cfg.vo.core_kfs >= 2, "vo.core_kfs must be ≥ 2"),
+        (0 <= cfg.vo.inject_outliers < 1, "vo.inject_outliers must be in [0, 1)"),
         (cfg.ba.patch % 2 == 1, "ba.patch must be odd"),
     ]
     for ok, msg in checks:
