@@ -14,7 +14,8 @@ from mutualslam_cli.adapt.depthnet import DepthNet
 from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.associate import read_tum_trajectory
-from mutualslam_cli.pipeline import run_sequence
+from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.pipeline import run_sequence, vo_cache_key
 from mutualslam_cli.report import build_tables, collect, write_report
 from synth import make_tum_dir
 
@@ -143,3 +144,19 @@ def test_ablate_grid_resumes(setup):
     assert sorted(o.status for o in second) == ["done", "skipped"]
     bad = run_grid(cfg, expand([str(tmp / "missing")], ["none"], [0]), tmp / "grid")
     assert bad[0].status == "failed" and "missing" in bad[0].error
+
+
+def test_injected_outliers_are_counted(setup, default_run):
+    tmp, seq = setup
+    on = res.flatten(default_run.summary)
+    r = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2"), out=tmp / "outl")
+    flat = res.flatten(r.summary)
+    assert flat["map.outliers.injected"] == round(0.2 * on["map.points.vo"]) > 0
+    assert flat["map.points.vo"] == on["map.points.vo"] and flat["map.esi.vo"] > on["map.esi.vo"]
+    assert 0 <= flat["map.outliers.culled"] <= 1 and 0 <= flat["map.inliers.kept"] <= 1
+    # the knob is applied to the cached front end, not part of its key
+    loaded = load_sequence(seq)
+    assert vo_cache_key(loaded, _cfg(tmp, "vo.inject_outliers=0.2")) == vo_cache_key(loaded, _cfg(tmp))
+    nc = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "ba.culling=false"), out=tmp / "outl_nc")
+    assert nc.summary["map"]["outliers"]["culled"] is None
+    assert "no culling" in nc.summary["notes"]["map.outliers.culled"]
