@@ -1,9 +1,15 @@
 """Paper-style tables and plots from result folders (DESIGN §8).
 
-``collect`` finds complete runs (folders with ``summary.json``), ``build_tables`` turns them into
-pandas DataFrames shaped like the paper's tables (mean over seeds, with the seed count), and
-``write_report`` saves each table as Markdown, LaTeX and CSV plus PNG plots. Values that a run
-could not compute stay empty (``NaN`` → "—"), never 0.
+``collect`` finds complete runs (folders with ``summary.json``) and their ``config.yaml``,
+``build_tables`` turns them into pandas DataFrames shaped like the paper's tables (mean over
+seeds, with the seed count), and ``write_report`` saves each table as Markdown, LaTeX and CSV
+plus PNG plots. Values that a run could not compute stay empty (``NaN`` → "—"), never 0.
+
+Runs whose resolved configs differ (other than seed, scheme, output and thread settings) are
+never averaged together: every table gets a ``config`` column naming the settings that differ
+(e.g. ``ba.culling=False``). Paper Table 4 (``ate_ba``: ATE without / with global BA) and
+Table 5 (``map_ba``: map points and e_si with and without BA and culling, per ``vo.max_fts``)
+are built by :func:`table_ate_ba` and :func:`table_map_ba`.
 """
 
 from __future__ import annotations
@@ -15,9 +21,11 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import yaml
 
 from mutualslam_cli import results as res
 from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.report_maps import map_figures
 
 log = logging.getLogger(__name__)
 
@@ -57,13 +65,46 @@ class Report:
     runs: pd.DataFrame
     tables: dict[str, pd.DataFrame] = field(default_factory=dict)
     titles: dict[str, str] = field(default_factory=dict)
+    bold: dict[str, set[tuple[int, str]]] = field(default_factory=dict)  # (row, column) bold in LaTeX
+
+
+#: Config keys that do not make runs different experiments (``adapt.scheme`` has its own column).
+IGNORED_CONFIG = ("seed", "out", "threads", "adapt.scheme", "data.data_root", "eval.save_weights")
+
+
+def _read_config(folder: Path) -> dict[str, Any]:
+    """``config.*`` columns of a run's ``config.yaml`` (empty when the run has none)."""
+    path = folder / "config.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        cfg = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise DatasetError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(cfg, dict):
+        raise DatasetError(f"{path}: expected a mapping of config sections (the resolved config of mslam run)")
+    return {f"config.{k}": v for k, v in res.flatten(cfg).items()}
+
+
+def config_labels(runs: pd.DataFrame, exclude: tuple[str, ...] = ()) -> pd.Series:
+    """Per run, ``"key=value, ..."`` of the config keys whose values differ between the runs
+    (except :data:`IGNORED_CONFIG` and ``exclude``); ``""`` when all runs agree. ``?``: the run
+    has no such key (older ``config.yaml`` or none)."""
+    keys = [c for c in runs.columns if c.startswith("config.") and c[7:] not in IGNORED_CONFIG + exclude]
+    shown = runs[keys].map(lambda v: "?" if v is None or (isinstance(v, float) and v != v) else str(v))
+    differing = [c for c in keys if shown[c].nunique() > 1]
+    if not differing:
+        return pd.Series("", index=runs.index)
+    return shown[differing].apply(lambda r: ", ".join(f"{c[7:]}={r[c]}" for c in differing), axis=1)
 
 
 def collect(paths: list[str | Path]) -> pd.DataFrame:
-    """One row per complete run found under ``paths`` (flattened summary keys + ``folder``).
+    """One row per complete run found under ``paths``: flattened summary keys, ``folder``,
+    ``config.<key>`` of its ``config.yaml`` and ``config`` (:func:`config_labels`).
 
     Raises:
-        DatasetError: a path does not exist, or no complete run is found.
+        DatasetError: a path does not exist, no complete run is found, or a ``config.yaml`` is not
+            a YAML mapping.
     """
     rows: list[dict[str, Any]] = []
     for p in map(Path, paths):
@@ -75,16 +116,22 @@ def collect(paths: list[str | Path]) -> pd.DataFrame:
             parts = s.parent.parts
             d.setdefault("sequence.name", parts[-3] if len(parts) >= 3 else "?")
             d.setdefault("scheme", parts[-2] if len(parts) >= 2 else "?")
+            d.update(_read_config(s.parent))
             rows.append(d)
     if not rows:
         raise DatasetError(f"{', '.join(map(str, paths))}: no complete run (no summary.json found)")
-    return pd.DataFrame(rows)
+    runs = pd.DataFrame(rows)
+    runs["config"] = config_labels(runs)
+    return runs
 
 
 def build_tables(runs: pd.DataFrame) -> Report:
-    """Mean over seeds per (sequence, scheme) for every table in :data:`TABLES`, plus the scheme ablation."""
+    """Mean over seeds per (sequence, scheme, config) for every table in :data:`TABLES`, the scheme
+    ablation, and paper Tables 4 (``ate_ba``) and 5 (``map_ba``)."""
     rep = Report(runs=runs)
-    g = runs.groupby(["sequence.name", "scheme"], sort=True)
+    runs = runs.assign(config=runs["config"] if "config" in runs else "")
+    varied = bool((runs["config"] != "").any())
+    g = runs.groupby(["sequence.name", "scheme", "config"], sort=True)
     for name, (title, cols) in TABLES.items():
         data = {}
         for label, key in cols:
@@ -94,19 +141,131 @@ def build_tables(runs: pd.DataFrame) -> Report:
                 data[label] = g.size() * np.nan
         t = pd.DataFrame(data)
         t["seeds"] = g.size()
-        t.index.names = ["sequence", "scheme"]
-        rep.tables[name] = t.reset_index()
+        t.index.names = ["sequence", "scheme", "config"]
+        t = t.reset_index()
+        rep.tables[name] = t if varied else t.drop(columns="config")
         rep.titles[name] = title
     for name, key, what in (("ablation", "depth.pcd.lsq.adapted", "every frame"),
                             ("ablation_nonkf", "depth.pcd_nonkf.lsq.adapted", "non-keyframes only")):
         if key not in runs:
             continue
         abl = runs.assign(v=pd.to_numeric(runs[key], errors="coerce")).pivot_table(
-            index="scheme", columns="sequence.name", values="v", aggfunc="mean", dropna=False)
+            index=["scheme", "config"] if varied else "scheme", columns="sequence.name", values="v",
+            aggfunc="mean", dropna=False)
         abl.columns.name = None
         rep.tables[name] = abl.reset_index()
         rep.titles[name] = f"Scheme ablation: PCD (%, lsq scaling) of the final model per sequence, {what}"
+    for name, build in (("ate_ba", table_ate_ba), ("map_ba", table_map_ba)):
+        rep.tables[name], rep.titles[name], rep.bold[name] = build(runs)
     return rep
+
+
+def _num(runs: pd.DataFrame, key: str) -> pd.Series:
+    """``runs[key]`` as floats (NaN where absent or null)."""
+    return pd.to_numeric(runs[key], errors="coerce") if key in runs else pd.Series(np.nan, index=runs.index)
+
+
+def _mean(v: pd.Series) -> float:
+    return float(v.mean()) if v.notna().any() else float("nan")
+
+
+def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, str]]]:
+    """Paper Table 4: keyframe ATE (m) without BA (``trajectory.ate_rmse_m.vo``) and with the final
+    culling + global BA (``trajectory.ate_rmse_m.ba``) per sequence, then their Average.
+
+    One block of rows per (scheme, config) (columns ``scheme`` / ``config`` only when there are
+    several). A cell is the mean over the block's runs (seeds) that have the value; ``n`` counts
+    the runs. The Average row averages the sequences that have both values.
+
+    Returns:
+        ``(table, title, bold)``; ``bold``: ``(row, column)`` of the lower ATE of each row.
+    """
+    runs = runs.assign(config=runs["config"] if "config" in runs else "")
+    rows: list[dict[str, Any]] = []
+    for (scheme, config), b in runs.groupby(["scheme", "config"], sort=True):
+        first = len(rows)
+        for seq, r in b.groupby("sequence.name", sort=True):
+            rows.append({"Sequence": seq, "scheme": scheme, "config": config, "n": len(r),
+                         "Without BA": _mean(_num(r, "trajectory.ate_rmse_m.vo")),
+                         "With BA": _mean(_num(r, "trajectory.ate_rmse_m.ba"))})
+        both = [x for x in rows[first:] if np.isfinite(x["Without BA"]) and np.isfinite(x["With BA"])]
+        label = "Average" if len(both) == len(rows) - first else f"Average ({len(both)} of {len(rows) - first})"
+        rows.append({"Sequence": label, "scheme": scheme, "config": config, "n": "",
+                     **{c: float(np.mean([x[c] for x in both])) if both else float("nan")
+                        for c in ("Without BA", "With BA")}})
+    t = pd.DataFrame(rows, columns=["Sequence", "scheme", "config", "Without BA", "With BA", "n"])
+    bold = set()
+    for i, x in t.iterrows():
+        if np.isfinite(x["Without BA"]) and np.isfinite(x["With BA"]):
+            best = min(x["Without BA"], x["With BA"])
+            bold |= {(int(i), c) for c in ("Without BA", "With BA") if _fmt(x[c]) == _fmt(best)}
+    schemes = sorted(runs["scheme"].unique())
+    t = t.drop(columns=[c for c, keep in (("scheme", len(schemes) > 1), ("config", (runs["config"] != "").any()))
+                        if not keep])
+    title = ("Paper Table 4: keyframe ATE RMSE (m, Sim(3)-aligned to GT) without and with global BA"
+             + (f", scheme {schemes[0]}" if len(schemes) == 1 else "")
+             + "; mean over n seeds, Average over the sequences with both values")
+    return t, title, bold
+
+
+#: Paper Table 5's rows: (BA, MP culling, summary stage, which runs).
+MAP_ROWS = (("", "", "vo", "all"), ("", "✓", "culled", "culled"), ("✓", "", "ba", "ba_only"),
+            ("✓", "✓", "ba", "ba_culled"))
+
+
+def _fts_key(v: Any) -> tuple[int, float, str]:
+    try:
+        return (0, float(v), "")
+    except (TypeError, ValueError):
+        return (1, 0.0, str(v))
+
+
+def table_map_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, str]]]:
+    """Paper Table 5: number of map points and map e_si per sequence, rows (BA, MP culling,
+    ``vo.max_fts``).
+
+    Rows per ``max_fts`` (from each run's ``config.yaml``; ``?`` without one): no BA, no culling =
+    ``map.{points,esi}.vo`` (the front end's map, one value per seed even when runs with and
+    without culling share it); culling only = ``map.*.culled``; BA without culling =
+    ``map.*.ba`` of runs that culled nothing (``ba.culling=false``, or scheme ``none``);
+    BA + culling = ``map.*.ba`` of runs that culled. Separate blocks per scheme and per any
+    other config difference (``config``). A cell is the mean over seeds that have it; ``n``:
+    seeds per sequence ("a/b" when sequences differ).
+    """
+    cull = _num(runs, "map.points.culled").notna()
+    ba = _num(runs, "map.points.ba").notna()
+    member = {"all": ba | ~ba, "culled": cull, "ba_only": ba & ~cull, "ba_culled": ba & cull}
+    fts = runs["config.vo.max_fts"] if "config.vo.max_fts" in runs else pd.Series(None, index=runs.index)
+    runs = runs.assign(_rest=config_labels(runs, exclude=("ba.culling", "ba.enabled", "vo.max_fts")),
+                       _fts=fts.map(lambda v: "?" if v is None or v != v else str(v)),
+                       _seed=runs["seed"].fillna(runs["folder"]) if "seed" in runs else runs["folder"])
+    seqs = sorted(runs["sequence.name"].unique())
+    blocks = sorted(runs.groupby(["scheme", "_rest", "_fts"]).groups,
+                    key=lambda k: (k[0], k[1], _fts_key(k[2])))
+    rows = []
+    for scheme, rest, f in blocks:
+        b = runs[(runs["scheme"] == scheme) & (runs["_rest"] == rest) & (runs["_fts"] == f)]
+        for ba_mark, cull_mark, stage, who in MAP_ROWS:
+            sel = b[member[who].loc[b.index]]
+            row: dict[str, Any] = {"scheme": scheme, "config": rest, "BA": ba_mark, "MP culling": cull_mark,
+                                   "max_fts": f}
+            ns = []
+            for seq in seqs:
+                r = sel[sel["sequence.name"] == seq]
+                per_seed = pd.DataFrame({"points": _num(r, f"map.points.{stage}"), "esi": _num(r, f"map.esi.{stage}"),
+                                         "seed": r["_seed"]}).groupby("seed").mean()
+                row[f"{seq} points"], row[f"{seq} e_si"] = _mean(per_seed["points"]), _mean(per_seed["esi"])
+                ns.append(len(per_seed))
+            row["n"] = str(ns[0]) if len(set(ns)) == 1 else "/".join(map(str, ns))
+            rows.append(row)
+    t = pd.DataFrame(rows)
+    schemes = sorted(runs["scheme"].unique())
+    t = t.drop(columns=[c for c, keep in (("scheme", len(schemes) > 1), ("config", (runs["_rest"] != "").any()))
+                        if not keep])
+    title = ("Paper Table 5: number of map points and map e_si (log depth vs GT at the host pixel) without and "
+             "with BA and map-point culling, per vo.max_fts" + (f", scheme {schemes[0]}" if len(schemes) == 1 else "")
+             + "; mean over n seeds")
+    return t, title, set()
 
 
 def _fmt(v: Any) -> str:
@@ -125,15 +284,31 @@ def to_markdown(t: pd.DataFrame) -> str:
     return "\n".join([head, sep, *body]) + "\n"
 
 
-def to_latex(t: pd.DataFrame, caption: str) -> str:
-    """A booktabs ``tabular`` ("--" for missing values)."""
-    def esc(s: str) -> str:
-        return str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&").replace("—", "--")
+def _align(col: pd.Series) -> str:
+    """``c`` for check-mark columns, ``r`` for numbers (empty cells allowed), else ``l``."""
+    vals = [v for v in col if not (isinstance(v, str) and v == "")]
+    if all(v == "✓" for v in vals):
+        return "c"
+    return "r" if all(isinstance(v, (int, float, np.number)) for v in vals) else "l"
 
+
+def to_latex(t: pd.DataFrame, caption: str, bold: set[tuple[int, str]] | None = None) -> str:
+    """A booktabs ``tabular`` ("--" for missing values; ``bold``: ``(row, column)`` cells in bold;
+    a rule above an ``Average`` row)."""
+    def esc(s: str) -> str:
+        return (str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&").replace("—", "--")
+                .replace("✓", r"\checkmark"))
+
+    bold = bold or set()
     lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{esc(caption)}}}",
-             r"\begin{tabular}{" + "l" * 2 + "r" * (len(t.columns) - 2) + "}", r"\toprule",
+             r"\begin{tabular}{" + "".join(_align(t[c]) for c in t.columns) + "}", r"\toprule",
              " & ".join(esc(c) for c in t.columns) + r" \\", r"\midrule"]
-    lines += [" & ".join(esc(_fmt(v)) for v in row) + r" \\" for row in t.itertuples(index=False)]
+    for i, row in enumerate(t.itertuples(index=False)):
+        if str(row[0]).startswith("Average"):
+            lines.append(r"\midrule")
+        cells = [esc(_fmt(v)) for v in row]
+        lines.append(" & ".join(rf"\textbf{{{x}}}" if (i, c) in bold else x for x, c in zip(cells, t.columns))
+                     + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
     return "\n".join(lines) + "\n"
 
@@ -199,21 +374,22 @@ def plot_trajectories(runs: pd.DataFrame, path: Path) -> bool:
 
 
 def write_report(rep: Report, out_dir: Path) -> list[Path]:
-    """Write every table as ``<name>.md``, ``<name>.tex``, ``<name>.csv`` and the plots; return the paths."""
+    """Write every table as ``<name>.md``, ``<name>.tex``, ``<name>.csv``, the plots and the map
+    figures (``maps/*.png``, :func:`~mutualslam_cli.report_maps.map_figures`), and ``report.md``
+    with every table and figure; return the paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     md = []
     for name, t in rep.tables.items():
         res.atomic_write_text(out_dir / f"{name}.csv", t.to_csv(index=False))
-        res.atomic_write_text(out_dir / f"{name}.tex", to_latex(t, rep.titles[name]))
+        res.atomic_write_text(out_dir / f"{name}.tex", to_latex(t, rep.titles[name], rep.bold.get(name)))
         res.atomic_write_text(out_dir / f"{name}.md", f"### {rep.titles[name]}\n\n" + to_markdown(t))
         md.append(f"## {rep.titles[name]}\n\n" + to_markdown(t))
         written += [out_dir / f"{name}.{e}" for e in ("csv", "tex", "md")]
+    figures = [f for f, draw in ((out_dir / "accuracy_over_frames.png", plot_accuracy),
+                                 (out_dir / "trajectories.png", plot_trajectories)) if draw(rep.runs, f)]
+    figures += map_figures(rep.runs, out_dir)
+    md.append("## Figures\n\n" + "".join(f"![{f.stem}]({f.relative_to(out_dir).as_posix()})\n\n" for f in figures))
     res.atomic_write_text(out_dir / "report.md", "# mslam report\n\n" + "\n".join(md))
-    written.append(out_dir / "report.md")
-    if plot_accuracy(rep.runs, out_dir / "accuracy_over_frames.png"):
-        written.append(out_dir / "accuracy_over_frames.png")
-    if plot_trajectories(rep.runs, out_dir / "trajectories.png"):
-        written.append(out_dir / "trajectories.png")
-    return written
+    return written + [out_dir / "report.md"] + figures

@@ -1,0 +1,205 @@
+"""The map before and after culling and BA, as a picture (paper Fig. ``mp_culling_qualitative``).
+
+:func:`plot_maps` draws one run's ``map_vo.ply``, ``map_culled.ply`` and ``map_ba.ply`` side by
+side, each point in the colour :mod:`~mutualslam_cli.map_ply` stored for it (its log-depth error
+against GT: blue too near, grey right, red too far, light grey without GT), seen from the
+cameras (front view) and from above (top view). Every panel has the same view and axis limits;
+its title gives the point count and e_si from ``summary.json``. :func:`map_figures` draws one
+figure per (sequence, scheme, config) with the lowest seed.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from mutualslam_cli import map_ply
+from mutualslam_cli.atomic import atomic_path
+from mutualslam_cli.datasets.associate import read_tum_trajectory
+
+#: (file, summary stage, panel title) of the panels, left to right.
+PANELS = (("map_vo.ply", "vo", "front-end map (no culling, no BA)"),
+          ("map_culled.ply", "culled", "after map-point culling"),
+          ("map_ba.ply", "ba", "after culling + global BA"))
+
+
+def _view_basis(folder: Path) -> np.ndarray:
+    """``(3, 3)`` rows right, up, forward: the keyframe cameras' mean axes (x, −y, z); the map
+    frame's axes when there is no keyframe trajectory."""
+    f = folder / "traj_kf.txt"
+    if f.is_file() and f.stat().st_size:
+        rot = read_tum_trajectory(f).poses[:, :3, :3]
+        if len(rot):
+            fwd = rot[:, :, 2].mean(0)
+            up = -rot[:, :, 1].mean(0)
+            if np.linalg.norm(fwd) > 1e-6:
+                fwd /= np.linalg.norm(fwd)
+                up -= up.dot(fwd) * fwd
+                if np.linalg.norm(up) > 1e-6:
+                    up /= np.linalg.norm(up)
+                    return np.stack([np.cross(-up, fwd), up, fwd])
+    return np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, 1]])
+
+
+def _cameras(folder: Path, name: str) -> np.ndarray:
+    """``(K, 3)`` keyframe positions of ``traj_kf<name>.txt`` (empty when absent)."""
+    f = folder / f"traj_kf{name}.txt"
+    if not (f.is_file() and f.stat().st_size):
+        return np.zeros((0, 3))
+    return read_tum_trajectory(f).poses[:, :3, 3]
+
+
+def _limits(xy: np.ndarray, margin: float = 0.12) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Axis limits holding the central 98 % of the points on each axis, plus a margin."""
+    lo, hi = np.percentile(xy, 1, axis=0), np.percentile(xy, 99, axis=0)
+    pad = np.maximum((hi - lo) * margin, 1e-3)
+    return (lo[0] - pad[0], hi[0] + pad[0]), (lo[1] - pad[1], hi[1] + pad[1])
+
+
+def _get(flat: dict[str, Any], key: str) -> float | None:
+    """A number of the flattened summary; None when absent, null or NaN."""
+    v = flat.get(key)
+    return float(v) if isinstance(v, (int, float, np.number)) and np.isfinite(v) else None
+
+
+def _fit(x: tuple[float, float], y: tuple[float, float], ratio: float) -> tuple[tuple[float, float], ...]:
+    """Widen one of the limits so that height / width = ``ratio`` (the panel's shape)."""
+    w, h = x[1] - x[0], y[1] - y[0]
+    if h < ratio * w:
+        c, h = (y[0] + y[1]) / 2, ratio * w
+        return x, (c - h / 2, c + h / 2)
+    c, w = (x[0] + x[1]) / 2, h / ratio
+    return (c - w / 2, c + w / 2), y
+
+
+def _title(stage: str, label: str, flat: dict[str, Any], n_read: int) -> str:
+    n, e = _get(flat, f"map.points.{stage}"), _get(flat, f"map.esi.{stage}")
+    esi = f"e_si {e:.3f}" if e is not None else "e_si —"
+    return f"{label}\n{int(n) if n is not None else n_read} points, {esi}"
+
+
+def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> bool:
+    """Front and top view of a run's maps (one column per file of :data:`PANELS`) as a PNG.
+
+    Args:
+        folder: the run folder (``map_*.ply``, ``traj_kf*.txt``).
+        path: the PNG to write.
+        flat: the run's flattened ``summary.json`` (point counts, e_si, notes of absent maps).
+        heading: the figure's title.
+    Returns:
+        False (nothing written) when the run has no ``map_vo.ply``.
+    """
+    if not (folder / "map_vo.ply").is_file():
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap, Normalize
+    from matplotlib.patches import Patch
+
+    basis = _view_basis(folder)
+    maps = {f: map_ply.read_ply(folder / f) if (folder / f).is_file() else None for f, _, _ in PANELS}
+    culled = maps["map_culled.ply"] is not None or _get(flat, "map.points.culled") is not None
+    cams = {"map_vo.ply": _cameras(folder, ""), "map_ba.ply": _cameras(folder, "_ba")}
+    cams["map_culled.ply"] = cams["map_vo.ply"]
+    ref = maps["map_vo.ply"][0] @ basis.T
+    allc = np.concatenate([c for c in cams.values()]) @ basis.T
+    xy_all = np.concatenate([ref, allc]) if len(ref) else allc
+    if not len(xy_all):
+        xy_all = np.zeros((1, 3))
+    views = (("front view (as seen by the cameras)", 0, 1, "right", "up"),
+             ("top view (from above the cameras)", 0, 2, "right", "forward"))
+    lims = [_limits(xy_all[:, [h, v]]) for _, h, v, _, _ in views]
+    # each row as tall as its view's extent (equal axes), within 0.35-1.4 of the panel width
+    ratios = [float(np.clip((y[1] - y[0]) / (x[1] - x[0]), 0.35, 1.4)) for x, y in lims]
+    lims = [_fit(x, y, r) for (x, y), r in zip(lims, ratios)]
+    width = 4.8
+    fig, axes = plt.subplots(2, len(PANELS), figsize=(width * len(PANELS), width * sum(ratios) + 2.4),
+                             squeeze=False, gridspec_kw={"height_ratios": ratios})
+    for col, (fname, stage, label) in enumerate(PANELS):
+        if fname == "map_ba.ply" and not culled:
+            label = "after global BA (no culling)"
+        data = maps[fname]
+        for row, (vname, h, v, hl, vl) in enumerate(views):
+            ax = axes[row, col]
+            ax.set_xlim(*lims[row][0])
+            ax.set_ylim(*lims[row][1])
+            ax.set_aspect("equal", adjustable="box")
+            ax.tick_params(labelsize=7)
+            ax.set_xlabel(f"{hl} (map units)", fontsize=8)
+            if col == 0:
+                ax.set_ylabel(f"{vname}\n{vl} (map units)", fontsize=8)
+            if data is None:
+                notes = flat.get("notes")
+                why = notes.get(f"map.points.{stage}") if isinstance(notes, dict) else None
+                ax.text(0.5, 0.5, f"no {fname}\n{why or 'not written by this run'}", ha="center", va="center",
+                        transform=ax.transAxes, fontsize=9, color="0.4", wrap=True)
+                ax.set_facecolor("0.97")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                ax.set_xlabel("")
+                if row == 0:
+                    ax.set_title(label, fontsize=10)
+                continue
+            pts, colours, errors = data
+            if row == 0:
+                ax.set_title(_title(stage, label, flat, len(pts)), fontsize=10)
+            p = pts @ basis.T
+            if colours is None:
+                colours = np.tile(np.asarray(map_ply.NO_GT), (len(p), 1))
+            # no-GT points first, then the larger errors on top of the small ones
+            strength = np.linalg.norm(colours - np.asarray(map_ply.ERROR_ZERO), axis=1)
+            strength[np.all(np.isclose(colours, map_ply.NO_GT, atol=2 / 255), axis=1)] = -1
+            order = np.argsort(strength, kind="stable")
+            size = float(np.clip(5000.0 / max(len(p), 1), 0.8, 9.0))
+            ax.scatter(p[order, h], p[order, v], c=colours[order], s=size, linewidths=0, rasterized=True)
+            c = cams.get(fname)
+            if c is not None and len(c):
+                cp = c @ basis.T
+                ax.plot(cp[:, h], cp[:, v], "-", color="k", lw=0.8, alpha=0.6)
+                ax.plot(cp[:1, h], cp[:1, v], "o", color="k", ms=3)
+            ax.grid(alpha=0.2)
+    # the colour scale of the PLYs, and the no-GT colour
+    ramp = map_ply.error_colours(np.linspace(-1, 1, 256) * map_ply.ERROR_SATURATION)
+    sm = plt.cm.ScalarMappable(cmap=ListedColormap(ramp),
+                               norm=Normalize(-map_ply.ERROR_SATURATION, map_ply.ERROR_SATURATION))
+    fig.tight_layout(rect=(0, 0.08, 1, 0.95))
+    cax = fig.add_axes((0.30, 0.045, 0.40, 0.018))
+    cb = fig.colorbar(sm, cax=cax, orientation="horizontal")
+    cb.set_label("log z − log z* of each point in its host keyframe, minus the map's mean "
+                 "(blue: too near, red: too far)", fontsize=8)
+    cb.ax.tick_params(labelsize=7)
+    fig.legend(handles=[Patch(color=map_ply.NO_GT, label="no GT depth"),
+                        plt.Line2D([], [], color="k", lw=0.8, marker="o", ms=3, label="keyframe path (start ●)")],
+               loc="lower right", fontsize=8, frameon=False, bbox_to_anchor=(0.98, 0.02))
+    fig.suptitle(heading, fontsize=12)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+    return True
+
+
+def _slug(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9.+=-]+", "_", s).strip("_")
+
+
+def map_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
+    """:func:`plot_maps` of the lowest seed of every (sequence, scheme, config) into
+    ``out_dir/maps/maps_<sequence>_<scheme>[_<config>]_seed<k>.png``; returns the files written."""
+    runs = runs.assign(config=runs["config"] if "config" in runs else "",
+                       _seed=pd.to_numeric(runs["seed"], errors="coerce") if "seed" in runs else np.nan)
+    written = []
+    for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):
+        r = g.sort_values("_seed", na_position="last").iloc[0]
+        seed = "" if r["_seed"] != r["_seed"] else f"seed{int(r['_seed'])}"
+        name = "_".join(x for x in ("maps", _slug(seq), _slug(scheme), _slug(config)[:60], seed) if x)
+        heading = f"{seq} · {scheme} · {seed or Path(r['folder']).name}" + (f" · {config}" if config else "")
+        path = Path(out_dir) / "maps" / f"{name}.png"
+        if plot_maps(Path(r["folder"]), path, r.to_dict(), heading):
+            written.append(path)
+    return written

@@ -1,0 +1,137 @@
+"""Paper Tables 4 and 5 and the map figure of ``mslam report``, from hand-made run folders."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from mutualslam_cli import results as res
+from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.report import build_tables, collect, to_markdown, write_report
+
+
+def _run(root: Path, seq: str, seed: int, culling: bool, values: dict[str, float | None],
+         max_fts: int = 500, scheme: str = "replay+ewc") -> Path:
+    """A complete run folder: ``config.yaml`` (the keys the report reads) and ``summary.json``."""
+    folder = res.run_dir(root, seq, scheme, seed)
+    folder.mkdir(parents=True)
+    res.write_yaml(folder / "config.yaml", {"seed": seed, "out": str(root), "vo": {"max_fts": max_fts},
+                                            "adapt": {"scheme": scheme},
+                                            "ba": {"enabled": True, "culling": culling}})
+    s = res.Summary()
+    for k, v in values.items():
+        s.set(k, v, "hand-made: absent")
+    if not culling:
+        s.absent("map.points.culled", "disabled (ba.culling=false): BA without culling")
+        s.absent("map.esi.culled", "disabled (ba.culling=false): BA without culling")
+    s.set("sequence.name", seq)
+    s.set("scheme", scheme)
+    s.set("seed", seed)
+    res.write_json(folder / "summary.json", s.to_dict())
+    return folder
+
+
+def _vals(ate_vo, ate_ba, vo, culled, ba):
+    """Summary values: ATEs and (points, e_si) of the VO, culled and BA maps."""
+    out = {"trajectory.ate_rmse_m.vo": ate_vo, "trajectory.ate_rmse_m.ba": ate_ba}
+    for stage, pe in (("vo", vo), ("culled", culled), ("ba", ba)):
+        if pe is not None:
+            out[f"map.points.{stage}"], out[f"map.esi.{stage}"] = pe
+    return out
+
+
+@pytest.fixture
+def roots(tmp_path: Path) -> tuple[Path, Path]:
+    cull, nocull = tmp_path / "cull", tmp_path / "nocull"
+    _run(cull, "seqA", 0, True, _vals(0.020, 0.010, (1000, 0.50), (600, 0.40), (600, 0.30)))
+    _run(cull, "seqA", 1, True, _vals(0.030, 0.020, (1200, 0.60), (800, 0.50), (800, 0.40)))
+    _run(cull, "seqB", 0, True, _vals(0.050, 0.060, (500, 0.70), (300, 0.55), (300, None)))
+    # the same front end as cull/seqA/seed0 (the VO map is shared), BA on the whole map
+    _run(nocull, "seqA", 0, False, _vals(0.020, 0.015, (1000, 0.50), None, (1000, 0.45)))
+    return cull, nocull
+
+
+def test_table4_ate_with_and_without_ba(roots):
+    rep = build_tables(collect(list(roots)))
+    t = rep.tables["ate_ba"]
+    assert list(t.columns) == ["Sequence", "config", "Without BA", "With BA", "n"]
+    assert list(t["config"]) == ["ba.culling=False"] * 2 + ["ba.culling=True"] * 3  # never averaged together
+    nc, c = t[t["config"] == "ba.culling=False"], t[t["config"] == "ba.culling=True"]
+    assert list(c["Sequence"]) == ["seqA", "seqB", "Average"]
+    a = c.iloc[0]
+    assert a["Without BA"] == pytest.approx(0.025) and a["With BA"] == pytest.approx(0.015) and a["n"] == 2
+    avg = c.iloc[2]
+    assert avg["Without BA"] == pytest.approx((0.025 + 0.05) / 2) and avg["With BA"] == pytest.approx(0.0375)
+    assert nc.iloc[0]["With BA"] == pytest.approx(0.015)
+    # best (lower) in bold in LaTeX: seqA with BA, seqB without
+    rows = {r.split(" & ")[0]: r for r in _latex(rep, "ate_ba").splitlines() if " & " in r}
+    assert r"\textbf{0.015}" in rows["seqA"] and r"\textbf{0.05}" in rows["seqB"]
+    assert r"\textbf{0.025}" not in rows["seqA"]
+
+
+def _latex(rep, name: str) -> str:
+    from mutualslam_cli.report import to_latex
+
+    return to_latex(rep.tables[name], rep.titles[name], rep.bold.get(name))
+
+
+def test_table5_map_points_and_esi(roots):
+    rep = build_tables(collect(list(roots)))
+    t = rep.tables["map_ba"]
+    assert "config" not in t  # ba.culling is a row of this table, not a separate experiment
+    assert list(t.columns) == ["BA", "MP culling", "max_fts", "seqA points", "seqA e_si", "seqB points",
+                               "seqB e_si", "n"]
+    rows = {(r["BA"], r["MP culling"]): r for _, r in t.iterrows()}
+    assert set(t["max_fts"]) == {"500"} and len(t) == 4
+    vo = rows[("", "")]  # seqA seed 0 counted once although two runs share its front end
+    assert vo["seqA points"] == 1100 and vo["seqA e_si"] == pytest.approx(0.55) and vo["n"] == "2/1"
+    assert rows[("", "✓")]["seqA points"] == 700 and rows[("", "✓")]["seqB e_si"] == pytest.approx(0.55)
+    ba_only = rows[("✓", "")]
+    assert ba_only["seqA points"] == 1000 and ba_only["seqA e_si"] == pytest.approx(0.45)
+    assert np.isnan(ba_only["seqB points"]) and ba_only["n"] == "1/0"
+    both = rows[("✓", "✓")]
+    assert both["seqA e_si"] == pytest.approx(0.35) and both["seqB points"] == 300 and np.isnan(both["seqB e_si"])
+    md = to_markdown(t)
+    line = next(ln for ln in md.splitlines() if ln.startswith("| ✓ |  |"))
+    assert line.count("—") == 2 and " 0 " not in line  # missing shown as missing, never 0
+    tex = _latex(rep, "map_ba")
+    assert r"\checkmark" in tex and "--" in tex
+
+
+def test_table5_blocks_per_max_fts_and_missing_config(tmp_path: Path, roots):
+    other = tmp_path / "fts120"
+    _run(other, "seqA", 0, True, _vals(0.02, 0.01, (700, 0.6), (400, 0.5), (400, 0.45)), max_fts=120)
+    t = build_tables(collect([*roots, other])).tables["map_ba"]
+    assert list(t["max_fts"]) == ["120"] * 4 + ["500"] * 4
+    assert t.iloc[0]["seqA points"] == 700 and np.isnan(t.iloc[0]["seqB points"])
+    (roots[0] / "seqA" / "replay+ewc" / "seed0" / "config.yaml").write_text("vo: [unclosed\n")
+    with pytest.raises(DatasetError, match="config.yaml"):
+        collect(list(roots))
+
+
+def test_map_figure_is_written_and_listed(roots, tmp_path: Path):
+    folder = roots[0] / "seqA" / "replay+ewc" / "seed0"
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(400, 3)) * [1.0, 0.5, 0.3] + [0, 0, 3]
+    err = rng.normal(scale=0.3, size=400)
+    err[::7] = np.nan
+    keep = rng.random(400) < 0.6
+    res.write_ply(folder / "map_vo.ply", pts, err)
+    res.write_ply(folder / "map_culled.ply", pts[keep], err[keep])
+    res.write_ply(folder / "map_ba.ply", pts[keep] * 1.01, err[keep] * 0.8)
+    (folder / "traj_kf.txt").write_text("0 0 0 0 0 0 0 1\n1 0.1 0 0 0 0 0 1\n2 0.2 0.05 0 0 0 0 1\n")
+    nc = roots[1] / "seqA" / "replay+ewc" / "seed0"  # BA without culling: no map_culled.ply
+    res.write_ply(nc / "map_vo.ply", pts, err)
+    res.write_ply(nc / "map_ba.ply", pts, err)
+    out = tmp_path / "rep"
+    files = write_report(build_tables(collect(list(roots))), out)
+    maps = sorted(f.name for f in files if f.parent.name == "maps")
+    assert maps == ["maps_seqA_replay+ewc_ba.culling=False_seed0.png", "maps_seqA_replay+ewc_ba.culling=True_seed0.png"]
+    for f in maps:
+        assert (out / "maps" / f).stat().st_size > 10_000
+        assert f"(maps/{f})" in (out / "report.md").read_text()
+    assert "Paper Table 4" in (out / "report.md").read_text() and (out / "map_ba.tex").is_file()
+    assert yaml.safe_load((folder / "config.yaml").read_text())["ba"]["culling"] is True
