@@ -175,7 +175,8 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
 
     One block of rows per (scheme, config) (columns ``scheme`` / ``config`` only when there are
     several). A cell is the mean over the block's runs (seeds) that have the value; ``n`` counts
-    the runs. The Average row averages the sequences that have both values.
+    the runs. The Average row averages the sequences that have both values (each column over
+    the sequences that have it when none has both), "Average (k of N)" when that is not all.
 
     Returns:
         ``(table, title, bold)``; ``bold``: ``(row, column)`` of the lower ATE of each row.
@@ -188,11 +189,14 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
             rows.append({"Sequence": seq, "scheme": scheme, "config": config, "n": len(r),
                          "Without BA": _mean(_num(r, "trajectory.ate_rmse_m.vo")),
                          "With BA": _mean(_num(r, "trajectory.ate_rmse_m.ba"))})
-        both = [x for x in rows[first:] if np.isfinite(x["Without BA"]) and np.isfinite(x["With BA"])]
-        label = "Average" if len(both) == len(rows) - first else f"Average ({len(both)} of {len(rows) - first})"
-        rows.append({"Sequence": label, "scheme": scheme, "config": config, "n": "",
-                     **{c: float(np.mean([x[c] for x in both])) if both else float("nan")
-                        for c in ("Without BA", "With BA")}})
+        seqs = rows[first:]
+        both = [x for x in seqs if np.isfinite(x["Without BA"]) and np.isfinite(x["With BA"])]
+        avg: dict[str, Any] = {"scheme": scheme, "config": config, "n": ""}
+        for c in ("Without BA", "With BA"):  # no sequence with both: each column over its own
+            have = both or [x for x in seqs if np.isfinite(x[c])]
+            avg[c] = float(np.mean([x[c] for x in have])) if have else float("nan")
+        k = len(both) if both else max(sum(np.isfinite(x[c]) for x in seqs) for c in ("Without BA", "With BA"))
+        rows.append({"Sequence": "Average" if k == len(seqs) else f"Average ({k} of {len(seqs)})", **avg})
     t = pd.DataFrame(rows, columns=["Sequence", "scheme", "config", "Without BA", "With BA", "n"])
     bold = set()
     for i, x in t.iterrows():
@@ -204,7 +208,7 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
                         if not keep])
     title = ("Paper Table 4: keyframe ATE RMSE (m, Sim(3)-aligned to GT) without and with global BA"
              + (f", scheme {schemes[0]}" if len(schemes) == 1 else "")
-             + "; mean over n seeds, Average over the sequences with both values")
+             + "; mean over n seeds; Average over the sequences with both values")
     return t, title, bold
 
 

@@ -11,6 +11,7 @@ figure per (sequence, scheme, config) with the lowest seed.
 from __future__ import annotations
 
 import re
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -82,6 +83,43 @@ def _title(stage: str, label: str, flat: dict[str, Any], n_read: int) -> str:
     return f"{label}\n{int(n) if n is not None else n_read} points, {esi}"
 
 
+def _removed(vo: tuple | None, kept: tuple | None) -> np.ndarray:
+    """``(M, 3)`` points of the VO map that the culled map no longer has (same coordinates: the
+    culled map is a subset of the front end's); empty without a culled map."""
+    if vo is None or kept is None:
+        return np.zeros((0, 3))
+    have = {tuple(r) for r in kept[0]}
+    return vo[0][np.array([tuple(r) not in have for r in vo[0]], dtype=bool).reshape(-1)]
+
+
+def _panel(ax: Any, data: tuple, stage: str, label: str, flat: dict[str, Any], basis: np.ndarray,
+           hv: tuple[int, int], cams: np.ndarray | None, removed: np.ndarray | None) -> str:
+    """Draw one map (``read_ply``'s result) in one view; return its title."""
+    h, v = hv
+    pts, colours, _ = data
+    p = pts @ basis.T
+    title = _title(stage, label, flat, len(pts))
+    if colours is None:  # the xyz-only maps of older runs
+        colours = np.tile(np.asarray(map_ply.NO_GT), (len(p), 1))
+        title += " (map without error colours)"
+    # no-GT points first, then the larger errors on top of the small ones
+    strength = np.linalg.norm(colours - np.asarray(map_ply.ERROR_ZERO), axis=1)
+    strength[np.all(np.isclose(colours, map_ply.NO_GT, atol=2 / 255), axis=1)] = -1
+    order = np.argsort(strength, kind="stable")
+    size = float(np.clip(5000.0 / max(len(p), 1), 0.8, 9.0))
+    ax.scatter(p[order, h], p[order, v], c=colours[order], s=size, linewidths=0, rasterized=True)
+    if removed is not None and len(removed):
+        r = removed @ basis.T
+        ax.scatter(r[:, h], r[:, v], marker="x", c="k", s=max(size * 2.5, 6), linewidths=0.7, alpha=0.8)
+        title = title.replace(" points,", f" points ({len(r)} culled ×),")
+    if cams is not None and len(cams):
+        cp = cams @ basis.T
+        ax.plot(cp[:, h], cp[:, v], "-", color="k", lw=0.8, alpha=0.6)
+        ax.plot(cp[:1, h], cp[:1, v], "o", color="k", ms=3)
+    ax.grid(alpha=0.2)
+    return title
+
+
 def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> bool:
     """Front and top view of a run's maps (one column per file of :data:`PANELS`) as a PNG.
 
@@ -103,28 +141,29 @@ def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> b
     from matplotlib.patches import Patch
 
     basis = _view_basis(folder)
-    maps = {f: map_ply.read_ply(folder / f) if (folder / f).is_file() else None for f, _, _ in PANELS}
-    culled = maps["map_culled.ply"] is not None or _get(flat, "map.points.culled") is not None
+    maps = {f: map_ply.read_ply(folder / f) for f, _, _ in PANELS if (folder / f).is_file()}
+    panels = [(f, st, lab) for f, st, lab in PANELS if f in maps]
+    notes = flat.get("notes") if isinstance(flat.get("notes"), dict) else {}
+    absent = [f"no {f}: {notes.get(f'map.points.{st}') or 'not written by this run'}"
+              for f, st, _ in PANELS if f not in maps]
+    culled = "map_culled.ply" in maps or _get(flat, "map.points.culled") is not None
     cams = {"map_vo.ply": _cameras(folder, ""), "map_ba.ply": _cameras(folder, "_ba")}
     cams["map_culled.ply"] = cams["map_vo.ply"]
-    ref = maps["map_vo.ply"][0] @ basis.T
-    allc = np.concatenate([c for c in cams.values()]) @ basis.T
-    xy_all = np.concatenate([ref, allc]) if len(ref) else allc
-    if not len(xy_all):
-        xy_all = np.zeros((1, 3))
+    xy_all = np.concatenate([maps["map_vo.ply"][0], *cams.values(), np.zeros((1, 3))]) @ basis.T
     views = (("front view (as seen by the cameras)", 0, 1, "right", "up"),
              ("top view (from above the cameras)", 0, 2, "right", "forward"))
     lims = [_limits(xy_all[:, [h, v]]) for _, h, v, _, _ in views]
     # each row as tall as its view's extent (equal axes), within 0.35-1.4 of the panel width
     ratios = [float(np.clip((y[1] - y[0]) / (x[1] - x[0]), 0.35, 1.4)) for x, y in lims]
     lims = [_fit(x, y, r) for (x, y), r in zip(lims, ratios)]
-    width = 4.8
-    fig, axes = plt.subplots(2, len(PANELS), figsize=(width * len(PANELS), width * sum(ratios) + 2.4),
-                             squeeze=False, gridspec_kw={"height_ratios": ratios})
-    for col, (fname, stage, label) in enumerate(PANELS):
+    width, bottom = 4.8, 1.0 + 0.16 * len(absent)  # inches: panel width, band under the panels
+    fig_w, fig_h = max(width * len(panels), 10.0), width * sum(ratios) + 1.6 + bottom
+    fig, axes = plt.subplots(2, len(panels), figsize=(fig_w, fig_h), squeeze=False,
+                             gridspec_kw={"height_ratios": ratios})
+    removed = _removed(maps["map_vo.ply"], maps.get("map_culled.ply"))
+    for col, (fname, stage, label) in enumerate(panels):
         if fname == "map_ba.ply" and not culled:
             label = "after global BA (no culling)"
-        data = maps[fname]
         for row, (vname, h, v, hl, vl) in enumerate(views):
             ax = axes[row, col]
             ax.set_xlim(*lims[row][0])
@@ -134,49 +173,28 @@ def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> b
             ax.set_xlabel(f"{hl} (map units)", fontsize=8)
             if col == 0:
                 ax.set_ylabel(f"{vname}\n{vl} (map units)", fontsize=8)
-            if data is None:
-                notes = flat.get("notes")
-                why = notes.get(f"map.points.{stage}") if isinstance(notes, dict) else None
-                ax.text(0.5, 0.5, f"no {fname}\n{why or 'not written by this run'}", ha="center", va="center",
-                        transform=ax.transAxes, fontsize=9, color="0.4", wrap=True)
-                ax.set_facecolor("0.97")
-                ax.set_xticks([])
-                ax.set_yticks([])
-                ax.set_xlabel("")
-                if row == 0:
-                    ax.set_title(label, fontsize=10)
-                continue
-            pts, colours, errors = data
+            title = _panel(ax, maps[fname], stage, label, flat, basis, (h, v), cams.get(fname),
+                           removed if fname == "map_culled.ply" else None)
             if row == 0:
-                ax.set_title(_title(stage, label, flat, len(pts)), fontsize=10)
-            p = pts @ basis.T
-            if colours is None:
-                colours = np.tile(np.asarray(map_ply.NO_GT), (len(p), 1))
-            # no-GT points first, then the larger errors on top of the small ones
-            strength = np.linalg.norm(colours - np.asarray(map_ply.ERROR_ZERO), axis=1)
-            strength[np.all(np.isclose(colours, map_ply.NO_GT, atol=2 / 255), axis=1)] = -1
-            order = np.argsort(strength, kind="stable")
-            size = float(np.clip(5000.0 / max(len(p), 1), 0.8, 9.0))
-            ax.scatter(p[order, h], p[order, v], c=colours[order], s=size, linewidths=0, rasterized=True)
-            c = cams.get(fname)
-            if c is not None and len(c):
-                cp = c @ basis.T
-                ax.plot(cp[:, h], cp[:, v], "-", color="k", lw=0.8, alpha=0.6)
-                ax.plot(cp[:1, h], cp[:1, v], "o", color="k", ms=3)
-            ax.grid(alpha=0.2)
-    # the colour scale of the PLYs, and the no-GT colour
+                ax.set_title(title, fontsize=10)
+    fig.tight_layout(rect=(0, bottom / fig_h, 1, 1 - 0.5 / fig_h))
+    # the colour scale of the PLYs, the no-GT colour, and what is not drawn
     ramp = map_ply.error_colours(np.linspace(-1, 1, 256) * map_ply.ERROR_SATURATION)
     sm = plt.cm.ScalarMappable(cmap=ListedColormap(ramp),
                                norm=Normalize(-map_ply.ERROR_SATURATION, map_ply.ERROR_SATURATION))
-    fig.tight_layout(rect=(0, 0.08, 1, 0.95))
-    cax = fig.add_axes((0.30, 0.045, 0.40, 0.018))
+    cax = fig.add_axes((0.25, (bottom - 0.35) / fig_h, 0.40, 0.13 / fig_h))
     cb = fig.colorbar(sm, cax=cax, orientation="horizontal")
     cb.set_label("log z − log z* of each point in its host keyframe, minus the map's mean "
                  "(blue: too near, red: too far)", fontsize=8)
     cb.ax.tick_params(labelsize=7)
-    fig.legend(handles=[Patch(color=map_ply.NO_GT, label="no GT depth"),
-                        plt.Line2D([], [], color="k", lw=0.8, marker="o", ms=3, label="keyframe path (start ●)")],
-               loc="lower right", fontsize=8, frameon=False, bbox_to_anchor=(0.98, 0.02))
+    handles = [Patch(color=map_ply.NO_GT, label="no GT depth"),
+               plt.Line2D([], [], color="k", lw=0.8, marker="o", ms=3, label="keyframe path (start ●)")]
+    if len(removed):
+        handles.insert(1, plt.Line2D([], [], color="k", lw=0, marker="x", ms=4, label="culled point"))
+    fig.legend(handles=handles, loc="upper left", fontsize=8, frameon=False,
+               bbox_to_anchor=(0.70, (bottom - 0.15) / fig_h))
+    for i, line in enumerate(reversed(absent)):
+        fig.text(0.02, (0.1 + 0.16 * i) / fig_h, textwrap.shorten(line, 160), fontsize=8, color="0.35")
     fig.suptitle(heading, fontsize=12)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)

@@ -135,3 +135,14 @@ def test_map_figure_is_written_and_listed(roots, tmp_path: Path):
         assert f"(maps/{f})" in (out / "report.md").read_text()
     assert "Paper Table 4" in (out / "report.md").read_text() and (out / "map_ba.tex").is_file()
     assert yaml.safe_load((folder / "config.yaml").read_text())["ba"]["culling"] is True
+
+
+def test_table4_average_without_any_ba(tmp_path: Path):
+    """Runs from before BA (or with ba.enabled=false): "With BA" is missing, the Average still
+    averages what there is."""
+    _run(tmp_path, "seqA", 0, True, _vals(0.02, None, (10, 0.1), None, None))
+    _run(tmp_path, "seqB", 0, True, _vals(0.04, None, (10, 0.1), None, None))
+    t = build_tables(collect([tmp_path])).tables["ate_ba"]
+    avg = t.iloc[-1]
+    assert avg["Sequence"] == "Average" and avg["Without BA"] == pytest.approx(0.03) and np.isnan(avg["With BA"])
+    assert "| Average | 0.03 | — |  |" in to_markdown(t)
