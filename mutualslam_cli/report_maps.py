@@ -54,9 +54,12 @@ def _cameras(folder: Path, name: str) -> np.ndarray:
     return read_tum_trajectory(f).poses[:, :3, 3]
 
 
-def _limits(xy: np.ndarray, margin: float = 0.12) -> tuple[tuple[float, float], tuple[float, float]]:
-    """Axis limits holding the central 98 % of the points on each axis, plus a margin."""
-    lo, hi = np.percentile(xy, 1, axis=0), np.percentile(xy, 99, axis=0)
+def _limits(xy: np.ndarray, cams: np.ndarray, margin: float = 0.12) -> tuple[tuple[float, float], ...]:
+    """Axis limits holding the central 98 % of the points ``(P, 2)`` and every camera ``(K, 2)``
+    on each axis, plus a margin."""
+    both = np.concatenate([np.percentile(xy, [1, 99], axis=0) if len(xy) else np.zeros((0, 2)), cams,
+                           np.zeros((1, 2))])
+    lo, hi = both.min(axis=0), both.max(axis=0)
     pad = np.maximum((hi - lo) * margin, 1e-3)
     return (lo[0] - pad[0], hi[0] + pad[0]), (lo[1] - pad[1], hi[1] + pad[1])
 
@@ -107,11 +110,12 @@ def _panel(ax: Any, data: tuple, stage: str, label: str, flat: dict[str, Any], b
     strength[np.all(np.isclose(colours, map_ply.NO_GT, atol=2 / 255), axis=1)] = -1
     order = np.argsort(strength, kind="stable")
     size = float(np.clip(5000.0 / max(len(p), 1), 0.8, 9.0))
-    ax.scatter(p[order, h], p[order, v], c=colours[order], s=size, linewidths=0, rasterized=True)
-    if removed is not None and len(removed):
+    if removed is not None and len(removed):  # under the kept points, fainter the more there are
         r = removed @ basis.T
-        ax.scatter(r[:, h], r[:, v], marker="x", c="k", s=max(size * 2.5, 6), linewidths=0.7, alpha=0.8)
+        ax.scatter(r[:, h], r[:, v], marker="x", c="k", s=max(size * 2.0, 4), linewidths=0.6,
+                   alpha=float(np.clip(40.0 / len(r), 0.12, 0.8)), rasterized=True)
         title = title.replace(" points,", f" points ({len(r)} culled ×),")
+    ax.scatter(p[order, h], p[order, v], c=colours[order], s=size, linewidths=0, rasterized=True)
     if cams is not None and len(cams):
         cp = cams @ basis.T
         ax.plot(cp[:, h], cp[:, v], "-", color="k", lw=0.8, alpha=0.6)
@@ -149,10 +153,10 @@ def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> b
     culled = "map_culled.ply" in maps or _get(flat, "map.points.culled") is not None
     cams = {"map_vo.ply": _cameras(folder, ""), "map_ba.ply": _cameras(folder, "_ba")}
     cams["map_culled.ply"] = cams["map_vo.ply"]
-    xy_all = np.concatenate([maps["map_vo.ply"][0], *cams.values(), np.zeros((1, 3))]) @ basis.T
+    pts_v, cams_v = maps["map_vo.ply"][0] @ basis.T, np.concatenate(list(cams.values())) @ basis.T
     views = (("front view (as seen by the cameras)", 0, 1, "right", "up"),
              ("top view (from above the cameras)", 0, 2, "right", "forward"))
-    lims = [_limits(xy_all[:, [h, v]]) for _, h, v, _, _ in views]
+    lims = [_limits(pts_v[:, [h, v]], cams_v[:, [h, v]]) for _, h, v, _, _ in views]
     # each row as tall as its view's extent (equal axes), within 0.35-1.4 of the panel width
     ratios = [float(np.clip((y[1] - y[0]) / (x[1] - x[0]), 0.35, 1.4)) for x, y in lims]
     lims = [_fit(x, y, r) for (x, y), r in zip(lims, ratios)]
