@@ -178,9 +178,8 @@ def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Modu
 
 def write_ba_results(folder: Path, summary: res.Summary, seq: Sequence, vo: VOResult, vo_ba: VOResult,
                      cfg: RunConfig, record: BALog, requested: int, ba_s: float) -> None:
-    """``map_culled.ply`` (the front end's map without the culled points), ``map_ba.ply`` (both
-    coloured by each point's log-depth error), ``traj_{kf,all}_ba.txt`` and the BA part of the
-    summary (:func:`results.summarise_ba`)."""
+    """``map_culled.ply`` (the front end's map without the culled points), ``map_ba.ply`` (both coloured
+    by error), ``traj_{kf,all}_ba.txt`` and the BA part of the summary (:func:`results.summarise_ba`)."""
     keep = ~np.isin(vo.points.ids, np.fromiter(record.culled, np.int64, len(record.culled)))
     no_culling = ("disabled (ba.culling=false): BA without culling" if not cfg.ba.culling else
                   "scheme 'none': no adapted network to cull with" if cfg.adapt.scheme == "none" else None)
