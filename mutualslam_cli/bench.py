@@ -2,6 +2,12 @@
 
 Usage: ``python -m mutualslam_cli.bench [--quick] [--memory] [--out results/bench.json]``.
 
+Sections: synthetic rendering, loader and VO front end, depth network, global photometric BA
+(:func:`mutualslam_cli.ba.bench.bench_ba`: time of 10 LM iterations on 100 keyframes × 10 000
+points and the accuracy it recovers) and, with ``--memory``, peak memory of ``mslam run`` with
+the BA's share of its wall time (``summary.json`` ``timing.ba_s / timing.total_s``). The CPU model
+and SIMD flags the figures were measured on are recorded too.
+
 Every figure is a median over repeats; fp32 and fast-path figures are measured side by side in
 the same run so their ratio is meaningful even when the machine's speed drifts. Results go to
 stdout (a Markdown table) and to a JSON file.
@@ -23,7 +29,24 @@ from typing import Any
 
 TARGETS = {
     "render_fps": 30.0, "vo_fps": 60.0, "predict_ms": 40.0, "finetune_ms": 400.0, "peak_rss_gb": 3.0,
+    "ba_s": 5.0,
 }
+#: SIMD flags of /proc/cpuinfo worth naming next to timings (numpy, OpenCV and torch pick kernels by them)
+SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl", "avx512_vnni", "avx512_bf16",
+              "amx_tile", "amx_bf16", "amx_int8")
+
+
+def cpu_info() -> dict[str, Any]:
+    """``cpu_model`` and ``cpu_flags`` (those of :data:`SIMD_FLAGS` this CPU has), from /proc/cpuinfo
+    (``None`` where it cannot be read)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return {"cpu_model": None, "cpu_flags": None}
+    info = dict(line.split(":", 1) for line in text.splitlines()[:40] if ":" in line)
+    info = {k.strip(): v.strip() for k, v in info.items()}
+    have = set(info.get("flags", "").split())
+    return {"cpu_model": info.get("model name"), "cpu_flags": [f for f in SIMD_FLAGS if f in have]}
 
 
 def reference_ms(repeats: int = 7) -> float:
@@ -86,8 +109,25 @@ def _network(quick: bool, threads: int) -> dict[str, Any]:
     return out
 
 
+def _ba(quick: bool) -> dict[str, Any]:
+    from mutualslam_cli.ba.bench import bench_ba
+
+    return bench_ba(runs=2 if quick else 5)
+
+
+def _ba_share(out: Path) -> dict[str, Any]:
+    """``timing.total_s``, ``timing.ba_s`` and their ratio from the ``summary.json`` under ``out``."""
+    found = sorted(out.rglob("summary.json"))
+    if not found:
+        return {"note": f"no summary.json under {out}"}
+    timing = json.loads(found[0].read_text()).get("timing", {})
+    total, ba = timing.get("total_s"), timing.get("ba_s")
+    return {"total_s": total, "ba_s": ba, "ba_share": ba / total if ba is not None and total else None}
+
+
 def _memory(frames: int) -> dict[str, Any]:
-    """Peak RSS of ``mslam run`` (oracle front end, replay+ewc) on a synthetic sequence of N and 2N frames."""
+    """Peak RSS of ``mslam run`` (oracle front end, replay+ewc) on a synthetic sequence of N and 2N frames,
+    and the global BA's share of each run's wall time."""
     out: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for n in (frames, 2 * frames):
@@ -99,10 +139,11 @@ def _memory(frames: int) -> dict[str, Any]:
                     "print('PEAK', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
             t0 = time.perf_counter()
             r = subprocess.run([sys.executable, "-c", code, "run", str(seq), "--vo", "gt-depth", "--out",
-                                str(Path(tmp) / "res"), "--force"], capture_output=True, text=True)
+                                str(Path(tmp) / f"res{n}"), "--force"], capture_output=True, text=True)
             peak_kb = int(r.stdout.rsplit("PEAK", 1)[1].split()[0]) if "PEAK" in r.stdout else None
             out[f"peak_rss_gb_{n}_frames"] = peak_kb / 1024**2 if peak_kb else None
             out[f"run_s_{n}_frames"] = time.perf_counter() - t0
+            out[f"run_timing_{n}_frames"] = _ba_share(Path(tmp) / f"res{n}")
     a, b = out.get(f"peak_rss_gb_{frames}_frames"), out.get(f"peak_rss_gb_{2 * frames}_frames")
     if a and b:
         out["peak_rss_gb"] = max(a, b)
@@ -123,6 +164,7 @@ def _table(res: dict[str, Any]) -> str:
         ("fine-tuning speed-up fast/fp32 (×)", res.get("finetune_speedup"), "—"),
         ("peak memory of mslam run (GB)", res.get("peak_rss_gb"), "≤ 3"),
         ("peak memory, 2× frames / 1× frames", res.get("peak_rss_ratio_2x"), "≈ 1"),
+        ("global BA, 100 keyframes × 10k points, 10 iterations (s)", res.get("ba_s"), "≤ 5"),
     ]
     lines = ["| what | median | target |", "|---|---|---|"]
     for what, v, tgt in rows:
@@ -132,6 +174,24 @@ def _table(res: dict[str, Any]) -> str:
         lines.append("\nmachine yardstick (fixed Python loop, ms; lower = faster): "
                      f"{res['reference_ms_start']:.0f} at the "
                      f"start, {res.get('reference_ms_end', float('nan')):.0f} at the end")
+    if "ba_before" in res:
+        from mutualslam_cli.ba.bench import report
+
+        p = res["ba_problem"]
+        runs = ", ".join(f"{t:.2f}" for t in res["ba_s_runs"])
+        lines.append(f"\nglobal BA problem: {p['keyframes']} keyframes {p['image']}, {p['points']} points, "
+                     f"{p['observations']} observations; keyframes {p['spacing_cm_median']:.1f} cm apart, "
+                     f"baseline median {p['baseline_cm_median']:.1f} cm, parallax median "
+                     f"{p['parallax_px_median']:.0f} px; start {p['perturbation']}; runs (s): {runs}\n")
+        lines.append(report(res))
+    runs = {int(k.split("_")[2]): v for k, v in res.items() if k.startswith("run_timing_")}
+    for n, t in sorted(runs.items()):
+        if t.get("ba_share") is not None:
+            lines.append(f"\nmslam run ({n} frames, --vo gt-depth): total {t['total_s']:.1f} s, "
+                         f"global BA {t['ba_s']:.1f} s ({100 * t['ba_share']:.0f} %)")
+    if res.get("cpu_flags") is not None:
+        lines.append(f"\nCPU: {res['cpu_model']}, {res['cpu_count']} cores; SIMD flags: "
+                     f"{' '.join(res['cpu_flags'])}")
     if "vo_ms_per_frame" in res:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in res["vo_ms_per_frame"].items())
         lines.append(f"\nVO per-stage ms/frame: {stages}")
@@ -148,9 +208,10 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(a.threads)
-    res: dict[str, Any] = {"cpu_count": os.cpu_count(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
-                           "reference_ms_start": reference_ms()}
-    for part in (lambda: _render(a.quick), lambda: _loader_and_vo(a.quick), lambda: _network(a.quick, a.threads)):
+    res: dict[str, Any] = {"cpu_count": os.cpu_count(), **cpu_info(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+                           "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "reference_ms_start": reference_ms()}
+    for part in (lambda: _render(a.quick), lambda: _loader_and_vo(a.quick), lambda: _network(a.quick, a.threads),
+                 lambda: _ba(a.quick)):
         res.update(part())
         print(_table(res).splitlines()[-1], file=sys.stderr, flush=True)
     if a.memory:

@@ -3,8 +3,9 @@
 ``python -m mutualslam_cli.ba.bench`` (and the ``ba`` section of ``make bench``,
 :func:`bench_ba`) times :func:`~mutualslam_cli.ba.photometric.solve` with 10 LM iterations on
 100 keyframes × 10 000 points (≤ 5 targets, 3×3 patch; design target ≤ 5 s) and reports what it
-recovers: keyframe centre error (mm, max and RMS), rotation error (deg), inverse-depth relative
-error (median, p95), cost and accepted steps, before and after.
+recovers, before and after: keyframe centre error (mm, max and RMS; also the map's scale error
+and the centre error after a Sim(3) alignment), rotation error (deg), inverse-depth relative
+error (median, p95), cost and accepted steps (:func:`accuracy`, :func:`report`).
 
 **The problem** (:data:`BENCH_PROBLEM`): 640×480 images (f = 576 px) of a back wall, five
 vertical panels at staggered depths and a shelf, 1.1–2.2 m away, rendered by analytic
@@ -15,16 +16,16 @@ them, yawing ±5°, pitching ±3°, rolling ±2°. A point's targets are the nea
 camera centre (of the 10 nearest) that see its patch unoccluded, so the two passes and the loop's
 ends are linked (about a quarter of the observations are more than 10 keyframes from their host):
 baselines 3.5–17 cm (median 5.8), parallax median 19 px (p10 11 px). On a 3 m open sweep linked
-by keyframe index instead, scale and bending drift along the chain were so weakly determined that
-the cost's minimum lay 5 mm from the true poses; here LM started 0.1 mm from the truth settles
-within 0.2 mm of it.
+by keyframe index instead (640×192, panels at 2–3.6 m), scale and bending drift along the chain
+were so weakly determined that LM started 0.1 mm from the truth settled 5 mm away from it; here
+it settles within 0.21 mm.
 
 **The perturbation** (:data:`BENCH_PERTURBATION`, :func:`perturb`, rng seed 1): every keyframe
 but the gauge 2 mm and 0.05° off, every inverse depth ±3 %, i.e. 6 % of a neighbour baseline,
 0.5 px of rotation and ~0.6 px of depth parallax: a VO front end's relative error between
 neighbouring keyframes. Chosen so LM converges from the start in 10 iterations; measured on this
 problem (10 iterations, perturbation seeds 1–3): 2 mm / 0.05° / 3 % ends 0.23–0.45 mm (max) from
-the true centres after a Sim(3) alignment, 0.03° in rotation; 0.1° instead of 0.05° leaves
+the true centres after a Sim(3) alignment, ≤ 0.035° in rotation; 0.1° instead of 0.05° leaves
 1.6–1.7 mm and up to 1.9 % scale; 5 mm / 0.2° leaves 15 mm and 1.4°. Independent rotation noise
 mostly excites the slow, weakly determined deformations of a 100-keyframe loop (rotation–
 translation coupling, scale), along which LM's damped steps barely move in 10 iterations.
@@ -32,7 +33,7 @@ translation coupling, scale), along which LM's damped steps barely move in 10 it
 **Scale**: the solver's gauge holds keyframe 0 and ``‖c_1 − c_0‖`` (3.4 cm here), so a 0.1 mm
 error of keyframe 1 relative to keyframe 0 is a 0.3 % error of the map's scale, 5 mm at the far
 end of the loop: in the solver's own gauge the centre error after BA (2.3–5.6 mm max for seeds
-1–2, 0.7 mm for seed 3) is mostly that scale (−0.15 … +0.32 %), which is why :func:`accuracy`
+1–2, 0.7 mm for seed 3) is mostly that scale (−0.32 … +0.15 %), which is why :func:`accuracy`
 also reports it and the error after a Sim(3) alignment. The few points whose depth is still off
 after BA sit on patches whose gradient is nearly perpendicular to their epipolar line (aperture
 problem) and stop in a local minimum.
