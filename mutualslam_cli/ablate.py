@@ -71,7 +71,7 @@ def prepare_frontends(cfg: RunConfig, sequences: list[str], seeds: list[int], ou
                       registry: str | None = None) -> None:
     """Run every (sequence, seed) front end once so scheme jobs find it in the VO cache."""
     from mutualslam_cli.datasets.registry import load_sequence
-    from mutualslam_cli.pipeline import run_frontend
+    from mutualslam_cli.vo_cache import run_frontend
 
     for q, k in itertools.product(sequences, seeds):
         c = with_overrides(cfg, seed=k)  # type: ignore[arg-type]

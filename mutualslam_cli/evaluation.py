@@ -34,8 +34,8 @@ log = logging.getLogger(__name__)
 #: 2: frames and GT depth are undistorted to the pinhole camera the network is trained in.
 EVAL_VERSION = 2
 
-Predictor = Callable[[np.ndarray], np.ndarray]
-"""``(H, W, 3)`` uint8 RGB at sensor resolution → ``(h, w)`` float32 depth at network resolution."""
+Predictor = Callable[[list[np.ndarray]], np.ndarray]
+"""``B`` frames ``(H, W, 3)`` uint8 RGB (pinhole geometry) → ``(B, h, w)`` float32 depth at network resolution."""
 
 
 def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConfig,
@@ -58,29 +58,35 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
         ``per_frame`` table (one row per evaluated frame: ``frame``, ``timestamp``, ``is_keyframe``,
         ``<model>_pcd_{lsq,median,none}`` in percent, ``<model>_esi``, ``<model>_abs_rel``,
         ``<model>_scale_{lsq,median}``, ``n_valid``, and ``<model>_pcd_lsq_running``), and the median
-        prediction time in ms per model.
+        prediction time in ms per frame and model (each batch's time over its frames).
     """
     frames = [i for i, f in enumerate(seq.frames) if f.depth_path is not None][:: max(1, cfg.eval.stride)]
     rows = []
     times: dict[str, list[float]] = {k: [] for k in predictors}
     und = Undistorter(seq.intrinsics)
-    for n, i in enumerate(frames):
-        gt = und.depth(seq.load_depth(i))
-        rgb = und.image(seq.load_rgb(i))
-        row: dict[str, float | int | bool] = {"frame": i, "timestamp": seq.frames[i].timestamp,
-                                               "is_keyframe": bool(keyframe_frames and i in keyframe_frames)}
+    bs = max(1, cfg.eval.batch)
+    for start in range(0, len(frames), bs):  # one forward pass per model and batch of frames
+        chunk = frames[start:start + bs]
+        rgbs = [und.image(seq.load_rgb(i)) for i in chunk]
+        preds = {}
         for name, predict in predictors.items():
             t0 = time.perf_counter()
-            pred = predict(rgb)
-            times[name].append((time.perf_counter() - t0) * 1e3)
-            m = dm.depth_frame_metrics(pred, gt, max_depth=cfg.eval.max_depth, threshold=cfg.eval.pcd_threshold)
-            row["n_valid"] = m["n_valid"]
-            for key, val in m.items():
-                if key != "n_valid":
-                    row[f"{name}_{key}"] = val
-        rows.append(row)
+            preds[name] = predict(rgbs)
+            times[name].append((time.perf_counter() - t0) * 1e3 / len(chunk))  # per frame
+        for j, i in enumerate(chunk):
+            gt = und.depth(seq.load_depth(i))
+            row: dict[str, float | int | bool] = {"frame": i, "timestamp": seq.frames[i].timestamp,
+                                                   "is_keyframe": bool(keyframe_frames and i in keyframe_frames)}
+            for name in predictors:
+                m = dm.depth_frame_metrics(preds[name][j], gt, max_depth=cfg.eval.max_depth,
+                                           threshold=cfg.eval.pcd_threshold)
+                row["n_valid"] = m["n_valid"]
+                for key, val in m.items():
+                    if key != "n_valid":
+                        row[f"{name}_{key}"] = val
+            rows.append(row)
         if progress:
-            progress(n + 1, len(frames))
+            progress(start + len(chunk), len(frames))
     table = pd.DataFrame(rows)
     for name in predictors:
         col = f"{name}_pcd_lsq"

@@ -307,6 +307,26 @@ def summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, 
     summary.set("map.inliers.kept", float((~gone[~bad]).mean()) if (~bad).any() else None, "every point is an outlier")
 
 
+def summarise_stages(summary: Summary, timings: dict[str, float], ba_trigger_s: float, vo_cached: bool) -> None:
+    """``timing.total_s`` and the run's wall time split by stage, ``timing.stage_s.*`` (seconds).
+
+    ``frontend`` (VO or oracle; a cached front end costs only its loading), ``adaptation`` (online
+    fine-tuning without the BA it triggered), ``ba`` (every culling + global BA: Algorithm 1's
+    requests and the final one), ``evaluation`` (depth of every frame with GT by both models),
+    ``other`` (the rest: loading the sequence and the network, trajectory and map metrics, writing
+    files). The five add up to ``total_s``.
+    """
+    ba = ba_trigger_s + timings.get("ba_final_s", 0.0)
+    parts = {"frontend": timings.get("vo_s", 0.0), "adaptation": timings.get("adapt_s", 0.0) - ba_trigger_s,
+             "ba": ba, "evaluation": timings.get("eval_s", 0.0)}
+    parts["other"] = timings["total_s"] - sum(parts.values())
+    summary.set("timing.total_s", timings["total_s"])
+    for k, v in parts.items():
+        summary.set(f"timing.stage_s.{k}", float(v))
+    if vo_cached:
+        summary.notes["timing.stage_s.frontend"] = "front end loaded from the cache"
+
+
 def summarise_adaptation(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float]) -> None:
     """``timing.finetune_ms`` (median per optimiser step) and ``timing.finetune_kf_ms`` (per keyframe)."""
     why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"

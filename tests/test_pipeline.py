@@ -15,7 +15,8 @@ from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.pipeline import run_sequence, vo_cache_key
+from mutualslam_cli.pipeline import run_sequence
+from mutualslam_cli.vo_cache import vo_cache_key
 from mutualslam_cli.report import build_tables, collect, write_report
 from synth import make_tum_dir
 
@@ -61,6 +62,11 @@ def test_run_writes_complete_result(setup, default_run):
     assert len(read_tum_trajectory(f / "traj_kf_ba.txt")) == flat["vo.keyframes"]
     assert len(read_tum_trajectory(f / "traj_all_ba.txt")) == len(read_tum_trajectory(f / "traj_all.txt"))
     assert json.loads((f / "manifest.json").read_text())["ba_runs"][-1]["keyframes"] == flat["vo.keyframes"]
+    # The run's time split by stage adds up to its total; the BA's share is the BA's time.
+    stages = s["timing"]["stage_s"]
+    assert set(stages) == {"frontend", "adaptation", "ba", "evaluation", "other"}
+    assert sum(stages.values()) == pytest.approx(flat["timing.total_s"]) and stages["ba"] == flat["timing.ba_s"]
+    assert all(v >= 0 for v in stages.values())
     # Oracle keyframe poses are GT: ATE ~ 0 (written and re-read in TUM format).
     assert flat["trajectory.ate_rmse_m.vo"] < 1e-4
     assert len(read_tum_trajectory(f / "traj_kf.txt")) == flat["vo.keyframes"]
@@ -160,3 +166,21 @@ def test_injected_outliers_are_counted(setup, default_run):
     nc = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "ba.culling=false"), out=tmp / "outl_nc")
     assert nc.summary["map"]["outliers"]["culled"] is None
     assert "no culling" in nc.summary["notes"]["map.outliers.culled"]
+
+
+def test_batched_evaluation_matches_frame_by_frame(setup):
+    tmp, seq = setup
+    from mutualslam_cli.adapt.inputs import load_network, make_predictor
+    from mutualslam_cli.evaluation import evaluate_depth
+
+    loaded = load_sequence(seq)
+    tables = {}
+    for b in (1, 5):  # 12 frames: batches of 5, 5 and 2
+        cfg = _cfg(tmp, f"eval.batch={b}")
+        net = load_network(cfg)
+        calls = []
+        pred = make_predictor(net, cfg, False)
+        tables[b], ms = evaluate_depth(loaded, {"m": lambda f, p=pred, c=calls: c.append(len(f)) or p(f)}, cfg,
+                                       progress=lambda d, n: None)
+        assert sum(calls) == len(tables[b]) and max(calls) == b and ms["m"] > 0
+    pd.testing.assert_frame_equal(tables[1], tables[5], check_exact=False, rtol=1e-4, atol=1e-3)

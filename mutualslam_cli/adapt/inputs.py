@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from mutualslam_cli.adapt import weights
-from mutualslam_cli.adapt.depthnet import fast_path_supported, predict_depth
+from mutualslam_cli.adapt.depthnet import fast_path_supported, predict_depth, prepare
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.types import Intrinsics
@@ -49,23 +49,24 @@ def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Cal
     return load
 
 
-def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool) -> Callable[[np.ndarray], np.ndarray]:
-    """Predictor for evaluation: ``(H, W, 3)`` uint8 frame (pinhole geometry) → ``(h, w)`` float32 depth
-    at network resolution (map units)."""
+def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool) -> Callable[[list[np.ndarray]], np.ndarray]:
+    """Batched predictor for evaluation: ``B`` frames ``(H, W, 3)`` uint8 (pinhole geometry) → ``(B, h, w)``
+    float32 depth at network resolution (map units), one forward pass for the batch."""
 
-    def predict(rgb: np.ndarray) -> np.ndarray:
-        x = to_net_image(rgb, cfg.net.width, cfg.net.height)[None]
-        return predict_depth(net, x, fast=fast)[0]
+    def predict(frames: list[np.ndarray]) -> np.ndarray:
+        x = torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in frames])
+        return predict_depth(net, x, fast=fast)
 
     return predict
 
 
-def load_network(cfg: RunConfig) -> torch.nn.Module:
-    """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default."""
+def load_network(cfg: RunConfig, fast: bool = False) -> torch.nn.Module:
+    """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default,
+    in the memory layout of the chosen path (:func:`~mutualslam_cli.adapt.depthnet.prepare`: channels-last
+    with ``fast``, as the adapted model is; an unprepared model under bf16 autocast was 1.27× slower)."""
     kw = {"min_depth": cfg.net.min_depth, "max_depth": cfg.net.max_depth}
-    if cfg.net.weights:
-        return weights.load_monodepth2(Path(cfg.net.weights), **kw)
-    return weights.load_default(**kw)
+    net = weights.load_monodepth2(Path(cfg.net.weights), **kw) if cfg.net.weights else weights.load_default(**kw)
+    return prepare(net, fast)
 
 
 def use_fast_path(cfg: RunConfig) -> bool:

@@ -1,0 +1,115 @@
+"""The culling + global BA stage of a run (paper §III-C): Algorithm 1's requests and the final BA.
+
+:func:`make_ba_step` gives :func:`~mutualslam_cli.adapt.stage.run_adaptation` the step it calls when
+Algorithm 1 requests global BA (the mutual loop); :func:`final_ba` refines the whole map at the end
+and :func:`write_ba_results` writes its maps, trajectories and summary keys. The BA itself is
+:func:`~mutualslam_cli.ba.global_ba.run_global_ba`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import cv2
+import numpy as np
+import torch
+
+from mutualslam_cli import results as res
+from mutualslam_cli.adapt.inputs import keyframe_images
+from mutualslam_cli.adapt.online import OnlineAdapter
+from mutualslam_cli.adapt.stage import GlobalBA, depth_predictor
+from mutualslam_cli.ba.global_ba import run_global_ba
+from mutualslam_cli.config import RunConfig
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.evaluation import esi_of_log_errors, evaluate_trajectory, map_log_depth_errors
+from mutualslam_cli.vo.camera import Undistorter
+from mutualslam_cli.vo.output import VOResult
+
+log = logging.getLogger(__name__)
+
+#: Global BA image resolution, relative to the VO camera. Half: an LM iteration costs the same at
+#: any resolution (it scales with points × targets), the images take 4× less memory (300 TUM
+#: keyframes: 92 MB instead of 370 MB), the area-averaged images widen the convergence basin, and
+#: on tum_fr1_xyz (16 keyframes, 659 points, GT depth as the CNN) it gave keyframe ATE 13.2 mm and
+#: map e_si 0.113 where full resolution gave 13.9 mm and 0.118, in about the same time (0.5 s on an
+#: idle core). Not the network resolution: 640×192 squeezes a 4:3 image vertically by 2.5.
+BA_SCALE = 0.5
+
+
+
+
+def ba_images(seq: Sequence, vo: VOResult, scale: float = BA_SCALE) -> Callable[[int], np.ndarray]:
+    """``kf_id → (H, W)`` float32 grey in [0, 1] of the keyframes, undistorted, at ``scale`` × the
+    VO camera (area resampling; cached for the run)."""
+    und = Undistorter(seq.intrinsics)
+    size = (round(vo.intrinsics.width * scale), round(vo.intrinsics.height * scale))
+    cache: dict[int, np.ndarray] = {}
+
+    def load(kf_id: int) -> np.ndarray:
+        if kf_id not in cache:
+            grey = cv2.cvtColor(und.image(seq.load_rgb(vo.keyframes[kf_id].frame_index)), cv2.COLOR_RGB2GRAY)
+            cache[kf_id] = cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+        return cache[kf_id]
+
+    return load
+
+
+@dataclass
+class BALog:
+    """What the culling + BA runs of one run did: each run's ``stats`` (triggers, then the final
+    one) and the ids of every culled map point."""
+
+    runs: list[dict[str, Any]] = field(default_factory=list)
+    culled: set[int] = field(default_factory=set)
+
+
+def make_ba_step(seq: Sequence, vo: VOResult, cfg: RunConfig, record: BALog) -> GlobalBA:
+    """The :data:`~mutualslam_cli.adapt.stage.GlobalBA` step of a run (culling unless
+    ``ba.culling=false`` or scheme ``none``), recording into ``record``."""
+    images = ba_images(seq, vo)
+    cull = cfg.ba.culling and cfg.adapt.scheme != "none"
+
+    def step(v: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
+             val_loss: Mapping[int, float]) -> VOResult:
+        r = run_global_ba(v, images, depth_of, val_loss, cfg.ba, cull=cull, upto=kf_id)
+        record.culled.update(v.points.ids[~r.keep].tolist())
+        record.runs.append({"kf_id": kf_id, **{k: x for k, x in r.stats.items() if k != "costs"}})
+        log.info("global BA after keyframe %d: %d culled, %d refined (%d unrefined), cost %.4g -> %.4g, %.2f s",
+                 kf_id, r.stats["n_culled"], r.stats["n_refined"], r.stats["n_unrefined"], r.stats["cost0"],
+                 r.stats["cost"], r.stats["seconds"])
+        return r.kept()
+
+    return step
+
+
+def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Module,
+             adapter: OnlineAdapter | None, cfg: RunConfig, fast: bool, step: GlobalBA) -> VOResult:
+    """The final culling + BA of the loop's map over every keyframe with the final network
+    (L_val of every stored keyframe; none for scheme ``none``)."""
+    load = keyframe_images(seq, vo, cfg.net.width, cfg.net.height)
+    depth_of = depth_predictor(net, load, fast, adapter.buffer if adapter is not None else None)
+    val_loss = adapter.per_keyframe_val_loss() if adapter is not None else {}
+    return step(loop_map, len(loop_map.keyframes) - 1, depth_of, val_loss)
+
+
+def write_ba_results(folder: Path, summary: res.Summary, seq: Sequence, vo: VOResult, vo_ba: VOResult,
+                     cfg: RunConfig, record: BALog, requested: int, ba_s: float) -> None:
+    """``map_culled.ply`` (the front end's map without the culled points), ``map_ba.ply`` (both coloured
+    by error), ``traj_{kf,all}_ba.txt`` and the BA part of the summary (:func:`results.summarise_ba`)."""
+    keep = ~np.isin(vo.points.ids, np.fromiter(record.culled, np.int64, len(record.culled)))
+    no_culling = ("disabled (ba.culling=false): BA without culling" if not cfg.ba.culling else
+                  "scheme 'none': no adapted network to cull with" if cfg.adapt.scheme == "none" else None)
+    err, err_ba = map_log_depth_errors(seq, vo), map_log_depth_errors(seq, vo_ba)
+    if no_culling is None:
+        res.write_ply(folder / "map_culled.ply", vo.points_world()[keep], err[keep])
+    res.write_ply(folder / "map_ba.ply", vo_ba.points_world(), err_ba)
+    res.write_trajectories(folder, vo_ba.traj_kf, vo_ba.traj_all, suffix="_ba")
+    res.summarise_ba(summary, traj=evaluate_trajectory(seq, vo_ba, cfg.eval.ate_max_dt),
+                     points_culled=int(keep.sum()), esi_culled=esi_of_log_errors(err[keep])[0],
+                     points_ba=len(vo_ba.points), esi_ba=esi_of_log_errors(err_ba)[0], ba_s=ba_s,
+                     runs=record.runs, requested=requested, no_culling=no_culling)
+
+
