@@ -284,7 +284,8 @@ def summarise_ba(summary: Summary, *, traj: dict[str, Any], points_culled: int |
     summary.set("ba.triggers", len(runs) - 1)
     summary.set("ba.requested", requested)
     final = runs[-1]
-    for key in ("n_rehosted", "n_refined", "n_unrefined", "n_diverged", "n_targets", "iterations", "cost0", "cost"):
+    for key in ("n_judged_elsewhere", "n_refined", "n_unrefined", "n_diverged", "n_targets", "iterations", "cost0",
+                "cost"):
         summary.set(f"ba.final.{key}", final[key])
 
 
