@@ -272,8 +272,11 @@ class OnlineAdapter:
                                        batch["uv"], batch["d"], batch["mask"], cfg.lambda_sparse,
                                        cfg.lambda_smooth, cfg.alpha)
             loss.backward()
-            grads = [p.grad.detach().clone() if p.grad is not None else torch.zeros_like(p) for p in self.params]
-            if reg is not None and reg.mode == "penalty":
+            penalty = reg is not None and reg.mode == "penalty"
+            # ∇L_train for the regulariser's importance; a copy only when the penalty's backward adds to .grad
+            grads = [] if reg is None else [(p.grad.detach().clone() if penalty else p.grad.detach())
+                                            if p.grad is not None else torch.zeros_like(p) for p in self.params]
+            if penalty:
                 pen = reg.penalty(self.net)  # Eq. 1 / Eq. 19 regulariser at the current θ
                 if pen.requires_grad:
                     pen.backward()  # coupled: ∇(L_train + penalty) through Adam
