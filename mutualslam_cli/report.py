@@ -342,7 +342,8 @@ def plot_accuracy(runs: pd.DataFrame, path: Path) -> bool:
         ax.set_xlabel("frame")
         ax.set_ylabel("running PCD (%, lsq)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
     fig.tight_layout()
     if drawn:
         path.parent.mkdir(parents=True, exist_ok=True)
