@@ -71,8 +71,8 @@ def _progress() -> Progress:
 def _fmt(v: Any, nd: int = 3) -> str:
     if v is None:
         return "—"
-    if isinstance(v, float):
-        return f"{v:.{nd}f}"
+    if isinstance(v, float):  # a count averaged over seeds stays a count when it is whole
+        return str(int(v)) if v.is_integer() and abs(v) >= 10 else f"{v:.{nd}f}"
     return str(v)
 
 
