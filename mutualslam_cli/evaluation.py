@@ -18,6 +18,7 @@ import pandas as pd
 import torch
 
 from mutualslam_cli import results as res
+from mutualslam_cli.adapt.inference import resolve_runtime
 from mutualslam_cli.adapt.inputs import make_predictor
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.associate import MAX_DT
@@ -118,6 +119,7 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
     """
     key = hashlib.sha1(json.dumps({
         "model": model_digest(net0), "net": to_dict(cfg.net), "eval": to_dict(cfg.eval), "fast": fast,
+        "runtime": resolve_runtime(cfg.net.runtime, fast),
         "version": EVAL_VERSION,
         "root": str(Path(seq.root).resolve()), "frames": [f.timestamp for f in seq.frames],
     }, sort_keys=True, default=str).encode()).hexdigest()[:16]

@@ -16,6 +16,7 @@ import torch
 
 from mutualslam_cli.adapt import weights
 from mutualslam_cli.adapt.depthnet import fast_path_supported, predict_depth, prepare
+from mutualslam_cli.adapt.inference import openvino_predictor, resolve_runtime
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.types import Intrinsics
@@ -51,11 +52,16 @@ def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Cal
 
 def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool) -> Callable[[list[np.ndarray]], np.ndarray]:
     """Batched predictor for evaluation: ``B`` frames ``(H, W, 3)`` uint8 (pinhole geometry) → ``(B, h, w)``
-    float32 depth at network resolution (map units), one forward pass for the batch."""
+    float32 depth at network resolution (map units), in the runtime ``net.runtime`` resolves to
+    (:func:`~mutualslam_cli.adapt.inference.resolve_runtime`; OpenVINO copies the weights now)."""
+    if resolve_runtime(cfg.net.runtime, fast) == "openvino":
+        run = openvino_predictor(net, cfg.net.width, cfg.net.height)
+    else:
+        def run(x: torch.Tensor) -> np.ndarray:
+            return predict_depth(net, x, fast=fast)
 
     def predict(frames: list[np.ndarray]) -> np.ndarray:
-        x = torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in frames])
-        return predict_depth(net, x, fast=fast)
+        return run(torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in frames]))
 
     return predict
 
