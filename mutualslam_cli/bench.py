@@ -102,6 +102,14 @@ def _network(quick: bool, threads: int) -> dict[str, Any]:
             continue
         out[f"predict_{name}_ms"] = bench_inference(640, 192, 2 * reps, fast, threads, channels_last=cl)["ms"]
         out[f"finetune_{name}_ms"] = bench_finetune_step(640, 192, reps, fast, threads, channels_last=cl)["ms"]
+    from mutualslam_cli.adapt.inference import openvino_available
+
+    if openvino_available() and fast_path_supported():  # the evaluation's runtime (net.runtime auto)
+        from mutualslam_cli.adapt.bench import bench_inference_openvino
+
+        ov = bench_inference_openvino(640, 192, 2 * reps, threads)
+        out["predict_openvino_ms"], out["openvino_convert_s"] = ov["ms"], ov["convert_s"]
+        out["predict_openvino_speedup"] = out["predict_fp32_ms"] / ov["ms"]
     if "predict_fast_ms" in out:
         out["predict_speedup"] = out["predict_fp32_ms"] / out["predict_fast_ms"]
         out["finetune_speedup"] = out["finetune_fp32_ms"] / out["finetune_fast_ms"]
@@ -161,6 +169,8 @@ def _table(res: dict[str, Any]) -> str:
         ("fine-tuning step fp32 (ms)", res.get("finetune_fp32_ms"), "—"),
         ("fine-tuning step fast path (ms)", res.get("finetune_fast_ms"), "≤ 400"),
         ("prediction speed-up fast/fp32 (×)", res.get("predict_speedup"), "—"),
+        ("depth prediction, evaluation runtime OpenVINO bf16 (ms)", res.get("predict_openvino_ms"), "≤ 40"),
+        ("prediction speed-up OpenVINO/fp32 (×)", res.get("predict_openvino_speedup"), "≥ 2.5"),
         ("fine-tuning speed-up fast/fp32 (×)", res.get("finetune_speedup"), "—"),
         ("peak memory of mslam run (GB)", res.get("peak_rss_gb"), "≤ 3"),
         ("peak memory, 2× frames / 1× frames", res.get("peak_rss_ratio_2x"), "≈ 1"),

@@ -56,6 +56,25 @@ def bench_inference(width: int = 640, height: int = 192, repeats: int = 10, fast
             "threads": torch.get_num_threads(), "bf16_supported": fast_path_supported()}
 
 
+def bench_inference_openvino(width: int = 640, height: int = 192, repeats: int = 10, threads: int | None = None,
+                             warmup: int = 2, seed: int = 0) -> dict[str, Any]:
+    """Median time of one depth prediction through the evaluation's OpenVINO runtime
+    (:mod:`mutualslam_cli.adapt.inference`: bf16 where the CPU has it), conversion timed apart.
+
+    Returns:
+        ``{"ms": median, "times_ms": [...], "convert_s": conversion + compilation, "threads"}``.
+    """
+    from mutualslam_cli.adapt.inference import openvino_predictor
+
+    _setup(threads, seed)
+    t0 = time.perf_counter()
+    predict = openvino_predictor(DepthNet().eval(), width, height, threads)
+    convert_s = time.perf_counter() - t0
+    x = torch.rand(1, 3, height, width)
+    ms, times = _median_ms(lambda: predict(x), repeats, warmup)
+    return {"ms": ms, "times_ms": times, "convert_s": convert_s, "threads": torch.get_num_threads()}
+
+
 def make_step_batch(width: int, height: int, n_points: int = 500, seed: int = 0) -> dict[str, Any]:
     """A realistic fine-tuning batch: 2 targets (recent + replayed), 2 neighbours each, sparse points."""
     g = torch.Generator().manual_seed(seed)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import warnings
 from typing import Callable
 
 import numpy as np
@@ -78,7 +79,8 @@ def openvino_predictor(net: torch.nn.Module, width: int, height: int,
     was_training = net.training
     net.eval()
     try:
-        with torch.no_grad():
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks are constant at a fixed size
             model = ov.convert_model(_Predict(net), example_input=torch.rand(1, 3, height, width))
     finally:
         net.train(was_training)
