@@ -53,7 +53,7 @@ from mutualslam_cli.config import BAConfig
 from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.output import MapPoints, VOResult
+from mutualslam_cli.vo.output import VOResult
 
 #: Pixels at the border of the BA image where a projection is invalid (the solver's margin).
 MARGIN = 2.0
@@ -73,8 +73,8 @@ class GlobalBAResult:
     """Output of :func:`run_global_ba`.
 
     Attributes:
-        vo: refined copy of the input: keyframe poses ≤ ``upto`` and the inverse depths (and
-            hosts) of refined points replaced, the rest following (module docstring). Culled
+        vo: refined copy of the input: keyframe poses ≤ ``upto`` and the inverse depths of refined
+            points replaced (hosts and pixels stay), the rest following (module docstring). Culled
             points are still in it, unchanged; :meth:`kept` drops them.
         keep: ``(P,)`` bool over the input's points, False = culled by Eq. 10.
         stats: ``n_points, n_culled, n_judged, n_judged_elsewhere, n_refined, n_unrefined`` (kept, not
@@ -159,7 +159,7 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     sub = replace(vo, keyframes=vo.keyframes[:upto + 1],
                   points=replace(pts.subset(pts.host <= upto), observations=sub_obs, obs_pixels=sub_pix))
     keep = np.ones(len(pts), bool)
-    host = sub.points.host.copy()
+    host = sub.points.host  # the BA keeps the front end's hosts (module docstring)
     stats = {"n_points": len(pts), "n_culled": 0, "n_judged": 0, "n_judged_elsewhere": 0}
     if cull and depth_of is not None and len(sub_idx):
         cache: dict[int, np.ndarray] = {}
@@ -175,11 +175,9 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
 
         cr = cull_map_points(sub, val_loss or {}, depth_at, cfg.gamma, cfg.d_max)
         keep[sub_idx] = cr.keep
-        host = cr.host
-        stats.update(n_culled=int((~cr.keep).sum()), n_judged=int(cr.judged.sum()))
-    stats["n_judged_elsewhere"] = int(np.sum(host != sub.points.host))
-    host = sub.points.host  # the BA keeps the front end's hosts (module docstring)
-    pix, rho = sub.points.pixel.copy(), sub.points.inv_depth.copy()
+        stats.update(n_culled=int((~cr.keep).sum()), n_judged=int(cr.judged.sum()),
+                     n_judged_elsewhere=int(np.sum(cr.host != host)))
+    pix, rho = sub.points.pixel, sub.points.inv_depth
 
     # BA, one problem per segment, at the resolution of the images
     T_wc = np.stack([k.pose for k in vo.keyframes])
@@ -232,10 +230,9 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
                      ("cost0", r.stats["cost0"]), ("cost", r.stats["cost"])):
             tot[k] += v
 
-    # assemble: refined rows get (host, pixel, inverse depth); the rest stay as they are
-    new_host, new_pix, inv = pts.host.copy(), pts.pixel.copy(), pts.inv_depth.copy()
-    rows = sub_idx[refined]
-    new_host[rows], new_pix[rows], inv[rows] = host[refined], pix[refined], new_rho[refined]
+    # assemble: refined rows get their new inverse depth; the rest stay as they are
+    inv = pts.inv_depth.copy()
+    inv[sub_idx[refined]] = new_rho[refined]
     times = np.array([k.timestamp for k in vo.keyframes])
     later = np.arange(nk) > upto
     T_new[later] = _follow(T_wc[later], times[later], segs[later], times[~later], segs[~later],
@@ -248,7 +245,7 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     all_new = _follow(vo.traj_all.poses, vo.traj_all.timestamps, seg_rows, times[kf_ref], segs[kf_ref],
                       T_wc[kf_ref], T_new[kf_ref])
     out = replace(vo, keyframes=[replace(k, pose=T_new[k.id]) for k in vo.keyframes],
-                  points=MapPoints(pts.ids, new_host, new_pix, inv, pts.sigma, pts.observations, pts.obs_pixels),
+                  points=replace(pts, inv_depth=inv),
                   traj_all=Trajectory(vo.traj_all.timestamps, all_new))
     stats.update(tot, n_refined=int(refined.sum()), n_unrefined=int((keep[sub_idx] & ~refined).sum()),
                  keyframes=upto + 1, costs=costs, seconds=time.perf_counter() - t0)
