@@ -39,6 +39,15 @@ log = logging.getLogger(__name__)
 BA_SCALE = 0.5
 
 
+def no_culling_reason(cfg: RunConfig) -> str | None:
+    """Why a run's global BA does not cull (``None``: it culls with the adapted network)."""
+    if not cfg.ba.enabled:
+        return "disabled (ba.enabled=false)"
+    if not cfg.ba.culling:
+        return "disabled (ba.culling=false): BA without culling"
+    if cfg.adapt.scheme == "none":
+        return "scheme 'none': no adapted network to cull with"
+    return None
 
 
 def ba_images(seq: Sequence, vo: VOResult, scale: float = BA_SCALE) -> Callable[[int], np.ndarray]:
@@ -65,12 +74,16 @@ class BALog:
     runs: list[dict[str, Any]] = field(default_factory=list)
     culled: set[int] = field(default_factory=set)
 
+    def culled_mask(self, ids: np.ndarray) -> np.ndarray:
+        """``(P,)`` bool: which of the map-point ``ids`` were culled."""
+        return np.isin(ids, np.fromiter(self.culled, np.int64, len(self.culled)))
+
 
 def make_ba_step(seq: Sequence, vo: VOResult, cfg: RunConfig, record: BALog) -> GlobalBA:
     """The :data:`~mutualslam_cli.adapt.stage.GlobalBA` step of a run (culling unless
     ``ba.culling=false`` or scheme ``none``), recording into ``record``."""
     images = ba_images(seq, vo)
-    cull = cfg.ba.culling and cfg.adapt.scheme != "none"
+    cull = no_culling_reason(cfg) is None
 
     def step(v: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
              val_loss: Mapping[int, float]) -> VOResult:
@@ -95,14 +108,17 @@ def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Modu
     return step(loop_map, len(loop_map.keyframes) - 1, depth_of, val_loss)
 
 
-def write_ba_results(folder: Path, summary: res.Summary, seq: Sequence, vo: VOResult, vo_ba: VOResult,
-                     cfg: RunConfig, record: BALog, requested: int, ba_s: float) -> None:
+def write_ba_results(folder: Path, summary: res.Summary, seq: Sequence, vo: VOResult, err: np.ndarray,
+                     vo_ba: VOResult, cfg: RunConfig, record: BALog, requested: int, ba_s: float) -> None:
     """``map_culled.ply`` (the front end's map without the culled points), ``map_ba.ply`` (both coloured
-    by error), ``traj_{kf,all}_ba.txt`` and the BA part of the summary (:func:`results.summarise_ba`)."""
-    keep = ~np.isin(vo.points.ids, np.fromiter(record.culled, np.int64, len(record.culled)))
-    no_culling = ("disabled (ba.culling=false): BA without culling" if not cfg.ba.culling else
-                  "scheme 'none': no adapted network to cull with" if cfg.adapt.scheme == "none" else None)
-    err, err_ba = map_log_depth_errors(seq, vo), map_log_depth_errors(seq, vo_ba)
+    by error), ``traj_{kf,all}_ba.txt`` and the BA part of the summary (:func:`results.summarise_ba`).
+
+    Args:
+        err: ``(P,)`` :func:`~mutualslam_cli.evaluation.map_log_depth_errors` of the front end's map ``vo``.
+    """
+    keep = ~record.culled_mask(vo.points.ids)
+    no_culling = no_culling_reason(cfg)
+    err_ba = map_log_depth_errors(seq, vo_ba)
     if no_culling is None:
         res.write_ply(folder / "map_culled.ply", vo.points_world()[keep], err[keep])
     res.write_ply(folder / "map_ba.ply", vo_ba.points_world(), err_ba)
@@ -111,5 +127,3 @@ def write_ba_results(folder: Path, summary: res.Summary, seq: Sequence, vo: VORe
                      points_culled=int(keep.sum()), esi_culled=esi_of_log_errors(err[keep])[0],
                      points_ba=len(vo_ba.points), esi_ba=esi_of_log_errors(err_ba)[0], ba_s=ba_s,
                      runs=record.runs, requested=requested, no_culling=no_culling)
-
-

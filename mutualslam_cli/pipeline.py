@@ -23,7 +23,7 @@ from mutualslam_cli.adapt.inputs import load_network, use_fast_path
 from mutualslam_cli.adapt.stage import Progress, run_adaptation
 from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.ba.culling import inject_outliers
-from mutualslam_cli.ba_stage import BALog, final_ba, make_ba_step, write_ba_results
+from mutualslam_cli.ba_stage import BALog, final_ba, make_ba_step, no_culling_reason, write_ba_results
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
@@ -121,17 +121,18 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
 
     # Final culling + global BA over every keyframe: the after-BA trajectory and map.
     requested = sum(bool(r.get("run_global_ba")) for r in kf_rows)
+    ba_trigger_s = float(sum(r.get("ba_s", 0.0) for r in kf_rows))  # Algorithm 1's BAs, inside adaptation
     if step is None:
         res.summarise_ba_absent(summary, "disabled (ba.enabled=false)", requested)
     else:
         t = time.perf_counter()
         vo_ba = final_ba(seq, vo, loop_map, net, adapter, cfg, fast, step)
         timings["ba_final_s"] = time.perf_counter() - t
-        trigger_s = float(sum(r.get("ba_s", 0.0) for r in kf_rows))
-        write_ba_results(folder, summary, seq, vo, vo_ba, cfg, record, requested, trigger_s + timings["ba_final_s"])
+        write_ba_results(folder, summary, seq, vo, err_vo, vo_ba, cfg, record, requested,
+                         ba_trigger_s + timings["ba_final_s"])
     if len(injected):
-        culls = step is not None and cfg.ba.culling and cfg.adapt.scheme != "none"
-        res.summarise_outliers(summary, vo.points.ids, injected, record.culled if culls else None)
+        culled = record.culled_mask(vo.points.ids) if no_culling_reason(cfg) is None else None
+        res.summarise_outliers(summary, vo.points.ids, injected, culled)
 
     # Depth evaluation with the pre-trained and the final model on every frame with GT depth.
     t = time.perf_counter()
@@ -146,7 +147,7 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         save_monodepth2(net, folder / "weights", cfg.net.height, cfg.net.width)
 
     timings["total_s"] = time.perf_counter() - t_start
-    res.summarise_stages(summary, timings, float(sum(r.get("ba_s", 0.0) for r in kf_rows)), cached)
+    res.summarise_stages(summary, timings, ba_trigger_s, cached)
     summary.set("vo.from_cache", cached)
     summary.set("sequence.name", seq.name)
     summary.set("sequence.frames", len(seq))

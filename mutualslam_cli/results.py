@@ -289,12 +289,12 @@ def summarise_ba(summary: Summary, *, traj: dict[str, Any], points_culled: int |
         summary.set(f"ba.final.{key}", final[key])
 
 
-def summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, culled: set[int] | None) -> None:
+def summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, culled: np.ndarray | None) -> None:
     """``map.outliers.{injected,culled}`` and ``map.inliers.kept`` of a run with ``vo.inject_outliers``.
 
     Args:
         ids: ``(P,)`` ids of every map point; injected: ids of the corrupted ones.
-        culled: ids of every culled point (``None``: this run did not cull).
+        culled: ``(P,)`` bool, culled points (``None``: this run did not cull).
     """
     bad = np.isin(ids, injected)
     summary.set("map.outliers.injected", int(bad.sum()))
@@ -303,9 +303,9 @@ def summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, 
         summary.absent("map.outliers.culled", why)
         summary.absent("map.inliers.kept", why)
         return
-    gone = np.isin(ids, np.fromiter(culled, np.int64, len(culled)))
-    summary.set("map.outliers.culled", float(gone[bad].mean()) if bad.any() else None, "no outlier injected")
-    summary.set("map.inliers.kept", float((~gone[~bad]).mean()) if (~bad).any() else None, "every point is an outlier")
+    summary.set("map.outliers.culled", float(culled[bad].mean()) if bad.any() else None, "no outlier injected")
+    summary.set("map.inliers.kept", float((~culled[~bad]).mean()) if (~bad).any() else None,
+                "every point is an outlier")
 
 
 def summarise_stages(summary: Summary, timings: dict[str, float], ba_trigger_s: float, vo_cached: bool) -> None:
