@@ -267,3 +267,16 @@ def test_pe_equals_eq4_numpy_reference(alpha):
         np.testing.assert_allclose(got[i, 0].numpy(), want, rtol=0, atol=1e-10)
         np.testing.assert_allclose(photometric_error(x.float(), y.float(), alpha)[i, 0].numpy(), want,
                                    rtol=0, atol=1e-5)  # fp32 rounding of the local variances
+
+
+def test_ssim_of_one_target_against_stacked_sources_equals_the_repeated_target():
+    """Target statistics computed once per target give exactly the numbers of a repeated target."""
+    g = torch.Generator().manual_seed(3)
+    t = torch.rand(2, 3, 9, 11, generator=g)
+    w = torch.rand(6, 3, 9, 11, generator=g)
+    assert torch.equal(ssim(t, w), ssim(t.repeat(3, 1, 1, 1), w))
+    assert torch.equal(photometric_error(t, w), photometric_error(t.repeat(3, 1, 1, 1), w))
+    s = torch.rand(4, 3, 6, 7, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda y: ssim(t[:, :, :6, :7].double(), y), (s,))
+    with pytest.raises(ShapeError):
+        ssim(t, w[:5])
