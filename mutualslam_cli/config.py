@@ -84,9 +84,10 @@ class NetConfig:
     """Folder with encoder.pth/depth.pth; ``None`` → the ``mslam pretrain`` default model."""
     fast: Literal["auto", "on", "off"] = "auto"
     """bf16 autocast + channels-last: ``auto`` enables it where the CPU supports bf16."""
-    runtime: Literal["auto", "torch", "openvino"] = "auto"
+    runtime: Literal["auto", "torch", "openvino", "openvino-int8"] = "auto"
     """Depth evaluation runtime (:mod:`~mutualslam_cli.adapt.inference`): ``auto`` = OpenVINO when
-    installed and ``fast`` is not ``off`` (bf16 where the CPU has it: 40 vs 64 ms per frame here)."""
+    installed and ``fast`` is not ``off``, in bf16 where the CPU has it (40 vs 64 ms per frame here),
+    else in int8 calibrated on 8 frames of the sequence (:mod:`~mutualslam_cli.adapt.quantize`)."""
 
 
 @dataclass(frozen=True)
@@ -189,6 +190,8 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     """Check/convert one YAML value to the annotated type ``tp``."""
     origin = typing.get_origin(tp)
     if origin is Literal:
+        if isinstance(value, bool) and {"on", "off"} <= set(typing.get_args(tp)):
+            value = "on" if value else "off"  # YAML 1.1 reads a bare on/off as a boolean
         if value not in typing.get_args(tp):
             raise ConfigError(f"{where}: {value!r} is not one of {list(typing.get_args(tp))}")
         return value

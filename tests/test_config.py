@@ -69,3 +69,13 @@ def test_resolved_config_round_trips(tmp_path: Path):
     p = tmp_path / "config.yaml"
     p.write_text(yaml.safe_dump(to_dict(c)))
     assert load_config(p) == c
+
+
+def test_bare_on_off_reach_the_on_off_options_although_yaml_reads_them_as_booleans(tmp_path):
+    assert load_config(None, ["net.fast=off"]).net.fast == "off"
+    assert load_config(None, ["net.fast=on"]).net.fast == "on"
+    f = tmp_path / "c.yaml"
+    f.write_text("net:\n  fast: off\n")
+    assert load_config(f).net.fast == "off"
+    with pytest.raises(ConfigError):
+        load_config(None, ["net.runtime=off"])
