@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 EVAL_VERSION = 2
 #: Frames decoded at once in :func:`evaluate_depth`; each model then predicts all of them in turn.
 _GROUP = 16
+#: Frames the int8 evaluation runtime calibrates its activation ranges on.
+CALIBRATION_FRAMES = 8
 
 Predictor = Callable[[list[np.ndarray]], np.ndarray]
 """``B`` frames ``(H, W, 3)`` uint8 RGB (pinhole geometry) → ``(B, h, w)`` float32 depth at network resolution."""
@@ -104,6 +106,16 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
     return table, ms
 
 
+def calibration_frames(seq: Sequence, n: int = CALIBRATION_FRAMES) -> list[np.ndarray]:
+    """``n`` frames spread evenly over the sequence (pinhole geometry): the int8 runtime's calibration.
+
+    Inputs only, no labels, and independent of the VO, so a cached pre-trained evaluation stays valid.
+    """
+    und = Undistorter(seq.intrinsics)
+    idx = np.unique(np.linspace(0, len(seq.frames) - 1, min(n, len(seq.frames))).round().astype(int))
+    return [und.image(seq.load_rgb(int(i))) for i in idx]
+
+
 def model_digest(net: torch.nn.Module) -> str:
     """Short SHA-1 of a model's state dict (names and values): the identity of its weights."""
     h = hashlib.sha1()
@@ -126,17 +138,18 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
     """
     key = hashlib.sha1(json.dumps({
         "model": model_digest(net0), "net": to_dict(cfg.net), "eval": to_dict(cfg.eval), "fast": fast,
-        "runtime": resolve_runtime(cfg.net.runtime, fast),
+        "runtime": resolve_runtime(cfg.net.runtime, cfg.net.fast),
         "version": EVAL_VERSION,
         "root": str(Path(seq.root).resolve()), "frames": [f.timestamp for f in seq.frames],
     }, sort_keys=True, default=str).encode()).hexdigest()[:16]
     path = Path(cache_dir) / f"{seq.name}-{key}.csv" if cache_dir is not None else None
     cached = pd.read_csv(path) if path is not None and path.is_file() else None
+    calib = calibration_frames(seq) if resolve_runtime(cfg.net.runtime, cfg.net.fast) == "openvino-int8" else None
     predictors = {}
     if cached is None:
-        predictors["pretrained"] = make_predictor(net0, cfg, fast)
+        predictors["pretrained"] = make_predictor(net0, cfg, fast, calib)
     if net is not None:
-        predictors["adapted"] = make_predictor(net, cfg, fast)
+        predictors["adapted"] = make_predictor(net, cfg, fast, calib)
     if not predictors:  # scheme none with a cached pre-trained evaluation
         table, ms = cached.copy(), {}
     else:

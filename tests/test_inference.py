@@ -11,18 +11,24 @@ from mutualslam_cli.adapt.depthnet import DepthNet, fast_path_supported, predict
 from mutualslam_cli.errors import ConfigError
 
 
-def test_runtime_resolution(monkeypatch):
+@pytest.mark.parametrize("bf16", [True, False])
+def test_runtime_resolution(monkeypatch, bf16):
     monkeypatch.setattr(inference, "openvino_available", lambda: True)
-    assert inference.resolve_runtime("auto", True) == "openvino"
-    assert inference.resolve_runtime("auto", False) == "torch"  # net.fast off keeps fp32 eager PyTorch
-    assert inference.resolve_runtime("torch", True) == "torch"
-    assert inference.resolve_runtime("openvino", False) == "openvino"
+    monkeypatch.setattr(inference, "fast_path_supported", lambda: bf16)
+    auto = "openvino" if bf16 else "openvino-int8"  # int8 where the CPU has no bf16 (AVX2)
+    assert inference.resolve_runtime("auto", "auto") == auto
+    assert inference.resolve_runtime("auto", "on") == auto
+    assert inference.resolve_runtime("auto", "off") == "torch"  # net.fast off keeps fp32 eager PyTorch
+    assert inference.resolve_runtime("torch", "auto") == "torch"
+    assert inference.resolve_runtime("openvino", "off") == "openvino"
+    assert inference.resolve_runtime("openvino-int8", "auto") == "openvino-int8"
     monkeypatch.setattr(inference, "openvino_available", lambda: False)
-    assert inference.resolve_runtime("auto", True) == "torch"
-    with pytest.raises(ConfigError, match="not installed"):
-        inference.resolve_runtime("openvino", True)
-    with pytest.raises(ConfigError, match="expected auto, torch or openvino"):
-        inference.resolve_runtime("onnx", True)
+    assert inference.resolve_runtime("auto", "auto") == "torch"
+    for rt in ("openvino", "openvino-int8"):
+        with pytest.raises(ConfigError, match="not installed"):
+            inference.resolve_runtime(rt, "auto")
+    with pytest.raises(ConfigError, match="expected one of auto, torch, openvino, openvino-int8"):
+        inference.resolve_runtime("onnx", "auto")
 
 
 @pytest.mark.skipif(not inference.openvino_available(), reason="openvino not installed")
@@ -41,3 +47,65 @@ def test_openvino_matches_pytorch_and_copies_the_weights():
     assert not np.allclose(predict_depth(net, x, fast=False), ref, rtol=1e-3)
     f = inference.openvino_predictor(net, 96, 64, threads=1)
     assert np.median(np.abs(f(x) / predict_depth(net, x, fast=False) - 1)) < tol
+
+
+def _bn_net(seed: int) -> DepthNet:
+    """A random network with non-trivial batch-norm statistics (as trained weights have)."""
+    torch.manual_seed(seed)
+    net = DepthNet().eval()
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_var.uniform_(0.5, 2.0)
+                m.running_mean.uniform_(-0.1, 0.1)
+    return net
+
+
+def test_fake_quantised_network_keeps_the_listed_layers_and_rounds_the_others():
+    from mutualslam_cli.adapt.quantize import KEEP_FP32, calibrate, fake_quantized
+
+    net = _bn_net(0)
+    x = torch.rand(2, 3, 64, 96)
+    ranges = calibrate(net, x)
+    q = fake_quantized(net, ranges)
+    convs = {n for n, m in q.named_modules() if isinstance(m, torch.nn.Conv2d)}
+    quant = {n for n, m in q.named_modules() if type(m).__name__ == "_QuantConv"}
+    kept = {n for n in convs if not any(n.startswith(q_ + ".") for q_ in quant)} & set(ranges)
+    assert kept == {n for n in ranges if n.startswith(KEEP_FP32)} and len(quant) == len(ranges) - len(kept) > 20
+    # the kept names are what KEEP_FP32 says: the first convolution, the full-resolution decoder
+    # blocks (upconv 0, both) and the scale-0 disparity head
+    dec = net.decoder
+    assert "encoder.encoder.conv1" in kept
+    for key, prefix in ((("upconv", 0, 0), "decoder.decoder.8."), (("upconv", 0, 1), "decoder.decoder.9."),
+                        (("dispconv", 0), "decoder.decoder.10.")):
+        assert dec.decoder[dec._index[key]] is dict(net.named_modules())[prefix[:-1]]
+    ref = predict_depth(net, x)
+    got = predict_depth(q, x)
+    rel = np.abs(got / ref - 1)
+    assert 0 < np.median(rel) < 0.02  # rounded, but close
+    assert all(p.requires_grad for p in net.parameters())  # the original is untouched
+
+
+@pytest.mark.skipif(not inference.openvino_available(), reason="openvino not installed")
+def test_openvino_int8_runs_int8_kernels_close_to_fp32():
+    net = _bn_net(1)
+    x = torch.rand(3, 3, 64, 96)
+    ref = predict_depth(net, x, fast=False)
+    f = inference.openvino_predictor(net, 96, 64, threads=1, calibration=x[:2])
+    got = f(x)
+    assert got.shape == ref.shape
+    assert np.median(np.abs(got / ref - 1)) < 0.03
+    precisions = [op.get_rt_info()["runtimePrecision"].astype(str) for op in f.compiled.get_runtime_model().get_ordered_ops()
+                  if op.get_rt_info()["layerType"].astype(str) == "Convolution"]
+    assert precisions.count("u8") >= 20, precisions  # int8 kernels, not an fp32 simulation
+
+
+def test_int8_runtime_needs_calibration_frames():
+    from mutualslam_cli.adapt.inputs import make_predictor
+    from mutualslam_cli.config import load_config
+
+    cfg = load_config(None, ["net.runtime=openvino-int8"])
+    if not inference.openvino_available():
+        pytest.skip("openvino not installed")
+    with pytest.raises(ConfigError, match="calibration"):
+        make_predictor(DepthNet(), cfg, False)

@@ -18,6 +18,7 @@ from mutualslam_cli.adapt import weights
 from mutualslam_cli.adapt.depthnet import fast_path_supported, predict_depth, prepare
 from mutualslam_cli.adapt.inference import openvino_predictor, resolve_runtime
 from mutualslam_cli.config import RunConfig
+from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
@@ -50,12 +51,19 @@ def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Cal
     return load
 
 
-def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool) -> Callable[[list[np.ndarray]], np.ndarray]:
+def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool,
+                   calibration: list[np.ndarray] | None = None) -> Callable[[list[np.ndarray]], np.ndarray]:
     """Batched predictor for evaluation: ``B`` frames ``(H, W, 3)`` uint8 (pinhole geometry) → ``(B, h, w)``
     float32 depth at network resolution (map units), in the runtime ``net.runtime`` resolves to
-    (:func:`~mutualslam_cli.adapt.inference.resolve_runtime`; OpenVINO copies the weights now)."""
-    if resolve_runtime(cfg.net.runtime, fast) == "openvino":
-        run = openvino_predictor(net, cfg.net.width, cfg.net.height)
+    (:func:`~mutualslam_cli.adapt.inference.resolve_runtime`; OpenVINO copies the weights now).
+    ``calibration``: frames of the same kind for the int8 runtime's activation ranges (required there)."""
+    runtime = resolve_runtime(cfg.net.runtime, cfg.net.fast)
+    if runtime == "openvino-int8" and not calibration:
+        raise ConfigError("net.runtime=openvino-int8 needs calibration frames")
+    if runtime.startswith("openvino"):
+        calib = (torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in calibration])
+                 if runtime == "openvino-int8" else None)
+        run = openvino_predictor(net, cfg.net.width, cfg.net.height, calibration=calib)
     else:
         def run(x: torch.Tensor) -> np.ndarray:
             return predict_depth(net, x, fast=fast)
