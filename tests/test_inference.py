@@ -71,12 +71,13 @@ def test_fake_quantised_network_keeps_the_listed_layers_and_rounds_the_others():
     convs = {n for n, m in q.named_modules() if isinstance(m, torch.nn.Conv2d)}
     quant = {n for n, m in q.named_modules() if type(m).__name__ == "_QuantConv"}
     kept = {n for n in convs if not any(n.startswith(q_ + ".") for q_ in quant)} & set(ranges)
-    assert kept == {n for n in ranges if n.startswith(KEEP_FP32)} and len(quant) == len(ranges) - len(kept) > 20
-    # the kept names are what KEEP_FP32 says: the first convolution, the full-resolution decoder
-    # blocks (upconv 0, both) and the scale-0 disparity head
+    assert kept == {n for n in ranges if n.startswith(KEEP_FP32)} and len(quant) == len(ranges) - len(kept) > 18
+    # the kept names are what KEEP_FP32's comment says
     dec = net.decoder
     assert "encoder.encoder.conv1" in kept
-    for key, prefix in ((("upconv", 0, 0), "decoder.decoder.8."), (("upconv", 0, 1), "decoder.decoder.9."),
+    for key, prefix in ((("upconv", 3, 0), "decoder.decoder.2."), (("upconv", 2, 0), "decoder.decoder.4."),
+                        (("upconv", 2, 1), "decoder.decoder.5."), (("upconv", 1, 1), "decoder.decoder.7."),
+                        (("upconv", 0, 0), "decoder.decoder.8."), (("upconv", 0, 1), "decoder.decoder.9."),
                         (("dispconv", 0), "decoder.decoder.10.")):
         assert dec.decoder[dec._index[key]] is dict(net.named_modules())[prefix[:-1]]
     ref = predict_depth(net, x)
@@ -97,7 +98,7 @@ def test_openvino_int8_runs_int8_kernels_close_to_fp32():
     assert np.median(np.abs(got / ref - 1)) < 0.03
     precisions = [op.get_rt_info()["runtimePrecision"].astype(str) for op in f.compiled.get_runtime_model().get_ordered_ops()
                   if op.get_rt_info()["layerType"].astype(str) == "Convolution"]
-    assert precisions.count("u8") >= 20, precisions  # int8 kernels, not an fp32 simulation
+    assert precisions.count("u8") >= 18, precisions  # int8 kernels, not an fp32 simulation
 
 
 def test_int8_runtime_needs_calibration_frames():

@@ -57,9 +57,10 @@ def bench_inference(width: int = 640, height: int = 192, repeats: int = 10, fast
 
 
 def bench_inference_openvino(width: int = 640, height: int = 192, repeats: int = 10, threads: int | None = None,
-                             warmup: int = 2, seed: int = 0) -> dict[str, Any]:
+                             warmup: int = 2, seed: int = 0, int8: bool = False) -> dict[str, Any]:
     """Median time of one depth prediction through the evaluation's OpenVINO runtime
-    (:mod:`mutualslam_cli.adapt.inference`: bf16 where the CPU has it), conversion timed apart.
+    (:mod:`mutualslam_cli.adapt.inference`: bf16 where the CPU has it, else fp32; or int8 calibrated
+    on 4 random frames, whose values do not change the speed), conversion timed apart.
 
     Returns:
         ``{"ms": median, "times_ms": [...], "convert_s": conversion + compilation, "threads"}``.
@@ -68,7 +69,8 @@ def bench_inference_openvino(width: int = 640, height: int = 192, repeats: int =
 
     _setup(threads, seed)
     t0 = time.perf_counter()
-    predict = openvino_predictor(DepthNet().eval(), width, height, threads)
+    calib = torch.rand(4, 3, height, width) if int8 else None
+    predict = openvino_predictor(DepthNet().eval(), width, height, threads, calibration=calib)
     convert_s = time.perf_counter() - t0
     x = torch.rand(1, 3, height, width)
     ms, times = _median_ms(lambda: predict(x), repeats, warmup)
