@@ -96,7 +96,8 @@ def test_openvino_int8_runs_int8_kernels_close_to_fp32():
     got = f(x)
     assert got.shape == ref.shape
     assert np.median(np.abs(got / ref - 1)) < 0.03
-    precisions = [op.get_rt_info()["runtimePrecision"].astype(str) for op in f.compiled.get_runtime_model().get_ordered_ops()
+    ops = f.compiled.get_runtime_model().get_ordered_ops()
+    precisions = [op.get_rt_info()["runtimePrecision"].astype(str) for op in ops
                   if op.get_rt_info()["layerType"].astype(str) == "Convolution"]
     assert precisions.count("u8") >= 18, precisions  # int8 kernels, not an fp32 simulation
 
