@@ -171,6 +171,23 @@ class EvalConfig:
 
 
 @dataclass(frozen=True)
+class ExperimentConfig:
+    """What a paper experiment runs (``mslam ablate --config configs/<experiment>.yaml``) and reports."""
+
+    name: str = ""
+    """The experiment (e.g. ``table3_schemes``); empty for an ordinary run."""
+    schemes: list[str] = field(default_factory=list)
+    """Schemes ``mslam ablate`` runs when ``--schemes`` is not given (empty: its default list)."""
+    seeds: list[int] = field(default_factory=list)
+    """Seeds ``mslam ablate`` runs when ``--seeds`` is not given (empty: seed 0)."""
+    ours: str = "replay+ewc"
+    """The scheme the paper tables report as "Ours"."""
+    variants: dict[str, list[str]] = field(default_factory=dict)
+    """Named config variants, label → ``key=value`` overrides: ``mslam ablate`` runs the whole grid once
+    per variant into ``<out>/<label>/`` (e.g. Table 5's culling off and ``vo.max_fts`` 120)."""
+
+
+@dataclass(frozen=True)
 class RunConfig:
     seed: int = 0
     """Seed of every random choice (replay sampling, RANSAC, init)."""
@@ -184,6 +201,7 @@ class RunConfig:
     adapt: AdaptConfig = field(default_factory=AdaptConfig)
     ba: BAConfig = field(default_factory=BAConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
 
 
 def _coerce(value: Any, tp: Any, where: str) -> Any:
@@ -195,6 +213,16 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         if value not in typing.get_args(tp):
             raise ConfigError(f"{where}: {value!r} is not one of {list(typing.get_args(tp))}")
         return value
+    if origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        (elem,) = typing.get_args(tp)
+        return [_coerce(v, elem, f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+        kt, vt = typing.get_args(tp)
+        return {_coerce(k, kt, where): _coerce(v, vt, f"{where}.{k}") for k, v in value.items()}
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(tp)
         if value is None and type(None) in args:
@@ -327,6 +355,22 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     cfg = _build(RunConfig, data, "")
     _validate(cfg)
     return cfg
+
+
+def with_settings(cfg: RunConfig, overrides: list[str]) -> RunConfig:
+    """Return ``cfg`` with ``--set``-style ``key=value`` overrides applied (validated like a file)."""
+    data = to_dict(cfg)
+    for ov in overrides:
+        parts, value = parse_override(ov)
+        node = data
+        for p in parts[:-1]:
+            if not isinstance(node.get(p), dict):
+                raise ConfigError(f"{ov!r}: {p} is not a config section")
+            node = node[p]
+        node[parts[-1]] = value
+    out = _build(RunConfig, data, "")
+    _validate(out)
+    return out
 
 
 def with_overrides(cfg: RunConfig, **sections: dict[str, Any]) -> RunConfig:

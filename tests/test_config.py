@@ -79,3 +79,28 @@ def test_bare_on_off_reach_the_on_off_options_although_yaml_reads_them_as_boolea
     assert load_config(f).net.fast == "off"
     with pytest.raises(ConfigError):
         load_config(None, ["net.runtime=off"])
+
+
+def test_experiment_section_lists_and_variants_are_checked(tmp_path):
+    from mutualslam_cli.config import with_settings
+
+    for f in sorted(CONFIG_DIR.glob("table*.yaml")) + sorted(CONFIG_DIR.glob("figure*.yaml")):
+        cfg = load_config(f)
+        assert cfg.experiment.name == f.stem and cfg.experiment.schemes and cfg.experiment.seeds == [0, 1, 2]
+        assert to_dict(cfg)["vo"] == to_dict(RunConfig())["vo"]  # everything else is the paper's
+        for overrides in cfg.experiment.variants.values():
+            with_settings(cfg, overrides)  # each variant is a valid config
+    t5 = load_config(CONFIG_DIR / "table5_map.yaml")
+    assert t5.experiment.variants["fts120_no_culling"] == ["vo.max_fts=120", "ba.culling=false"]
+    v = with_settings(t5, t5.experiment.variants["fts120_no_culling"])
+    assert v.vo.max_fts == 120 and v.ba.culling is False and t5.ba.culling is True
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("experiment:\n  seeds: [0, x]\n")
+    with pytest.raises(ConfigError, match=r"experiment.seeds\[1\]"):
+        load_config(bad)
+    bad.write_text("experiment:\n  schemes: replay\n")
+    with pytest.raises(ConfigError, match="expected a list"):
+        load_config(bad)
+    with pytest.raises(ConfigError, match="not a config section"):
+        with_settings(t5, ["seed.x=1"])
+    assert yaml.safe_load(yaml.safe_dump(to_dict(t5)))["experiment"]["variants"]["fts120"] == ["vo.max_fts=120"]
