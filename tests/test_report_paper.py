@@ -1,0 +1,91 @@
+"""The paper's tables in the paper's shape: mean ± std over seeds, the paper's numbers beside ours."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+
+from mutualslam_cli import paper_numbers
+from mutualslam_cli.report_paper import cell, paper_tables, table1, table3, table4, table5, table6
+
+
+@pytest.mark.parametrize("ours, theirs", [
+    ("icl_lr_kt2", "ICL/living2"), ("living_room_kt0", "ICL/living0"), ("icl_of_kt1", "ICL/office1"),
+    ("tum_fr3_long_office_household", "TUM/seq1"), ("rgbd_dataset_freiburg3_nostructure_texture_near_withloop",
+                                                    "TUM/seq2"),
+    ("tum_fr3_structure_texture_far", "TUM/seq3"), ("lab1", "Lab1"), ("Lab2_long", "Lab2"),
+    ("tum_fr1_xyz", None), ("icl_of_kt3", None), ("redkitchen_7scenes", None)])
+def test_paper_names(ours, theirs):
+    assert paper_numbers.paper_name(ours) == theirs
+
+
+def _runs() -> pd.DataFrame:
+    rows = []
+    for seq, pre, ad in (("icl_lr_kt2", 20.0, 40.0), ("tum_fr1_xyz", 25.0, 50.0)):
+        for seed in (0, 1, 2):
+            for scheme, gain in (("recent", -5.0), ("replay+ewc", 0.0)):
+                rows.append({"sequence.name": seq, "scheme": scheme, "seed": seed, "config": "",
+                             "depth.pcd.lsq.pretrained": pre, "depth.pcd.lsq.adapted": ad + gain + seed,
+                             "depth.esi.pretrained": 0.3, "depth.esi.adapted": 0.2 + 0.01 * seed,
+                             "trajectory.ate_rmse_m.vo": 0.02, "trajectory.ate_rmse_m.ba": 0.01 if seed else None,
+                             "map.points.vo": 100.0, "map.points.ba": 90.0, "map.esi.vo": 0.2, "map.esi.ba": 0.15})
+    return pd.DataFrame(rows)
+
+
+def test_table1_mean_std_average_bold_and_paper_column():
+    t = table1(_runs())
+    d = t.display.set_index("Sequence")
+    assert list(d.index) == ["icl_lr_kt2 (ICL/living2)", "tum_fr1_xyz", "Average"]
+    assert d.loc["icl_lr_kt2 (ICL/living2)", "Ours"] == cell(41.0, 1.0, 3, 2) == "41.00 ± 1.00"
+    assert d.loc["icl_lr_kt2 (ICL/living2)", "Pre-trained"] == "20.00 ± 0.00"  # one value per seed, not per scheme
+    assert d.loc["icl_lr_kt2 (ICL/living2)", "paper: Ours"] == "25.16"
+    assert d.loc["tum_fr1_xyz", "paper: Ours"] == "—"
+    assert d.loc["Average", "Ours"] == "46.00"  # mean of the sequence means (41, 51)
+    assert (0, "Ours") in t.bold and (2, "Ours") in t.bold
+    n = t.numeric.set_index("sequence")
+    assert n.loc["tum_fr1_xyz", "Ours mean"] == pytest.approx(51.0)
+    assert n.loc["tum_fr1_xyz", "Ours std"] == pytest.approx(1.0) and n.loc["tum_fr1_xyz", "Ours n"] == 3
+
+
+def test_missing_values_are_dashes_not_zeros_and_lower_is_better_for_ate():
+    t = table4(_runs())
+    d = t.display.set_index("Sequence")
+    assert d.loc["tum_fr1_xyz", "With BA"] == "0.0100 ± 0.0000"  # seed 0 had no BA value: 2 of 3 seeds
+    assert t.numeric.set_index("sequence").loc["tum_fr1_xyz", "With BA n"] == 2
+    assert (1, "With BA") in t.bold  # lower ATE is better
+    r = _runs().drop(columns="trajectory.ate_rmse_m.ba")
+    assert set(table4(r).display["With BA"]) == {"—"}
+
+
+def test_table3_has_a_column_per_present_scheme_and_table6_methods_as_rows():
+    t = table3(_runs())
+    assert [c for c in t.display.columns if not c.startswith("paper")] == [
+        "Sequence", "Pre-trained", "(a) recent", "(c) replay+ewc"]
+    assert t.display.set_index("Sequence").loc["icl_lr_kt2 (ICL/living2)", "paper: (a)"] == "9.11"
+    t6 = table6(_runs())
+    assert list(t6.display["Method"]) == ["Pre-trained", "Ours"]
+    assert t6.display.set_index("Method").loc["Ours", "tum_fr1_xyz"] == "0.210 ± 0.010"
+    assert (1, "tum_fr1_xyz") in t6.bold
+
+
+def test_table5_rows_from_culling_variants_and_max_fts():
+    r = _runs()
+    r = r[r["scheme"] == "replay+ewc"]
+    off = r.assign(**{"config.ba.culling": False, "map.points.ba": 100.0, "map.esi.ba": 0.21})
+    on = r.assign(**{"config.ba.culling": True})
+    fts = on.assign(**{"config.vo.max_fts": 120})
+    t = table5(pd.concat([on.assign(**{"config.vo.max_fts": 500}), off.assign(**{"config.vo.max_fts": 500}), fts]))
+    d = t.display
+    assert list(zip(d["BA"], d["MP culling"], d["max_fts"])) == [
+        ("", "", "120"), ("✓", "✓", "120"), ("", "", "500"), ("✓", "", "500"), ("✓", "✓", "500")]
+    assert d.iloc[3]["tum_fr1_xyz e_si"] == "0.210 ± 0.000" and d.iloc[4]["tum_fr1_xyz points"] == "90 ± 0"
+
+
+def test_paper_tables_skip_tables_without_values_and_split_config_groups():
+    r = _runs().drop(columns=["trajectory.ate_rmse_m.vo", "trajectory.ate_rmse_m.ba"])
+    names = [t.name for t in paper_tables(r)]
+    assert "table4_ate_ba" not in names and {"table1_pcd", "table3_schemes", "table6_esi"} <= set(names)
+    r2 = pd.concat([r, r.assign(config="adapt.lr=0.0001")])
+    titles = [t.title for t in paper_tables(r2) if t.name.startswith("table1")]
+    assert len(titles) == 2 and any("adapt.lr=0.0001" in x for x in titles)
+    assert cell(float("nan"), 0.0, 0, 2) == "—" and cell(1.0, float("nan"), 1, 1) == "1.0"
