@@ -1,7 +1,13 @@
 """The front-end stage of a run: our VO or an oracle, cached per sequence + front-end config + seed.
 
 Every scheme of a grid reuses one front-end result, so :func:`run_frontend` keeps it in
-``<results>/_cache/vo/`` under :func:`vo_cache_key`.
+``<results>/_cache/vo/<sequence>-<mode>-<key>.npz`` (key: :func:`vo_cache_key`).
+
+The entry is data only: an ``np.savez`` archive of the arrays of
+:func:`~mutualslam_cli.vo.output.vo_to_arrays`, read back with ``allow_pickle=False``, so a results
+folder shared on a cluster cannot run code in whoever reads it. Entries written by earlier
+versions (``.pkl``, pickled) are ignored, never unpickled. An entry that cannot be read (truncated,
+garbage, another layout version) is logged as a warning naming the file, recomputed and overwritten.
 """
 
 from __future__ import annotations
@@ -9,24 +15,25 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import pickle
+import os
 from dataclasses import replace
 from pathlib import Path
 
-from mutualslam_cli import results as res
+import numpy as np
+
 from mutualslam_cli.adapt.stage import Progress
+from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION, run_vo
 from mutualslam_cli.vo.oracle import run_oracle
-from mutualslam_cli.vo.output import VOResult
+from mutualslam_cli.vo.output import VOResult, vo_from_arrays, vo_to_arrays
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
 
 log = logging.getLogger(__name__)
 
 #: Version of the oracle front ends in their cache key (2: ``gt`` = pose oracle, ``gt-depth`` = depth oracle).
 ORACLE_VERSION = 2
-
 
 
 def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
@@ -44,6 +51,41 @@ def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
     return hashlib.sha1(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+def cache_path(cache_dir: Path, seq: Sequence, cfg: RunConfig) -> Path:
+    """Where :func:`run_frontend` keeps the front-end result of ``seq`` under ``cfg``."""
+    return Path(cache_dir) / f"{seq.name}-{cfg.vo.mode}-{vo_cache_key(seq, cfg)}.npz"
+
+
+def load_cached(path: Path) -> VOResult | None:
+    """The front-end result stored in ``path``; ``None`` when there is none or it is invalid.
+
+    Read with ``allow_pickle=False``. An invalid entry (not an ``.npz``, truncated, another layout
+    version, inconsistent arrays) is logged as a warning naming the file, and ``None`` returned.
+    """
+    if not path.is_file():
+        return None
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError("not an .npz archive")
+        with z:
+            vo = vo_from_arrays(z)
+    except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, the entry is recomputed
+        log.warning("VO cache %s is unreadable (%s: %s); recomputing it", path, type(e).__name__, e)
+        return None
+    log.info("front end loaded from cache %s", path)
+    return vo
+
+
+def save_cached(path: Path, vo: VOResult) -> None:
+    """Write ``vo`` to ``path`` atomically as an ``.npz`` of :func:`~mutualslam_cli.vo.output.vo_to_arrays`."""
+    arrays = vo_to_arrays(vo)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:  # a file object: np.savez would append ".npz" to a name
+        np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+
+
 def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
                  progress: Progress | None = None) -> tuple[VOResult, bool]:
     """Run (or load from cache) the front end selected by ``cfg.vo.mode``.
@@ -53,15 +95,10 @@ def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
     """
     path = None
     if cache_dir is not None:
-        path = Path(cache_dir) / f"{seq.name}-{cfg.vo.mode}-{vo_cache_key(seq, cfg)}.pkl"
-        if path.is_file():
-            try:
-                with open(path, "rb") as f:
-                    vo = pickle.load(f)
-                log.info("front end loaded from cache %s", path)
-                return vo, True
-            except Exception as e:  # noqa: BLE001 - a corrupt cache entry is recomputed
-                log.warning("ignoring unreadable VO cache %s (%s)", path, e)
+        path = cache_path(cache_dir, seq, cfg)
+        cached = load_cached(path)
+        if cached is not None:
+            return cached, True
     cb = (lambda info: progress("vo", info)) if progress else None
     if cfg.vo.mode == "gt":  # pose oracle: our VO's tracks (cached like any svo run) re-triangulated with GT poses
         svo, _ = run_frontend(seq, replace(cfg, vo=replace(cfg.vo, mode="svo")), cache_dir, progress)
@@ -71,7 +108,5 @@ def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
     else:
         vo = run_vo(seq, cfg.vo, seed=cfg.seed, progress=cb)
     if path is not None:
-        res.atomic_write_bytes(path, pickle.dumps(vo, protocol=pickle.HIGHEST_PROTOCOL))
+        save_cached(path, vo)
     return vo, False
-
-

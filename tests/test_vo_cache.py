@@ -1,0 +1,217 @@
+"""The VO cache: a data-only .npz (never pickle) that round-trips a VOResult; bad entries are recomputed."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mutualslam_cli.config import CONFIG_DIR, load_config
+from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.types import Intrinsics, Trajectory
+from mutualslam_cli.vo.output import VO_ARRAYS_VERSION, Keyframe, MapPoints, VOResult, vo_to_arrays
+from mutualslam_cli.vo_cache import cache_path, load_cached, run_frontend, save_cached, vo_cache_key
+from synth import make_tum_dir
+
+
+def _cfg(mode: str):
+    return load_config(CONFIG_DIR / "smoke.yaml", [f"vo.mode={mode}", "vo.max_fts=300"])
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory):
+    return load_sequence(make_tum_dir(tmp_path_factory.mktemp("vo_cache"), scene="room", n=30, width=320, height=240))
+
+
+@pytest.fixture(scope="module")
+def results(seq) -> dict[str, VOResult]:
+    """Real front-end results of every mode (``gt`` carries the svo meta nested in its own)."""
+    out = {mode: run_frontend(seq, _cfg(mode))[0] for mode in ("svo", "gt", "gt-depth")}
+    assert len(out["svo"].keyframes) >= 2 and len(out["svo"].points) > 50  # the sequence is tracked
+    return out
+
+
+def assert_same(a, b, where: str = "vo") -> None:
+    """Equal values and types, recursively: arrays by dtype, shape and content (NaN equal to NaN)."""
+    if isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray), where
+        assert a.dtype == b.dtype and a.shape == b.shape, f"{where}: {a.dtype}{a.shape} vs {b.dtype}{b.shape}"
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), where
+    elif dataclasses.is_dataclass(a):
+        assert type(a) is type(b), where
+        for f in dataclasses.fields(a):
+            assert_same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and list(a) == list(b), f"{where}: keys {list(a)} vs {list(b)}"
+        for k in a:
+            assert_same(a[k], b[k], f"{where}[{k!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), f"{where}: {a!r} vs {b!r}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, float) and np.isnan(a):
+        assert isinstance(b, float) and np.isnan(b), where
+    else:  # numbers may come back as Python numbers instead of numpy scalars
+        assert a == b, f"{where}: {a!r} vs {b!r}"
+        assert isinstance(a, (bool, np.bool_)) == isinstance(b, (bool, np.bool_)), f"{where}: {a!r} vs {b!r}"
+        assert isinstance(a, str) == isinstance(b, str), where
+
+
+def _empty() -> VOResult:
+    return VOResult([], MapPoints.empty(), Intrinsics(50.0, -50.0, 31.5, 23.5, 64, 48, (0.1, -0.2, 0.0, 0.0, 0.3)),
+                    Trajectory(np.zeros(0), np.zeros((0, 4, 4))), -np.ones(5, np.int64), {}, {"fps": float("nan")})
+
+
+def _varied(seed: int = 3) -> VOResult:
+    """Every field away from its default: segments, ragged observations, a keyframe seen with no other."""
+    rng = np.random.default_rng(seed)
+    kfs = [Keyframe(k, 3 * k + 1, 0.1 * k + 1e-9, rng.normal(size=(4, 4)), segment=k // 2) for k in range(4)]
+    obs = [np.array([0, 1], np.int64), np.array([1], np.int64), np.array([0, 1, 2], np.int64)]
+    pts = MapPoints(np.array([0, 4, 7], np.int64), np.array([0, 1, 2], np.int64), rng.normal(size=(3, 2)),
+                    rng.uniform(0.1, 2, 3), rng.uniform(0, 0.1, 3), obs, [rng.normal(size=(len(o), 2)) for o in obs])
+    covis = {0: {1: 2, 2: 1}, 1: {0: 2, 2: 1}, 2: {0: 1, 1: 1}, 3: {}}
+    meta = {"mode": "svo", "gaps": [[5, 6]], "init_methods": ["homography", "essential"], "fps": float("nan"),
+            "nested": {"flag": True, "none": None, "n": 3, "x": 0.25}}
+    traj = Trajectory(np.array([0.0, 0.1, 0.3]), rng.normal(size=(3, 4, 4)))
+    return VOResult(kfs, pts, Intrinsics(50.0, 51.0, 31.5, 23.5, 64, 48), traj, np.array([0, 0, -1, 1]), covis, meta)
+
+
+# ----------------------------------------------------------------------------- round trip
+
+
+@pytest.mark.parametrize("mode", ["svo", "gt", "gt-depth"])
+def test_round_trip_of_real_results_gives_equal_fields(results, tmp_path, mode):
+    vo = results[mode]
+    path = tmp_path / "entry.npz"
+    save_cached(path, vo)
+    back = load_cached(path)
+    assert back is not None
+    assert_same(vo, back)
+    assert len(back.points.observations) == len(vo.points) and back.covisibility == vo.covisibility
+
+
+@pytest.mark.parametrize("make", [_empty, _varied])
+def test_round_trip_of_made_results(tmp_path, make):
+    path = tmp_path / "made.npz"
+    save_cached(path, make())
+    back = load_cached(path)
+    assert back is not None
+    assert_same(make(), back)
+
+
+def test_round_trip_keeps_distortion_and_isolated_keyframes(tmp_path):
+    save_cached(tmp_path / "a.npz", _empty())
+    save_cached(tmp_path / "b.npz", _varied())
+    a, b = load_cached(tmp_path / "a.npz"), load_cached(tmp_path / "b.npz")
+    assert a is not None and b is not None
+    assert a.intrinsics.dist == (0.1, -0.2, 0.0, 0.0, 0.3) and b.intrinsics.dist is None
+    assert b.covisibility[3] == {} and [k.segment for k in b.keyframes] == [0, 0, 1, 1]
+    assert [o.tolist() for o in b.points.observations] == [[0, 1], [1], [0, 1, 2]]
+
+
+def test_entry_is_data_only(results, tmp_path):
+    path = tmp_path / "entry.npz"
+    save_cached(path, results["gt"])
+    with np.load(path, allow_pickle=False) as z:  # every member loads without pickle
+        kinds = {k: z[k].dtype.kind for k in z.files}
+    assert "O" not in kinds.values() and kinds["header"] == "u"
+    assert not list(tmp_path.glob(".*.tmp"))  # the atomic writer left no temporary file
+
+
+def test_serialiser_knows_every_field():
+    """A field added to these dataclasses must be added to vo_to_arrays / vo_from_arrays too."""
+    assert [f.name for f in dataclasses.fields(VOResult)] == [
+        "keyframes", "points", "intrinsics", "traj_all", "frame_segment", "covisibility", "meta"]
+    assert [f.name for f in dataclasses.fields(Keyframe)] == ["id", "frame_index", "timestamp", "pose", "segment"]
+    assert [f.name for f in dataclasses.fields(MapPoints)] == [
+        "ids", "host", "pixel", "inv_depth", "sigma", "observations", "obs_pixels"]
+
+
+def test_second_run_loads_the_npz(seq, results, tmp_path):
+    vo, cached = run_frontend(seq, _cfg("svo"), cache_dir=tmp_path)
+    assert not cached and cache_path(tmp_path, seq, _cfg("svo")).suffix == ".npz"
+    again, cached = run_frontend(seq, _cfg("svo"), cache_dir=tmp_path)
+    assert cached
+    assert_same(vo, again)
+    no_meta = {"meta": {}}  # meta holds timings
+    assert_same(dataclasses.replace(results["svo"], **no_meta), dataclasses.replace(again, **no_meta))  # deterministic
+
+
+# ----------------------------------------------------------------------------- invalid entries
+
+
+def _wrong_version(vo: VOResult, path: Path) -> None:
+    arrays = vo_to_arrays(vo)
+    arrays["header"] = np.frombuffer(bytes(arrays["header"]).replace(
+        f'"version": {VO_ARRAYS_VERSION}'.encode(), b'"version": 999'), np.uint8)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def _object_array(vo: VOResult, path: Path) -> None:
+    arrays = dict(vo_to_arrays(vo), pt_ids=np.array([object()] * len(vo.points), dtype=object))
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def _plain_npy(vo: VOResult, path: Path) -> None:
+    with open(path, "wb") as f:  # a file object: np.save would append ".npy" to the name
+        np.save(f, np.arange(3))
+
+
+@pytest.mark.parametrize("spoil, why", [
+    (lambda vo, p: p.write_bytes(b"not an archive at all"), "BadZipFile|pickled|not an"),
+    (lambda vo, p: (save_cached(p, vo), p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])), ""),
+    (_wrong_version, "version 999"),
+    (_object_array, "pickle"),
+    (_plain_npy, "not an .npz"),
+])
+def test_invalid_entry_is_recomputed_and_replaced(seq, results, tmp_path, caplog, spoil, why):
+    cfg = _cfg("svo")
+    path = cache_path(tmp_path, seq, cfg)
+    spoil(results["svo"], path)
+    with caplog.at_level(logging.WARNING, logger="mutualslam_cli.vo_cache"):
+        vo, cached = run_frontend(seq, cfg, cache_dir=tmp_path)
+    assert not cached
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and str(path) in warned[0] and "recomputing" in warned[0], warned
+    assert why == "" or any(w in warned[0] for w in why.split("|")), warned[0]
+    fixed = load_cached(path)  # overwritten with a valid entry
+    assert fixed is not None
+    assert_same(vo, fixed)
+
+
+# ----------------------------------------------------------------------------- old pickles
+
+
+class _Payload:
+    """Unpickling this creates a marker file: what a hostile cache entry could do."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_old_pkl_entry_is_never_unpickled(seq, results, tmp_path, monkeypatch):
+    cfg = _cfg("svo")
+    old = tmp_path / f"{seq.name}-svo-{vo_cache_key(seq, cfg)}.pkl"
+    marker = tmp_path / "code-ran"
+    old.write_bytes(pickle.dumps(_Payload(marker)))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the VO cache called pickle")
+
+    monkeypatch.setattr(pickle, "load", refuse)
+    monkeypatch.setattr(pickle, "loads", refuse)
+    monkeypatch.setattr(pickle, "Unpickler", refuse)
+    _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # no .npz yet: recomputed, the .pkl ignored
+    assert not cached and not marker.exists()
+    assert cache_path(tmp_path, seq, cfg).is_file() and old.is_file()
+    _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # then the .npz is used
+    assert cached and not marker.exists()
