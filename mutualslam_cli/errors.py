@@ -12,6 +12,8 @@ Two families, told apart by what the CLI does with them:
   - :class:`GeometryError`: an alignment is degenerate (too few pairs, collinear positions).
   - :class:`KeyframeError`: the keyframe buffer cannot serve a keyframe id (unknown, evicted,
     or not increasing).
+  - :class:`ResultsLocked`: another live process works in the same result folder
+    (:func:`~mutualslam_cli.lock.hold_lock`).
 
 - Programming errors, deliberately *not* ``MslamError`` so that they keep their traceback:
 
@@ -49,6 +51,15 @@ class KeyframeError(MslamError):
     Raised by :class:`~mutualslam_cli.adapt.buffer.KeyframeBuffer` for an id that is not stored
     (unknown or evicted; formerly ``KeyError``) and for an id that does not increase (formerly
     ``ValueError``).
+    """
+
+
+class ResultsLocked(MslamError):
+    """A result folder (a run's, or a grid's results root) is locked by another live process.
+
+    Raised by :func:`~mutualslam_cli.lock.hold_lock`; the one-line message names the folder, the
+    holder (pid, host, since when, doing what) and what to do. A plain message-only class, so it
+    crosses process pools intact.
     """
 
 

@@ -29,6 +29,7 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.evaluation import esi_of_log_errors, evaluate_models, evaluate_trajectory, map_log_depth_errors
 from mutualslam_cli.heap import retain_freed_memory
+from mutualslam_cli.lock import hold_lock
 from mutualslam_cli.vo_cache import run_frontend
 
 log = logging.getLogger(__name__)
@@ -70,6 +71,9 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     Returns:
         :class:`RunResult`. A complete run (``summary.json`` present) is returned as is unless
         ``force``.
+
+    Raises:
+        ResultsLocked: another process works in the same run folder (:mod:`~mutualslam_cli.lock`).
     """
     t_start = time.perf_counter()
     torch.manual_seed(cfg.seed)
@@ -88,7 +92,15 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     if res.is_complete(folder) and not force:
         log.info("%s is complete; skipping (use --force to recompute)", folder)
         return RunResult(folder, res.read_summary(folder), skipped=True)
-    folder.mkdir(parents=True, exist_ok=True)
+    with hold_lock(folder, "mslam run"):  # a second process on this folder stops here, having touched nothing
+        return _run_locked(seq, cfg, folder, out_root, command, force, progress, timings, t_start)
+
+
+def _run_locked(seq: Sequence, cfg: RunConfig, folder: Path, out_root: Path, command: list[str] | None,
+                force: bool, progress: Progress | None, timings: dict[str, float], t_start: float) -> RunResult:
+    """The work of :func:`run_sequence` in its run folder, under the folder's lock."""
+    if res.is_complete(folder) and not force:  # completed by the previous holder just before we locked
+        return RunResult(folder, res.read_summary(folder), skipped=True)
     res.write_yaml(folder / "config.yaml", to_dict(cfg))
     summary = res.Summary()
 

@@ -40,7 +40,7 @@ def test_every_exception_class_is_defined_in_errors_py():
 
 
 @pytest.mark.parametrize("cls", [errors.DatasetError, errors.ConfigError, errors.GeometryError,
-                                 errors.KeyframeError])
+                                 errors.KeyframeError, errors.ResultsLocked])
 def test_user_errors_are_mslam_errors(cls):
     assert issubclass(cls, errors.MslamError)
 
