@@ -83,13 +83,19 @@ def _fmt(v: Any, nd: int = 3) -> str:
 @_boundary
 def datasets(
     name: Optional[str] = typer.Argument(None, help="A datasets.yaml name or a sequence folder (with --check)."),
-    check: bool = typer.Option(False, "--check", help="Verify files, intrinsics, GT coverage, fy sign."),
+    check: bool = typer.Option(False, "--check", help="Verify files, intrinsics, GT coverage, fy sign, and decode "
+                               "every RGB and depth image (truncated, corrupt or odd-sized files fail)."),
+    sample: int = typer.Option(0, "--sample", min=0, help="With --check: decode only the images of N frames "
+                               "spread over each sequence (a quick check); 0 = every frame."),
     registry: Optional[Path] = RegistryOpt,
     data_root: Optional[str] = DataRootOpt,
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
-    """List datasets.yaml entries, or check one sequence (or all) with --check."""
+    """List datasets.yaml entries, or check one sequence (or all) with --check.
+
+    --check decodes every image, so a bad file fails now (exit code 1, naming it) rather than in
+    the middle of a long run; --sample N makes it quick."""
     from mutualslam_cli.datasets.check import check_sequence
     from mutualslam_cli.datasets.registry import list_datasets
 
@@ -107,7 +113,16 @@ def datasets(
     if not targets:
         raise MslamError("no dataset folder exists under the data root; set MSLAM_DATA or --data-root")
     for n in targets:
-        r = check_sequence(n, data_root=cfg.data.data_root, registry_path=registry)
+        with _progress() as p:
+            task = p.add_task(f"decode {Path(n).name}", total=None, info="")
+
+            def cb(stage: str, info: dict[str, Any], task: Any = task) -> None:
+                p.update(task, completed=info["done"], total=info["total"], info=Path(info["file"]).name)
+
+            try:
+                r = check_sequence(n, sample=sample, data_root=cfg.data.data_root, registry_path=registry, progress=cb)
+            finally:
+                p.remove_task(task)  # the table replaces the bar; an error is one line, not a bar and a line
         t = Table("check", "value", title=f"{r.name} ({r.format})", title_justify="left")
         intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
         rows = [
@@ -117,6 +132,8 @@ def datasets(
             ("intrinsics fx fy cx cy", intr + (" + distortion" if len(r.intrinsics) > 4 else "")),
             ("image size", "×".join(map(str, r.image_size))), ("depth scale", f"{r.depth_scale:g} = 1 m"),
             ("median depth", _fmt(r.median_depth_m, 2) + " m"),
+            ("images decoded", f"{r.images_decoded} ("
+             + ("every frame)" if r.frames_decoded == r.frames else f"{r.frames_decoded} of {r.frames} frames)")),
         ]
         if r.fy_sign is not None:
             errs = ", ".join(f"{k}: {v:.3g}" for k, v in (r.fy_sign_errors or {}).items())

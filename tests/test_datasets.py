@@ -19,6 +19,7 @@ from mutualslam_cli.datasets import (
     load_sequence,
 )
 from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.datasets.check import jpeg_problem, png_problem
 from mutualslam_cli.datasets.icl_nuim import ray_to_z
 from mutualslam_cli.datasets.registry import DEFAULT_REGISTRY, FORMATS, resolve_root
 from mutualslam_cli.errors import DatasetError
@@ -208,6 +209,82 @@ def test_wrong_depth_scale_warns(tmp_path):
     assert ok.warnings == [] and ok.gt_coverage_pct == 100.0 and ok.frames_with_depth == 6
 
 
+# ----------------------------------------------------------------------------- every image decoded
+def _victim(root: Path, kind: str, k: int = 3) -> Path:
+    return sorted((root / kind).iterdir())[k]
+
+
+def test_check_decodes_every_image_and_reports_each(tmp_path):
+    root = write_tum_dir(tmp_path / "seq_fr1")
+    calls = []
+    rep = check_sequence(load_sequence(root), progress=lambda stage, info: calls.append((stage, dict(info))))
+    assert rep.ok and rep.images_decoded == 12 and rep.frames_decoded == 6
+    every = {str(p) for kind in ("rgb", "depth") for p in (root / kind).iterdir()}
+    assert {c[1]["file"] for c in calls} == every and len(calls) == 12
+    assert [c[1]["done"] for c in calls] == list(range(1, 13)) and {c[1]["total"] for c in calls} == {12}
+    assert {c[0] for c in calls} == {"decode"}
+
+
+@pytest.mark.parametrize("kind", ["rgb", "depth"])
+@pytest.mark.parametrize("cut", [12, 300], ids=["no-IEND", "mid-IDAT"])
+def test_truncated_png_fails_naming_it(tmp_path, kind, cut):
+    root = write_tum_dir(tmp_path / "seq_fr1")
+    victim = _victim(root, kind)
+    data = victim.read_bytes()
+    victim.write_bytes(data[: len(data) - cut])
+    label = {"rgb": "RGB", "depth": "depth"}[kind]
+    msg = rf"{kind}/{victim.name}: truncated PNG: .*expected a complete {label} image"
+    with pytest.raises(DatasetError, match=msg):
+        check_sequence(load_sequence(root))
+
+
+@pytest.mark.parametrize("kind", ["rgb", "depth"])
+def test_corrupted_png_fails_naming_it(tmp_path, kind):
+    root = write_tum_dir(tmp_path / "seq_fr1")
+    victim = _victim(root, kind, 5)
+    data = bytearray(victim.read_bytes())
+    data[60] ^= 0xFF  # a flipped byte inside the image data: the chunk's CRC no longer matches
+    victim.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=rf"{victim.name}: corrupted PNG: CRC mismatch"):
+        check_sequence(load_sequence(root))
+
+
+def test_image_of_another_size_fails_naming_it_and_the_expected_size(tmp_path):
+    root = write_tum_dir(tmp_path / "seq_fr1")
+    victim = _victim(root, "rgb", 4)
+    cv2.imwrite(str(victim), np.zeros((H // 2, W // 2, 3), np.uint8))
+    first = _victim(root, "rgb", 0)
+    msg = rf"{victim.name}: RGB image is {W // 2}×{H // 2}×3 uint8, expected {W}×{H}×3 uint8 like .* {first.name}"
+    with pytest.raises(DatasetError, match=msg):
+        check_sequence(load_sequence(root))
+    cv2.imwrite(str(victim), np.zeros((H, W), np.uint8))  # one grey image among colour ones
+    with pytest.raises(DatasetError, match=rf"{victim.name}: RGB image is {W}×{H} uint8, expected {W}×{H}×3 uint8"):
+        check_sequence(load_sequence(root))
+
+
+def test_sampled_check_decodes_only_the_sampled_frames(tmp_path):
+    root = write_tum_dir(tmp_path / "seq_fr1")
+    victim = _victim(root, "rgb", 3)  # frames 0 and 5 are sampled, 3 is not
+    victim.write_bytes(victim.read_bytes()[:-100])
+    files = []
+    rep = check_sequence(load_sequence(root), sample=2, progress=lambda stage, info: files.append(info["file"]))
+    assert rep.images_decoded == 4 and rep.frames_decoded == 2 and len(files) == 4
+    assert str(victim) not in files
+    with pytest.raises(DatasetError, match=victim.name):
+        check_sequence(load_sequence(root), sample=0)
+
+
+def test_png_and_jpeg_structure():
+    img = np.arange(48 * 64 * 3, dtype=np.uint8).reshape(48, 64, 3)
+    png = cv2.imencode(".png", img)[1].tobytes()
+    assert png_problem(png) is None and png_problem(png + b"trailing bytes") is None
+    assert "no IEND" in png_problem(png[:-12]) and "needs" in png_problem(png[:-13])
+    assert "not a PNG" in png_problem(b"GIF89a" + png[6:])
+    jpg = cv2.imencode(".jpg", img)[1].tobytes()
+    assert jpeg_problem(jpg) is None and jpeg_problem(jpg + b"\x00" * 8) is None
+    assert "truncated JPEG" in jpeg_problem(jpg[:-10]) and "not a JPEG" in jpeg_problem(png)
+
+
 # ----------------------------------------------------------------------------- ICL-NUIM
 @pytest.mark.parametrize("true_sign", [-1, 1])
 def test_fy_sign_decided_from_data(tmp_path, true_sign):
@@ -280,6 +357,11 @@ def test_icl_native_loop_ray_depth_and_povray_cameras(tmp_path):
     np.testing.assert_allclose(seq.frames[3].pose, T_up, atol=1e-6)
     _, z3 = render_plane(T_up, -F)
     np.testing.assert_allclose(seq.load_depth(3), z3, rtol=1e-5, atol=1e-5)
+    assert check_sequence(seq).images_decoded == 12
+    cut = root / "scene_00_0004.depth"
+    cut.write_text(cut.read_text()[: len(cut.read_text()) // 2])  # a truncated native depth file
+    with pytest.raises(DatasetError, match=rf"scene_00_0004\.depth: expected {W}×{H} = {W * H} numbers"):
+        check_sequence(seq)
 
 
 def test_ray_to_z_centre_and_corner():

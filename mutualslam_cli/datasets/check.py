@@ -1,9 +1,18 @@
 """Dataset checks (``mslam datasets --check``) and the loader benchmark.
 
 :func:`check_sequence` loads a sequence (which already validates list files, GT files,
-referenced images, GT overlap and emptiness, raising :class:`DatasetError`), then decodes a
-sample of depth images to verify they are 16-bit and that the depth scale gives plausible
-indoor depths.
+referenced images, GT overlap and emptiness, raising :class:`DatasetError`), then decodes every
+RGB and depth image (or an evenly spread sample of frames, ``sample=N``), so that a bad file is
+reported before a long run rather than in its middle:
+
+- a file the decoder cannot read, or a depth PNG that is not 16-bit single-channel;
+- an image whose shape or dtype differs from the sequence's first image of its kind;
+- a truncated or corrupted PNG or JPEG. OpenCV decodes some truncated PNGs partially with only a
+  warning, so the file structure is checked first: a PNG must be a chain of chunks with matching
+  CRCs ending in ``IEND``, a JPEG must start with SOI and end with EOI (:func:`image_file_problem`).
+
+Depth values only warn: a median valid depth outside :data:`PLAUSIBLE_DEPTH_M` suggests a wrong
+``depth_scale``.
 """
 
 from __future__ import annotations
@@ -11,22 +20,36 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+import zlib
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable
 
+import cv2
 import numpy as np
 
 from mutualslam_cli.datasets.registry import get_spec, load_sequence, load_spec
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import SequenceSpec
 
 PLAUSIBLE_DEPTH_M = (0.2, 20.0)
 """Median valid depth outside this range (metres) suggests a wrong ``depth_scale``."""
 
+#: ``progress("decode", info)`` after each decoded image; ``info``: ``done`` and ``total`` (images),
+#: ``file`` (the image just decoded), ``sequence`` (its name). The pipeline's callback style.
+CheckProgress = Callable[[str, dict[str, Any]], None]
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
 
 @dataclass
 class CheckReport:
-    """What :func:`check_sequence` found. Times in seconds, coverage in percent."""
+    """What :func:`check_sequence` found. Times in seconds, coverage in percent.
+
+    ``images_decoded`` counts RGB and depth images, ``frames_decoded`` the frames they belong to
+    (``frames`` when every frame was checked).
+    """
 
     name: str
     root: str
@@ -43,6 +66,8 @@ class CheckReport:
     fy_sign: int | None = None
     fy_sign_errors: dict[str, float] | None = None
     warnings: list[str] = field(default_factory=list)
+    images_decoded: int = 0
+    frames_decoded: int = 0
 
     @property
     def ok(self) -> bool:
@@ -62,72 +87,181 @@ def _as_sequence(seq_or_spec: Sequence | SequenceSpec | str | os.PathLike, regis
     return load_sequence(seq_or_spec, data_root=data_root, registry_path=registry_path)
 
 
+def png_problem(data: bytes | memoryview) -> str | None:
+    """What is wrong with the structure of a PNG file, or ``None``.
+
+    Walks the chunks (length, type, data, CRC-32) from the signature to ``IEND``: a chunk running
+    past the end of the file or a missing ``IEND`` means a truncated file, a CRC mismatch a
+    corrupted one. Bytes after ``IEND`` are ignored, as decoders do.
+    """
+    data = memoryview(data)
+    if bytes(data[:8]) != _PNG_SIGNATURE:
+        return "not a PNG file (no PNG signature)"
+    pos, n = 8, len(data)
+    while pos + 12 <= n:
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind = bytes(data[pos + 4:pos + 8]).decode("latin-1")
+        end = pos + 12 + length
+        if end > n:
+            return f"truncated PNG: chunk {kind!r} at byte {pos} needs {end} bytes, the file has {n}"
+        if zlib.crc32(data[pos + 4:pos + 8 + length]) != int.from_bytes(data[end - 4:end], "big"):
+            return f"corrupted PNG: CRC mismatch in chunk {kind!r} at byte {pos}"
+        if kind == "IEND":
+            return None
+        pos = end
+    return f"truncated PNG: no IEND chunk before the end of the file ({n} bytes)"
+
+
+def jpeg_problem(data: bytes | memoryview) -> str | None:
+    """What is wrong with the framing of a JPEG file (SOI at the start, EOI at the end), or ``None``."""
+    data = bytes(data[:2]) + bytes(data[-64:]).rstrip(b"\x00\r\n ")  # some writers pad after EOI
+    if data[:2] != b"\xff\xd8":
+        return "not a JPEG file (no SOI marker)"
+    if not data.endswith(b"\xff\xd9"):
+        return "truncated JPEG: no EOI marker at the end of the file"
+    return None
+
+
+def image_file_problem(path: Path, data: bytes | memoryview) -> str | None:
+    """Structural problem of the image file ``path`` with content ``data`` (PNG and JPEG), or ``None``."""
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        return png_problem(data)
+    if suffix in (".jpg", ".jpeg"):
+        return jpeg_problem(data)
+    return None
+
+
+def _describe(img: np.ndarray, dtype: bool = True) -> str:
+    """``W×H[×C] dtype``."""
+    return "×".join(str(v) for v in (img.shape[1], img.shape[0], *img.shape[2:])) + (f" {img.dtype}" if dtype else "")
+
+
+class _Decoder:
+    """Decodes the images of one sequence and compares each with the first one of its kind."""
+
+    def __init__(self, seq: Sequence):
+        self.seq = seq
+        self.first: dict[str, tuple[Path, np.ndarray]] = {}  # kind → (path, first image)
+
+    def _same_as_first(self, kind: str, path: Path, img: np.ndarray) -> None:
+        ref_path, ref = self.first.setdefault(kind, (path, img))
+        raw = kind == "RGB"  # depth is compared after the loader's conversion to metres: by size only
+        if img.shape != ref.shape or img.dtype != ref.dtype:
+            raise DatasetError(f"{path}: {kind} image is {_describe(img, raw)}, expected {_describe(ref, raw)} "
+                               f"like the sequence's first {kind} image {ref_path.name}")
+
+    @staticmethod
+    def _read(path: Path, kind: str) -> bytes:
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise DatasetError(f"{path}: cannot read {kind} image ({e.strerror})") from None
+        problem = image_file_problem(path, data)
+        if problem:
+            raise DatasetError(f"{path}: {problem}; expected a complete {kind} image file (copy it again)")
+        return data
+
+    def rgb(self, i: int) -> Path:
+        path = Path(self.seq.frames[i].rgb_path)
+        img = cv2.imdecode(np.frombuffer(self._read(path, "RGB"), np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise DatasetError(f"{path}: cannot decode RGB image (expected a PNG/JPEG colour image)")
+        self._same_as_first("RGB", path, img)
+        return path
+
+    def depth(self, i: int) -> tuple[Path, np.ndarray]:
+        path = Path(self.seq.frames[i].depth_path)  # type: ignore[arg-type]
+        self._read(path, "depth")
+        d = self.seq.load_depth(i)  # the loader's own checks (16-bit PNG, ICL .depth size), in metres
+        assert d is not None
+        self._same_as_first("depth", path, d)
+        return path, d
+
+
 def check_sequence(
     seq_or_spec: Sequence | SequenceSpec | str | os.PathLike,
-    sample: int = 5,
+    sample: int = 0,
     registry_path: str | os.PathLike | None = None,
     data_root: str | os.PathLike | None = None,
     on_progress: Callable[[str], None] | None = None,
+    progress: CheckProgress | None = None,
 ) -> CheckReport:
-    """Validate one sequence and summarise it.
+    """Validate one sequence, decoding its images, and summarise it.
 
     Args:
         seq_or_spec: a loaded :class:`Sequence`, a spec, a registry name or a folder.
-        sample: number of depth images (evenly spread) to decode.
+        sample: 0 (default): decode every RGB and depth image; N > 0: only those of N frames
+            evenly spread over the sequence (a quick check).
         registry_path, data_root: as for :func:`load_sequence`.
         on_progress: optional callback receiving one-line status messages.
+        progress: optional :data:`CheckProgress`, called after each decoded image.
 
     Raises:
-        DatasetError: every hard problem (missing/malformed files, 8-bit depth PNG, no GT
-            overlap, empty sequence, missing image), with file, line and expected format.
+        DatasetError: the first hard problem (missing/malformed files, an image that cannot be
+            decoded, is truncated or corrupted, or differs in shape/dtype from the first one,
+            an 8-bit depth PNG, no GT overlap, empty sequence, missing image), naming the file
+            (and line) and what was expected.
     """
     seq = _as_sequence(seq_or_spec, registry_path, data_root)
+    n = len(seq)
+    frames = range(n) if sample <= 0 else np.unique(np.linspace(0, n - 1, min(sample, n)).round().astype(int))
+    total = sum(1 + (seq.frames[i].depth_path is not None) for i in frames)
     if on_progress:
-        on_progress(f"{seq.name}: {len(seq)} frames loaded, decoding {sample} depth images")
+        on_progress(f"{seq.name}: {n} frames loaded, decoding {total} images of "
+                    f"{'every frame' if sample <= 0 else f'{len(frames)} frames'}")
     warnings = list(seq.meta.get("warnings", []))
     times = np.array([f.timestamp for f in seq.frames])
     n_depth = sum(f.depth_path is not None for f in seq.frames)
     n_gt = sum(f.pose is not None for f in seq.frames)
-    depth_idx = [k for k, f in enumerate(seq.frames) if f.depth_path is not None]
-    medians = []
-    if depth_idx and sample > 0:
-        for k in np.unique(np.linspace(0, len(depth_idx) - 1, sample).round().astype(int)):
-            d = seq.load_depth(depth_idx[k])  # raises DatasetError for a non-16-bit PNG
-            assert d is not None
-            if d.shape != (seq.intrinsics.height, seq.intrinsics.width):
-                warnings.append(f"{seq.frames[depth_idx[k]].depth_path}: depth is {d.shape[1]}×{d.shape[0]}, "
-                                f"images are {seq.intrinsics.width}×{seq.intrinsics.height}")
-            valid = d[d > 0]
+    decoder, medians, done = _Decoder(seq), [], 0
+    for i in frames:
+        paths = [decoder.rgb(i)]
+        if seq.frames[i].depth_path is not None:
+            path, d = decoder.depth(i)
+            paths.append(path)
+            valid = d[::4, ::4]  # every 16th pixel: plenty for a plausibility median
+            valid = valid[valid > 0]
             if valid.size:
                 medians.append(float(np.median(valid)))
+        for path in paths:
+            done += 1
+            if progress:
+                progress("decode", {"done": done, "total": total, "file": str(path), "sequence": seq.name})
+    K = seq.intrinsics
+    for kind, (path, img) in decoder.first.items():
+        if img.shape[:2] != (K.height, K.width):
+            warnings.append(f"{path}: {kind} is {img.shape[1]}×{img.shape[0]}, the intrinsics are for "
+                            f"{K.width}×{K.height}")
     med = float(np.median(medians)) if medians else None
     lo, hi = PLAUSIBLE_DEPTH_M
     if med is not None and not lo <= med <= hi:
         warnings.append(f"median valid depth {med:.3g} m outside {lo}–{hi} m: depth_scale {seq.depth_scale:g} "
                         "looks wrong for this data")
-    if depth_idx and sample > 0 and med is None:
-        warnings.append("sampled depth images have no valid pixel")
+    if "depth" in decoder.first and med is None:
+        warnings.append("decoded depth images have no valid pixel")
     if not n_depth:
         warnings.append("no frame has a depth image (depth metrics will be absent)")
     if not n_gt:
         warnings.append("no GT poses (trajectory metrics will be absent)")
-    elif n_gt < 0.9 * len(seq):
-        warnings.append(f"GT covers only {n_gt} of {len(seq)} frames")
-    K = seq.intrinsics
+    elif n_gt < 0.9 * n:
+        warnings.append(f"GT covers only {n_gt} of {n} frames")
     return CheckReport(
-        name=seq.name, root=str(seq.root), format=str(seq.meta.get("format", "?")), frames=len(seq),
+        name=seq.name, root=str(seq.root), format=str(seq.meta.get("format", "?")), frames=n,
         time_span_s=float(times.max() - times.min()) if len(times) else 0.0,
         frames_with_depth=n_depth, frames_with_gt=n_gt,
-        gt_coverage_pct=100.0 * n_gt / len(seq) if len(seq) else 0.0,
+        gt_coverage_pct=100.0 * n_gt / n if n else 0.0,
         intrinsics=K.as_list() + (list(K.dist) if K.dist else []), image_size=(K.width, K.height),
         depth_scale=seq.depth_scale, median_depth_m=med,
         fy_sign=seq.meta.get("fy_sign"), fy_sign_errors=seq.meta.get("fy_sign_errors"), warnings=warnings,
+        images_decoded=done, frames_decoded=len(frames),
     )
 
 
 def check_all(names: list[str] | None = None, registry_path: str | os.PathLike | None = None,
-              data_root: str | os.PathLike | None = None, sample: int = 5) -> list[CheckReport | Exception]:
-    """Check several registry entries; a failing entry gives its exception instead of a report."""
+              data_root: str | os.PathLike | None = None, sample: int = 0) -> list[CheckReport | Exception]:
+    """Check several registry entries (``sample`` as for :func:`check_sequence`); a failing entry
+    gives its exception instead of a report."""
     from mutualslam_cli.datasets.registry import list_datasets
 
     specs = (list_datasets(registry_path, data_root) if names is None
