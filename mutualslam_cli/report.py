@@ -26,6 +26,7 @@ import yaml
 from mutualslam_cli import results as res
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.report_maps import map_figures
+from mutualslam_cli.report_plots import report_figures
 
 log = logging.getLogger(__name__)
 
@@ -317,67 +318,6 @@ def to_latex(t: pd.DataFrame, caption: str, bold: set[tuple[int, str]] | None = 
     return "\n".join(lines) + "\n"
 
 
-def plot_accuracy(runs: pd.DataFrame, path: Path) -> bool:
-    """Running PCD (lsq) over frames per run, one panel per sequence. Returns False if nothing to plot."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    seqs = sorted(runs["sequence.name"].unique())
-    fig, axes = plt.subplots(1, len(seqs), figsize=(5 * len(seqs), 3.6), squeeze=False)
-    drawn = False
-    for ax, s in zip(axes[0], seqs):
-        for _, r in runs[runs["sequence.name"] == s].iterrows():
-            f = Path(r["folder"]) / "per_frame.csv"
-            if not f.is_file():
-                continue
-            pf = pd.read_csv(f)
-            for model, style in (("adapted", "-"), ("pretrained", ":")):
-                col = f"{model}_pcd_lsq_running"
-                if col in pf and not (model == "pretrained" and r["scheme"] != runs["scheme"].iloc[0]):
-                    ax.plot(pf["frame"], pf[col], style, label=f"{r['scheme']} {model}")
-                    drawn = True
-        ax.set_title(s)
-        ax.set_xlabel("frame")
-        ax.set_ylabel("running PCD (%, lsq)")
-        ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
-    fig.tight_layout()
-    if drawn:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return drawn
-
-
-def plot_trajectories(runs: pd.DataFrame, path: Path) -> bool:
-    """Top view (x–z) of each run's keyframe trajectory (map frame)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    seqs = sorted(runs["sequence.name"].unique())
-    fig, axes = plt.subplots(1, len(seqs), figsize=(4 * len(seqs), 4), squeeze=False)
-    drawn = False
-    for ax, s in zip(axes[0], seqs):
-        r = runs[runs["sequence.name"] == s].iloc[0]
-        f = Path(r["folder"]) / "traj_all.txt"
-        if f.is_file() and f.stat().st_size:
-            xyz = np.loadtxt(f, comments="#", ndmin=2)[:, 1:4]
-            ax.plot(xyz[:, 0], xyz[:, 2], "-", lw=1)
-            drawn = True
-        ax.set_title(s)
-        ax.set_aspect("equal", adjustable="datalim")
-    fig.tight_layout()
-    if drawn:
-        fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return drawn
-
-
 def write_report(rep: Report, out_dir: Path) -> list[Path]:
     """Write every table as ``<name>.md``, ``<name>.tex``, ``<name>.csv``, the plots and the map
     figures (``maps/*.png``, :func:`~mutualslam_cli.report_maps.map_figures`), and ``report.md``
@@ -392,9 +332,9 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
         res.atomic_write_text(out_dir / f"{name}.md", f"### {rep.titles[name]}\n\n" + to_markdown(t))
         md.append(f"## {rep.titles[name]}\n\n" + to_markdown(t))
         written += [out_dir / f"{name}.{e}" for e in ("csv", "tex", "md")]
-    figures = [f for f, draw in ((out_dir / "accuracy_over_frames.png", plot_accuracy),
-                                 (out_dir / "trajectories.png", plot_trajectories)) if draw(rep.runs, f)]
+    figures, notes = report_figures(rep.runs, out_dir)
     figures += map_figures(rep.runs, out_dir)
-    md.append("## Figures\n\n" + "".join(f"![{f.stem}]({f.relative_to(out_dir).as_posix()})\n\n" for f in figures))
+    md.append("## Figures\n\n" + "".join(f"{n}\n\n" for n in notes)
+              + "".join(f"![{f.stem}]({f.relative_to(out_dir).as_posix()})\n\n" for f in figures))
     res.atomic_write_text(out_dir / "report.md", "# mslam report\n\n" + "\n".join(md))
     return written + [out_dir / "report.md"] + figures

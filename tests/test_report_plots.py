@@ -1,0 +1,194 @@
+"""The figures of ``mslam report`` (running accuracy, trajectories against GT), from hand-made run folders."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from matplotlib.collections import PolyCollection
+
+from mutualslam_cli import report_plots as rp
+from mutualslam_cli import results as res
+from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.geometry import exp_so3
+from mutualslam_cli.report import build_tables, collect, write_report
+from mutualslam_cli.types import Trajectory
+from synth import make_tum_dir
+
+
+def _run(root: Path, seq: str, scheme: str, seed: int, *, running: tuple[float, float] | None = None,
+         seq_root: Path | None = None) -> Path:
+    """A complete run folder: ``summary.json``, ``config.yaml``, optionally ``per_frame.csv`` (running
+    PCD of the pre-trained and adapted model rising linearly to ``running``) and a ``manifest.json``
+    naming the sequence folder."""
+    folder = res.run_dir(root, seq, scheme, seed)
+    folder.mkdir(parents=True)
+    s = res.Summary()
+    s.set("sequence.name", seq)
+    s.set("scheme", scheme)
+    s.set("seed", seed)
+    res.write_json(folder / "summary.json", s.to_dict())
+    res.write_yaml(folder / "config.yaml", {"seed": seed, "data": {"data_root": None}, "adapt": {"scheme": scheme},
+                                            "eval": {"ate_max_dt": 0.02}})
+    if running is not None:
+        frames = np.arange(10)
+        pd.DataFrame({"frame": frames, "pretrained_pcd_lsq_running": running[0] * frames / 9,
+                      "adapted_pcd_lsq_running": running[1] * frames / 9}).to_csv(folder / "per_frame.csv",
+                                                                                  index=False)
+    if seq_root is not None:
+        res.write_json(folder / "manifest.json", {"sequence": {"name": seq, "root": str(seq_root)}})
+    return folder
+
+
+def _lines(ax) -> dict[str, np.ndarray]:
+    return {ln.get_gid(): np.asarray(ln.get_ydata()) for ln in ax.get_lines() if ln.get_gid()}
+
+
+# --------------------------------------------------------------------------- accuracy over frames
+
+
+def test_accuracy_one_panel_per_sequence_one_line_per_scheme(tmp_path: Path):
+    for seed, top in ((0, 40.0), (1, 60.0)):
+        _run(tmp_path, "seqA", "replay+ewc", seed, running=(20.0, top))
+    _run(tmp_path, "seqA", "recent", 0, running=(20.0, 30.0))
+    _run(tmp_path, "seqB", "replay+ewc", 0, running=(10.0, 50.0))
+    fig = rp.accuracy_figure(collect([tmp_path]))
+    axes = [ax for ax in fig.axes if ax.get_visible()]
+    assert [ax.get_title() for ax in axes] == ["seqA", "seqB"]
+    a = _lines(axes[0])
+    assert set(a) == {"pretrained", "recent|", "replay+ewc|"}
+    np.testing.assert_allclose(a["replay+ewc|"][-1], 50.0)  # mean of the two seeds' 40 and 60
+    np.testing.assert_allclose(a["pretrained"][-1], 20.0)
+    band = [c for c in axes[0].collections if isinstance(c, PolyCollection)]
+    assert len(band) == 1  # only replay+ewc has several seeds
+    lo, hi = band[0].get_paths()[0].vertices[:, 1].min(), band[0].get_paths()[0].vertices[:, 1].max()
+    assert (lo, hi) == pytest.approx((0.0, 60.0))  # min-max over seeds
+    assert not [c for c in axes[1].collections if isinstance(c, PolyCollection)]
+    colours = {ln.get_gid(): ln.get_color() for ax in axes for ln in ax.get_lines()}
+    assert colours["replay+ewc|"] == rp.SCHEME_COLOURS["replay+ewc"]
+    assert colours["recent|"] == rp.SCHEME_COLOURS["recent"]
+    legend = fig.legends[0]
+    assert "min–max over seeds" in legend.get_title().get_text()
+    assert {t.get_text() for t in legend.get_texts()} == {"pre-trained", "recent", "replay+ewc"}
+    assert axes[0].get_xlabel() == "frame" and "PCD (%)" in axes[0].get_ylabel()
+
+
+def test_scheme_colours_are_fixed():
+    assert rp.scheme_colour("replay") == rp.SCHEME_COLOURS["replay"]
+    c = rp.scheme_colour("my+scheme")
+    assert c in rp.EXTRA_COLOURS and rp.scheme_colour("my+scheme") == c
+    assert len(set(rp.SCHEME_COLOURS.values())) == len(rp.SCHEME_COLOURS)
+
+
+def test_accuracy_without_per_frame_writes_nothing(tmp_path: Path):
+    _run(tmp_path / "runs", "seqA", "replay", 0)
+    runs = collect([tmp_path / "runs"])
+    assert rp.accuracy_figure(runs) is None
+    assert not rp.plot_accuracy(runs, tmp_path / "acc.png")
+    assert not (tmp_path / "acc.png").exists()
+
+
+# --------------------------------------------------------------------------- trajectories
+
+
+def _sim3(traj: Trajectory, s: float, rng: np.random.Generator, noise: float = 0.0) -> Trajectory:
+    """``traj`` in another frame: positions ``s·R·p + t`` (plus Gaussian noise, metres before scaling)."""
+    R, t = exp_so3(rng.normal(size=(1, 3)))[0], rng.normal(size=3)
+    poses = traj.poses.copy()
+    poses[:, :3, :3] = R @ poses[:, :3, :3]
+    poses[:, :3, 3] = s * (traj.positions + rng.normal(scale=noise, size=traj.positions.shape)) @ R.T + t
+    return Trajectory(traj.timestamps, poses)
+
+
+@pytest.fixture
+def seq_dir(tmp_path: Path) -> Path:
+    return make_tum_dir(tmp_path, n=12)
+
+
+def test_track_row_aligns_each_file_like_the_pipeline(seq_dir: Path, tmp_path: Path, rng):
+    gt = load_sequence(seq_dir).gt
+    folder = _run(tmp_path / "runs", "synth", "replay", 0, seq_root=seq_dir)
+    write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 0.3, rng))
+    write_tum_trajectory(folder / "traj_kf.txt", _sim3(gt.subset(np.arange(0, 12, 3)), 2.0, rng))
+    write_tum_trajectory(folder / "traj_all_ba.txt", _sim3(gt, 0.5, rng, noise=0.002))
+    row = rp.track_row(folder, gt, 0.02, "replay · seed 0")
+    assert set(row.stages) == {"vo", "ba"} and not row.problems
+    t, p = row.stages["vo"]
+    np.testing.assert_allclose(p, gt.positions, atol=1e-5)  # an exact Sim(3) copy aligns back onto GT
+    assert row.ate_text[0] == "VO 0.0000 / 0.0000"
+    assert row.ate_text[1].startswith("after BA — / 0.00") and row.ate_text[1] != "after BA — / 0.0000"
+    np.testing.assert_array_equal(row.gt_t, gt.timestamps)
+
+
+def test_trajectory_figure_one_row_per_run(seq_dir: Path, tmp_path: Path, rng):
+    gt = load_sequence(seq_dir).gt
+    for scheme in ("replay", "replay+ewc"):
+        for seed in (0, 1):
+            folder = _run(tmp_path / "runs", "synth", scheme, seed, seq_root=seq_dir)
+            write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 0.4, rng, noise=0.001))
+    write_tum_trajectory(folder / "traj_all_ba.txt", _sim3(gt, 0.4, rng))  # replay+ewc seed 1 only
+    runs = collect([tmp_path / "runs"])
+    files, notes = rp.trajectory_figures(runs, tmp_path / "out")
+    assert notes == [] and [f.name for f in files] == ["trajectories_synth.png"] and files[0].is_file()
+    folders = [Path(f) for f in runs["folder"]]
+    rows = [rp.track_row(f, gt, 0.02) for f in folders]
+    fig = rp.trajectory_figure(rows, "synth", rp.vertical_axis(gt.poses[:, :3, :3]), "time (s)")
+    assert len(fig.axes) == 2 * len(rows) == 8
+    gids = [{ln.get_gid() for ln in ax.get_lines()} - {"start"} for ax in fig.axes]
+    with_ba = [f == folder for f in folders for _ in ("top", "height")]
+    assert sum(with_ba) == 2
+    assert gids == [{"gt", "vo", "ba"} if b else {"gt", "vo"} for b in with_ba]
+    top, height = fig.axes[:2]
+    assert top.get_aspect() == 1.0 and top.get_xlabel().endswith("(m)") and height.get_ylabel().endswith("(m)")
+    assert {t.get_text() for t in fig.legends[0].get_texts()} >= {"GT reference", "VO (Sim(3)-aligned)",
+                                                                   "after global BA (Sim(3)-aligned)"}
+
+
+def test_trajectory_pages_hold_at_most_max_rows(seq_dir: Path, tmp_path: Path, rng, monkeypatch):
+    monkeypatch.setattr(rp, "MAX_ROWS", 1)
+    gt = load_sequence(seq_dir).gt
+    for scheme in ("recent", "replay"):
+        folder = _run(tmp_path / "runs", "synth", scheme, 0, seq_root=seq_dir)
+        write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 1.0, rng))
+    files, _ = rp.trajectory_figures(collect([tmp_path / "runs"]), tmp_path / "out")
+    assert [f.name for f in files] == ["trajectories_synth_p1.png", "trajectories_synth_p2.png"]
+
+
+def test_missing_gt_is_one_line_in_the_report(tmp_path: Path):
+    _run(tmp_path / "runs", "nowhere_seq", "replay", 0, running=(10.0, 20.0))
+    rep = build_tables(collect([tmp_path / "runs"]))
+    files = write_report(rep, tmp_path / "out")
+    md = (tmp_path / "out" / "report.md").read_text()
+    notes = [ln for ln in md.splitlines() if ln.startswith("Trajectories of nowhere_seq")]
+    assert len(notes) == 1 and "GT poses not found" in notes[0] and "nowhere_seq" in notes[0]
+    assert not (tmp_path / "out" / "trajectories").exists()
+    assert (tmp_path / "out" / "accuracy_over_frames.png") in files
+    assert "![accuracy_over_frames](accuracy_over_frames.png)" in md
+
+
+def test_report_links_the_trajectory_figures(seq_dir: Path, tmp_path: Path, rng):
+    gt = load_sequence(seq_dir).gt
+    folder = _run(tmp_path / "runs", "synth", "replay", 0, seq_root=seq_dir)
+    write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 1.0, rng))
+    write_report(build_tables(collect([tmp_path / "runs"])), tmp_path / "out")
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "![trajectories_synth](trajectories/trajectories_synth.png)" in md
+    assert (tmp_path / "out" / "trajectories" / "trajectories_synth.png").is_file()
+
+
+@pytest.mark.parametrize("world_up, expected", [((0, 0, 1), (2, 1.0)), ((0, -1, 0), (1, -1.0))])
+def test_vertical_axis(world_up, expected, rng):
+    """Cameras with zero roll, any heading and pitch: camera y (down) is −up, camera x horizontal."""
+    up = np.asarray(world_up, dtype=float)
+    horiz = [np.roll(up, 1), np.roll(up, 2)]
+    rots = []
+    for yaw, pitch in rng.uniform(-0.6, 0.6, size=(20, 2)):
+        right = np.cos(yaw) * horiz[0] + np.sin(yaw) * horiz[1]
+        fwd = np.cross(right, -up)
+        down = -(np.cos(pitch) * up + np.sin(pitch) * fwd)
+        fwd = np.cross(right, down)
+        rots.append(np.stack([right, down, fwd], axis=1))
+    assert rp.vertical_axis(np.asarray(rots)) == expected
