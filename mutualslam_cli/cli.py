@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Callable, Optional
 
 import typer
-from rich.console import Console
+from rich.console import Console, ConsoleDimensions
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
@@ -25,8 +25,24 @@ from mutualslam_cli.errors import ConfigError, MslamError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
-console = Console(stderr=False)
-err_console = Console(stderr=True)
+#: Columns of output that goes to a file or a pipe, where rich would otherwise use 80 and wrap wide
+#: tables (the paper's tables are up to ~250 columns); ``$COLUMNS``, when set, wins.
+PIPED_WIDTH = 400
+
+
+class _Console(Console):
+    """A rich Console that is :data:`PIPED_WIDTH` columns wide while its stream is not a terminal
+    (checked at each print, so a redirected or captured ``sys.stdout`` counts) and ``$COLUMNS`` is unset.
+    Only the getter of ``Console.size`` is replaced; its setter stays."""
+
+    @Console.size.getter  # type: ignore[attr-defined]
+    def size(self) -> ConsoleDimensions:
+        dims = Console.size.fget(self)  # type: ignore[attr-defined]
+        return ConsoleDimensions(PIPED_WIDTH, dims.height) if self._width is None and not self.is_terminal else dims
+
+
+console = _Console(stderr=False)
+err_console = _Console(stderr=True)
 
 ConfigOpt = typer.Option(None, "--config", "-c", help="YAML config (default configs/paper.yaml).")
 SetOpt = typer.Option(None, "--set", "-s", help="Override one field: section.key=value (repeatable).")
@@ -195,10 +211,13 @@ def ate(
     align: str = typer.Option("sim3", "--align", help="sim3 | se3 | none"),
     max_dt: Optional[float] = typer.Option(None, "--max-dt",
                                            help="Association threshold, s (default eval.ate_max_dt)."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object (units in the keys) instead of a table."),
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
     """ATE of two TUM-format trajectories (the pipeline's own code path)."""
+    import json
+
     from mutualslam_cli.datasets.associate import read_tum_trajectory
     from mutualslam_cli.metrics.trajectory import ate as ate_fn
 
@@ -206,6 +225,12 @@ def ate(
     if align not in ("sim3", "se3", "none"):
         raise ConfigError(f"--align {align!r}: expected sim3, se3 or none")
     r = ate_fn(read_tum_trajectory(ref), read_tum_trajectory(est), align=align, max_dt=max_dt)  # type: ignore[arg-type]
+    if as_json:
+        stats = {f"ate_{k}_m": getattr(r, k) for k in ("rmse", "mean", "median", "max")}
+        out = {"ref": str(ref), "est": str(est), "align": align, "max_dt_s": max_dt, "pairs": r.n_pairs,
+               "scale": r.scale, **stats}
+        typer.echo(json.dumps({k: v if not isinstance(v, float) or v == v else None for k, v in out.items()}))
+        return
     t = Table("pairs", "align", "scale", "rmse m", "mean m", "median m", "max m", title=f"ATE {est.name} vs {ref.name}")
     t.add_row(str(r.n_pairs), align, f"{r.scale:.6f}", f"{r.rmse:.6f}", f"{r.mean:.6f}", f"{r.median:.6f}",
               f"{r.max:.6f}")

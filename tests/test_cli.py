@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -105,6 +106,88 @@ def test_ate_command(tmp_path: Path):
     r = runner.invoke(app, ["ate", str(tmp_path / "ref.txt"), str(tmp_path / "missing.txt")])
     _one_line_error(r, "missing.txt")
 
+
+
+def _ate_files(tmp_path: Path) -> tuple[str, str]:
+    rng = np.random.default_rng(1)
+    ts = np.arange(30) / 30.0
+    pos = np.c_[np.cos(ts), np.sin(ts), ts]
+    est = 0.5 * pos + rng.normal(scale=0.01, size=pos.shape)
+    for name, p in (("ref.txt", pos), ("est.txt", est)):
+        rows = [f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} 0 0 0 1" for t, (x, y, z) in zip(ts, p)]
+        (tmp_path / name).write_text("\n".join(rows) + "\n")
+    return str(tmp_path / "ref.txt"), str(tmp_path / "est.txt")
+
+
+def test_ate_json_prints_the_table_numbers(tmp_path: Path):
+    ref, est = _ate_files(tmp_path)
+    table = runner.invoke(app, ["ate", ref, est])
+    assert table.exit_code == 0, table.output
+    cells = next(ln for ln in table.stdout.splitlines() if "sim3" in ln).strip("│ ").split("│")
+    r = runner.invoke(app, ["ate", ref, est, "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)  # the whole of stdout is one JSON object
+    assert set(d) == {"ref", "est", "align", "max_dt_s", "pairs", "scale", "ate_rmse_m", "ate_mean_m",
+                      "ate_median_m", "ate_max_m"}
+    assert [str(d["pairs"]), d["align"]] + [f"{d[k]:.6f}" for k in ("scale", "ate_rmse_m", "ate_mean_m",
+                                                                     "ate_median_m", "ate_max_m")] \
+        == [c.strip() for c in cells]
+    assert d["pairs"] == 30 and d["ate_rmse_m"] > 0.001 and d["scale"] == pytest.approx(2.0, rel=0.05)
+    assert d["max_dt_s"] == 0.02 and d["ref"] == ref
+    none = json.loads(runner.invoke(app, ["ate", ref, est, "--json", "--align", "none"]).stdout)
+    assert none["align"] == "none" and none["scale"] == 1.0 and none["ate_rmse_m"] > d["ate_rmse_m"]
+
+
+def _wide_runs(root: Path) -> None:
+    """Two hand-made complete runs whose depth table is wider than 80 columns."""
+    from mutualslam_cli import results as res
+
+    for seq in ("a_rather_long_sequence_name", "another_long_sequence_name"):
+        folder = res.run_dir(root, seq, "replay+ewc", 0)
+        folder.mkdir(parents=True)
+        s = res.Summary()
+        for k, v in (("sequence.name", seq), ("scheme", "replay+ewc"), ("seed", 0),
+                     ("depth.pcd.lsq.pretrained", 21.5), ("depth.pcd.lsq.adapted", 40.25),
+                     ("depth.pcd.median.pretrained", 22.0), ("depth.pcd.median.adapted", 37.5),
+                     ("depth.esi.pretrained", 0.34), ("depth.esi.adapted", 0.22)):
+            s.set(k, v)
+        res.write_json(folder / "summary.json", s.to_dict())
+
+
+@pytest.fixture
+def fresh_console(monkeypatch):
+    """The CLI's console made anew under the test's environment (it is made once, at import)."""
+    import mutualslam_cli.cli as cli
+
+    for var in ("COLUMNS", "FORCE_COLOR", "TTY_COMPATIBLE"):
+        monkeypatch.delenv(var, raising=False)
+
+    def make() -> None:
+        monkeypatch.setattr(cli, "console", cli._Console(stderr=False))
+
+    assert isinstance(cli.console, cli._Console)
+    return make
+
+
+def test_piped_report_tables_are_not_wrapped_at_80_columns(tmp_path: Path, fresh_console):
+    _wide_runs(tmp_path / "runs")
+    fresh_console()
+    r = runner.invoke(app, ["report", str(tmp_path / "runs"), "--out", str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    header = next(ln for ln in r.stdout.splitlines() if "PCD lsq pre" in ln)
+    assert len(header) > 100
+    for col in ("sequence", "scheme", "PCD lsq adapt", "PCD med adapt", "e_si pre", "e_si adapt", "seeds"):
+        assert col in header, (col, header)
+    assert any("a_rather_long_sequence_name" in ln and "40.250" in ln for ln in r.stdout.splitlines())
+
+
+def test_columns_env_sets_the_piped_width(tmp_path: Path, fresh_console, monkeypatch):
+    _wide_runs(tmp_path / "runs")
+    monkeypatch.setenv("COLUMNS", "90")
+    fresh_console()
+    r = runner.invoke(app, ["report", str(tmp_path / "runs"), "--out", str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    assert max(len(ln) for ln in r.stdout.splitlines()) <= 90
 
 def test_synth_command(tmp_path: Path):
     r = runner.invoke(app, ["synth", str(tmp_path / "s"), "--scene", "planar", "--frames", "3", "--size", "64x48"])
