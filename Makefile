@@ -22,7 +22,7 @@ $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PIP) install -q --disable-pip-version-check "torch==2.13.0" || \
 	  $(PIP) install -q --disable-pip-version-check "torch>=2.5,<2.14"
-	$(PIP) install -q --disable-pip-version-check "torch>=2.5,<2.14" -e ".[test]"
+	$(PIP) install -q --disable-pip-version-check "torch>=2.5,<2.14" -e ".[test,dask]"
 	touch $@
 
 # The main job on the built-in default: a synthetic room sequence, the default model,

@@ -2,24 +2,38 @@
 
 The front end does not depend on the scheme, so it runs once per (sequence, seed) before the
 scheme jobs and lands in the VO cache that every job then reads. Jobs run in a local process
-pool (one torch thread per worker). Each job writes only its own result folder; a complete
-folder (``summary.json`` present) is skipped, so a killed grid is resumed by running it again.
+pool by default (one torch thread per worker when there are as many workers as cores), or on a
+Dask cluster (``executor="dask"``: a ``LocalCluster`` without a scheduler address). Each job
+writes only its own result folder, and a folder counts as complete only once its
+``summary.json`` exists (written last, atomically), so a killed grid is resumed by running it
+again and a half-written folder is redone.
+
+Nothing is left behind: local pool workers are spawned (not forked from a process that already
+runs OpenMP threads), ask the kernel to kill them when the grid's process dies (Linux
+``PR_SET_PDEATHSIG``, so ``kill -9`` of ``mslam ablate`` leaves no orphan), and ignore Ctrl-C,
+which the grid's process handles: it stops the workers and re-raises ``KeyboardInterrupt``.
+While a grid runs it holds the lock of its results folder (:mod:`mutualslam_cli.lock`), so a
+second grid on the same folder stops at once with a clear message.
 """
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 import logging
+import multiprocessing
 import os
+import signal
 import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Iterator
 
 from mutualslam_cli import results as res
-from mutualslam_cli.config import RunConfig, with_overrides
-from mutualslam_cli.errors import MslamError
+from mutualslam_cli.config import RunConfig, with_overrides, with_settings
+from mutualslam_cli.errors import ConfigError, MslamError
+from mutualslam_cli.lock import hold_lock
 
 log = logging.getLogger(__name__)
 
@@ -48,18 +62,76 @@ def expand(sequences: list[str], schemes: list[str], seeds: list[int]) -> list[J
     return [Job(q, s, k) for q, k, s in itertools.product(sequences, seeds, schemes)]
 
 
+#: Schemes ``mslam ablate`` runs without ``--schemes`` or ``experiment.schemes``.
+DEFAULT_SCHEMES = ("none", "recent", "replay", "replay+ewc", "replay+mas", "replay+si")
+
+
+@dataclass
+class GridPart:
+    """One variant of a grid: its config, its jobs and its results folder."""
+
+    label: str
+    cfg: RunConfig
+    jobs: list[Job]
+    out: Path
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0,1,2"`` or ``"0-2"`` → ``[0, 1, 2]``."""
+    try:
+        a, _, b = text.partition("-")
+        return list(range(int(a), int(b) + 1)) if b else [int(x) for x in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"--seeds {text!r}: expected e.g. 0,1,2 or 0-2") from None
+
+
+def plan_grid(cfg: RunConfig, sequences: list[str], schemes: str | None, seeds: str | None,
+              out: Path) -> list[GridPart]:
+    """The grid of a command line: schemes and seeds from the arguments, else from ``cfg.experiment``,
+    else the defaults; one :class:`GridPart` per ``experiment.variants`` entry (into ``out/<label>``),
+    or one for ``cfg`` itself into ``out``.
+
+    Raises:
+        ConfigError: unknown scheme, malformed seeds or variant override.
+    """
+    from mutualslam_cli.adapt.schemes import get_scheme
+
+    names = ([s.strip() for s in schemes.split(",") if s.strip()] if schemes is not None
+             else list(cfg.experiment.schemes) or list(DEFAULT_SCHEMES))
+    for n in names:
+        get_scheme(n)
+    seed_list = parse_seeds(seeds) if seeds is not None else list(cfg.experiment.seeds) or [0]
+    jobs = expand(sequences, names, seed_list)
+    if not cfg.experiment.variants:
+        return [GridPart("", cfg, jobs, Path(out))]
+    parts = []
+    for label, overrides in cfg.experiment.variants.items():
+        if not label or "/" in label or label.startswith((".", "_")):
+            raise ConfigError(f"experiment.variants: {label!r} is not a usable folder name")
+        parts.append(GridPart(label, with_settings(cfg, list(overrides)), jobs, Path(out) / label))
+    return parts
+
+
 def _job_config(cfg: RunConfig, job: Job, threads: int) -> RunConfig:
     return with_overrides(cfg, adapt={"scheme": job.scheme}, seed=job.seed, threads=threads)  # type: ignore[arg-type]
 
 
 def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, registry: str | None,
-             threads: int) -> JobOutcome:
-    """Worker body: run one job; library errors become a ``failed`` outcome, not a crash of the grid."""
+             threads: int, *after: Any) -> JobOutcome:
+    """Worker body: run one job; library errors become a ``failed`` outcome, not a crash of the grid.
+
+    ``after``: ignored; Dask passes the job's front-end task result here so the job waits for it.
+    """
+    from threadpoolctl import threadpool_limits
+
     from mutualslam_cli.pipeline import run_sequence
 
     try:
-        r = run_sequence(job.sequence, _job_config(cfg, job, threads), out=out, command=command,
-                         registry=Path(registry) if registry else None)
+        # BLAS threads as many as torch's, whatever the executor set up (Dask workers start with 1):
+        # reductions then sum in the same order, and results agree to the last bit across executors
+        with threadpool_limits(limits=threads if threads > 0 else None, user_api="blas"):
+            r = run_sequence(job.sequence, _job_config(cfg, job, threads), out=out, command=command,
+                             registry=Path(registry) if registry else None)
         return JobOutcome(job, "skipped" if r.skipped else "done", r.folder)
     except MslamError as e:
         return JobOutcome(job, "failed", None, str(e))
@@ -67,61 +139,140 @@ def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, regi
         return JobOutcome(job, "failed", None, f"{type(e).__name__}: {e}\n{traceback.format_exc()}")
 
 
-def prepare_frontends(cfg: RunConfig, sequences: list[str], seeds: list[int], out: str,
-                      registry: str | None = None) -> None:
-    """Run every (sequence, seed) front end once so scheme jobs find it in the VO cache."""
+def _prepare_one(cfg: RunConfig, sequence: str, seed: int, out: str, registry: str | None, threads: int) -> str | None:
+    """Run one (sequence, seed) front end into ``<out>/_cache/vo``; the error message if it failed
+    (the sequence's jobs then fail with it themselves, and the other sequences go on)."""
     from mutualslam_cli.datasets.registry import load_sequence
     from mutualslam_cli.vo_cache import run_frontend
 
+    c = with_overrides(cfg, seed=seed, threads=threads)  # type: ignore[arg-type]
+    try:
+        seq = load_sequence(sequence, data_root=c.data.data_root, registry_path=registry,
+                            max_frames=c.data.max_frames, stride=c.data.stride)
+        run_frontend(seq, c, cache_dir=Path(out) / "_cache" / "vo")
+    except MslamError as e:
+        log.warning("front end for %s (seed %d) failed: %s", sequence, seed, e)
+        return str(e)
+    return None
+
+
+def prepare_frontends(cfg: RunConfig, sequences: list[str], seeds: list[int], out: str,
+                      registry: str | None = None) -> None:
+    """Run every (sequence, seed) front end once, in this process, so scheme jobs find it in the VO cache."""
     for q, k in itertools.product(sequences, seeds):
-        c = with_overrides(cfg, seed=k)  # type: ignore[arg-type]
-        try:
-            seq = load_sequence(q, data_root=c.data.data_root, registry_path=registry,
-                                max_frames=c.data.max_frames, stride=c.data.stride)
-            run_frontend(seq, c, cache_dir=Path(out) / "_cache" / "vo")
-        except MslamError as e:  # the sequence's jobs will fail with this message; the others go on
-            log.warning("front end for %s (seed %d) failed: %s", q, k, e)
+        _prepare_one(cfg, q, k, out, registry, cfg.threads)
+
+
+def _die_with_parent() -> None:
+    """Pool worker initialiser: killed with the grid's process, deaf to Ctrl-C (the grid handles it)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG = 1 (Linux)
+    except (OSError, AttributeError):  # not Linux: the pool's own shutdown is all there is
+        return
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+
+def _local_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str] | None, reg: str | None,
+                    workers: int, threads: int) -> Iterator[JobOutcome]:
+    """Outcomes of ``todo`` run in this process (1 worker) or a spawned process pool, as they finish."""
+    prepare_frontends(cfg, sorted({j.sequence for j in todo}), sorted({j.seed for j in todo}), out, reg)
+    if workers <= 1:
+        for j in todo:
+            yield _run_job(cfg, j, out, command, reg, threads)
+        return
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_die_with_parent)
+    try:
+        futs = [pool.submit(_run_job, cfg, j, out, command, reg, threads) for j in todo]
+        for f in as_completed(futs):
+            yield f.result()
+    except BaseException:  # Ctrl-C (or the consumer stopping): stop the workers now, not after their jobs
+        for p in list(getattr(pool, "_processes", {}).values()):
+            p.kill()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+
+
+def _dask_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str] | None, reg: str | None,
+                   workers: int, scheduler: str | None) -> Iterator[JobOutcome]:
+    """Outcomes of ``todo`` run on a Dask cluster (``scheduler`` address, or a ``LocalCluster`` of
+    ``workers`` single-threaded processes). Front ends are tasks too, one per (sequence, seed), and
+    each job depends on its own; results go to the shared ``out`` folder."""
+    try:
+        from dask.distributed import Client, LocalCluster
+        from dask.distributed import as_completed as dask_completed
+    except ImportError:
+        raise ConfigError("--executor dask needs dask.distributed: pip install 'dask[distributed]'") from None
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+    else:
+        threads = cfg.threads  # 0: every core of the worker's machine
+    client = Client(cluster if cluster is not None else scheduler)
+    try:
+        fronts = {(q, k): client.submit(_prepare_one, cfg, q, k, out, reg, threads, pure=False,
+                                        key=f"vo-{Path(q).name}-seed{k}-{os.getpid()}")
+                  for q, k in sorted({(j.sequence, j.seed) for j in todo})}
+        futs = {client.submit(_run_job, cfg, j, out, command, reg, threads, fronts[(j.sequence, j.seed)],
+                              pure=False): j for j in todo}
+        for f in dask_completed(list(futs)):
+            try:
+                yield f.result()
+            except Exception as e:  # noqa: BLE001 - a lost worker fails its job, not the grid
+                yield JobOutcome(futs[f], "failed", None, f"{type(e).__name__}: {e}")
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
 
 
 def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,
              command: list[str] | None = None, registry: str | Path | None = None,
-             on_done: Callable[[JobOutcome], None] | None = None) -> list[JobOutcome]:
+             on_done: Callable[[JobOutcome], None] | None = None, executor: str = "local",
+             scheduler: str | None = None) -> list[JobOutcome]:
     """Run ``jobs`` (complete ones are skipped) and return one outcome per job.
 
     Args:
-        workers: processes; each uses ``max(1, cpu_count // workers)`` torch threads.
+        workers: local processes (or ``LocalCluster`` workers); each uses ``max(1, cpu_count // workers)``
+            torch threads.
         on_done: called as each job finishes (progress display).
+        executor: ``"local"`` (process pool, the default) or ``"dask"``.
+        scheduler: Dask scheduler address (``tcp://host:8786``); ``None`` starts a ``LocalCluster``.
+
+    Raises:
+        ResultsLocked: another grid or run holds ``out``.
+        KeyboardInterrupt: Ctrl-C; the workers are stopped first, finished jobs stay complete.
     """
+    if executor not in ("local", "dask"):
+        raise ConfigError(f"--executor {executor!r}: expected local or dask")
     out = str(out)
     reg = str(registry) if registry else None
     threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     outcomes: list[JobOutcome] = []
-    todo = []
-    for j in jobs:
-        name = Path(j.sequence).name if Path(j.sequence).is_dir() else j.sequence
-        folder = res.run_dir(out, name, j.scheme, j.seed)
-        if res.is_complete(folder):
-            o = JobOutcome(j, "skipped", folder)
-            outcomes.append(o)
-            if on_done:
-                on_done(o)
-        else:
-            todo.append(j)
-    if not todo:
-        return outcomes
-    prepare_frontends(cfg, sorted({j.sequence for j in todo}), sorted({j.seed for j in todo}), out, reg)
-    if workers <= 1:
-        for j in todo:
-            o = _run_job(cfg, j, out, command, reg, threads)
-            outcomes.append(o)
-            if on_done:
-                on_done(o)
-        return outcomes
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        futs = {pool.submit(_run_job, cfg, j, out, command, reg, threads): j for j in todo}
-        for f in as_completed(futs):
-            o = f.result()
-            outcomes.append(o)
-            if on_done:
-                on_done(o)
+
+    def record(o: JobOutcome) -> None:
+        outcomes.append(o)
+        if on_done:
+            on_done(o)
+
+    with hold_lock(Path(out), "mslam ablate"):
+        todo = []
+        for j in jobs:
+            name = Path(j.sequence).name if Path(j.sequence).is_dir() else j.sequence
+            folder = res.run_dir(out, name, j.scheme, j.seed)
+            if res.is_complete(folder):
+                record(JobOutcome(j, "skipped", folder))
+            else:
+                todo.append(j)
+        if todo:
+            stream = (_dask_outcomes(cfg, todo, out, command, reg, workers, scheduler) if executor == "dask"
+                      else _local_outcomes(cfg, todo, out, command, reg, workers, threads))
+            for o in stream:
+                record(o)
     return outcomes

@@ -359,43 +359,57 @@ def run(
 @_boundary
 def ablate(
     seqs: list[str] = typer.Argument(..., help="datasets.yaml names or sequence folders."),
-    schemes: str = typer.Option("none,recent,replay,replay+ewc,replay+mas,replay+si", "--schemes",
-                                help="Comma-separated scheme names."),
-    seeds: str = typer.Option("0", "--seeds", help="Comma-separated seeds, or a range like 0-2."),
-    workers: int = typer.Option(1, "--workers", "-j", min=1, help="Local worker processes."),
+    schemes: Optional[str] = typer.Option(None, "--schemes",
+                                          help="Comma-separated scheme names (default: the config's "
+                                               "experiment.schemes, else none,recent,replay,replay+ewc,"
+                                               "replay+mas,replay+si)."),
+    seeds: Optional[str] = typer.Option(None, "--seeds", help="Comma-separated seeds, or a range like 0-2 "
+                                                              "(default: the config's experiment.seeds, else 0)."),
+    workers: int = typer.Option(1, "--workers", "-j", min=1,
+                                help="Worker processes (local pool, or LocalCluster workers with --executor dask)."),
+    executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler",
+                                            help="Dask scheduler address, e.g. tcp://host:8786 "
+                                                 "(default: a LocalCluster of --workers processes)."),
     out: Optional[Path] = ResultsOutOpt,
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
     data_root: Optional[str] = DataRootOpt,
     registry: Optional[Path] = RegistryOpt,
 ) -> None:
-    """The grid sequences × schemes × seeds; complete runs are skipped, so a killed grid resumes."""
-    from mutualslam_cli.ablate import expand, run_grid
-    from mutualslam_cli.adapt.schemes import get_scheme
+    """The grid sequences × schemes × seeds (× the config's experiment.variants); complete runs are
+    skipped, so a killed grid resumes.
+
+    With --executor dask the front ends and jobs run on a Dask cluster; the sequences, the results
+    folder (with its _cache/) and the weights must then be on a filesystem every worker sees."""
+    from mutualslam_cli.ablate import plan_grid, run_grid
 
     cfg = _config(config, sets, data_root)
-    names = [s.strip() for s in schemes.split(",") if s.strip()]
-    for n in names:
-        get_scheme(n)
-    try:
-        a, _, b = seeds.partition("-")
-        seed_list = list(range(int(a), int(b) + 1)) if b else [int(x) for x in seeds.split(",")]
-    except ValueError:
-        raise ConfigError(f"--seeds {seeds!r}: expected e.g. 0,1,2 or 0-2") from None
-    jobs = expand(list(seqs), names, seed_list)
-    failed = []
+    root = Path(out or cfg.out)
+    parts = plan_grid(cfg, list(seqs), schemes, seeds, root)
+    total = sum(len(p.jobs) for p in parts)
+    failed, outcomes = [], []
     with _progress() as p:
-        task = p.add_task("grid", total=len(jobs), info="")
+        task = p.add_task("grid", total=total, info="")
 
         def done(o: Any) -> None:
             if o.status == "failed":
                 failed.append(o)
             p.update(task, advance=1, info=f"{o.job.sequence} {o.job.scheme} seed{o.job.seed}: {o.status}")
 
-        outcomes = run_grid(cfg, jobs, out or cfg.out, workers=workers, command=sys.argv, registry=registry,
-                            on_done=done)
+        try:
+            for part in parts:
+                outcomes += run_grid(part.cfg, part.jobs, part.out, workers=workers, command=sys.argv,
+                                     registry=registry, on_done=done, executor=executor, scheduler=scheduler)
+        except KeyboardInterrupt:
+            p.stop()
+            n_done = int(p.tasks[task].completed)
+            err_console.print(f"[yellow]interrupted[/]: {n_done} of {total} jobs complete, workers stopped; "
+                              "run the same command again to resume (complete runs are skipped, "
+                              "half-written ones redone).")
+            raise typer.Exit(130) from None
     counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
-    console.print(f"{len(jobs)} jobs: {counts['done']} done, {counts['skipped']} already complete, "
+    console.print(f"{total} jobs: {counts['done']} done, {counts['skipped']} already complete, "
                   f"{counts['failed']} failed")
     for o in failed:
         err_console.print(f"[red]failed[/] {o.job.sequence} {o.job.scheme} seed{o.job.seed}: "

@@ -1,0 +1,160 @@
+"""The grid's executors and its behaviour when stopped: resume, no orphans, one grid per folder."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+import torch
+
+from mutualslam_cli import results as res
+from mutualslam_cli.ablate import expand, plan_grid, run_grid
+from mutualslam_cli.adapt.depthnet import DepthNet
+from mutualslam_cli.adapt.weights import save_monodepth2
+from mutualslam_cli.config import CONFIG_DIR, load_config
+from mutualslam_cli.errors import ConfigError, ResultsLocked
+from mutualslam_cli.lock import hold_lock
+from synth import make_tum_dir
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("grid")
+    torch.manual_seed(0)
+    save_monodepth2(DepthNet(), tmp / "weights", 64, 96)
+    seq = make_tum_dir(tmp, scene="room", n=12, width=128, height=96)
+    return tmp, seq
+
+
+def _sets(tmp: Path) -> list[str]:
+    return [f"net.weights={tmp / 'weights'}"]
+
+
+def _comparable(folder: Path) -> dict:
+    s = res.flatten(json.loads((folder / "summary.json").read_text()))
+    return {k: v for k, v in s.items() if not k.startswith("timing.")}
+
+
+def test_plan_grid_reads_the_experiment_and_expands_variants(setup, tmp_path):
+    tmp, seq = setup
+    cfg = load_config(CONFIG_DIR / "table5_map.yaml")
+    parts = plan_grid(cfg, [str(seq)], None, None, tmp_path)
+    assert [p.label for p in parts] == ["fts500", "fts500_no_culling", "fts120", "fts120_no_culling"]
+    assert [p.out for p in parts] == [tmp_path / p.label for p in parts]
+    assert [(p.cfg.vo.max_fts, p.cfg.ba.culling) for p in parts] == [(500, True), (500, False), (120, True),
+                                                                     (120, False)]
+    assert {(j.scheme, j.seed) for j in parts[0].jobs} == {("replay+ewc", k) for k in (0, 1, 2)}
+    one = plan_grid(load_config(), [str(seq)], "none,replay", "3-4", tmp_path)
+    assert len(one) == 1 and one[0].out == tmp_path and {j.seed for j in one[0].jobs} == {3, 4}
+    with pytest.raises(ConfigError, match="unknown scheme|not a scheme|valid"):
+        plan_grid(load_config(), [str(seq)], "nope", None, tmp_path)
+    with pytest.raises(ConfigError, match="--seeds"):
+        plan_grid(load_config(), [str(seq)], None, "a-b", tmp_path)
+
+
+def test_a_second_grid_on_the_same_folder_stops_at_once(setup, tmp_path):
+    tmp, seq = setup
+    cfg = load_config(CONFIG_DIR / "smoke.yaml", _sets(tmp))
+    with hold_lock(tmp_path, "another grid"):
+        with pytest.raises(ResultsLocked, match=str(os.getpid())):
+            run_grid(cfg, expand([str(seq)], ["none"], [0]), tmp_path)
+    assert not list(tmp_path.rglob("summary.json"))
+
+
+def test_dask_local_cluster_gives_the_summaries_of_the_local_pool(setup, tmp_path):
+    pytest.importorskip("dask.distributed")
+    tmp, seq = setup
+    cfg = load_config(CONFIG_DIR / "smoke.yaml", _sets(tmp))
+    jobs = expand([str(seq)], ["none", "replay"], [0])
+    local = run_grid(cfg, jobs, tmp_path / "local", workers=2)
+    dask = run_grid(cfg, jobs, tmp_path / "dask", workers=2, executor="dask")
+    assert sorted(o.status for o in local) == sorted(o.status for o in dask) == ["done", "done"]
+    for o in local:
+        other = tmp_path / "dask" / o.folder.relative_to(tmp_path / "local")
+        assert _comparable(o.folder) == _comparable(other)
+        assert (o.folder / "per_frame.csv").read_bytes() == (other / "per_frame.csv").read_bytes()
+    with pytest.raises(ConfigError, match="executor"):
+        run_grid(cfg, jobs, tmp_path / "x", executor="slurm")
+
+
+def _tree(pid: int) -> list[psutil.Process]:
+    try:
+        return psutil.Process(pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return []
+
+
+def _alive(p: psutil.Process) -> bool:
+    try:
+        return p.is_running() and p.status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {str(f.relative_to(folder)): hashlib.sha1(f.read_bytes()).hexdigest()
+            for f in sorted(folder.rglob("*")) if f.is_file() and f.name != ".lock"}
+
+
+def test_sigkill_mid_grid_leaves_no_process_and_a_rerun_completes(setup, tmp_path):
+    tmp, seq = setup
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "mutualslam_cli.cli", "ablate", str(seq), "--schemes",
+           "none,recent,replay,replay+ewc", "--seeds", "0", "-j", "2", "--out", str(out),
+           "--config", str(CONFIG_DIR / "smoke.yaml"), "--set", _sets(tmp)[0]]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    workers: list[psutil.Process] = []
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        done = list(out.rglob("summary.json"))
+        kids = _tree(proc.pid)
+        if done and len(kids) >= 2:
+            workers = kids
+            break
+        time.sleep(0.2)
+    assert workers and proc.poll() is None, "the grid finished or never started its workers"
+    finished = {f.parent: _digest(f.parent) for f in out.rglob("summary.json")}
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.time() + 15
+    while time.time() < deadline and any(_alive(p) for p in workers):
+        time.sleep(0.2)
+    assert not [p.pid for p in workers if _alive(p)], "pool processes outlived the killed grid"
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert len(list(out.rglob("summary.json"))) == 4
+    for folder, digest in finished.items():  # finished jobs were skipped, byte for byte
+        assert _digest(folder) == digest
+
+
+def test_ctrl_c_stops_the_workers_and_says_how_to_resume(setup, tmp_path):
+    tmp, seq = setup
+    cmd = [sys.executable, "-m", "mutualslam_cli.cli", "ablate", str(seq), "--schemes", "recent,replay,replay+ewc",
+           "--seeds", "0", "-j", "2", "--out", str(tmp_path / "out"), "--config", str(CONFIG_DIR / "smoke.yaml"),
+           "--set", _sets(tmp)[0]]
+    env = {**os.environ, "COLUMNS": "300"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=env)
+    workers: list[psutil.Process] = []
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None and len(workers) < 2:
+        workers = _tree(proc.pid)
+        time.sleep(0.2)
+    assert len(workers) >= 2
+    time.sleep(1.0)  # let the workers import and start their jobs
+    os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole foreground group
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-2000:]
+    assert "interrupted" in err and "run the same command again" in err and "Traceback" not in err
+    deadline = time.time() + 15
+    while time.time() < deadline and any(_alive(p) for p in workers):
+        time.sleep(0.2)
+    assert not [p.pid for p in workers if _alive(p)]
