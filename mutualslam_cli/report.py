@@ -26,6 +26,7 @@ import yaml
 from mutualslam_cli import results as res
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.report_maps import map_figures
+from mutualslam_cli.report_paper import paper_tables
 from mutualslam_cli.report_plots import report_figures
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,7 @@ class Report:
     tables: dict[str, pd.DataFrame] = field(default_factory=dict)
     titles: dict[str, str] = field(default_factory=dict)
     bold: dict[str, set[tuple[int, str]]] = field(default_factory=dict)  # (row, column) bold in LaTeX
+    csv: dict[str, pd.DataFrame] = field(default_factory=dict)  # numeric CSV where the table shows text
 
 
 #: Config keys that do not make runs different experiments (``adapt.scheme`` has its own column).
@@ -91,7 +93,8 @@ def config_labels(runs: pd.DataFrame, exclude: tuple[str, ...] = ()) -> pd.Serie
     """Per run, ``"key=value, ..."`` of the config keys whose values differ between the runs
     (except :data:`IGNORED_CONFIG` and ``exclude``); ``""`` when all runs agree. ``?``: the run
     has no such key (older ``config.yaml`` or none)."""
-    keys = [c for c in runs.columns if c.startswith("config.") and c[7:] not in IGNORED_CONFIG + exclude]
+    keys = [c for c in runs.columns if c.startswith("config.") and c[7:] not in IGNORED_CONFIG + exclude
+            and not c.startswith("config.experiment.")]  # what a run was for, not how it ran
     shown = runs[keys].map(lambda v: "?" if v is None or (isinstance(v, float) and v != v) else str(v))
     differing = [c for c in keys if shown[c].nunique() > 1]
     if not differing:
@@ -158,6 +161,10 @@ def build_tables(runs: pd.DataFrame) -> Report:
         rep.titles[name] = f"Scheme ablation: PCD (%, lsq scaling) of the final model per sequence, {what}"
     for name, build in (("ate_ba", table_ate_ba), ("map_ba", table_map_ba)):
         rep.tables[name], rep.titles[name], rep.bold[name] = build(runs)
+    paper = paper_tables(runs)  # the paper's Tables 1-6 first, in the paper's shape
+    rep.tables = {**{t.name: t.display for t in paper}, **rep.tables}
+    for t in paper:
+        rep.titles[t.name], rep.bold[t.name], rep.csv[t.name] = t.title, t.bold, t.numeric
     return rep
 
 
@@ -302,7 +309,7 @@ def to_latex(t: pd.DataFrame, caption: str, bold: set[tuple[int, str]] | None = 
     a rule above an ``Average`` row)."""
     def esc(s: str) -> str:
         return (str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&").replace("—", "--")
-                .replace("✓", r"\checkmark"))
+                .replace("✓", r"\checkmark").replace("±", r"$\pm$").replace("δ", r"$\delta$"))
 
     bold = bold or set()
     lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{esc(caption)}}}",
@@ -327,7 +334,7 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
     written = []
     md = []
     for name, t in rep.tables.items():
-        res.atomic_write_text(out_dir / f"{name}.csv", t.to_csv(index=False))
+        res.atomic_write_text(out_dir / f"{name}.csv", rep.csv.get(name, t).to_csv(index=False))
         res.atomic_write_text(out_dir / f"{name}.tex", to_latex(t, rep.titles[name], rep.bold.get(name)))
         res.atomic_write_text(out_dir / f"{name}.md", f"### {rep.titles[name]}\n\n" + to_markdown(t))
         md.append(f"## {rep.titles[name]}\n\n" + to_markdown(t))

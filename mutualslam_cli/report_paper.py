@@ -81,7 +81,7 @@ def _by_sequence(name: str, title: str, runs: pd.DataFrame, columns: list[Column
                  paper_columns: list[tuple[str, str]], digits: int, lower_is_better: bool) -> PaperTable:
     """Rows = sequences + Average; our columns, then ``paper: <label>`` columns where known."""
     disp_rows, num_rows, bold = [], [], set()
-    means: dict[str, list[float]] = {label: [] for label, _ in columns}
+    means: dict[str, dict[str, float]] = {label: {} for label, _ in columns}
     seqs = sorted(runs["sequence.name"].astype(str).unique())
     for i, seq in enumerate(seqs):
         sub = runs[runs["sequence.name"].astype(str) == seq]
@@ -93,7 +93,7 @@ def _by_sequence(name: str, title: str, runs: pd.DataFrame, columns: list[Column
             d[label] = cell(m, s, n, digits)
             n_row.update({f"{label} mean": m, f"{label} std": s, f"{label} n": n})
             if n:
-                means[label].append(m)
+                means[label][seq] = m
                 if best is None or (m < best if lower_is_better else m > best):
                     best, best_col = m, label
         if best_col is not None and len(columns) > 1:
@@ -105,14 +105,18 @@ def _by_sequence(name: str, title: str, runs: pd.DataFrame, columns: list[Column
             n_row[f"paper: {label}"] = v
         disp_rows.append(d)
         num_rows.append(n_row)
-    avg = {"Sequence": "Average"}
-    avg_num: dict[str, Any] = {"sequence": "Average", "paper_sequence": None}
+    # the paper's Average: the mean of the sequence means; over the sequences that have a value,
+    # with their count in the row label when that is not all of them
+    common = [q for q in seqs if all(q in v for v in means.values())]
+    k = len(common)
+    name_avg = "Average" if k == len(seqs) else f"Average ({k} of {len(seqs)} sequences)"
+    avg = {"Sequence": name_avg}
+    avg_num: dict[str, Any] = {"sequence": name_avg, "paper_sequence": None}
     best, best_col = None, None
     for label, _ in columns:
-        v = means[label]
-        m = float(np.mean(v)) if len(v) == len(seqs) and v else float("nan")  # only over every sequence
+        m = float(np.mean([means[label][q] for q in common])) if common else float("nan")
         avg[label] = "—" if not np.isfinite(m) else f"{m:.{digits}f}"
-        avg_num.update({f"{label} mean": m, f"{label} std": float("nan"), f"{label} n": len(v)})
+        avg_num.update({f"{label} mean": m, f"{label} std": float("nan"), f"{label} n": k})
         if np.isfinite(m) and (best is None or (m < best if lower_is_better else m > best)):
             best, best_col = m, label
     if best_col is not None and len(columns) > 1:

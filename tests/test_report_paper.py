@@ -89,3 +89,11 @@ def test_paper_tables_skip_tables_without_values_and_split_config_groups():
     titles = [t.title for t in paper_tables(r2) if t.name.startswith("table1")]
     assert len(titles) == 2 and any("adapt.lr=0.0001" in x for x in titles)
     assert cell(float("nan"), 0.0, 0, 2) == "—" and cell(1.0, float("nan"), 1, 1) == "1.0"
+
+
+def test_average_over_the_sequences_that_have_a_value_says_so():
+    r = _runs()
+    r.loc[r["sequence.name"] == "tum_fr1_xyz", "trajectory.ate_rmse_m.vo"] = None
+    d = table4(r).display
+    assert d.iloc[-1]["Sequence"] == "Average (1 of 2 sequences)" and d.iloc[-1]["Without BA"] == "0.0200"
+    assert table1(_runs()).display.iloc[-1]["Sequence"] == "Average"
