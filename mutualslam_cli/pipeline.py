@@ -163,6 +163,7 @@ def _run_locked(seq: Sequence, cfg: RunConfig, folder: Path, out_root: Path, com
     summary.set("vo.from_cache", cached)
     summary.set("sequence.name", seq.name)
     summary.set("sequence.frames", len(seq))
+    summary.set("depth.eval_stride", cfg.eval.stride)  # every k-th frame with GT depth was evaluated
     summary.set("scheme", cfg.adapt.scheme)
     summary.set("seed", cfg.seed)
     summary.set("vo.mode", cfg.vo.mode)

@@ -55,6 +55,7 @@ def test_run_writes_complete_result(setup, default_run):
         assert flat[k] is not None or k in s["notes"], f"{k} is null without a reason"
     # Depth metrics are real numbers in percent.
     assert 0 <= flat["depth.pcd.lsq.adapted"] <= 100 and 0 <= flat["depth.pcd.median.pretrained"] <= 100
+    assert flat["depth.eval_stride"] == 1 and flat["depth.frames_evaluated"] == 12  # every frame by default
     # Culling + global BA ran once, at the end (the smoke run's Algorithm 1 never requests it).
     assert flat["ba.requested"] == 0 and flat["ba.triggers"] == 0 and flat["timing.ba_s"] > 0
     assert 0 < flat["map.points.ba"] == flat["map.points.culled"] <= flat["map.points.vo"]
