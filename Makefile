@@ -40,7 +40,7 @@ test-all: install
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 bench: install
-	$(PY) -m mutualslam_cli.bench --memory
+	$(PY) -m mutualslam_cli.bench --memory --grid
 
 weights: install
 	$(MSLAM) pretrain

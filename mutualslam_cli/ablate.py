@@ -211,7 +211,7 @@ def _dask_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str]
     cluster = None
     if scheduler is None:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
-        threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+        threads = cfg.threads if cfg.threads > 0 else max(1, (os.cpu_count() or 1) // max(1, workers))
     else:
         threads = cfg.threads  # 0: every core of the worker's machine
     client = Client(cluster if cluster is not None else scheduler)
@@ -239,8 +239,8 @@ def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,
     """Run ``jobs`` (complete ones are skipped) and return one outcome per job.
 
     Args:
-        workers: local processes (or ``LocalCluster`` workers); each uses ``max(1, cpu_count // workers)``
-            torch threads.
+        workers: local processes (or ``LocalCluster`` workers); each uses ``cfg.threads`` torch threads,
+            or ``max(1, cpu_count // workers)`` when that is 0 (the default).
         on_done: called as each job finishes (progress display).
         executor: ``"local"`` (process pool, the default) or ``"dask"``.
         scheduler: Dask scheduler address (``tcp://host:8786``); ``None`` starts a ``LocalCluster``.
@@ -253,7 +253,7 @@ def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,
         raise ConfigError(f"--executor {executor!r}: expected local or dask")
     out = str(out)
     reg = str(registry) if registry else None
-    threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+    threads = cfg.threads if cfg.threads > 0 else max(1, (os.cpu_count() or 1) // max(1, workers))
     outcomes: list[JobOutcome] = []
 
     def record(o: JobOutcome) -> None:

@@ -1,6 +1,6 @@
 """``make bench``: the speed figures of DESIGN §10, medians measured in one run.
 
-Usage: ``python -m mutualslam_cli.bench [--quick] [--memory] [--out results/bench.json]``.
+Usage: ``python -m mutualslam_cli.bench [--quick] [--memory] [--grid | --only-grid] [--out results/bench.json]``.
 
 Sections: synthetic rendering, loader and VO front end, depth network, global photometric BA
 (:func:`mutualslam_cli.ba.bench.bench_ba`: time of 10 LM iterations on 100 keyframes × 10 000
@@ -162,6 +162,36 @@ def _memory(frames: int) -> dict[str, Any]:
     return out
 
 
+#: The grid of the scaling benchmark: 4 jobs (schemes) on one synthetic sequence, a smaller network
+#: than the paper's so that it takes a minute, the depth oracle front end (shared by all jobs).
+GRID_SETS = ["vo.mode=gt-depth", "net.width=320", "net.height=96", "adapt.steps_per_keyframe=4", "ba.enabled=false"]
+GRID_SCHEMES = "recent,replay,replay+ewc,replay+mas"
+
+
+def _grid(frames: int = 48) -> dict[str, Any]:
+    """Wall time of ``mslam ablate`` on a 4-job grid with 1 worker (all cores), 1 worker with one
+    thread, and 2 workers (one thread each); speed-ups of 2 workers over each."""
+    out: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        seq = Path(tmp) / "room"
+        subprocess.run([sys.executable, "-m", "mutualslam_cli.cli", "synth", str(seq), "--frames", str(frames),
+                        "--size", "320x240"], check=True, capture_output=True)
+        for name, workers, extra in (("1w", 1, []), ("1w1t", 1, ["--set", "threads=1"]), ("2w", 2, [])):
+            cmd = [sys.executable, "-m", "mutualslam_cli.cli", "ablate", str(seq), "--schemes", GRID_SCHEMES,
+                   "-j", str(workers), "--out", str(Path(tmp) / name), *extra]
+            for s in GRID_SETS:
+                cmd += ["--set", s]
+            t0 = time.perf_counter()
+            r = subprocess.run(cmd, capture_output=True, text=True)
+            out[f"grid_{name}_s"] = time.perf_counter() - t0
+            if r.returncode != 0:
+                out[f"grid_{name}_error"] = r.stderr[-500:]
+    if "grid_2w_s" in out:
+        out["grid_speedup_2w_vs_1w"] = out["grid_1w_s"] / out["grid_2w_s"]
+        out["grid_speedup_2w_vs_1w1t"] = out["grid_1w1t_s"] / out["grid_2w_s"]
+    return out
+
+
 def _table(res: dict[str, Any]) -> str:
     rows = [
         ("synthetic rendering 640×480 (frames/s)", res.get("render_fps"), "≥ 30"),
@@ -181,6 +211,11 @@ def _table(res: dict[str, Any]) -> str:
         ("peak memory of mslam run (GB)", res.get("peak_rss_gb"), "≤ 3"),
         ("peak memory, 2× frames / 1× frames", res.get("peak_rss_ratio_2x"), "≈ 1"),
         ("global BA, 100 keyframes × 10k points, 10 iterations (s)", res.get("ba_s"), "≤ 5"),
+        ("grid of 4 jobs, 1 worker with all cores (s)", res.get("grid_1w_s"), "—"),
+        ("grid of 4 jobs, 1 worker with 1 thread (s)", res.get("grid_1w1t_s"), "—"),
+        ("grid of 4 jobs, 2 workers with 1 thread each (s)", res.get("grid_2w_s"), "—"),
+        ("grid speed-up, 2 workers / 1 worker with all cores (×)", res.get("grid_speedup_2w_vs_1w"), "≥ 1.8"),
+        ("grid speed-up, 2 workers / 1 worker with 1 thread (×)", res.get("grid_speedup_2w_vs_1w1t"), "—"),
     ]
     lines = ["| what | median | target |", "|---|---|---|"]
     for what, v, tgt in rows:
@@ -218,6 +253,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repeats")
     ap.add_argument("--memory", action="store_true", help="also measure peak memory of `mslam run` (minutes)")
+    ap.add_argument("--grid", action="store_true", help="also time a 4-job grid with 1 and 2 workers (minutes)")
+    ap.add_argument("--only-grid", action="store_true", help="only the grid timing")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch threads for the network")
     ap.add_argument("--out", default="results/bench.json")
     a = ap.parse_args(argv)
@@ -226,8 +263,9 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(a.threads)
     res: dict[str, Any] = {"cpu_count": os.cpu_count(), **cpu_info(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "reference_ms_start": reference_ms()}
-    for part in (lambda: _render(a.quick), lambda: _loader_and_vo(a.quick), lambda: _network(a.quick, a.threads),
-                 lambda: _ba(a.quick)):
+    parts = [] if a.only_grid else [lambda: _render(a.quick), lambda: _loader_and_vo(a.quick),
+                                     lambda: _network(a.quick, a.threads), lambda: _ba(a.quick)]
+    for part in parts + ([_grid] if a.grid or a.only_grid else []):
         res.update(part())
         print(_table(res).splitlines()[-1], file=sys.stderr, flush=True)
     if a.memory:
