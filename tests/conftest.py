@@ -49,3 +49,19 @@ def assert_close(actual, expected, dtype=np.float64) -> None:
     """``np.testing.assert_allclose`` with the table's tolerance for ``dtype``."""
     rtol, atol = TOL[dtype]
     np.testing.assert_allclose(actual, expected, rtol=rtol, atol=atol)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory) -> tuple[Path, Path]:
+    """``(tmp, seq)``: a 12-frame synthetic room in TUM layout and random Monodepth2 weights under
+    ``tmp / "weights"`` (the size of ``configs/smoke.yaml``'s network), for end-to-end runs."""
+    import torch
+
+    from mutualslam_cli.adapt.depthnet import DepthNet
+    from mutualslam_cli.adapt.weights import save_monodepth2
+    from synth import make_tum_dir
+
+    tmp = tmp_path_factory.mktemp("run")
+    torch.manual_seed(0)
+    save_monodepth2(DepthNet(), tmp / "weights", 64, 96)
+    return tmp, make_tum_dir(tmp, scene="room", n=12, width=128, height=96)

@@ -13,25 +13,17 @@ from pathlib import Path
 
 import psutil
 import pytest
-import torch
 
 from mutualslam_cli import results as res
 from mutualslam_cli.ablate import expand, plan_grid, run_grid
-from mutualslam_cli.adapt.depthnet import DepthNet
-from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.errors import ConfigError, ResultsLocked
 from mutualslam_cli.lock import hold_lock
-from synth import make_tum_dir
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("grid")
-    torch.manual_seed(0)
-    save_monodepth2(DepthNet(), tmp / "weights", 64, 96)
-    seq = make_tum_dir(tmp, scene="room", n=12, width=128, height=96)
-    return tmp, seq
+def setup(tiny_run):
+    return tiny_run
 
 
 def _sets(tmp: Path) -> list[str]:

@@ -7,27 +7,19 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-import torch
 
 from mutualslam_cli import results as res
-from mutualslam_cli.adapt.depthnet import DepthNet
-from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.vo_cache import vo_cache_key
 from mutualslam_cli.report import build_tables, collect, write_report
-from synth import make_tum_dir
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("pipe")
-    torch.manual_seed(0)
-    save_monodepth2(DepthNet(), tmp / "weights", 64, 96)
-    seq = make_tum_dir(tmp, scene="room", n=12, width=128, height=96)
-    return tmp, seq
+def setup(tiny_run):
+    return tiny_run
 
 
 def _cfg(tmp: Path, *extra: str):
