@@ -1,96 +1,28 @@
 """The ``mslam`` command line (typer + rich). Thin: parse, call the library, render.
 
-One error boundary: an :class:`~mutualslam_cli.errors.MslamError` becomes one red line and exit
-code 1; anything else is a bug and keeps its traceback (including the project's programming errors
-:class:`~mutualslam_cli.errors.ShapeError` and :class:`~mutualslam_cli.errors.TransitionError`,
-which are deliberately not ``MslamError``).
+One error boundary (:mod:`~mutualslam_cli.cli_common`): an :class:`~mutualslam_cli.errors.MslamError`
+becomes one red line and exit code 1; anything else is a bug and keeps its traceback (including the
+project's programming errors :class:`~mutualslam_cli.errors.ShapeError` and
+:class:`~mutualslam_cli.errors.TransitionError`, which are deliberately not ``MslamError``).
+Commands: ``datasets``, ``synth``, ``ate``, ``pretrain``, ``run`` here; ``ablate`` and ``report`` in
+:mod:`~mutualslam_cli.cli_grid`.
 """
 
 from __future__ import annotations
 
-import functools
-import logging
 import sys
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
 import typer
-from rich.console import Console, ConsoleDimensions
-from rich.logging import RichHandler
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mutualslam_cli.config import RunConfig, load_config, with_overrides
+from mutualslam_cli import cli_common as common
+from mutualslam_cli import cli_grid  # noqa: F401  - registers ablate and report on the app
+from mutualslam_cli.cli_common import (ConfigOpt, DataRootOpt, RegistryOpt, ResultsOutOpt, SetOpt, _boundary, _config,
+                                         _fmt, _progress, app)
+from mutualslam_cli.config import with_overrides
 from mutualslam_cli.errors import ConfigError, MslamError
-
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
-#: Columns of output that goes to a file or a pipe, where rich would otherwise use 80 and wrap wide
-#: tables (the paper's tables are up to ~250 columns); ``$COLUMNS``, when set, wins.
-PIPED_WIDTH = 400
-
-
-class _Console(Console):
-    """A rich Console that is :data:`PIPED_WIDTH` columns wide while its stream is not a terminal
-    (checked at each print, so a redirected or captured ``sys.stdout`` counts) and ``$COLUMNS`` is unset.
-    Only the getter of ``Console.size`` is replaced; its setter stays."""
-
-    @Console.size.getter  # type: ignore[attr-defined]
-    def size(self) -> ConsoleDimensions:
-        dims = Console.size.fget(self)  # type: ignore[attr-defined]
-        return ConsoleDimensions(PIPED_WIDTH, dims.height) if self._width is None and not self.is_terminal else dims
-
-
-console = _Console(stderr=False)
-err_console = _Console(stderr=True)
-
-ConfigOpt = typer.Option(None, "--config", "-c", help="YAML config (default configs/paper.yaml).")
-SetOpt = typer.Option(None, "--set", "-s", help="Override one field: section.key=value (repeatable).")
-DataRootOpt = typer.Option(None, "--data-root", help="Root of relative datasets.yaml paths (default $MSLAM_DATA).")
-RegistryOpt = typer.Option(None, "--registry", help="Another datasets.yaml.")
-ResultsOutOpt = typer.Option(None, "--out", help="Results root (default results/).")
-
-
-def _boundary(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Turn a user error (:class:`MslamError`) into one red line and exit code 1; let anything
-    else (a bug, e.g. :class:`~mutualslam_cli.errors.ShapeError`) through with its traceback."""
-
-    @functools.wraps(fn)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        try:
-            return fn(*args, **kwargs)
-        except MslamError as e:
-            err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
-            raise typer.Exit(1) from None
-
-    return wrapper
-
-
-@app.callback()
-def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details.")) -> None:
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
-                        handlers=[RichHandler(console=err_console, show_path=False, show_time=False)])
-
-
-def _config(config: Optional[Path], sets: Optional[list[str]], data_root: Optional[str] = None) -> RunConfig:
-    cfg = load_config(config, sets or [])
-    if data_root:
-        cfg = with_overrides(cfg, data={"data_root": data_root})
-    return cfg
-
-
-def _progress() -> Progress:
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console, transient=False)
-
-
-def _fmt(v: Any, nd: int = 3) -> str:
-    if v is None:
-        return "—"
-    if isinstance(v, float):  # a count averaged over seeds stays a count when it is whole
-        return str(int(v)) if v.is_integer() and abs(v) >= 10 else f"{v:.{nd}f}"
-    return str(v)
-
 
 # --------------------------------------------------------------------------- datasets
 
@@ -122,8 +54,9 @@ def datasets(
         for s in specs:
             intr = " ".join(f"{v:g}" for v in s.intrinsics.as_list()) if s.intrinsics else "family/data"
             t.add_row(s.name, s.format, "yes" if Path(s.root).is_dir() else "[dim]no[/]", intr, f"{s.depth_scale:g}")
-        console.print(t)
-        console.print("roots: relative to --data-root / $MSLAM_DATA (see datasets.yaml); `--check NAME` verifies one")
+        common.console.print(t)
+        common.console.print("roots: relative to --data-root / $MSLAM_DATA (see datasets.yaml); "
+                             "`--check NAME` verifies one")
         return
     targets = [name] if name else [s.name for s in specs if Path(s.root).is_dir()]
     if not targets:
@@ -157,7 +90,7 @@ def datasets(
         rows.append(("warnings", "; ".join(r.warnings) or "none"))
         for k, v in rows:
             t.add_row(k, v)
-        console.print(t)
+        common.console.print(t)
 
 
 # --------------------------------------------------------------------------- synth
@@ -197,7 +130,7 @@ def synth(
                 p.advance(task)
 
         path = synthetic.write_tum(tracked(), out, scene=scene, width=w, height=h, seed=seed, domain=domain)
-    console.print(f"wrote {frames} frames ({w}×{h}, scene {scene}, seed {seed}) to {path}")
+    common.console.print(f"wrote {frames} frames ({w}×{h}, scene {scene}, seed {seed}) to {path}")
 
 
 # --------------------------------------------------------------------------- ate
@@ -234,7 +167,7 @@ def ate(
     t = Table("pairs", "align", "scale", "rmse m", "mean m", "median m", "max m", title=f"ATE {est.name} vs {ref.name}")
     t.add_row(str(r.n_pairs), align, f"{r.scale:.6f}", f"{r.rmse:.6f}", f"{r.mean:.6f}", f"{r.median:.6f}",
               f"{r.max:.6f}")
-    console.print(t)
+    common.console.print(t)
 
 
 # --------------------------------------------------------------------------- pretrain
@@ -273,7 +206,7 @@ def pretrain(
             p.update(task, completed=info.get("step", 0), info=f"loss {info.get('loss', float('nan')):.4f}")
 
         summary = pt.pretrain(out, progress=cb, **kwargs)
-    console.print(f"saved the pre-trained model to {out} ({summary.get('time_s', 0):.0f} s, "
+    common.console.print(f"saved the pre-trained model to {out} ({summary.get('time_s', 0):.0f} s, "
                   f"{summary.get('steps_done', summary.get('steps'))} steps)")
 
 
@@ -288,13 +221,13 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
               title=f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}")
     for label, key in (("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")):
         t.add_row(label, _fmt(f.get(f"{key}.pretrained"), 2), _fmt(f.get(f"{key}.adapted"), 2))
-    console.print(t)
+    common.console.print(t)
     t2 = Table("ATE kf m", "ATE all m", "tracked", "keyframes", "map points", "map e_si", "depth ms", "ms/step")
     t2.add_row(_fmt(f.get("trajectory.ate_rmse_m.vo"), 4), _fmt(f.get("trajectory.ate_rmse_m.all_frames"), 4),
                _fmt(f.get("vo.tracked_fraction"), 3), _fmt(f.get("vo.keyframes")), _fmt(f.get("map.points.vo")),
                _fmt(f.get("map.esi.vo"), 3), _fmt(f.get("timing.depth_ms"), 1), _fmt(f.get("timing.finetune_ms"), 0))
-    console.print(t2)
-    console.print(f"results: {folder}")
+    common.console.print(t2)
+    common.console.print(f"results: {folder}")
 
 
 @app.command()
@@ -348,100 +281,8 @@ def run(
 
         r = run_sequence(seq, cfg, out=out, command=sys.argv, force=force, progress=cb, registry=registry)
     if r.skipped:
-        console.print(f"[yellow]already complete[/] (use --force to recompute): {r.folder}")
+        common.console.print(f"[yellow]already complete[/] (use --force to recompute): {r.folder}")
     _render_summary(r.folder, r.summary)
-
-
-# --------------------------------------------------------------------------- ablate
-
-
-@app.command()
-@_boundary
-def ablate(
-    seqs: list[str] = typer.Argument(..., help="datasets.yaml names or sequence folders."),
-    schemes: Optional[str] = typer.Option(None, "--schemes",
-                                          help="Comma-separated scheme names (default: the config's "
-                                               "experiment.schemes, else none,recent,replay,replay+ewc,"
-                                               "replay+mas,replay+si)."),
-    seeds: Optional[str] = typer.Option(None, "--seeds", help="Comma-separated seeds, or a range like 0-2 "
-                                                              "(default: the config's experiment.seeds, else 0)."),
-    workers: int = typer.Option(1, "--workers", "-j", min=1,
-                                help="Worker processes (local pool, or LocalCluster workers with --executor dask)."),
-    executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler",
-                                            help="Dask scheduler address, e.g. tcp://host:8786 "
-                                                 "(default: a LocalCluster of --workers processes)."),
-    out: Optional[Path] = ResultsOutOpt,
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
-    data_root: Optional[str] = DataRootOpt,
-    registry: Optional[Path] = RegistryOpt,
-) -> None:
-    """The grid sequences × schemes × seeds (× the config's experiment.variants); complete runs are
-    skipped, so a killed grid resumes.
-
-    With --executor dask the front ends and jobs run on a Dask cluster; the sequences, the results
-    folder (with its _cache/) and the weights must then be on a filesystem every worker sees."""
-    from mutualslam_cli.ablate import plan_grid, run_grid
-
-    cfg = _config(config, sets, data_root)
-    root = Path(out or cfg.out)
-    parts = plan_grid(cfg, list(seqs), schemes, seeds, root)
-    total = sum(len(p.jobs) for p in parts)
-    failed, outcomes = [], []
-    with _progress() as p:
-        task = p.add_task("grid", total=total, info="")
-
-        def done(o: Any) -> None:
-            if o.status == "failed":
-                failed.append(o)
-            p.update(task, advance=1, info=f"{o.job.sequence} {o.job.scheme} seed{o.job.seed}: {o.status}")
-
-        try:
-            for part in parts:
-                outcomes += run_grid(part.cfg, part.jobs, part.out, workers=workers, command=sys.argv,
-                                     registry=registry, on_done=done, executor=executor, scheduler=scheduler)
-        except KeyboardInterrupt:
-            p.stop()
-            n_done = int(p.tasks[task].completed)
-            err_console.print(f"[yellow]interrupted[/]: {n_done} of {total} jobs complete, workers stopped; "
-                              "run the same command again to resume (complete runs are skipped, "
-                              "half-written ones redone).")
-            raise typer.Exit(130) from None
-    counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
-    console.print(f"{total} jobs: {counts['done']} done, {counts['skipped']} already complete, "
-                  f"{counts['failed']} failed")
-    for o in failed:
-        err_console.print(f"[red]failed[/] {o.job.sequence} {o.job.scheme} seed{o.job.seed}: "
-                          f"{(o.error or '').splitlines()[0]}")
-    if failed:
-        raise typer.Exit(1)
-
-
-# --------------------------------------------------------------------------- report
-
-
-@app.command()
-@_boundary
-def report(
-    results: list[Path] = typer.Argument(..., help="Result folders (searched recursively for summary.json)."),
-    out: Optional[Path] = typer.Option(None, "--out",
-                                       help="Folder for tables and plots (default <config out>/report)."),
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
-) -> None:
-    """The paper's tables and plots from result folders."""
-    from mutualslam_cli.report import build_tables, collect, write_report
-
-    out = out or Path(_config(config, sets).out) / "report"
-    rep = build_tables(collect(list(results)))
-    for name, tdf in rep.tables.items():
-        t = Table(*map(str, tdf.columns), title=rep.titles[name])
-        for row in tdf.itertuples(index=False):
-            t.add_row(*(("—" if v != v else _fmt(v, 3)) if isinstance(v, float) else str(v) for v in row))
-        console.print(t)
-    paths = write_report(rep, out)
-    console.print(f"wrote {len(paths)} files to {out}")
 
 
 def main() -> None:  # pragma: no cover - console entry point

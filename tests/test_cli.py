@@ -157,7 +157,7 @@ def _wide_runs(root: Path) -> None:
 @pytest.fixture
 def fresh_console(monkeypatch):
     """The CLI's console made anew under the test's environment (it is made once, at import)."""
-    import mutualslam_cli.cli as cli
+    import mutualslam_cli.cli_common as cli
 
     for var in ("COLUMNS", "FORCE_COLOR", "TTY_COMPATIBLE"):
         monkeypatch.delenv(var, raising=False)

@@ -1,0 +1,88 @@
+"""What every ``mslam`` command shares: the typer app, the rich consoles, the common options,
+the error boundary (:class:`~mutualslam_cli.errors.MslamError` → one red line and exit 1; anything
+else keeps its traceback) and the progress bar."""
+
+from __future__ import annotations
+
+import functools
+import logging
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import typer
+from rich.console import Console, ConsoleDimensions
+from rich.logging import RichHandler
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from mutualslam_cli.config import RunConfig, load_config, with_overrides
+from mutualslam_cli.errors import MslamError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
+#: Columns of output that goes to a file or a pipe, where rich would otherwise use 80 and wrap wide
+#: tables (the paper's tables are up to ~250 columns); ``$COLUMNS``, when set, wins.
+PIPED_WIDTH = 400
+
+
+class _Console(Console):
+    """A rich Console that is :data:`PIPED_WIDTH` columns wide while its stream is not a terminal
+    (checked at each print, so a redirected or captured ``sys.stdout`` counts) and ``$COLUMNS`` is unset.
+    Only the getter of ``Console.size`` is replaced; its setter stays."""
+
+    @Console.size.getter  # type: ignore[attr-defined]
+    def size(self) -> ConsoleDimensions:
+        dims = Console.size.fget(self)  # type: ignore[attr-defined]
+        return ConsoleDimensions(PIPED_WIDTH, dims.height) if self._width is None and not self.is_terminal else dims
+
+
+console = _Console(stderr=False)
+err_console = _Console(stderr=True)
+
+ConfigOpt = typer.Option(None, "--config", "-c", help="YAML config (default configs/paper.yaml).")
+SetOpt = typer.Option(None, "--set", "-s", help="Override one field: section.key=value (repeatable).")
+DataRootOpt = typer.Option(None, "--data-root", help="Root of relative datasets.yaml paths (default $MSLAM_DATA).")
+RegistryOpt = typer.Option(None, "--registry", help="Another datasets.yaml.")
+ResultsOutOpt = typer.Option(None, "--out", help="Results root (default results/).")
+
+
+def _boundary(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Turn a user error (:class:`MslamError`) into one red line and exit code 1; let anything
+    else (a bug, e.g. :class:`~mutualslam_cli.errors.ShapeError`) through with its traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except MslamError as e:
+            err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+            raise typer.Exit(1) from None
+
+    return wrapper
+
+
+@app.callback()
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details.")) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
+                        handlers=[RichHandler(console=err_console, show_path=False, show_time=False)])
+
+
+def _config(config: Optional[Path], sets: Optional[list[str]], data_root: Optional[str] = None) -> RunConfig:
+    cfg = load_config(config, sets or [])
+    if data_root:
+        cfg = with_overrides(cfg, data={"data_root": data_root})
+    return cfg
+
+
+def _progress() -> Progress:
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console, transient=False)
+
+
+def _fmt(v: Any, nd: int = 3) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, float):  # a count averaged over seeds stays a count when it is whole
+        return str(int(v)) if v.is_integer() and abs(v) >= 10 else f"{v:.{nd}f}"
+    return str(v)
+
+

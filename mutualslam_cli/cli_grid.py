@@ -1,0 +1,106 @@
+"""``mslam ablate`` and ``mslam report``: the grid of runs and the paper's tables from it."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.table import Table
+
+from mutualslam_cli import cli_common as common
+from mutualslam_cli.cli_common import (ConfigOpt, DataRootOpt, RegistryOpt, ResultsOutOpt, SetOpt, _boundary, _config,
+                                         _fmt, _progress, app)
+
+
+# --------------------------------------------------------------------------- ablate
+
+
+@app.command()
+@_boundary
+def ablate(
+    seqs: list[str] = typer.Argument(..., help="datasets.yaml names or sequence folders."),
+    schemes: Optional[str] = typer.Option(None, "--schemes",
+                                          help="Comma-separated scheme names (default: the config's "
+                                               "experiment.schemes, else none,recent,replay,replay+ewc,"
+                                               "replay+mas,replay+si)."),
+    seeds: Optional[str] = typer.Option(None, "--seeds", help="Comma-separated seeds, or a range like 0-2 "
+                                                              "(default: the config's experiment.seeds, else 0)."),
+    workers: int = typer.Option(1, "--workers", "-j", min=1,
+                                help="Worker processes (local pool, or LocalCluster workers with --executor dask)."),
+    executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler",
+                                            help="Dask scheduler address, e.g. tcp://host:8786 "
+                                                 "(default: a LocalCluster of --workers processes)."),
+    out: Optional[Path] = ResultsOutOpt,
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+    data_root: Optional[str] = DataRootOpt,
+    registry: Optional[Path] = RegistryOpt,
+) -> None:
+    """The grid sequences × schemes × seeds (× the config's experiment.variants); complete runs are
+    skipped, so a killed grid resumes.
+
+    With --executor dask the front ends and jobs run on a Dask cluster; the sequences, the results
+    folder (with its _cache/) and the weights must then be on a filesystem every worker sees."""
+    from mutualslam_cli.ablate import plan_grid, run_grid
+
+    cfg = _config(config, sets, data_root)
+    root = Path(out or cfg.out)
+    parts = plan_grid(cfg, list(seqs), schemes, seeds, root)
+    total = sum(len(p.jobs) for p in parts)
+    failed, outcomes = [], []
+    with _progress() as p:
+        task = p.add_task("grid", total=total, info="")
+
+        def done(o: Any) -> None:
+            if o.status == "failed":
+                failed.append(o)
+            p.update(task, advance=1, info=f"{o.job.sequence} {o.job.scheme} seed{o.job.seed}: {o.status}")
+
+        try:
+            for part in parts:
+                outcomes += run_grid(part.cfg, part.jobs, part.out, workers=workers, command=sys.argv,
+                                     registry=registry, on_done=done, executor=executor, scheduler=scheduler)
+        except KeyboardInterrupt:
+            p.stop()
+            n_done = int(p.tasks[task].completed)
+            common.err_console.print(f"[yellow]interrupted[/]: {n_done} of {total} jobs complete, workers stopped; "
+                              "run the same command again to resume (complete runs are skipped, "
+                              "half-written ones redone).")
+            raise typer.Exit(130) from None
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
+    common.console.print(f"{total} jobs: {counts['done']} done, {counts['skipped']} already complete, "
+                  f"{counts['failed']} failed")
+    for o in failed:
+        common.err_console.print(f"[red]failed[/] {o.job.sequence} {o.job.scheme} seed{o.job.seed}: "
+                          f"{(o.error or '').splitlines()[0]}")
+    if failed:
+        raise typer.Exit(1)
+
+
+# --------------------------------------------------------------------------- report
+
+
+@app.command()
+@_boundary
+def report(
+    results: list[Path] = typer.Argument(..., help="Result folders (searched recursively for summary.json)."),
+    out: Optional[Path] = typer.Option(None, "--out",
+                                       help="Folder for tables and plots (default <config out>/report)."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """The paper's tables and plots from result folders."""
+    from mutualslam_cli.report import build_tables, collect, write_report
+
+    out = out or Path(_config(config, sets).out) / "report"
+    rep = build_tables(collect(list(results)))
+    for name, tdf in rep.tables.items():
+        t = Table(*map(str, tdf.columns), title=rep.titles[name])
+        for row in tdf.itertuples(index=False):
+            t.add_row(*(("—" if v != v else _fmt(v, 3)) if isinstance(v, float) else str(v) for v in row))
+        common.console.print(t)
+    paths = write_report(rep, out)
+    common.console.print(f"wrote {len(paths)} files to {out}")
