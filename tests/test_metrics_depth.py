@@ -10,6 +10,7 @@ from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.metrics.depth import (
     DepthStats,
     abs_rel,
+    align_inverse_depth,
     depth_frame_metrics,
     depth_stats,
     esi,
@@ -294,3 +295,49 @@ def test_depth_frame_metrics_resizes_prediction_to_gt_first() -> None:
     _assert_row(depth_frame_metrics(small_t, gt), ref)
     _assert_row(depth_frame_metrics(small, gt), _ref_stats(
         cv2.resize(small, (32, 24), interpolation=cv2.INTER_LINEAR), gt))
+
+
+# ----------------------------------------------------------------------------- scale-and-shift alignment
+
+
+@pytest.mark.parametrize("s_true, t_true", [(0.3, 0.05), (2.0, -0.1), (-1.5, 3.0)])
+def test_align_inverse_depth_recovers_an_affine_map_of_inverse_depth(gt: np.ndarray, s_true: float,
+                                                                     t_true: float) -> None:
+    """x = s·(1/D*) + t on every pixel → the fit inverts it exactly: D = D*, scale 1/s, shift −t/s."""
+    with np.errstate(divide="ignore"):
+        x = np.where(gt > 0, s_true / gt + t_true, 7.0)  # missing GT: any finite value
+    depth, s, t = align_inverse_depth(x, gt)
+    m = valid_mask(gt, 10.0)
+    np.testing.assert_allclose(depth[m], gt[m], rtol=1e-9)
+    assert s == pytest.approx(1.0 / s_true, rel=1e-9) and t == pytest.approx(-t_true / s_true, rel=1e-9, abs=1e-12)
+    assert percent_correct(depth, gt, "none") == 100.0
+
+
+def test_align_inverse_depth_fits_in_inverse_depth_not_in_depth() -> None:
+    """A fit in depth (s·x + t ≈ D*) gives another answer: hand-computed on four pixels."""
+    gt = np.array([[1.0, 2.0], [4.0, 5.0]])
+    x = np.array([[1.0, 0.0], [0.0, 1.0]])  # y = 1/D* = [1, .5, .25, .2]
+    # centred normal equations: x̄ = .5, ȳ = .4875, Σ(x−x̄)² = 1, Σ(x−x̄)(y−ȳ) = .5·(1 + .2 − .5 − .25) = .225
+    depth, s, t = align_inverse_depth(x, gt)
+    assert s == pytest.approx(0.225) and t == pytest.approx(0.4875 - 0.225 * 0.5)
+    np.testing.assert_allclose(depth, 1.0 / (0.225 * x + 0.375))
+
+
+def test_align_inverse_depth_caps_depth_and_ignores_pixels_beyond_max_depth(gt: np.ndarray) -> None:
+    with np.errstate(divide="ignore"):
+        x = np.where(gt > 0, 1.0 / gt, 0.0)
+    x[1, :3] = 50.0  # GT 12 m > max_depth: not fitted, so these wild values must not move s, t
+    x[5, 5] = -3.0  # aligned inverse depth below 1/max_depth: capped at max_depth (MiDaS's depth cap)
+    x[6, 6] = np.nan
+    gt2 = gt.copy()
+    gt2[5, 5] = 0.0
+    depth, s, t = align_inverse_depth(x, gt2, max_depth=10.0)
+    assert s == pytest.approx(1.0, rel=1e-9) and t == pytest.approx(0.0, abs=1e-9)
+    assert depth[5, 5] == pytest.approx(10.0) and np.isnan(depth[6, 6])
+    assert depth[1, 0] == pytest.approx(1.0 / 50.0)
+
+
+def test_align_inverse_depth_degenerate_is_nan_not_zero(gt: np.ndarray) -> None:
+    for x in (np.full_like(gt, 0.7), np.where(np.arange(gt.size).reshape(gt.shape) == 40, 1.0, np.nan)):
+        depth, s, t = align_inverse_depth(x, gt)
+        assert np.isnan(s) and np.isnan(t) and np.isnan(depth).all()

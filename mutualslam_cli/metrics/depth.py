@@ -13,6 +13,10 @@ Scaling protocols (monocular depth has no metric scale), named in every output:
 - ``lsq``: ``s = Σ D·D_gt / Σ D²``, the least-squares fit of ``s·D`` to ``D_gt`` per frame
   ("scaled to GT", the paper's Tables 1 and 3).
 - ``none``: ``s = 1``.
+
+Relative inverse depth (MiDaS-style outputs, known up to scale *and shift*) is first turned into
+depth by :func:`align_inverse_depth` (least-squares scale and shift in inverse depth per frame),
+then scored like any depth map.
 """
 
 from __future__ import annotations
@@ -195,6 +199,51 @@ def _abs_rel(p: np.ndarray, g: np.ndarray, scale: float) -> float:
     if p.size == 0:
         return float("nan")
     return float(np.mean(np.abs(scale * p - g) / g))  # abs_rel, Eigen et al. 2014 §4
+
+
+def align_inverse_depth(pred_inv: Any, gt: Any, max_depth: float = MAX_DEPTH) -> tuple[np.ndarray, float, float]:
+    """Depth from a *relative* inverse-depth map (MiDaS-style: known only up to an affine map) by a
+    per-frame least-squares scale and shift in inverse depth against the GT, as MiDaS is evaluated
+    (Ranftl et al. 2022, "Towards Robust Monocular Depth Estimation", arXiv 1907.01341: alignment in
+    disparity space; the authors' ``compute_scale_and_shift`` and depth cap).
+
+    .. math::
+        (s, t) = \\arg\\min_{s,t} \\sum_{i \\in V} (s x_i + t - 1/D^*_i)^2, \\qquad
+        D_i = 1 / \\max(s x_i + t,\\ 1/d_{max})
+
+    ``V``: pixels with valid GT (finite, ``> 0``, ``<= max_depth``) and a finite ``x``; ``x`` may
+    be zero or negative (an affine map of inverse depth). The aligned inverse depth is clamped at
+    ``1/max_depth`` before inverting (MiDaS's depth cap), so every finite ``x`` gets a depth in
+    ``(0, max_depth]``.
+
+    Args:
+        pred_inv: ``(h, w)`` relative inverse depth (resized bilinearly to GT's resolution).
+        gt: ``(H, W)`` GT depth, metres; 0 = missing.
+        max_depth: GT above this is not fitted, and the depth cap (metres).
+
+    Returns:
+        ``(depth, s, t)``: ``(H, W)`` float64 depth in metres (NaN where ``x`` is not finite), and
+        the fitted scale and shift. When fewer than 2 pixels are valid or ``x`` is constant on
+        them the fit is degenerate: ``depth`` is all NaN and ``s``, ``t`` are NaN (never 0).
+    """
+    g = _as_map(gt, "gt")
+    x = resize_to(pred_inv, g.shape)
+    m = valid_mask(g, max_depth) & np.isfinite(x)
+    xv, yv = x[m], 1.0 / g[m]  # y_i = 1/D*_i: the GT in inverse depth
+    dx = xv - xv.mean() if xv.size else xv
+    sxx = float(np.dot(dx, dx))
+    if xv.size < 2 or not sxx > 0.0:
+        nan = float("nan")
+        return np.full(g.shape, nan), nan, nan
+    # normal equations of the 2-parameter fit, centred (same solution as MiDaS's 2×2 system
+    # [Σx² Σx; Σx n]·[s t]ᵀ = [Σxy Σy]ᵀ, without its cancellation): s = Σ(x−x̄)(y−ȳ)/Σ(x−x̄)², t = ȳ − s·x̄
+    s = float(np.dot(dx, yv - yv.mean()) / sxx)
+    t = float(yv.mean() - s * xv.mean())
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = np.maximum(s * x + t, 1.0 / max_depth)  # depth cap: aligned inverse depth >= 1/d_max
+        depth = 1.0 / inv
+    depth[~np.isfinite(x)] = np.nan
+    return depth, s, t
 
 
 @dataclass
