@@ -232,7 +232,8 @@ def align_inverse_depth(pred_inv: Any, gt: Any, max_depth: float = MAX_DEPTH) ->
     xv, yv = x[m], 1.0 / g[m]  # y_i = 1/D*_i: the GT in inverse depth
     dx = xv - xv.mean() if xv.size else xv
     sxx = float(np.dot(dx, dx))
-    if xv.size < 2 or not sxx > 0.0:
+    # constant x: Σ(x−x̄)² is then only the rounding of x̄ (~ε|x|), so "> 0" would fit noise
+    if xv.size < 2 or not sxx > xv.size * (1e-12 * float(np.abs(xv).max())) ** 2:
         nan = float("nan")
         return np.full(g.shape, nan), nan, nan
     # normal equations of the 2-parameter fit, centred (same solution as MiDaS's 2×2 system
