@@ -11,6 +11,8 @@ those sequences with our VO on 2 CPU cores, so they are the same metric, not the
 
 "Ours" is the scheme ``experiment.ours`` names (default ``replay+ewc``, the paper's); the
 pre-trained columns read ``depth.*.pretrained``, which every scheme's run reports identically.
+Models scored by ``mslam eval-depth`` (``external.model`` in their summary) are extra columns of
+Tables 1–2 and rows of Table 6, labelled "NAME (external, no adaptation)".
 """
 
 from __future__ import annotations
@@ -146,13 +148,36 @@ def _pretrained(key: str) -> Callable[[pd.DataFrame], pd.Series]:
     return get
 
 
+# ----------------------------------------------------------------------------- external models (mslam eval-depth)
+
+
+def external_names(runs: pd.DataFrame) -> list[str]:
+    """Models scored by ``mslam eval-depth`` among ``runs`` (their ``external.model``), sorted."""
+    return sorted(runs["external.model"].dropna().astype(str).unique()) if "external.model" in runs else []
+
+
+def external_label(name: str) -> str:
+    """An external model's row/column label: ``"midas (external, no adaptation)"``."""
+    return f"{name} (external, no adaptation)"
+
+
+def _externals(runs: pd.DataFrame, key: str) -> list[Column]:
+    """One column per external model: ``key`` (its scores are ``depth.*.adapted``) over its runs."""
+    def getter(name: str) -> Callable[[pd.DataFrame], pd.Series]:
+        return lambda sub: _num(sub[sub["external.model"].astype(str) == name], key)
+    return [(external_label(n), getter(n)) for n in external_names(runs)]
+
+
+# ----------------------------------------------------------------------------- the tables
+
+
 def table1(runs: pd.DataFrame) -> PaperTable:
     """Table 1: PCD (%, δ < 0.1, per-frame least-squares scale), pre-trained vs ours."""
     ours = _ours(runs)
     return _by_sequence("table1_pcd", f"Table 1: percentage of correct depth (%, δ<0.1, least-squares scaling), "
                         f"pre-trained vs ours ({ours}); mean ± std over seeds", runs,
                         [("Pre-trained", _pretrained("depth.pcd.lsq.pretrained")),
-                         ("Ours", _key("depth.pcd.lsq.adapted", ours))],
+                         ("Ours", _key("depth.pcd.lsq.adapted", ours))] + _externals(runs, "depth.pcd.lsq.adapted"),
                         paper.TABLE1, [("Pre-trained", "Pre-trained"), ("Ours", "Ours")], 2, False)
 
 
@@ -162,7 +187,8 @@ def table2(runs: pd.DataFrame) -> PaperTable:
     return _by_sequence("table2_pcd_median", f"Table 2: percentage of correct depth (%, δ<0.1, median scaling), "
                         f"pre-trained vs ours ({ours}); mean ± std over seeds", runs,
                         [("Pre-trained", _pretrained("depth.pcd.median.pretrained")),
-                         ("Ours", _key("depth.pcd.median.adapted", ours))],
+                         ("Ours", _key("depth.pcd.median.adapted", ours))]
+                        + _externals(runs, "depth.pcd.median.adapted"),
                         paper.TABLE2, [("Pre-trained", "Pre-trained"), ("Ours", "Ours"), ("CoMoDa", "CoMoDa")],
                         2, False)
 
@@ -193,6 +219,7 @@ def table6(runs: pd.DataFrame) -> PaperTable:
     ours = _ours(runs)
     seqs = sorted(runs["sequence.name"].astype(str).unique())
     rows = [("Pre-trained", _pretrained("depth.esi.pretrained")), ("Ours", _key("depth.esi.adapted", ours))]
+    rows += _externals(runs, "depth.esi.adapted")
     disp, num, bold = [], [], set()
     best: dict[str, tuple[float, int]] = {}
     for i, (label, get) in enumerate(rows):
@@ -206,8 +233,8 @@ def table6(runs: pd.DataFrame) -> PaperTable:
                 best[seq] = (m, i)
             p = paper.paper_name(seq)
             if p in ("Lab1", "Lab2"):
-                v = paper.TABLE6[label][p]
-                d[f"paper: {p}"] = f"{v:.3f}"
+                v = paper.TABLE6.get(label, {}).get(p)  # none for an external model
+                d[f"paper: {p}"] = "—" if v is None else f"{v:.3f}"
                 n_row[f"paper: {p}"] = v
         disp.append(d)
         num.append(n_row)

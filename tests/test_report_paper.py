@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 
 from mutualslam_cli import paper_numbers
-from mutualslam_cli.report_paper import cell, paper_tables, table1, table3, table4, table5, table6
+from mutualslam_cli.report_paper import cell, paper_tables, table1, table2, table3, table4, table5, table6
 
 
 @pytest.mark.parametrize("ours, theirs", [
@@ -97,3 +97,39 @@ def test_average_over_the_sequences_that_have_a_value_says_so():
     d = table4(r).display
     assert d.iloc[-1]["Sequence"] == "Average (1 of 2 sequences)" and d.iloc[-1]["Without BA"] == "0.0200"
     assert table1(_runs()).display.iloc[-1]["Sequence"] == "Average"
+
+
+def _with_external() -> pd.DataFrame:
+    """_runs() plus an external model (mslam eval-depth) on both sequences and one on a Lab sequence only."""
+    ext = [{"sequence.name": seq, "scheme": "midas", "seed": 0, "config": "", "external.model": "midas",
+            "depth.pcd.lsq.pretrained": None, "depth.pcd.lsq.adapted": v, "depth.pcd.median.adapted": v - 1.0,
+            "depth.esi.pretrained": None, "depth.esi.adapted": 0.1}
+           for seq, v in (("icl_lr_kt2", 60.0), ("tum_fr1_xyz", 70.0))]
+    ext.append({"sequence.name": "lab1", "scheme": "dpt", "seed": 0, "config": "", "external.model": "dpt",
+                "depth.esi.adapted": 0.05})
+    return pd.concat([_runs(), pd.DataFrame(ext)], ignore_index=True)
+
+
+def test_external_models_are_columns_of_tables_1_and_2_and_rows_of_table_6():
+    r = _with_external()
+    d1 = table1(r).display.set_index("Sequence")
+    assert d1.loc["tum_fr1_xyz", "midas (external, no adaptation)"] == "70.00"
+    assert d1.loc["icl_lr_kt2 (ICL/living2)", "Pre-trained"] == "20.00 ± 0.00"  # the external nulls change nothing
+    assert d1.loc["tum_fr1_xyz", "Ours"] == "51.00 ± 1.00"
+    assert table2(r).display.set_index("Sequence").loc["icl_lr_kt2 (ICL/living2)",
+                                                       "midas (external, no adaptation)"] == "59.00"
+    t6 = table6(r)
+    d6 = t6.display.set_index("Method")
+    assert list(d6.index) == ["Pre-trained", "Ours", "dpt (external, no adaptation)",
+                              "midas (external, no adaptation)"]
+    assert d6.loc["midas (external, no adaptation)", "tum_fr1_xyz"] == "0.100"
+    assert d6.loc["dpt (external, no adaptation)", "lab1 (Lab1)"] == "0.050"
+    assert d6.loc["dpt (external, no adaptation)", "paper: Lab1"] == "—" and d6.loc["Ours", "paper: Lab1"] == "0.235"
+    assert (2, "lab1 (Lab1)") in t6.bold and (3, "tum_fr1_xyz") in t6.bold  # the lowest e_si of each column
+    assert "midas" not in " ".join(table3(r).display.columns)  # not an adaptation scheme
+
+
+def test_without_external_models_the_tables_are_unchanged():
+    assert list(table1(_runs()).display.columns) == ["Sequence", "Pre-trained", "Ours", "paper: Pre-trained",
+                                                    "paper: Ours"]
+    assert list(table6(_runs()).display["Method"]) == ["Pre-trained", "Ours"]
