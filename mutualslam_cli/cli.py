@@ -285,6 +285,51 @@ def run(
     _render_summary(r.folder, r.summary)
 
 
+# --------------------------------------------------------------------------- eval-depth
+
+
+@app.command("eval-depth")
+@_boundary
+def eval_depth(
+    seq: str = typer.Argument(..., help="datasets.yaml name or sequence folder."),
+    predictions: Path = typer.Argument(..., help="Folder with one prediction per frame (.npy, .npz, 16-bit .png, "
+                                       ".pfm), named by the RGB file's stem or by the frame's timestamp."),
+    name: str = typer.Option(..., "--name", help="The model's name: its row in the report (not a scheme's name)."),
+    kind: str = typer.Option("depth", "--kind", help="depth | inverse | relative-inverse (MiDaS: aligned per "
+                             "frame by least-squares scale and shift in inverse depth)."),
+    scale: float = typer.Option(1.0, "--scale", help="Multiplies every stored value (e.g. 0.0002 for 16-bit PNG "
+                                "depth at 5000 per metre)."),
+    ext: Optional[str] = typer.Option(None, "--ext", help="Read only this format when the folder holds several "
+                                      "(MiDaS writes .pfm and .png: --ext pfm)."),
+    key: Optional[str] = typer.Option(None, "--key", help="The array inside .npz files that hold several."),
+    out: Optional[Path] = ResultsOutOpt,
+    force: bool = typer.Option(False, "--force", help="Rescore a complete result."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+    data_root: Optional[str] = DataRootOpt,
+    registry: Optional[Path] = RegistryOpt,
+) -> None:
+    """Score another network's depth predictions exactly as `run` scores ours → results/<seq>/<NAME>/seed0/."""
+    from mutualslam_cli.external import eval_depth as score_external
+    from mutualslam_cli.results import flatten
+
+    cfg = _config(config, sets, data_root)
+    with _progress() as p:
+        task = p.add_task(f"score {name}", total=None, info="")
+        r = score_external(seq, predictions, name, kind, cfg, scale=scale, out=out, ext=ext, npz_key=key,
+                           command=sys.argv, force=force, registry=registry,
+                           progress=lambda done, total: p.update(task, completed=done, total=total))
+    if r.skipped:
+        common.console.print(f"[yellow]already complete[/] (use --force to rescore): {r.folder}")
+    f = flatten(r.summary)
+    t = Table("PCD lsq (%)", "PCD median (%)", "PCD none (%)", "e_si", "frames",
+              title=f"{f.get('sequence.name')} · {name} ({f.get('external.kind')}, external, no adaptation)")
+    t.add_row(*(_fmt(f.get(f"depth.{k}.adapted"), 2) for k in ("pcd.lsq", "pcd.median", "pcd.none")),
+              _fmt(f.get("depth.esi.adapted"), 3), _fmt(f.get("depth.frames_evaluated")))
+    common.console.print(t)
+    common.console.print(f"results: {r.folder}")
+
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 
