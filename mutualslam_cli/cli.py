@@ -4,8 +4,8 @@ One error boundary (:mod:`~mutualslam_cli.cli_common`): an :class:`~mutualslam_c
 becomes one red line and exit code 1; anything else is a bug and keeps its traceback (including the
 project's programming errors :class:`~mutualslam_cli.errors.ShapeError` and
 :class:`~mutualslam_cli.errors.TransitionError`, which are deliberately not ``MslamError``).
-Commands: ``datasets``, ``synth``, ``ate``, ``pretrain``, ``run`` here; ``ablate`` and ``report`` in
-:mod:`~mutualslam_cli.cli_grid`.
+Commands: ``datasets``, ``synth``, ``ate``, ``pretrain``, ``run``, ``eval-depth`` here; ``ablate`` and
+``report`` in :mod:`~mutualslam_cli.cli_grid`.
 """
 
 from __future__ import annotations

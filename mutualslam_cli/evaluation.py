@@ -43,6 +43,11 @@ Predictor = Callable[[list[np.ndarray]], np.ndarray]
 """``B`` frames ``(H, W, 3)`` uint8 RGB (pinhole geometry) → ``(B, h, w)`` float32 depth at network resolution."""
 
 
+def eval_frames(seq: Sequence, stride: int) -> list[int]:
+    """Indices of the frames the depth evaluation scores: every ``stride``-th frame with GT depth."""
+    return [i for i, f in enumerate(seq.frames) if f.depth_path is not None][:: max(1, stride)]
+
+
 def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConfig,
                    keyframe_frames: set[int] | None = None,
                    progress: Callable[[int, int], None] | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
@@ -65,7 +70,7 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
         ``<model>_scale_{lsq,median}``, ``n_valid``, and ``<model>_pcd_lsq_running``), and the median
         prediction time in ms per frame and model (each batch's time over its frames).
     """
-    frames = [i for i, f in enumerate(seq.frames) if f.depth_path is not None][:: max(1, cfg.eval.stride)]
+    frames = eval_frames(seq, cfg.eval.stride)
     rows = []
     times: dict[str, list[float]] = {k: [] for k in predictors}
     und = Undistorter(seq.intrinsics)

@@ -54,6 +54,7 @@ from mutualslam_cli.config import RunConfig, load_config, to_dict, with_override
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
+from mutualslam_cli.evaluation import eval_frames
 from mutualslam_cli.lock import hold_lock
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.vo.camera import Undistorter
@@ -266,11 +267,6 @@ def to_depth(x: np.ndarray, kind: str, gt: np.ndarray, max_depth: float) -> tupl
         with np.errstate(divide="ignore"):
             return np.where(x > 0, 1.0 / x, 0.0), float("nan"), float("nan")  # 0 = no prediction
     return dm.align_inverse_depth(x, gt, max_depth)
-
-
-def eval_frames(seq: Sequence, stride: int) -> list[int]:
-    """The frames :func:`~mutualslam_cli.evaluation.evaluate_depth` scores: every ``stride``-th with GT depth."""
-    return [i for i, f in enumerate(seq.frames) if f.depth_path is not None][:: max(1, stride)]
 
 
 def score_predictions(seq: Sequence, files: dict[int, Path], kind: str, cfg: RunConfig, scale: float = 1.0,
