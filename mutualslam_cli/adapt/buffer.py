@@ -174,6 +174,16 @@ class KeyframeBuffer:
         img = self._images[kf_id]
         return replace(self._meta[kf_id], image=img.float().div_(255.0) if img.dtype == torch.uint8 else img)
 
+    def pose(self, kf_id: int) -> np.ndarray:
+        """A copy of the current ``(4, 4)`` ``T_wc`` of a known keyframe (its image stored or not), without its image.
+
+        Raises:
+            KeyframeError: unknown id.
+        """
+        if kf_id not in self._meta:
+            raise KeyframeError(f"keyframe {kf_id} is unknown")
+        return self._meta[kf_id].pose.copy()
+
     @property
     def training_ids(self) -> list[int]:
         """Stored training keyframe ids, arrival order."""

@@ -11,6 +11,7 @@ Choices the paper leaves open (documented here, DESIGN §5):
   yet when K_i arrives. We train on K_i immediately (Alg. 2: "get latest keyframe K_i … train on
   K_i") with s = i−1 only; when K_i is later replayed (or is the second of a ``recent`` batch) it
   has both neighbours. The first training keyframe has no neighbour and is not trained on.
+  (Scheme ``luo`` takes simulated stereo partners instead: :meth:`Scheme.sources`.)
   Items of a batch with fewer sources than the others repeat one of theirs (the per-pixel minimum
   over identical warps is unchanged), so the batch stays one forward pass.
 - **L_val** (Eq. 9) = L_sparse over *all validation keyframes so far* (``val_scope="all"``),
@@ -70,6 +71,8 @@ class StepInfo:
         is_validation: validation keyframe (not trained on).
         trained: an optimiser step was taken.
         batch: keyframe ids of the training batch (newest first).
+        sources: photometric sources of the arriving keyframe as its scheme chose them (``luo``:
+            its stereo partners, empty when none qualified); empty for validation keyframes.
         loss: ``{"photo", "sparse", "smooth", "total", "penalty"}`` floats (empty if not trained).
         l_val: L_val on validation keyframes (None otherwise; NaN if no sparse points).
         n_converged: Alg. 1's counter after the tick.
@@ -83,6 +86,7 @@ class StepInfo:
     is_validation: bool
     trained: bool
     batch: list[int] = field(default_factory=list)
+    sources: list[int] = field(default_factory=list)
     loss: dict[str, float] = field(default_factory=dict)
     l_val: float | None = None
     n_converged: int = 0
@@ -129,7 +133,7 @@ class OnlineAdapter:
         self.fast = bool(fast)
         self.on_global_ba = on_global_ba
         self.loss_fn, self.val_fn, self.val_scope = loss_fn, val_fn, val_scope
-        self.scheme = get_scheme(cfg.scheme)
+        self.scheme = get_scheme(cfg.scheme, cfg)
         self.buffer = KeyframeBuffer(cfg.replay_capacity, seed=seed + 1)
         self.rng = np.random.default_rng(seed)
         self.params = trainable(net)
@@ -225,8 +229,8 @@ class OnlineAdapter:
         return float(np.mean(vals)) if vals else float("nan")
 
     def _make_batch(self, ids: list[int]) -> dict[str, object] | None:
-        """Stack targets, sources, relative poses and padded sparse points of ``ids``."""
-        items = [(k, self.buffer.neighbours(k)) for k in ids]
+        """Stack targets, their sources (the scheme's), relative poses and padded sparse points of ``ids``."""
+        items = [(k, self.scheme.sources(self.buffer, k)) for k in ids]
         items = [(k, n) for k, n in items if n]  # no photometric source → not trainable
         if not items:
             return None
@@ -256,6 +260,7 @@ class OnlineAdapter:
         """Alg. 2 for one keyframe: ``steps_per_keyframe`` Adam steps on L_train (+ regulariser)."""
         if not self.scheme.trains or self.optimizer is None:
             return
+        info.sources = self.scheme.sources(self.buffer, kf_id)
         batch = self._make_batch(self.scheme.select(self.buffer, kf_id, self.rng))
         if batch is None:
             return

@@ -1,7 +1,9 @@
-"""A scheme = which keyframes form a training batch + an optional regulariser (DESIGN §5).
+"""A scheme = which keyframes form a training batch, their photometric sources and an optional regulariser (DESIGN §5).
 
 The batch is a list of training keyframe ids, newest first; the photometric sources of each are
-:meth:`~mutualslam_cli.adapt.buffer.KeyframeBuffer.neighbours`. Loss terms are averaged over the
+:meth:`Scheme.sources`: the time-adjacent training keyframes
+(:meth:`~mutualslam_cli.adapt.buffer.KeyframeBuffer.neighbours`) unless a scheme says otherwise
+(``luo``: simulated stereo partners). Loss terms are averaged over the
 batch (paper §III-B: "averaged across the most recent keyframe and a randomly selected old one").
 """
 
@@ -22,16 +24,27 @@ class Scheme:
     """Base scheme: trains on nothing and has no regulariser.
 
     Subclasses set :attr:`name`, :attr:`regularizer` (``"ewc" | "mas" | "si" | None``) and
-    override :meth:`select`.
+    override :meth:`select` (and :meth:`sources` to choose other photometric sources).
+
+    Args:
+        cfg: the adaptation settings, for schemes with constants of their own (default: the
+            :class:`AdaptConfig` defaults).
     """
 
     name: ClassVar[str] = "base"
     regularizer: ClassVar[str | None] = None
     trains: ClassVar[bool] = True
 
+    def __init__(self, cfg: AdaptConfig | None = None) -> None:
+        self.cfg = cfg if cfg is not None else AdaptConfig()
+
     def select(self, buffer: KeyframeBuffer, newest: int, rng: np.random.Generator) -> list[int]:
         """Training keyframe ids of the batch for newest keyframe ``newest`` (newest first)."""
         raise NotImplementedError
+
+    def sources(self, buffer: KeyframeBuffer, target: int) -> list[int]:
+        """Photometric sources of training keyframe ``target``: its stored neighbours s ∈ {i−1, i+1} (Eq. 3)."""
+        return buffer.neighbours(target)
 
     def make_regularizer(self, model: nn.Module, cfg: AdaptConfig,
                          predict: Callable[[torch.Tensor], torch.Tensor] | None = None,
