@@ -26,14 +26,15 @@ def filled(n: int, capacity: int = 0, val_every: int = 0) -> KeyframeBuffer:
 
 
 def test_registry_names_and_unknown():
-    assert set(SCHEMES) == {"none", "recent", "replay", "ewc", "replay+ewc", "replay+mas", "replay+si"}
+    assert set(SCHEMES) == {"none", "recent", "replay", "ewc", "replay+ewc", "replay+mas", "replay+si", "luo"}
     with pytest.raises(ConfigError) as e:
         get_scheme("replay+foo")
-    assert "replay+ewc" in str(e.value) and "replay+foo" in str(e.value)
+    assert "replay+ewc" in str(e.value) and "'luo'" in str(e.value) and "replay+foo" in str(e.value)
 
 
 @pytest.mark.parametrize("name,reg", [("none", None), ("recent", None), ("replay", None), ("ewc", "ewc"),
-                                      ("replay+ewc", "ewc"), ("replay+mas", "mas"), ("replay+si", "si")])
+                                      ("replay+ewc", "ewc"), ("replay+mas", "mas"), ("replay+si", "si"),
+                                      ("luo", None)])
 def test_scheme_regularizer(name, reg):
     assert get_scheme(name).regularizer == reg
 
@@ -114,6 +115,11 @@ def test_update_poses_and_sparse_feed_back():
     T[0, 3] = 1.5
     assert b.update_poses({2: T, 99: T}) == 1
     assert np.array_equal(b.get(2).pose, T) and np.array_equal(b.get(1).pose, np.eye(4))
+    assert np.array_equal(b.pose(2), T)  # the pose alone (scheme luo's pair rule reads it)
+    b.pose(2)[0, 3] = 9.0  # a copy: the stored pose is untouched
+    assert b.pose(2)[0, 3] == 1.5
+    with pytest.raises(KeyframeError):
+        b.pose(99)
     assert b.update_sparse({3: (torch.ones(5, 2), torch.full((5,), 7.0))}) == 1
     assert b.get(3).uv.shape == (5, 2) and float(b.get(3).depth[0]) == 7.0
     with pytest.raises(ShapeError):

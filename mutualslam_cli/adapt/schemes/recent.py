@@ -9,7 +9,11 @@ from mutualslam_cli.adapt.schemes.base import Scheme
 
 
 class Recent(Scheme):
-    """``recent``: the two most recent training keyframes (paper Table 3 (a); Luo et al. 2020)."""
+    """``recent``: the two most recent training keyframes (paper Table 3 (a)).
+
+    The paper (§IV-B) says Luo et al. adapt on the most recent keyframes only; ``luo`` adds
+    their stereo-pair selection (:mod:`~mutualslam_cli.adapt.schemes.luo`).
+    """
 
     name = "recent"
 
