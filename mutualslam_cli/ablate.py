@@ -99,7 +99,7 @@ def plan_grid(cfg: RunConfig, sequences: list[str], schemes: str | None, seeds: 
     names = ([s.strip() for s in schemes.split(",") if s.strip()] if schemes is not None
              else list(cfg.experiment.schemes) or list(DEFAULT_SCHEMES))
     for n in names:
-        get_scheme(n)
+        get_scheme(n, cfg.adapt)  # unknown name or a setting out of range: before any work
     seed_list = parse_seeds(seeds) if seeds is not None else list(cfg.experiment.seeds) or [0]
     jobs = expand(sequences, names, seed_list)
     if not cfg.experiment.variants:

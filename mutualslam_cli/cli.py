@@ -255,7 +255,7 @@ def run(
     over = {"adapt": {"scheme": scheme} if scheme else None, "vo": {"mode": vo} if vo else None,
             "net": {"weights": str(weights)} if weights else None, "seed": seed}
     cfg = with_overrides(cfg, **{k: v for k, v in over.items() if v is not None})  # type: ignore[arg-type]
-    get_scheme(cfg.adapt.scheme)  # unknown name → ConfigError listing valid ones, before any work
+    get_scheme(cfg.adapt.scheme, cfg.adapt)  # unknown name or bad setting → ConfigError, before any work
     with _progress() as p:
         tasks: dict[str, Any] = {}
 

@@ -174,11 +174,13 @@ def _externals(runs: pd.DataFrame, key: str) -> list[Column]:
 def table1(runs: pd.DataFrame) -> PaperTable:
     """Table 1: PCD (%, δ < 0.1, per-frame least-squares scale), pre-trained vs ours."""
     ours = _ours(runs)
+    luo = [("Luo-style (luo)", _key("depth.pcd.lsq.adapted", "luo"))] if (runs["scheme"] == "luo").any() else []
     return _by_sequence("table1_pcd", f"Table 1: percentage of correct depth (%, δ<0.1, least-squares scaling), "
                         f"pre-trained vs ours ({ours}); mean ± std over seeds", runs,
-                        [("Pre-trained", _pretrained("depth.pcd.lsq.pretrained")),
-                         ("Ours", _key("depth.pcd.lsq.adapted", ours))] + _externals(runs, "depth.pcd.lsq.adapted"),
-                        paper.TABLE1, [("Pre-trained", "Pre-trained"), ("Ours", "Ours")], 2, False)
+                        [("Pre-trained", _pretrained("depth.pcd.lsq.pretrained"))] + luo
+                        + [("Ours", _key("depth.pcd.lsq.adapted", ours))] + _externals(runs, "depth.pcd.lsq.adapted"),
+                        paper.TABLE1, [("Luo pre-trained", "Luo pre-trained"), ("Luo", "Luo"),
+                                       ("Pre-trained", "Pre-trained"), ("Ours", "Ours")], 2, False)
 
 
 def table2(runs: pd.DataFrame) -> PaperTable:

@@ -130,6 +130,15 @@ def test_external_models_are_columns_of_tables_1_and_2_and_rows_of_table_6():
 
 
 def test_without_external_models_the_tables_are_unchanged():
-    assert list(table1(_runs()).display.columns) == ["Sequence", "Pre-trained", "Ours", "paper: Pre-trained",
-                                                    "paper: Ours"]
+    assert list(table1(_runs()).display.columns) == ["Sequence", "Pre-trained", "Ours", "paper: Luo pre-trained",
+                                                    "paper: Luo", "paper: Pre-trained", "paper: Ours"]
     assert list(table6(_runs()).display["Method"]) == ["Pre-trained", "Ours"]
+
+
+def test_table1_has_a_luo_style_column_when_luo_ran_and_the_papers_luo_numbers():
+    r = _runs()
+    r = pd.concat([r, r[r["scheme"] == "recent"].assign(scheme="luo")])
+    d = table1(r).display.set_index("Sequence")
+    assert list(d.columns[:3]) == ["Pre-trained", "Luo-style (luo)", "Ours"]
+    assert d.loc["icl_lr_kt2 (ICL/living2)", "paper: Luo"] == "21.00"  # 20.995 in the paper
+    assert "Luo-style (luo)" not in table1(_runs()).display.columns
