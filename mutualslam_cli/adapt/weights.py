@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from mutualslam_cli.adapt.depthnet import DepthNet
+from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.errors import ConfigError
 
@@ -156,3 +157,60 @@ def load_default(**kw: Any) -> DepthNet:
     if not (folder / ENCODER_FILE).is_file() or not (folder / DECODER_FILE).is_file():
         raise ConfigError(f"no default model at {folder}: run `mslam pretrain` (or pass --weights DIR)")
     return load_monodepth2(folder, **kw)
+
+
+POSE_ENCODER_FILE = "pose_encoder.pth"
+POSE_DECODER_FILE = "pose.pth"
+
+
+def has_pose_files(folder: Path) -> bool:
+    """Whether ``folder`` holds both ``pose_encoder.pth`` and ``pose.pth``."""
+    return (Path(folder) / POSE_ENCODER_FILE).is_file() and (Path(folder) / POSE_DECODER_FILE).is_file()
+
+
+def load_pose(folder: Path) -> PoseNet:
+    """Build a :class:`~mutualslam_cli.adapt.networks.pose.PoseNet` from Monodepth2's pose files.
+
+    ``folder/pose_encoder.pth``: the 6-channel ResNet-18 under ``encoder.``; ``folder/pose.pth``:
+    the decoder's ``net.0``…``net.3`` (module docstring of ``networks/pose.py``). Same strict rule as
+    :func:`load_monodepth2`: extra ``height``/``width``/``use_stereo`` keys are dropped if present,
+    every other key must match in name and shape; ``num_batches_tracked`` and ``encoder.fc.*``
+    (jointly) may be absent. The number of predicted frames is read from ``net.3.weight``
+    (released models: 2).
+
+    Returns:
+        The pose network in eval mode, fp32.
+
+    Raises:
+        ConfigError: a file missing or unreadable, a key missing/unexpected/of the wrong shape.
+    """
+    folder = Path(folder)
+    enc = _read(folder / POSE_ENCODER_FILE)
+    for k in EXTRA_KEYS:
+        enc.pop(k, None)
+    dec = _read(folder / POSE_DECODER_FILE)
+    last = dec.get("net.3.weight")
+    if not isinstance(last, torch.Tensor) or last.dim() != 4 or last.shape[0] % 6 or last.shape[0] == 0:
+        got = tuple(last.shape) if isinstance(last, torch.Tensor) else "absent"
+        raise ConfigError(f"{folder / POSE_DECODER_FILE}: not a Monodepth2 pose decoder; "
+                          f"net.3.weight must be (6·F, 256, 1, 1), got {got}")
+    net = PoseNet(num_frames_to_predict_for=last.shape[0] // 6)
+    _check_and_load(net.encoder, enc, folder / POSE_ENCODER_FILE)
+    _check_and_load(net.decoder, dec, folder / POSE_DECODER_FILE)
+    return net.eval()
+
+
+def save_pose(net: PoseNet, folder: Path, *, half: bool = False) -> None:
+    """Write ``net`` as ``folder/pose_encoder.pth`` + ``folder/pose.pth`` (released Monodepth2 key names).
+
+    Args:
+        net: the pose network.
+        folder: created if needed; files are written to a temporary name and renamed.
+        half: store floating tensors as fp16 (loading converts back to fp32).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for module, name in ((net.encoder, POSE_ENCODER_FILE), (net.decoder, POSE_DECODER_FILE)):
+        sd = {k: (v.detach().half() if half and v.is_floating_point() else v.detach()).contiguous().clone()
+              for k, v in module.state_dict().items()}
+        _atomic_save(sd, folder / name)
