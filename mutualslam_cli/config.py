@@ -144,6 +144,32 @@ class AdaptConfig:
     pair has none). Rotation alone then moves the image by ≤ f·tan 5° ≈ 0.09·f. With the default
     ratio and window, 27 %, 44 % and 42 % of the keyframes of the three sequences above find a
     partner (10°: 27 %, 47 %, 83 % — ICL's keyframes pan by 4.8° median). In [0, 180]."""
+    comoda_lr: float = 1e-4
+    """Scheme ``comoda`` (CoMoDa-style end-to-end baseline, ``adapt/comoda.py``): Adam learning rate of
+    the joint depth + pose update (CoMoDa's / Monodepth2's 1e-4, Adam β = (0.9, 0.999)). > 0."""
+    comoda_steps_per_frame: int = 1
+    """Scheme ``comoda``: Adam steps per arriving frame (CoMoDa: one update per frame). ≥ 1."""
+    comoda_replay_per_step: int = 3
+    """Scheme ``comoda``: past triplets drawn uniformly from the replay buffer into each update batch,
+    beside the current triplet (batch = 1 + this, as CoMoDa mixes the current sample with replayed
+    ones). ≥ 0; 0 = no replay."""
+    comoda_replay_capacity: int = 200
+    """Scheme ``comoda``: triplets kept for replay (reservoir sampling over the whole past, so the
+    buffer stays a uniform sample of the sequence). Stored at network resolution as uint8: 200
+    triplets at 640×192 are 221 MB (DESIGN §10: ≤ 3 GB, flat in sequence length). ≥ 1."""
+    comoda_smoothness: float = 1e-3
+    """Scheme ``comoda``: weight of the edge-aware smoothness (Monodepth2's 1e-3, which CoMoDa keeps). ≥ 0."""
+    comoda_min_motion: float = 0.0
+    """Scheme ``comoda``: motion gate. A triplet whose mean absolute intensity change
+    ``mean|I_t − I_s|`` (images in [0, 1], s = t ± 1) is below this for either source is static: no
+    update, not stored for replay. CoMoDa skips frames where the car stands still by its GPS speed,
+    which indoor sequences do not have; the per-pixel auto-mask still removes static pixels.
+    0 = off (default). ≥ 0."""
+    comoda_pose_weights: str = ""
+    """Scheme ``comoda``: folder with Monodepth2's ``pose_encoder.pth`` + ``pose.pth``. Empty: the
+    default weights folder's pose files when present (``mslam pretrain`` writes them), else the pose
+    encoder is initialised from the depth encoder (``conv1`` repeated over the two frames and halved,
+    as Monodepth2 initialises it from ImageNet) with a random decoder, and a warning is logged."""
 
 
 @dataclass(frozen=True)

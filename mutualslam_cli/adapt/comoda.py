@@ -1,0 +1,313 @@
+"""``comoda``: a CoMoDa-style end-to-end online adapter that needs no SLAM (a baseline, paper §IV-B).
+
+CoMoDa (Kuznietsov, Proesmans and Van Gool, "CoMoDA: Continuous Monocular Depth Adaptation Using
+Past Experiences", WACV 2021) adapts a Monodepth2 depth network *and* its pose network on the test
+video itself, one update per arriving frame, on the frame triplet (t−1, t, t+1) mixed with triplets
+replayed from the past. The paper compares against it in Table 4 ("learning-based online adaptation")
+and attributes part of the gap to the pose network, which was never trained indoors. Here:
+
+- **Loss** (Monodepth2, Godard et al. ICCV 2019, §3.2–3.3, which CoMoDa keeps):
+  ``L = mean_p min( min_s pe(I_t, I_{s→t}), min_s pe(I_t, I_s) + ε ) + λ_s · L_smooth``, s ∈ {t−1, t+1}:
+  per-pixel **minimum reprojection** (Eq. 4 of Monodepth2) with **auto-masking** — the identity
+  reprojection (source not warped) joins the minimum, so a pixel where not moving explains the
+  image better (static camera, objects moving with it) contributes its identity error, which has
+  no gradient, i.e. is masked out (Eq. 5 of Monodepth2; ``ε`` ~ 1e-5 noise breaks ties, as there).
+  ``pe`` is ours (Eq. 4 of the paper, α = 0.85, same as Monodepth2); warps use the *predicted*
+  depth and the *pose network's* relative pose (Eq. 5 of the paper). Reprojections falling outside
+  the source image do not compete (Monodepth2 lets border-padded values compete). Scale 0 only
+  (Monodepth2 and CoMoDa average four scales; one scale keeps the CPU step comparable with ours).
+- **Pose network** (:class:`~mutualslam_cli.adapt.networks.pose.PoseNet`): frames in temporal
+  order, ``T_{t−1→t}`` inverted for the earlier source as in Monodepth2.
+- **Update**: ``comoda_steps_per_frame`` Adam steps (lr ``comoda_lr``) on a batch = the current
+  triplet + ``comoda_replay_per_step`` triplets drawn uniformly without replacement from a reservoir
+  of past triplets (``comoda_replay_capacity``, uint8 at network resolution). The current triplet
+  is stored after its update. BatchNorm stays in eval mode (batches of ≤ 4, as in our adapter).
+- **Not transferred indoors**: CoMoDa's velocity loss (GPS speed gives metric scale; TUM / ICL-NUIM
+  have no speed), its static-frame rule (by GPS speed; here an optional photometric gate,
+  ``comoda_min_motion``, off by default) and its replay of the source-domain training set (KITTI;
+  our source domain is synthetic, so only the sequence's own past is replayed).
+- **Lag**: the target t is trained when t+1 arrives, so the update lags one frame.
+- **Trajectory**: ``T_wc`` chained from the pose network's ``T_{t→t+1}`` predicted (no grad) when
+  frame t+1 arrives, after that frame's update: ``T_wc(t+1) = T_wc(t) · T_{t→t+1}⁻¹``, frame 0 = I.
+  Its scale is the depth network's (monocular), so its ATE is Sim(3)-aligned.
+- Determinism: ``torch.manual_seed(seed)`` at construction; replay draws and reservoir choices
+  come from numpy Generators seeded with ``seed`` and ``seed + 1``; the tie-breaking noise from a
+  torch Generator seeded with ``seed + 2``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from mutualslam_cli.adapt.depthnet import fast_context
+from mutualslam_cli.adapt.losses import photometric_error, smoothness_loss
+from mutualslam_cli.adapt.networks.pose import PoseNet
+from mutualslam_cli.adapt.warp import warp
+from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.errors import ConfigError, ShapeError
+from mutualslam_cli.types import check_shape
+
+log = logging.getLogger(__name__)
+
+#: Std of the noise added to the identity reprojection error to break ties (Monodepth2: 1e-5).
+IDENTITY_NOISE = 1e-5
+#: A reprojection outside the source image gets this error, so it never wins the minimum.
+INVALID_PE = 1e4
+
+
+def check_comoda_config(c: AdaptConfig) -> None:
+    """Raise :class:`ConfigError` naming the first ``comoda_*`` setting out of range."""
+    checks = [
+        (c.comoda_lr > 0, f"adapt.comoda_lr = {c.comoda_lr}: must be > 0"),
+        (c.comoda_steps_per_frame >= 1, f"adapt.comoda_steps_per_frame = {c.comoda_steps_per_frame}: must be ≥ 1"),
+        (c.comoda_replay_per_step >= 0, f"adapt.comoda_replay_per_step = {c.comoda_replay_per_step}: must be ≥ 0"),
+        (c.comoda_replay_capacity >= 1, f"adapt.comoda_replay_capacity = {c.comoda_replay_capacity}: must be ≥ 1"),
+        (c.comoda_smoothness >= 0, f"adapt.comoda_smoothness = {c.comoda_smoothness}: must be ≥ 0"),
+        (c.comoda_min_motion >= 0, f"adapt.comoda_min_motion = {c.comoda_min_motion}: must be ≥ 0"),
+    ]
+    for ok, msg in checks:
+        if not ok:
+            raise ConfigError(msg)
+
+
+def se3_inv_torch(T: torch.Tensor) -> torch.Tensor:
+    """Differentiable inverse of rigid transforms ``(B, 4, 4)``: ``[Rᵀ | −Rᵀ t]``."""
+    R, t = T[:, :3, :3], T[:, :3, 3:4]
+    Rt = R.transpose(1, 2)
+    top = torch.cat([Rt, -Rt @ t], 2)
+    return torch.cat([top, T[:, 3:4]], 1)
+
+
+def to_uint8(image: torch.Tensor) -> torch.Tensor:
+    """``(3, H, W)`` float in [0, 1] (or uint8) → uint8, rounded."""
+    if image.dtype == torch.uint8:
+        return image.clone()
+    return (image.detach().float().clamp(0, 1) * 255.0).round().to(torch.uint8)
+
+
+def automasked_min_reprojection(target: torch.Tensor, sources: list[torch.Tensor], depth: torch.Tensor,
+                                K: torch.Tensor, T_t2s: list[torch.Tensor], alpha: float = 0.85,
+                                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Monodepth2's per-pixel minimum reprojection with auto-masking (Godard et al. 2019, Eq. 4–5).
+
+    Args:
+        target: ``(B, 3, H, W)`` in [0, 1]. sources: each ``(B, 3, H, W)``. depth: ``(B, 1, H, W)``.
+        K: ``(B, 3, 3)`` intrinsics at this resolution. T_t2s: per source ``(B, 4, 4)`` target → source.
+        alpha: SSIM/L1 balance of ``pe``.
+        generator: for the tie-breaking noise (:data:`IDENTITY_NOISE`).
+
+    Returns:
+        ``(loss, mask)``: 0-d mean over all pixels of the per-pixel minimum, and ``(B, 1, H, W)`` bool,
+        True where a warped source wins (pixels that train the networks).
+    """
+    b, n = target.shape[0], len(sources)
+    if n == 0 or n != len(T_t2s):
+        raise ShapeError(f"automasked_min_reprojection: {n} sources and {len(T_t2s)} poses")
+    src = torch.cat(sources, 0)
+    warped, valid = warp(src, depth.float().repeat(n, 1, 1, 1), K.float().repeat(n, 1, 1), torch.cat(T_t2s, 0))
+    reproj = photometric_error(target, warped, alpha)                               # (n·B, 1, H, W)
+    reproj = torch.where(valid, reproj, torch.full_like(reproj, INVALID_PE))
+    reproj = torch.cat(reproj.split(b, 0), 1)                                       # (B, n, H, W)
+    with torch.no_grad():
+        ident = torch.cat(photometric_error(target, src, alpha).split(b, 0), 1)     # (B, n, H, W), no gradient
+        noise = torch.randn(ident.shape, generator=generator, dtype=ident.dtype) * IDENTITY_NOISE
+        ident = ident + noise.to(ident.device)
+    combined = torch.cat([ident, reproj], 1)                                        # Monodepth2 Eq. 5
+    best, idx = combined.min(1, keepdim=True)
+    return best.mean(), idx >= n
+
+
+@dataclass
+class FrameStep:
+    """What one :meth:`ComodaAdapter.add_frame` did.
+
+    Attributes:
+        frame: index of the arriving frame. target: index of the trained triplet's middle frame
+            (``frame − 1``) or ``None`` before the first full triplet.
+        trained: an update ran. static: the motion gate skipped the triplet.
+        batch: triplet targets in the batch (current first, then the replayed ones).
+        loss: ``photo``, ``smooth``, ``total``, ``automask`` (fraction of pixels trained) of the first
+            step; empty when not trained.
+        step_ms: milliseconds of the update (all steps).
+    """
+
+    frame: int
+    target: int | None = None
+    trained: bool = False
+    static: bool = False
+    batch: list[int] = field(default_factory=list)
+    loss: dict[str, float] = field(default_factory=dict)
+    step_ms: float = 0.0
+
+
+class ComodaAdapter:
+    """CoMoDa-style online adaptation of a depth network and a pose network from raw frames.
+
+    Args:
+        depth_net: module with ``predict(x (B, 3, H, W) in [0, 1]) -> depth (B, 1, H, W)``.
+        pose_net: :class:`PoseNet` (trained jointly).
+        cfg: supplies ``alpha`` and the ``comoda_*`` settings (:class:`AdaptConfig`).
+        K_net: ``(3, 3)`` intrinsics at network resolution.
+        seed: seed of every random choice.
+        fast: bf16 autocast around the forward passes (losses stay fp32).
+
+    Raises:
+        ConfigError: a ``comoda_*`` setting out of range.
+    """
+
+    def __init__(self, depth_net: nn.Module, pose_net: PoseNet, cfg: AdaptConfig,
+                 K_net: torch.Tensor | np.ndarray, seed: int = 0, fast: bool = False) -> None:
+        check_comoda_config(cfg)
+        self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32)
+        check_shape(self.K_net, [3, 3], "ComodaAdapter: K_net")
+        torch.manual_seed(seed)
+        self.net, self.pose_net = depth_net.eval(), pose_net.eval()
+        self.cfg, self.fast = cfg, bool(fast)
+        params = [p for m in (depth_net, pose_net) for p in m.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.Adam(params, lr=cfg.comoda_lr, betas=(0.9, 0.999))
+        self.rng = np.random.default_rng(seed)
+        self.reservoir_rng = np.random.default_rng(seed + 1)
+        self.noise = torch.Generator().manual_seed(seed + 2)
+        self.window: list[tuple[int, torch.Tensor]] = []   # the last three frames, uint8 (3, H, W)
+        self.replay: list[tuple[int, torch.Tensor]] = []   # (target, (3, 3, H, W) uint8 triplet)
+        self.n_seen_triplets = 0
+        self.poses: list[np.ndarray] = []                   # T_wc of every frame so far
+        self.history: list[FrameStep] = []
+        self.step_ms: list[float] = []
+
+    # ------------------------------------------------------------------ public
+    def add_frame(self, image: torch.Tensor) -> FrameStep:
+        """Consume the next frame ``(3, H, W)`` (float in [0, 1] or uint8) at network resolution.
+
+        When a triplet (t−1, t, t+1) is complete, one update trains target t; then the pose from t
+        to t+1 extends the trajectory.
+        """
+        check_shape(image, [3, "H", "W"], "ComodaAdapter.add_frame")
+        idx = len(self.poses)
+        self.window = (self.window + [(idx, to_uint8(image))])[-3:]
+        info = FrameStep(frame=idx)
+        if len(self.window) == 3:
+            triplet = torch.stack([img for _, img in self.window])
+            info.target = self.window[1][0]
+            self.train_triplet(info.target, triplet, info)
+        self._extend_trajectory()
+        self.history.append(info)
+        return info
+
+    def train_triplet(self, target: int, triplet: torch.Tensor, info: FrameStep | None = None) -> FrameStep:
+        """One CoMoDa update on ``triplet`` ``(3, 3, H, W)`` uint8 (t−1, t, t+1) + replayed ones, then store it.
+
+        A static triplet (motion gate) is neither trained on nor stored. Returns ``info`` filled in.
+        """
+        check_shape(triplet, [3, 3, "H", "W"], "ComodaAdapter.train_triplet")
+        info = info if info is not None else FrameStep(frame=target + 1, target=target)
+        if self._is_static(triplet):
+            info.static = True
+            return info
+        self._update(target, triplet, info)
+        self._store(target, triplet)
+        return info
+
+    def trajectory(self) -> np.ndarray:
+        """``(N, 4, 4)`` float64 ``T_wc`` of the frames so far, chained from the pose network (frame 0 = I)."""
+        return np.stack(self.poses) if self.poses else np.zeros((0, 4, 4))
+
+    def loss_on(self, triplets: torch.Tensor) -> dict[str, float]:
+        """The loss parts of the current networks on ``(B, 3, 3, H, W)`` uint8 triplets, without training."""
+        with torch.no_grad():
+            _, parts = self._loss(triplets)
+        return parts
+
+    # ------------------------------------------------------------------ internals
+    def _is_static(self, triplet: torch.Tensor) -> bool:
+        if self.cfg.comoda_min_motion <= 0:
+            return False
+        f = triplet.float() / 255.0
+        change = min(float((f[1] - f[0]).abs().mean()), float((f[1] - f[2]).abs().mean()))
+        return change < self.cfg.comoda_min_motion
+
+    def _loss(self, triplets: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+        """Eq. 4–5 of Monodepth2 + λ_s·L_smooth on ``(B, 3, 3, H, W)`` uint8 triplets (t−1, t, t+1)."""
+        f = triplets.float() / 255.0
+        prev, tgt, nxt = f[:, 0], f[:, 1], f[:, 2]
+        b = tgt.shape[0]
+        with fast_context(self.fast):
+            depth = self.net.predict(tgt)
+            T_prev2t = self.pose_net(prev, tgt)        # T_{t−1→t}
+            T_t2next = self.pose_net(tgt, nxt)         # T_{t→t+1}
+        K = self.K_net.expand(b, 3, 3)
+        photo, mask = automasked_min_reprojection(tgt, [prev, nxt], depth, K,
+                                                  [se3_inv_torch(T_prev2t.float()), T_t2next.float()],
+                                                  self.cfg.alpha, self.noise)
+        smooth = smoothness_loss(depth, tgt)
+        total = photo + self.cfg.comoda_smoothness * smooth
+        parts = {"photo": float(photo.detach()), "smooth": float(smooth.detach()), "total": float(total.detach()),
+                 "automask": float(mask.float().mean())}
+        return total, parts
+
+    def _update(self, target: int, triplet: torch.Tensor, info: FrameStep) -> None:
+        k = min(self.cfg.comoda_replay_per_step, len(self.replay))
+        picks = sorted(self.rng.choice(len(self.replay), size=k, replace=False).tolist()) if k else []
+        batch = torch.stack([triplet] + [self.replay[i][1] for i in picks])
+        info.batch = [target] + [self.replay[i][0] for i in picks]
+        t0 = time.perf_counter()
+        for s in range(self.cfg.comoda_steps_per_frame):
+            self.optimizer.zero_grad(set_to_none=True)
+            loss, parts = self._loss(batch)
+            loss.backward()
+            self.optimizer.step()
+            if s == 0:
+                info.loss = parts
+        info.step_ms = 1000.0 * (time.perf_counter() - t0)
+        self.step_ms.append(info.step_ms)
+        info.trained = True
+
+    def _store(self, target: int, triplet: torch.Tensor) -> None:
+        """Reservoir sampling (Vitter's algorithm R): every past triplet stays with equal probability."""
+        self.n_seen_triplets += 1
+        if len(self.replay) < self.cfg.comoda_replay_capacity:
+            self.replay.append((target, triplet))
+            return
+        j = int(self.reservoir_rng.integers(self.n_seen_triplets))
+        if j < self.cfg.comoda_replay_capacity:
+            self.replay[j] = (target, triplet)
+
+    def _extend_trajectory(self) -> None:
+        if not self.poses:
+            self.poses.append(np.eye(4))
+            return
+        a, b = (img.float()[None] / 255.0 for _, img in self.window[-2:])
+        with torch.no_grad(), fast_context(self.fast):
+            T = self.pose_net(a, b)[0].double().numpy()  # T_{t→t+1}
+        self.poses.append(self.poses[-1] @ np.linalg.inv(T))
+
+
+def make_pose_net(depth_net: nn.Module, cfg: AdaptConfig, default_dir: str | None = None) -> PoseNet:
+    """The pose network of scheme ``comoda`` (``AdaptConfig.comoda_pose_weights``).
+
+    ``cfg.comoda_pose_weights`` if set (must hold the files); else ``default_dir``'s pose files when
+    both exist; else the pose encoder initialised from ``depth_net.encoder`` (``conv1`` repeated over
+    the two frames and halved, as Monodepth2 does from ImageNet) and a random decoder (its 0.01 output
+    scale starts it near the identity), with a warning.
+
+    Raises:
+        ConfigError: ``comoda_pose_weights`` names a folder without valid pose files.
+    """
+    from mutualslam_cli.adapt.weights import default_weights_dir, has_pose_files, load_pose
+
+    if cfg.comoda_pose_weights:
+        return load_pose(cfg.comoda_pose_weights)
+    folder = default_dir if default_dir is not None else default_weights_dir()
+    if has_pose_files(folder):
+        return load_pose(folder)
+    log.warning("comoda: no pose_encoder.pth/pose.pth in %s; pose encoder initialised from the depth "
+                "encoder, decoder random (set adapt.comoda_pose_weights to load Monodepth2's)", folder)
+    net = PoseNet()
+    net.encoder.init_from_single_image(depth_net.encoder)
+    return net.eval()

@@ -1,0 +1,138 @@
+"""Scheme comoda: CoMoDa-style end-to-end adaptation (depth + pose networks, per-frame triplets, replay)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from synth import make_sequence
+
+from mutualslam_cli.adapt.comoda import (ComodaAdapter, automasked_min_reprojection, make_pose_net,
+                                         se3_inv_torch)
+from mutualslam_cli.adapt.depthnet import DepthNet
+from mutualslam_cli.adapt.networks import PoseNet
+from mutualslam_cli.adapt.weights import save_pose
+from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.metrics.trajectory import ate
+from mutualslam_cli.types import Trajectory
+
+W, H = 96, 64
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return make_sequence("room", n=7, width=W, height=H, seed=0)
+
+
+def _frames(seq):
+    return [torch.from_numpy(im).permute(2, 0, 1).contiguous() for im in seq.rgb]  # uint8 (3, H, W)
+
+
+def _adapter(seq, seed=0, **kw):
+    torch.manual_seed(seed)
+    depth = DepthNet(max_depth=20.0)
+    pose = PoseNet()
+    pose.encoder.init_from_single_image(depth.encoder)
+    cfg = dataclasses.replace(AdaptConfig(scheme="comoda"), **kw)
+    return ComodaAdapter(depth, pose, cfg, seq.intrinsics.K(), seed=seed)
+
+
+def test_lags_one_frame_replays_and_chains_a_trajectory(seq):
+    ad = _adapter(seq, comoda_replay_per_step=2)
+    steps = [ad.add_frame(f) for f in _frames(seq)]
+    assert [s.trained for s in steps] == [False, False] + [True] * 5
+    assert [s.target for s in steps[2:]] == [1, 2, 3, 4, 5]  # triplet (t−1, t, t+1) trained when t+1 arrives
+    assert steps[2].batch == [1] and steps[3].batch == [2, 1]
+    for s in steps[4:]:
+        assert s.batch[0] == s.target and len(s.batch) == 3
+        assert all(r < s.target for r in s.batch[1:]) and len(set(s.batch)) == 3  # past triplets, no repeats
+    traj = ad.trajectory()
+    assert traj.shape == (7, 4, 4) and np.allclose(traj[0], np.eye(4))
+    assert not np.allclose(traj[1], traj[0])
+    res = ate(Trajectory(seq.timestamps, seq.poses), Trajectory(seq.timestamps, traj), align="sim3")
+    assert np.isfinite(res.rmse)
+
+
+def test_no_replay_and_capacity_bound(seq):
+    ad = _adapter(seq, comoda_replay_per_step=0)
+    assert all(len(s.batch) <= 1 for s in (ad.add_frame(f) for f in _frames(seq)))
+    ad = _adapter(seq, comoda_replay_capacity=2, comoda_replay_per_step=3)
+    steps = [ad.add_frame(f) for f in _frames(seq)]
+    assert len(ad.replay) == 2 and ad.n_seen_triplets == 5
+    assert max(len(s.batch) for s in steps) == 3  # current + both stored
+
+
+def test_updates_lower_the_photometric_loss(seq):
+    ad = _adapter(seq, comoda_replay_per_step=0)  # CoMoDa's lr 1e-4
+    frames = _frames(seq)
+    fixed = torch.stack(frames[2:5])[None]
+    before = ad.loss_on(fixed)["photo"]
+    for _ in range(4):  # four updates on the same triplet
+        assert ad.train_triplet(3, fixed[0]).trained
+    after = ad.loss_on(fixed)["photo"]
+    assert after < 0.5 * before, (before, after)  # measured: 0.068 → 0.015
+
+
+def test_deterministic_for_a_seed(seq):
+    a, b = _adapter(seq, seed=3), _adapter(seq, seed=3)
+    for f in _frames(seq)[:5]:
+        la, lb = a.add_frame(f), b.add_frame(f)
+        assert la.loss == lb.loss and la.batch == lb.batch
+    assert np.array_equal(a.trajectory(), b.trajectory())
+
+
+def test_motion_gate_skips_static_triplets(seq):
+    still = [_frames(seq)[0]] * 4
+    ad = _adapter(seq, comoda_min_motion=0.01)
+    steps = [ad.add_frame(f) for f in still]
+    assert [s.static for s in steps] == [False, False, True, True] and not any(s.trained for s in steps)
+    assert ad.replay == []
+    ad = _adapter(seq, comoda_min_motion=0.0)
+    assert [ad.add_frame(f).trained for f in still] == [False, False, True, True]
+
+
+def test_automask_and_min_reprojection_with_true_geometry(seq):
+    # ground-truth depth and poses: the warped source explains the target better than the unwarped one
+    f = torch.from_numpy(seq.rgb).permute(0, 3, 1, 2).float() / 255.0
+    depth = torch.from_numpy(seq.depth)[:, None].float()
+    K = torch.from_numpy(seq.intrinsics.K()).float()[None]
+    T = [torch.from_numpy(se3_inv(seq.poses[s]) @ seq.poses[3]).float()[None] for s in (2, 4)]
+    loss, mask = automasked_min_reprojection(f[3:4], [f[2:3], f[4:5]], depth[3:4], K, T)
+    ident, _ = automasked_min_reprojection(f[3:4], [f[2:3], f[4:5]], depth[3:4], K,
+                                           [torch.eye(4)[None]] * 2)
+    assert mask.float().mean() > 0.5
+    assert float(loss) < float(ident)
+    # a static camera: identity reprojection is exact, the auto-mask removes every pixel
+    T_any = torch.from_numpy(se3_inv(seq.poses[4]) @ seq.poses[3]).float()[None]
+    loss0, mask0 = automasked_min_reprojection(f[3:4], [f[3:4], f[3:4]], depth[3:4] * 2, K, [T_any] * 2)
+    assert not bool(mask0.any()) and float(loss0) < 1e-4
+
+
+def test_se3_inverse():
+    T = torch.from_numpy(make_sequence("room", n=3, width=W, height=H).poses[2]).float()[None]
+    assert torch.allclose(se3_inv_torch(T) @ T, torch.eye(4)[None], atol=1e-5)
+
+
+@pytest.mark.parametrize("key, value", [("comoda_lr", 0.0), ("comoda_steps_per_frame", 0),
+                                        ("comoda_replay_per_step", -1), ("comoda_replay_capacity", 0),
+                                        ("comoda_smoothness", -1.0), ("comoda_min_motion", -0.1)])
+def test_bad_settings_fail_naming_the_key(seq, key, value):
+    with pytest.raises(ConfigError, match=key):
+        _adapter(seq, **{key: value})
+
+
+def test_pose_net_default_and_files(tmp_path, caplog):
+    depth = DepthNet()
+    net = make_pose_net(depth, AdaptConfig(), default_dir=str(tmp_path))
+    assert "pose encoder initialised from the depth encoder" in caplog.text
+    w = depth.encoder.state_dict()["encoder.conv1.weight"]
+    assert torch.allclose(net.encoder.state_dict()["encoder.conv1.weight"], torch.cat([w, w], 1) / 2)
+    save_pose(net, tmp_path / "p")
+    again = make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "p")), default_dir=str(tmp_path))
+    assert torch.equal(again.decoder.net[3].weight, net.decoder.net[3].weight)
+    with pytest.raises(ConfigError, match="pose_encoder.pth"):
+        make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "none")))
