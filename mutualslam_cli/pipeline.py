@@ -20,6 +20,7 @@ import torch
 
 from mutualslam_cli import results as res
 from mutualslam_cli.adapt.inputs import load_network, use_fast_path
+from mutualslam_cli.adapt.comoda_stage import POSENET_ATE_KEY, run_comoda_stage
 from mutualslam_cli.adapt.stage import Progress, run_adaptation
 from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.ba.culling import inject_outliers
@@ -124,10 +125,15 @@ def _run_locked(seq: Sequence, cfg: RunConfig, folder: Path, out_root: Path, com
     record = BALog()  # the mutual loop: culling + global BA at Algorithm 1's requests feed back into training
     step = make_ba_step(seq, vo, cfg, record) if cfg.ba.enabled else None
     t = time.perf_counter()
-    net, kf_rows, adapter, loop_map = run_adaptation(seq, vo, copy.deepcopy(net0), cfg, fast, progress, step)
+    if cfg.adapt.scheme == "comoda":  # the CoMoDa-style baseline: every frame, its own pose network, no keyframes
+        net, kf_rows, adapter, loop_map = run_comoda_stage(seq, copy.deepcopy(net0), cfg, fast, folder, summary,
+                                                           progress), [], None, vo
+    else:
+        net, kf_rows, adapter, loop_map = run_adaptation(seq, vo, copy.deepcopy(net0), cfg, fast, progress, step)
+        res.summarise_adaptation(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
+                                 adapter.finetune_ms if adapter else [])
+        summary.absent(POSENET_ATE_KEY, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
     timings["adapt_s"] = time.perf_counter() - t
-    res.summarise_adaptation(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
-                             adapter.finetune_ms if adapter else [])
     if kf_rows:
         res.atomic_write_text(folder / "keyframes.csv", pd.DataFrame(kf_rows).to_csv(index=False))
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from synth import make_sequence
@@ -136,3 +137,24 @@ def test_pose_net_default_and_files(tmp_path, caplog):
     assert torch.equal(again.decoder.net[3].weight, net.decoder.net[3].weight)
     with pytest.raises(ConfigError, match="pose_encoder.pth"):
         make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "none")))
+
+
+def test_run_sequence_reports_a_posenet_ate(tmp_path):
+    from synth import make_tum_dir
+
+    from mutualslam_cli.config import CONFIG_DIR, load_config
+    from mutualslam_cli.pipeline import run_sequence
+
+    root = make_tum_dir(tmp_path, n=6, width=W, height=H)
+    cfg = load_config(CONFIG_DIR / "smoke.yaml", ["adapt.scheme=comoda", "ba.enabled=false"])
+    s = run_sequence(str(root), cfg, out=tmp_path / "res").summary
+    assert np.isfinite(s["trajectory"]["ate_rmse_m"]["posenet"]) and s["timing"]["finetune_ms"] > 0
+    assert s["depth"]["pcd"]["lsq"]["adapted"] is not None
+    folder = tmp_path / "res" / root.name / "comoda" / "seed0"
+    rows = pd.read_csv(folder / "frames.csv")
+    assert len(rows) == 6 and rows["trained"].sum() == 4
+    assert len((folder / "traj_posenet.txt").read_text().splitlines()) == 7  # header + 6 poses
+    s = run_sequence(str(root), load_config(CONFIG_DIR / "smoke.yaml", ["adapt.scheme=none", "ba.enabled=false"]),
+                     out=tmp_path / "res").summary
+    assert s["trajectory"]["ate_rmse_m"]["posenet"] is None
+    assert "no pose network" in s["notes"]["trajectory.ate_rmse_m.posenet"]

@@ -26,7 +26,7 @@ def filled(n: int, capacity: int = 0, val_every: int = 0) -> KeyframeBuffer:
 
 
 def test_registry_names_and_unknown():
-    assert set(SCHEMES) == {"none", "recent", "replay", "ewc", "replay+ewc", "replay+mas", "replay+si", "luo"}
+    assert set(SCHEMES) == {"none", "recent", "replay", "ewc", "replay+ewc", "replay+mas", "replay+si", "luo", "comoda"}
     with pytest.raises(ConfigError) as e:
         get_scheme("replay+foo")
     assert "replay+ewc" in str(e.value) and "'luo'" in str(e.value) and "replay+foo" in str(e.value)

@@ -7,6 +7,7 @@ registering it here.
 from __future__ import annotations
 
 from mutualslam_cli.adapt.schemes.base import NoTraining, Scheme
+from mutualslam_cli.adapt.schemes.comoda import Comoda
 from mutualslam_cli.adapt.schemes.luo import Luo
 from mutualslam_cli.adapt.schemes.recent import Recent, RecentEWC
 from mutualslam_cli.adapt.schemes.replay import Replay, ReplayEWC, ReplayMAS, ReplaySI
@@ -14,7 +15,7 @@ from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.errors import ConfigError
 
 SCHEMES: dict[str, type[Scheme]] = {
-    cls.name: cls for cls in (NoTraining, Recent, Replay, RecentEWC, ReplayEWC, ReplayMAS, ReplaySI, Luo)
+    cls.name: cls for cls in (NoTraining, Recent, Replay, RecentEWC, ReplayEWC, ReplayMAS, ReplaySI, Luo, Comoda)
 }
 
 

@@ -1,0 +1,101 @@
+"""The adaptation stage of scheme ``comoda``: every frame through :class:`~mutualslam_cli.adapt.comoda.ComodaAdapter`.
+
+Unlike the keyframe schemes (:mod:`mutualslam_cli.adapt.stage`), CoMoDa needs no SLAM: it is driven by
+every frame of the sequence (undistorted, at network resolution), trains its own pose network, and
+its chained poses form a trajectory of its own. The VO front end still runs (the pipeline's map, BA
+and the VO's ATE are unchanged), so Table 4 can show the PoseNet trajectory beside the VO's.
+
+Outputs, in the run folder: ``frames.csv`` (one row per frame: trained, static, batch, loss parts,
+step ms) and ``traj_posenet.txt`` (TUM format); in ``summary.json``: ``timing.finetune_ms`` (median
+per Adam step), ``timing.finetune_kf_ms`` (median per *frame* update) and
+``trajectory.ate_rmse_m.posenet`` (Sim(3)-aligned ATE of the chained poses against GT, null with a
+reason when not computable).
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from mutualslam_cli import results as res
+from mutualslam_cli.adapt.comoda import ComodaAdapter, FrameStep, make_pose_net
+from mutualslam_cli.adapt.depthnet import prepare
+from mutualslam_cli.adapt.inputs import to_net_image
+from mutualslam_cli.adapt.stage import Progress
+from mutualslam_cli.config import RunConfig
+from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.errors import MslamError
+from mutualslam_cli.metrics import trajectory as tm
+from mutualslam_cli.types import Trajectory
+from mutualslam_cli.vo.camera import Undistorter
+
+#: summary.json key of the PoseNet trajectory's ATE (metres after Sim(3) alignment).
+POSENET_ATE_KEY = "trajectory.ate_rmse_m.posenet"
+
+
+def frame_row(info: FrameStep) -> dict[str, Any]:
+    """A flat CSV row of one frame's step (loss parts as ``loss_<part>``)."""
+    row: dict[str, Any] = {"frame": info.frame, "target": info.target, "trained": info.trained,
+                           "static": info.static, "batch": " ".join(map(str, info.batch)), "step_ms": info.step_ms}
+    row.update({f"loss_{k}": v for k, v in info.loss.items()})
+    return row
+
+
+def posenet_ate(seq: Sequence, traj: Trajectory, max_dt: float) -> tuple[float | None, str]:
+    """Sim(3)-aligned ATE RMSE of ``traj`` against the sequence's GT, or ``(None, reason)``."""
+    if seq.gt is None or len(seq.gt) == 0:
+        return None, "sequence has no GT poses"
+    if len(traj) < 3:
+        return None, f"only {len(traj)} PoseNet poses"
+    try:
+        return float(tm.ate(seq.gt, traj, align="sim3", max_dt=max_dt).rmse), ""
+    except MslamError as e:
+        return None, str(e)
+
+
+def run_comoda_stage(seq: Sequence, net: torch.nn.Module, cfg: RunConfig, fast: bool, folder: Path,
+                     summary: res.Summary, progress: Progress | None = None) -> torch.nn.Module:
+    """Adapt ``net`` on every frame of ``seq`` with the CoMoDa-style adapter; write its outputs.
+
+    Args:
+        seq: the sequence (frames read in order, undistorted to the pinhole camera of the same K).
+        net: the depth network to adapt (a copy of the pre-trained one; changed in place).
+        cfg: ``cfg.adapt.comoda_*`` settings, ``cfg.net`` resolution, ``cfg.seed``.
+        fast: bf16 autocast for the forward passes.
+        folder: the run folder (``frames.csv``, ``traj_posenet.txt``).
+        summary: receives the timing and ``trajectory.ate_rmse_m.posenet`` keys.
+
+    Returns:
+        The adapted depth network.
+    """
+    w, h = cfg.net.width, cfg.net.height
+    net = prepare(net, fast)
+    adapter = ComodaAdapter(net, make_pose_net(net, cfg.adapt), cfg.adapt,
+                            seq.intrinsics.scaled(w, h).K(), seed=cfg.seed, fast=fast)
+    und = Undistorter(seq.intrinsics)
+    rows, t0 = [], time.perf_counter()
+    for i in range(len(seq)):
+        info = adapter.add_frame(to_net_image(und.image(seq.load_rgb(i)), w, h))
+        rows.append(frame_row(info))
+        if progress:
+            progress("adapt", {"done": i + 1, "total": len(seq), **rows[-1], "elapsed_s": time.perf_counter() - t0})
+    res.atomic_write_text(folder / "frames.csv", pd.DataFrame(rows).to_csv(index=False))
+    traj = Trajectory(np.array([f.timestamp for f in seq.frames]), adapter.trajectory())
+    buf = io.StringIO()
+    write_tum_trajectory(buf, traj)
+    res.atomic_write_text(folder / "traj_posenet.txt", buf.getvalue())
+    per_frame = [r["step_ms"] for r in rows if r["trained"]]
+    why = "no frame was trained on (fewer than 3 frames, or all static)"
+    summary.set("timing.finetune_ms", float(np.median(adapter.step_ms)) / cfg.adapt.comoda_steps_per_frame
+                if adapter.step_ms else None, why)
+    summary.set("timing.finetune_kf_ms", float(np.median(per_frame)) if per_frame else None, why)
+    value, reason = posenet_ate(seq, traj, cfg.eval.ate_max_dt)
+    summary.set(POSENET_ATE_KEY, value, reason)
+    return adapter.net
