@@ -158,3 +158,10 @@ def test_run_sequence_reports_a_posenet_ate(tmp_path):
                      out=tmp_path / "res").summary
     assert s["trajectory"]["ate_rmse_m"]["posenet"] is None
     assert "no pose network" in s["notes"]["trajectory.ate_rmse_m.posenet"]
+
+
+def test_bench_comoda_step_runs_a_full_batch():
+    from mutualslam_cli.adapt.bench import bench_comoda_step
+
+    out = bench_comoda_step(W, H, repeats=1, warmup=0, replay=2)
+    assert out["batch"] == 3 and out["ms"] > 0 and len(out["times_ms"]) == 1

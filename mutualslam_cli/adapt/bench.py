@@ -130,6 +130,47 @@ def bench_finetune_step(width: int = 640, height: int = 192, repeats: int = 5, f
             "threads": torch.get_num_threads(), "bf16_supported": fast_path_supported()}
 
 
+def bench_comoda_step(width: int = 640, height: int = 192, repeats: int = 5, fast: bool = False,
+                      threads: int | None = None, warmup: int = 2, seed: int = 0,
+                      replay: int | None = None) -> dict[str, Any]:
+    """Median time of one CoMoDa-style update step (scheme ``comoda``, :mod:`mutualslam_cli.adapt.comoda`).
+
+    The work of one frame's update: the current triplet + ``replay`` replayed triplets (default
+    ``AdaptConfig.comoda_replay_per_step`` = 3, so a batch of 4 targets), one depth forward of the 4
+    targets, two pose-network forwards of 4 frame pairs each, 8 warps, auto-masked minimum
+    reprojection + smoothness, backward through both networks, one Adam step. Random weights and
+    images (the cost does not depend on them).
+
+    Returns:
+        ``{"ms": median, "times_ms": [...], "batch": targets per step, ...}``.
+    """
+    from dataclasses import replace
+
+    from mutualslam_cli.adapt.comoda import ComodaAdapter
+    from mutualslam_cli.adapt.networks.pose import PoseNet
+    from mutualslam_cli.config import AdaptConfig
+
+    _setup(threads, seed)
+    cfg = AdaptConfig(scheme="comoda")
+    if replay is not None:
+        cfg = replace(cfg, comoda_replay_per_step=int(replay))
+    net = prepare(DepthNet(), fast)
+    K = torch.tensor([[0.58 * width, 0, width / 2], [0, 1.92 * height, height / 2], [0, 0, 1]])
+    adapter = ComodaAdapter(net, PoseNet(), cfg, K, seed=seed, fast=fast)
+    g = torch.Generator().manual_seed(seed)
+
+    def triplet() -> torch.Tensor:
+        return torch.randint(0, 256, (3, 3, height, width), generator=g, dtype=torch.uint8)
+
+    for k in range(cfg.comoda_replay_per_step):
+        adapter.replay.append((k, triplet()))  # a full batch from the first step on
+    current = triplet()
+    ms, times = _median_ms(lambda: adapter.train_triplet(100, current), repeats, warmup)
+    return {"ms": ms, "times_ms": times, "fast": fast, "width": width, "height": height,
+            "batch": 1 + cfg.comoda_replay_per_step, "threads": torch.get_num_threads(),
+            "bf16_supported": fast_path_supported()}
+
+
 def compare(width: int = 640, height: int = 192, repeats: int = 5, threads: int | None = 1) -> dict[str, Any]:
     """fp32 (NCHW), fp32 + channels-last and the fast path side by side, plus bf16 accuracy.
 
