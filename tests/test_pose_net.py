@@ -110,3 +110,21 @@ def test_init_from_single_image_matches_on_identical_frames():
     x = torch.rand(1, 3, 64, 64)
     with torch.no_grad():
         assert torch.allclose(net.encoder(torch.cat([x, x], 1))[-1], single(x)[-1], atol=1e-5)
+
+
+def test_pretrain_pose_fits_relative_poses_and_writes_loadable_files(tmp_path):
+    from mutualslam_cli.adapt.pretrain_pose import pose_batch, pose_loss, pretrain_pose
+
+    first, second, T = pose_batch("room", 0, 2, 64, 64)
+    assert first.shape == (2, 3, 64, 64) and torch.equal(first[1], second[0])
+    assert float(pose_loss(T, T)) == 0.0 and float(pose_loss(torch.eye(4).expand(2, 4, 4), T)) > 0
+    rec = pretrain_pose(tmp_path, steps=12, width=64, height=64, batch_size=2, lr=1e-3, refresh=False)
+    # measured: 0.028 → 0.005
+    losses = [c["loss"] for c in rec["loss_curve"]]
+    assert min(losses[-3:]) < 0.5 * losses[0], losses  # one fixed batch: the optimiser must fit it
+    net = load_pose(tmp_path)  # BatchNorm statistics learnt on the source frames were saved too
+    assert float(net.encoder.state_dict()["encoder.bn1.running_mean"].abs().sum()) > 0
+    with torch.no_grad():
+        assert torch.isfinite(net(first, second)).all()
+    with pytest.raises(ConfigError, match="steps"):
+        pretrain_pose(tmp_path, steps=0)
