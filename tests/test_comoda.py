@@ -165,3 +165,30 @@ def test_bench_comoda_step_runs_a_full_batch():
 
     out = bench_comoda_step(W, H, repeats=1, warmup=0, replay=2)
     assert out["batch"] == 3 and out["ms"] > 0 and len(out["times_ms"]) == 1
+
+
+class _OraclePose(torch.nn.Module):
+    """Returns the ground-truth T_{first→second} of the sequence's frames (found by image equality)."""
+
+    def __init__(self, seq):
+        super().__init__()
+        self.images = torch.from_numpy(seq.rgb).permute(0, 3, 1, 2).float() / 255.0
+        self.poses = seq.poses
+
+    def _index(self, img):
+        return next(i for i, x in enumerate(self.images) if torch.allclose(x, img, atol=1e-6))
+
+    def forward(self, first, second):
+        T = [se3_inv(self.poses[self._index(b)]) @ self.poses[self._index(a)] for a, b in zip(first, second)]
+        return torch.from_numpy(np.stack(T)).float()
+
+
+def test_chained_trajectory_follows_the_pose_convention(seq):
+    # with a pose network that is exactly right, the chained trajectory is the GT one (relative to frame 0)
+    torch.manual_seed(0)
+    ad = ComodaAdapter(DepthNet(max_depth=20.0), _OraclePose(seq), AdaptConfig(comoda_replay_per_step=0),
+                       seq.intrinsics.K())
+    for f in _frames(seq)[:4]:
+        ad.add_frame(f)
+    expect = np.stack([se3_inv(seq.poses[0]) @ p for p in seq.poses[:4]])
+    assert np.allclose(ad.trajectory(), expect, atol=1e-4)
