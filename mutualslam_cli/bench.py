@@ -102,6 +102,10 @@ def _network(quick: bool, threads: int) -> dict[str, Any]:
             continue
         out[f"predict_{name}_ms"] = bench_inference(640, 192, 2 * reps, fast, threads, channels_last=cl)["ms"]
         out[f"finetune_{name}_ms"] = bench_finetune_step(640, 192, reps, fast, threads, channels_last=cl)["ms"]
+    from mutualslam_cli.adapt.bench import bench_comoda_step
+
+    # one CoMoDa-style update (current + 3 replayed triplets, depth and pose networks) beside our step
+    out["comoda_step_ms"] = bench_comoda_step(640, 192, reps, fast_path_supported(), threads)["ms"]
     from mutualslam_cli.adapt.inference import openvino_available
 
     if openvino_available():  # the evaluation's runtimes: bf16 where the CPU has it (net.runtime auto), int8
@@ -208,6 +212,7 @@ def _table(res: dict[str, Any]) -> str:
          "≤ 40 (bf16 CPU) / ≤ 60 (AVX2)"),
         ("prediction speed-up OpenVINO int8/fp32 (×)", res.get("predict_openvino_int8_speedup"), "≥ 2.5"),
         ("fine-tuning speed-up fast/fp32 (×)", res.get("finetune_speedup"), "≥ 2"),
+        ("CoMoDa-style update step, current + 3 replayed triplets (ms)", res.get("comoda_step_ms"), "—"),
         ("peak memory of mslam run (GB)", res.get("peak_rss_gb"), "≤ 3"),
         ("peak memory, 2× frames / 1× frames", res.get("peak_rss_ratio_2x"), "≈ 1"),
         ("global BA, 100 keyframes × 10k points, 10 iterations (s)", res.get("ba_s"), "≤ 5"),
