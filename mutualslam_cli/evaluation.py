@@ -165,7 +165,10 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
     elif cached is not None and predictors:
         table = cached.merge(table.drop(columns=["timestamp", "n_valid"]), on="frame", how="left")
     table["is_keyframe"] = table["frame"].isin(kf_frames)
-    return table, ms
+    # one column order whether the pre-trained rows were computed now or read from the cache
+    head = [c for c in ("frame", "timestamp", "is_keyframe", "n_valid") if c in table]
+    models = [c for m in ("pretrained_", "adapted_") for c in table.columns if c.startswith(m)]
+    return table[head + models + [c for c in table.columns if c not in head and c not in models]], ms
 
 
 def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = MAX_DT) -> dict[str, object]:
