@@ -49,6 +49,18 @@ def test_openvino_matches_pytorch_and_copies_the_weights():
     assert np.median(np.abs(f(x) / predict_depth(net, x, fast=False) - 1)) < tol
 
 
+@pytest.mark.skipif(not inference.openvino_available(), reason="openvino not installed")
+def test_openvino_conversion_sends_no_telemetry(monkeypatch):
+    """OpenVINO's converter posts usage telemetry, from one new process per event, when no consent
+    file says otherwise (in a spawned grid worker each re-imports torch: evaluation 3× slower)."""
+    telemetry = pytest.importorskip("openvino_telemetry")
+    sent = []
+    monkeypatch.setattr(telemetry.Telemetry, "send_event", lambda self, *a, **k: sent.append(a))
+    net = DepthNet().eval()
+    inference.openvino_predictor(net, 96, 64, threads=1)(torch.rand(1, 3, 64, 96))
+    assert sent == []
+
+
 def _bn_net(seed: int) -> DepthNet:
     """A random network with non-trivial batch-norm statistics (as trained weights have)."""
     torch.manual_seed(seed)
