@@ -25,7 +25,7 @@ import multiprocessing
 import os
 import signal
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, as_completed, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -163,6 +163,11 @@ def prepare_frontends(cfg: RunConfig, sequences: list[str], seeds: list[int], ou
         _prepare_one(cfg, q, k, out, registry, cfg.threads)
 
 
+def _warm_up() -> None:
+    """Pool task: import what a job needs, so a worker is ready when the front ends are."""
+    import mutualslam_cli.pipeline  # noqa: F401
+
+
 def _die_with_parent() -> None:
     """Pool worker initialiser: killed with the grid's process, deaf to Ctrl-C (the grid handles it)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -179,14 +184,19 @@ def _die_with_parent() -> None:
 def _local_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str] | None, reg: str | None,
                     workers: int, threads: int) -> Iterator[JobOutcome]:
     """Outcomes of ``todo`` run in this process (1 worker) or a spawned process pool, as they finish."""
-    prepare_frontends(cfg, sorted({j.sequence for j in todo}), sorted({j.seed for j in todo}), out, reg)
+    seqs, seeds = sorted({j.sequence for j in todo}), sorted({j.seed for j in todo})
     if workers <= 1:
+        prepare_frontends(cfg, seqs, seeds, out, reg)
         for j in todo:
             yield _run_job(cfg, j, out, command, reg, threads)
         return
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=_die_with_parent)
     try:
+        # the workers start (and import torch, seconds each) while this process runs the front ends
+        warm = [pool.submit(_warm_up) for _ in range(workers)]
+        prepare_frontends(cfg, seqs, seeds, out, reg)
+        wait(warm)
         futs = [pool.submit(_run_job, cfg, j, out, command, reg, threads) for j in todo]
         for f in as_completed(futs):
             yield f.result()
