@@ -184,6 +184,8 @@ def pretrain(
     threads: int = typer.Option(1, "--threads", min=1, help="torch threads (results depend on it slightly)."),
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop early and save after this long."),
     quick: bool = typer.Option(False, "--quick", help="A few steps at small size (smoke test)."),
+    pose: bool = typer.Option(False, "--pose", help="Train scheme comoda's pose network instead "
+                              "(pose_encoder.pth/pose.pth, from the depth encoder in --out or the default)."),
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
@@ -194,6 +196,9 @@ def pretrain(
     cfg = _config(config, sets)
     seed = cfg.seed if seed is None else seed
     out = out or default_weights_dir()
+    if pose:
+        _pretrain_pose(cfg, out, steps, batch_size, seed, threads, max_minutes, quick)
+        return
     kwargs: dict[str, Any] = {"width": cfg.net.width, "height": cfg.net.height, "steps": steps,
                               "batch_size": batch_size, "seed": seed, "threads": threads,
                               "max_minutes": max_minutes, "drop_fc": True, "pool_size": 240, "eval_frames": 6}
@@ -208,6 +213,26 @@ def pretrain(
         summary = pt.pretrain(out, progress=cb, **kwargs)
     common.console.print(f"saved the pre-trained model to {out} ({summary.get('time_s', 0):.0f} s, "
                   f"{summary.get('steps_done', summary.get('steps'))} steps)")
+
+
+def _pretrain_pose(cfg: Any, out: Path, steps: int, batch_size: int, seed: int, threads: int,
+                   max_minutes: Optional[float], quick: bool) -> None:
+    """``mslam pretrain --pose``: the pose network, initialised from the depth encoder found in ``out``."""
+    from mutualslam_cli.adapt.pretrain_pose import pretrain_pose
+    from mutualslam_cli.adapt.weights import default_weights_dir, load_monodepth2
+
+    init = load_monodepth2(out if (out / "encoder.pth").is_file() else default_weights_dir())
+    w, h, steps = (64, 32, min(steps, 3)) if quick else (cfg.net.width, cfg.net.height, steps)
+    with _progress() as p:
+        task = p.add_task("pretrain pose", total=steps, info="")
+
+        def cb(info: dict) -> None:
+            p.update(task, completed=info["step"], info=f"loss {info['loss']:.4f}")
+
+        rec = pretrain_pose(out, steps, w, h, batch_size, seed=seed, init=init, max_minutes=max_minutes,
+                            threads=threads, half=True, progress=cb)
+    common.console.print(f"saved the pose network to {out} ({rec['time_s']:.0f} s, {rec['steps_done']} steps, "
+                         f"final loss {rec['loss_curve'][-1]['loss']:.4f})")
 
 
 # --------------------------------------------------------------------------- run

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -128,3 +129,17 @@ def test_pretrain_pose_fits_relative_poses_and_writes_loadable_files(tmp_path):
         assert torch.isfinite(net(first, second)).all()
     with pytest.raises(ConfigError, match="steps"):
         pretrain_pose(tmp_path, steps=0)
+
+
+def test_cli_pretrain_pose_writes_half_precision_weights_initialised_from_the_depth_encoder(tmp_path):
+    from typer.testing import CliRunner
+
+    from mutualslam_cli.cli import app
+
+    r = CliRunner().invoke(app, ["pretrain", "--pose", "--quick", "--out", str(tmp_path), "--max-minutes", "5"])
+    assert r.exit_code == 0, r.output
+    rec = json.loads((tmp_path / "pretrain_pose.json").read_text())
+    assert rec["init_from_depth_encoder"] and rec["half"] and rec["steps_done"] == 3
+    raw = torch.load(tmp_path / "pose_encoder.pth", map_location="cpu")
+    assert {v.dtype for v in raw.values() if torch.is_tensor(v) and v.is_floating_point()} == {torch.float16}
+    assert torch.isfinite(load_pose(tmp_path)(torch.rand(1, 3, 32, 64), torch.rand(1, 3, 32, 64))).all()

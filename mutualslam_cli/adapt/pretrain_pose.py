@@ -67,6 +67,7 @@ def pose_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192, batch_size: int = 4,
                   lr: float = 1e-4, seed: int = 0, scenes: Sequence[str] = ("room", "planar", "far"),
                   render_seed_base: int = 0, refresh: bool = True, init: torch.nn.Module | None = None,
+                  max_minutes: float | None = None, threads: int | None = None, half: bool = False,
                   progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
     """Train a pose network on source-domain relative poses; write it in Monodepth2's format.
 
@@ -78,6 +79,9 @@ def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192
         refresh: a new sequence (scene ``scenes[k % n]``, seed ``render_seed_base + k``) every step;
             False: the first one every step (tests).
         init: a depth network whose encoder initialises the pose encoder (conv1 repeated, halved).
+        max_minutes: stop after the step that crosses this wall time and save (``None``: all steps).
+        threads: ``torch.set_num_threads`` (``None`` keeps the current setting).
+        half: store the weights as fp16 (half the size; loading converts back to fp32).
         progress: called with ``{"step", "steps", "loss"}``.
 
     Returns:
@@ -88,6 +92,8 @@ def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192
     """
     if steps < 1 or batch_size < 1 or lr <= 0:
         raise ConfigError(f"pretrain_pose: need steps ≥ 1, batch_size ≥ 1, lr > 0; got {steps}, {batch_size}, {lr}")
+    if threads is not None:
+        torch.set_num_threads(int(threads))
     torch.manual_seed(seed)
     net = PoseNet()
     if init is not None:
@@ -105,10 +111,13 @@ def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192
         curve.append({"step": step + 1, "loss": float(loss.detach()), "t": round(time.perf_counter() - t0, 2)})
         if progress:
             progress({"step": step + 1, "steps": steps, "loss": curve[-1]["loss"]})
-    save_pose(net.eval(), Path(out_dir))
-    record = {"steps": steps, "width": width, "height": height, "batch_size": batch_size, "lr": lr, "seed": seed,
+        if max_minutes is not None and time.perf_counter() - t0 > 60.0 * max_minutes:
+            log.info("pose pre-training stopped after %d of %d steps (max %.1f min)", step + 1, steps, max_minutes)
+            break
+    save_pose(net.eval(), Path(out_dir), half=half)
+    record = {"steps": steps, "steps_done": len(curve), "max_minutes": max_minutes, "width": width, "height": height, "batch_size": batch_size, "lr": lr, "seed": seed,
               "scenes": list(scenes), "render_seed_base": render_seed_base, "refresh": refresh,
-              "init_from_depth_encoder": init is not None, "loss": "L1(t) + L1(R)", "loss_curve": curve,
+              "init_from_depth_encoder": init is not None, "half": half, "loss": "L1(t) + L1(R)", "loss_curve": curve,
               "time_s": time.perf_counter() - t0, "threads": torch.get_num_threads()}
     atomic_write_text(Path(out_dir) / "pretrain_pose.json", json.dumps(record, indent=1))
     log.info("pose network pre-trained: %d steps, final loss %.4g, %s", steps, curve[-1]["loss"], out_dir)
