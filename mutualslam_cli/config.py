@@ -149,14 +149,19 @@ class AdaptConfig:
     the joint depth + pose update (CoMoDa's / Monodepth2's 1e-4, Adam β = (0.9, 0.999)). > 0."""
     comoda_steps_per_frame: int = 1
     """Scheme ``comoda``: Adam steps per arriving frame (CoMoDa: one update per frame). ≥ 1."""
+    comoda_replay_from: Literal["source", "sequence"] = "source"
+    """Scheme ``comoda``: what is replayed. ``source``: a fixed bank of triplets of the pre-training
+    domain, rendered at the start (CoMoDa replays samples of its KITTI training set; ``comoda_source``);
+    ``sequence``: a reservoir of this sequence's own past triplets."""
     comoda_replay_per_step: int = 3
     """Scheme ``comoda``: past triplets drawn uniformly from the replay buffer into each update batch,
     beside the current triplet (batch = 1 + this, as CoMoDa mixes the current sample with replayed
     ones). ≥ 0; 0 = no replay."""
     comoda_replay_capacity: int = 200
-    """Scheme ``comoda``: triplets kept for replay (reservoir sampling over the whole past, so the
-    buffer stays a uniform sample of the sequence). Stored at network resolution as uint8: 200
-    triplets at 640×192 are 221 MB (DESIGN §10: ≤ 3 GB, flat in sequence length). ≥ 1."""
+    """Scheme ``comoda``: triplets kept for replay: the size of the source-domain bank (rendered in
+    ~10 s), or of the reservoir over the sequence's whole past (a uniform sample of it). Stored at
+    network resolution as uint8: 200 triplets at 640×192 are 221 MB (DESIGN §10: ≤ 3 GB, flat in
+    sequence length). ≥ 1."""
     comoda_smoothness: float = 1e-3
     """Scheme ``comoda``: weight of the edge-aware smoothness (Monodepth2's 1e-3, which CoMoDa keeps). ≥ 0."""
     comoda_min_motion: float = 0.0

@@ -58,6 +58,31 @@ def test_lags_one_frame_replays_and_chains_a_trajectory(seq):
     assert np.isfinite(res.rmse)
 
 
+def test_source_bank_is_replayed_with_its_own_intrinsics_and_never_grows(seq):
+    from mutualslam_cli.adapt.comoda_source import source_triplets
+    from mutualslam_cli.datasets.synthetic import synthetic_intrinsics
+
+    bank, K_src = source_triplets(4, W, H)
+    assert bank.shape == (4, 3, 3, H, W) and bank.dtype == torch.uint8
+    assert np.allclose(K_src.numpy(), synthetic_intrinsics(W, H).K())
+    assert all(not torch.equal(bank[k, 0], bank[k, 1]) for k in range(4))  # consecutive frames, a moving camera
+    assert torch.equal(source_triplets(4, W, H)[0], bank)  # fixed before the run: same seeds, same bank
+    torch.manual_seed(0)
+    depth = DepthNet(max_depth=20.0)
+    cfg = dataclasses.replace(AdaptConfig(scheme="comoda"), comoda_replay_per_step=3)
+    ad = ComodaAdapter(depth, PoseNet(), cfg, seq.intrinsics.K(), seed=0, replay_bank=(bank, K_src))
+    steps = [ad.add_frame(f) for f in _frames(seq)]
+    for s in steps[2:]:
+        assert s.batch[0] == s.target and len(s.batch) == 4
+        assert sorted(s.batch[1:]) == sorted(set(s.batch[1:])) and all(-4 <= r <= -1 for r in s.batch[1:])
+    assert len(ad.replay) == 4 and ad.n_seen_triplets == 0  # the sequence is never stored
+    # each sample is warped with its own camera: the source K in place of the sequence's changes the loss
+    trip = torch.stack([bank[0], bank[1]])
+    own, _ = ad._loss(trip, K_src.expand(2, 3, 3))
+    other, _ = ad._loss(trip, ad.K_net.expand(2, 3, 3))
+    assert float(own) != float(other)
+
+
 def test_no_replay_and_capacity_bound(seq):
     ad = _adapter(seq, comoda_replay_per_step=0)
     assert all(len(s.batch) <= 1 for s in (ad.add_frame(f) for f in _frames(seq)))
@@ -120,7 +145,8 @@ def test_se3_inverse():
 
 @pytest.mark.parametrize("key, value", [("comoda_lr", 0.0), ("comoda_steps_per_frame", 0),
                                         ("comoda_replay_per_step", -1), ("comoda_replay_capacity", 0),
-                                        ("comoda_smoothness", -1.0), ("comoda_min_motion", -0.1)])
+                                        ("comoda_smoothness", -1.0), ("comoda_min_motion", -0.1),
+                                        ("comoda_replay_from", "future")])
 def test_bad_settings_fail_naming_the_key(seq, key, value):
     with pytest.raises(ConfigError, match=key):
         _adapter(seq, **{key: value})

@@ -156,14 +156,14 @@ def bench_comoda_step(width: int = 640, height: int = 192, repeats: int = 5, fas
         cfg = replace(cfg, comoda_replay_per_step=int(replay))
     net = prepare(DepthNet(), fast)
     K = torch.tensor([[0.58 * width, 0, width / 2], [0, 1.92 * height, height / 2], [0, 0, 1]])
-    adapter = ComodaAdapter(net, PoseNet(), cfg, K, seed=seed, fast=fast)
     g = torch.Generator().manual_seed(seed)
 
     def triplet() -> torch.Tensor:
         return torch.randint(0, 256, (3, 3, height, width), generator=g, dtype=torch.uint8)
 
-    for k in range(cfg.comoda_replay_per_step):
-        adapter.replay.append((k, triplet()))  # a full batch from the first step on
+    # a replay bank (the default, source-domain replay) full from the first step on
+    bank = torch.stack([triplet() for _ in range(max(1, cfg.comoda_replay_per_step))])
+    adapter = ComodaAdapter(net, PoseNet(), cfg, K, seed=seed, fast=fast, replay_bank=(bank, K))
     current = triplet()
     ms, times = _median_ms(lambda: adapter.train_triplet(100, current), repeats, warmup)
     return {"ms": ms, "times_ms": times, "fast": fast, "width": width, "height": height,

@@ -19,13 +19,16 @@ and attributes part of the gap to the pose network, which was never trained indo
 - **Pose network** (:class:`~mutualslam_cli.adapt.networks.pose.PoseNet`): frames in temporal
   order, ``T_{t−1→t}`` inverted for the earlier source as in Monodepth2.
 - **Update**: ``comoda_steps_per_frame`` Adam steps (lr ``comoda_lr``) on a batch = the current
-  triplet + ``comoda_replay_per_step`` triplets drawn uniformly without replacement from a reservoir
-  of past triplets (``comoda_replay_capacity``, uint8 at network resolution). The current triplet
-  is stored after its update. BatchNorm stays in eval mode (batches of ≤ 4, as in our adapter).
+  triplet + ``comoda_replay_per_step`` triplets drawn uniformly without replacement from the replay
+  set (CoMoDa's batch of 4 = 1 + 3). The replay set (``comoda_replay_from``) is, as in CoMoDa, a
+  fixed bank of ``comoda_replay_capacity`` triplets of the *pre-training* domain
+  (:mod:`~mutualslam_cli.adapt.comoda_source`: CoMoDa replays KITTI training samples, its "distant
+  past"), each with its own intrinsics; or (``sequence``) a reservoir of this sequence's past
+  triplets, each stored after its update. Triplets are uint8 at network resolution. BatchNorm
+  stays in eval mode (batches of ≤ 4, as in our adapter).
 - **Not transferred indoors**: CoMoDa's velocity loss (GPS speed gives metric scale; TUM / ICL-NUIM
-  have no speed), its static-frame rule (by GPS speed; here an optional photometric gate,
-  ``comoda_min_motion``, off by default) and its replay of the source-domain training set (KITTI;
-  our source domain is synthetic, so only the sequence's own past is replayed).
+  have no speed) and its static-frame rule (a translation below 0.2 m by GPS speed; here an
+  optional photometric gate, ``comoda_min_motion``, off by default).
 - **Lag**: the target t is trained when t+1 arrives, so the update lags one frame.
 - **Trajectory**: ``T_wc`` chained from the pose network's ``T_{t→t+1}`` predicted (no grad) when
   frame t+1 arrives, after that frame's update: ``T_wc(t+1) = T_wc(t) · T_{t→t+1}⁻¹``, frame 0 = I.
@@ -70,6 +73,8 @@ def check_comoda_config(c: AdaptConfig) -> None:
         (c.comoda_replay_capacity >= 1, f"adapt.comoda_replay_capacity = {c.comoda_replay_capacity}: must be ≥ 1"),
         (c.comoda_smoothness >= 0, f"adapt.comoda_smoothness = {c.comoda_smoothness}: must be ≥ 0"),
         (c.comoda_min_motion >= 0, f"adapt.comoda_min_motion = {c.comoda_min_motion}: must be ≥ 0"),
+        (c.comoda_replay_from in ("source", "sequence"),
+         f"adapt.comoda_replay_from = {c.comoda_replay_from!r}: expected 'source' or 'sequence'"),
     ]
     for ok, msg in checks:
         if not ok:
@@ -131,7 +136,8 @@ class FrameStep:
         frame: index of the arriving frame. target: index of the trained triplet's middle frame
             (``frame − 1``) or ``None`` before the first full triplet.
         trained: an update ran. static: the motion gate skipped the triplet.
-        batch: triplet targets in the batch (current first, then the replayed ones).
+        batch: triplet targets in the batch (current first, then the replayed ones; a replayed
+            source-domain triplet ``k`` of the bank is ``-1 - k``).
         loss: ``photo``, ``smooth``, ``total``, ``automask`` (fraction of pixels trained) of the first
             step; empty when not trained.
         step_ms: milliseconds of the update (all steps).
@@ -156,13 +162,17 @@ class ComodaAdapter:
         K_net: ``(3, 3)`` intrinsics at network resolution.
         seed: seed of every random choice.
         fast: bf16 autocast around the forward passes (losses stay fp32).
+        replay_bank: ``(triplets (N, 3, 3, H, W) uint8, K (3, 3))``: replay only these (CoMoDa's
+            replay of the training domain) and store nothing of the sequence; ``None``: replay a
+            reservoir of the sequence's own past triplets.
 
     Raises:
         ConfigError: a ``comoda_*`` setting out of range.
     """
 
     def __init__(self, depth_net: nn.Module, pose_net: PoseNet, cfg: AdaptConfig,
-                 K_net: torch.Tensor | np.ndarray, seed: int = 0, fast: bool = False) -> None:
+                 K_net: torch.Tensor | np.ndarray, seed: int = 0, fast: bool = False,
+                 replay_bank: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
         check_comoda_config(cfg)
         self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32)
         check_shape(self.K_net, [3, 3], "ComodaAdapter: K_net")
@@ -175,7 +185,13 @@ class ComodaAdapter:
         self.reservoir_rng = np.random.default_rng(seed + 1)
         self.noise = torch.Generator().manual_seed(seed + 2)
         self.window: list[tuple[int, torch.Tensor]] = []   # the last three frames, uint8 (3, H, W)
-        self.replay: list[tuple[int, torch.Tensor]] = []   # (target, (3, 3, H, W) uint8 triplet)
+        self.replay: list[tuple[int, torch.Tensor, torch.Tensor]] = []  # (target, (3, 3, H, W) uint8, K (3, 3))
+        self.fixed_bank = replay_bank is not None
+        if replay_bank is not None:
+            triplets, K_src = replay_bank
+            check_shape(triplets, ["N", 3, 3, "H", "W"], "ComodaAdapter: replay_bank triplets")
+            K_src = torch.as_tensor(K_src, dtype=torch.float32)
+            self.replay = [(-1 - k, triplets[k], K_src) for k in range(triplets.shape[0])]
         self.n_seen_triplets = 0
         self.poses: list[np.ndarray] = []                   # T_wc of every frame so far
         self.history: list[FrameStep] = []
@@ -219,9 +235,10 @@ class ComodaAdapter:
         return np.stack(self.poses) if self.poses else np.zeros((0, 4, 4))
 
     def loss_on(self, triplets: torch.Tensor) -> dict[str, float]:
-        """The loss parts of the current networks on ``(B, 3, 3, H, W)`` uint8 triplets, without training."""
+        """The loss parts of the current networks on ``(B, 3, 3, H, W)`` uint8 triplets of this
+        sequence's camera, without training."""
         with torch.no_grad():
-            _, parts = self._loss(triplets)
+            _, parts = self._loss(triplets, self.K_net.expand(triplets.shape[0], 3, 3))
         return parts
 
     # ------------------------------------------------------------------ internals
@@ -232,16 +249,15 @@ class ComodaAdapter:
         change = min(float((f[1] - f[0]).abs().mean()), float((f[1] - f[2]).abs().mean()))
         return change < self.cfg.comoda_min_motion
 
-    def _loss(self, triplets: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
-        """Eq. 4–5 of Monodepth2 + λ_s·L_smooth on ``(B, 3, 3, H, W)`` uint8 triplets (t−1, t, t+1)."""
+    def _loss(self, triplets: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+        """Eq. 4–5 of Monodepth2 + λ_s·L_smooth on ``(B, 3, 3, H, W)`` uint8 triplets (t−1, t, t+1)
+        with their ``(B, 3, 3)`` intrinsics."""
         f = triplets.float() / 255.0
         prev, tgt, nxt = f[:, 0], f[:, 1], f[:, 2]
-        b = tgt.shape[0]
         with fast_context(self.fast):
             depth = self.net.predict(tgt)
             T_prev2t = self.pose_net(prev, tgt)        # T_{t−1→t}
             T_t2next = self.pose_net(tgt, nxt)         # T_{t→t+1}
-        K = self.K_net.expand(b, 3, 3)
         photo, mask = automasked_min_reprojection(tgt, [prev, nxt], depth, K,
                                                   [se3_inv_torch(T_prev2t.float()), T_t2next.float()],
                                                   self.cfg.alpha, self.noise)
@@ -255,11 +271,12 @@ class ComodaAdapter:
         k = min(self.cfg.comoda_replay_per_step, len(self.replay))
         picks = sorted(self.rng.choice(len(self.replay), size=k, replace=False).tolist()) if k else []
         batch = torch.stack([triplet] + [self.replay[i][1] for i in picks])
+        K = torch.stack([self.K_net] + [self.replay[i][2] for i in picks])
         info.batch = [target] + [self.replay[i][0] for i in picks]
         t0 = time.perf_counter()
         for s in range(self.cfg.comoda_steps_per_frame):
             self.optimizer.zero_grad(set_to_none=True)
-            loss, parts = self._loss(batch)
+            loss, parts = self._loss(batch, K)
             loss.backward()
             self.optimizer.step()
             if s == 0:
@@ -269,14 +286,17 @@ class ComodaAdapter:
         info.trained = True
 
     def _store(self, target: int, triplet: torch.Tensor) -> None:
-        """Reservoir sampling (Vitter's algorithm R): every past triplet stays with equal probability."""
+        """Reservoir sampling (Vitter's algorithm R): every past triplet stays with equal probability.
+        Nothing is stored when the replay set is a fixed bank."""
+        if self.fixed_bank:
+            return
         self.n_seen_triplets += 1
         if len(self.replay) < self.cfg.comoda_replay_capacity:
-            self.replay.append((target, triplet))
+            self.replay.append((target, triplet, self.K_net))
             return
         j = int(self.reservoir_rng.integers(self.n_seen_triplets))
         if j < self.cfg.comoda_replay_capacity:
-            self.replay[j] = (target, triplet)
+            self.replay[j] = (target, triplet, self.K_net)
 
     def _extend_trajectory(self) -> None:
         if not self.poses:

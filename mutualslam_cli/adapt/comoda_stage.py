@@ -25,6 +25,7 @@ import torch
 
 from mutualslam_cli import results as res
 from mutualslam_cli.adapt.comoda import ComodaAdapter, FrameStep, make_pose_net
+from mutualslam_cli.adapt.comoda_source import source_triplets
 from mutualslam_cli.adapt.depthnet import prepare
 from mutualslam_cli.adapt.inputs import to_net_image
 from mutualslam_cli.adapt.stage import Progress
@@ -77,8 +78,10 @@ def run_comoda_stage(seq: Sequence, net: torch.nn.Module, cfg: RunConfig, fast: 
     """
     w, h = cfg.net.width, cfg.net.height
     net = prepare(net, fast)
+    bank = (source_triplets(cfg.adapt.comoda_replay_capacity, w, h)
+            if cfg.adapt.comoda_replay_from == "source" and cfg.adapt.comoda_replay_per_step > 0 else None)
     adapter = ComodaAdapter(net, make_pose_net(net, cfg.adapt), cfg.adapt,
-                            seq.intrinsics.scaled(w, h).K(), seed=cfg.seed, fast=fast)
+                            seq.intrinsics.scaled(w, h).K(), seed=cfg.seed, fast=fast, replay_bank=bank)
     und = Undistorter(seq.intrinsics)
     rows, t0 = [], time.perf_counter()
     for i in range(len(seq)):
