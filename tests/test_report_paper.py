@@ -135,6 +135,22 @@ def test_without_external_models_the_tables_are_unchanged():
     assert list(table6(_runs()).display["Method"]) == ["Pre-trained", "Ours"]
 
 
+def test_comoda_runs_add_a_column_to_tables_1_2_6_and_their_posenet_ate_to_table_4():
+    r = _runs()
+    com = r[r["scheme"] == "recent"].assign(scheme="comoda")
+    com["trajectory.ate_rmse_m.posenet"] = 0.25
+    com["depth.pcd.median.adapted"] = 12.5
+    r = pd.concat([r, com])
+    assert "CoMoDa-style (comoda)" in table1(r).display.columns
+    d2 = table2(r).display.set_index("Sequence")
+    assert list(d2.columns[:3]) == ["Pre-trained", "CoMoDa-style (comoda)", "Ours"]
+    assert d2["CoMoDa-style (comoda)"].iloc[0].startswith("12.50")
+    d4 = table4(r).display
+    assert d4["PoseNet, all frames (comoda)"].iloc[0].startswith("0.2500")
+    assert "CoMoDa-style (comoda)" in set(table6(r).display["Method"])
+    assert "PoseNet, all frames (comoda)" not in table4(_runs()).display.columns
+
+
 def test_table1_has_a_luo_style_column_when_luo_ran_and_the_papers_luo_numbers():
     r = _runs()
     r = pd.concat([r, r[r["scheme"] == "recent"].assign(scheme="luo")])
