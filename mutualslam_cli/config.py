@@ -218,6 +218,36 @@ class EvalConfig:
 
 
 @dataclass(frozen=True)
+class DenseConfig:
+    """Dense reconstruction from the adapted depth (issue 13, :mod:`~mutualslam_cli.dense_stage`):
+    TSDF fusion of both models' depth along the run's poses, in metres, scored against the same
+    fusion of GT depth with GT poses. Defaults suit rooms."""
+
+    enabled: bool = False
+    """Run the dense stage after the evaluation (``mslam fuse RUN_DIR`` runs it on a finished run)."""
+    every: int = 0
+    """Frames fused: 0 = the keyframes; k > 0 = every k-th frame that has a pose."""
+    voxel_size: float = 0.02
+    """TSDF voxel edge, metres (the F-score's 5 cm is 2.5 voxels). > 0."""
+    trunc_voxels: float = 4.0
+    """Truncation distance in voxels (4 × 0.02 = 0.08 m). ≥ 1."""
+    depth_min: float = 0.1
+    """Depth below this (metres) is not fused. > 0."""
+    depth_max: float = 4.0
+    """Depth above this (metres) is not fused. > depth_min."""
+    block_resolution: int = 8
+    """Voxels per block edge (8: 16 cm blocks; less empty space around a surface than 16)."""
+    block_count: int = 40000
+    """Cap on the voxel blocks of one TSDF (allocated once, never grown): memory ≤ block_count ×
+    block_resolution³ × 20 bytes (40000 × 8³ × 20 B = 410 MB). A frame that needs more blocks
+    updates only the blocks that exist. ≥ 1."""
+    weight_threshold: float = 1.0
+    """Surface extraction keeps voxels fused at least this many times. ≥ 0."""
+    render_width: int = 480
+    """Width of each panel of ``dense.png``, pixels (height ¾ of it). ≥ 32."""
+
+
+@dataclass(frozen=True)
 class ExperimentConfig:
     """What a paper experiment runs (``mslam ablate --config configs/<experiment>.yaml``) and reports."""
 
@@ -248,6 +278,7 @@ class RunConfig:
     adapt: AdaptConfig = field(default_factory=AdaptConfig)
     ba: BAConfig = field(default_factory=BAConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
 
 
@@ -347,6 +378,13 @@ def _validate(cfg: RunConfig) -> None:
         (cfg.vo.core_kfs >= 2, "vo.core_kfs must be ≥ 2"),
         (0 <= cfg.vo.inject_outliers < 1, "vo.inject_outliers must be in [0, 1)"),
         (cfg.ba.patch % 2 == 1, "ba.patch must be odd"),
+        (cfg.dense.every >= 0, "dense.every must be ≥ 0 (0 = keyframes)"),
+        (cfg.dense.voxel_size > 0 and cfg.dense.trunc_voxels >= 1, "dense.voxel_size > 0 and dense.trunc_voxels ≥ 1"),
+        (0 < cfg.dense.depth_min < cfg.dense.depth_max, "dense.depth_min must be in (0, dense.depth_max)"),
+        (cfg.dense.block_resolution >= 2 and cfg.dense.block_count >= 1,
+         "dense.block_resolution ≥ 2 and dense.block_count ≥ 1"),
+        (cfg.dense.weight_threshold >= 0, "dense.weight_threshold must be ≥ 0"),
+        (cfg.dense.render_width >= 32, "dense.render_width must be ≥ 32"),
     ]
     for ok, msg in checks:
         if not ok:
