@@ -4,7 +4,7 @@ One error boundary (:mod:`~mutualslam_cli.cli_common`): an :class:`~mutualslam_c
 becomes one red line and exit code 1; anything else is a bug and keeps its traceback (including the
 project's programming errors :class:`~mutualslam_cli.errors.ShapeError` and
 :class:`~mutualslam_cli.errors.TransitionError`, which are deliberately not ``MslamError``).
-Commands: ``datasets``, ``synth``, ``ate``, ``pretrain``, ``run``, ``eval-depth`` here; ``ablate`` and
+Commands: ``datasets``, ``synth``, ``ate``, ``pretrain``, ``run``, ``fuse``, ``eval-depth`` here; ``ablate`` and
 ``report`` in :mod:`~mutualslam_cli.cli_grid`.
 """
 
@@ -244,8 +244,13 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
     f = flatten(s)
     t = Table("metric", "pre-trained", "adapted",
               title=f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}")
-    for label, key in (("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")):
-        t.add_row(label, _fmt(f.get(f"{key}.pretrained"), 2), _fmt(f.get(f"{key}.adapted"), 2))
+    rows = [("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")]
+    if f.get("dense.time_s") is not None:  # the dense stage ran
+        rows += [("dense accuracy m", "dense.accuracy_m"), ("dense completeness m", "dense.completeness_m"),
+                 ("dense F-score @5cm", "dense.fscore_5cm")]
+    for label, key in rows:
+        t.add_row(label, _fmt(f.get(f"{key}.pretrained"), 3 if key.startswith("dense") else 2),
+                  _fmt(f.get(f"{key}.adapted"), 3 if key.startswith("dense") else 2))
     common.console.print(t)
     t2 = Table("ATE kf m", "ATE all m", "tracked", "keyframes", "map points", "map e_si", "depth ms", "ms/step")
     t2.add_row(_fmt(f.get("trajectory.ate_rmse_m.vo"), 4), _fmt(f.get("trajectory.ate_rmse_m.all_frames"), 4),
@@ -287,7 +292,8 @@ def run(
         def cb(stage: str, info: dict[str, Any]) -> None:
             total = info.get("total", info.get("n_frames"))
             if stage not in tasks:
-                tasks[stage] = p.add_task({"vo": "front end", "adapt": "adapt", "eval": "evaluate"}.get(stage, stage),
+                tasks[stage] = p.add_task({"vo": "front end", "adapt": "adapt", "eval": "evaluate",
+                                           "dense": "dense"}.get(stage, stage),
                                           total=total, info="")
             done = info.get("done", (info.get("frame", -1) + 1))
             if stage == "vo":
@@ -301,13 +307,46 @@ def run(
                 text = (f"{what} · loss {_fmt(info.get('loss_total'), 4)} · L_val {_fmt(lv, 4)}"
                         f" · converged {info.get('n_converged', 0)}")
             else:
-                text = ""
+                text = info.get("phase", "")
             p.update(tasks[stage], completed=done, total=total, info=text)
 
         r = run_sequence(seq, cfg, out=out, command=sys.argv, force=force, progress=cb, registry=registry)
     if r.skipped:
         common.console.print(f"[yellow]already complete[/] (use --force to recompute): {r.folder}")
     _render_summary(r.folder, r.summary)
+
+
+# --------------------------------------------------------------------------- fuse
+
+
+@app.command()
+@_boundary
+def fuse(
+    run_dir: Path = typer.Argument(..., help="A finished run folder (<out>/<seq>/<scheme>/seed<k>) with weights/."),
+    sets: Optional[list[str]] = SetOpt,
+    registry: Optional[Path] = RegistryOpt,
+) -> None:
+    """Dense reconstruction of a finished run: TSDF meshes of both models' depth, scored against GT depth
+    fused with GT poses (needs the run's adapted weights: --set eval.save_weights=true)."""
+    from mutualslam_cli.dense_stage import fuse_run
+    from mutualslam_cli.results import flatten
+
+    with _progress() as p:
+        tasks: list[Any] = []  # the bar appears with the first step: an error before it is one line
+
+        def cb(stage: str, info: dict[str, Any]) -> None:
+            if stage == "dense":  # a front end recomputed (no VO cache) reports as "vo": not this bar
+                tasks[:] = tasks or [p.add_task("dense", total=info["total"], info="")]
+                p.update(tasks[0], completed=info["done"], total=info["total"], info=info.get("phase", ""))
+
+        s = fuse_run(run_dir, sets or [], registry, command=sys.argv, progress=cb)
+    f = flatten(s)
+    t = Table("metric", "pre-trained", "adapted", title=f"{f.get('sequence.name')} · dense ({f.get('dense.source')})")
+    for label, key in (("accuracy m", "accuracy_m"), ("completeness m", "completeness_m"),
+                       ("F-score @5cm", "fscore_5cm")):
+        t.add_row(label, _fmt(f.get(f"dense.{key}.pretrained"), 4), _fmt(f.get(f"dense.{key}.adapted"), 4))
+    common.console.print(t)
+    common.console.print(f"meshes and dense.png in {run_dir} ({_fmt(f.get('dense.time_s'), 1)} s)")
 
 
 # --------------------------------------------------------------------------- eval-depth

@@ -26,6 +26,7 @@ from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.ba.culling import inject_outliers
 from mutualslam_cli.ba_stage import BALog, final_ba, make_ba_step, no_culling_reason, write_ba_results
 from mutualslam_cli.config import RunConfig, to_dict
+from mutualslam_cli.dense_stage import add_stage_time, run_dense
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.evaluation import esi_of_log_errors, evaluate_models, evaluate_trajectory, map_log_depth_errors
@@ -66,7 +67,7 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         out: results root (default ``cfg.out``).
         command: the command line, recorded in ``manifest.json``.
         force: recompute even when the run is complete.
-        progress: ``progress(stage, info)`` with stages ``load``, ``vo``, ``adapt``, ``eval``.
+        progress: ``progress(stage, info)`` with stages ``load``, ``vo``, ``adapt``, ``eval``, ``dense``.
         registry: an alternative ``datasets.yaml``.
 
     Returns:
@@ -164,8 +165,16 @@ def _run_locked(seq: Sequence, cfg: RunConfig, folder: Path, out_root: Path, com
     if cfg.eval.save_weights and cfg.adapt.scheme != "none":
         save_monodepth2(net, folder / "weights", cfg.net.height, cfg.net.width)
 
+    # Dense reconstruction of both models' depth, scored against GT depth fused with GT poses (issue 13).
+    if cfg.dense.enabled:
+        t = time.perf_counter()
+        run_dense(folder, seq, vo, {"pretrained": net0, "adapted": None if cfg.adapt.scheme == "none" else net},
+                  cfg, fast, summary, progress)
+        timings["dense_s"] = time.perf_counter() - t
+
     timings["total_s"] = time.perf_counter() - t_start
     res.summarise_stages(summary, timings, ba_trigger_s, cached)
+    add_stage_time(summary, timings)
     summary.set("vo.from_cache", cached)
     summary.set("sequence.name", seq.name)
     summary.set("sequence.frames", len(seq))

@@ -25,6 +25,8 @@ import yaml
 
 from mutualslam_cli import results as res
 from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.report_dense import TITLE as DENSE_TITLE
+from mutualslam_cli.report_dense import dense_figures, dense_table
 from mutualslam_cli.report_maps import map_figures
 from mutualslam_cli.report_paper import paper_tables
 from mutualslam_cli.report_plots import report_figures
@@ -94,7 +96,7 @@ def config_labels(runs: pd.DataFrame, exclude: tuple[str, ...] = ()) -> pd.Serie
     (except :data:`IGNORED_CONFIG` and ``exclude``); ``""`` when all runs agree. ``?``: the run
     has no such key (older ``config.yaml`` or none)."""
     keys = [c for c in runs.columns if c.startswith("config.") and c[7:] not in IGNORED_CONFIG + exclude
-            and not c.startswith("config.experiment.")]  # what a run was for, not how it ran
+            and not c.startswith(("config.experiment.", "config.dense."))]  # what a run was for / after it
     shown = runs[keys].map(lambda v: "?" if v is None or (isinstance(v, float) and v != v) else str(v))
     differing = [c for c in keys if shown[c].nunique() > 1]
     if not differing:
@@ -149,6 +151,9 @@ def build_tables(runs: pd.DataFrame) -> Report:
         t = t.reset_index()
         rep.tables[name] = t if varied else t.drop(columns="config")
         rep.titles[name] = title
+    dense = dense_table(runs)  # issue 13: only when some run ran the dense stage
+    if dense is not None:
+        rep.tables["dense"], rep.titles["dense"] = dense if varied else dense.drop(columns="config"), DENSE_TITLE
     for name, key, what in (("ablation", "depth.pcd.lsq.adapted", "every frame"),
                             ("ablation_nonkf", "depth.pcd_nonkf.lsq.adapted", "non-keyframes only")):
         if key not in runs:
@@ -341,6 +346,7 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
         written += [out_dir / f"{name}.{e}" for e in ("csv", "tex", "md")]
     figures, notes = report_figures(rep.runs, out_dir)
     figures += map_figures(rep.runs, out_dir)
+    figures += dense_figures(rep.runs, out_dir)
     md.append("## Figures\n\n" + "".join(f"{n}\n\n" for n in notes)
               + "".join(f"![{f.stem}]({f.relative_to(out_dir).as_posix()})\n\n" for f in figures))
     res.atomic_write_text(out_dir / "report.md", "# mslam report\n\n" + "\n".join(md))

@@ -1,0 +1,437 @@
+"""The dense stage of a run (issue 13): both models' depth fused along the run's poses, in metres,
+scored against the same fusion of GT depth with GT poses.
+
+:func:`run_dense` is what ``mslam run --set dense.enabled=true`` calls after the evaluation;
+:func:`fuse_run` runs it on a finished run folder that kept its adapted weights (``mslam fuse``).
+Both read the poses from the run folder's trajectory files, so they give the same meshes and scores.
+
+The choices this stage makes, in order:
+
+- **Frames**: the keyframes (``dense.every: 0``) or every k-th frame that has a pose.
+- **Poses**: the keyframe (or all-frame) trajectory after the global BA when the run has one
+  (``traj_*_ba.txt``), else the front end's. Each tracking segment is brought into the GT frame by
+  the Sim(3) that aligns its keyframe positions to GT (Umeyama with scale on the pairs associated
+  as the ATE associates them): ``T' = [R·R_wc | s·R·c + t]``. Segments with < 3 pairs are not fused.
+- **Depth scale**: per model and sequence, ``k = median over the keyframes of median(z_vo / z_pred)``
+  over the front end's map points each keyframe observes (the sparse depth the adaptation trains on),
+  then metres by the Sim(3) scale of the *front end's* keyframe trajectory (the map the ratios were
+  taken in; after BA the poses keep their own Sim(3)). The same rule for both models: the adapted
+  model is trained in map units, the pre-trained one is in arbitrary units. ``dense.scale.*`` is k,
+  ``dense.metric_scale.*`` the factor applied (metres per network unit).
+- **Resolution**: predictions are fused at network resolution with the intrinsics scaled to it (what
+  the network predicts; resizing to the image adds pixels but no information and costs 2.5× the
+  pixels at 640×480); the GT reference at the image's own resolution, undistorted like the frames.
+- **Reference**: GT depth of the same frames with their GT poses (associated at image time by the
+  loader); frames without either are skipped. A sequence without GT depth gets the predicted meshes
+  and every score ``null`` with the reason; without GT poses nothing is fused (no metric scale).
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+import torch
+
+from mutualslam_cli import dense
+from mutualslam_cli import results as res
+from mutualslam_cli.adapt.inference import resolve_runtime
+from mutualslam_cli.adapt.inputs import make_predictor, scale_pixels
+from mutualslam_cli.config import RunConfig, with_overrides
+from mutualslam_cli.datasets.associate import read_tum_trajectory
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.errors import DatasetError, GeometryError
+from mutualslam_cli.evaluation import calibration_frames
+from mutualslam_cli.metrics.alignment import align_positions
+from mutualslam_cli.metrics.trajectory import associate_indices
+from mutualslam_cli.report_dense import dense_picture
+from mutualslam_cli.types import Trajectory
+from mutualslam_cli.vo.camera import Undistorter, pinhole
+from mutualslam_cli.vo.output import VOResult
+
+log = logging.getLogger(__name__)
+
+MODELS = ("pretrained", "adapted")
+#: The scores of issue 13, ``dense.<score>.<model>`` (DESIGN §8 style: null with a reason when absent).
+DENSE_KEYS = tuple(f"dense.{k}.{m}" for k in ("accuracy_m", "completeness_m", "fscore_5cm") for m in MODELS)
+#: Further per-model keys stored beside them.
+EXTRA_KEYS = tuple(f"dense.{k}.{m}" for k in ("precision_5cm", "recall_5cm", "accuracy_median_m",
+                                              "completeness_median_m") for m in MODELS)
+#: Frames decoded and predicted at once in the prediction pass.
+_GROUP = 8
+#: Fewer frames to predict than this: PyTorch, not the evaluation's OpenVINO runtime. Converting a model
+#: to OpenVINO costs ~4 s and saves ~50 ms per 640×192 frame here (130 vs 180 ms, one thread, bf16): it
+#: pays from ~80 frames (the keyframes of the shared windows are 13–60).
+OPENVINO_MIN_FRAMES = 80
+Progress = Callable[[str, dict[str, Any]], None]
+
+
+@dataclass
+class FusedFrame:
+    """One frame to fuse: sequence index, keyframe id (or None), segment and pose ``(4, 4)`` in the GT frame (m)."""
+
+    frame: int
+    kf_id: int | None
+    segment: int
+    T_metric: np.ndarray
+
+
+def _trajectory(folder: Path, name: str) -> tuple[Trajectory | None, str]:
+    """``traj_<name>_ba.txt`` when the run has it, else ``traj_<name>.txt``; and which one it was."""
+    for suffix, what in (("_ba", "after global BA"), ("", "front end, no BA")):
+        path = folder / f"traj_{name}{suffix}.txt"
+        if path.is_file():
+            return read_tum_trajectory(path), what
+    return None, "missing"
+
+
+def sim3_per_segment(gt: Trajectory, est: Trajectory, segments: np.ndarray,
+                     max_dt: float) -> dict[int, tuple[np.ndarray, np.ndarray, float]]:
+    """``{segment: (R (3, 3), t (3,), s)}`` aligning each segment's positions to GT (Umeyama, Sim(3));
+    pairs associated by timestamp as the ATE does. Segments with < 3 pairs or degenerate positions are left out."""
+    i_ref, i_est = associate_indices(gt.timestamps, est.timestamps, max_dt)
+    out = {}
+    for sid in np.unique(segments[i_est]) if len(i_est) else []:
+        k = np.flatnonzero(segments[i_est] == sid)
+        if len(k) < 3:
+            continue
+        try:
+            _, T, R, s = align_positions(gt.positions[i_ref[k]], est.positions[i_est[k]], "sim3")
+        except GeometryError:
+            continue
+        out[int(sid)] = (R, T[:3, 3].copy(), float(s))
+    return out
+
+
+def apply_sim3(T_wc: np.ndarray, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
+    """``(4, 4)`` pose after the similarity ``x ↦ s·R·x + t``: rotation ``R·R_wc``, centre ``s·R·c + t``."""
+    out = np.eye(4)
+    out[:3, :3] = R @ T_wc[:3, :3]
+    out[:3, 3] = s * R @ T_wc[:3, 3] + t
+    return out
+
+
+def select_frames(seq: Sequence, vo: VOResult, folder: Path, every: int,
+                  max_dt: float) -> tuple[list[FusedFrame], dict[int, float], str]:
+    """The frames to fuse with their metric poses, the Sim(3) scale of each aligned segment, and a note
+    naming the trajectory used.
+
+    Raises:
+        DatasetError: the trajectory files do not match the front end's keyframes, or no segment aligns.
+    """
+    kf_traj, what = _trajectory(folder, "kf")
+    if kf_traj is None or len(kf_traj) != len(vo.keyframes):
+        raise DatasetError(f"{folder}: traj_kf*.txt has {0 if kf_traj is None else len(kf_traj)} poses for "
+                           f"{len(vo.keyframes)} keyframes (is this the run's front end?)")
+    kf_seg = np.array([k.segment for k in vo.keyframes], np.int64)
+    sims = sim3_per_segment(seq.gt, kf_traj, kf_seg, max_dt)
+    if not sims:
+        raise GeometryError("no tracking segment has 3 keyframes associated with GT poses: no Sim(3) to metres")
+    rows: list[tuple[int, int | None, int, np.ndarray]] = []
+    if every == 0:
+        rows = [(k.frame_index, k.id, k.segment, kf_traj.poses[i]) for i, k in enumerate(vo.keyframes)]
+        note = f"keyframes, {what}"
+    else:
+        all_traj, what = _trajectory(folder, "all")
+        if all_traj is None:
+            raise DatasetError(f"{folder}: no traj_all.txt (the poses of every tracked frame)")
+        by_time = {f.timestamp: i for i, f in enumerate(seq.frames)}
+        by_frame = {k.frame_index: k.id for k in vo.keyframes}
+        for t, T in zip(all_traj.timestamps, all_traj.poses):
+            i = by_time.get(float(t))
+            if i is not None and i % every == 0 and i < len(vo.frame_segment) and vo.frame_segment[i] >= 0:
+                rows.append((i, by_frame.get(i), int(vo.frame_segment[i]), T))
+        note = f"every {every}th frame, {what}"
+    frames = [FusedFrame(i, kf, seg, apply_sim3(T, *sims[seg])) for i, kf, seg, T in rows if seg in sims]
+    return frames, {k: v[2] for k, v in sims.items()}, note
+
+
+# ----------------------------------------------------------------------------- the stage
+
+
+def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Module | None], cfg: RunConfig,
+              fast: bool, summary: res.Summary, progress: Progress | None = None) -> None:
+    """Fuse, score and draw (module docstring); writes ``mesh_{pretrained,adapted,gt}.ply`` and
+    ``dense.png`` into ``folder`` and the ``dense.*`` keys into ``summary``.
+
+    Args:
+        folder: the run folder (its ``traj_*.txt`` give the poses).
+        vo: the run's front-end result (keyframes, map points, segments).
+        nets: ``pretrained`` and ``adapted`` networks (``adapted`` None: scheme ``none``).
+        progress: ``progress("dense", {"done", "total", "phase"})``.
+    """
+    t0 = time.perf_counter()
+    dc = cfg.dense
+    for key in DENSE_KEYS + EXTRA_KEYS:
+        summary.values.pop(key, None)
+    for name in ("mesh_pretrained.ply", "mesh_adapted.ply", "mesh_gt.ply", "dense.png"):  # none stale
+        (folder / name).unlink(missing_ok=True)
+    summary.set("dense.block_cap", dc.block_count)
+    summary.set("dense.memory_cap_mb", dense.block_memory_bytes(dc.block_resolution, dc.block_count) / 1e6)
+    try:
+        _run(folder, seq, vo, nets, cfg, fast, summary, progress)
+    except GeometryError as e:  # nothing to bring into metres: every key null with the reason
+        for key in DENSE_KEYS + EXTRA_KEYS:
+            summary.absent(key, str(e))
+    summary.set("dense.time_s", time.perf_counter() - t0)
+
+
+def _run(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Module | None], cfg: RunConfig,
+         fast: bool, summary: res.Summary, progress: Progress | None) -> None:
+    dc = cfg.dense
+    if seq.gt is None or len(seq.gt) == 0:
+        raise GeometryError("sequence has no GT poses: no Sim(3) to bring the run into metres")
+    fused, sim_scales, note = select_frames(seq, vo, folder, dc.every, cfg.eval.ate_max_dt)
+    if not fused:
+        raise GeometryError(f"no frame to fuse ({note})")
+    models = [m for m in MODELS if nets.get(m) is not None]
+    seg_count = {s: sum(f.segment == s for f in fused) for s in sim_scales}
+    summary.set("dense.sim3_scale", sim_scales[max(seg_count, key=lambda s: (seg_count[s], -s))])
+    summary.set("dense.segments", len(sim_scales))
+    summary.set("dense.frames", len(fused))
+    summary.set("dense.source", note)
+    n_ref = sum(seq.frames[f.frame].depth_path is not None and seq.frames[f.frame].pose is not None for f in fused)
+    has_ref = n_ref > 0
+    total = len(fused) * (len(models) + 1) + len(vo.keyframes)
+    done = [0]
+
+    def tick(phase: str) -> None:
+        done[0] += 1
+        if progress:
+            progress("dense", {"done": done[0], "total": total, "phase": phase})
+
+    meshes: dict[str, dense.Mesh] = {}
+    with tempfile.TemporaryDirectory(prefix=".dense-", dir=folder) as tmp:
+        preds, rgbs, scales = _predict(Path(tmp), seq, vo, fused, {m: nets[m] for m in models}, cfg, fast, tick)
+        K_net = vo.intrinsics.scaled(cfg.net.width, cfg.net.height).K()
+        for m in models:
+            k, metric = scales[m]
+            summary.set(f"dense.scale.{m}", k, "no keyframe observes a map point with a positive prediction")
+            summary.set(f"dense.metric_scale.{m}", metric, "no keyframe in an aligned segment observes a map point")
+            if metric is None:
+                done[0] += len(fused)
+                continue
+            vol = _volume(cfg)
+            for j in range(len(fused)):
+                vol.integrate(preds[m][j] * metric, K_net, fused[j].T_metric, rgbs[j])
+                tick(f"fuse {m}")
+            meshes[m] = _finish(vol, folder / f"mesh_{m}.ply", m, cfg, summary)
+            del vol  # one grid at a time (its memory is allocated whole)
+    if has_ref:
+        vol = _volume(cfg)
+        und, K_img = Undistorter(seq.intrinsics), pinhole(seq.intrinsics).K()
+        for f in fused:
+            fr = seq.frames[f.frame]
+            depth = seq.load_depth(f.frame) if fr.pose is not None else None
+            if depth is not None:
+                vol.integrate(und.depth(depth), K_img, fr.pose, und.image(seq.load_rgb(f.frame)))
+            tick("fuse GT")
+        meshes["gt"] = _finish(vol, folder / "mesh_gt.ply", "gt", cfg, summary)
+        del vol
+    summary.set("dense.frames_reference", n_ref)
+    _score(meshes, models, cfg, summary, has_ref)
+    if cfg.adapt.scheme == "none" and "pretrained" in meshes:
+        for key in DENSE_KEYS + EXTRA_KEYS:
+            if key.endswith(".adapted"):
+                src = key[: -len("adapted")] + "pretrained"
+                summary.values[key] = summary.values.get(src)
+                summary.notes[key] = "scheme 'none': the adapted model is the pre-trained model"
+    _picture(folder / "dense.png", meshes, fused, seq, summary, cfg)
+
+
+def _volume(cfg: RunConfig) -> dense.TSDFVolume:
+    dc = cfg.dense
+    return dense.TSDFVolume(dc.voxel_size, dc.trunc_voxels, dc.depth_min, dc.depth_max, dc.block_resolution,
+                            dc.block_count)
+
+
+def _finish(vol: dense.TSDFVolume, path: Path, name: str, cfg: RunConfig, summary: res.Summary) -> dense.Mesh:
+    """Extract and write one mesh; record its blocks, triangles and capped frames."""
+    mesh = vol.mesh(cfg.dense.weight_threshold)
+    dense.write_mesh(path, mesh)
+    summary.set(f"dense.blocks.{name}", vol.blocks)
+    summary.set(f"dense.triangles.{name}", len(mesh.triangles))
+    summary.set(f"dense.frames_capped.{name}", vol.frames["existing_only"] + vol.frames["skipped"])
+    return mesh
+
+
+def _predict(tmp: Path, seq: Sequence, vo: VOResult, fused: list[FusedFrame], nets: dict[str, torch.nn.Module],
+             cfg: RunConfig, fast: bool, tick: Callable[[str], None]) -> tuple[dict, np.ndarray, dict]:
+    """One pass over the keyframes and the fused frames: each model's depth of the fused frames and
+    their RGB at network resolution, kept in memory-mapped files under ``tmp`` (memory stays flat in
+    the sequence length), and each model's scale ``(k, metres per network unit)`` (module docstring)."""
+    w, h = cfg.net.width, cfg.net.height
+    slot = {f.frame: j for j, f in enumerate(fused)}
+    kf_of = {k.frame_index: k for k in vo.keyframes}
+    need = sorted(set(slot) | set(kf_of))
+    preds = {m: np.lib.format.open_memmap(tmp / f"{m}.npy", "w+", np.float32, (len(fused), h, w)) for m in nets}
+    rgbs = np.lib.format.open_memmap(tmp / "rgb.npy", "w+", np.uint8, (len(fused), h, w, 3))
+    if len(need) < OPENVINO_MIN_FRAMES:
+        cfg = with_overrides(cfg, net={"runtime": "torch"})
+    calib = calibration_frames(seq) if resolve_runtime(cfg.net.runtime, cfg.net.fast) == "openvino-int8" else None
+    predictors = {m: make_predictor(net, cfg, fast, calib) for m, net in nets.items()}
+    vo_scale = _front_end_scales(seq, vo, cfg)
+    pw = vo.points_world()
+    ratios: dict[str, list[tuple[float, float]]] = {m: [] for m in nets}
+    und, bs = Undistorter(seq.intrinsics), max(1, cfg.eval.batch)
+    for start in range(0, len(need), _GROUP):
+        chunk = need[start:start + _GROUP]
+        frames = [und.image(seq.load_rgb(i)) for i in chunk]
+        out = {m: np.concatenate([predict(frames[b:b + bs]) for b in range(0, len(chunk), bs)])
+               for m, predict in predictors.items()}
+        for j, i in enumerate(chunk):
+            if i in slot:
+                rgbs[slot[i]] = cv2.resize(frames[j], (w, h), interpolation=cv2.INTER_AREA)
+                for m in nets:
+                    preds[m][slot[i]] = out[m][j]
+            kf = kf_of.get(i)
+            if kf is not None:
+                uv, z = vo.sparse_depth(kf.id, pw)
+                px = np.round(scale_pixels(uv, vo.intrinsics, w, h)).astype(int)
+                inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+                for m in nets:
+                    d = out[m][j][px[inside, 1], px[inside, 0]]
+                    ok = d > 0
+                    if ok.any():
+                        r = float(np.median(z[inside][ok] / d[ok]))  # z_vo / z_pred, map units per network unit
+                        ratios[m].append((r, r * vo_scale[kf.segment] if kf.segment in vo_scale else np.nan))
+                tick("predict")
+    scales = {}
+    for m in nets:
+        r = np.array(ratios[m], np.float64).reshape(-1, 2)
+        metric = r[np.isfinite(r[:, 1]), 1]
+        scales[m] = (float(np.median(r[:, 0])) if len(r) else None, float(np.median(metric)) if len(metric) else None)
+    return preds, rgbs, scales
+
+
+def _front_end_scales(seq: Sequence, vo: VOResult, cfg: RunConfig) -> dict[int, float]:
+    """Sim(3) scale of each segment of the front end's keyframe trajectory (the map the depth ratios are in)."""
+    seg = np.array([k.segment for k in vo.keyframes], np.int64)
+    return {s: v[2] for s, v in sim3_per_segment(seq.gt, vo.traj_kf, seg, cfg.eval.ate_max_dt).items()}
+
+
+def _score(meshes: dict[str, dense.Mesh], models: list[str], cfg: RunConfig, summary: res.Summary,
+           has_ref: bool) -> None:
+    """The ``dense.*`` scores of each model against the GT mesh (null with the reason when absent)."""
+    for m in MODELS:
+        why = None
+        if not has_ref:
+            why = "sequence has no GT depth at the fused frames: no reference surface"
+        elif m not in meshes:
+            why = summary.notes.get(f"dense.metric_scale.{m}", f"no {m} model in this run")
+        try:
+            if why is None:
+                s = dense.score_surfaces(meshes[m], meshes["gt"], cfg.dense.voxel_size)
+        except GeometryError as e:
+            why = str(e)
+        if why is not None:
+            for key in DENSE_KEYS + EXTRA_KEYS:
+                if key.endswith(f".{m}"):
+                    summary.absent(key, why)
+            continue
+        for key, val in (("accuracy_m", s.accuracy_m), ("completeness_m", s.completeness_m), ("fscore_5cm", s.fscore),
+                         ("precision_5cm", s.precision), ("recall_5cm", s.recall),
+                         ("accuracy_median_m", s.accuracy_median_m),
+                         ("completeness_median_m", s.completeness_median_m)):
+            summary.set(f"dense.{key}.{m}", val)
+
+
+def _picture(path: Path, meshes: dict[str, dense.Mesh], fused: list[FusedFrame], seq: Sequence,
+             summary: res.Summary, cfg: RunConfig) -> None:
+    """``dense.png`` (:func:`~mutualslam_cli.report_dense.dense_picture`) from the GT poses of the fused frames."""
+    if meshes:
+        gt = [seq.frames[f.frame].pose for f in fused if seq.frames[f.frame].pose is not None]
+        scores = {m: {k: summary.values.get(f"dense.{k}.{m}") for k in ("fscore_5cm", "accuracy_m", "completeness_m")}
+                  for m in meshes}
+        dense_picture(path, meshes, np.stack(gt) if gt else np.stack([f.T_metric for f in fused]), scores,
+                      f"{seq.name}: TSDF meshes ({cfg.dense.voxel_size * 100:g} cm voxels), same viewpoint",
+                      cfg.dense.render_width, max(cfg.threads, 0), mirror=seq.intrinsics.fy < 0)
+
+
+def add_stage_time(summary: res.Summary, timings: dict[str, float]) -> None:
+    """``timing.stage_s.dense`` from ``timings["dense_s"]``, taken out of ``timing.stage_s.other`` so the
+    stages still add up to ``timing.total_s`` (:func:`~mutualslam_cli.results.summarise_stages`)."""
+    if "dense_s" in timings:
+        summary.set("timing.stage_s.dense", timings["dense_s"])
+        summary.set("timing.stage_s.other", summary.values["timing.stage_s.other"] - timings["dense_s"])
+
+
+# ----------------------------------------------------------------------------- mslam fuse
+
+
+def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | None = None,
+             progress: Progress | None = None, seq: Sequence | None = None,
+             command: list[str] | None = None) -> dict[str, Any]:
+    """The dense stage on a finished run folder (``mslam fuse RUN_DIR``): the run's config, sequence,
+    front end (from the VO cache beside the results, recomputed if absent), pre-trained model and
+    ``weights/``; updates ``summary.json`` (the ``dense.*`` keys), ``config.yaml``'s ``dense`` section
+    and ``manifest.json`` (a ``fuse`` entry).
+
+    Args:
+        overrides: ``--set``-style ``dense.*`` (or other) settings on top of the run's config.
+        seq: use this sequence instead of loading the one the manifest names (tests).
+
+    Returns:
+        The updated summary (nested dict).
+
+    Raises:
+        DatasetError: not a complete run folder, or no adapted weights (``--set eval.save_weights=true``).
+    """
+    import json
+
+    from mutualslam_cli.adapt.depthnet import prepare
+    from mutualslam_cli.adapt.inputs import load_network, use_fast_path
+    from mutualslam_cli.adapt.weights import DECODER_FILE, ENCODER_FILE, load_monodepth2
+    from mutualslam_cli.ba.culling import inject_outliers
+    from mutualslam_cli.config import load_config, to_dict
+    from mutualslam_cli.datasets.registry import load_sequence
+    from mutualslam_cli.lock import hold_lock
+    from mutualslam_cli.vo_cache import run_frontend
+
+    folder = Path(folder)
+    old = res.read_summary(folder)
+    cfg = load_config(folder / "config.yaml", overrides)
+    wdir = folder / "weights"
+    adapted = cfg.adapt.scheme != "none"
+    if adapted and not ((wdir / ENCODER_FILE).is_file() and (wdir / DECODER_FILE).is_file()):
+        raise DatasetError(f"{folder}: the run kept no adapted weights (no weights/{ENCODER_FILE}); rerun it with "
+                           "--set eval.save_weights=true (and --force) to fuse it later")
+    try:
+        manifest = json.loads((folder / "manifest.json").read_text())
+        root = manifest["sequence"]["root"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise DatasetError(f"{folder}: manifest.json is missing or names no sequence root") from None
+    t0 = time.perf_counter()
+    with hold_lock(folder, "mslam fuse"):
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+            cv2.setNumThreads(cfg.threads)
+        if seq is None:
+            seq = load_sequence(root, data_root=cfg.data.data_root, registry_path=registry,
+                                max_frames=cfg.data.max_frames, stride=cfg.data.stride)
+        vo, _ = run_frontend(seq, cfg, cache_dir=folder.parents[2] / "_cache" / "vo", progress=progress)
+        vo, _ = inject_outliers(vo, cfg.vo.inject_outliers, cfg.seed)  # as the run did
+        fast = use_fast_path(cfg)
+        nets = {"pretrained": load_network(cfg, fast), "adapted": prepare(load_monodepth2(
+            wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast) if adapted else None}
+        summary = res.Summary()
+        flat = res.flatten(old)
+        summary.notes = {k: v for k, v in (flat.pop("notes", None) or {}).items() if not k.startswith("dense.")}
+        summary.values = {k: v for k, v in flat.items() if not k.startswith("dense.")}
+        run_dense(folder, seq, vo, nets, cfg, fast, summary, progress)
+        data = to_dict(cfg)
+        data["dense"]["enabled"] = True  # the folder now holds the dense results of these settings
+        res.write_yaml(folder / "config.yaml", data)
+        manifest["fuse"] = {"command": command, "time_s": time.perf_counter() - t0, "versions": res.versions(),
+                            "git_revision": res.git_revision(),
+                            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        res.write_json(folder / "manifest.json", manifest)
+        out = summary.to_dict()
+        res.write_json(folder / "summary.json", out)
+    return out

@@ -1,0 +1,132 @@
+"""The dense reconstruction's picture and its place in ``mslam report`` (issue 13).
+
+:func:`dense_picture` draws a run's ``dense.png``: the pre-trained, adapted and GT meshes ray-cast
+from one viewpoint behind and above the cameras, side by side with their scores.
+
+:func:`dense_table` averages, per (sequence, scheme, config), the ``dense.*`` scores of the runs that
+ran the dense stage (``mslam run --set dense.enabled=true`` or ``mslam fuse``); :func:`dense_figures`
+copies the ``dense.png`` of the lowest seed of each into ``<report>/dense/``. Runs without the stage
+are left out of both (no table when none has it).
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mutualslam_cli import dense
+from mutualslam_cli.atomic import atomic_path
+
+#: Panel titles of ``dense.png``, left to right.
+LABELS = {"pretrained": "pre-trained", "adapted": "adapted", "gt": "GT depth + GT poses"}
+
+#: (column label, summary key) of the dense table.
+COLUMNS = (
+    ("acc pre m", "dense.accuracy_m.pretrained"), ("acc adapt m", "dense.accuracy_m.adapted"),
+    ("comp pre m", "dense.completeness_m.pretrained"), ("comp adapt m", "dense.completeness_m.adapted"),
+    ("F@5cm pre", "dense.fscore_5cm.pretrained"), ("F@5cm adapt", "dense.fscore_5cm.adapted"),
+    ("P@5cm adapt", "dense.precision_5cm.adapted"), ("R@5cm adapt", "dense.recall_5cm.adapted"),
+    ("frames", "dense.frames"), ("dense s", "dense.time_s"),
+)
+TITLE = ("Dense reconstruction: TSDF meshes of each model's depth along the run's poses (Sim(3) to GT, metres) "
+         "against GT depth fused with GT poses; accuracy / completeness = mean distance (m), F-score, precision "
+         "and recall at 5 cm (Tanks and Temples); mean over seeds")
+
+
+def _num(runs: pd.DataFrame, key: str) -> pd.Series:
+    return pd.to_numeric(runs[key], errors="coerce") if key in runs else pd.Series(np.nan, index=runs.index)
+
+
+def dense_runs(runs: pd.DataFrame) -> pd.DataFrame:
+    """The runs that ran the dense stage (``dense.time_s`` set)."""
+    return runs[_num(runs, "dense.time_s").notna()]
+
+
+def dense_table(runs: pd.DataFrame) -> pd.DataFrame | None:
+    """One row per (sequence, scheme, config): the mean of each column of :data:`COLUMNS` over the seeds
+    that have it, and ``seeds`` (runs with the stage); ``None`` when no run has the stage."""
+    runs = dense_runs(runs.assign(config=runs["config"] if "config" in runs else ""))
+    if runs.empty:
+        return None
+    rows = []
+    for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):
+        row = {"sequence": seq, "scheme": scheme, "config": config}
+        for label, key in COLUMNS:
+            v = _num(g, key)
+            row[label] = float(v.mean()) if v.notna().any() else float("nan")
+        row["seeds"] = len(g)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _slug(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9.+=-]+", "_", s).strip("_")
+
+
+def dense_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
+    """``dense.png`` of the lowest seed of every (sequence, scheme, config) with the stage, copied to
+    ``out_dir/dense/dense_<sequence>_<scheme>[_<config>]_seed<k>.png``; returns the files written."""
+    runs = dense_runs(runs.assign(config=runs["config"] if "config" in runs else ""))
+    runs = runs.assign(_seed=_num(runs, "seed"))
+    written = []
+    for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):
+        r = g.sort_values("_seed", na_position="last").iloc[0]
+        src = Path(r["folder"]) / "dense.png"
+        if not src.is_file():
+            continue
+        seed = "" if r["_seed"] != r["_seed"] else f"seed{int(r['_seed'])}"
+        name = "_".join(x for x in ("dense", _slug(seq), _slug(scheme), _slug(config)[:60], seed) if x)
+        dst = Path(out_dir) / "dense" / f"{name}.png"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
+        written.append(dst)
+    return written
+
+
+def dense_picture(path: Path, meshes: dict[str, dense.Mesh], poses_wc: np.ndarray,
+                  scores: dict[str, dict[str, float | None]], heading: str, width: int = 480, threads: int = 0,
+                  mirror: bool = False) -> None:
+    """The meshes (keys of :data:`LABELS`) ray-cast from one viewpoint, side by side, as a PNG.
+
+    Args:
+        meshes: ``pretrained`` / ``adapted`` / ``gt`` meshes in one world frame (metres).
+        poses_wc: ``(N, 4, 4)`` cameras the view is placed behind and above
+            (:func:`~mutualslam_cli.dense.look_from_cameras`), looking at the GT mesh's median vertex
+            (else a prediction's).
+        scores: per mesh, ``fscore_5cm``, ``accuracy_m``, ``completeness_m`` (None: not scored).
+        width: pixels per panel (height ¾ of it).
+        mirror: flip the pictures left–right. A camera with ``fy < 0`` (ICL-NUIM) has its image's up
+            along +y, a left-handed frame: its reconstruction is the mirror image of the scene, and a
+            right-handed renderer shows it mirrored; flipping gives back the scene as the frames show it.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [n for n in LABELS if n in meshes]
+    ref = next((meshes[n] for n in ("gt", "adapted", "pretrained") if n in meshes and len(meshes[n].vertices)), None)
+    target = (np.median(ref.vertices, axis=0) if ref is not None
+              else poses_wc[:, :3, 3].mean(0) + poses_wc[0, :3, 2])
+    eye, target, up = dense.look_from_cameras(poses_wc, target)
+    h = width * 3 // 4
+    fig, axes = plt.subplots(1, len(names), figsize=(len(names) * width / 100, h / 100 + 0.9), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        img = dense.render_mesh(meshes[name], eye, target, up, width, h, threads=threads)
+        ax.imshow(img[:, ::-1] if mirror else img)
+        s = scores.get(name, {})
+        f, a, c = s.get("fscore_5cm"), s.get("accuracy_m"), s.get("completeness_m")
+        sub = (f"F@5cm {f:.3f} · acc {a:.3f} m · comp {c:.3f} m" if None not in (f, a, c)
+               else "reference" if name == "gt" else "no score (no reference)")
+        ax.set_title(f"{LABELS[name]}\n{sub}", fontsize=9)
+        ax.axis("off")
+    fig.suptitle(heading, fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)

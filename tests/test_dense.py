@@ -1,0 +1,298 @@
+"""Dense reconstruction (issue 13): TSDF fusion, surface scores against closed forms, the run's stage,
+``mslam fuse`` and the report's table."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mutualslam_cli import dense
+from mutualslam_cli import results as res
+from mutualslam_cli.cli import app
+from mutualslam_cli.config import CONFIG_DIR, load_config
+from mutualslam_cli.dense_stage import DENSE_KEYS, fuse_run
+from mutualslam_cli.errors import ConfigError, GeometryError
+from synth import make_sequence
+
+VOXEL = 0.02
+
+
+def _volume(block_count: int = 40000) -> dense.TSDFVolume:
+    return dense.TSDFVolume(VOXEL, 4.0, 0.1, 4.0, 8, block_count)
+
+
+# ----------------------------------------------------------------------------- scores in closed form
+
+
+def test_score_points_closed_form():
+    # Reference: a 100 × 20 grid on z = 0 with 1.5 cm spacing; prediction: its first 10 columns.
+    # Every predicted point lies on the reference: P = 1, accuracy 0. Reference column j ≥ 10 is
+    # (j − 9)·1.5 cm from the prediction's last column: within 5 cm for j − 9 ≤ 3 → R = 13 / 100.
+    s = 0.015
+    jj, ii = np.meshgrid(np.arange(100), np.arange(20), indexing="ij")
+    ref = np.stack([jj.ravel() * s, ii.ravel() * s, np.zeros(jj.size)], axis=1)
+    pred = ref[jj.ravel() < 10]
+    r = dense.score_points(pred, ref)
+    p_exp, r_exp = 1.0, 13 / 100
+    assert r.precision == p_exp and r.recall == pytest.approx(r_exp, abs=1e-12)
+    assert r.fscore == pytest.approx(2 * p_exp * r_exp / (p_exp + r_exp), abs=1e-12)  # harmonic, not arithmetic
+    assert r.accuracy_m == 0.0
+    d = np.maximum(np.arange(100) - 9, 0) * s  # per column, the same for every row
+    assert r.completeness_m == pytest.approx(d.mean(), abs=1e-12)  # a plain mean, no cap
+    assert r.completeness_median_m == pytest.approx(np.median(np.repeat(d, 20)), abs=1e-12)
+    with pytest.raises(GeometryError):
+        dense.score_points(np.zeros((0, 3)), ref)
+    assert dense.score_points(ref + [0, 0, 1.0], ref).fscore == 0.0  # P = R = 0 → F = 0, not NaN
+
+
+# ----------------------------------------------------------------------------- fusion
+
+
+def _fuse_gt(seq, vol: dense.TSDFVolume) -> dense.Mesh:
+    K = seq.intrinsics.K()
+    for i in range(len(seq)):
+        vol.integrate(seq.depth[i], K, seq.poses[i], seq.rgb[i])
+    return vol.mesh(1.0)
+
+
+def test_gt_depth_fused_with_gt_poses_scores_perfectly_against_itself():
+    seq = make_sequence("room", n=6, width=128, height=96)
+    mesh = _fuse_gt(seq, _volume())
+    assert len(mesh.triangles) > 1000 and mesh.colours.max() <= 1.0 and mesh.colours.std() > 0  # coloured
+    s = dense.score_surfaces(mesh, mesh, VOXEL)
+    assert s.fscore == 1.0 and s.precision == 1.0 and s.recall == 1.0
+    assert s.accuracy_m == 0.0 and s.completeness_m == 0.0
+    # the same inputs give the same mesh, to the bit
+    again = _fuse_gt(seq, _volume())
+    assert np.array_equal(again.vertices, mesh.vertices) and np.array_equal(again.triangles, mesh.triangles)
+
+
+# Floor + wall seen by one camera (x right, y down, z forward): floor y = H_FLOOR, wall z = D_WALL.
+H_FLOOR, D_WALL, W, H, F = 0.30, 0.80, 160, 120, 60.0
+#: the camera sits off the voxel lattice, so no plane coincides with voxel centres
+CAM = np.array([0.0071, 0.0043, 0.0029])
+
+
+def _floor_wall_depth(fy_sign: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact depth of the floor + wall scene at pixel centres, its K and camera pose."""
+    K = np.array([[F, 0, (W - 1) / 2], [0, fy_sign * F, (H - 1) / 2], [0, 0, 1]])
+    v, _ = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    yn = (v - K[1, 2]) / K[1, 1]
+    with np.errstate(divide="ignore"):
+        z_floor = np.where(yn > 0, H_FLOOR / yn, np.inf)
+    T = np.eye(4)
+    T[:3, 3] = CAM
+    return np.minimum(z_floor, D_WALL).astype(np.float32), K, T
+
+
+def _fuse_one(depth: np.ndarray, K: np.ndarray, T: np.ndarray) -> dense.Mesh:
+    vol = _volume()
+    vol.integrate(depth, K, T)
+    return vol.mesh(1.0)
+
+
+def test_depth_scaled_by_1_1_lowers_the_fscore_by_the_computed_amount():
+    depth, K, T = _floor_wall_depth()
+    ref, pred = _fuse_one(depth, K, T), _fuse_one(depth * 1.1, K, T)
+    assert dense.score_surfaces(ref, ref, VOXEL).fscore == 1.0
+    s = dense.score_surfaces(pred, ref, VOXEL)
+    # Expected, from the geometry alone. Depth × 1.1 moves every point along its ray to 1.1·p: the floor
+    # to y = 1.1 h (3 cm below it: within 5 cm), the wall to z = 1.1 D (8 cm behind it: outside).
+    # The image spans x/z ∈ ±W/(2F), y/z ∈ ±H/(2F): the floor is seen from z0 = h·2F/H to D, the wall
+    # from y = −D·H/(2F) down to h. Scores weigh area (downsampled to one point per voxel):
+    wn, tau, h, d, z0 = W / F, dense.FSCORE_THRESHOLD_M, H_FLOOR, D_WALL, H_FLOOR * 2 * F / H
+    floor = wn * (d**2 - z0**2) / 2  # ∫ width(z) dz, width(z) = wn·z
+    wall = wn * d * (h + d * H / (2 * F))
+    # precision: the moved floor is right up to z' = D + √(τ² − (0.1h)²), where its nearest reference
+    # point becomes the floor-wall edge; beyond it and the whole moved wall are wrong
+    z_ok = d + np.sqrt(tau**2 - (0.1 * h) ** 2)
+    p_exp = wn * (z_ok**2 - (1.1 * z0) ** 2) / 2 / (1.21 * (floor + wall))
+    # recall: the whole floor (3 cm from the moved one), and the wall's bottom strip within τ of the
+    # moved floor (y > 1.1h − τ)
+    r_exp = (floor + wn * d * (h - (1.1 * h - tau))) / (floor + wall)
+    f_exp = 2 * p_exp * r_exp / (p_exp + r_exp)  # P 0.2135, R 0.2519, F 0.2311
+    # Tolerance 0.02: the fused surfaces end within about a voxel of the true borders (at the frustum's
+    # edges a voxel behind the surface must still project into the image), and the strips above are
+    # 2–4 cm (1–2 voxels) wide; a border of length L moves a share by ~L·2 cm / area, 0.014 for the
+    # 2.1 m floor–wall edge (measured: P −0.010, R −0.014, F −0.012). Mutations it catches: no depth
+    # scaling (F = 1), a 10 cm threshold (P, R ≈ 0.9), distances to the wrong surface (P or R ≈ 0).
+    assert s.precision == pytest.approx(p_exp, abs=0.02)
+    assert s.recall == pytest.approx(r_exp, abs=0.02)
+    assert s.fscore == pytest.approx(f_exp, abs=0.02)
+    assert 1.0 - s.fscore == pytest.approx(1.0 - f_exp, abs=0.02)  # the drop from the perfect 1.0
+    # The mean distances against the same geometry without the TSDF: every pixel back-projected (at 4×
+    # the resolution, so the grazing floor is sampled densely), both clouds downsampled alike.
+    exact, moved = _floor_wall_points(4), _floor_wall_points(4, 1.1)
+    geo = dense.score_points(dense.voxel_downsample(moved, VOXEL), dense.voxel_downsample(exact, VOXEL))
+    assert s.accuracy_m == pytest.approx(geo.accuracy_m, abs=0.003)  # 0.072 m
+    assert s.completeness_m == pytest.approx(geo.completeness_m, abs=0.003)  # 0.067 m
+    assert s.accuracy_median_m == pytest.approx(0.1 * d, abs=0.005)  # most predicted area is the moved wall
+
+
+def _floor_wall_points(upsample: int, scale: float = 1.0) -> np.ndarray:
+    """``(N, 3)`` world points of every pixel of the floor + wall scene at ``upsample``× the resolution."""
+    w, h, f = W * upsample, H * upsample, F * upsample
+    v, u = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    xn, yn = (u - (w - 1) / 2) / f, (v - (h - 1) / 2) / f
+    with np.errstate(divide="ignore"):
+        z = np.minimum(np.where(yn > 0, H_FLOOR / yn, np.inf), D_WALL) * scale
+    return np.stack([xn * z, yn * z, z], axis=-1).reshape(-1, 3) + CAM
+
+
+def test_negative_fy_fuses_the_same_surfaces():
+    # ICL-NUIM's fy < 0: pixel rows run the other way; the fused surfaces must still be the floor and the wall.
+    depth, K, T = _floor_wall_depth(fy_sign=-1.0)
+    mesh = _fuse_one(depth, K, T)
+    local = mesh.vertices - CAM
+    on_floor = np.abs(local[:, 1] - H_FLOOR) < VOXEL
+    on_wall = np.abs(local[:, 2] - D_WALL) < VOXEL
+    assert len(local) > 1000 and np.mean(on_floor | on_wall) > 0.99 and on_floor.mean() > 0.1
+    pos = _fuse_one(*_floor_wall_depth(fy_sign=1.0))
+    assert dense.score_surfaces(mesh, pos, VOXEL).fscore == 1.0
+
+
+def test_block_cap_bounds_the_grid():
+    seq = make_sequence("room", n=6, width=128, height=96)
+    probe = _volume()
+    probe.integrate(seq.depth[0], seq.intrinsics.K(), seq.poses[0], seq.rgb[0])
+    cap = probe.blocks + 20  # room for the first frame, not for all six
+    vol = _volume(block_count=cap)
+    kinds = [vol.integrate(seq.depth[i], seq.intrinsics.K(), seq.poses[i], seq.rgb[i]) for i in range(len(seq))]
+    assert vol.blocks <= cap and vol.grid.hashmap().capacity() == cap  # never rehashed to a larger map
+    assert kinds[0] == "full" and set(kinds[1:]) <= {"full", "existing_only", "skipped"}
+    assert vol.frames["existing_only"] + vol.frames["skipped"] > 0 and len(vol.mesh().triangles) > 0
+    assert dense.block_memory_bytes(8, 40000) == 40000 * 512 * 20
+
+
+def test_mesh_ply_round_trip(tmp_path: Path):
+    depth, K, T = _floor_wall_depth()
+    mesh = _fuse_one(depth, K, T)
+    dense.write_mesh(tmp_path / "m.ply", mesh)
+    back = dense.read_mesh(tmp_path / "m.ply")
+    assert len(back.triangles) == len(mesh.triangles) > 0
+    np.testing.assert_allclose(back.vertices, mesh.vertices, atol=1e-6)
+    dense.write_mesh(tmp_path / "empty.ply", dense.Mesh.empty())
+    assert len(dense.read_mesh(tmp_path / "empty.ply").vertices) == 0
+
+
+def test_render_mesh_draws_the_surface():
+    depth, K, T = _floor_wall_depth()
+    mesh = _fuse_one(depth, K, T)
+    eye, target, up = dense.look_from_cameras(T[None], np.median(mesh.vertices, axis=0))
+    img = dense.render_mesh(mesh, eye, target, up, 96, 72, threads=1)
+    assert img.shape == (72, 96, 3) and img.dtype == np.uint8
+    surface = np.any(img != 255, axis=-1)
+    assert 0.2 < surface.mean() < 1.0 and len(np.unique(img[surface].sum(-1))) > 5  # shaded, not flat
+    blank = dense.render_mesh(dense.Mesh.empty(), eye, target, up, 96, 72)
+    assert (blank == 255).all()
+
+
+def test_dense_config_is_validated():
+    assert load_config(overrides=["dense.enabled=true"]).dense.enabled
+    with pytest.raises(ConfigError, match="dense.voxel_size"):
+        load_config(overrides=["dense.voxel_size=0"])
+    with pytest.raises(ConfigError, match="dense.depth_min"):
+        load_config(overrides=["dense.depth_min=5"])
+
+
+# ----------------------------------------------------------------------------- the run's stage, end to end
+
+
+def _cfg(tmp: Path, *extra: str):
+    return load_config(CONFIG_DIR / "smoke.yaml", [f"net.weights={tmp / 'weights'}", "dense.enabled=true",
+                                                   "eval.save_weights=true", *extra])
+
+
+@pytest.fixture(scope="module")
+def dense_run(tiny_run):
+    from mutualslam_cli.pipeline import run_sequence
+
+    tmp, seq = tiny_run
+    return tmp, seq, run_sequence(seq, _cfg(tmp), out=tmp / "dense", command=["test"])
+
+
+def test_run_with_dense_stage_writes_meshes_picture_and_scores(dense_run):
+    import open3d as o3d
+
+    _, _, r = dense_run
+    flat = res.flatten(r.summary)
+    for key in DENSE_KEYS:
+        assert isinstance(flat[key], float), (key, r.summary["notes"].get(key))
+    assert 0 <= flat["dense.fscore_5cm.adapted"] <= 1 and flat["dense.accuracy_m.pretrained"] > 0
+    # the oracle front end (gt-depth) has GT poses and a metric map: the Sim(3) is the identity
+    assert flat["dense.sim3_scale"] == pytest.approx(1.0, abs=1e-6)
+    assert flat["dense.frames"] == flat["vo.keyframes"] == flat["dense.frames_reference"]
+    for name in ("pretrained", "adapted", "gt"):
+        mesh = o3d.io.read_triangle_mesh(str(r.folder / f"mesh_{name}.ply"))
+        assert len(mesh.triangles) > 0 and mesh.has_vertex_colors(), name
+    assert (r.folder / "dense.png").stat().st_size > 10_000
+    stages = r.summary["timing"]["stage_s"]
+    assert stages["dense"] > 0 and sum(stages.values()) == pytest.approx(flat["timing.total_s"])
+    assert not list(r.folder.glob(".dense-*"))  # the prediction files are gone
+
+
+def test_fuse_on_the_finished_run_gives_the_same_scores(dense_run, tmp_path):
+    tmp, _, r = dense_run
+    root = tmp_path / "copy"
+    shutil.copytree(r.folder.parents[2], root)
+    folder = root / r.folder.relative_to(r.folder.parents[2])
+    out = res.flatten(fuse_run(folder, command=["test"]))
+    flat = res.flatten(r.summary)
+    for key in DENSE_KEYS + ("dense.scale.pretrained", "dense.scale.adapted", "dense.frames"):
+        assert out[key] == flat[key], key
+    assert json.loads((folder / "summary.json").read_text())["dense"]["fscore_5cm"] == r.summary["dense"]["fscore_5cm"]
+    assert "fuse" in json.loads((folder / "manifest.json").read_text())
+    # the CLI prints the table
+    cli = CliRunner().invoke(app, ["fuse", str(folder)])
+    assert cli.exit_code == 0, cli.output
+    assert "F-score @5cm" in cli.output and f"{flat['dense.fscore_5cm.adapted']:.4f}" in cli.output
+
+
+def test_sequence_without_gt_depth_gives_null_scores_with_the_reason(dense_run, tmp_path):
+    from mutualslam_cli.datasets.registry import load_sequence
+
+    tmp, seq_dir, r = dense_run
+    root = tmp_path / "nodepth"
+    shutil.copytree(r.folder.parents[2], root)
+    folder = root / r.folder.relative_to(r.folder.parents[2])
+    seq = load_sequence(seq_dir)
+    seq.frames = [dataclasses.replace(f, depth_path=None, pose=f.pose) for f in seq.frames]
+    s = fuse_run(folder, seq=seq)
+    flat = res.flatten(s)
+    for key in DENSE_KEYS:
+        assert flat[key] is None and "no GT depth" in s["notes"][key], key
+    # the predictions are still fused (metric by the Sim(3) to the GT poses); there is no reference mesh
+    assert (folder / "mesh_adapted.ply").is_file() and not (folder / "mesh_gt.ply").exists()  # the old one is gone
+    assert flat["dense.frames_reference"] == 0
+    assert (folder / "dense.png").is_file()
+
+
+def test_fuse_without_weights_is_one_line(dense_run, tmp_path):
+    _, _, r = dense_run
+    folder = tmp_path / "run"
+    shutil.copytree(r.folder, folder, ignore=shutil.ignore_patterns("weights"))
+    out = CliRunner().invoke(app, ["fuse", str(folder)])
+    assert out.exit_code == 1 and "Traceback" not in out.output
+    text = " ".join(out.output.split())
+    assert text.startswith("error:") and str(folder) in text and "eval.save_weights=true" in text
+
+
+def test_report_shows_the_dense_table(dense_run, tmp_path):
+    from mutualslam_cli.report import build_tables, collect, write_report
+
+    tmp, _, r = dense_run
+    rep = build_tables(collect([tmp / "dense"]))
+    t = rep.tables["dense"]
+    assert len(t) == 1 and t.iloc[0]["F@5cm adapt"] == pytest.approx(r.summary["dense"]["fscore_5cm"]["adapted"])
+    assert t.iloc[0]["acc pre m"] == pytest.approx(r.summary["dense"]["accuracy_m"]["pretrained"])
+    files = write_report(rep, tmp_path / "rep")
+    assert any(p.parent.name == "dense" and p.suffix == ".png" for p in files)
+    assert "dense/dense_" in (tmp_path / "rep" / "report.md").read_text()
+    # runs without the stage: no table
+    assert "dense" not in build_tables(collect([tmp / "dense"]).drop(columns=["dense.time_s"])).tables
