@@ -132,7 +132,7 @@ def _run_locked(seq: Sequence, cfg: RunConfig, folder: Path, out_root: Path, com
     else:
         net, kf_rows, adapter, loop_map = run_adaptation(seq, vo, copy.deepcopy(net0), cfg, fast, progress, step)
         res.summarise_adaptation(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
-                                 adapter.finetune_ms if adapter else [])
+                                 adapter.finetune_ms if adapter else [], kf_rows)
         summary.absent(POSENET_ATE_KEY, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
     timings["adapt_s"] = time.perf_counter() - t
     if kf_rows:

@@ -328,11 +328,22 @@ def summarise_stages(summary: Summary, timings: dict[str, float], ba_trigger_s: 
         summary.notes["timing.stage_s.frontend"] = "front end loaded from the cache"
 
 
-def summarise_adaptation(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float]) -> None:
-    """``timing.finetune_ms`` (median per optimiser step) and ``timing.finetune_kf_ms`` (per keyframe)."""
+def summarise_adaptation(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float],
+                         kf_rows: list[dict[str, Any]] | None = None) -> None:
+    """``timing.finetune_ms`` (median per optimiser step) and ``timing.finetune_kf_ms`` (per keyframe);
+    with the keyframe rows, ``adaptation.keyframes_trained`` and, for scheme ``luo``,
+    ``adaptation.luo_keyframes_with_partner`` (training keyframes that found a simulated stereo partner)."""
     why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
     summary.set("timing.finetune_ms", float(np.median(step_ms)) if step_ms else None, why)
     summary.set("timing.finetune_kf_ms", float(np.median(keyframe_ms)) if keyframe_ms else None, why)
+    if kf_rows is None:
+        return
+    summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
+    if scheme == "luo":
+        training = [r for r in kf_rows if not r.get("is_validation")]
+        summary.set("adaptation.luo_keyframes_with_partner", sum(bool(str(r.get("sources") or "").strip())
+                                                                 for r in training))
+        summary.set("adaptation.training_keyframes", len(training))
 
 
 def depth_means(table: pd.DataFrame, model: str, suffix: str = "") -> dict[str, float | None]:

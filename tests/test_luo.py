@@ -257,3 +257,25 @@ def test_old_batches_would_change_luo():
     """The comparison above has teeth: with the old sources, ``luo`` trains differently."""
     new, old = adapt("luo", MIXED), adapt("luo", MIXED, OldBatches)
     assert not torch.equal(flat(new.net), flat(old.net))
+
+
+def test_run_summary_counts_luo_keyframes_with_a_stereo_partner(tiny_run):
+    import pandas as pd
+
+    from mutualslam_cli import results as res
+    from mutualslam_cli.config import CONFIG_DIR, load_config
+    from mutualslam_cli.pipeline import run_sequence
+
+    tmp, seq = tiny_run
+    # a wide rule (any baseline, any rotation) so this toy sequence's keyframes find partners
+    cfg = load_config(CONFIG_DIR / "smoke.yaml", [f"net.weights={tmp / 'weights'}", "adapt.scheme=luo",
+                                                  "adapt.luo_min_horizontal_ratio=0", "adapt.luo_max_rotation_deg=180",
+                                                  "ba.enabled=false"])
+    r = run_sequence(seq, cfg, out=tmp / "luo_count", command=["test"])
+    flat = res.flatten(r.summary)
+    kf = pd.read_csv(r.folder / "keyframes.csv")
+    training = kf[~kf["is_validation"]]
+    assert flat["adaptation.training_keyframes"] == len(training)
+    assert flat["adaptation.luo_keyframes_with_partner"] == int(training["sources"].notna().sum())
+    assert 0 < flat["adaptation.luo_keyframes_with_partner"] < len(training)  # the first keyframe has none
+    assert flat["adaptation.keyframes_trained"] == int(kf["trained"].sum()) > 0
