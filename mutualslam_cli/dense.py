@@ -32,7 +32,9 @@ import numpy as np
 
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.errors import DatasetError, GeometryError
-from mutualslam_cli.types import check_shape
+from mutualslam_cli.metrics.alignment import align_positions
+from mutualslam_cli.metrics.trajectory import associate_indices
+from mutualslam_cli.types import Trajectory, check_shape
 
 #: Distance (m) under which a point counts as right in precision / recall (the ``fscore_5cm`` keys).
 FSCORE_THRESHOLD_M = 0.05
@@ -191,6 +193,36 @@ class TSDFVolume:
         return Mesh(v, tri, col).canonical()
 
 
+# ----------------------------------------------------------------------------- poses in metres
+
+
+def sim3_per_segment(gt: Trajectory, est: Trajectory, segments: np.ndarray,
+                     max_dt: float) -> dict[int, tuple[np.ndarray, np.ndarray, float]]:
+    """``{segment: (R (3, 3), t (3,), s)}`` aligning each segment's positions to GT (Umeyama, Sim(3));
+    pairs associated by timestamp as the ATE does. Segments with < 3 pairs or degenerate positions, and poses of
+    segment −1, are left out."""
+    i_ref, i_est = associate_indices(gt.timestamps, est.timestamps, max_dt)
+    out = {}
+    for sid in np.unique(segments[i_est]) if len(i_est) else []:
+        k = np.flatnonzero(segments[i_est] == sid)
+        if sid < 0 or len(k) < 3:  # −1: not tracked
+            continue
+        try:
+            _, T, R, s = align_positions(gt.positions[i_ref[k]], est.positions[i_est[k]], "sim3")
+        except GeometryError:
+            continue
+        out[int(sid)] = (R, T[:3, 3].copy(), float(s))
+    return out
+
+
+def apply_sim3(T_wc: np.ndarray, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
+    """``(4, 4)`` pose after the similarity ``x ↦ s·R·x + t``: rotation ``R·R_wc``, centre ``s·R·c + t``."""
+    out = np.eye(4)
+    out[:3, :3] = R @ T_wc[:3, :3]
+    out[:3, 3] = s * R @ T_wc[:3, 3] + t
+    return out
+
+
 # ----------------------------------------------------------------------------- files
 
 
@@ -327,31 +359,6 @@ def score_surfaces(pred: Mesh, ref: Mesh, voxel_size: float, threshold: float = 
 
 # ----------------------------------------------------------------------------- pictures
 
-def look_from_cameras(poses_wc: np.ndarray, target: np.ndarray,
-                      pull_back: float = 0.6, lift: float = 0.35) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A viewpoint behind and above a set of cameras, looking at ``target``.
-
-    Args:
-        poses_wc: ``(N, 4, 4)`` camera-to-world poses (camera x right, y down, z forward).
-        target: ``(3,)`` the point to look at (e.g. the reference mesh's median vertex).
-        pull_back, lift: eye offset along −forward and +up, as fractions of the mean camera's
-            distance to ``target`` (at least 0.5 m).
-
-    Returns:
-        ``(eye, target, up)``, each ``(3,)``.
-    """
-    poses_wc = np.asarray(poses_wc, np.float64).reshape(-1, 4, 4)
-    centre = poses_wc[:, :3, 3].mean(axis=0)
-    fwd = poses_wc[:, :3, 2].mean(axis=0)
-    up = -poses_wc[:, :3, 1].mean(axis=0)
-    fwd = fwd / max(np.linalg.norm(fwd), 1e-9)
-    up = up - up.dot(fwd) * fwd
-    up = up / max(np.linalg.norm(up), 1e-9)
-    dist = max(float(np.linalg.norm(np.asarray(target) - centre)), 0.5)
-    eye = centre - pull_back * dist * fwd + lift * dist * up
-    return eye, np.asarray(target, np.float64), up
-
-
 def render_mesh(mesh: Mesh, eye: np.ndarray, target: np.ndarray, up: np.ndarray, width: int = 480,
                 height: int = 360, fov_deg: float = 70.0, threads: int = 0) -> np.ndarray:
     """Ray-cast picture of ``mesh`` (``open3d.t.geometry.RaycastingScene``), no display needed.
@@ -361,7 +368,8 @@ def render_mesh(mesh: Mesh, eye: np.ndarray, target: np.ndarray, up: np.ndarray,
     background white.
 
     Args:
-        eye, target, up: ``(3,)`` camera position, look-at point and up vector (world, metres).
+        eye, target, up: ``(3,)`` camera position, look-at point and the direction that is up in the
+            picture (world, metres).
         width, height: image size, pixels; fov_deg: horizontal field of view.
         threads: ray-casting threads (0 = open3d's choice).
 
@@ -376,8 +384,10 @@ def render_mesh(mesh: Mesh, eye: np.ndarray, target: np.ndarray, up: np.ndarray,
         scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
                             o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
         c = o3d.core
+        # open3d 0.20's first image row looks along −up (measured: up (0, −1, 0) gives row 0 rays with y > 0),
+        # a picture turned by 180°: given −up, the picture is upright
         rays = scene.create_rays_pinhole(float(fov_deg), c.Tensor(np.asarray(target, np.float32)),
-                                         c.Tensor(np.asarray(eye, np.float32)), c.Tensor(np.asarray(up, np.float32)),
+                                         c.Tensor(np.asarray(eye, np.float32)), c.Tensor(-np.asarray(up, np.float32)),
                                          int(width), int(height))
         hit = scene.cast_rays(rays, nthreads=int(threads))
         t = hit["t_hit"].numpy()

@@ -5,27 +5,24 @@ scored against the same fusion of GT depth with GT poses.
 :func:`fuse_run` runs it on a finished run folder that kept its adapted weights (``mslam fuse``).
 Both read the poses from the run folder's trajectory files, so they give the same meshes and scores.
 
-The choices this stage makes, in order:
-
 - **Frames**: the keyframes (``dense.every: 0``) or every k-th frame that has a pose.
-- **Poses**: the keyframe (or all-frame) trajectory after the global BA when the run has one
-  (``traj_*_ba.txt``), else the front end's. Each tracking segment is brought into the GT frame by
-  the Sim(3) that aligns its keyframe positions to GT (Umeyama with scale on the pairs associated
-  as the ATE associates them): ``T' = [R·R_wc | s·R·c + t]``. Segments with < 3 pairs are not fused.
+- **Poses**: the trajectory of those frames after the global BA when the run has one
+  (``traj_*_ba.txt``), else the front end's; each tracking segment brought into the GT frame by the
+  Sim(3) aligning that trajectory to GT (Umeyama with scale on the pairs the ATE associates):
+  ``T' = [R·R_wc | s·R·c + t]``. Segments with < 3 pairs are not fused.
 - **Depth scale**: per model and sequence, ``k = median over the keyframes of median(z_vo / z_pred)``
-  over the front end's map points each keyframe observes (the sparse depth the adaptation trains on),
-  then metres by the Sim(3) scale of the *front end's* keyframe trajectory (the map the ratios were
-  taken in; after BA the poses keep their own Sim(3)). The same rule for both models: the adapted
-  model is trained in map units, the pre-trained one is in arbitrary units. ``dense.scale.*`` is k,
-  ``dense.metric_scale.*`` the factor applied (metres per network unit).
+  over the map points each keyframe observes (the sparse depth the adaptation trains on), then metres
+  by the Sim(3) scale of the *front end's* trajectory (the map the ratios were taken in; after BA the
+  poses keep their own Sim(3)). The same rule for both models: the adapted model is trained in map
+  units, the pre-trained one is in arbitrary units. ``dense.scale.*``: k; ``dense.metric_scale.*``:
+  the factor applied (metres per network unit).
 - **Resolution**: predictions are fused at network resolution with the intrinsics scaled to it (what
-  the network predicts; resizing to the image adds pixels but no information and costs 2.5× the
-  pixels at 640×480); the GT reference at the image's own resolution, undistorted like the frames.
+  the network predicts; resizing to the image adds pixels, not information, and 2.5× the work at
+  640×480); the GT reference at the image's resolution, undistorted like the frames.
 - **Reference**: GT depth of the same frames with their GT poses (associated at image time by the
-  loader); frames without either are skipped. A sequence without GT depth gets the predicted meshes
-  and every score ``null`` with the reason; without GT poses nothing is fused (no metric scale).
+  loader); frames without either are skipped. Without GT depth the predicted meshes are still fused
+  and every score is ``null`` with the reason; without GT poses nothing is fused (no metric scale).
 """
-
 from __future__ import annotations
 
 import logging
@@ -48,8 +45,6 @@ from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError, GeometryError
 from mutualslam_cli.evaluation import calibration_frames
-from mutualslam_cli.metrics.alignment import align_positions
-from mutualslam_cli.metrics.trajectory import associate_indices
 from mutualslam_cli.report_dense import dense_picture
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.camera import Undistorter, pinhole
@@ -91,64 +86,48 @@ def _trajectory(folder: Path, name: str) -> tuple[Trajectory | None, str]:
     return None, "missing"
 
 
-def sim3_per_segment(gt: Trajectory, est: Trajectory, segments: np.ndarray,
-                     max_dt: float) -> dict[int, tuple[np.ndarray, np.ndarray, float]]:
-    """``{segment: (R (3, 3), t (3,), s)}`` aligning each segment's positions to GT (Umeyama, Sim(3));
-    pairs associated by timestamp as the ATE does. Segments with < 3 pairs or degenerate positions are left out."""
-    i_ref, i_est = associate_indices(gt.timestamps, est.timestamps, max_dt)
-    out = {}
-    for sid in np.unique(segments[i_est]) if len(i_est) else []:
-        k = np.flatnonzero(segments[i_est] == sid)
-        if len(k) < 3:
-            continue
-        try:
-            _, T, R, s = align_positions(gt.positions[i_ref[k]], est.positions[i_est[k]], "sim3")
-        except GeometryError:
-            continue
-        out[int(sid)] = (R, T[:3, 3].copy(), float(s))
-    return out
-
-
-def apply_sim3(T_wc: np.ndarray, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
-    """``(4, 4)`` pose after the similarity ``x ↦ s·R·x + t``: rotation ``R·R_wc``, centre ``s·R·c + t``."""
-    out = np.eye(4)
-    out[:3, :3] = R @ T_wc[:3, :3]
-    out[:3, 3] = s * R @ T_wc[:3, 3] + t
-    return out
+def _segments_of(seq: Sequence, vo: VOResult, traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """Sequence index (−1: none) and tracking segment (−1: untracked) of each pose of an all-frames trajectory."""
+    by_time = {f.timestamp: i for i, f in enumerate(seq.frames)}
+    idx = np.array([by_time.get(float(t), -1) for t in traj.timestamps], np.int64)
+    ok = (idx >= 0) & (idx < len(vo.frame_segment))
+    seg = np.full(len(idx), -1, np.int64)
+    seg[ok] = vo.frame_segment[idx[ok]]
+    return idx, seg
 
 
 def select_frames(seq: Sequence, vo: VOResult, folder: Path, every: int,
                   max_dt: float) -> tuple[list[FusedFrame], dict[int, float], str]:
     """The frames to fuse with their metric poses, the Sim(3) scale of each aligned segment, and a note
-    naming the trajectory used.
+    naming the trajectory used. The Sim(3) aligns the trajectory that is fused: the keyframes'
+    (``every`` 0), or every tracked frame's (``every`` > 0; a short window with < 3 keyframes can be fused so).
 
     Raises:
-        DatasetError: the trajectory files do not match the front end's keyframes, or no segment aligns.
+        DatasetError: the trajectory files do not match the front end.
+        GeometryError: no segment has 3 poses associated with GT (no Sim(3)).
     """
-    kf_traj, what = _trajectory(folder, "kf")
-    if kf_traj is None or len(kf_traj) != len(vo.keyframes):
-        raise DatasetError(f"{folder}: traj_kf*.txt has {0 if kf_traj is None else len(kf_traj)} poses for "
-                           f"{len(vo.keyframes)} keyframes (is this the run's front end?)")
-    kf_seg = np.array([k.segment for k in vo.keyframes], np.int64)
-    sims = sim3_per_segment(seq.gt, kf_traj, kf_seg, max_dt)
-    if not sims:
-        raise GeometryError("no tracking segment has 3 keyframes associated with GT poses: no Sim(3) to metres")
-    rows: list[tuple[int, int | None, int, np.ndarray]] = []
+    name = "kf" if every == 0 else "all"
+    traj, what = _trajectory(folder, name)
     if every == 0:
-        rows = [(k.frame_index, k.id, k.segment, kf_traj.poses[i]) for i, k in enumerate(vo.keyframes)]
-        note = f"keyframes, {what}"
+        if traj is None or len(traj) != len(vo.keyframes):
+            raise DatasetError(f"{folder}: traj_kf*.txt has {0 if traj is None else len(traj)} poses for "
+                               f"{len(vo.keyframes)} keyframes (is this the run's front end?)")
+        idx = np.array([k.frame_index for k in vo.keyframes], np.int64)
+        seg = np.array([k.segment for k in vo.keyframes], np.int64)
+        keep = np.ones(len(idx), bool)
     else:
-        all_traj, what = _trajectory(folder, "all")
-        if all_traj is None:
+        if traj is None:
             raise DatasetError(f"{folder}: no traj_all.txt (the poses of every tracked frame)")
-        by_time = {f.timestamp: i for i, f in enumerate(seq.frames)}
-        by_frame = {k.frame_index: k.id for k in vo.keyframes}
-        for t, T in zip(all_traj.timestamps, all_traj.poses):
-            i = by_time.get(float(t))
-            if i is not None and i % every == 0 and i < len(vo.frame_segment) and vo.frame_segment[i] >= 0:
-                rows.append((i, by_frame.get(i), int(vo.frame_segment[i]), T))
-        note = f"every {every}th frame, {what}"
-    frames = [FusedFrame(i, kf, seg, apply_sim3(T, *sims[seg])) for i, kf, seg, T in rows if seg in sims]
+        idx, seg = _segments_of(seq, vo, traj)
+        keep = (seg >= 0) & (idx % every == 0)
+    sims = dense.sim3_per_segment(seq.gt, traj, seg, max_dt)
+    if not sims:
+        raise GeometryError(f"no tracking segment has 3 {'keyframes' if every == 0 else 'frames'} associated with "
+                            "GT poses: no Sim(3) to metres")
+    kf_of = {k.frame_index: k.id for k in vo.keyframes}
+    frames = [FusedFrame(int(i), kf_of.get(int(i)), int(g), dense.apply_sim3(T, *sims[int(g)]))
+              for i, g, T, k in zip(idx, seg, traj.poses, keep) if k and int(g) in sims]
+    note = ("keyframes" if every == 0 else f"every k-th frame (k = {every})") + f", {what}"
     return frames, {k: v[2] for k, v in sims.items()}, note
 
 
@@ -180,6 +159,8 @@ def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.n
         for key in DENSE_KEYS + EXTRA_KEYS:
             summary.absent(key, str(e))
     summary.set("dense.time_s", time.perf_counter() - t0)
+    log.info("dense: F@5cm pre-trained %s, adapted %s (%.1f s)", summary.values.get("dense.fscore_5cm.pretrained"),
+             summary.values.get("dense.fscore_5cm.adapted"), summary.values["dense.time_s"])
 
 
 def _run(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Module | None], cfg: RunConfig,
@@ -311,9 +292,14 @@ def _predict(tmp: Path, seq: Sequence, vo: VOResult, fused: list[FusedFrame], ne
 
 
 def _front_end_scales(seq: Sequence, vo: VOResult, cfg: RunConfig) -> dict[int, float]:
-    """Sim(3) scale of each segment of the front end's keyframe trajectory (the map the depth ratios are in)."""
-    seg = np.array([k.segment for k in vo.keyframes], np.int64)
-    return {s: v[2] for s, v in sim3_per_segment(seq.gt, vo.traj_kf, seg, cfg.eval.ate_max_dt).items()}
+    """Sim(3) scale of each segment of the front end's trajectory (the map the depth ratios are in): the
+    keyframes' or every tracked frame's, as :func:`select_frames` aligns the fused one."""
+    if cfg.dense.every == 0:
+        traj, seg = vo.traj_kf, np.array([k.segment for k in vo.keyframes], np.int64)
+    else:
+        traj = vo.traj_all
+        seg = _segments_of(seq, vo, traj)[1]
+    return {s: v[2] for s, v in dense.sim3_per_segment(seq.gt, traj, seg, cfg.eval.ate_max_dt).items()}
 
 
 def _score(meshes: dict[str, dense.Mesh], models: list[str], cfg: RunConfig, summary: res.Summary,
@@ -420,8 +406,7 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         fast = use_fast_path(cfg)
         nets = {"pretrained": load_network(cfg, fast), "adapted": prepare(load_monodepth2(
             wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast) if adapted else None}
-        summary = res.Summary()
-        flat = res.flatten(old)
+        summary, flat = res.Summary(), res.flatten(old)  # the run's summary without its dense.* keys
         summary.notes = {k: v for k, v in (flat.pop("notes", None) or {}).items() if not k.startswith("dense.")}
         summary.values = {k: v for k, v in flat.items() if not k.startswith("dense.")}
         run_dense(folder, seq, vo, nets, cfg, fast, summary, progress)

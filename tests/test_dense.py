@@ -18,6 +18,7 @@ from mutualslam_cli.cli import app
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.dense_stage import DENSE_KEYS, fuse_run
 from mutualslam_cli.errors import ConfigError, GeometryError
+from mutualslam_cli.report_dense import fit_view, look_from_cameras
 from synth import make_sequence
 
 VOXEL = 0.02
@@ -184,11 +185,18 @@ def test_mesh_ply_round_trip(tmp_path: Path):
 def test_render_mesh_draws_the_surface():
     depth, K, T = _floor_wall_depth()
     mesh = _fuse_one(depth, K, T)
-    eye, target, up = dense.look_from_cameras(T[None], np.median(mesh.vertices, axis=0))
+    eye, target, up = look_from_cameras(T[None], np.median(mesh.vertices, axis=0))
+    eye, target = fit_view(mesh.vertices, eye, target, up, 70.0, 72 / 96)
     img = dense.render_mesh(mesh, eye, target, up, 96, 72, threads=1)
     assert img.shape == (72, 96, 3) and img.dtype == np.uint8
     surface = np.any(img != 255, axis=-1)
-    assert 0.2 < surface.mean() < 1.0 and len(np.unique(img[surface].sum(-1))) > 5  # shaded, not flat
+    assert 0.5 < surface.mean() < 1.0 and len(np.unique(img[surface].sum(-1))) > 5  # fills the view; shaded
+    # upright: seen from the camera itself, the floor alone (y = +H_FLOOR, below it) is drawn in the lower half
+    on_floor = np.abs(mesh.vertices[:, 1] - CAM[1] - H_FLOOR) < VOXEL
+    floor = dense.Mesh(mesh.vertices, mesh.triangles[on_floor[mesh.triangles].all(axis=1)], mesh.colours)
+    seen = np.any(dense.render_mesh(floor, CAM, CAM + [0, 0, 1], np.array([0, -1.0, 0]), 96, 72) != 255, axis=-1)
+    rows = np.nonzero(seen)[0]
+    assert len(rows) > 100 and rows.min() > 36
     blank = dense.render_mesh(dense.Mesh.empty(), eye, target, up, 96, 72)
     assert (blank == 255).all()
 
@@ -252,6 +260,16 @@ def test_fuse_on_the_finished_run_gives_the_same_scores(dense_run, tmp_path):
     cli = CliRunner().invoke(app, ["fuse", str(folder)])
     assert cli.exit_code == 0, cli.output
     assert "F-score @5cm" in cli.output and f"{flat['dense.fscore_5cm.adapted']:.4f}" in cli.output
+
+
+def test_fuse_every_frame(dense_run, tmp_path):
+    # dense.every=1: every tracked frame, aligned by the all-frames trajectory (a window with < 3 keyframes fuses so)
+    _, _, r = dense_run
+    root = tmp_path / "every"
+    shutil.copytree(r.folder.parents[2], root)
+    s = res.flatten(fuse_run(root / r.folder.relative_to(r.folder.parents[2]), ["dense.every=1"]))
+    assert s["dense.frames"] == 12 and s["dense.source"].startswith("every k-th frame (k = 1)")
+    assert all(isinstance(s[k], float) for k in DENSE_KEYS) and s["dense.sim3_scale"] == pytest.approx(1.0, abs=1e-6)
 
 
 def test_sequence_without_gt_depth_gives_null_scores_with_the_reason(dense_run, tmp_path):
