@@ -22,10 +22,11 @@ to sequences it did not see. Measured with ``mslam pretrain --pose`` (held-out l
   batches), held-out 0.0195.
 
 Relative motion between 30 Hz frames is a few millimetres and a fraction of a degree, so the
-target is small next to what the network sees, and Monodepth2's pose network learns it over
-20 epochs of KITTI (tens of thousands of steps) on a GPU. Until a longer run produces a useful file, ``comoda`` starts from the depth
-encoder's weights (conv1 repeated, halved) and a random decoder whose 0.01 output scale starts it
-near the identity, with a warning. CoMoDa's own loss then trains the pose network online.
+target is small next to what the network sees, and Monodepth2's pose network learns it over 20
+epochs of KITTI (tens of thousands of steps) on a GPU. Until a longer run produces a useful file,
+``comoda`` starts from the depth encoder's weights (conv1 repeated, halved) and a random decoder
+whose 0.01 output scale starts it near the identity, with a warning. CoMoDa's own loss then trains
+the pose network online.
 
 Determinism: same seed and thread count give the same weights.
 """
@@ -124,7 +125,8 @@ def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192
             log.info("pose pre-training stopped after %d of %d steps (max %.1f min)", step + 1, steps, max_minutes)
             break
     save_pose(net.eval(), Path(out_dir), half=half)
-    record = {"steps": steps, "steps_done": len(curve), "max_minutes": max_minutes, "width": width, "height": height, "batch_size": batch_size, "lr": lr, "seed": seed,
+    record = {"steps": steps, "steps_done": len(curve), "max_minutes": max_minutes,
+              "width": width, "height": height, "batch_size": batch_size, "lr": lr, "seed": seed,
               "scenes": list(scenes), "render_seed_base": render_seed_base, "refresh": refresh,
               "init_from_depth_encoder": init is not None, "half": half, "loss": "L1(t) + L1(R)", "loss_curve": curve,
               "time_s": time.perf_counter() - t0, "threads": torch.get_num_threads()}
