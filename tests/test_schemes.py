@@ -137,3 +137,15 @@ def test_bad_sample_and_order():
     b.add(sample(3), training=True)
     with pytest.raises(KeyframeError):
         b.add(sample(2), training=True)
+
+
+def test_buffer_holds_one_uint8_copy_of_each_image():
+    # an 8-bit image at network resolution (what the pipeline stores) is kept once, as uint8: 3·H·W bytes
+    h, w = 48, 64
+    b = KeyframeBuffer()
+    for k in range(10):
+        img = torch.randint(0, 256, (3, h, w)).float() / 255.0
+        b.add(KeyframeSample(k, img, torch.eye(3), np.eye(4), torch.zeros(5, 2), torch.ones(5)), training=True)
+        assert torch.equal(b.get(k).image, img)
+    meta = 10 * (9 * 4 + 5 * 2 * 4 + 5 * 4)  # K, uv, depth (float32) of each keyframe
+    assert b.nbytes == 10 * 3 * h * w + meta

@@ -126,7 +126,8 @@ class KeyframeBuffer:
         sample.validate()
         if self._meta and sample.kf_id <= max(self._meta):
             raise KeyframeError(f"keyframe ids must increase: got {sample.kf_id} after {max(self._meta)}")
-        self._meta[sample.kf_id] = replace(sample, pose=np.asarray(sample.pose, dtype=np.float64))
+        # the image lives only in ``_images`` (compacted): the sample's float32 copy is 4x its size
+        self._meta[sample.kf_id] = replace(sample, image=torch.empty(0), pose=np.asarray(sample.pose, dtype=np.float64))
         self._images[sample.kf_id] = _compact(sample.image)
         if training:
             self._train.append(sample.kf_id)
@@ -153,7 +154,12 @@ class KeyframeBuffer:
 
     def _drop(self, kf_id: int) -> None:
         self._images.pop(kf_id, None)
-        self._meta[kf_id] = replace(self._meta[kf_id], image=torch.empty(0))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of every tensor held: stored images and every keyframe's K, pixels and depths."""
+        meta = sum(t.numel() * t.element_size() for m in self._meta.values() for t in (m.image, m.K, m.uv, m.depth))
+        return meta + sum(t.numel() * t.element_size() for t in self._images.values())
 
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:
