@@ -81,14 +81,13 @@ class BALog:
 
 def make_ba_step(seq: Sequence, vo: VOResult, cfg: RunConfig, record: BALog) -> GlobalBA:
     """The :data:`~mutualslam_cli.adapt.stage.GlobalBA` step of a run (culling unless
-    ``ba.culling=false`` or scheme ``none``), recording into ``record``; it refines at most
-    ``ba.trigger_max_points`` points unless called with ``max_points=0`` (the final BA)."""
+    ``ba.culling=false`` or scheme ``none``), recording into ``record``."""
     images = ba_images(seq, vo)
     cull = no_culling_reason(cfg) is None
 
     def step(v: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
-             val_loss: Mapping[int, float], max_points: int = cfg.ba.trigger_max_points) -> VOResult:
-        r = run_global_ba(v, images, depth_of, val_loss, cfg.ba, cull=cull, upto=kf_id, max_points=max_points)
+             val_loss: Mapping[int, float]) -> VOResult:
+        r = run_global_ba(v, images, depth_of, val_loss, cfg.ba, cull=cull, upto=kf_id)
         record.culled.update(v.points.ids[~r.keep].tolist())
         record.runs.append({"kf_id": kf_id, **{k: x for k, x in r.stats.items() if k != "costs"}})
         log.info("global BA after keyframe %d: %d culled, %d refined (%d unrefined), cost %.4g -> %.4g, %.2f s",
@@ -106,7 +105,7 @@ def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Modu
     load = keyframe_images(seq, vo, cfg.net.width, cfg.net.height)
     depth_of = depth_predictor(net, load, fast, adapter.buffer if adapter is not None else None)
     val_loss = adapter.per_keyframe_val_loss() if adapter is not None else {}
-    return step(loop_map, len(loop_map.keyframes) - 1, depth_of, val_loss, max_points=0)  # every point
+    return step(loop_map, len(loop_map.keyframes) - 1, depth_of, val_loss)
 
 
 def write_ba_results(folder: Path, summary: res.Summary, seq: Sequence, vo: VOResult, err: np.ndarray,

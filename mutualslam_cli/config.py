@@ -197,13 +197,6 @@ class BAConfig:
     """Levenberg–Marquardt iterations."""
     huber_delta: float = 0.1
     """Huber threshold on intensities in [0, 1]."""
-    trigger_max_points: int = 3000
-    """Map points each BA *triggered by Algorithm 1 during the run* refines: when more are left after
-    culling, this many are drawn uniformly (seeded by the keyframe), the rest keep their depth; every
-    keyframe pose is still refined. The final BA refines every point. Triggers come every n converged
-    validations, so their number grows with the sequence, and a BA's cost with its points: uncapped,
-    BA took 32 ms per frame at 250 frames and 164 at 2,000 (synthetic room). 3000 is above the
-    largest shared window's map (1,919 points); 0 = every point."""
 
 
 @dataclass(frozen=True)

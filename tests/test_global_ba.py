@@ -79,20 +79,6 @@ def test_recovers_poses_and_inverse_depths(scene):
     assert st["cost"] < 1e-3 * st["cost0"] and st["accepted"] >= 1
 
 
-def test_point_cap_refines_a_seeded_sample_and_still_every_pose(scene):
-    prob, deps = scene
-    start = perturb(prob, np.random.default_rng(1), trans=0.01, rot_deg=0.3, rho_rel=0.02)
-    r = run(as_vo(start), prob, deps, max_points=300)
-    st = r.stats
-    moved = r.vo.points.inv_depth != start.inv_depth
-    assert st["n_sampled_out"] == len(prob.host) - 300 and moved.sum() == st["n_refined"] <= 300
-    assert st["n_refined"] + st["n_unrefined"] == 300  # the others are neither refined nor counted unrefined
-    assert centre_err(r.vo, prob).max() < 2e-3  # 300 points still pin down all six poses
-    again = run(as_vo(start), prob, deps, max_points=300)
-    np.testing.assert_array_equal(again.vo.points.inv_depth, r.vo.points.inv_depth)  # seeded: the same sample
-    assert run(as_vo(start), prob, deps, max_points=len(prob.host)).stats["n_sampled_out"] == 0
-
-
 def test_culling_removes_gross_outliers_and_keeps_inliers(scene):
     prob, deps = scene
     rng = np.random.default_rng(2)

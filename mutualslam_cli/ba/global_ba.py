@@ -132,7 +132,7 @@ def _follow(poses: np.ndarray, times: np.ndarray, segs: np.ndarray, ref_times: n
 
 def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
                   depth_of: Callable[[int], np.ndarray] | None, val_loss: Mapping[int, float] | None,
-                  cfg: BAConfig, *, cull: bool, upto: int | None = None, max_points: int = 0) -> GlobalBAResult:
+                  cfg: BAConfig, *, cull: bool, upto: int | None = None) -> GlobalBAResult:
     """Cull the map with the CNN depth (Eq. 10), then photometric BA (Eq. 11–12) of every keyframe.
 
     Args:
@@ -145,8 +145,6 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
         cfg: γ, d_max, patch, max_targets, iterations, huber_delta.
         cull: apply Eq. 10 (and re-host by L_val).
         upto: last keyframe that exists yet (default: the last one).
-        max_points: refine at most this many of the points left after culling, drawn uniformly with a
-            generator seeded by ``upto`` (the others keep their depth; all poses are refined); 0 = all.
 
     Returns:
         :class:`GlobalBAResult`. Within each segment the robust cost never increases.
@@ -180,12 +178,6 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
         stats.update(n_culled=int((~cr.keep).sum()), n_judged=int(cr.judged.sum()),
                      n_judged_elsewhere=int(np.sum(cr.host != host)))
     pix, rho = sub.points.pixel, sub.points.inv_depth
-    chosen = keep[sub_idx].copy()  # the points this BA may refine
-    n_left = int(chosen.sum())
-    if 0 < max_points < n_left:
-        drop = np.random.default_rng(upto).choice(np.flatnonzero(chosen), n_left - max_points, replace=False)
-        chosen[drop] = False
-    stats["n_sampled_out"] = n_left - int(chosen.sum())
 
     # BA, one problem per segment, at the resolution of the images
     T_wc = np.stack([k.pose for k in vo.keyframes])
@@ -207,7 +199,7 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
         ks = kf_in[segs[kf_in] == sg]
         loc = np.full(nk, -1)
         loc[ks] = np.arange(len(ks))
-        cand = np.flatnonzero(chosen & (loc[host] >= 0) & _inside(pix_ba, (H, W), border))
+        cand = np.flatnonzero(keep[sub_idx] & (loc[host] >= 0) & _inside(pix_ba, (H, W), border))
         if len(ks) < 2 or not len(cand):
             continue
         stack = np.stack([stack_all[k] for k in ks])
@@ -255,6 +247,6 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     out = replace(vo, keyframes=[replace(k, pose=T_new[k.id]) for k in vo.keyframes],
                   points=replace(pts, inv_depth=inv),
                   traj_all=Trajectory(vo.traj_all.timestamps, all_new))
-    stats.update(tot, n_refined=int(refined.sum()), n_unrefined=int((chosen & ~refined).sum()),
+    stats.update(tot, n_refined=int(refined.sum()), n_unrefined=int((keep[sub_idx] & ~refined).sum()),
                  keyframes=upto + 1, costs=costs, seconds=time.perf_counter() - t0)
     return GlobalBAResult(out, keep, stats)
