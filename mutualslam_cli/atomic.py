@@ -10,7 +10,7 @@ import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 _UMASK = os.umask(0o022)  # read the process umask once (at import, before any worker thread) ...
 os.umask(_UMASK)  # ... and put it back
@@ -47,3 +47,22 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
     """Text version of :func:`atomic_write_bytes` (UTF-8)."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_with(path: str | os.PathLike[str], write: Callable[[str], bool], what: str) -> None:
+    """Write ``path`` atomically with a writer that picks the format from the file name's extension
+    (open3d's): ``write(name)`` writes a temporary file of the same extension and returns success.
+
+    Raises:
+        OSError: ``write`` returned False (naming ``path`` and ``what`` was being written).
+    """
+    with atomic_path(path) as tmp:
+        side = tmp.with_name(tmp.name + Path(path).suffix)
+        try:
+            if not write(str(side)):
+                raise OSError(f"{path}: could not write the {what}")
+            with open(side, "rb+") as f:
+                os.fsync(f.fileno())
+            os.replace(side, tmp)
+        finally:
+            side.unlink(missing_ok=True)

@@ -23,14 +23,13 @@ open3d is imported inside the functions (it costs ~1 s), as :mod:`~mutualslam_cl
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.atomic import atomic_path
+from mutualslam_cli.atomic import atomic_write_with
 from mutualslam_cli.errors import DatasetError, GeometryError
 from mutualslam_cli.metrics.alignment import align_positions
 from mutualslam_cli.metrics.trajectory import associate_indices
@@ -242,16 +241,7 @@ def write_mesh(path: Path, mesh: Mesh) -> None:
     m.vertex.positions = o3d.core.Tensor(mesh.vertices.astype(np.float32))
     m.vertex.colors = o3d.core.Tensor(mesh.colours.astype(np.float32))
     m.triangle.indices = o3d.core.Tensor(mesh.triangles.astype(np.int32))
-    with atomic_path(path) as tmp:
-        side = tmp.with_name(tmp.name + ".ply")  # open3d picks the format from the extension
-        try:
-            if not o3d.t.io.write_triangle_mesh(str(side), m, write_ascii=False):
-                raise OSError(f"{path}: open3d could not write the mesh")
-            with open(side, "rb+") as f:
-                os.fsync(f.fileno())
-            os.replace(side, tmp)
-        finally:
-            side.unlink(missing_ok=True)
+    atomic_write_with(path, lambda name: o3d.t.io.write_triangle_mesh(name, m, write_ascii=False), "mesh (open3d)")
 
 
 def read_mesh(path: Path) -> Mesh:

@@ -10,12 +10,11 @@ rides along as the scalar vertex property ``log_depth_error`` (NaN without GT).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
-from mutualslam_cli.atomic import atomic_path, atomic_write_text
+from mutualslam_cli.atomic import atomic_write_text, atomic_write_with
 from mutualslam_cli.errors import DatasetError, ShapeError
 
 #: |log z − log z*| (after removing the map's mean) at which the error colours saturate.
@@ -82,16 +81,7 @@ def write_ply(path: Path, points: np.ndarray, log_errors: np.ndarray | None = No
     pc.point.colors = o3d.core.Tensor(np.round(colours * 255).astype(np.uint8))
     if log_errors is not None:
         pc.point.log_depth_error = o3d.core.Tensor(np.asarray(log_errors, np.float32).reshape(-1, 1))
-    with atomic_path(path) as tmp:
-        side = tmp.with_name(tmp.name + ".ply")  # open3d picks the format from the extension
-        try:
-            if not o3d.t.io.write_point_cloud(str(side), pc):
-                raise OSError(f"{path}: open3d could not write the point cloud")
-            with open(side, "rb+") as f:
-                os.fsync(f.fileno())
-            os.replace(side, tmp)
-        finally:
-            side.unlink(missing_ok=True)
+    atomic_write_with(path, lambda name: o3d.t.io.write_point_cloud(name, pc), "point cloud (open3d)")
 
 
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:

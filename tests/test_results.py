@@ -157,3 +157,15 @@ def test_map_ply_empty_and_old_and_bad(tmp_path: Path):
         res.read_ply(tmp_path / "bad.ply")
     with pytest.raises(DatasetError, match="missing.ply"):
         res.read_ply(tmp_path / "missing.ply")
+
+
+def test_atomic_write_with_a_failing_writer_keeps_the_old_file(tmp_path: Path):
+    from mutualslam_cli.atomic import atomic_write_with
+
+    target = tmp_path / "mesh.ply"
+    target.write_text("old")
+    with pytest.raises(OSError, match="mesh.ply: could not write the mesh"):
+        atomic_write_with(target, lambda name: False, "mesh")
+    assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["mesh.ply"]
+    atomic_write_with(target, lambda name: Path(name).write_text("new") > 0 and name.endswith(".ply"), "mesh")
+    assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["mesh.ply"]
