@@ -158,10 +158,11 @@ class AdaptConfig:
     beside the current triplet (batch = 1 + this, as CoMoDa mixes the current sample with replayed
     ones). ≥ 0; 0 = no replay."""
     comoda_replay_capacity: int = 200
-    """Scheme ``comoda``: triplets kept for replay: the size of the source-domain bank (rendered in
-    ~10 s), or of the reservoir over the sequence's whole past (a uniform sample of it). Stored at
-    network resolution as uint8: 200 triplets at 640×192 are 221 MB (DESIGN §10: ≤ 3 GB, flat in
-    sequence length). ≥ 1."""
+    """Scheme ``comoda``: triplets kept for replay: the size of the source-domain bank (200: rendered
+    in ~90 s by a results folder's first comoda run, then read from ``<out>/_cache/comoda/``), or of
+    the reservoir over the sequence's whole past (a uniform sample of it). Stored at network
+    resolution as uint8: 200 triplets at 640×192 are 221 MB (DESIGN §10: ≤ 3 GB, flat in sequence
+    length). ≥ 1."""
     comoda_smoothness: float = 1e-3
     """Scheme ``comoda``: weight of the edge-aware smoothness (Monodepth2's 1e-3, which CoMoDa keeps). ≥ 0."""
     comoda_min_motion: float = 0.0

@@ -128,7 +128,7 @@ def _run_locked(seq: Sequence, cfg: RunConfig, folder: Path, out_root: Path, com
     t = time.perf_counter()
     if cfg.adapt.scheme == "comoda":  # the CoMoDa-style baseline: every frame, its own pose network, no keyframes
         net, kf_rows, adapter, loop_map = run_comoda_stage(seq, copy.deepcopy(net0), cfg, fast, folder, summary,
-                                                           progress), [], None, vo
+                                                           progress, out_root / "_cache" / "comoda"), [], None, vo
     else:
         net, kf_rows, adapter, loop_map = run_adaptation(seq, vo, copy.deepcopy(net0), cfg, fast, progress, step)
         res.summarise_adaptation(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],

@@ -83,6 +83,24 @@ def test_source_bank_is_replayed_with_its_own_intrinsics_and_never_grows(seq):
     assert float(own) != float(other)
 
 
+def test_source_bank_is_rendered_once_per_cache_and_rerendered_when_unreadable(tmp_path, monkeypatch):
+    from mutualslam_cli.adapt import comoda_source
+    from mutualslam_cli.datasets import synthetic
+
+    bank, K = comoda_source.source_triplets(3, W, H, cache_dir=tmp_path)
+    (path,) = tmp_path.glob("*.npy")
+
+    def no_render(*a, **k):
+        raise AssertionError("rendered although the bank is cached")
+
+    with monkeypatch.context() as m:
+        m.setattr(synthetic, "iter_render", no_render)
+        again, K2 = comoda_source.source_triplets(3, W, H, cache_dir=tmp_path)
+    assert torch.equal(again, bank) and torch.equal(K2, K)
+    path.write_bytes(b"not an array")
+    assert torch.equal(comoda_source.source_triplets(3, W, H, cache_dir=tmp_path)[0], bank)
+
+
 def test_no_replay_and_capacity_bound(seq):
     ad = _adapter(seq, comoda_replay_per_step=0)
     assert all(len(s.batch) <= 1 for s in (ad.add_frame(f) for f in _frames(seq)))

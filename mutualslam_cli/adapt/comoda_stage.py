@@ -62,7 +62,8 @@ def posenet_ate(seq: Sequence, traj: Trajectory, max_dt: float) -> tuple[float |
 
 
 def run_comoda_stage(seq: Sequence, net: torch.nn.Module, cfg: RunConfig, fast: bool, folder: Path,
-                     summary: res.Summary, progress: Progress | None = None) -> torch.nn.Module:
+                     summary: res.Summary, progress: Progress | None = None,
+                     cache_dir: Path | None = None) -> torch.nn.Module:
     """Adapt ``net`` on every frame of ``seq`` with the CoMoDa-style adapter; write its outputs.
 
     Args:
@@ -72,13 +73,14 @@ def run_comoda_stage(seq: Sequence, net: torch.nn.Module, cfg: RunConfig, fast: 
         fast: bf16 autocast for the forward passes.
         folder: the run folder (``frames.csv``, ``traj_posenet.txt``).
         summary: receives the timing and ``trajectory.ate_rmse_m.posenet`` keys.
+        cache_dir: where the source-domain replay bank is kept for the next runs (``None``: not kept).
 
     Returns:
         The adapted depth network.
     """
     w, h = cfg.net.width, cfg.net.height
     net = prepare(net, fast)
-    bank = (source_triplets(cfg.adapt.comoda_replay_capacity, w, h)
+    bank = (source_triplets(cfg.adapt.comoda_replay_capacity, w, h, cache_dir=cache_dir)
             if cfg.adapt.comoda_replay_from == "source" and cfg.adapt.comoda_replay_per_step > 0 else None)
     adapter = ComodaAdapter(net, make_pose_net(net, cfg.adapt), cfg.adapt,
                             seq.intrinsics.scaled(w, h).K(), seed=cfg.seed, fast=fast, replay_bank=bank)
