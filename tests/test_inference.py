@@ -61,6 +61,16 @@ def test_openvino_conversion_sends_no_telemetry(monkeypatch):
     assert sent == []
 
 
+@pytest.mark.skipif(not inference.openvino_available(), reason="openvino not installed")
+def test_openvino_pins_threads_only_when_it_may_use_every_core():
+    # pinned, two single-threaded grid workers land on the same core (2x slower each, measured)
+    import os
+
+    net = DepthNet().eval()
+    one = inference.openvino_predictor(net, 96, 64, threads=1).compiled
+    assert one.get_property("ENABLE_CPU_PINNING") is ((os.cpu_count() or 1) <= 1)
+
+
 def _bn_net(seed: int) -> DepthNet:
     """A random network with non-trivial batch-norm statistics (as trained weights have)."""
     torch.manual_seed(seed)
