@@ -39,12 +39,13 @@ import torch
 from mutualslam_cli import dense
 from mutualslam_cli import results as res
 from mutualslam_cli.adapt.inference import resolve_runtime
-from mutualslam_cli.adapt.inputs import make_predictor, scale_pixels
+from mutualslam_cli.adapt.inputs import make_predictor
 from mutualslam_cli.config import RunConfig, with_overrides
-from mutualslam_cli.dense_frames import FusedFrame, front_end_scales, select_frames
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.dense_frames import FusedFrame, front_end_scales, select_frames
 from mutualslam_cli.errors import DatasetError, GeometryError
 from mutualslam_cli.evaluation import calibration_frames
+from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.report_dense import dense_picture
 from mutualslam_cli.vo.camera import Undistorter, pinhole
 from mutualslam_cli.vo.output import VOResult
@@ -209,13 +210,11 @@ def _predict(tmp: Path, seq: Sequence, vo: VOResult, fused: list[FusedFrame], ne
             kf = kf_of.get(i)
             if kf is not None:
                 uv, z = vo.sparse_depth(kf.id, pw)
-                px = np.round(scale_pixels(uv, vo.intrinsics, w, h)).astype(int)
-                inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
                 for m in nets:
-                    d = out[m][j][px[inside, 1], px[inside, 0]]
-                    ok = d > 0
+                    d = lookup_nearest(out[m][j], uv, (vo.intrinsics.width, vo.intrinsics.height))
+                    ok = d > 0  # False outside (NaN)
                     if ok.any():
-                        r = float(np.median(z[inside][ok] / d[ok]))  # z_vo / z_pred, map units per network unit
+                        r = float(np.median(z[ok] / d[ok]))  # z_vo / z_pred, map units per network unit
                         ratios[m].append((r, r * vo_scale[kf.segment] if kf.segment in vo_scale else np.nan))
                 tick("predict")
     scales = {}

@@ -23,9 +23,10 @@ from mutualslam_cli.adapt.inputs import make_predictor
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.associate import MAX_DT
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.errors import MslamError
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics import trajectory as tm
-from mutualslam_cli.errors import MslamError
+from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.vo.camera import Undistorter, distort_points
 from mutualslam_cli.vo.output import VOResult
 
@@ -209,11 +210,7 @@ def _lookup_gt_depth(seq: Sequence, frame_index: int, pixels: np.ndarray) -> np.
     if depth is None:
         return np.full(len(pixels), np.nan)
     pix = distort_points(pixels, seq.intrinsics)  # GT depth images are in the raw (distorted) image
-    h, w = depth.shape
-    ui, vi = np.round(pix[:, 0]).astype(int), np.round(pix[:, 1]).astype(int)
-    ok = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-    out = np.full(len(pix), np.nan)
-    out[ok] = depth[vi[ok], ui[ok]]
+    out = lookup_nearest(depth, pix)
     out[out <= 0] = np.nan
     return out
 

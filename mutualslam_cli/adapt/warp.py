@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from mutualslam_cli.errors import ShapeError
+from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import check_shape
 
 #: Minimum source-camera z (same units as depth) for a projection to count as valid.
@@ -74,7 +75,7 @@ def warp(src: torch.Tensor, depth_t: torch.Tensor, K: torch.Tensor,
     check_shape(T_t2s, [b, 4, 4], "warp.T_t2s")
     uv, z = project_to_source(depth_t, K, T_t2s)
     u, v = uv[..., 0], uv[..., 1]
-    valid = (z[:, 0] > MIN_Z) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    valid = (z[:, 0] > MIN_Z) & in_image(uv, w, h)
     grid = torch.stack([2.0 * u / max(w - 1, 1) - 1.0, 2.0 * v / max(h - 1, 1) - 1.0], dim=-1)
     warped = F.grid_sample(src, grid.to(src.dtype), mode="bilinear", padding_mode="border", align_corners=True)
     return warped, valid.unsqueeze(1)

@@ -53,6 +53,7 @@ import numpy as np
 from mutualslam_cli.ba.photometric import PhotoBAProblem, solve
 from mutualslam_cli.geometry import exp_so3
 from mutualslam_cli.metrics.alignment import umeyama
+from mutualslam_cli.pixels import in_image_uv
 
 # fronto-parallel panels z = depth (y down, z forward), each limited to a box in (x, y), so
 # 3×3 patches sharing one inverse depth are exact: (depth, x_min, x_max, y_min, y_max)
@@ -201,7 +202,7 @@ def synthetic_problem(n_kf: int = 6, n_points: int = 600, hw: tuple[int, int] = 
         X = np.einsum("nij,nj->ni", T_th[:, :3, :3], Xh[idx]) + T_th[:, :3, 3]
         uvw = X @ K.T
         u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
-        inside = (X[:, 2] > 0.1) & (u > 4) & (u < W - 5) & (v > 4) & (v < H - 5)
+        inside = (X[:, 2] > 0.1) & in_image_uv(u, v, W, H, margin=4)
         ui, vi = np.clip(np.round(u).astype(int), 0, W - 1), np.clip(np.round(v).astype(int), 0, H - 1)
         inside &= dmin[tk[idx], vi, ui] > 0.98 * X[:, 2]  # whole patch on the visible surface
         idx = idx[inside]

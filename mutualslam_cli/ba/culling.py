@@ -20,6 +20,7 @@ import numpy as np
 
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.geometry import project, se3_inv, transform
+from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo.output import VOResult
 
 DepthLookup = Callable[[int, np.ndarray], np.ndarray]
@@ -132,7 +133,7 @@ def cull_map_points(vo: VOResult, val_loss: Mapping[int, float], depth_at: Depth
             m = np.flatnonzero(host == k)
             pc = transform(se3_inv(vo.keyframes[int(k)].pose), pw[m])
             pix, z = project(pc, K)
-            inside = (z > 1e-9) & (pix[:, 0] >= 0) & (pix[:, 0] <= w - 1) & (pix[:, 1] >= 0) & (pix[:, 1] <= h - 1)
+            inside = (z > 1e-9) & in_image(pix, w, h)
             d_mp[m] = z
             if inside.any():
                 d = np.asarray(depth_at(int(k), pix[inside]), float)

@@ -52,6 +52,7 @@ from mutualslam_cli.ba.photometric import PhotoBAProblem, solve
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.output import VOResult
 
@@ -92,11 +93,6 @@ class GlobalBAResult:
         return replace(self.vo, points=self.vo.points.subset(self.keep))
 
 
-def _inside(uv: np.ndarray, shape: tuple[int, int], border: float) -> np.ndarray:
-    H, W = shape
-    return (uv[:, 0] >= border) & (uv[:, 0] <= W - 1 - border) & (uv[:, 1] >= border) & (uv[:, 1] <= H - 1 - border)
-
-
 def _targets(K, T_cw, host, pix, rho, obs, max_targets, shape, border):
     """``(obs_pt, obs_kf)`` of one segment (local keyframe indices): per point its observations
     ``obs[i]`` where it projects inside, nearest keyframe index first, at most ``max_targets``."""
@@ -108,7 +104,7 @@ def _targets(K, T_cw, host, pix, rho, obs, max_targets, shape, border):
     X = np.einsum("nij,nj->ni", T_th[:, :3, :3], ray) + T_th[:, :3, 3]
     z = X[:, 2]
     uv = (X[:, :2] / np.where(z > 1e-9, z, 1.0)[:, None]) * np.diag(K)[:2] + K[:2, 2]
-    sel = np.flatnonzero((z > 1e-9) & (cand_k != h) & _inside(uv, shape, border))
+    sel = np.flatnonzero((z > 1e-9) & (cand_k != h) & in_image(uv, shape[1], shape[0], border))
     order = sel[np.lexsort((cand_k[sel], np.abs(cand_k[sel] - h[sel]), cand_p[sel]))]
     p = cand_p[order]
     take = order[np.arange(len(p)) - np.searchsorted(p, p) < max_targets]  # rank within the point
@@ -168,10 +164,7 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
             d = cache.setdefault(k, np.asarray(depth_of(k), float))
             if d.ndim != 2:
                 raise ShapeError(f"depth_of({k}): expected an (h, w) depth map, got shape {d.shape}")
-            s = np.array([d.shape[1] / vo.intrinsics.width, d.shape[0] / vo.intrinsics.height])
-            q = np.rint((uv + 0.5) * s - 0.5).astype(np.int64)
-            ok = (q[:, 0] >= 0) & (q[:, 0] < d.shape[1]) & (q[:, 1] >= 0) & (q[:, 1] < d.shape[0])
-            return np.where(ok, d[np.clip(q[:, 1], 0, d.shape[0] - 1), np.clip(q[:, 0], 0, d.shape[1] - 1)], np.nan)
+            return lookup_nearest(d, uv, (vo.intrinsics.width, vo.intrinsics.height))
 
         cr = cull_map_points(sub, val_loss or {}, depth_at, cfg.gamma, cfg.d_max)
         keep[sub_idx] = cr.keep
@@ -199,7 +192,7 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
         ks = kf_in[segs[kf_in] == sg]
         loc = np.full(nk, -1)
         loc[ks] = np.arange(len(ks))
-        cand = np.flatnonzero(keep[sub_idx] & (loc[host] >= 0) & _inside(pix_ba, (H, W), border))
+        cand = np.flatnonzero(keep[sub_idx] & (loc[host] >= 0) & in_image(pix_ba, W, H, border))
         if len(ks) < 2 or not len(cand):
             continue
         stack = np.stack([stack_all[k] for k in ks])

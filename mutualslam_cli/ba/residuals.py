@@ -23,6 +23,7 @@ import numpy as np
 
 from mutualslam_cli.ba.problem import PhotoBAProblem
 from mutualslam_cli.ba.schur import _Structure
+from mutualslam_cli.pixels import in_image, in_image_uv
 
 
 class _Data:
@@ -40,7 +41,7 @@ class _Data:
         q = np.asarray(prob.pixel, float)[:, None, :] + np.stack([du, dv], 1)[None]  # (P, S, 2)
         self.xq = (q[..., 0] - self.cx) / self.fx  # normalised patch rays (P, S)
         self.yq = (q[..., 1] - self.cy) / self.fy
-        hv = (q[..., 0] >= 0) & (q[..., 0] <= self.W - 1) & (q[..., 1] >= 0) & (q[..., 1] <= self.H - 1)
+        hv = in_image(q, self.W, self.H)
         kf = np.broadcast_to(np.asarray(prob.host)[:, None], hv.shape)
         self.Ih = self.sample(kf, q[..., 0], q[..., 1])[0].astype(float)  # (P, S), constant
         p, t = np.asarray(prob.obs_pt), np.asarray(prob.obs_kf)
@@ -88,8 +89,7 @@ def residuals(d: _Data, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, jac: boo
     iz = 1.0 / np.where(front, X[2], 1.0)
     un, vn = X[0] * iz, X[1] * iz
     u, v = d.fx * un + d.cx, d.fy * vn + d.cy
-    m = d.margin
-    valid = front & d.host_ok & (u >= m) & (u <= d.W - 1 - m) & (v >= m) & (v <= d.H - 1 - m)
+    valid = front & d.host_ok & in_image_uv(u, v, d.W, d.H, d.margin)
     It, Iv, Iu = d.sample(t[:, None], u, v)
     e = np.exp(ab[t, 0] - ab[h, 0])[:, None]
     Ihb = d.Ih[p] - ab[h, 1][:, None]

@@ -16,6 +16,7 @@ import numpy as np
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import backproject, project, se3_inv, transform
+from mutualslam_cli.pixels import in_image
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ def warp_error(gray_i: np.ndarray, depth_i: np.ndarray, gray_j: np.ndarray, T_wi
         return float("nan"), 0
     pts_j = transform(se3_inv(T_wj) @ T_wi, backproject(np.stack([u, v], 1).astype(np.float64), d, K))
     uv, z = project(pts_j, K)
-    inside = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
+    inside = (z > 1e-6) & in_image(uv, W, H)
     n = int(inside.sum())
     if n == 0:
         return float("nan"), 0

@@ -23,10 +23,11 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.heap import retain_freed_memory
+from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
+from mutualslam_cli.vo.bootstrap import InitMixin
 from mutualslam_cli.vo.camera import distort_points, focal_px, to_normalized, undistort_points
 from mutualslam_cli.vo.features import detect_grid
-from mutualslam_cli.vo.bootstrap import InitMixin
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.output import VOResult
 from mutualslam_cli.vo.reproject import reproject_points
@@ -189,8 +190,7 @@ class _Frontend(InitMixin):
             px = pc[good, :2] / pc[good, 2:3] @ self.K[:2, :2].T + self.K[:2, 2]
             pred[good] = distort_points(px, self.intr)
         w, h = self.intr.width, self.intr.height
-        inside = (pred[:, 0] >= 0) & (pred[:, 0] <= w - 1) & (pred[:, 1] >= 0) & (pred[:, 1] <= h - 1)
-        bad = ~np.isfinite(pred).all(1) | ~inside
+        bad = ~np.isfinite(pred).all(1) | ~in_image(pred, w, h)
         pred[bad] = tr.raw[bad]
         shift = pred[good & ~bad] - tr.raw[good & ~bad]
         if len(shift):  # uncertain seeds move with the median predicted flow

@@ -24,6 +24,7 @@ from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import backproject, project, se3_inv, transform
+from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.camera import distort_points as _distort
 from mutualslam_cli.vo.camera import undistort_points as _undistort
@@ -63,16 +64,6 @@ def grid_corners(gray: np.ndarray, grid_size: int, max_fts: int) -> np.ndarray:
     return np.stack([u[ok], v[ok]], axis=1)[order].astype(np.float64)
 
 
-def _lookup(depth: np.ndarray, pix: np.ndarray) -> np.ndarray:
-    h, w = depth.shape
-    ui = np.round(pix[:, 0]).astype(int)
-    vi = np.round(pix[:, 1]).astype(int)
-    ok = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-    out = np.zeros(len(pix), np.float32)
-    out[ok] = depth[vi[ok], ui[ok]]
-    return out
-
-
 def run_oracle(seq: Sequence, cfg: VOConfig, seed: int = 0,
                progress: Callable[[dict], None] | None = None) -> VOResult:
     """Keyframes with GT poses and map points from GT depth (see module docstring).
@@ -97,7 +88,7 @@ def run_oracle(seq: Sequence, cfg: VOConfig, seed: int = 0,
         depth = seq.load_depth(fi)
         depths.append(depth)  # type: ignore[arg-type]
         raw = grid_corners(seq.load_gray(fi), cfg.grid_size, 4 * cfg.max_fts)
-        d = _lookup(depth, raw)  # type: ignore[arg-type]
+        d = lookup_nearest(depth, raw, fill=0.0)  # type: ignore[arg-type]
         ok = d > 0
         raw, d = raw[ok][: cfg.gt_max_points], d[ok][: cfg.gt_max_points]
         hosts.append(np.full(len(d), k))
@@ -124,9 +115,8 @@ def run_oracle(seq: Sequence, cfg: VOConfig, seed: int = 0,
         if len(cand) == 0:
             continue
         uv, z = project(transform(se3_inv(kf.pose), pw[cand]), K)
-        inside = ((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= pin.width - 1)
-                  & (uv[:, 1] >= 0) & (uv[:, 1] <= pin.height - 1))
-        dz = _lookup(depths[k], _distort(uv, intr))
+        inside = (z > 0) & in_image(uv, pin.width, pin.height)
+        dz = lookup_nearest(depths[k], _distort(uv, intr), fill=0.0)
         vis = inside & (dz > 0) & (np.abs(dz - z) < OBS_DEPTH_TOL * np.maximum(z, 1e-6))
         for i, p in zip(cand[vis], uv[vis]):
             obs[i].append(k)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from mutualslam_cli.geometry import project, se3_inv, transform
+from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import Intrinsics, Trajectory
 
 
@@ -144,7 +145,7 @@ class VOResult:
         pc = transform(se3_inv(self.keyframes[kf_id].pose), pw[sel])
         pix, z = project(pc, self.intrinsics.K())
         w, h = self.intrinsics.width, self.intrinsics.height
-        ok = (z > 1e-6) & (pix[:, 0] >= 0) & (pix[:, 0] <= w - 1) & (pix[:, 1] >= 0) & (pix[:, 1] <= h - 1)
+        ok = (z > 1e-6) & in_image(pix, w, h)
         return pix[ok], z[ok]
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import distort_points, to_normalized, undistort_points
 from mutualslam_cli.vo.state import Map
@@ -54,7 +55,7 @@ def reproject_points(
     pids, pc = pids[ok], pc[ok]
     px = pc[:, :2] / pc[:, 2:3] @ K[:2, :2].T + K[:2, 2]
     h, w = gray.shape
-    inside = (px[:, 0] >= border) & (px[:, 0] < w - border) & (px[:, 1] >= border) & (px[:, 1] < h - border)
+    inside = in_image(px, w, h, border)
     pids, px = pids[inside], px[inside]
     out_ids, out_raw = [], []
     src_of = np.array([max((k for k in m.obs[p] if k in kf_imgs), default=-1) for p in pids])

@@ -9,6 +9,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from mutualslam_cli.pixels import in_image
+
 KLT_ITERS = 10
 """Lucas–Kanade iterations per pyramid level (with a motion-model start, 10 suffice)."""
 
@@ -60,7 +62,7 @@ def _fb_pass(prev: Pyramid, cur: Pyramid, p0: np.ndarray, guess: np.ndarray | No
     p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (fb < fb_threshold_px)
-    ok &= (p1[:, 0] >= 2) & (p1[:, 0] <= w - 3) & (p1[:, 1] >= 2) & (p1[:, 1] <= h - 3)
+    ok &= in_image(p1, w, h, margin=2)
     return p1, ok
 
 
