@@ -13,6 +13,7 @@ from mutualslam_cli.datasets.associate import (
     poses_at,
     read_list_file,
     read_tum_trajectory,
+    stamps_match,
     write_tum_trajectory,
 )
 from mutualslam_cli.errors import DatasetError
@@ -55,21 +56,23 @@ def test_associate_unique_on_random_streams(rng):
     pairs = associate(a, b, max_dt=0.02)
     ia, ib = zip(*pairs)
     assert len(set(ia)) == len(ia) and len(set(ib)) == len(ib)
-    assert all(abs(a[i] - b[j]) < 0.02 for i, j in pairs)
+    assert all(abs(a[i] - b[j]) <= 0.02 for i, j in pairs)
     assert list(ia) == sorted(ia)  # sorted by the first stream's timestamp
 
 
-def test_associate_max_dt_is_strict_and_offset_applies():
+def test_associate_window_and_offset():
     assert associate([0.0], [0.025]) == []
     assert associate([0.0], [0.025], max_dt=0.03) == [(0, 0)]
     assert associate([0.0], [1.01], offset=-1.0) == [(0, 0)]
     assert associate([], [1.0]) == []
 
 
-def test_associate_window_excludes_a_pair_exactly_max_dt_apart():
-    # exact binary fractions, so |dt| == max_dt holds in floating point (TUM associate.py: `<`)
-    assert associate([1.0], [1.03125], max_dt=0.03125) == []
-    assert associate([1.0], [1.03125], max_dt=0.0625) == [(0, 0)]
+def test_associate_window_keeps_a_pair_exactly_max_dt_apart():
+    # the package's one rule (stamps_match): inclusive, as evo's matching
+    assert associate([1.0], [1.03125], max_dt=0.03125) == [(0, 0)]  # exact binary fractions
+    assert associate([1.03125], [1.0], max_dt=0.03125) == [(0, 0)]
+    assert associate([1.0], [1.03125 + 1e-9], max_dt=0.03125) == []
+    assert stamps_match(-0.03125, 0.03125) and not stamps_match(0.0312501, 0.03125)
     assert MAX_DT == 0.02
 
 

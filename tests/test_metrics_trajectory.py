@@ -173,12 +173,12 @@ def test_tie_goes_to_earlier_stamp_and_window_is_inclusive() -> None:
     assert i_long.tolist() == [0, 2] and i_short.tolist() == [0, 1]  # |dt| == max_dt is kept
 
 
-def test_unique_window_is_strict_nearest_is_inclusive() -> None:
-    # one pair exactly max_dt apart (exact binary fractions): evo's nearest keeps it (so the ATE
-    # equals evo_ape's), TUM's greedy associate.py (the one greedy function) does not
+def test_unique_and_nearest_share_the_inclusive_window() -> None:
+    # one pair exactly max_dt apart (exact binary fractions): both methods keep it (one rule, stamps_match)
     ref_t, est_t = np.array([1.0, 2.0, 3.0]), np.array([1.03125, 2.0])
     assert [a.tolist() for a in associate_indices(ref_t, est_t, 0.03125, "nearest")] == [[0, 1], [0, 1]]
-    assert [a.tolist() for a in associate_indices(ref_t, est_t, 0.03125, "unique")] == [[1], [1]]
+    assert [a.tolist() for a in associate_indices(ref_t, est_t, 0.03125, "unique")] == [[0, 1], [0, 1]]
+    assert [a.tolist() for a in associate_indices(ref_t, est_t + 1e-6, 0.03125, "unique")] == [[1], [1]]
 
 
 def test_no_overlap_raises_with_spans() -> None:

@@ -33,6 +33,17 @@ MAX_DT = 0.02
 (:func:`associate`) and the default of the ATE's estimate↔reference association
 (:mod:`mutualslam_cli.metrics.trajectory`)."""
 
+def stamps_match(dt: np.ndarray | float, max_dt: float) -> np.ndarray | bool:
+    """The package's one association window: ``|dt| ≤ max_dt``, ``dt`` in seconds, any shape.
+
+    Inclusive, as evo's matching, so the ATE pairs are evo's to the last pair (the TUM benchmark
+    script's window is strict; the two differ only for a pair exactly ``max_dt`` apart). No
+    tolerance: a float64 difference of two stamps is exact IEEE arithmetic, the same on every
+    CPU, so unlike a projected pixel it cannot fall on either side of the bound by machine.
+    """
+    return np.abs(dt) <= max_dt
+
+
 MAX_GT_GAP = 0.1
 """GT interpolation: both bracketing GT samples must lie within this many seconds of the image
 time. The TUM motion capture runs at 100 Hz; fr1_xyz has one 0.11 s hole, which this still
@@ -191,17 +202,15 @@ def write_tum_trajectory(
 def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = MAX_DT, offset: float = 0.0) -> list[tuple[int, int]]:
     """Greedy unique nearest-timestamp association (TUM benchmark ``associate.py``).
 
-    All pairs with ``|a − (b + offset)| < max_dt`` are sorted by that difference and taken
-    greedily, each element used at most once. The package's one greedy association: RGB ↔
-    depth in the TUM-layout loader, and ``association="unique"`` of the ATE
-    (:func:`mutualslam_cli.metrics.trajectory.associate_indices`). The window is strict, as in
-    the benchmark script: a pair exactly ``max_dt`` apart is not associated (the ATE's default,
-    evo's nearest-stamp matching, is inclusive instead).
+    All pairs within the window (:func:`stamps_match` on ``a − (b + offset)``) are sorted by
+    their difference and taken greedily, each element used at most once. The package's one
+    greedy association: RGB ↔ depth in the TUM-layout loader, and ``association="unique"`` of the
+    ATE (:func:`mutualslam_cli.metrics.trajectory.associate_indices`).
 
     Args:
         ts_a: ``(N,)`` timestamps of the first stream (seconds).
         ts_b: ``(M,)`` timestamps of the second stream.
-        max_dt: tolerance in seconds (strict, as in the benchmark script).
+        max_dt: tolerance in seconds (inclusive, :func:`stamps_match`).
         offset: added to ``ts_b`` before matching.
 
     Returns:
@@ -219,7 +228,7 @@ def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = MAX_DT, offset
         hi = np.searchsorted(bs, t + max_dt, side="right")
         for k in range(lo, hi):
             d = abs(t - bs[k])
-            if d < max_dt:
+            if stamps_match(d, max_dt):
                 cand.append((d, i, int(order_b[k])))
     cand.sort()
     used_a: set[int] = set()

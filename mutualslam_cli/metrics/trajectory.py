@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from mutualslam_cli.datasets.associate import MAX_DT, associate
+from mutualslam_cli.datasets.associate import MAX_DT, associate, stamps_match
 from mutualslam_cli.errors import ConfigError, DatasetError, GeometryError
 from mutualslam_cli.metrics.alignment import (  # noqa: F401  (ALIGNMENTS, umeyama: importable from here too)
     ALIGNMENTS,
@@ -45,22 +45,22 @@ def _match_nearest(short: np.ndarray, long: np.ndarray, max_dt: float) -> tuple[
     """For each stamp of ``short``, the nearest stamp of ``long`` within ``max_dt``.
 
     Same decisions as evo's ``sync.matching_time_indices`` (v1.38): inclusive window
-    (``|dt| <= max_dt``), a tie between the two neighbours goes to the earlier one, and a
-    ``long`` stamp may be matched by several ``short`` stamps.
+    (:func:`~mutualslam_cli.datasets.associate.stamps_match`), a tie between the two neighbours
+    goes to the earlier one, and a ``long`` stamp may be matched by several ``short`` stamps.
     """
     if len(long) == 0 or len(short) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     if np.any(np.diff(long) < 0):  # unsorted: plain nearest search, as evo falls back to
         diffs = np.abs(long[None, :] - short[:, None])
         j = np.argmin(diffs, axis=1)
-        ok = diffs[np.arange(len(short)), j] <= max_dt
+        ok = stamps_match(diffs[np.arange(len(short)), j], max_dt)
         return np.nonzero(ok)[0], j[ok]
     j_ub = np.minimum(np.searchsorted(long, short, side="right"), len(long) - 1)
     diff_ub = long[j_ub] - short
     diff_lb = np.where(j_ub > 0, short - long[np.maximum(j_ub - 1, 0)], np.inf)
     in_range = (short >= long[0] - max_dt) & (short <= long[-1] + max_dt)
-    take_ub = (diff_ub <= max_dt) & (diff_ub < diff_lb)
-    take_lb = ~take_ub & (diff_lb <= max_dt) & (diff_lb <= diff_ub)
+    take_ub = stamps_match(diff_ub, max_dt) & (diff_ub < diff_lb)
+    take_lb = ~take_ub & stamps_match(diff_lb, max_dt) & (diff_lb <= diff_ub)
     ok = in_range & (take_ub | take_lb)
     j = np.where(take_ub, j_ub, j_ub - 1)
     return np.nonzero(ok)[0], j[ok]
@@ -77,8 +77,8 @@ def associate_indices(
     Args:
         ref_t: ``(N,)`` reference timestamps, seconds.
         est_t: ``(M,)`` estimate timestamps, seconds.
-        max_dt: largest accepted ``|t_ref − t_est|``, seconds (inclusive for ``nearest``, as
-            evo; strict for ``unique``, as TUM ``associate.py``).
+        max_dt: largest accepted ``|t_ref − t_est|``, seconds (inclusive for both methods:
+            :func:`~mutualslam_cli.datasets.associate.stamps_match`).
         method: ``nearest`` — evo's ``associate_trajectories`` (nearest-time): every pose of
             the trajectory with fewer poses (``est`` on a tie) takes its nearest stamp in the
             other one; a pose of the longer trajectory can serve two pairs (rare; only when
