@@ -96,31 +96,61 @@ def _digest(folder: Path) -> dict[str, str]:
             for f in sorted(folder.rglob("*")) if f.is_file() and f.name != ".lock"}
 
 
+GATE_DIR = Path(__file__).parent / "gate"
+
+
+def _gated_env(gate: Path, passing: str = "") -> dict[str, str]:
+    """Environment of a grid whose jobs stop at the gate of ``tests/gate/sitecustomize.py``."""
+    gate.mkdir()
+    path = os.pathsep.join(filter(None, [str(GATE_DIR), os.environ.get("PYTHONPATH", "")]))
+    return {**os.environ, "PYTHONPATH": path, "MSLAM_TEST_GATE": str(gate), "MSLAM_TEST_GATE_PASS": passing,
+            "COLUMNS": "300"}
+
+
+def _wait_for(what: str, ready, proc: subprocess.Popen, limit_s: float = 600.0) -> None:
+    """Wait until ``ready()``; fail if the grid exits first (the limit only ends a hung test)."""
+    deadline = time.monotonic() + limit_s
+    while not ready():
+        assert proc.poll() is None, f"the grid exited (code {proc.returncode}) before {what}"
+        assert time.monotonic() < deadline, f"no {what} after {limit_s:.0f} s"
+        time.sleep(0.1)
+
+
+def _blocked_pids(gate: Path) -> set[str]:
+    return {f.name.rsplit("-", 1)[1] for f in gate.glob("started-*")}
+
+
+def _gone(workers: list[psutil.Process], limit_s: float = 60.0) -> list[int]:
+    """Pids among ``workers`` still alive after up to ``limit_s`` (the kernel reaps them at once)."""
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline and any(_alive(p) for p in workers):
+        time.sleep(0.1)
+    return [p.pid for p in workers if _alive(p)]
+
+
 def test_sigkill_mid_grid_leaves_no_process_and_a_rerun_completes(setup, tmp_path):
     tmp, seq = setup
-    out = tmp_path / "out"
+    out, gate = tmp_path / "out", tmp_path / "gate"
     cmd = [sys.executable, "-m", "mutualslam_cli.cli", "ablate", str(seq), "--schemes",
            "none,recent,replay,replay+ewc", "--seeds", "0", "-j", "2", "--out", str(out),
            "--config", str(CONFIG_DIR / "smoke.yaml"), "--set", _sets(tmp)[0]]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    workers: list[psutil.Process] = []
-    deadline = time.time() + 120
-    while time.time() < deadline and proc.poll() is None:
-        done = list(out.rglob("summary.json"))
-        kids = _tree(proc.pid)
-        if done and len(kids) >= 2:
-            workers = kids
-            break
-        time.sleep(0.2)
-    assert workers and proc.poll() is None, "the grid finished or never started its workers"
-    finished = {f.parent: _digest(f.parent) for f in out.rglob("summary.json")}
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    deadline = time.time() + 15
-    while time.time() < deadline and any(_alive(p) for p in workers):
-        time.sleep(0.2)
-    assert not [p.pid for p in workers if _alive(p)], "pool processes outlived the killed grid"
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    # `none` runs through; every other job waits at the gate: one job complete, both workers mid-job
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                            env=_gated_env(gate, "none"))
+    try:
+        _wait_for("a complete job and two workers at the gate",
+                  lambda: list(out.rglob("summary.json")) and len(_blocked_pids(gate)) >= 2, proc)
+        workers = _tree(proc.pid)
+        assert {str(p.pid) for p in workers} >= _blocked_pids(gate)
+        finished = {f.parent: _digest(f.parent) for f in out.rglob("summary.json")}
+        assert len(finished) == 1
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not _gone(workers), "pool processes outlived the killed grid"
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)  # no gate: the rerun completes
     assert r.returncode == 0, r.stderr[-2000:]
     assert len(list(out.rglob("summary.json"))) == 4
     for folder, digest in finished.items():  # finished jobs were skipped, byte for byte
@@ -129,24 +159,20 @@ def test_sigkill_mid_grid_leaves_no_process_and_a_rerun_completes(setup, tmp_pat
 
 def test_ctrl_c_stops_the_workers_and_says_how_to_resume(setup, tmp_path):
     tmp, seq = setup
+    gate = tmp_path / "gate"
     cmd = [sys.executable, "-m", "mutualslam_cli.cli", "ablate", str(seq), "--schemes", "recent,replay,replay+ewc",
            "--seeds", "0", "-j", "2", "--out", str(tmp_path / "out"), "--config", str(CONFIG_DIR / "smoke.yaml"),
            "--set", _sets(tmp)[0]]
-    env = {**os.environ, "COLUMNS": "300"}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            env=env)
-    workers: list[psutil.Process] = []
-    deadline = time.time() + 120
-    while time.time() < deadline and proc.poll() is None and len(workers) < 2:
+                            env=_gated_env(gate))
+    try:
+        _wait_for("two workers in their jobs", lambda: len(_blocked_pids(gate)) >= 2, proc)
         workers = _tree(proc.pid)
-        time.sleep(0.2)
-    assert len(workers) >= 2
-    time.sleep(1.0)  # let the workers import and start their jobs
-    os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole foreground group
-    _, err = proc.communicate(timeout=60)
+        os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole foreground group
+        _, err = proc.communicate(timeout=600)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
     assert proc.returncode == 130, err[-2000:]
     assert "interrupted" in err and "run the same command again" in err and "Traceback" not in err
-    deadline = time.time() + 15
-    while time.time() < deadline and any(_alive(p) for p in workers):
-        time.sleep(0.2)
-    assert not [p.pid for p in workers if _alive(p)]
+    assert not _gone(workers)

@@ -21,11 +21,11 @@ from mutualslam_cli.pipeline import run_sequence
 from synth import make_tum_dir
 
 HOLDER = textwrap.dedent("""
-    import sys, time
+    import sys
     from mutualslam_cli.lock import hold_lock
     with hold_lock(sys.argv[1], "test holder"):
         print("locked", flush=True)
-        time.sleep(120)
+        sys.stdin.read()  # holds the lock until the test closes our stdin or kills us
 """)
 
 
@@ -33,16 +33,18 @@ HOLDER = textwrap.dedent("""
 def holder(tmp_path):
     """Another process holding the lock of ``tmp_path / "run"``; killed with SIGKILL at the end."""
     folder = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-c", HOLDER, str(folder)], stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", HOLDER, str(folder)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "locked"
         yield folder, proc
     finally:
         if proc.poll() is None:
             proc.kill()
-        proc.wait(timeout=30)
-        if proc.stdout is not None:
-            proc.stdout.close()
+        proc.wait(timeout=600)
+        for stream in (proc.stdin, proc.stdout):
+            if stream is not None:
+                stream.close()
 
 
 def test_second_holder_gets_one_line_with_the_pid(holder):
@@ -60,7 +62,7 @@ def test_second_holder_gets_one_line_with_the_pid(holder):
 def test_lock_is_free_at_once_after_the_holder_is_killed(holder):
     folder, proc = holder
     os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
+    proc.wait(timeout=600)
     assert (folder / LOCK_NAME).is_file()  # the file stays behind ...
     with hold_lock(folder, "mslam run"):  # ... and does not block
         assert read_holder(folder)["pid"] == os.getpid() and read_holder(folder)["what"] == "mslam run"
