@@ -122,16 +122,11 @@ def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, regi
 
     ``after``: ignored; Dask passes the job's front-end task result here so the job waits for it.
     """
-    from threadpoolctl import threadpool_limits
-
     from mutualslam_cli.pipeline import run_sequence
 
-    try:
-        # BLAS threads as many as torch's, whatever the executor set up (Dask workers start with 1):
-        # reductions then sum in the same order, and results agree to the last bit across executors
-        with threadpool_limits(limits=threads if threads > 0 else None, user_api="blas"):
-            r = run_sequence(job.sequence, _job_config(cfg, job, threads), out=out, command=command,
-                             registry=Path(registry) if registry else None)
+    try:  # run_sequence gives torch, OpenCV and BLAS the same threads, whatever the executor set up
+        r = run_sequence(job.sequence, _job_config(cfg, job, threads), out=out, command=command,
+                         registry=Path(registry) if registry else None)
         return JobOutcome(job, "skipped" if r.skipped else "done", r.folder)
     except MslamError as e:
         return JobOutcome(job, "failed", None, str(e))

@@ -17,6 +17,7 @@ from typing import Any
 import cv2
 import pandas as pd
 import torch
+from threadpoolctl import threadpool_limits
 
 from mutualslam_cli import results as res
 from mutualslam_cli.adapt.inputs import load_network, use_fast_path
@@ -25,7 +26,7 @@ from mutualslam_cli.adapt.stage import Progress, run_adaptation
 from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.ba.culling import inject_outliers
 from mutualslam_cli.ba_stage import BALog, final_ba, make_ba_step, no_culling_reason, write_ba_results
-from mutualslam_cli.config import RunConfig, to_dict
+from mutualslam_cli.config import RunConfig, to_dict, with_overrides
 from mutualslam_cli.dense_stage import add_stage_time, run_dense
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
@@ -80,9 +81,11 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     t_start = time.perf_counter()
     torch.manual_seed(cfg.seed)
     retain_freed_memory()  # image-sized buffers reuse pages (VO, warps, evaluation)
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
-        cv2.setNumThreads(cfg.threads)
+    # Results follow the thread count (reductions sum in another order), so the count is resolved
+    # here, used alike by torch, OpenCV and BLAS, and recorded in config.yaml like any setting.
+    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())
+    torch.set_num_threads(cfg.threads)
+    cv2.setNumThreads(cfg.threads)
     timings: dict[str, float] = {}
     t = time.perf_counter()
     seq = sequence if isinstance(sequence, Sequence) else load_sequence(
@@ -94,7 +97,8 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     if res.is_complete(folder) and not force:
         log.info("%s is complete; skipping (use --force to recompute)", folder)
         return RunResult(folder, res.read_summary(folder), skipped=True)
-    with hold_lock(folder, "mslam run"):  # a second process on this folder stops here, having touched nothing
+    with hold_lock(folder, "mslam run"), threadpool_limits(limits=cfg.threads, user_api="blas"):
+        # (a second process on this folder stops at the lock, having touched nothing)
         return _run_locked(seq, cfg, folder, out_root, command, force, progress, timings, t_start)
 
 

@@ -5,7 +5,7 @@
 seeds, with the seed count), and ``write_report`` saves each table as Markdown, LaTeX and CSV
 plus PNG plots. Values that a run could not compute stay empty (``NaN`` → "—"), never 0.
 
-Runs whose resolved configs differ (other than seed, scheme, output and thread settings) are
+Runs whose resolved configs differ (other than seed, scheme and output; thread counts count) are
 never averaged together: every table gets a ``config`` column naming the settings that differ
 (e.g. ``ba.culling=False``). Paper Table 4 (``ate_ba``: ATE without / with global BA) and
 Table 5 (``map_ba``: map points and e_si with and without BA and culling, per ``vo.max_fts``)
@@ -74,7 +74,9 @@ class Report:
 
 
 #: Config keys that do not make runs different experiments (``adapt.scheme`` has its own column).
-IGNORED_CONFIG = ("seed", "out", "threads", "adapt.scheme", "data.data_root", "eval.save_weights")
+#: ``threads`` is not among them: the numbers follow the thread count (torch's reductions sum in
+#: another order), so runs with different counts are told apart like any other setting.
+IGNORED_CONFIG = ("seed", "out", "adapt.scheme", "data.data_root", "eval.save_weights")
 
 
 def _read_config(folder: Path) -> dict[str, Any]:

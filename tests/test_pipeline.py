@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import torch
+import yaml
 
 from mutualslam_cli import results as res
 from mutualslam_cli.config import CONFIG_DIR, load_config
@@ -29,7 +31,10 @@ def _cfg(tmp: Path, *extra: str):
 @pytest.fixture(scope="module")
 def default_run(setup):
     tmp, seq = setup
-    return run_sequence(seq, _cfg(tmp), out=tmp / "res", command=["test"])
+    # The random network predicts ~0.23 everywhere, the oracle map is metric (~1.8 m): Eq. 10 would
+    # cull all but a lucky few. With d_max below the network's depth every point counts as far and
+    # is kept, so the BA has the whole map to refine (culling itself: tests/test_culling.py).
+    return run_sequence(seq, _cfg(tmp, "ba.d_max=0.2"), out=tmp / "res", command=["test"])
 
 
 def test_run_writes_complete_result(setup, default_run):
@@ -77,6 +82,15 @@ def test_run_writes_complete_result(setup, default_run):
         assert flat[f"depth.pcd.lsq.{model}"] == pytest.approx(pf[f"{model}_pcd_lsq"].mean())
     m = json.loads((f / "manifest.json").read_text())
     assert m["seed"] == 0 and "torch" in m["versions"] and m["timings_s"]["total_s"] > 0
+
+
+def test_threads_are_resolved_and_recorded(setup):
+    """`threads: 0` (all cores) is written as the count the run used: runs differ by it."""
+    tmp, seq = setup
+    want = torch.get_num_threads()
+    r = run_sequence(seq, _cfg(tmp, "threads=0", "adapt.scheme=none"), out=tmp / "threads", command=["test"])
+    assert yaml.safe_load((r.folder / "config.yaml").read_text())["threads"] == want > 0
+
 
 
 def test_ba_switches(setup, default_run):

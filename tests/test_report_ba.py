@@ -146,3 +146,14 @@ def test_table4_average_without_any_ba(tmp_path: Path):
     avg = t.iloc[-1]
     assert avg["Sequence"] == "Average" and avg["Without BA"] == pytest.approx(0.03) and np.isnan(avg["With BA"])
     assert "| Average | 0.03 | — |  |" in to_markdown(t)
+
+
+def test_runs_with_different_thread_counts_are_not_averaged():
+    """The numbers follow the thread count, so `threads` separates runs like any other setting."""
+    import pandas as pd
+
+    from mutualslam_cli.report import config_labels
+
+    runs = pd.DataFrame({"config.threads": [1, 1, 2], "config.seed": [0, 1, 0], "config.adapt.lr": [1e-3] * 3})
+    assert config_labels(runs).tolist() == ["threads=1", "threads=1", "threads=2"]
+    assert config_labels(runs.iloc[:2]).tolist() == ["", ""]  # seeds alone are one experiment
