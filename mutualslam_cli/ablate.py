@@ -12,7 +12,7 @@ Nothing is left behind: local pool workers are spawned (not forked from a proces
 runs OpenMP threads), ask the kernel to kill them when the grid's process dies (Linux
 ``PR_SET_PDEATHSIG``, so ``kill -9`` of ``mslam ablate`` leaves no orphan), and ignore Ctrl-C,
 which the grid's process handles: it stops the workers and re-raises ``KeyboardInterrupt``.
-While a grid runs it holds the lock of its results folder (:mod:`mutualslam_cli.lock`), so a
+While a grid runs it holds the lock of its results folder (:mod:`mutualslam_cli.results.lock`), so a
 second grid on the same folder stops at once with a clear message.
 """
 
@@ -30,10 +30,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from mutualslam_cli import results as res
 from mutualslam_cli.config import RunConfig, with_overrides, with_settings
 from mutualslam_cli.errors import ConfigError, MslamError
-from mutualslam_cli.lock import hold_lock
+from mutualslam_cli.results.lock import hold_lock
+from mutualslam_cli.results.run_folder import is_complete, run_dir
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,7 @@ def _prepare_one(cfg: RunConfig, sequence: str, seed: int, out: str, registry: s
     """Run one (sequence, seed) front end into ``<out>/_cache/vo``; the error message if it failed
     (the sequence's jobs then fail with it themselves, and the other sequences go on)."""
     from mutualslam_cli.datasets.registry import load_sequence
-    from mutualslam_cli.vo_cache import run_frontend
+    from mutualslam_cli.stages.frontend import run_frontend
 
     c = with_overrides(cfg, seed=seed, threads=threads)  # type: ignore[arg-type]
     try:
@@ -270,8 +270,8 @@ def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,
         todo = []
         for j in jobs:
             name = Path(j.sequence).name if Path(j.sequence).is_dir() else j.sequence
-            folder = res.run_dir(out, name, j.scheme, j.seed)
-            if res.is_complete(folder):
+            folder = run_dir(out, name, j.scheme, j.seed)
+            if is_complete(folder):
                 record(JobOutcome(j, "skipped", folder))
             else:
                 todo.append(j)

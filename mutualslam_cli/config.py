@@ -38,7 +38,7 @@ class VOConfig:
     tracks with GT keyframe poses, map points re-triangulated from the tracks (metric, at our
     map's density; :mod:`~mutualslam_cli.vo.pose_oracle`). ``gt-depth``: GT poses and map
     points sampled from GT depth at ~5× our map's density, an upper bound that also leaks
-    GT depth (:mod:`~mutualslam_cli.vo.oracle`)."""
+    GT depth (:mod:`~mutualslam_cli.vo.depth_oracle`)."""
     grid_size: int = 20
     """Feature detection grid cell in pixels (paper: grid_size 20)."""
     max_fts: int = 500
@@ -220,7 +220,7 @@ class EvalConfig:
 
 @dataclass(frozen=True)
 class DenseConfig:
-    """Dense reconstruction from the adapted depth (issue 13, :mod:`~mutualslam_cli.dense_stage`):
+    """Dense reconstruction from the adapted depth (issue 13, :mod:`~mutualslam_cli.stages.dense`):
     TSDF fusion of both models' depth along the run's poses, in metres, scored against the same
     fusion of GT depth with GT poses. Defaults suit rooms."""
 

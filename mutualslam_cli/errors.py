@@ -13,7 +13,7 @@ Two families, told apart by what the CLI does with them:
   - :class:`KeyframeError`: the keyframe buffer cannot serve a keyframe id (unknown, evicted,
     or not increasing).
   - :class:`ResultsLocked`: another live process works in the same result folder
-    (:func:`~mutualslam_cli.lock.hold_lock`).
+    (:func:`~mutualslam_cli.results.lock.hold_lock`).
 
 - Programming errors, deliberately *not* ``MslamError`` so that they keep their traceback:
 
@@ -57,7 +57,7 @@ class KeyframeError(MslamError):
 class ResultsLocked(MslamError):
     """A result folder (a run's, or a grid's results root) is locked by another live process.
 
-    Raised by :func:`~mutualslam_cli.lock.hold_lock`; the one-line message names the folder, the
+    Raised by :func:`~mutualslam_cli.results.lock.hold_lock`; the one-line message names the folder, the
     holder (pid, host, since when, doing what) and what to do. A plain message-only class, so it
     crosses process pools intact.
     """

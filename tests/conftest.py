@@ -56,10 +56,10 @@ def tiny_run(tmp_path_factory) -> tuple[Path, Path]:
     """``(tmp, seq)``: a 12-frame synthetic room in TUM layout and random Monodepth2 weights under
     ``tmp / "weights"`` (the size of ``configs/smoke.yaml``'s network), for end-to-end runs."""
     import torch
+    from synth import make_tum_dir
 
     from mutualslam_cli.adapt.depthnet import DepthNet
     from mutualslam_cli.adapt.weights import save_monodepth2
-    from synth import make_tum_dir
 
     tmp = tmp_path_factory.mktemp("run")
     torch.manual_seed(0)

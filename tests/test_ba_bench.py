@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mutualslam_cli.ba import bench
+from mutualslam_cli.bench import ba as bench
 from mutualslam_cli.ba.photometric import solve
 
 

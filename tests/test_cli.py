@@ -9,11 +9,12 @@ import cv2
 import numpy as np
 import pytest
 import typer
+from synth import make_tum_dir
 from typer.testing import CliRunner
 
-from mutualslam_cli.cli import _boundary, app
+from mutualslam_cli.cli import app
+from mutualslam_cli.cli.common import _boundary
 from mutualslam_cli.errors import ConfigError, GeometryError, ShapeError, TransitionError
-from synth import make_tum_dir
 
 runner = CliRunner()
 
@@ -140,24 +141,25 @@ def test_ate_json_prints_the_table_numbers(tmp_path: Path):
 
 def _wide_runs(root: Path) -> None:
     """Two hand-made complete runs whose depth table is wider than 80 columns."""
-    from mutualslam_cli import results as res
+    from mutualslam_cli.results.run_folder import run_dir, write_json
+    from mutualslam_cli.results.summary import Summary
 
     for seq in ("a_rather_long_sequence_name", "another_long_sequence_name"):
-        folder = res.run_dir(root, seq, "replay+ewc", 0)
+        folder = run_dir(root, seq, "replay+ewc", 0)
         folder.mkdir(parents=True)
-        s = res.Summary()
+        s = Summary()
         for k, v in (("sequence.name", seq), ("scheme", "replay+ewc"), ("seed", 0),
                      ("depth.pcd.lsq.pretrained", 21.5), ("depth.pcd.lsq.adapted", 40.25),
                      ("depth.pcd.median.pretrained", 22.0), ("depth.pcd.median.adapted", 37.5),
                      ("depth.esi.pretrained", 0.34), ("depth.esi.adapted", 0.22)):
             s.set(k, v)
-        res.write_json(folder / "summary.json", s.to_dict())
+        write_json(folder / "summary.json", s.to_dict())
 
 
 @pytest.fixture
 def fresh_console(monkeypatch):
     """The CLI's console made anew under the test's environment (it is made once, at import)."""
-    import mutualslam_cli.cli_common as cli
+    import mutualslam_cli.cli.common as cli
 
     for var in ("COLUMNS", "FORCE_COLOR", "TTY_COMPATIBLE"):
         monkeypatch.delenv(var, raising=False)

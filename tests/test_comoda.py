@@ -10,8 +10,7 @@ import pytest
 import torch
 from synth import make_sequence
 
-from mutualslam_cli.adapt.comoda import (ComodaAdapter, automasked_min_reprojection, make_pose_net,
-                                         se3_inv_torch)
+from mutualslam_cli.adapt.comoda import ComodaAdapter, automasked_min_reprojection, make_pose_net, se3_inv_torch
 from mutualslam_cli.adapt.depthnet import DepthNet
 from mutualslam_cli.adapt.networks import PoseNet
 from mutualslam_cli.adapt.weights import save_pose
@@ -205,7 +204,7 @@ def test_run_sequence_reports_a_posenet_ate(tmp_path):
 
 
 def test_bench_comoda_step_runs_a_full_batch():
-    from mutualslam_cli.adapt.bench import bench_comoda_step
+    from mutualslam_cli.bench.finetune import bench_comoda_step
 
     out = bench_comoda_step(W, H, repeats=1, warmup=0, replay=2)
     assert out["batch"] == 3 and out["ms"] > 0 and len(out["times_ms"]) == 1

@@ -10,22 +10,22 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from synth import make_sequence
 from typer.testing import CliRunner
 
-from mutualslam_cli import dense
-from mutualslam_cli import results as res
 from mutualslam_cli.cli import app
 from mutualslam_cli.config import CONFIG_DIR, load_config
-from mutualslam_cli.dense_stage import DENSE_KEYS, fuse_run
+from mutualslam_cli.dense import tsdf
 from mutualslam_cli.errors import ConfigError, GeometryError
-from mutualslam_cli.report_dense import fit_view, look_from_cameras
-from synth import make_sequence
+from mutualslam_cli.report.dense import fit_view, look_from_cameras
+from mutualslam_cli.results.summary import flatten
+from mutualslam_cli.stages.dense import DENSE_KEYS, fuse_run
 
 VOXEL = 0.02
 
 
-def _volume(block_count: int = 40000) -> dense.TSDFVolume:
-    return dense.TSDFVolume(VOXEL, 4.0, 0.1, 4.0, 8, block_count)
+def _volume(block_count: int = 40000) -> tsdf.TSDFVolume:
+    return tsdf.TSDFVolume(VOXEL, 4.0, 0.1, 4.0, 8, block_count)
 
 
 # ----------------------------------------------------------------------------- scores in closed form
@@ -39,7 +39,7 @@ def test_score_points_closed_form():
     jj, ii = np.meshgrid(np.arange(100), np.arange(20), indexing="ij")
     ref = np.stack([jj.ravel() * s, ii.ravel() * s, np.zeros(jj.size)], axis=1)
     pred = ref[jj.ravel() < 10]
-    r = dense.score_points(pred, ref)
+    r = tsdf.score_points(pred, ref)
     p_exp, r_exp = 1.0, 13 / 100
     assert r.precision == p_exp and r.recall == pytest.approx(r_exp, abs=1e-12)
     assert r.fscore == pytest.approx(2 * p_exp * r_exp / (p_exp + r_exp), abs=1e-12)  # harmonic, not arithmetic
@@ -48,14 +48,14 @@ def test_score_points_closed_form():
     assert r.completeness_m == pytest.approx(d.mean(), abs=1e-12)  # a plain mean, no cap
     assert r.completeness_median_m == pytest.approx(np.median(np.repeat(d, 20)), abs=1e-12)
     with pytest.raises(GeometryError):
-        dense.score_points(np.zeros((0, 3)), ref)
-    assert dense.score_points(ref + [0, 0, 1.0], ref).fscore == 0.0  # P = R = 0 → F = 0, not NaN
+        tsdf.score_points(np.zeros((0, 3)), ref)
+    assert tsdf.score_points(ref + [0, 0, 1.0], ref).fscore == 0.0  # P = R = 0 → F = 0, not NaN
 
 
 # ----------------------------------------------------------------------------- fusion
 
 
-def _fuse_gt(seq, vol: dense.TSDFVolume) -> dense.Mesh:
+def _fuse_gt(seq, vol: tsdf.TSDFVolume) -> tsdf.Mesh:
     K = seq.intrinsics.K()
     for i in range(len(seq)):
         vol.integrate(seq.depth[i], K, seq.poses[i], seq.rgb[i])
@@ -66,7 +66,7 @@ def test_gt_depth_fused_with_gt_poses_scores_perfectly_against_itself():
     seq = make_sequence("room", n=6, width=128, height=96)
     mesh = _fuse_gt(seq, _volume())
     assert len(mesh.triangles) > 1000 and mesh.colours.max() <= 1.0 and mesh.colours.std() > 0  # coloured
-    s = dense.score_surfaces(mesh, mesh, VOXEL)
+    s = tsdf.score_surfaces(mesh, mesh, VOXEL)
     assert s.fscore == 1.0 and s.precision == 1.0 and s.recall == 1.0
     assert s.accuracy_m == 0.0 and s.completeness_m == 0.0
     # the same inputs give the same mesh, to the bit
@@ -92,7 +92,7 @@ def _floor_wall_depth(fy_sign: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.
     return np.minimum(z_floor, D_WALL).astype(np.float32), K, T
 
 
-def _fuse_one(depth: np.ndarray, K: np.ndarray, T: np.ndarray) -> dense.Mesh:
+def _fuse_one(depth: np.ndarray, K: np.ndarray, T: np.ndarray) -> tsdf.Mesh:
     vol = _volume()
     vol.integrate(depth, K, T)
     return vol.mesh(1.0)
@@ -101,13 +101,13 @@ def _fuse_one(depth: np.ndarray, K: np.ndarray, T: np.ndarray) -> dense.Mesh:
 def test_depth_scaled_by_1_1_lowers_the_fscore_by_the_computed_amount():
     depth, K, T = _floor_wall_depth()
     ref, pred = _fuse_one(depth, K, T), _fuse_one(depth * 1.1, K, T)
-    assert dense.score_surfaces(ref, ref, VOXEL).fscore == 1.0
-    s = dense.score_surfaces(pred, ref, VOXEL)
+    assert tsdf.score_surfaces(ref, ref, VOXEL).fscore == 1.0
+    s = tsdf.score_surfaces(pred, ref, VOXEL)
     # Expected, from the geometry alone. Depth × 1.1 moves every point along its ray to 1.1·p: the floor
     # to y = 1.1 h (3 cm below it: within 5 cm), the wall to z = 1.1 D (8 cm behind it: outside).
     # The image spans x/z ∈ ±W/(2F), y/z ∈ ±H/(2F): the floor is seen from z0 = h·2F/H to D, the wall
     # from y = −D·H/(2F) down to h. Scores weigh area (downsampled to one point per voxel):
-    wn, tau, h, d, z0 = W / F, dense.FSCORE_THRESHOLD_M, H_FLOOR, D_WALL, H_FLOOR * 2 * F / H
+    wn, tau, h, d, z0 = W / F, tsdf.FSCORE_THRESHOLD_M, H_FLOOR, D_WALL, H_FLOOR * 2 * F / H
     floor = wn * (d**2 - z0**2) / 2  # ∫ width(z) dz, width(z) = wn·z
     wall = wn * d * (h + d * H / (2 * F))
     # precision: the moved floor is right up to z' = D + √(τ² − (0.1h)²), where its nearest reference
@@ -130,7 +130,7 @@ def test_depth_scaled_by_1_1_lowers_the_fscore_by_the_computed_amount():
     # The mean distances against the same geometry without the TSDF: every pixel back-projected (at 4×
     # the resolution, so the grazing floor is sampled densely), both clouds downsampled alike.
     exact, moved = _floor_wall_points(4), _floor_wall_points(4, 1.1)
-    geo = dense.score_points(dense.voxel_downsample(moved, VOXEL), dense.voxel_downsample(exact, VOXEL))
+    geo = tsdf.score_points(tsdf.voxel_downsample(moved, VOXEL), tsdf.voxel_downsample(exact, VOXEL))
     assert s.accuracy_m == pytest.approx(geo.accuracy_m, abs=0.003)  # 0.072 m
     assert s.completeness_m == pytest.approx(geo.completeness_m, abs=0.003)  # 0.067 m
     assert s.accuracy_median_m == pytest.approx(0.1 * d, abs=0.005)  # most predicted area is the moved wall
@@ -155,7 +155,7 @@ def test_negative_fy_fuses_the_same_surfaces():
     on_wall = np.abs(local[:, 2] - D_WALL) < VOXEL
     assert len(local) > 1000 and np.mean(on_floor | on_wall) > 0.99 and on_floor.mean() > 0.1
     pos = _fuse_one(*_floor_wall_depth(fy_sign=1.0))
-    assert dense.score_surfaces(mesh, pos, VOXEL).fscore == 1.0
+    assert tsdf.score_surfaces(mesh, pos, VOXEL).fscore == 1.0
 
 
 def test_block_cap_bounds_the_grid():
@@ -168,18 +168,18 @@ def test_block_cap_bounds_the_grid():
     assert vol.blocks <= cap and vol.grid.hashmap().capacity() == cap  # never rehashed to a larger map
     assert kinds[0] == "full" and set(kinds[1:]) <= {"full", "existing_only", "skipped"}
     assert vol.frames["existing_only"] + vol.frames["skipped"] > 0 and len(vol.mesh().triangles) > 0
-    assert dense.block_memory_bytes(8, 40000) == 40000 * 512 * 20
+    assert tsdf.block_memory_bytes(8, 40000) == 40000 * 512 * 20
 
 
 def test_mesh_ply_round_trip(tmp_path: Path):
     depth, K, T = _floor_wall_depth()
     mesh = _fuse_one(depth, K, T)
-    dense.write_mesh(tmp_path / "m.ply", mesh)
-    back = dense.read_mesh(tmp_path / "m.ply")
+    tsdf.write_mesh(tmp_path / "m.ply", mesh)
+    back = tsdf.read_mesh(tmp_path / "m.ply")
     assert len(back.triangles) == len(mesh.triangles) > 0
     np.testing.assert_allclose(back.vertices, mesh.vertices, atol=1e-6)
-    dense.write_mesh(tmp_path / "empty.ply", dense.Mesh.empty())
-    assert len(dense.read_mesh(tmp_path / "empty.ply").vertices) == 0
+    tsdf.write_mesh(tmp_path / "empty.ply", tsdf.Mesh.empty())
+    assert len(tsdf.read_mesh(tmp_path / "empty.ply").vertices) == 0
 
 
 def test_render_mesh_draws_the_surface():
@@ -187,17 +187,17 @@ def test_render_mesh_draws_the_surface():
     mesh = _fuse_one(depth, K, T)
     eye, target, up = look_from_cameras(T[None], np.median(mesh.vertices, axis=0))
     eye, target = fit_view(mesh.vertices, eye, target, up, 70.0, 72 / 96)
-    img = dense.render_mesh(mesh, eye, target, up, 96, 72, threads=1)
+    img = tsdf.render_mesh(mesh, eye, target, up, 96, 72, threads=1)
     assert img.shape == (72, 96, 3) and img.dtype == np.uint8
     surface = np.any(img != 255, axis=-1)
     assert 0.5 < surface.mean() < 1.0 and len(np.unique(img[surface].sum(-1))) > 5  # fills the view; shaded
     # upright: seen from the camera itself, the floor alone (y = +H_FLOOR, below it) is drawn in the lower half
     on_floor = np.abs(mesh.vertices[:, 1] - CAM[1] - H_FLOOR) < VOXEL
-    floor = dense.Mesh(mesh.vertices, mesh.triangles[on_floor[mesh.triangles].all(axis=1)], mesh.colours)
-    seen = np.any(dense.render_mesh(floor, CAM, CAM + [0, 0, 1], np.array([0, -1.0, 0]), 96, 72) != 255, axis=-1)
+    floor = tsdf.Mesh(mesh.vertices, mesh.triangles[on_floor[mesh.triangles].all(axis=1)], mesh.colours)
+    seen = np.any(tsdf.render_mesh(floor, CAM, CAM + [0, 0, 1], np.array([0, -1.0, 0]), 96, 72) != 255, axis=-1)
     rows = np.nonzero(seen)[0]
     assert len(rows) > 100 and rows.min() > 36
-    blank = dense.render_mesh(dense.Mesh.empty(), eye, target, up, 96, 72)
+    blank = tsdf.render_mesh(tsdf.Mesh.empty(), eye, target, up, 96, 72)
     assert (blank == 255).all()
 
 
@@ -229,7 +229,7 @@ def test_run_with_dense_stage_writes_meshes_picture_and_scores(dense_run):
     import open3d as o3d
 
     _, _, r = dense_run
-    flat = res.flatten(r.summary)
+    flat = flatten(r.summary)
     for key in DENSE_KEYS:
         assert isinstance(flat[key], float), (key, r.summary["notes"].get(key))
     assert 0 <= flat["dense.fscore_5cm.adapted"] <= 1 and flat["dense.accuracy_m.pretrained"] > 0
@@ -250,8 +250,8 @@ def test_fuse_on_the_finished_run_gives_the_same_scores(dense_run, tmp_path):
     root = tmp_path / "copy"
     shutil.copytree(r.folder.parents[2], root)
     folder = root / r.folder.relative_to(r.folder.parents[2])
-    out = res.flatten(fuse_run(folder, command=["test"]))
-    flat = res.flatten(r.summary)
+    out = flatten(fuse_run(folder, command=["test"]))
+    flat = flatten(r.summary)
     for key in DENSE_KEYS + ("dense.scale.pretrained", "dense.scale.adapted", "dense.frames"):
         assert out[key] == flat[key], key
     assert json.loads((folder / "summary.json").read_text())["dense"]["fscore_5cm"] == r.summary["dense"]["fscore_5cm"]
@@ -267,7 +267,7 @@ def test_fuse_every_frame(dense_run, tmp_path):
     _, _, r = dense_run
     root = tmp_path / "every"
     shutil.copytree(r.folder.parents[2], root)
-    s = res.flatten(fuse_run(root / r.folder.relative_to(r.folder.parents[2]), ["dense.every=1"]))
+    s = flatten(fuse_run(root / r.folder.relative_to(r.folder.parents[2]), ["dense.every=1"]))
     assert s["dense.frames"] == 12 and s["dense.source"].startswith("every k-th frame (k = 1)")
     assert all(isinstance(s[k], float) for k in DENSE_KEYS) and s["dense.sim3_scale"] == pytest.approx(1.0, abs=1e-6)
 
@@ -282,7 +282,7 @@ def test_sequence_without_gt_depth_gives_null_scores_with_the_reason(dense_run, 
     seq = load_sequence(seq_dir)
     seq.frames = [dataclasses.replace(f, depth_path=None, pose=f.pose) for f in seq.frames]
     s = fuse_run(folder, seq=seq)
-    flat = res.flatten(s)
+    flat = flatten(s)
     for key in DENSE_KEYS:
         assert flat[key] is None and "no GT depth" in s["notes"][key], key
     # the predictions are still fused (metric by the Sim(3) to the GT poses); there is no reference mesh
@@ -302,7 +302,7 @@ def test_fuse_without_weights_is_one_line(dense_run, tmp_path):
 
 
 def test_report_shows_the_dense_table(dense_run, tmp_path):
-    from mutualslam_cli.report import build_tables, collect, write_report
+    from mutualslam_cli.report.tables import build_tables, collect, write_report
 
     tmp, _, r = dense_run
     rep = build_tables(collect([tmp / "dense"]))

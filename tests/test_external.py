@@ -11,16 +11,16 @@ import cv2
 import numpy as np
 import pandas as pd
 import pytest
+from synth import make_tum_dir
 from typer.testing import CliRunner
 
 from mutualslam_cli.cli import app
 from mutualslam_cli.config import load_config
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
-from mutualslam_cli.external import eval_depth, match_predictions, prediction_files, read_pfm, read_prediction
 from mutualslam_cli.metrics import depth as dm
+from mutualslam_cli.stages.external import eval_depth, match_predictions, prediction_files, read_pfm, read_prediction
 from mutualslam_cli.vo.camera import Undistorter
-from synth import make_tum_dir
 
 runner = CliRunner()
 
@@ -292,22 +292,23 @@ def test_cli_missing_frame_is_one_red_line(far: Path, tmp_path: Path) -> None:
 
 def test_external_result_sits_in_the_same_table_as_runs_of_the_same_config(far: Path, tmp_path: Path) -> None:
     """config.yaml is the resolved config (not the model's settings), so report groups it with our runs."""
-    from mutualslam_cli import results as res
     from mutualslam_cli.config import to_dict
-    from mutualslam_cli.report import collect
-    from mutualslam_cli.report_paper import paper_tables
+    from mutualslam_cli.report.paper import paper_tables
+    from mutualslam_cli.report.tables import collect
+    from mutualslam_cli.results.run_folder import run_dir, write_json, write_yaml
+    from mutualslam_cli.results.summary import Summary
 
     out = tmp_path / "res"
     eval_depth(far, predict(far, tmp_path / "p", lambda g: 2.0 * g), "ext", "depth", out=out)
-    ours = res.run_dir(out, far.name, "replay+ewc", 0)  # a run of ours, as mslam run leaves it
-    res.write_yaml(ours / "config.yaml", to_dict(load_config()))
-    s = res.Summary()
+    ours = run_dir(out, far.name, "replay+ewc", 0)  # a run of ours, as mslam run leaves it
+    write_yaml(ours / "config.yaml", to_dict(load_config()))
+    s = Summary()
     for key, v in (("depth.pcd.lsq.pretrained", 40.0), ("depth.pcd.lsq.adapted", 55.0)):
         s.set(key, v)
     s.set("sequence.name", far.name)
     s.set("scheme", "replay+ewc")
     s.set("seed", 0)
-    res.write_json(ours / "summary.json", s.to_dict())
+    write_json(ours / "summary.json", s.to_dict())
     runs = collect([out])
     assert set(runs["config"]) == {""}
     (t1,) = [t for t in paper_tables(runs) if t.name.startswith("table1")]

@@ -7,19 +7,19 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from synth import make_tum_dir
 
 from mutualslam_cli.adapt import losses
 from mutualslam_cli.adapt.inputs import scale_pixels
-from mutualslam_cli.adapt.stage import run_adaptation
 from mutualslam_cli.ba import global_ba as gba
-from mutualslam_cli.ba.bench import perturb, synthetic_problem
+from mutualslam_cli.bench.ba import perturb, synthetic_problem
 from mutualslam_cli.config import AdaptConfig, BAConfig, DataConfig, NetConfig, RunConfig, VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.stages.adaptation import run_adaptation
 from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.vo.oracle import run_oracle
-from mutualslam_cli.vo.output import Keyframe, MapPoints, VOResult
-from synth import make_tum_dir
+from mutualslam_cli.vo.depth_oracle import run_oracle
+from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 
 HW = (180, 240)
 CFG = BAConfig(d_max=10.0)  # the plane scene lies at 2–3 m: inside the CNN's "effective range"

@@ -14,11 +14,11 @@ from pathlib import Path
 import psutil
 import pytest
 
-from mutualslam_cli import results as res
 from mutualslam_cli.ablate import expand, plan_grid, run_grid
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.errors import ConfigError, ResultsLocked
-from mutualslam_cli.lock import hold_lock
+from mutualslam_cli.results.lock import hold_lock
+from mutualslam_cli.results.summary import flatten
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def _sets(tmp: Path) -> list[str]:
 
 
 def _comparable(folder: Path) -> dict:
-    s = res.flatten(json.loads((folder / "summary.json").read_text()))
+    s = flatten(json.loads((folder / "summary.json").read_text()))
     return {k: v for k, v in s.items() if not k.startswith("timing.")}
 
 

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from mutualslam_cli.heap import retain_freed_memory
+from mutualslam_cli.allocator import retain_freed_memory
 
 
 def test_retain_is_idempotent_and_reports_glibc():
@@ -25,7 +25,7 @@ def test_retain_is_idempotent_and_reports_glibc():
 _PROBE = """
 import resource, sys
 import cv2, numpy as np
-from mutualslam_cli.heap import retain_freed_memory
+from mutualslam_cli.allocator import retain_freed_memory
 cv2.setNumThreads(1)
 assert retain_freed_memory()
 img = (np.random.default_rng(0).random((480, 640)) * 255).astype(np.uint8)

@@ -12,7 +12,7 @@ from pathlib import Path
 def test_library_does_not_import_typer_or_rich():
     code = (
         "import sys\n"
-        "import mutualslam_cli.pipeline, mutualslam_cli.report, mutualslam_cli.evaluation\n"
+        "import mutualslam_cli.pipeline, mutualslam_cli.report.tables, mutualslam_cli.stages.evaluation\n"
         "import mutualslam_cli.metrics.trajectory, mutualslam_cli.metrics.depth\n"
         "bad = sorted(m for m in ('typer', 'rich') if m in sys.modules)\n"
         "print(','.join(bad))\n"

@@ -10,19 +10,19 @@ import sys
 import textwrap
 
 import pytest
+from synth import make_tum_dir
 from typer.testing import CliRunner
 
-from mutualslam_cli import results as res
 from mutualslam_cli.cli import app
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.errors import MslamError, ResultsLocked
-from mutualslam_cli.lock import LOCK_NAME, hold_lock, read_holder
 from mutualslam_cli.pipeline import run_sequence
-from synth import make_tum_dir
+from mutualslam_cli.results.lock import LOCK_NAME, hold_lock, read_holder
+from mutualslam_cli.results.run_folder import is_complete, run_dir, write_json
 
 HOLDER = textwrap.dedent("""
     import sys
-    from mutualslam_cli.lock import hold_lock
+    from mutualslam_cli.results.lock import hold_lock
     with hold_lock(sys.argv[1], "test holder"):
         print("locked", flush=True)
         sys.stdin.read()  # holds the lock until the test closes our stdin or kills us
@@ -91,11 +91,11 @@ def test_not_reentrant_and_released_on_error(tmp_path):
 def test_lock_file_does_not_make_a_folder_complete(tmp_path):
     folder = tmp_path / "run"
     with hold_lock(folder, "mslam run"):
-        assert not res.is_complete(folder)
-    assert (folder / LOCK_NAME).is_file() and not res.is_complete(folder)
-    res.write_json(folder / "summary.json", {"done": True})
+        assert not is_complete(folder)
+    assert (folder / LOCK_NAME).is_file() and not is_complete(folder)
+    write_json(folder / "summary.json", {"done": True})
     with hold_lock(folder, "mslam run"):
-        assert res.is_complete(folder)
+        assert is_complete(folder)
 
 
 # ----------------------------------------------------------------------------- the run folder
@@ -106,7 +106,7 @@ def locked_run(tmp_path):
     """A tiny sequence, its run folder under ``tmp_path / "res"`` and the smoke config; the folder is locked."""
     seq = make_tum_dir(tmp_path, scene="room", n=6, width=64, height=48)
     cfg = load_config(CONFIG_DIR / "smoke.yaml")
-    folder = res.run_dir(tmp_path / "res", seq.name, cfg.adapt.scheme, cfg.seed)
+    folder = run_dir(tmp_path / "res", seq.name, cfg.adapt.scheme, cfg.seed)
     with hold_lock(folder, "another mslam run"):
         yield seq, cfg, folder
 

@@ -6,8 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from mutualslam_cli.adapt.losses import (photometric_error, photometric_loss, smoothness_loss, sparse_depth_loss,
-                                         ssim, train_loss)
+from mutualslam_cli.adapt.losses import (
+    photometric_error,
+    photometric_loss,
+    smoothness_loss,
+    sparse_depth_loss,
+    ssim,
+    train_loss,
+)
 from mutualslam_cli.adapt.warp import warp
 from mutualslam_cli.errors import ShapeError
 

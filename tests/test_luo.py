@@ -13,10 +13,10 @@ from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.adapt.schemes import SCHEMES, get_scheme
 from mutualslam_cli.adapt.schemes.luo import is_stereo_pair, stereo_measures
-from mutualslam_cli.adapt.stage import step_row
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.geometry import exp_so3, se3_inv
+from mutualslam_cli.stages.adaptation import step_row
 
 torch.set_num_threads(1)
 
@@ -262,9 +262,9 @@ def test_old_batches_would_change_luo():
 def test_run_summary_counts_luo_keyframes_with_a_stereo_partner(tiny_run):
     import pandas as pd
 
-    from mutualslam_cli import results as res
     from mutualslam_cli.config import CONFIG_DIR, load_config
     from mutualslam_cli.pipeline import run_sequence
+    from mutualslam_cli.results.summary import flatten
 
     tmp, seq = tiny_run
     # a wide rule (any baseline, any rotation) so this toy sequence's keyframes find partners
@@ -272,7 +272,7 @@ def test_run_summary_counts_luo_keyframes_with_a_stereo_partner(tiny_run):
                                                   "adapt.luo_min_horizontal_ratio=0", "adapt.luo_max_rotation_deg=180",
                                                   "ba.enabled=false"])
     r = run_sequence(seq, cfg, out=tmp / "luo_count", command=["test"])
-    flat = res.flatten(r.summary)
+    flat = flatten(r.summary)
     kf = pd.read_csv(r.folder / "keyframes.csv")
     training = kf[~kf["is_validation"]]
     assert flat["adaptation.training_keyframes"] == len(training)

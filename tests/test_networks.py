@@ -6,8 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from mutualslam_cli.adapt.depthnet import (DepthNet, disp_to_depth, fast_context, fast_path_supported,
-                                           predict_depth, prepare)
+from mutualslam_cli.adapt.depthnet import (
+    DepthNet,
+    disp_to_depth,
+    fast_context,
+    fast_path_supported,
+    predict_depth,
+    prepare,
+)
 from mutualslam_cli.adapt.networks import DepthDecoder, ResnetEncoder
 from mutualslam_cli.errors import ShapeError
 

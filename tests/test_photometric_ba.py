@@ -9,7 +9,7 @@ import pytest
 
 from mutualslam_cli.ba import photometric as ph
 from mutualslam_cli.ba import pyramid
-from mutualslam_cli.ba.bench import perturb, synthetic_problem
+from mutualslam_cli.bench.ba import perturb, synthetic_problem
 from mutualslam_cli.errors import ConfigError, ShapeError
 
 

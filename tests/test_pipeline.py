@@ -10,13 +10,14 @@ import pytest
 import torch
 import yaml
 
-from mutualslam_cli import results as res
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.pipeline import run_sequence
-from mutualslam_cli.vo_cache import vo_cache_key
-from mutualslam_cli.report import build_tables, collect, write_report
+from mutualslam_cli.report.tables import build_tables, collect, write_report
+from mutualslam_cli.results.summary import SUMMARY_KEYS, flatten
+from mutualslam_cli.stages.ba import BA_KEYS
+from mutualslam_cli.stages.frontend import vo_cache_key
 
 
 @pytest.fixture(scope="module")
@@ -46,8 +47,8 @@ def test_run_writes_complete_result(setup, default_run):
                  "keyframes.csv", "map_vo.ply", "map_culled.ply", "map_ba.ply", "traj_kf_ba.txt", "traj_all_ba.txt"):
         assert (f / name).is_file(), name
     s = json.loads((f / "summary.json").read_text())
-    flat = res.flatten(s)
-    for k in res.SUMMARY_KEYS:
+    flat = flatten(s)
+    for k in SUMMARY_KEYS:
         assert k in flat
         assert flat[k] is not None or k in s["notes"], f"{k} is null without a reason"
     # Depth metrics are real numbers in percent.
@@ -95,19 +96,19 @@ def test_threads_are_resolved_and_recorded(setup):
 
 def test_ba_switches(setup, default_run):
     tmp, seq = setup
-    on = res.flatten(default_run.summary)
+    on = flatten(default_run.summary)
     # ba.enabled=false: today's run without culling and BA, every BA key null with the reason
     off = run_sequence(seq, _cfg(tmp, "ba.enabled=false"), out=tmp / "off")
-    flat = res.flatten(off.summary)
-    for k in res.BA_KEYS:
+    flat = flatten(off.summary)
+    for k in BA_KEYS:
         assert flat[k] is None and off.summary["notes"][k] == "disabled (ba.enabled=false)"
     assert not list(off.folder.glob("*_ba.*")) and not (off.folder / "map_culled.ply").exists()
-    same = [k for k in on if not k.startswith(("timing.", "ba.", "notes")) and k not in res.BA_KEYS
+    same = [k for k in on if not k.startswith(("timing.", "ba.", "notes")) and k not in BA_KEYS
             and not k.endswith("_ba")]
     assert {k: flat[k] for k in same} == {k: on[k] for k in same}
     # ba.culling=false: BA of the whole front-end map, culled figures null with the reason
     nc = run_sequence(seq, _cfg(tmp, "ba.culling=false"), out=tmp / "nocull")
-    flat = res.flatten(nc.summary)
+    flat = flatten(nc.summary)
     assert flat["map.points.culled"] is None and "ba.culling=false" in nc.summary["notes"]["map.points.culled"]
     assert flat["map.points.ba"] == flat["map.points.vo"] and flat["map.esi.ba"] is not None
     assert (nc.folder / "map_ba.ply").exists() and not (nc.folder / "map_culled.ply").exists()
@@ -122,7 +123,7 @@ def test_complete_run_is_skipped_and_deterministic(setup):
     b = run_sequence(seq, cfg, out=tmp / "det", force=True)
     assert not b.skipped
     for k in ("depth.pcd.lsq.adapted", "depth.pcd.median.adapted", "depth.esi.adapted"):
-        assert res.flatten(a.summary)[k] == res.flatten(b.summary)[k], k
+        assert flatten(a.summary)[k] == flatten(b.summary)[k], k
 
 
 def test_scheme_none_and_report(setup):
@@ -161,9 +162,9 @@ def test_ablate_grid_resumes(setup):
 
 def test_injected_outliers_are_counted(setup, default_run):
     tmp, seq = setup
-    on = res.flatten(default_run.summary)
+    on = flatten(default_run.summary)
     r = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2"), out=tmp / "outl")
-    flat = res.flatten(r.summary)
+    flat = flatten(r.summary)
     assert flat["map.outliers.injected"] == round(0.2 * on["map.points.vo"]) > 0
     assert flat["map.points.vo"] == on["map.points.vo"] and flat["map.esi.vo"] > on["map.esi.vo"]
     assert 0 <= flat["map.outliers.culled"] <= 1 and 0 <= flat["map.inliers.kept"] <= 1
@@ -178,7 +179,7 @@ def test_injected_outliers_are_counted(setup, default_run):
 def test_batched_evaluation_matches_frame_by_frame(setup):
     tmp, seq = setup
     from mutualslam_cli.adapt.inputs import load_network, make_predictor
-    from mutualslam_cli.evaluation import evaluate_depth
+    from mutualslam_cli.stages.evaluation import evaluate_depth
 
     loaded = load_sequence(seq)
     tables = {}

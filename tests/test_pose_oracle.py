@@ -8,15 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from synth import make_tum_dir
 
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import project, se3_inv, transform
 from mutualslam_cli.vo.frontend import run_vo
-from mutualslam_cli.vo.output import MapPoints
 from mutualslam_cli.vo.pose_oracle import REASONS, retriangulate, run_pose_oracle
+from mutualslam_cli.vo.result import MapPoints
 
 W, H = 640, 480
 
@@ -153,7 +152,7 @@ def test_noisy_tracks_refined_by_gauss_newton(rng):
 
 @pytest.mark.data
 def test_tum_density_between_svo_and_far_below_gt_depth(shared_data: Path):
-    from mutualslam_cli.vo.oracle import run_oracle
+    from mutualslam_cli.vo.depth_oracle import run_oracle
 
     seq = load_sequence(shared_data / "tum_fr1_xyz")
     cfg = VOConfig()

@@ -8,20 +8,22 @@ import numpy as np
 import pytest
 import yaml
 
-from mutualslam_cli import results as res
 from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.report import build_tables, collect, to_markdown, write_report
+from mutualslam_cli.report.tables import build_tables, collect, to_markdown, write_report
+from mutualslam_cli.results.map_ply import write_ply
+from mutualslam_cli.results.run_folder import run_dir, write_json, write_yaml
+from mutualslam_cli.results.summary import Summary
 
 
 def _run(root: Path, seq: str, seed: int, culling: bool, values: dict[str, float | None],
          max_fts: int = 500, scheme: str = "replay+ewc") -> Path:
     """A complete run folder: ``config.yaml`` (the keys the report reads) and ``summary.json``."""
-    folder = res.run_dir(root, seq, scheme, seed)
+    folder = run_dir(root, seq, scheme, seed)
     folder.mkdir(parents=True)
-    res.write_yaml(folder / "config.yaml", {"seed": seed, "out": str(root), "vo": {"max_fts": max_fts},
+    write_yaml(folder / "config.yaml", {"seed": seed, "out": str(root), "vo": {"max_fts": max_fts},
                                             "adapt": {"scheme": scheme},
                                             "ba": {"enabled": True, "culling": culling}})
-    s = res.Summary()
+    s = Summary()
     for k, v in values.items():
         s.set(k, v, "hand-made: absent")
     if not culling:
@@ -30,7 +32,7 @@ def _run(root: Path, seq: str, seed: int, culling: bool, values: dict[str, float
     s.set("sequence.name", seq)
     s.set("scheme", scheme)
     s.set("seed", seed)
-    res.write_json(folder / "summary.json", s.to_dict())
+    write_json(folder / "summary.json", s.to_dict())
     return folder
 
 
@@ -73,7 +75,7 @@ def test_table4_ate_with_and_without_ba(roots):
 
 
 def _latex(rep, name: str) -> str:
-    from mutualslam_cli.report import to_latex
+    from mutualslam_cli.report.tables import to_latex
 
     return to_latex(rep.tables[name], rep.titles[name], rep.bold.get(name))
 
@@ -119,13 +121,13 @@ def test_map_figure_is_written_and_listed(roots, tmp_path: Path):
     err = rng.normal(scale=0.3, size=400)
     err[::7] = np.nan
     keep = rng.random(400) < 0.6
-    res.write_ply(folder / "map_vo.ply", pts, err)
-    res.write_ply(folder / "map_culled.ply", pts[keep], err[keep])
-    res.write_ply(folder / "map_ba.ply", pts[keep] * 1.01, err[keep] * 0.8)
+    write_ply(folder / "map_vo.ply", pts, err)
+    write_ply(folder / "map_culled.ply", pts[keep], err[keep])
+    write_ply(folder / "map_ba.ply", pts[keep] * 1.01, err[keep] * 0.8)
     (folder / "traj_kf.txt").write_text("0 0 0 0 0 0 0 1\n1 0.1 0 0 0 0 0 1\n2 0.2 0.05 0 0 0 0 1\n")
     nc = roots[1] / "seqA" / "replay+ewc" / "seed0"  # BA without culling: no map_culled.ply
-    res.write_ply(nc / "map_vo.ply", pts, err)
-    res.write_ply(nc / "map_ba.ply", pts, err)
+    write_ply(nc / "map_vo.ply", pts, err)
+    write_ply(nc / "map_ba.ply", pts, err)
     out = tmp_path / "rep"
     files = write_report(build_tables(collect(list(roots))), out)
     maps = sorted(f.name for f in files if f.parent.name == "maps")
@@ -152,7 +154,7 @@ def test_runs_with_different_thread_counts_are_not_averaged():
     """The numbers follow the thread count, so `threads` separates runs like any other setting."""
     import pandas as pd
 
-    from mutualslam_cli.report import config_labels
+    from mutualslam_cli.report.tables import config_labels
 
     runs = pd.DataFrame({"config.threads": [1, 1, 2], "config.seed": [0, 1, 0], "config.adapt.lr": [1e-3] * 3})
     assert config_labels(runs).tolist() == ["threads=1", "threads=1", "threads=2"]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
-from mutualslam_cli import paper_numbers
-from mutualslam_cli.report_paper import cell, paper_tables, table1, table2, table3, table4, table5, table6
+from mutualslam_cli.report import paper_numbers
+from mutualslam_cli.report.paper import cell, paper_tables, table1, table2, table3, table4, table5, table6
 
 
 @pytest.mark.parametrize("ours, theirs", [

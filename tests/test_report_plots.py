@@ -8,15 +8,16 @@ import numpy as np
 import pandas as pd
 import pytest
 from matplotlib.collections import PolyCollection
+from synth import make_tum_dir
 
-from mutualslam_cli import report_plots as rp
-from mutualslam_cli import results as res
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import exp_so3
-from mutualslam_cli.report import build_tables, collect, write_report
+from mutualslam_cli.report import plots as rp
+from mutualslam_cli.report.tables import build_tables, collect, write_report
+from mutualslam_cli.results.run_folder import run_dir, write_json, write_yaml
+from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.types import Trajectory
-from synth import make_tum_dir
 
 
 def _run(root: Path, seq: str, scheme: str, seed: int, *, running: tuple[float, float] | None = None,
@@ -24,14 +25,14 @@ def _run(root: Path, seq: str, scheme: str, seed: int, *, running: tuple[float, 
     """A complete run folder: ``summary.json``, ``config.yaml``, optionally ``per_frame.csv`` (running
     PCD of the pre-trained and adapted model rising linearly to ``running``) and a ``manifest.json``
     naming the sequence folder."""
-    folder = res.run_dir(root, seq, scheme, seed)
+    folder = run_dir(root, seq, scheme, seed)
     folder.mkdir(parents=True)
-    s = res.Summary()
+    s = Summary()
     s.set("sequence.name", seq)
     s.set("scheme", scheme)
     s.set("seed", seed)
-    res.write_json(folder / "summary.json", s.to_dict())
-    res.write_yaml(folder / "config.yaml", {"seed": seed, "data": {"data_root": None}, "adapt": {"scheme": scheme},
+    write_json(folder / "summary.json", s.to_dict())
+    write_yaml(folder / "config.yaml", {"seed": seed, "data": {"data_root": None}, "adapt": {"scheme": scheme},
                                             "eval": {"ate_max_dt": 0.02}})
     if running is not None:
         frames = np.arange(10)
@@ -39,7 +40,7 @@ def _run(root: Path, seq: str, scheme: str, seed: int, *, running: tuple[float, 
                       "adapted_pcd_lsq_running": running[1] * frames / 9}).to_csv(folder / "per_frame.csv",
                                                                                   index=False)
     if seq_root is not None:
-        res.write_json(folder / "manifest.json", {"sequence": {"name": seq, "root": str(seq_root)}})
+        write_json(folder / "manifest.json", {"sequence": {"name": seq, "root": str(seq_root)}})
     return folder
 
 

@@ -8,19 +8,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mutualslam_cli import results as res
+from mutualslam_cli import atomic
+from mutualslam_cli.results.map_ply import read_ply, write_ply
+from mutualslam_cli.results.run_folder import is_complete, manifest, run_dir, write_json
+from mutualslam_cli.results.summary import SUMMARY_KEYS, Summary, flatten
 
 
 def test_summary_absent_values_are_null_with_reason():
-    s = res.Summary()
+    s = Summary()
     s.set("depth.pcd.lsq.adapted", 71.5)
     s.set("map.esi.vo", float("nan"), "no map point has GT depth")
     d = s.to_dict()
     assert d["depth"]["pcd"]["lsq"]["adapted"] == 71.5
     assert d["map"]["esi"]["vo"] is None and d["notes"]["map.esi.vo"] == "no map point has GT depth"
     # Every required key exists; the unset ones are null with a reason, never 0.
-    flat = res.flatten(d)
-    for k in res.SUMMARY_KEYS:
+    flat = flatten(d)
+    for k in SUMMARY_KEYS:
         assert k in flat
         if k not in ("depth.pcd.lsq.adapted",):
             assert flat[k] is None and k in d["notes"]
@@ -28,35 +31,35 @@ def test_summary_absent_values_are_null_with_reason():
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path: Path, monkeypatch):
     p = tmp_path / "summary.json"
-    res.write_json(p, {"a": 1})
+    write_json(p, {"a": 1})
 
     def boom(*a, **k):
         raise OSError("disk full")
 
-    monkeypatch.setattr(res.os, "replace", boom)
+    monkeypatch.setattr(atomic.os, "replace", boom)
     with pytest.raises(OSError):
-        res.write_json(p, {"a": 2})
+        write_json(p, {"a": 2})
     assert json.loads(p.read_text()) == {"a": 1}
     assert [f.name for f in tmp_path.iterdir()] == ["summary.json"]  # no temp file left behind
 
 
 def test_json_is_plain(tmp_path: Path):
     p = tmp_path / "x.json"
-    res.write_json(p, {"n": np.int64(3), "v": np.float32(0.5), "arr": np.arange(3), "bad": np.nan, "p": tmp_path})
+    write_json(p, {"n": np.int64(3), "v": np.float32(0.5), "arr": np.arange(3), "bad": np.nan, "p": tmp_path})
     d = json.loads(p.read_text())
     assert d == {"n": 3, "v": 0.5, "arr": [0, 1, 2], "bad": None, "p": str(tmp_path)}
 
 
 def test_manifest_records_versions_and_seed():
-    m = res.manifest(["mslam", "run", "x"], 7, {"total_s": 1.0})
+    m = manifest(["mslam", "run", "x"], 7, {"total_s": 1.0})
     assert m["seed"] == 7 and m["command"][1] == "run"
     assert "torch" in m["versions"] and "numpy" in m["versions"]
 
 
 def test_run_dir_layout(tmp_path: Path):
-    d = res.run_dir(tmp_path, "tum_fr1_xyz", "replay+ewc", 2)
+    d = run_dir(tmp_path, "tum_fr1_xyz", "replay+ewc", 2)
     assert d == tmp_path / "tum_fr1_xyz" / "replay+ewc" / "seed2"
-    assert not res.is_complete(d)
+    assert not is_complete(d)
 
 
 def test_atomic_writes_have_the_usual_permissions(tmp_path):
@@ -84,7 +87,7 @@ def _fake_map():
     from types import SimpleNamespace
 
     from mutualslam_cli.types import Intrinsics, Trajectory
-    from mutualslam_cli.vo.output import Keyframe, MapPoints, VOResult
+    from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 
     intr = Intrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
     depth = np.full((24, 32), 2.0)
@@ -100,8 +103,8 @@ def _fake_map():
 
 
 def test_map_log_depth_errors_and_esi_are_one_computation():
-    from mutualslam_cli.evaluation import map_esi, map_log_depth_errors
     from mutualslam_cli.metrics.depth import esi
+    from mutualslam_cli.stages.evaluation import map_esi, map_log_depth_errors
 
     seq, vo = _fake_map()
     d = map_log_depth_errors(seq, vo)
@@ -116,19 +119,19 @@ def test_map_log_depth_errors_and_esi_are_one_computation():
 def test_map_ply_round_trip_through_open3d(tmp_path: Path):
     import open3d as o3d
 
-    from mutualslam_cli import map_ply
-    from mutualslam_cli.evaluation import map_log_depth_errors
+    from mutualslam_cli.results import map_ply
+    from mutualslam_cli.stages.evaluation import map_log_depth_errors
 
     seq, vo = _fake_map()
     d = map_log_depth_errors(seq, vo)  # mean over GT points is 0: colours show d itself
     pts = vo.points_world()
-    res.write_ply(tmp_path / "map_vo.ply", pts, d)
+    write_ply(tmp_path / "map_vo.ply", pts, d)
     assert not list(tmp_path.glob(".map_vo.ply.*"))  # no temporary file left behind
     pc = o3d.io.read_point_cloud(str(tmp_path / "map_vo.ply"))  # the plain legacy reader
     np.testing.assert_allclose(np.asarray(pc.points), pts, rtol=0, atol=1e-12)
     want = np.array([map_ply.ERROR_FAR, map_ply.ERROR_NEAR, map_ply.ERROR_ZERO, map_ply.NO_GT])
     np.testing.assert_allclose(np.asarray(pc.colors), want, atol=0.6 / 255)
-    p2, c2, e2 = res.read_ply(tmp_path / "map_vo.ply")
+    p2, c2, e2 = read_ply(tmp_path / "map_vo.ply")
     np.testing.assert_allclose(p2, pts, atol=1e-12)
     np.testing.assert_allclose(c2, want, atol=0.6 / 255)
     np.testing.assert_allclose(e2, d, atol=1e-6)  # NaN where there is no GT
@@ -141,22 +144,22 @@ def test_map_ply_round_trip_through_open3d(tmp_path: Path):
 def test_map_ply_empty_and_old_and_bad(tmp_path: Path):
     from mutualslam_cli.errors import DatasetError
 
-    res.write_ply(tmp_path / "empty.ply", np.zeros((0, 3)), np.zeros(0))
-    p, c, e = res.read_ply(tmp_path / "empty.ply")
+    write_ply(tmp_path / "empty.ply", np.zeros((0, 3)), np.zeros(0))
+    p, c, e = read_ply(tmp_path / "empty.ply")
     assert p.shape == (0, 3)
     old = tmp_path / "old.ply"  # the xyz-only ASCII maps of earlier runs
     old.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
                    "property float z\nend_header\n1 2 3\n4 5 6\n")
-    p, c, e = res.read_ply(old)
+    p, c, e = read_ply(old)
     np.testing.assert_allclose(p, [[1, 2, 3], [4, 5, 6]])
     assert c is None and e is None
-    res.write_ply(tmp_path / "grey.ply", p)  # without errors: every point "no GT"
-    assert res.read_ply(tmp_path / "grey.ply")[2] is None
+    write_ply(tmp_path / "grey.ply", p)  # without errors: every point "no GT"
+    assert read_ply(tmp_path / "grey.ply")[2] is None
     (tmp_path / "bad.ply").write_text("not a ply\n")
     with pytest.raises(DatasetError, match="bad.ply"):
-        res.read_ply(tmp_path / "bad.ply")
+        read_ply(tmp_path / "bad.ply")
     with pytest.raises(DatasetError, match="missing.ply"):
-        res.read_ply(tmp_path / "missing.ply")
+        read_ply(tmp_path / "missing.ply")
 
 
 def test_atomic_write_with_a_failing_writer_keeps_the_old_file(tmp_path: Path):

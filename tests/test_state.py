@@ -7,8 +7,18 @@ import math
 import pytest
 
 from mutualslam_cli import errors
-from mutualslam_cli.adapt.state import (Action, FineTuneDone, FsmParams, FsmState, Mode, TrainingKeyframe,
-                                        TransitionError, ValidationKeyframe, is_validation_index, step)
+from mutualslam_cli.adapt.state import (
+    Action,
+    FineTuneDone,
+    FsmParams,
+    FsmState,
+    Mode,
+    TrainingKeyframe,
+    TransitionError,
+    ValidationKeyframe,
+    is_validation_index,
+    step,
+)
 
 P = FsmParams(m=5, n=3, tau_val=0.2)
 LOW, HIGH = 0.1, 0.3  # below / above τ_val

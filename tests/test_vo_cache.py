@@ -9,13 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from synth import make_tum_dir
 
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.stages.frontend import cache_path, load_cached, run_frontend, save_cached, vo_cache_key
 from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.vo.output import VO_ARRAYS_VERSION, Keyframe, MapPoints, VOResult, vo_to_arrays
-from mutualslam_cli.vo_cache import cache_path, load_cached, run_frontend, save_cached, vo_cache_key
-from synth import make_tum_dir
+from mutualslam_cli.vo.result import VO_ARRAYS_VERSION, Keyframe, MapPoints, VOResult, vo_to_arrays
 
 
 def _cfg(mode: str):
@@ -174,7 +174,7 @@ def test_invalid_entry_is_recomputed_and_replaced(seq, results, tmp_path, caplog
     cfg = _cfg("svo")
     path = cache_path(tmp_path, seq, cfg)
     spoil(results["svo"], path)
-    with caplog.at_level(logging.WARNING, logger="mutualslam_cli.vo_cache"):
+    with caplog.at_level(logging.WARNING, logger="mutualslam_cli.stages.frontend"):
         vo, cached = run_frontend(seq, cfg, cache_dir=tmp_path)
     assert not cached
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]

@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mutualslam_cli.bench.vo import vo_accuracy
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.vo_bench import vo_accuracy
 from mutualslam_cli.vo.frontend import run_vo
 
 pytestmark = pytest.mark.data

@@ -9,7 +9,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from synth import make_tum_dir
 
 from mutualslam_cli.config import VOConfig

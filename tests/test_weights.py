@@ -6,8 +6,7 @@ import pytest
 import torch
 
 from mutualslam_cli.adapt.depthnet import DepthNet
-from mutualslam_cli.adapt.weights import (default_weights_dir, load_default, load_monodepth2,
-                                          save_monodepth2)
+from mutualslam_cli.adapt.weights import default_weights_dir, load_default, load_monodepth2, save_monodepth2
 from mutualslam_cli.errors import ConfigError
 
 

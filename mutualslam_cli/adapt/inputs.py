@@ -18,11 +18,11 @@ from mutualslam_cli.adapt import weights
 from mutualslam_cli.adapt.depthnet import fast_path_supported, predict_depth, prepare
 from mutualslam_cli.adapt.inference import openvino_predictor, resolve_runtime
 from mutualslam_cli.config import RunConfig
-from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
-from mutualslam_cli.vo.output import VOResult
+from mutualslam_cli.vo.result import VOResult
 
 
 def to_net_image(rgb: np.ndarray, width: int, height: int) -> torch.Tensor:
@@ -41,7 +41,7 @@ def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Cal
     """A loader ``kf_id → (3, height, width)`` of keyframe images, undistorted to ``vo.intrinsics``.
 
     The same :class:`~mutualslam_cli.vo.camera.Undistorter` geometry as the evaluation's
-    (:func:`mutualslam_cli.evaluation.evaluate_depth`).
+    (:func:`mutualslam_cli.stages.evaluation.evaluate_depth`).
     """
     und = Undistorter(seq.intrinsics)
 

@@ -48,8 +48,16 @@ from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
 from mutualslam_cli.adapt.depthnet import fast_context, make_adam
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
 from mutualslam_cli.adapt.schemes import get_scheme
-from mutualslam_cli.adapt.state import (Action, FineTuneDone, FsmParams, FsmState, TrainingKeyframe,
-                                        ValidationKeyframe, is_validation_index, step)
+from mutualslam_cli.adapt.state import (
+    Action,
+    FineTuneDone,
+    FsmParams,
+    FsmState,
+    TrainingKeyframe,
+    ValidationKeyframe,
+    is_validation_index,
+    step,
+)
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.geometry import se3_inv

@@ -1,6 +1,6 @@
 """Map-point culling + global photometric BA as one stage (paper §III-C, DESIGN §6).
 
-:func:`run_global_ba` takes a front-end map (a :class:`~mutualslam_cli.vo.output.VOResult`),
+:func:`run_global_ba` takes a front-end map (a :class:`~mutualslam_cli.vo.result.VOResult`),
 keyframe images at the BA resolution, the adapted network's depth and per-keyframe L_val, and
 returns a refined copy. It is the only module that reads :class:`~mutualslam_cli.config.BAConfig`.
 
@@ -19,7 +19,7 @@ Choices the paper leaves open (written down here):
 - **Targets** (≤ ``max_targets`` per point): the point's existing observations, nearest keyframe
   index first, where the point projects inside the image (patch + 2 px margin). DESIGN §6 would
   add nearby keyframes with a good patch correlation; not done: on the plane scene of
-  :mod:`~mutualslam_cli.ba.bench` a 5×5 NCC ≥ 0.95 test let occluded patches in (8 of 56 added
+  :mod:`~mutualslam_cli.bench.ba` a 5×5 NCC ≥ 0.95 test let occluded patches in (8 of 56 added
   targets) and 72 added targets among 5 264 took the poses from 0.2 mm to 1–8 cm; on
   ``tum_fr1_xyz`` (NCC ≥ 0.8, half resolution, one level) they gave keyframe ATE 13.3 vs 12.6 mm
   and map e_si 0.137 vs 0.146: no clear gain for that risk.
@@ -54,7 +54,7 @@ from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.output import VOResult
+from mutualslam_cli.vo.result import VOResult
 
 #: Pixels at the border of the BA image where a projection is invalid (the solver's margin).
 MARGIN = 2.0

@@ -18,20 +18,20 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
 from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.heap import retain_freed_memory
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
+from mutualslam_cli.vo.assemble import RunStats, build_result
 from mutualslam_cli.vo.bootstrap import InitMixin
 from mutualslam_cli.vo.camera import distort_points, focal_px, to_normalized, undistort_points
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.mapper import Mapper
-from mutualslam_cli.vo.output import VOResult
 from mutualslam_cli.vo.reproject import reproject_points
-from mutualslam_cli.vo.result import RunStats, build_result
+from mutualslam_cli.vo.result import VOResult
 from mutualslam_cli.vo.state import Map, Tracks
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 
@@ -335,7 +335,7 @@ class _Frontend(InitMixin):
         return self._result(time.perf_counter() - t_start)
 
     def _result(self, total_s: float) -> VOResult:
-        """The run's :class:`VOResult` (see :func:`~mutualslam_cli.vo.result.build_result`)."""
+        """The run's :class:`VOResult` (see :func:`~mutualslam_cli.vo.assemble.build_result`)."""
         stats = RunStats(segment=self.segment, init_methods=self.init_methods, timing=self.timing, total_s=total_s,
                          reprojected=self.n_reprojected, ba_stats=self.mapper.stats,
                          ba_threaded=self.mapper.pool is not None)

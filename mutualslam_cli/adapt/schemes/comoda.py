@@ -1,7 +1,7 @@
 """``comoda``: the CoMoDa-style end-to-end baseline (:mod:`mutualslam_cli.adapt.comoda`).
 
 It trains on every frame with its own pose network, not on keyframes, so it is run by
-:func:`mutualslam_cli.adapt.comoda_stage.run_comoda_stage` instead of the keyframe loop; this entry
+:func:`mutualslam_cli.stages.comoda.run_comoda_stage` instead of the keyframe loop; this entry
 makes ``--scheme comoda`` a valid name and checks its ``comoda_*`` settings before any work.
 """
 
@@ -34,4 +34,4 @@ class Comoda(Scheme):
 
     def select(self, buffer: KeyframeBuffer, newest: int, rng: np.random.Generator) -> list[int]:
         raise ConfigError("scheme 'comoda' trains on frames, not keyframes: run it with "
-                          "mutualslam_cli.adapt.comoda_stage.run_comoda_stage")
+                          "mutualslam_cli.stages.comoda.run_comoda_stage")

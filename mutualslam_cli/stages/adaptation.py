@@ -23,7 +23,8 @@ from mutualslam_cli.adapt.inputs import keyframe_images, scale_pixels
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.vo.output import VOResult
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.vo.result import VOResult
 
 Progress = Callable[[str, dict[str, Any]], None]
 """``progress(stage, info)``: stage name and a dict of figures (``done``, ``total``, …)."""
@@ -121,3 +122,24 @@ def step_row(info: StepInfo) -> dict[str, Any]:
         else:
             row[k] = v.value if hasattr(v, "value") else v
     return row
+
+
+# ----------------------------------------------------------------------------- summary keys
+
+
+def summarise_adaptation(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float],
+                         kf_rows: list[dict[str, Any]] | None = None) -> None:
+    """``timing.finetune_ms`` (median per optimiser step) and ``timing.finetune_kf_ms`` (per keyframe);
+    with the keyframe rows, ``adaptation.keyframes_trained`` and, for scheme ``luo``,
+    ``adaptation.luo_keyframes_with_partner`` (training keyframes that found a simulated stereo partner)."""
+    why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
+    summary.set("timing.finetune_ms", float(np.median(step_ms)) if step_ms else None, why)
+    summary.set("timing.finetune_kf_ms", float(np.median(keyframe_ms)) if keyframe_ms else None, why)
+    if kf_rows is None:
+        return
+    summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
+    if scheme == "luo":
+        training = [r for r in kf_rows if not r.get("is_validation")]
+        summary.set("adaptation.luo_keyframes_with_partner", sum(bool(str(r.get("sources") or "").strip())
+                                                                 for r in training))
+        summary.set("adaptation.training_keyframes", len(training))

@@ -23,13 +23,15 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from mutualslam_cli import results as res
+from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.report_dense import TITLE as DENSE_TITLE
-from mutualslam_cli.report_dense import dense_figures, dense_table
-from mutualslam_cli.report_maps import map_figures
-from mutualslam_cli.report_paper import paper_tables
-from mutualslam_cli.report_plots import report_figures
+from mutualslam_cli.report.dense import TITLE as DENSE_TITLE
+from mutualslam_cli.report.dense import dense_figures, dense_table
+from mutualslam_cli.report.maps import map_figures
+from mutualslam_cli.report.paper import paper_tables
+from mutualslam_cli.report.plots import report_figures
+from mutualslam_cli.results.run_folder import read_summary
+from mutualslam_cli.results.summary import flatten
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +92,7 @@ def _read_config(folder: Path) -> dict[str, Any]:
         raise DatasetError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(cfg, dict):
         raise DatasetError(f"{path}: expected a mapping of config sections (the resolved config of mslam run)")
-    return {f"config.{k}": v for k, v in res.flatten(cfg).items()}
+    return {f"config.{k}": v for k, v in flatten(cfg).items()}
 
 
 def config_labels(runs: pd.DataFrame, exclude: tuple[str, ...] = ()) -> pd.Series:
@@ -119,7 +121,7 @@ def collect(paths: list[str | Path]) -> pd.DataFrame:
         if not p.exists():
             raise DatasetError(f"{p}: no such results folder")
         for s in sorted(p.rglob("summary.json")):
-            d = res.flatten(res.read_summary(s.parent))
+            d = flatten(read_summary(s.parent))
             d["folder"] = str(s.parent)
             parts = s.parent.parts
             d.setdefault("sequence.name", parts[-3] if len(parts) >= 3 else "?")
@@ -334,16 +336,16 @@ def to_latex(t: pd.DataFrame, caption: str, bold: set[tuple[int, str]] | None = 
 
 def write_report(rep: Report, out_dir: Path) -> list[Path]:
     """Write every table as ``<name>.md``, ``<name>.tex``, ``<name>.csv``, the plots and the map
-    figures (``maps/*.png``, :func:`~mutualslam_cli.report_maps.map_figures`), and ``report.md``
+    figures (``maps/*.png``, :func:`~mutualslam_cli.report.maps.map_figures`), and ``report.md``
     with every table and figure; return the paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     md = []
     for name, t in rep.tables.items():
-        res.atomic_write_text(out_dir / f"{name}.csv", rep.csv.get(name, t).to_csv(index=False))
-        res.atomic_write_text(out_dir / f"{name}.tex", to_latex(t, rep.titles[name], rep.bold.get(name)))
-        res.atomic_write_text(out_dir / f"{name}.md", f"### {rep.titles[name]}\n\n" + to_markdown(t))
+        atomic_write_text(out_dir / f"{name}.csv", rep.csv.get(name, t).to_csv(index=False))
+        atomic_write_text(out_dir / f"{name}.tex", to_latex(t, rep.titles[name], rep.bold.get(name)))
+        atomic_write_text(out_dir / f"{name}.md", f"### {rep.titles[name]}\n\n" + to_markdown(t))
         md.append(f"## {rep.titles[name]}\n\n" + to_markdown(t))
         written += [out_dir / f"{name}.{e}" for e in ("csv", "tex", "md")]
     figures, notes = report_figures(rep.runs, out_dir)
@@ -351,5 +353,5 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
     figures += dense_figures(rep.runs, out_dir)
     md.append("## Figures\n\n" + "".join(f"{n}\n\n" for n in notes)
               + "".join(f"![{f.stem}]({f.relative_to(out_dir).as_posix()})\n\n" for f in figures))
-    res.atomic_write_text(out_dir / "report.md", "# mslam report\n\n" + "\n".join(md))
+    atomic_write_text(out_dir / "report.md", "# mslam report\n\n" + "\n".join(md))
     return written + [out_dir / "report.md"] + figures

@@ -1,6 +1,6 @@
 """Synthetic photometric-BA problems and the global-BA benchmark (DESIGN §10).
 
-``python -m mutualslam_cli.ba.bench`` (and the ``ba`` section of ``make bench``,
+``python -m mutualslam_cli.bench.ba`` (and the ``ba`` section of ``make bench``,
 :func:`bench_ba`) times :func:`~mutualslam_cli.ba.photometric.solve` with 10 LM iterations on
 100 keyframes × 10 000 points (≤ 5 targets, 3×3 patch; design target ≤ 5 s) and reports what it
 recovers, before and after: keyframe centre error (mm, max and RMS; also the map's scale error

@@ -14,7 +14,7 @@ import torch
 
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, fast_path_supported, make_adam, prepare
 from mutualslam_cli.adapt.losses import train_loss
-from mutualslam_cli.heap import retain_freed_memory
+from mutualslam_cli.allocator import retain_freed_memory
 
 
 def _setup(threads: int | None, seed: int) -> None:
@@ -208,7 +208,7 @@ def bf16_depth_difference(width: int = 640, height: int = 192, net: DepthNet | N
             "max": float(rel.max())}
 
 
-if __name__ == "__main__":  # python -m mutualslam_cli.adapt.bench [threads]
+if __name__ == "__main__":  # python -m mutualslam_cli.bench.finetune [threads]
     import json
     import sys
 

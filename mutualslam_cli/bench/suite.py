@@ -3,7 +3,7 @@
 Usage: ``python -m mutualslam_cli.bench [--quick] [--memory] [--grid | --only-grid] [--out results/bench.json]``.
 
 Sections: synthetic rendering, loader and VO front end, depth network, global photometric BA
-(:func:`mutualslam_cli.ba.bench.bench_ba`: time of 10 LM iterations on 100 keyframes × 10 000
+(:func:`mutualslam_cli.bench.ba.bench_ba`: time of 10 LM iterations on 100 keyframes × 10 000
 points and the accuracy it recovers) and, with ``--memory``, peak memory of ``mslam run`` with
 the BA's share of its wall time (``summary.json`` ``timing.ba_s / timing.total_s``). The CPU model
 and SIMD flags the figures were measured on are recorded too.
@@ -75,10 +75,10 @@ def _render(quick: bool) -> dict[str, Any]:
 
 
 def _loader_and_vo(quick: bool) -> dict[str, Any]:
+    from mutualslam_cli.bench.vo import bench_vo
     from mutualslam_cli.datasets.check import bench_loader
     from mutualslam_cli.datasets.registry import load_sequence
     from mutualslam_cli.errors import MslamError
-    from mutualslam_cli.vo_bench import bench_vo
 
     try:
         seq = load_sequence("tum_fr1_xyz")
@@ -91,8 +91,8 @@ def _loader_and_vo(quick: bool) -> dict[str, Any]:
 
 
 def _network(quick: bool, threads: int) -> dict[str, Any]:
-    from mutualslam_cli.adapt.bench import bench_finetune_step, bench_inference, bf16_depth_difference
     from mutualslam_cli.adapt.depthnet import fast_path_supported
+    from mutualslam_cli.bench.finetune import bench_finetune_step, bench_inference, bf16_depth_difference
 
     out: dict[str, Any] = {"threads": threads, "bf16_supported": fast_path_supported()}
     reps = 3 if quick else 10
@@ -102,14 +102,14 @@ def _network(quick: bool, threads: int) -> dict[str, Any]:
             continue
         out[f"predict_{name}_ms"] = bench_inference(640, 192, 2 * reps, fast, threads, channels_last=cl)["ms"]
         out[f"finetune_{name}_ms"] = bench_finetune_step(640, 192, reps, fast, threads, channels_last=cl)["ms"]
-    from mutualslam_cli.adapt.bench import bench_comoda_step
+    from mutualslam_cli.bench.finetune import bench_comoda_step
 
     # one CoMoDa-style update (current + 3 replayed triplets, depth and pose networks) beside our step
     out["comoda_step_ms"] = bench_comoda_step(640, 192, reps, fast_path_supported(), threads)["ms"]
     from mutualslam_cli.adapt.inference import openvino_available
 
     if openvino_available():  # the evaluation's runtimes: bf16 where the CPU has it (net.runtime auto), int8
-        from mutualslam_cli.adapt.bench import bench_inference_openvino
+        from mutualslam_cli.bench.finetune import bench_inference_openvino
 
         for name, int8 in (("openvino", False), ("openvino_int8", True)):
             if not int8 and not fast_path_supported():
@@ -125,7 +125,7 @@ def _network(quick: bool, threads: int) -> dict[str, Any]:
 
 
 def _ba(quick: bool) -> dict[str, Any]:
-    from mutualslam_cli.ba.bench import bench_ba
+    from mutualslam_cli.bench.ba import bench_ba
 
     return bench_ba(runs=2 if quick else 5)
 
@@ -232,7 +232,7 @@ def _table(res: dict[str, Any]) -> str:
                      f"{res['reference_ms_start']:.0f} at the "
                      f"start, {res.get('reference_ms_end', float('nan')):.0f} at the end")
     if "ba_before" in res:
-        from mutualslam_cli.ba.bench import report
+        from mutualslam_cli.bench.ba import report
 
         p = res["ba_problem"]
         runs = ", ".join(f"{t:.2f}" for t in res["ba_s_runs"])
@@ -283,7 +283,3 @@ def main(argv: list[str] | None = None) -> int:
     Path(a.out).write_text(json.dumps(res, indent=2, default=str) + "\n")
     print(f"\nwritten to {a.out}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -5,7 +5,7 @@ scored against the same fusion of GT depth with GT poses.
 :func:`fuse_run` runs it on a finished run folder that kept its adapted weights (``mslam fuse``).
 Both read the poses from the run folder's trajectory files, so they give the same meshes and scores.
 
-- **Frames** (:mod:`~mutualslam_cli.dense_frames`): the keyframes (``dense.every: 0``) or every k-th
+- **Frames** (:mod:`~mutualslam_cli.stages.dense_frames`): the keyframes (``dense.every: 0``) or every k-th
   frame that has a pose.
 - **Poses**: the trajectory of those frames after the global BA when the run has one
   (``traj_*_ba.txt``), else the front end's; each tracking segment brought into the GT frame by the
@@ -36,19 +36,20 @@ import cv2
 import numpy as np
 import torch
 
-from mutualslam_cli import dense
-from mutualslam_cli import results as res
 from mutualslam_cli.adapt.inference import resolve_runtime
 from mutualslam_cli.adapt.inputs import make_predictor
 from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.dense_frames import FusedFrame, front_end_scales, select_frames
+from mutualslam_cli.dense import tsdf
 from mutualslam_cli.errors import DatasetError, GeometryError
-from mutualslam_cli.evaluation import calibration_frames
 from mutualslam_cli.pixels import lookup_nearest
-from mutualslam_cli.report_dense import dense_picture
+from mutualslam_cli.report.dense import dense_picture
+from mutualslam_cli.results.run_folder import git_revision, read_summary, versions, write_json, write_yaml
+from mutualslam_cli.results.summary import Summary, flatten
+from mutualslam_cli.stages.dense_frames import FusedFrame, front_end_scales, select_frames
+from mutualslam_cli.stages.evaluation import calibration_frames
+from mutualslam_cli.vo.result import VOResult
 from mutualslam_cli.vo.camera import Undistorter, pinhole
-from mutualslam_cli.vo.output import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +72,7 @@ Progress = Callable[[str, dict[str, Any]], None]
 
 
 def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Module | None], cfg: RunConfig,
-              fast: bool, summary: res.Summary, progress: Progress | None = None) -> None:
+              fast: bool, summary: Summary, progress: Progress | None = None) -> None:
     """Fuse, score and draw (module docstring); writes ``mesh_{pretrained,adapted,gt}.ply`` and
     ``dense.png`` into ``folder`` and the ``dense.*`` keys into ``summary``.
 
@@ -88,7 +89,7 @@ def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.n
     for name in ("mesh_pretrained.ply", "mesh_adapted.ply", "mesh_gt.ply", "dense.png"):  # none stale
         (folder / name).unlink(missing_ok=True)
     summary.set("dense.block_cap", dc.block_count)
-    summary.set("dense.memory_cap_mb", dense.block_memory_bytes(dc.block_resolution, dc.block_count) / 1e6)
+    summary.set("dense.memory_cap_mb", tsdf.block_memory_bytes(dc.block_resolution, dc.block_count) / 1e6)
     try:
         _run(folder, seq, vo, nets, cfg, fast, summary, progress)
     except GeometryError as e:  # nothing to bring into metres: every key null with the reason
@@ -100,7 +101,7 @@ def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.n
 
 
 def _run(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Module | None], cfg: RunConfig,
-         fast: bool, summary: res.Summary, progress: Progress | None) -> None:
+         fast: bool, summary: Summary, progress: Progress | None) -> None:
     dc = cfg.dense
     if seq.gt is None or len(seq.gt) == 0:
         raise GeometryError("sequence has no GT poses: no Sim(3) to bring the run into metres")
@@ -123,7 +124,7 @@ def _run(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Mod
         if progress:
             progress("dense", {"done": done[0], "total": total, "phase": phase})
 
-    meshes: dict[str, dense.Mesh] = {}
+    meshes: dict[str, tsdf.Mesh] = {}
     with tempfile.TemporaryDirectory(prefix=".dense-", dir=folder) as tmp:
         preds, rgbs, scales = _predict(Path(tmp), seq, vo, fused, {m: nets[m] for m in models}, cfg, fast, tick)
         K_net = vo.intrinsics.scaled(cfg.net.width, cfg.net.height).K()
@@ -162,16 +163,16 @@ def _run(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Mod
     _picture(folder / "dense.png", meshes, fused, seq, summary, cfg)
 
 
-def _volume(cfg: RunConfig) -> dense.TSDFVolume:
+def _volume(cfg: RunConfig) -> tsdf.TSDFVolume:
     dc = cfg.dense
-    return dense.TSDFVolume(dc.voxel_size, dc.trunc_voxels, dc.depth_min, dc.depth_max, dc.block_resolution,
+    return tsdf.TSDFVolume(dc.voxel_size, dc.trunc_voxels, dc.depth_min, dc.depth_max, dc.block_resolution,
                             dc.block_count)
 
 
-def _finish(vol: dense.TSDFVolume, path: Path, name: str, cfg: RunConfig, summary: res.Summary) -> dense.Mesh:
+def _finish(vol: tsdf.TSDFVolume, path: Path, name: str, cfg: RunConfig, summary: Summary) -> tsdf.Mesh:
     """Extract and write one mesh; record its blocks, triangles and capped frames."""
     mesh = vol.mesh(cfg.dense.weight_threshold)
-    dense.write_mesh(path, mesh)
+    tsdf.write_mesh(path, mesh)
     summary.set(f"dense.blocks.{name}", vol.blocks)
     summary.set(f"dense.triangles.{name}", len(mesh.triangles))
     summary.set(f"dense.frames_capped.{name}", vol.frames["existing_only"] + vol.frames["skipped"])
@@ -225,7 +226,7 @@ def _predict(tmp: Path, seq: Sequence, vo: VOResult, fused: list[FusedFrame], ne
     return preds, rgbs, scales
 
 
-def _score(meshes: dict[str, dense.Mesh], models: list[str], cfg: RunConfig, summary: res.Summary,
+def _score(meshes: dict[str, tsdf.Mesh], models: list[str], cfg: RunConfig, summary: Summary,
            has_ref: bool) -> None:
     """The ``dense.*`` scores of each model against the GT mesh (null with the reason when absent)."""
     for m in MODELS:
@@ -236,7 +237,7 @@ def _score(meshes: dict[str, dense.Mesh], models: list[str], cfg: RunConfig, sum
             why = summary.notes.get(f"dense.metric_scale.{m}", f"no {m} model in this run")
         try:
             if why is None:
-                s = dense.score_surfaces(meshes[m], meshes["gt"], cfg.dense.voxel_size)
+                s = tsdf.score_surfaces(meshes[m], meshes["gt"], cfg.dense.voxel_size)
         except GeometryError as e:
             why = str(e)
         if why is not None:
@@ -251,9 +252,9 @@ def _score(meshes: dict[str, dense.Mesh], models: list[str], cfg: RunConfig, sum
             summary.set(f"dense.{key}.{m}", val)
 
 
-def _picture(path: Path, meshes: dict[str, dense.Mesh], fused: list[FusedFrame], seq: Sequence,
-             summary: res.Summary, cfg: RunConfig) -> None:
-    """``dense.png`` (:func:`~mutualslam_cli.report_dense.dense_picture`) from the GT poses of the fused frames."""
+def _picture(path: Path, meshes: dict[str, tsdf.Mesh], fused: list[FusedFrame], seq: Sequence,
+             summary: Summary, cfg: RunConfig) -> None:
+    """``dense.png`` (:func:`~mutualslam_cli.report.dense.dense_picture`) from the GT poses of the fused frames."""
     if meshes:
         gt = [seq.frames[f.frame].pose for f in fused if seq.frames[f.frame].pose is not None]
         scores = {m: {k: summary.values.get(f"dense.{k}.{m}") for k in ("fscore_5cm", "accuracy_m", "completeness_m")}
@@ -263,9 +264,9 @@ def _picture(path: Path, meshes: dict[str, dense.Mesh], fused: list[FusedFrame],
                       cfg.dense.render_width, max(cfg.threads, 0), mirror=seq.intrinsics.fy < 0)
 
 
-def add_stage_time(summary: res.Summary, timings: dict[str, float]) -> None:
+def add_stage_time(summary: Summary, timings: dict[str, float]) -> None:
     """``timing.stage_s.dense`` from ``timings["dense_s"]``, taken out of ``timing.stage_s.other`` so the
-    stages still add up to ``timing.total_s`` (:func:`~mutualslam_cli.results.summarise_stages`)."""
+    stages still add up to ``timing.total_s`` (:func:`~mutualslam_cli.pipeline.summarise_stages`)."""
     if "dense_s" in timings:
         summary.set("timing.stage_s.dense", timings["dense_s"])
         summary.set("timing.stage_s.other", summary.values["timing.stage_s.other"] - timings["dense_s"])
@@ -300,11 +301,11 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
     from mutualslam_cli.ba.culling import inject_outliers
     from mutualslam_cli.config import load_config, to_dict
     from mutualslam_cli.datasets.registry import load_sequence
-    from mutualslam_cli.lock import hold_lock
-    from mutualslam_cli.vo_cache import run_frontend
+    from mutualslam_cli.results.lock import hold_lock
+    from mutualslam_cli.stages.frontend import run_frontend
 
     folder = Path(folder)
-    old = res.read_summary(folder)
+    old = read_summary(folder)
     cfg = load_config(folder / "config.yaml", overrides)
     wdir = folder / "weights"
     adapted = cfg.adapt.scheme != "none"
@@ -329,17 +330,17 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         fast = use_fast_path(cfg)
         nets = {"pretrained": load_network(cfg, fast), "adapted": prepare(load_monodepth2(
             wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast) if adapted else None}
-        summary, flat = res.Summary(), res.flatten(old)  # the run's summary without its dense.* keys
+        summary, flat = Summary(), flatten(old)  # the run's summary without its dense.* keys
         summary.notes = {k: v for k, v in (flat.pop("notes", None) or {}).items() if not k.startswith("dense.")}
         summary.values = {k: v for k, v in flat.items() if not k.startswith("dense.")}
         run_dense(folder, seq, vo, nets, cfg, fast, summary, progress)
         data = to_dict(cfg)
         data["dense"]["enabled"] = True  # the folder now holds the dense results of these settings
-        res.write_yaml(folder / "config.yaml", data)
-        manifest["fuse"] = {"command": command, "time_s": time.perf_counter() - t0, "versions": res.versions(),
-                            "git_revision": res.git_revision(),
+        write_yaml(folder / "config.yaml", data)
+        manifest["fuse"] = {"command": command, "time_s": time.perf_counter() - t0, "versions": versions(),
+                            "git_revision": git_revision(),
                             "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-        res.write_json(folder / "manifest.json", manifest)
+        write_json(folder / "manifest.json", manifest)
         out = summary.to_dict()
-        res.write_json(folder / "summary.json", out)
+        write_json(folder / "summary.json", out)
     return out

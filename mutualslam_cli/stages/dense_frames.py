@@ -1,4 +1,4 @@
-"""Which frames the dense stage fuses and with which metric poses (:mod:`mutualslam_cli.dense_stage`).
+"""Which frames the dense stage fuses and with which metric poses (:mod:`mutualslam_cli.stages.dense`).
 
 The run's trajectory files (after BA when present) give the poses; each tracking segment is brought
 into the GT frame by the Sim(3) aligning that trajectory to GT; the front end's own Sim(3) scales
@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mutualslam_cli import dense
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.dense import tsdf
 from mutualslam_cli.errors import DatasetError, GeometryError
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.output import VOResult
+from mutualslam_cli.vo.result import VOResult
 
 
 @dataclass
@@ -73,12 +73,12 @@ def select_frames(seq: Sequence, vo: VOResult, folder: Path, every: int,
             raise DatasetError(f"{folder}: no traj_all.txt (the poses of every tracked frame)")
         idx, seg = _segments_of(seq, vo, traj)
         keep = (seg >= 0) & (idx % every == 0)
-    sims = dense.sim3_per_segment(seq.gt, traj, seg, max_dt)
+    sims = tsdf.sim3_per_segment(seq.gt, traj, seg, max_dt)
     if not sims:
         raise GeometryError(f"no tracking segment has 3 {'keyframes' if every == 0 else 'frames'} associated with "
                             "GT poses: no Sim(3) to metres")
     kf_of = {k.frame_index: k.id for k in vo.keyframes}
-    frames = [FusedFrame(int(i), kf_of.get(int(i)), int(g), dense.apply_sim3(T, *sims[int(g)]))
+    frames = [FusedFrame(int(i), kf_of.get(int(i)), int(g), tsdf.apply_sim3(T, *sims[int(g)]))
               for i, g, T, k in zip(idx, seg, traj.poses, keep) if k and int(g) in sims]
     note = ("keyframes" if every == 0 else f"every k-th frame (k = {every})") + f", {what}"
     return frames, {k: v[2] for k, v in sims.items()}, note
@@ -92,4 +92,4 @@ def front_end_scales(seq: Sequence, vo: VOResult, cfg: RunConfig) -> dict[int, f
     else:
         traj = vo.traj_all
         seg = _segments_of(seq, vo, traj)[1]
-    return {s: v[2] for s, v in dense.sim3_per_segment(seq.gt, traj, seg, cfg.eval.ate_max_dt).items()}
+    return {s: v[2] for s, v in tsdf.sim3_per_segment(seq.gt, traj, seg, cfg.eval.ate_max_dt).items()}

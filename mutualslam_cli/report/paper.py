@@ -6,7 +6,7 @@ never 0), a numeric frame for CSV (``<column> mean``, ``<column> std``, ``<colum
 cells to set in bold (the best of our columns per row, as the paper does). Rows are sequences
 (the paper's name in brackets when the sequence is one of the paper's) and an ``Average`` row,
 the mean of the sequence means. Where a sequence is the paper's, the paper's own number is in a
-``paper:`` column beside ours (:mod:`mutualslam_cli.paper_numbers`); ours are on our windows of
+``paper:`` column beside ours (:mod:`mutualslam_cli.report.paper_numbers`); ours are on our windows of
 those sequences with our VO on 2 CPU cores, so they are the same metric, not the same experiment.
 
 "Ours" is the scheme ``experiment.ours`` names (default ``replay+ewc``, the paper's); the
@@ -23,7 +23,7 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from mutualslam_cli import paper_numbers as paper
+from mutualslam_cli.report import paper_numbers as paper
 
 #: Scheme columns of Table 3: the paper's (a), (b), (c), then the other schemes of ours.
 SCHEME_COLUMNS = (("(a) recent", "recent"), ("(b) replay", "replay"), ("(c) replay+ewc", "replay+ewc"),

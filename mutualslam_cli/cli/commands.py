@@ -1,11 +1,11 @@
 """The ``mslam`` command line (typer + rich). Thin: parse, call the library, render.
 
-One error boundary (:mod:`~mutualslam_cli.cli_common`): an :class:`~mutualslam_cli.errors.MslamError`
+One error boundary (:mod:`~mutualslam_cli.cli.common`): an :class:`~mutualslam_cli.errors.MslamError`
 becomes one red line and exit code 1; anything else is a bug and keeps its traceback (including the
 project's programming errors :class:`~mutualslam_cli.errors.ShapeError` and
 :class:`~mutualslam_cli.errors.TransitionError`, which are deliberately not ``MslamError``).
 Commands: ``datasets``, ``synth``, ``ate``, ``pretrain``, ``run``, ``fuse``, ``eval-depth`` here; ``ablate`` and
-``report`` in :mod:`~mutualslam_cli.cli_grid`.
+``report`` in :mod:`~mutualslam_cli.cli.grid`.
 """
 
 from __future__ import annotations
@@ -17,10 +17,19 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from mutualslam_cli import cli_common as common
-from mutualslam_cli import cli_grid  # noqa: F401  - registers ablate and report on the app
-from mutualslam_cli.cli_common import (ConfigOpt, DataRootOpt, RegistryOpt, ResultsOutOpt, SetOpt, _boundary, _config,
-                                         _fmt, _progress, app)
+from mutualslam_cli.cli import common
+from mutualslam_cli.cli.common import (
+    ConfigOpt,
+    DataRootOpt,
+    RegistryOpt,
+    ResultsOutOpt,
+    SetOpt,
+    _boundary,
+    _config,
+    _fmt,
+    _progress,
+    app,
+)
 from mutualslam_cli.config import with_overrides
 from mutualslam_cli.errors import ConfigError, MslamError
 
@@ -239,7 +248,7 @@ def _pretrain_pose(cfg: Any, out: Path, steps: int, batch_size: int, seed: int, 
 
 
 def _render_summary(folder: Path, s: dict[str, Any]) -> None:
-    from mutualslam_cli.results import flatten
+    from mutualslam_cli.results.summary import flatten
 
     f = flatten(s)
     t = Table("metric", "pre-trained", "adapted",
@@ -328,8 +337,8 @@ def fuse(
 ) -> None:
     """Dense reconstruction of a finished run: TSDF meshes of both models' depth, scored against GT depth
     fused with GT poses (needs the run's adapted weights: --set eval.save_weights=true)."""
-    from mutualslam_cli.dense_stage import fuse_run
-    from mutualslam_cli.results import flatten
+    from mutualslam_cli.results.summary import flatten
+    from mutualslam_cli.stages.dense import fuse_run
 
     with _progress() as p:
         tasks: list[Any] = []  # the bar appears with the first step: an error before it is one line
@@ -374,8 +383,8 @@ def eval_depth(
     registry: Optional[Path] = RegistryOpt,
 ) -> None:
     """Score another network's depth predictions exactly as `run` scores ours → results/<seq>/<NAME>/seed0/."""
-    from mutualslam_cli.external import eval_depth as score_external
-    from mutualslam_cli.results import flatten
+    from mutualslam_cli.results.summary import flatten
+    from mutualslam_cli.stages.external import eval_depth as score_external
 
     cfg = _config(config, sets, data_root)
     with _progress() as p:
@@ -392,11 +401,3 @@ def eval_depth(
               _fmt(f.get("depth.esi.adapted"), 3), _fmt(f.get("depth.frames_evaluated")))
     common.console.print(t)
     common.console.print(f"results: {r.folder}")
-
-
-def main() -> None:  # pragma: no cover - console entry point
-    app()
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

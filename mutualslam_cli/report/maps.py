@@ -1,7 +1,7 @@
 """The map before and after culling and BA, as a picture (paper Fig. ``mp_culling_qualitative``).
 
 :func:`plot_maps` draws one run's ``map_vo.ply``, ``map_culled.ply`` and ``map_ba.ply`` side by
-side, each point in the colour :mod:`~mutualslam_cli.map_ply` stored for it (its log-depth error
+side, each point in the colour :mod:`~mutualslam_cli.results.map_ply` stored for it (its log-depth error
 against GT: blue too near, grey right, red too far, light grey without GT), seen from the
 cameras (front view) and from above (top view). Every panel has the same view and axis limits;
 its title gives the point count and e_si from ``summary.json``. :func:`map_figures` draws one
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from mutualslam_cli import map_ply
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.datasets.associate import read_tum_trajectory
+from mutualslam_cli.results import map_ply
 
 #: (file, summary stage, panel title) of the panels, left to right.
 PANELS = (("map_vo.ply", "vo", "front-end map (no culling, no BA)"),

@@ -11,15 +11,15 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
 import torch
 
-from mutualslam_cli import results as res
 from mutualslam_cli.adapt.inference import resolve_runtime
 from mutualslam_cli.adapt.inputs import make_predictor
+from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.associate import MAX_DT
 from mutualslam_cli.datasets.sequence import Sequence
@@ -27,8 +27,9 @@ from mutualslam_cli.errors import MslamError
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.pixels import lookup_nearest
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.vo.result import VOResult
 from mutualslam_cli.vo.camera import Undistorter, distort_points
-from mutualslam_cli.vo.output import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +163,7 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
         table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, progress)
     if cached is None and path is not None and len(table):
         cols = ["frame", "timestamp", "n_valid"] + [c for c in table.columns if c.startswith("pretrained_")]
-        res.atomic_write_text(path, table[cols].to_csv(index=False))
+        atomic_write_text(path, table[cols].to_csv(index=False))
     elif cached is not None and predictors:
         table = cached.merge(table.drop(columns=["timestamp", "n_valid"]), on="frame", how="left")
     table["is_keyframe"] = table["frame"].isin(kf_frames)
@@ -265,3 +266,57 @@ def map_esi(seq: Sequence, vo: VOResult, keep: np.ndarray | None = None) -> tupl
         ``(e_si, n_points_with_gt)``; e_si is NaN when no point has GT depth.
     """
     return esi_of_log_errors(map_log_depth_errors(seq, vo, keep))
+
+
+# ----------------------------------------------------------------------------- summary keys
+
+
+def set_ate(summary: Summary, traj: dict[str, Any], names: dict[str, str]) -> None:
+    """RMSE of :func:`~mutualslam_cli.stages.evaluation.evaluate_trajectory`'s ``kf``/``all`` under ``names``."""
+    for key, name in names.items():
+        r = traj[key]
+        if r is None:
+            summary.absent(name, traj["notes"].get(key, traj["notes"].get("trajectory", "not computed")))
+        else:
+            summary.set(name, float(r.rmse))
+            if getattr(r, "note", None):  # re-initialised VO: each segment aligned on its own
+                summary.notes[name] = r.note
+
+
+def depth_means(table: pd.DataFrame, model: str, suffix: str = "") -> dict[str, float | None]:
+    """Means over the rows of ``table`` of one model's per-frame depth metrics.
+
+    Args:
+        table: per-frame rows of :func:`mutualslam_cli.stages.evaluation.evaluate_depth` (or a selection).
+        model: column prefix (``pretrained`` or ``adapted``).
+        suffix: appended to the metric name (``_nonkf`` → ``pcd_nonkf.lsq``).
+
+    Returns:
+        ``{"pcd<suffix>.lsq": %, "pcd<suffix>.median": %, "esi<suffix>": log units}``; ``None``
+        where no row has the value (no frame with valid GT depth).
+    """
+    def mean(col: str) -> float | None:
+        return float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
+
+    return {f"pcd{suffix}.lsq": mean(f"{model}_pcd_lsq"), f"pcd{suffix}.median": mean(f"{model}_pcd_median"),
+            f"esi{suffix}": mean(f"{model}_esi")}
+
+
+def summarise_depth(summary: Summary, table: pd.DataFrame, ms: dict[str, float], scheme: str) -> None:
+    """``timing.depth_ms`` and ``depth.{pcd,esi}[_nonkf].*.{pretrained,adapted}`` from the per-frame table.
+
+    All frames (the paper's figure) and the frames the adaptation never saw (not keyframes). For
+    scheme ``none`` the adapted values are the pre-trained model's.
+    """
+    summary.set("timing.depth_ms", ms.get("adapted", ms.get("pretrained")))
+    evaluated = {k for k in ("pretrained", "adapted") if f"{k}_pcd_lsq" in table}
+    for model in ("pretrained", "adapted"):
+        src = model if model in evaluated else "pretrained"
+        for group, rows, why in (("", table, "no frame with valid GT depth"),
+                                 ("_nonkf", table[~table["is_keyframe"]] if len(table) else table,
+                                  "no non-keyframe with valid GT depth")):
+            for key, val in depth_means(rows, src, group).items():
+                summary.set(f"depth.{key}.{model}", val, why)
+    if scheme == "none":
+        summary.notes["depth.pcd.lsq.adapted"] = "scheme 'none': the adapted model is the pre-trained model"
+    summary.set("depth.frames_evaluated", int(len(table)))

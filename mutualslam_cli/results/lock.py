@@ -20,7 +20,7 @@ Choices:
   next process that finds the folder locked.
 - The lock file is written in place, not through :mod:`~mutualslam_cli.atomic`: renaming a new
   file over it would replace the very file the holder has locked. It is a note for humans; no
-  result depends on it, and :func:`~mutualslam_cli.results.is_complete` ignores it.
+  result depends on it, and :func:`~mutualslam_cli.results.run_folder.is_complete` ignores it.
 - Not re-entrant: a second :func:`hold_lock` on the same folder fails even in the holding process.
   A child forked while the lock is held shares it until the child exits (spawned children do
   not).

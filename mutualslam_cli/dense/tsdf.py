@@ -1,6 +1,6 @@
 """Dense reconstruction: TSDF fusion of depth maps, surface extraction, surface scores, rendering.
 
-The library half of the dense stage (issue 13; :mod:`~mutualslam_cli.dense_stage` is the run
+The library half of the dense stage (issue 13; :mod:`~mutualslam_cli.stages.dense` is the run
 integration). Everything here takes plain arrays in metres and returns plain arrays:
 
 - :class:`TSDFVolume` fuses ``(H, W)`` depth maps (+ RGB) seen from ``T_wc`` poses into open3d's
@@ -18,7 +18,7 @@ integration). Everything here takes plain arrays in metres and returns plain arr
 
 Meshes are canonical (vertices sorted by position, triangles by their vertices), so the same
 inputs give the same files and scores whatever the thread scheduling inside open3d.
-open3d is imported inside the functions (it costs ~1 s), as :mod:`~mutualslam_cli.map_ply` does.
+open3d is imported inside the functions (it costs ~1 s), as :mod:`~mutualslam_cli.results.map_ply` does.
 """
 
 from __future__ import annotations

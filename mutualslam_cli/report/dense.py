@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mutualslam_cli import dense
 from mutualslam_cli.atomic import atomic_path
+from mutualslam_cli.dense import tsdf
 
 #: Panel titles of ``dense.png``, left to right.
 LABELS = {"pretrained": "pre-trained", "adapted": "adapted", "gt": "GT depth + GT poses"}
@@ -90,7 +90,7 @@ def dense_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
     return written
 
 
-def dense_picture(path: Path, meshes: dict[str, dense.Mesh], poses_wc: np.ndarray,
+def dense_picture(path: Path, meshes: dict[str, tsdf.Mesh], poses_wc: np.ndarray,
                   scores: dict[str, dict[str, float | None]], heading: str, width: int = 480, threads: int = 0,
                   mirror: bool = False) -> None:
     """The meshes (keys of :data:`LABELS`) ray-cast from one viewpoint, side by side, as a PNG.
@@ -123,7 +123,7 @@ def dense_picture(path: Path, meshes: dict[str, dense.Mesh], poses_wc: np.ndarra
     fig_w = len(names) * (width + gap) - gap
     for k, name in enumerate(names):
         ax = fig.add_axes(((k * (width + gap)) / fig_w, 0, width / fig_w, h / (h + top)))
-        img = dense.render_mesh(meshes[name], eye, target, up, width, h, fov_deg=FOV_DEG, threads=threads)
+        img = tsdf.render_mesh(meshes[name], eye, target, up, width, h, fov_deg=FOV_DEG, threads=threads)
         ax.imshow(img[:, ::-1] if mirror else img)
         s = scores.get(name, {})
         f, a, c = s.get("fscore_5cm"), s.get("accuracy_m"), s.get("completeness_m")

@@ -4,7 +4,7 @@ Every scheme of a grid reuses one front-end result, so :func:`run_frontend` keep
 ``<results>/_cache/vo/<sequence>-<mode>-<key>.npz`` (key: :func:`vo_cache_key`).
 
 The entry is data only: an ``np.savez`` archive of the arrays of
-:func:`~mutualslam_cli.vo.output.vo_to_arrays`, read back with ``allow_pickle=False``, so a results
+:func:`~mutualslam_cli.vo.result.vo_to_arrays`, read back with ``allow_pickle=False``, so a results
 folder shared on a cluster cannot run code in whoever reads it. Entries written by earlier
 versions (``.pkl``, pickled) are ignored, never unpickled. An entry that cannot be read (truncated,
 garbage, another layout version) is logged as a warning naming the file, recomputed and overwritten.
@@ -18,16 +18,19 @@ import logging
 import os
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.adapt.stage import Progress
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.stages.adaptation import Progress
+from mutualslam_cli.stages.evaluation import set_ate
+from mutualslam_cli.vo.result import VOResult, vo_from_arrays, vo_to_arrays
+from mutualslam_cli.vo.depth_oracle import run_oracle
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION, run_vo
-from mutualslam_cli.vo.oracle import run_oracle
-from mutualslam_cli.vo.output import VOResult, vo_from_arrays, vo_to_arrays
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
 
 log = logging.getLogger(__name__)
@@ -78,7 +81,7 @@ def load_cached(path: Path) -> VOResult | None:
 
 
 def save_cached(path: Path, vo: VOResult) -> None:
-    """Write ``vo`` to ``path`` atomically as an ``.npz`` of :func:`~mutualslam_cli.vo.output.vo_to_arrays`."""
+    """Write ``vo`` to ``path`` atomically as an ``.npz`` of :func:`~mutualslam_cli.vo.result.vo_to_arrays`."""
     arrays = vo_to_arrays(vo)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:  # a file object: np.savez would append ".npz" to a name
         np.savez(f, **arrays)
@@ -110,3 +113,28 @@ def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
     if path is not None:
         save_cached(path, vo)
     return vo, False
+
+
+# ----------------------------------------------------------------------------- summary keys
+
+
+def summarise_frontend(summary: Summary, *, keyframes: int, tracked_fraction: float, map_points: int,
+                       vo_mode: str, frames: int, vo_time_s: float, traj: dict[str, Any],
+                       map_esi: float) -> None:
+    """``vo.*``, ``timing.vo_fps``, ``map.points.vo``, ``trajectory.ate_rmse_m.{vo,all_frames}``, ``map.esi.vo``.
+
+    Args:
+        traj: :func:`mutualslam_cli.stages.evaluation.evaluate_trajectory`'s result (``kf``, ``all``, ``notes``).
+        vo_time_s: the front end's own run time (seconds).
+    """
+    summary.set("vo.keyframes", keyframes)
+    summary.set("vo.tracked_fraction", tracked_fraction)
+    if vo_mode != "svo":
+        summary.absent("timing.vo_fps", f"oracle front end (--vo {vo_mode}): no tracking to time")
+    else:
+        summary.set("timing.vo_fps", frames / vo_time_s if vo_time_s > 0 else None)
+    summary.set("map.points.vo", map_points)
+    set_ate(summary, traj, {"kf": "trajectory.ate_rmse_m.vo", "all": "trajectory.ate_rmse_m.all_frames"})
+    if vo_mode != "svo":
+        summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
+    summary.set("map.esi.vo", map_esi, "no map point has GT depth at its host pixel")

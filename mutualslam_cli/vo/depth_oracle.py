@@ -28,7 +28,7 @@ from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.camera import distort_points as _distort
 from mutualslam_cli.vo.camera import undistort_points as _undistort
-from mutualslam_cli.vo.output import Keyframe, MapPoints, VOResult
+from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 
 log = logging.getLogger(__name__)
 

@@ -37,7 +37,7 @@ def error_colours(log_errors: np.ndarray, saturation: float = ERROR_SATURATION) 
     grey (:data:`NO_GT`).
 
     Args:
-        log_errors: ``(P,)`` ``log z − log z*`` (:func:`~mutualslam_cli.evaluation.map_log_depth_errors`).
+        log_errors: ``(P,)`` ``log z − log z*`` (:func:`~mutualslam_cli.stages.evaluation.map_log_depth_errors`).
         saturation: ``|d − mean(d)|`` (log units) at which the colour is fully blue or red.
     Returns:
         ``(P, 3)`` float64 RGB in [0, 1].

@@ -1,6 +1,6 @@
 """Score another depth network's saved predictions exactly as ``mslam run`` scores ours (issue 12).
 
-:func:`eval_depth` (``mslam eval-depth``) scores the frames :func:`~mutualslam_cli.evaluation.evaluate_depth`
+:func:`eval_depth` (``mslam eval-depth``) scores the frames :func:`~mutualslam_cli.stages.evaluation.evaluate_depth`
 scores (every ``eval.stride``-th frame with GT depth, after ``data.max_frames``/``data.stride``) with
 the same :func:`~mutualslam_cli.metrics.depth.depth_frame_metrics` (PCD lsq / median / none, e_si).
 
@@ -49,14 +49,16 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from mutualslam_cli import results as res
+from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.config import RunConfig, load_config, to_dict, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
-from mutualslam_cli.evaluation import eval_frames
-from mutualslam_cli.lock import hold_lock
 from mutualslam_cli.metrics import depth as dm
+from mutualslam_cli.results.lock import hold_lock
+from mutualslam_cli.results.run_folder import is_complete, manifest, read_summary, run_dir, write_json, write_yaml
+from mutualslam_cli.results.summary import SUMMARY_KEYS, Summary
+from mutualslam_cli.stages.evaluation import depth_means, eval_frames
 from mutualslam_cli.vo.camera import Undistorter
 
 KINDS: tuple[str, ...] = ("depth", "inverse", "relative-inverse")
@@ -363,9 +365,9 @@ def eval_depth(sequence: str | Path | Sequence, predictions: str | Path, name: s
     seq = sequence if isinstance(sequence, Sequence) else load_sequence(
         sequence, data_root=cfg.data.data_root, registry_path=registry,
         max_frames=cfg.data.max_frames, stride=cfg.data.stride)
-    folder = res.run_dir(Path(out if out is not None else cfg.out), seq.name, name, 0)
-    if res.is_complete(folder) and not force:
-        return ExternalResult(folder, res.read_summary(folder), skipped=True)
+    folder = run_dir(Path(out if out is not None else cfg.out), seq.name, name, 0)
+    if is_complete(folder) and not force:
+        return ExternalResult(folder, read_summary(folder), skipped=True)
     frames = eval_frames(seq, cfg.eval.stride)
     if not frames:
         raise DatasetError(f"{seq.root}: no frame has GT depth; nothing to score")
@@ -377,30 +379,30 @@ def eval_depth(sequence: str | Path | Sequence, predictions: str | Path, name: s
                 "ext": files[frames[0]].suffix.lstrip("."), "npz_key": npz_key,
                 "alignment": "per-frame least-squares scale and shift in inverse depth (MiDaS)"
                 if kind == "relative-inverse" else "none"}
-        res.write_yaml(folder / "config.yaml", to_dict(cfg))
-        res.atomic_write_text(folder / "per_frame.csv", table.to_csv(index=False))
+        write_yaml(folder / "config.yaml", to_dict(cfg))
+        atomic_write_text(folder / "per_frame.csv", table.to_csv(index=False))
         summary = _summary(table, seq, name, info, cfg)
         timings = {"total_s": time.perf_counter() - t0}
-        res.write_json(folder / "manifest.json", res.manifest(command, 0, timings, {
+        write_json(folder / "manifest.json", manifest(command, 0, timings, {
             "sequence": {"name": seq.name, "root": str(seq.root), "frames": len(seq), "meta": seq.meta,
                          "intrinsics": seq.intrinsics.as_list()},
             "external": info}))
         s = summary.to_dict()
-        res.write_json(folder / "summary.json", s)  # last: marks the result complete
+        write_json(folder / "summary.json", s)  # last: marks the result complete
     return ExternalResult(folder, s)
 
 
-def _summary(table: pd.DataFrame, seq: Sequence, name: str, info: dict, cfg: RunConfig) -> res.Summary:
+def _summary(table: pd.DataFrame, seq: Sequence, name: str, info: dict, cfg: RunConfig) -> Summary:
     """``summary.json`` of an external model: its scores as ``depth.*.adapted``, everything else null with a reason."""
-    s = res.Summary()
+    s = Summary()
     why = "no frame with valid GT depth"
-    for key, val in res.depth_means(table, MODEL).items():
+    for key, val in depth_means(table, MODEL).items():
         s.set(f"depth.{key}.{MODEL}", val, why)
         s.absent(f"depth.{key}.pretrained", f"external model {name!r}: not adapted, so no pre-trained/adapted pair; "
                  f"its scores are depth.{key}.adapted")
     none = table[f"{MODEL}_pcd_none"]
     s.set(f"depth.pcd.none.{MODEL}", float(none.mean()) if none.notna().any() else None, why)
-    for key in res.SUMMARY_KEYS:
+    for key in SUMMARY_KEYS:
         if key.startswith("depth.pcd_nonkf") or key.startswith("depth.esi_nonkf"):
             s.absent(key, "external model: not adapted, so no keyframes to leave out (every frame is unseen: "
                           "see depth.pcd / depth.esi)")

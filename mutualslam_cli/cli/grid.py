@@ -9,10 +9,19 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from mutualslam_cli import cli_common as common
-from mutualslam_cli.cli_common import (ConfigOpt, DataRootOpt, RegistryOpt, ResultsOutOpt, SetOpt, _boundary, _config,
-                                         _fmt, _progress, app)
-
+from mutualslam_cli.cli import common
+from mutualslam_cli.cli.common import (
+    ConfigOpt,
+    DataRootOpt,
+    RegistryOpt,
+    ResultsOutOpt,
+    SetOpt,
+    _boundary,
+    _config,
+    _fmt,
+    _progress,
+    app,
+)
 
 # --------------------------------------------------------------------------- ablate
 
@@ -93,7 +102,7 @@ def report(
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
     """The paper's tables and plots from result folders."""
-    from mutualslam_cli.report import build_tables, collect, write_report
+    from mutualslam_cli.report.tables import build_tables, collect, write_report
 
     out = out or Path(_config(config, sets).out) / "report"
     rep = build_tables(collect(list(results)))

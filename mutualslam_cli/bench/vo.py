@@ -1,10 +1,7 @@
 """Speed and accuracy benchmark of the VO front end (DESIGN §10: ≥ 60 frames/s at 640×480, decode
 included).
 
-Usage: ``python -m mutualslam_cli.vo_bench NAME_OR_PATH...``. It lives beside
-:mod:`mutualslam_cli.bench`, above :mod:`mutualslam_cli.vo`, because the accuracy figures come from
-:mod:`mutualslam_cli.evaluation`, which itself imports ``vo``: the ``vo`` package never imports
-upward.
+Usage: ``python -m mutualslam_cli.bench.vo NAME_OR_PATH...``.
 """
 
 from __future__ import annotations
@@ -57,7 +54,7 @@ def vo_accuracy(seq: Sequence, vo: Any) -> dict[str, Any]:
         ``None`` without GT; ``esi`` is the map points' scale-invariant log error against GT
         depth at their host pixels (distortion-aware), NaN without GT depth.
     """
-    from mutualslam_cli.evaluation import evaluate_trajectory, map_esi  # heavy (pandas, torch): only here
+    from mutualslam_cli.stages.evaluation import evaluate_trajectory, map_esi  # heavy (pandas, torch): only here
 
     tr = evaluate_trajectory(seq, vo)
     esi, _ = map_esi(seq, vo)
@@ -74,7 +71,7 @@ def vo_accuracy(seq: Sequence, vo: Any) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m mutualslam_cli.vo_bench NAME_OR_PATH...``: the accuracy/speed table (Markdown)."""
+    """``python -m mutualslam_cli.bench.vo NAME_OR_PATH...``: the accuracy/speed table (Markdown)."""
     import sys
 
     from mutualslam_cli.datasets.registry import load_sequence

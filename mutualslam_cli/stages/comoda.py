@@ -1,6 +1,6 @@
 """The adaptation stage of scheme ``comoda``: every frame through :class:`~mutualslam_cli.adapt.comoda.ComodaAdapter`.
 
-Unlike the keyframe schemes (:mod:`mutualslam_cli.adapt.stage`), CoMoDa needs no SLAM: it is driven by
+Unlike the keyframe schemes (:mod:`mutualslam_cli.stages.adaptation`), CoMoDa needs no SLAM: it is driven by
 every frame of the sequence (undistorted, at network resolution), trains its own pose network, and
 its chained poses form a trajectory of its own. The VO front end still runs (the pipeline's map, BA
 and the VO's ATE are unchanged), so Table 4 can show the PoseNet trajectory beside the VO's.
@@ -23,17 +23,18 @@ import numpy as np
 import pandas as pd
 import torch
 
-from mutualslam_cli import results as res
 from mutualslam_cli.adapt.comoda import ComodaAdapter, FrameStep, make_pose_net
 from mutualslam_cli.adapt.comoda_source import source_triplets
 from mutualslam_cli.adapt.depthnet import prepare
 from mutualslam_cli.adapt.inputs import to_net_image
-from mutualslam_cli.adapt.stage import Progress
+from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import MslamError
 from mutualslam_cli.metrics import trajectory as tm
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.stages.adaptation import Progress
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.camera import Undistorter
 
@@ -62,7 +63,7 @@ def posenet_ate(seq: Sequence, traj: Trajectory, max_dt: float) -> tuple[float |
 
 
 def run_comoda_stage(seq: Sequence, net: torch.nn.Module, cfg: RunConfig, fast: bool, folder: Path,
-                     summary: res.Summary, progress: Progress | None = None,
+                     summary: Summary, progress: Progress | None = None,
                      cache_dir: Path | None = None) -> torch.nn.Module:
     """Adapt ``net`` on every frame of ``seq`` with the CoMoDa-style adapter; write its outputs.
 
@@ -91,11 +92,11 @@ def run_comoda_stage(seq: Sequence, net: torch.nn.Module, cfg: RunConfig, fast: 
         rows.append(frame_row(info))
         if progress:
             progress("adapt", {"done": i + 1, "total": len(seq), **rows[-1], "elapsed_s": time.perf_counter() - t0})
-    res.atomic_write_text(folder / "frames.csv", pd.DataFrame(rows).to_csv(index=False))
+    atomic_write_text(folder / "frames.csv", pd.DataFrame(rows).to_csv(index=False))
     traj = Trajectory(np.array([f.timestamp for f in seq.frames]), adapter.trajectory())
     buf = io.StringIO()
     write_tum_trajectory(buf, traj)
-    res.atomic_write_text(folder / "traj_posenet.txt", buf.getvalue())
+    atomic_write_text(folder / "traj_posenet.txt", buf.getvalue())
     per_frame = [r["step_ms"] for r in rows if r["trained"]]
     why = "no frame was trained on (fewer than 3 frames, or all static)"
     summary.set("timing.finetune_ms", float(np.median(adapter.step_ms)) / cfg.adapt.comoda_steps_per_frame

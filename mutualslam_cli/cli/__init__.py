@@ -1,0 +1,10 @@
+"""The ``mslam`` command line (typer + rich): the only package that imports either.
+
+``app`` is the console script (``mslam = "mutualslam_cli.cli:app"``); importing the command
+modules registers their commands on it.
+"""
+
+from mutualslam_cli.cli import commands, grid  # noqa: F401 - register the commands
+from mutualslam_cli.cli.common import app
+
+__all__ = ["app"]

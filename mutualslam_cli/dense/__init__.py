@@ -1,0 +1,1 @@
+"""Dense reconstruction: TSDF fusion of depth maps, meshes, surface scores and their picture."""

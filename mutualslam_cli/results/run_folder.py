@@ -1,0 +1,107 @@
+"""A run's folder (DESIGN §8): where it lives, its JSON/YAML files, manifest and trajectories.
+
+A run writes ``<out>/<sequence>/<scheme>/seed<k>/``. Every file is written to a temporary
+name in the same folder and renamed, so a killed run never leaves a half-written file.
+A run is complete when ``summary.json`` (:mod:`~mutualslam_cli.results.summary`) exists; it is
+written last.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from mutualslam_cli import __version__
+from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.results.summary import plain
+from mutualslam_cli.types import Trajectory
+
+
+def run_dir(out: str | Path, sequence: str, scheme: str, seed: int) -> Path:
+    """``<out>/<sequence>/<scheme>/seed<k>``; ``+`` in scheme names is kept (valid in paths)."""
+    return Path(out) / sequence / scheme / f"seed{seed}"
+
+
+def is_complete(folder: Path) -> bool:
+    """A run is complete when its ``summary.json`` exists."""
+    return (Path(folder) / "summary.json").is_file()
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Atomic, indented JSON; NaN becomes ``null``."""
+    atomic_write_text(path, json.dumps(plain(obj), indent=2, sort_keys=False) + "\n")
+
+
+def write_yaml(path: Path, obj: Any) -> None:
+    """Atomic YAML of plain values (``yaml.safe_dump``, never Python objects)."""
+    atomic_write_text(path, yaml.safe_dump(plain(obj), sort_keys=False))
+
+
+def git_revision() -> str | None:
+    """The repository's HEAD commit (with ``-dirty``), or ``None`` outside a checkout."""
+    here = Path(__file__).resolve().parent
+    try:
+        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
+        if rev.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=5)
+        return rev.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def versions() -> dict[str, str]:
+    """Versions of Python, mslam and the numerical libraries, for manifests."""
+    out = {"python": sys.version.split()[0], "mslam": __version__, "platform": platform.platform()}
+    for mod in ("numpy", "torch", "cv2", "open3d", "pandas"):
+        try:
+            out[mod] = __import__(mod).__version__
+        except Exception:  # noqa: BLE001 - a missing optional library is simply not listed
+            continue
+    return out
+
+
+def manifest(command: list[str] | None, seed: int, timings: dict[str, float], extra: dict | None = None) -> dict:
+    """The ``manifest.json`` content: command, versions, git revision, seed, timings, host."""
+    return {
+        "command": command if command is not None else sys.argv,
+        "seed": seed,
+        "versions": versions(),
+        "git_revision": git_revision(),
+        "cpu_count": os.cpu_count(),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "timings_s": timings,
+        **(extra or {}),
+    }
+
+
+def read_summary(folder: Path) -> dict[str, Any]:
+    """Load ``summary.json`` of a result folder."""
+    path = Path(folder) / "summary.json"
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no summary.json (run incomplete or not a result folder)") from None
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{path}: not valid JSON ({e})") from None
+
+
+
+def write_trajectories(folder: Path, traj_kf: Trajectory, traj_all: Trajectory, suffix: str = "") -> None:
+    """``traj_kf<suffix>.txt`` and ``traj_all<suffix>.txt`` in TUM format (atomic)."""
+    for name, traj in ((f"traj_kf{suffix}.txt", traj_kf), (f"traj_all{suffix}.txt", traj_all)):
+        buf = io.StringIO()
+        write_tum_trajectory(buf, traj)
+        atomic_write_text(folder / name, buf.getvalue())

@@ -1,0 +1,112 @@
+"""Assembly of the front end's state into a :class:`VOResult` (DESIGN §4).
+
+Knows the map, the per-frame records and a :class:`RunStats`, not the front end itself: the
+front end (:mod:`~mutualslam_cli.vo.frontend`) imports this module, never the other way round.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence as Seq
+from dataclasses import dataclass
+from itertools import combinations
+from typing import Any
+
+import numpy as np
+
+from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
+from mutualslam_cli.vo.camera import pinhole
+from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.vo.state import Map
+
+
+@dataclass(frozen=True)
+class RunStats:
+    """What the front end counted and timed over one run (becomes ``VOResult.meta``).
+
+    Attributes:
+        segment: index of the last tracking segment (-1: never initialised).
+        init_methods: how each segment was initialised, in order.
+        timing: seconds per stage, summed over all frames.
+        total_s: wall time of the whole run.
+        reprojected: map points re-attached by re-projection.
+        ba_stats: one dict per windowed BA (``points``, ``solve_ms``, …).
+        ba_threaded: whether the windowed BA ran on a worker thread.
+    """
+
+    segment: int
+    init_methods: Seq[str]
+    timing: dict[str, float]
+    total_s: float
+    reprojected: int
+    ba_stats: Seq[dict[str, Any]]
+    ba_threaded: bool
+
+
+def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
+    """Untracked stretches ``[first, last]`` (inclusive frame indices)."""
+    out, start = [], None
+    for i, s in enumerate(frame_seg):
+        if s < 0 and start is None:
+            start = i
+        elif s >= 0 and start is not None:
+            out.append([start, i - 1])
+            start = None
+    if start is not None:
+        out.append([start, len(frame_seg) - 1])
+    return out
+
+
+def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, np.ndarray]],
+                 frame_seg: np.ndarray, intr: Intrinsics, stats: RunStats) -> VOResult:
+    """Final keyframe poses, frame poses re-anchored on them, map points and covisibility.
+
+    Args:
+        m: the front end's map (keyframes, points, observations).
+        frames: the sequence's frames (for their timestamps).
+        frame_rel: tracked frame index → (reference keyframe, its ``T_kf,c``).
+        frame_seg: ``(N,)`` tracking segment of every frame, -1 where untracked.
+        intr: the sequence's (possibly distorted) intrinsics; the result is in their pinhole camera.
+        stats: counters and timings of the run.
+    """
+    kfs = [Keyframe(k, m.kf_frame[k], m.kf_time[k], m.kf_T_wc[k].copy(), m.kf_segment[k])
+           for k in range(len(m.kf_frame))]
+    idx = sorted(frame_rel)
+    ts = np.array([frames[i].timestamp for i in idx])
+    poses = np.stack([m.kf_T_wc[frame_rel[i][0]] @ frame_rel[i][1] for i in idx]) if idx else np.zeros((0, 4, 4))
+    frame_seg = frame_seg.copy()
+    n = len(m.host)
+    obs_k = [np.array(sorted(m.obs[p]), np.int64) for p in range(n)]
+    obs_px = [np.array([m.obs[p][k] for k in obs_k[p]], np.float64).reshape(-1, 2) for p in range(n)]
+    pts = MapPoints(np.arange(n, dtype=np.int64), np.array(m.host, np.int64).reshape(-1),
+                    np.array(m.px_h, np.float64).reshape(-1, 2), np.array(m.rho, np.float64).reshape(-1),
+                    np.array(m.sigma, np.float64).reshape(-1), obs_k, obs_px)
+    keep = (pts.inv_depth > 0) & np.isfinite(pts.inv_depth)
+    if not keep.all():
+        pts = pts.subset(keep)
+        pts.ids = np.arange(len(pts), dtype=np.int64)
+    covis: dict[int, dict[int, int]] = {k: {} for k in range(len(kfs))}
+    for o in pts.observations:
+        for a, b in combinations(o.tolist(), 2):
+            covis[a][b] = covis[a].get(b, 0) + 1
+            covis[b][a] = covis[b].get(a, 0) + 1
+    n_frames = len(frame_seg)
+    st = stats.ba_stats
+    total_s = stats.total_s
+    timing = {k: 1000.0 * v / max(n_frames, 1) for k, v in stats.timing.items()}
+    meta = {
+        "mode": "svo",
+        "n_reinit": max(stats.segment, 0),
+        "segments": stats.segment + 1,
+        "gaps": _gaps(frame_seg),
+        "init_methods": list(stats.init_methods),
+        "timing": timing,
+        "timing_unit": "ms per frame (mean over all frames)",
+        "fps": n_frames / total_s if total_s > 0 else float("nan"),
+        "time_s": total_s,
+        "reprojected": stats.reprojected,
+        "local_ba": {"runs": len(st),
+                     "mean_points": float(np.mean([s["points"] for s in st])) if st else 0.0,
+                     "mean_solve_ms": float(np.mean([s["solve_ms"] for s in st])) if st else 0.0,
+                     "threaded": stats.ba_threaded},
+    }
+    return VOResult(kfs, pts, pinhole(intr), Trajectory(ts, poses), frame_seg, covis, meta)
