@@ -24,8 +24,10 @@ import logging
 import multiprocessing
 import os
 import signal
+import threading
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -191,16 +193,54 @@ def _local_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str
         # the workers start (and import torch, seconds each) while this process runs the front ends
         warm = [pool.submit(_warm_up) for _ in range(workers)]
         prepare_frontends(cfg, seqs, seeds, out, reg)
-        wait(warm)
-        futs = [pool.submit(_run_job, cfg, j, out, command, reg, threads) for j in todo]
-        for f in as_completed(futs):
-            yield f.result()
+        with _ctrl_c_as_flag() as stop:
+            _wait_all(warm, stop)
+            futs = [pool.submit(_run_job, cfg, j, out, command, reg, threads) for j in todo]
+            pending = set(futs)
+            while pending:
+                done, pending = wait(pending, timeout=_POLL_S, return_when=FIRST_COMPLETED)
+                if stop.is_set():
+                    raise KeyboardInterrupt
+                for f in sorted(done, key=futs.index):
+                    yield f.result()
     except BaseException:  # Ctrl-C (or the consumer stopping): stop the workers now, not after their jobs
         for p in list(getattr(pool, "_processes", {}).values()):
             p.kill()
         pool.shutdown(wait=False, cancel_futures=True)
         raise
     pool.shutdown()
+
+
+#: Seconds between checks for Ctrl-C while the pool works.
+_POLL_S = 0.2
+
+
+@contextmanager
+def _ctrl_c_as_flag() -> Iterator[threading.Event]:
+    """Within the block, Ctrl-C sets the yielded event instead of raising ``KeyboardInterrupt``.
+
+    While the pool works the main thread sits in ``concurrent.futures``' locking; an exception raised
+    there at an arbitrary instruction can leave a future's lock held, and the pool's manager thread
+    then waits for it forever when the interpreter exits (a grid that never stopped after Ctrl-C,
+    seen once on a loaded machine). The caller checks the event and raises from a known point."""
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
+    try:
+        yield stop
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _wait_all(futures: list[Any], stop: threading.Event) -> None:
+    """Wait for every future; ``KeyboardInterrupt`` as soon as ``stop`` is set."""
+    pending = set(futures)
+    while pending:
+        _, pending = wait(pending, timeout=_POLL_S)
+        if stop.is_set():
+            raise KeyboardInterrupt
 
 
 def _dask_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str] | None, reg: str | None,
