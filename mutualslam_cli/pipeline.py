@@ -1,13 +1,15 @@
-"""One sequence, one scheme (DESIGN §1): front end → adaptation → culling + BA → evaluation → files.
+"""One sequence, one scheme (DESIGN §1): Algorithm 1 around a sequence, one call per stage.
 
-:func:`run_sequence` is what ``mslam run`` calls; every stage is a plain function too, so other
-tools can call them without the CLI. Progress goes to an optional callback
+:func:`run_sequence` is what ``mslam run`` calls: front end → online adaptation (with culling +
+global BA at Algorithm 1's requests: the mutual loop) → final culling + BA → depth evaluation →
+(dense reconstruction) → ``summary.json``. Each stage (:mod:`mutualslam_cli.stages`) writes its own
+files and summary keys into the run folder. :func:`fuse_run` (``mslam fuse``) runs the dense stage
+on a finished run with the same setup. Progress goes to an optional callback
 ``progress(stage, info)`` and to :mod:`logging`.
 """
 
 from __future__ import annotations
 
-import copy
 import logging
 import time
 from dataclasses import dataclass, field
@@ -15,52 +17,39 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import pandas as pd
 import torch
 from threadpoolctl import threadpool_limits
 
+from mutualslam_cli.adapt.depthnet import prepare
 from mutualslam_cli.adapt.inputs import load_network, use_fast_path
-from mutualslam_cli.adapt.weights import save_monodepth2
+from mutualslam_cli.adapt.weights import DECODER_FILE, ENCODER_FILE, load_monodepth2
 from mutualslam_cli.allocator import retain_freed_memory
-from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.ba.culling import inject_outliers
-from mutualslam_cli.config import RunConfig, to_dict, with_overrides
+from mutualslam_cli.config import RunConfig, load_config, to_dict, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.results.lock import hold_lock
-from mutualslam_cli.results.map_ply import write_ply
 from mutualslam_cli.results.run_folder import (
+    git_revision,
     is_complete,
     manifest,
+    read_manifest,
     read_summary,
     run_dir,
+    versions,
     write_json,
-    write_trajectories,
     write_yaml,
 )
 from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.adaptation import Progress, run_adaptation, summarise_adaptation
-from mutualslam_cli.stages.ba import (
-    BALog,
-    final_ba,
-    make_ba_step,
-    no_culling_reason,
-    summarise_ba_absent,
-    summarise_outliers,
-    write_ba_results,
-)
-from mutualslam_cli.stages.comoda import POSENET_ATE_KEY, run_comoda_stage
-from mutualslam_cli.stages.dense import add_stage_time, run_dense
-from mutualslam_cli.stages.evaluation import (
-    esi_of_log_errors,
-    evaluate_models,
-    evaluate_trajectory,
-    map_log_depth_errors,
-    summarise_depth,
-)
-from mutualslam_cli.stages.frontend import run_frontend, summarise_frontend
+from mutualslam_cli.stages import adaptation, dense, evaluation, frontend
+from mutualslam_cli.stages.ba import BAStage
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.types import Progress
 
 log = logging.getLogger(__name__)
+
+#: The stages whose wall time ``timing.stage_s`` splits a run into (``other``: everything else).
+STAGES = ("frontend", "adaptation", "ba", "evaluation", "dense")
 
 
 @dataclass
@@ -71,6 +60,7 @@ class RunResult:
         folder: the result folder.
         summary: the ``summary.json`` content (nested dict).
         skipped: True when the run was already complete and nothing was recomputed.
+        timings: seconds per stage (and ``load``, ``total``).
     """
 
     folder: Path
@@ -79,7 +69,28 @@ class RunResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-# ----------------------------------------------------------------------------- the run
+def use_threads(cfg: RunConfig) -> RunConfig:
+    """``cfg`` with ``threads`` resolved (0 → what torch would use), set for torch and OpenCV.
+
+    Results follow the thread count (reductions sum in another order), so the count is resolved
+    once, used alike by torch, OpenCV and BLAS (:func:`run_sequence`), and recorded in
+    ``config.yaml`` like any setting.
+    """
+    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())
+    torch.set_num_threads(cfg.threads)
+    cv2.setNumThreads(cfg.threads)
+    return cfg
+
+
+def open_sequence(sequence: str | Path | Sequence, cfg: RunConfig, registry: Path | None = None) -> Sequence:
+    """The sequence a run reads: a loaded one as is, else a ``datasets.yaml`` name or a folder."""
+    if isinstance(sequence, Sequence):
+        return sequence
+    return load_sequence(sequence, data_root=cfg.data.data_root, registry_path=registry,
+                         max_frames=cfg.data.max_frames, stride=cfg.data.stride)
+
+
+# ----------------------------------------------------------------------------- mslam run
 
 
 def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Path | None = None,
@@ -93,7 +104,7 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         out: results root (default ``cfg.out``).
         command: the command line, recorded in ``manifest.json``.
         force: recompute even when the run is complete.
-        progress: ``progress(stage, info)`` with stages ``load``, ``vo``, ``adapt``, ``eval``, ``dense``.
+        progress: ``progress(stage, info)`` with stages ``vo``, ``adapt``, ``eval``, ``dense``.
         registry: an alternative ``datasets.yaml``.
 
     Returns:
@@ -106,142 +117,128 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     t_start = time.perf_counter()
     torch.manual_seed(cfg.seed)
     retain_freed_memory()  # image-sized buffers reuse pages (VO, warps, evaluation)
-    # Results follow the thread count (reductions sum in another order), so the count is resolved
-    # here, used alike by torch, OpenCV and BLAS, and recorded in config.yaml like any setting.
-    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())
-    torch.set_num_threads(cfg.threads)
-    cv2.setNumThreads(cfg.threads)
-    timings: dict[str, float] = {}
-    t = time.perf_counter()
-    seq = sequence if isinstance(sequence, Sequence) else load_sequence(
-        sequence, data_root=cfg.data.data_root, registry_path=registry,
-        max_frames=cfg.data.max_frames, stride=cfg.data.stride)
-    timings["load_s"] = time.perf_counter() - t
+    cfg = use_threads(cfg)
+    seq = open_sequence(sequence, cfg, registry)
     out_root = Path(out if out is not None else cfg.out)
     folder = run_dir(out_root, seq.name, cfg.adapt.scheme, cfg.seed)
+    run = RunContext(seq, cfg, folder, out_root, progress=progress, timings={"load": time.perf_counter() - t_start})
     if is_complete(folder) and not force:
         log.info("%s is complete; skipping (use --force to recompute)", folder)
         return RunResult(folder, read_summary(folder), skipped=True)
+    # a second process on this folder stops at the lock, having touched nothing
     with hold_lock(folder, "mslam run"), threadpool_limits(limits=cfg.threads, user_api="blas"):
-        # (a second process on this folder stops at the lock, having touched nothing)
-        return _run_locked(seq, cfg, folder, out_root, command, force, progress, timings, t_start)
+        if is_complete(folder) and not force:  # completed by the previous holder just before we locked
+            return RunResult(folder, read_summary(folder), skipped=True)
+        return _run(run, command, t_start)
 
 
-def _run_locked(seq: Sequence, cfg: RunConfig, folder: Path, out_root: Path, command: list[str] | None,
-                force: bool, progress: Progress | None, timings: dict[str, float], t_start: float) -> RunResult:
-    """The work of :func:`run_sequence` in its run folder, under the folder's lock."""
-    if is_complete(folder) and not force:  # completed by the previous holder just before we locked
-        return RunResult(folder, read_summary(folder), skipped=True)
-    write_yaml(folder / "config.yaml", to_dict(cfg))
-    summary = Summary()
-
-    # Front end (cached per sequence + VO config: every scheme reuses it), trajectory and map.
-    t = time.perf_counter()
-    vo, cached = run_frontend(seq, cfg, cache_dir=out_root / "_cache" / "vo", progress=progress)
-    timings["vo_s"] = time.perf_counter() - t
-    vo, injected = inject_outliers(vo, cfg.vo.inject_outliers, cfg.seed)  # test knob, off by default
-    write_trajectories(folder, vo.traj_kf, vo.traj_all)
-    err_vo = map_log_depth_errors(seq, vo)  # per point log z − log z*: the map's colours and its e_si
-    write_ply(folder / "map_vo.ply", vo.points_world(), err_vo)
-    esi_vo, n_gt = esi_of_log_errors(err_vo)
-    summarise_frontend(summary, keyframes=len(vo.keyframes), tracked_fraction=vo.tracked_fraction,
-                           map_points=len(vo.points), vo_mode=cfg.vo.mode, frames=len(seq),
-                           vo_time_s=float(vo.meta.get("time_s", timings["vo_s"])),
-                           traj=evaluate_trajectory(seq, vo, cfg.eval.ate_max_dt), map_esi=esi_vo)
-
-    # Network: pre-trained model, then online adaptation.
+def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResult:
+    """Algorithm 1 around a sequence, in its run folder, under the folder's lock."""
+    cfg = run.cfg
+    write_yaml(run.folder / "config.yaml", to_dict(cfg))
+    fe = frontend.run_stage(run)  # keyframes, map, trajectory (cached per sequence: every scheme reuses it)
     fast = use_fast_path(cfg)
-    net0 = load_network(cfg, fast)
-    record = BALog()  # the mutual loop: culling + global BA at Algorithm 1's requests feed back into training
-    step = make_ba_step(seq, vo, cfg, record) if cfg.ba.enabled else None
-    t = time.perf_counter()
-    if cfg.adapt.scheme == "comoda":  # the CoMoDa-style baseline: every frame, its own pose network, no keyframes
-        net, kf_rows, adapter, loop_map = run_comoda_stage(seq, copy.deepcopy(net0), cfg, fast, folder, summary,
-                                                           progress, out_root / "_cache" / "comoda"), [], None, vo
-    else:
-        net, kf_rows, adapter, loop_map = run_adaptation(seq, vo, copy.deepcopy(net0), cfg, fast, progress, step)
-        summarise_adaptation(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
-                                 adapter.finetune_ms if adapter else [], kf_rows)
-        summary.absent(POSENET_ATE_KEY, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
-    timings["adapt_s"] = time.perf_counter() - t
-    if kf_rows:
-        atomic_write_text(folder / "keyframes.csv", pd.DataFrame(kf_rows).to_csv(index=False))
-
-    # Final culling + global BA over every keyframe: the after-BA trajectory and map.
-    requested = sum(bool(r.get("run_global_ba")) for r in kf_rows)
-    ba_trigger_s = float(sum(r.get("ba_s", 0.0) for r in kf_rows))  # Algorithm 1's BAs, inside adaptation
-    if step is None:
-        summarise_ba_absent(summary, "disabled (ba.enabled=false)", requested)
-    else:
-        t = time.perf_counter()
-        vo_ba = final_ba(seq, vo, loop_map, net, adapter, cfg, fast, step)
-        timings["ba_final_s"] = time.perf_counter() - t
-        write_ba_results(folder, summary, seq, vo, err_vo, vo_ba, cfg, record, requested,
-                         ba_trigger_s + timings["ba_final_s"])
-    if len(injected):
-        culled = record.culled_mask(vo.points.ids) if no_culling_reason(cfg) is None else None
-        summarise_outliers(summary, vo.points.ids, injected, culled)
-
-    # Depth evaluation with the pre-trained and the final model on every frame with GT depth.
-    t = time.perf_counter()
-    cb = (lambda d, n: progress("eval", {"done": d, "total": n})) if progress else None
-    table, ms = evaluate_models(seq, net0, None if cfg.adapt.scheme == "none" else net, cfg, fast,
-                                {k.frame_index for k in vo.keyframes}, out_root / "_cache" / "pretrained", cb)
-    timings["eval_s"] = time.perf_counter() - t
-    if len(table):
-        atomic_write_text(folder / "per_frame.csv", table.to_csv(index=False))
-    summarise_depth(summary, table, ms, cfg.adapt.scheme)
-    if cfg.eval.save_weights and cfg.adapt.scheme != "none":
-        save_monodepth2(net, folder / "weights", cfg.net.height, cfg.net.width)
-
-    # Dense reconstruction of both models' depth, scored against GT depth fused with GT poses (issue 13).
+    net0 = load_network(cfg, fast)  # the pre-trained model
+    ba = BAStage(run, fe)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
+    adapted = adaptation.run_stage(run, fe, net0, fast, ba.step)  # online fine-tuning, Algorithm 1
+    ba.finish(adapted, fast)
+    evaluation.run_stage(run, fe, net0, adapted, fast)  # both models' depth on every frame with GT
     if cfg.dense.enabled:
-        t = time.perf_counter()
-        run_dense(folder, seq, vo, {"pretrained": net0, "adapted": None if cfg.adapt.scheme == "none" else net},
-                  cfg, fast, summary, progress)
-        timings["dense_s"] = time.perf_counter() - t
+        dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
+    return _finish(run, fe, ba, command, t_start)
 
-    timings["total_s"] = time.perf_counter() - t_start
-    summarise_stages(summary, timings, ba_trigger_s, cached)
-    add_stage_time(summary, timings)
-    summary.set("vo.from_cache", cached)
+
+def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, command: list[str] | None,
+            t_start: float) -> RunResult:
+    """The run's identity and stage times, ``manifest.json``, then ``summary.json`` (last: the run is complete)."""
+    seq, cfg, summary = run.seq, run.cfg, run.summary
+    total = time.perf_counter() - t_start
+    _summarise_times(summary, run.timings, total, fe.cached)
     summary.set("sequence.name", seq.name)
     summary.set("sequence.frames", len(seq))
-    summary.set("depth.eval_stride", cfg.eval.stride)  # every k-th frame with GT depth was evaluated
     summary.set("scheme", cfg.adapt.scheme)
     summary.set("seed", cfg.seed)
-    summary.set("vo.mode", cfg.vo.mode)
-    summary.set("depth.fast_path", fast)
-    write_json(folder / "manifest.json", manifest(command, cfg.seed, timings, {
+    timings = {**{f"{k}_s": v for k, v in run.timings.items()}, "total_s": total}
+    write_json(run.folder / "manifest.json", manifest(command, cfg.seed, timings, {
         "sequence": {"name": seq.name, "root": str(seq.root), "frames": len(seq), "meta": seq.meta,
                      "intrinsics": seq.intrinsics.as_list()},
-        "vo_meta": {k: v for k, v in vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
-        "map_points_with_gt": n_gt,
-        "ba_runs": record.runs,
+        "vo_meta": {k: v for k, v in fe.vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
+        "map_points_with_gt": fe.points_with_gt,
+        "ba_runs": ba.record.runs,
     }))
     s = summary.to_dict()
-    write_json(folder / "summary.json", s)  # last: marks the run complete
-    return RunResult(folder, s, timings=timings)
+    write_json(run.folder / "summary.json", s)
+    return RunResult(run.folder, s, timings=timings)
 
 
-# ----------------------------------------------------------------------------- summary keys
-
-
-def summarise_stages(summary: Summary, timings: dict[str, float], ba_trigger_s: float, vo_cached: bool) -> None:
+def _summarise_times(summary: Summary, timings: dict[str, float], total_s: float, vo_cached: bool) -> None:
     """``timing.total_s`` and the run's wall time split by stage, ``timing.stage_s.*`` (seconds).
 
     ``frontend`` (VO or oracle; a cached front end costs only its loading), ``adaptation`` (online
     fine-tuning without the BA it triggered), ``ba`` (every culling + global BA: Algorithm 1's
     requests and the final one), ``evaluation`` (depth of every frame with GT by both models),
-    ``other`` (the rest: loading the sequence and the network, trajectory and map metrics, writing
-    files). The five add up to ``total_s``.
+    ``dense`` (when it ran), ``other`` (the rest: loading the sequence and the network, trajectory
+    and map metrics, writing files). They add up to ``total_s``.
     """
-    ba = ba_trigger_s + timings.get("ba_final_s", 0.0)
-    parts = {"frontend": timings.get("vo_s", 0.0), "adaptation": timings.get("adapt_s", 0.0) - ba_trigger_s,
-             "ba": ba, "evaluation": timings.get("eval_s", 0.0)}
-    parts["other"] = timings["total_s"] - sum(parts.values())
-    summary.set("timing.total_s", timings["total_s"])
+    parts = {k: timings.get(k, 0.0) for k in STAGES if k != "dense" or "dense" in timings}
+    parts["other"] = total_s - sum(parts.values())
+    summary.set("timing.total_s", total_s)
     for k, v in parts.items():
         summary.set(f"timing.stage_s.{k}", float(v))
     if vo_cached:
         summary.notes["timing.stage_s.frontend"] = "front end loaded from the cache"
+
+
+# ----------------------------------------------------------------------------- mslam fuse
+
+
+def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | None = None,
+             progress: Progress | None = None, seq: Sequence | None = None,
+             command: list[str] | None = None) -> dict[str, Any]:
+    """The dense stage on a finished run folder (``mslam fuse RUN_DIR``), with the run's setup: its
+    config, sequence, front end (from the VO cache beside the results, recomputed if absent),
+    pre-trained model and ``weights/``; updates ``summary.json`` (the ``dense.*`` keys),
+    ``config.yaml``'s ``dense`` section and ``manifest.json`` (a ``fuse`` entry).
+
+    Args:
+        overrides: ``--set``-style ``dense.*`` (or other) settings on top of the run's config.
+        seq: use this sequence instead of loading the one the manifest names (tests).
+
+    Returns:
+        The updated summary (nested dict).
+
+    Raises:
+        DatasetError: not a complete run folder, or no adapted weights (``--set eval.save_weights=true``).
+    """
+    folder = Path(folder)
+    old = read_summary(folder)
+    cfg = load_config(folder / "config.yaml", overrides)
+    wdir = folder / "weights"
+    adapted = cfg.adapt.scheme != "none"
+    if adapted and not ((wdir / ENCODER_FILE).is_file() and (wdir / DECODER_FILE).is_file()):
+        raise DatasetError(f"{folder}: the run kept no adapted weights (no weights/{ENCODER_FILE}); rerun it with "
+                           "--set eval.save_weights=true (and --force) to fuse it later")
+    record = read_manifest(folder)
+    root = (record.get("sequence") or {}).get("root") if isinstance(record.get("sequence"), dict) else None
+    if seq is None and not root:
+        raise DatasetError(f"{folder}: manifest.json names no sequence root")
+    t0 = time.perf_counter()
+    with hold_lock(folder, "mslam fuse"):
+        cfg = use_threads(cfg)
+        seq = open_sequence(seq if seq is not None else root, cfg, registry)
+        vo, _, _ = frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)
+        fast = use_fast_path(cfg)
+        nets = {"pretrained": load_network(cfg, fast), "adapted": prepare(load_monodepth2(
+            wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast) if adapted else None}
+        summary = Summary.from_dict(old, drop_prefix="dense.")
+        dense.run_dense(folder, seq, vo, nets, cfg, fast, summary, progress)
+        data = to_dict(cfg)
+        data["dense"]["enabled"] = True  # the folder now holds the dense results of these settings
+        write_yaml(folder / "config.yaml", data)
+        record["fuse"] = {"command": command, "time_s": time.perf_counter() - t0, "versions": versions(),
+                          "git_revision": git_revision(),
+                          "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        write_json(folder / "manifest.json", record)
+        out = summary.to_dict()
+        write_json(folder / "summary.json", out)
+    return out

@@ -14,12 +14,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 from typing import Sequence as Seq
 
 import numpy as np
 
 from mutualslam_cli.errors import ShapeError
+
+Progress = Callable[[str, dict[str, Any]], None]
+"""``progress(stage, info)``: a stage's name (``vo``, ``adapt``, ``eval``, ``dense``, ``decode``…) and a
+dict of figures (``done``, ``total``, …). The library reports through it; the CLI draws the bars."""
 
 
 def check_shape(x: Any, shape: Seq[str | int], name: str = "array") -> None:

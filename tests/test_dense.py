@@ -17,9 +17,10 @@ from mutualslam_cli.cli import app
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.dense import tsdf
 from mutualslam_cli.errors import ConfigError, GeometryError
-from mutualslam_cli.report.dense import fit_view, look_from_cameras
+from mutualslam_cli.dense.picture import fit_view, look_from_cameras
 from mutualslam_cli.results.summary import flatten
-from mutualslam_cli.stages.dense import DENSE_KEYS, fuse_run
+from mutualslam_cli.pipeline import fuse_run
+from mutualslam_cli.stages.dense import DENSE_KEYS
 
 VOXEL = 0.02
 

@@ -54,7 +54,7 @@ def vo_accuracy(seq: Sequence, vo: Any) -> dict[str, Any]:
         ``None`` without GT; ``esi`` is the map points' scale-invariant log error against GT
         depth at their host pixels (distortion-aware), NaN without GT depth.
     """
-    from mutualslam_cli.stages.evaluation import evaluate_trajectory, map_esi  # heavy (pandas, torch): only here
+    from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, map_esi
 
     tr = evaluate_trajectory(seq, vo)
     esi, _ = map_esi(seq, vo)

@@ -338,7 +338,7 @@ def fuse(
     """Dense reconstruction of a finished run: TSDF meshes of both models' depth, scored against GT depth
     fused with GT poses (needs the run's adapted weights: --set eval.save_weights=true)."""
     from mutualslam_cli.results.summary import flatten
-    from mutualslam_cli.stages.dense import fuse_run
+    from mutualslam_cli.pipeline import fuse_run
 
     with _progress() as p:
         tasks: list[Any] = []  # the bar appears with the first step: an error before it is one line

@@ -99,6 +99,18 @@ def read_summary(folder: Path) -> dict[str, Any]:
 
 
 
+def read_manifest(folder: Path) -> dict[str, Any]:
+    """Load ``manifest.json`` of a result folder (:func:`manifest`'s content)."""
+    path = Path(folder) / "manifest.json"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        raise DatasetError(f"{path}: missing or not valid JSON (not a finished run folder?)") from None
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path}: expected a JSON object (the manifest of mslam run)")
+    return data
+
+
 def write_trajectories(folder: Path, traj_kf: Trajectory, traj_all: Trajectory, suffix: str = "") -> None:
     """``traj_kf<suffix>.txt`` and ``traj_all<suffix>.txt`` in TUM format (atomic)."""
     for name, traj in ((f"traj_kf{suffix}.txt", traj_kf), (f"traj_all{suffix}.txt", traj_all)):

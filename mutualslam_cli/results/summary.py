@@ -61,6 +61,18 @@ class Summary:
         self.values: dict[str, Any] = {}
         self.notes: dict[str, str] = {}
 
+    @classmethod
+    def from_dict(cls, nested: dict[str, Any], drop_prefix: str | None = None) -> "Summary":
+        """The builder of a written ``summary.json`` (``nested``), without the keys (and notes) that
+        start with ``drop_prefix`` — a stage run again on a finished run rewrites its own keys."""
+        flat = flatten(nested)
+        notes = flat.pop("notes", None) or {}
+        s = cls()
+        keep = (lambda k: not k.startswith(drop_prefix)) if drop_prefix else (lambda k: True)
+        s.values = {k: v for k, v in flat.items() if keep(k)}
+        s.notes = {k: v for k, v in notes.items() if keep(k)}
+        return s
+
     def set(self, key: str, value: Any, reason_if_missing: str = "not computed") -> None:
         """Set a dotted key; ``None``/NaN values are recorded as absent with the reason."""
         if value is None or (isinstance(value, float) and not math.isfinite(value)):

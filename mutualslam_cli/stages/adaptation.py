@@ -1,4 +1,5 @@
-"""The adaptation stage of a run: the front end's keyframes through Algorithm 1 (DESIGN §1, §5).
+"""The adaptation stage of a run (:func:`run_stage`): the front end's keyframes through Algorithm 1
+(DESIGN §1, §5), or every frame through the CoMoDa-style adapter (:mod:`~mutualslam_cli.stages.comoda`).
 
 With a ``global_ba`` step this is the *mutual* loop (paper §III-A, §III-C): when Algorithm 1
 requests global BA after keyframe t, the step culls and refines the map of keyframes ≤ t with the
@@ -11,23 +12,28 @@ later poses followed the correction (:func:`mutualslam_cli.ba.global_ba.run_glob
 
 from __future__ import annotations
 
+import copy
 import time
+from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
 import numpy as np
+import pandas as pd
 import torch
 
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
 from mutualslam_cli.adapt.depthnet import predict_depth, prepare
 from mutualslam_cli.adapt.inputs import keyframe_images, scale_pixels
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
+from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.stages import comoda
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.frontend import FrontEnd
+from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.result import VOResult
-
-Progress = Callable[[str, dict[str, Any]], None]
-"""``progress(stage, info)``: stage name and a dict of figures (``done``, ``total``, …)."""
 
 DepthOf = Callable[[int], np.ndarray]
 """``depth_of(kf_id)``: ``(h, w)`` depth of the current network at network resolution, map units."""
@@ -124,19 +130,62 @@ def step_row(info: StepInfo) -> dict[str, Any]:
     return row
 
 
-# ----------------------------------------------------------------------------- summary keys
+# ----------------------------------------------------------------------------- the stage
 
 
-def summarise_adaptation(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float],
-                         kf_rows: list[dict[str, Any]] | None = None) -> None:
-    """``timing.finetune_ms`` (median per optimiser step) and ``timing.finetune_kf_ms`` (per keyframe);
-    with the keyframe rows, ``adaptation.keyframes_trained`` and, for scheme ``luo``,
-    ``adaptation.luo_keyframes_with_partner`` (training keyframes that found a simulated stereo partner)."""
+@dataclass
+class Adapted:
+    """What the adaptation stage hands on.
+
+    Attributes:
+        net: the final network (for scheme ``none`` the pre-trained one, unchanged).
+        adapter: the keyframe adapter (its replay buffer and L_val per keyframe), ``None`` for
+            schemes ``none`` and ``comoda``.
+        map: the loop's map at the end: the front end's, or after the BAs Algorithm 1 requested.
+        requested: how many times Algorithm 1 requested global BA.
+    """
+
+    net: torch.nn.Module
+    adapter: OnlineAdapter | None
+    map: VOResult
+    requested: int
+
+
+def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, fast: bool,
+              global_ba: GlobalBA | None = None) -> Adapted:
+    """Adapt a copy of ``net0`` online: ``keyframes.csv`` and the keys ``timing.finetune_ms``,
+    ``timing.finetune_kf_ms`` and ``adaptation.*`` (scheme ``comoda``: its own outputs).
+
+    The time of the BAs Algorithm 1 triggered (``global_ba``) is booked to the ``ba`` stage, the rest
+    to ``adaptation``."""
+    cfg, summary = run.cfg, run.summary
+    t = time.perf_counter()
+    if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
+        net = comoda.run_stage(run, copy.deepcopy(net0), fast)
+        adapted, rows = Adapted(net, None, fe.vo, 0), []
+    else:
+        net, rows, adapter, loop_map = run_adaptation(run.seq, fe.vo, copy.deepcopy(net0), cfg, fast, run.progress,
+                                                      global_ba)
+        adapted = Adapted(net, adapter, loop_map, sum(bool(r.get("run_global_ba")) for r in rows))
+        _summarise(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
+                   adapter.finetune_ms if adapter else [], rows)
+        summary.absent(comoda.POSENET_ATE_KEY, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
+    ba_s = float(sum(r.get("ba_s", 0.0) for r in rows))  # Algorithm 1's BAs, inside the loop
+    run.add_time("adaptation", time.perf_counter() - t - ba_s)
+    run.add_time("ba", ba_s)
+    if rows:
+        atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
+    return adapted
+
+
+def _summarise(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float],
+               kf_rows: list[dict[str, Any]]) -> None:
+    """``timing.finetune_ms`` (median per optimiser step) and ``timing.finetune_kf_ms`` (per keyframe),
+    ``adaptation.keyframes_trained`` and, for scheme ``luo``, ``adaptation.luo_keyframes_with_partner``
+    (training keyframes that found a simulated stereo partner)."""
     why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
     summary.set("timing.finetune_ms", float(np.median(step_ms)) if step_ms else None, why)
     summary.set("timing.finetune_kf_ms", float(np.median(keyframe_ms)) if keyframe_ms else None, why)
-    if kf_rows is None:
-        return
     summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
     if scheme == "luo":
         training = [r for r in kf_rows if not r.get("is_validation")]

@@ -1,8 +1,8 @@
 """The culling + global BA stage of a run (paper §III-C): Algorithm 1's requests and the final BA.
 
-:func:`make_ba_step` gives :func:`~mutualslam_cli.stages.adaptation.run_adaptation` the step it calls when
-Algorithm 1 requests global BA (the mutual loop); :func:`final_ba` refines the whole map at the end
-and :func:`write_ba_results` writes its maps, trajectories and summary keys. The BA itself is
+:class:`BAStage` gives the adaptation stage the step it calls when Algorithm 1 requests global BA
+(the mutual loop, :func:`make_ba_step`), refines the whole map at the end (:func:`final_ba`) and
+writes its maps, trajectories and summary keys. The BA itself is
 :func:`~mutualslam_cli.ba.global_ba.run_global_ba`.
 """
 
@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import cv2
@@ -25,10 +24,12 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.map_ply import write_ply
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.adaptation import GlobalBA, depth_predictor
-from mutualslam_cli.stages.evaluation import esi_of_log_errors, evaluate_trajectory, map_log_depth_errors, set_ate
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.stages.adaptation import Adapted, GlobalBA, depth_predictor
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.frontend import FrontEnd
+from mutualslam_cli.stages.slam_metrics import esi_of_log_errors, evaluate_trajectory, map_log_depth_errors, set_ate
 from mutualslam_cli.vo.camera import Undistorter
+from mutualslam_cli.vo.result import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -110,77 +111,75 @@ def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Modu
     return step(loop_map, len(loop_map.keyframes) - 1, depth_of, val_loss)
 
 
-def write_ba_results(folder: Path, summary: Summary, seq: Sequence, vo: VOResult, err: np.ndarray,
-                     vo_ba: VOResult, cfg: RunConfig, record: BALog, requested: int, ba_s: float) -> None:
-    """``map_culled.ply`` (the front end's map without the culled points), ``map_ba.ply`` (both coloured
-    by error), ``traj_{kf,all}_ba.txt`` and the BA part of the summary (:func:`results.summarise_ba`).
-
-    Args:
-        err: ``(P,)`` :func:`~mutualslam_cli.stages.evaluation.map_log_depth_errors` of the front end's map ``vo``.
-    """
-    keep = ~record.culled_mask(vo.points.ids)
-    no_culling = no_culling_reason(cfg)
-    err_ba = map_log_depth_errors(seq, vo_ba)
-    if no_culling is None:
-        write_ply(folder / "map_culled.ply", vo.points_world()[keep], err[keep])
-    write_ply(folder / "map_ba.ply", vo_ba.points_world(), err_ba)
-    write_trajectories(folder, vo_ba.traj_kf, vo_ba.traj_all, suffix="_ba")
-    summarise_ba(summary, traj=evaluate_trajectory(seq, vo_ba, cfg.eval.ate_max_dt),
-                     points_culled=int(keep.sum()), esi_culled=esi_of_log_errors(err[keep])[0],
-                     points_ba=len(vo_ba.points), esi_ba=esi_of_log_errors(err_ba)[0], ba_s=ba_s,
-                     runs=record.runs, requested=requested, no_culling=no_culling)
-
-
-# ----------------------------------------------------------------------------- summary keys
-
-
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).
 BA_KEYS = ("trajectory.ate_rmse_m.ba", "map.points.culled", "map.points.ba", "map.esi.culled", "map.esi.ba",
            "timing.ba_s")
 
 
-def summarise_ba_absent(summary: Summary, reason: str, requested: int) -> None:
-    """Every BA key ``null`` with ``reason``; ``ba.requested``: Algorithm 1's requests."""
-    for key in BA_KEYS:
-        summary.absent(key, reason)
-    summary.set("ba.triggers", 0)
-    summary.set("ba.requested", requested)
+class BAStage:
+    """Culling + global BA of a run: :attr:`step` at Algorithm 1's requests (handed to the
+    adaptation stage: the mutual loop), then :meth:`finish` once at the end.
 
-
-def summarise_ba(summary: Summary, *, traj: dict[str, Any], points_culled: int | None, esi_culled: float,
-                 points_ba: int, esi_ba: float, ba_s: float, runs: list[dict[str, Any]], requested: int,
-                 no_culling: str | None = None) -> None:
-    """Culling and global BA (paper Tables 4–5): ``trajectory.ate_rmse_m.{ba,all_frames_ba}``,
-    ``map.{points,esi}.{culled,ba}``, ``timing.ba_s`` and ``ba.*``.
-
-    Args:
-        traj: :func:`~mutualslam_cli.stages.evaluation.evaluate_trajectory` of the map after the final BA.
-        points_culled, esi_culled: the front end's map without every point culled (its own depths).
-        points_ba, esi_ba: the map after the final BA.
-        ba_s: seconds of every culling + BA (Algorithm 1's triggers and the final one).
-        runs: ``stats`` of each :func:`~mutualslam_cli.ba.global_ba.run_global_ba`, the final last.
-        requested: times Algorithm 1 requested global BA.
-        no_culling: why there was no culling (``map.*.culled`` are then null with it).
+    Attributes:
+        step: the :data:`~mutualslam_cli.stages.adaptation.GlobalBA` step, ``None`` with ``ba.enabled=false``.
+        record: what each culling + BA did (:class:`BALog`).
     """
-    set_ate(summary, traj, {"kf": "trajectory.ate_rmse_m.ba", "all": "trajectory.ate_rmse_m.all_frames_ba"})
-    if no_culling:
-        summary.absent("map.points.culled", no_culling)
-        summary.absent("map.esi.culled", no_culling)
-    else:
-        summary.set("map.points.culled", points_culled)
-        summary.set("map.esi.culled", esi_culled, "no kept map point has GT depth at its host pixel")
-    summary.set("map.points.ba", points_ba)
-    summary.set("map.esi.ba", esi_ba, "no map point has GT depth at its host pixel after BA")
-    summary.set("timing.ba_s", ba_s)
-    summary.set("ba.triggers", len(runs) - 1)
-    summary.set("ba.requested", requested)
-    final = runs[-1]
-    for key in ("n_judged_elsewhere", "n_refined", "n_unrefined", "n_diverged", "n_targets", "iterations", "cost0",
-                "cost"):
-        summary.set(f"ba.final.{key}", final[key])
+
+    def __init__(self, run: RunContext, fe: FrontEnd) -> None:
+        self.run, self.fe = run, fe
+        self.record = BALog()
+        self.step = make_ba_step(run.seq, fe.vo, run.cfg, self.record) if run.cfg.ba.enabled else None
+
+    def finish(self, adapted: Adapted, fast: bool) -> None:
+        """The final culling + BA of the loop's map with the final network: ``map_culled.ply`` (the front
+        end's map without the culled points), ``map_ba.ply``, ``traj_{kf,all}_ba.txt``, the keys of
+        :data:`BA_KEYS`, ``trajectory.ate_rmse_m.all_frames_ba``, ``ba.*`` and, with injected
+        outliers, ``map.outliers.*`` and ``map.inliers.kept``."""
+        run, fe, cfg = self.run, self.fe, self.run.cfg
+        if self.step is None:
+            for key in BA_KEYS:
+                run.summary.absent(key, "disabled (ba.enabled=false)")
+            run.summary.set("ba.triggers", 0)
+            run.summary.set("ba.requested", adapted.requested)
+        else:
+            with run.timed("ba"):
+                vo_ba = final_ba(run.seq, fe.vo, adapted.map, adapted.net, adapted.adapter, cfg, fast, self.step)
+            self._write(vo_ba, adapted.requested)
+        if len(fe.injected):
+            culled = self.record.culled_mask(fe.vo.points.ids) if no_culling_reason(cfg) is None else None
+            _summarise_outliers(run.summary, fe.vo.points.ids, fe.injected, culled)
+
+    def _write(self, vo_ba: VOResult, requested: int) -> None:
+        run, fe, summary = self.run, self.fe, self.run.summary
+        vo, err = fe.vo, fe.map_errors
+        keep = ~self.record.culled_mask(vo.points.ids)
+        no_culling = no_culling_reason(run.cfg)
+        err_ba = map_log_depth_errors(run.seq, vo_ba)
+        if no_culling is None:
+            write_ply(run.folder / "map_culled.ply", vo.points_world()[keep], err[keep])
+        write_ply(run.folder / "map_ba.ply", vo_ba.points_world(), err_ba)
+        write_trajectories(run.folder, vo_ba.traj_kf, vo_ba.traj_all, suffix="_ba")
+        set_ate(summary, evaluate_trajectory(run.seq, vo_ba, run.cfg.eval.ate_max_dt),
+                {"kf": "trajectory.ate_rmse_m.ba", "all": "trajectory.ate_rmse_m.all_frames_ba"})
+        if no_culling:
+            summary.absent("map.points.culled", no_culling)
+            summary.absent("map.esi.culled", no_culling)
+        else:
+            summary.set("map.points.culled", int(keep.sum()))
+            summary.set("map.esi.culled", esi_of_log_errors(err[keep])[0],
+                        "no kept map point has GT depth at its host pixel")
+        summary.set("map.points.ba", len(vo_ba.points))
+        summary.set("map.esi.ba", esi_of_log_errors(err_ba)[0], "no map point has GT depth at its host pixel after BA")
+        summary.set("timing.ba_s", run.timings.get("ba", 0.0))  # Algorithm 1's triggers and the final one
+        runs = self.record.runs
+        summary.set("ba.triggers", len(runs) - 1)
+        summary.set("ba.requested", requested)
+        for key in ("n_judged_elsewhere", "n_refined", "n_unrefined", "n_diverged", "n_targets", "iterations",
+                    "cost0", "cost"):
+            summary.set(f"ba.final.{key}", runs[-1][key])
 
 
-def summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, culled: np.ndarray | None) -> None:
+def _summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, culled: np.ndarray | None) -> None:
     """``map.outliers.{injected,culled}`` and ``map.inliers.kept`` of a run with ``vo.inject_outliers``.
 
     Args:

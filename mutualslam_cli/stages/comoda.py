@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import io
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,13 +27,11 @@ from mutualslam_cli.adapt.comoda_source import source_triplets
 from mutualslam_cli.adapt.depthnet import prepare
 from mutualslam_cli.adapt.inputs import to_net_image
 from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import MslamError
 from mutualslam_cli.metrics import trajectory as tm
-from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.adaptation import Progress
+from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.camera import Undistorter
 
@@ -62,23 +59,20 @@ def posenet_ate(seq: Sequence, traj: Trajectory, max_dt: float) -> tuple[float |
         return None, str(e)
 
 
-def run_comoda_stage(seq: Sequence, net: torch.nn.Module, cfg: RunConfig, fast: bool, folder: Path,
-                     summary: Summary, progress: Progress | None = None,
-                     cache_dir: Path | None = None) -> torch.nn.Module:
-    """Adapt ``net`` on every frame of ``seq`` with the CoMoDa-style adapter; write its outputs.
+def run_stage(run: RunContext, net: torch.nn.Module, fast: bool) -> torch.nn.Module:
+    """Adapt ``net`` on every frame of the sequence with the CoMoDa-style adapter; write its outputs.
 
     Args:
-        seq: the sequence (frames read in order, undistorted to the pinhole camera of the same K).
+        run: the run (``cfg.adapt.comoda_*`` settings, ``cfg.net`` resolution, ``cfg.seed``; the
+            source-domain replay bank is kept in ``<cache>/comoda`` for the next runs).
         net: the depth network to adapt (a copy of the pre-trained one; changed in place).
-        cfg: ``cfg.adapt.comoda_*`` settings, ``cfg.net`` resolution, ``cfg.seed``.
         fast: bf16 autocast for the forward passes.
-        folder: the run folder (``frames.csv``, ``traj_posenet.txt``).
-        summary: receives the timing and ``trajectory.ate_rmse_m.posenet`` keys.
-        cache_dir: where the source-domain replay bank is kept for the next runs (``None``: not kept).
 
     Returns:
         The adapted depth network.
     """
+    seq, cfg, folder, summary = run.seq, run.cfg, run.folder, run.summary
+    cache_dir = run.cache / "comoda"
     w, h = cfg.net.width, cfg.net.height
     net = prepare(net, fast)
     bank = (source_triplets(cfg.adapt.comoda_replay_capacity, w, h, cache_dir=cache_dir)
@@ -90,8 +84,7 @@ def run_comoda_stage(seq: Sequence, net: torch.nn.Module, cfg: RunConfig, fast: 
     for i in range(len(seq)):
         info = adapter.add_frame(to_net_image(und.image(seq.load_rgb(i)), w, h))
         rows.append(frame_row(info))
-        if progress:
-            progress("adapt", {"done": i + 1, "total": len(seq), **rows[-1], "elapsed_s": time.perf_counter() - t0})
+        run.report("adapt", {"done": i + 1, "total": len(seq), **rows[-1], "elapsed_s": time.perf_counter() - t0})
     atomic_write_text(folder / "frames.csv", pd.DataFrame(rows).to_csv(index=False))
     traj = Trajectory(np.array([f.timestamp for f in seq.frames]), adapter.trajectory())
     buf = io.StringIO()

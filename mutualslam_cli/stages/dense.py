@@ -2,7 +2,8 @@
 scored against the same fusion of GT depth with GT poses.
 
 :func:`run_dense` is what ``mslam run --set dense.enabled=true`` calls after the evaluation;
-:func:`fuse_run` runs it on a finished run folder that kept its adapted weights (``mslam fuse``).
+:func:`~mutualslam_cli.pipeline.fuse_run` runs it on a finished run folder that kept its adapted
+weights (``mslam fuse``).
 Both read the poses from the run folder's trajectory files, so they give the same meshes and scores.
 
 - **Frames** (:mod:`~mutualslam_cli.stages.dense_frames`): the keyframes (``dense.every: 0``) or every k-th
@@ -30,7 +31,7 @@ import logging
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -41,15 +42,18 @@ from mutualslam_cli.adapt.inputs import make_predictor
 from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.dense import tsdf
-from mutualslam_cli.errors import DatasetError, GeometryError
+from mutualslam_cli.dense.picture import dense_picture
+from mutualslam_cli.errors import GeometryError
 from mutualslam_cli.pixels import lookup_nearest
-from mutualslam_cli.report.dense import dense_picture
-from mutualslam_cli.results.run_folder import git_revision, read_summary, versions, write_json, write_yaml
-from mutualslam_cli.results.summary import Summary, flatten
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.stages.adaptation import Adapted
+from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.dense_frames import FusedFrame, front_end_scales, select_frames
 from mutualslam_cli.stages.evaluation import calibration_frames
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.stages.frontend import FrontEnd
+from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.camera import Undistorter, pinhole
+from mutualslam_cli.vo.result import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -65,10 +69,17 @@ _GROUP = 8
 #: to OpenVINO costs ~4 s and saves ~50 ms per 640×192 frame here (130 vs 180 ms, one thread, bf16): it
 #: pays from ~80 frames (the keyframes of the shared windows are 13–60).
 OPENVINO_MIN_FRAMES = 80
-Progress = Callable[[str, dict[str, Any]], None]
 
 
 # ----------------------------------------------------------------------------- the stage
+
+
+def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, adapted: Adapted, fast: bool) -> None:
+    """:func:`run_dense` of a run with ``dense.enabled``: both models along the run's poses."""
+    with run.timed("dense"):
+        run_dense(run.folder, run.seq, fe.vo,
+                  {"pretrained": net0, "adapted": None if run.cfg.adapt.scheme == "none" else adapted.net},
+                  run.cfg, fast, run.summary, run.progress)
 
 
 def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Module | None], cfg: RunConfig,
@@ -254,7 +265,7 @@ def _score(meshes: dict[str, tsdf.Mesh], models: list[str], cfg: RunConfig, summ
 
 def _picture(path: Path, meshes: dict[str, tsdf.Mesh], fused: list[FusedFrame], seq: Sequence,
              summary: Summary, cfg: RunConfig) -> None:
-    """``dense.png`` (:func:`~mutualslam_cli.report.dense.dense_picture`) from the GT poses of the fused frames."""
+    """``dense.png`` (:func:`~mutualslam_cli.dense.picture.dense_picture`) from the GT poses of the fused frames."""
     if meshes:
         gt = [seq.frames[f.frame].pose for f in fused if seq.frames[f.frame].pose is not None]
         scores = {m: {k: summary.values.get(f"dense.{k}.{m}") for k in ("fscore_5cm", "accuracy_m", "completeness_m")}
@@ -262,85 +273,3 @@ def _picture(path: Path, meshes: dict[str, tsdf.Mesh], fused: list[FusedFrame], 
         dense_picture(path, meshes, np.stack(gt) if gt else np.stack([f.T_metric for f in fused]), scores,
                       f"{seq.name}: TSDF meshes ({cfg.dense.voxel_size * 100:g} cm voxels), same viewpoint",
                       cfg.dense.render_width, max(cfg.threads, 0), mirror=seq.intrinsics.fy < 0)
-
-
-def add_stage_time(summary: Summary, timings: dict[str, float]) -> None:
-    """``timing.stage_s.dense`` from ``timings["dense_s"]``, taken out of ``timing.stage_s.other`` so the
-    stages still add up to ``timing.total_s`` (:func:`~mutualslam_cli.pipeline.summarise_stages`)."""
-    if "dense_s" in timings:
-        summary.set("timing.stage_s.dense", timings["dense_s"])
-        summary.set("timing.stage_s.other", summary.values["timing.stage_s.other"] - timings["dense_s"])
-
-
-# ----------------------------------------------------------------------------- mslam fuse
-
-
-def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | None = None,
-             progress: Progress | None = None, seq: Sequence | None = None,
-             command: list[str] | None = None) -> dict[str, Any]:
-    """The dense stage on a finished run folder (``mslam fuse RUN_DIR``): the run's config, sequence,
-    front end (from the VO cache beside the results, recomputed if absent), pre-trained model and
-    ``weights/``; updates ``summary.json`` (the ``dense.*`` keys), ``config.yaml``'s ``dense`` section
-    and ``manifest.json`` (a ``fuse`` entry).
-
-    Args:
-        overrides: ``--set``-style ``dense.*`` (or other) settings on top of the run's config.
-        seq: use this sequence instead of loading the one the manifest names (tests).
-
-    Returns:
-        The updated summary (nested dict).
-
-    Raises:
-        DatasetError: not a complete run folder, or no adapted weights (``--set eval.save_weights=true``).
-    """
-    import json
-
-    from mutualslam_cli.adapt.depthnet import prepare
-    from mutualslam_cli.adapt.inputs import load_network, use_fast_path
-    from mutualslam_cli.adapt.weights import DECODER_FILE, ENCODER_FILE, load_monodepth2
-    from mutualslam_cli.ba.culling import inject_outliers
-    from mutualslam_cli.config import load_config, to_dict
-    from mutualslam_cli.datasets.registry import load_sequence
-    from mutualslam_cli.results.lock import hold_lock
-    from mutualslam_cli.stages.frontend import run_frontend
-
-    folder = Path(folder)
-    old = read_summary(folder)
-    cfg = load_config(folder / "config.yaml", overrides)
-    wdir = folder / "weights"
-    adapted = cfg.adapt.scheme != "none"
-    if adapted and not ((wdir / ENCODER_FILE).is_file() and (wdir / DECODER_FILE).is_file()):
-        raise DatasetError(f"{folder}: the run kept no adapted weights (no weights/{ENCODER_FILE}); rerun it with "
-                           "--set eval.save_weights=true (and --force) to fuse it later")
-    try:
-        manifest = json.loads((folder / "manifest.json").read_text())
-        root = manifest["sequence"]["root"]
-    except (OSError, ValueError, KeyError, TypeError):
-        raise DatasetError(f"{folder}: manifest.json is missing or names no sequence root") from None
-    t0 = time.perf_counter()
-    with hold_lock(folder, "mslam fuse"):
-        if cfg.threads > 0:
-            torch.set_num_threads(cfg.threads)
-            cv2.setNumThreads(cfg.threads)
-        if seq is None:
-            seq = load_sequence(root, data_root=cfg.data.data_root, registry_path=registry,
-                                max_frames=cfg.data.max_frames, stride=cfg.data.stride)
-        vo, _ = run_frontend(seq, cfg, cache_dir=folder.parents[2] / "_cache" / "vo", progress=progress)
-        vo, _ = inject_outliers(vo, cfg.vo.inject_outliers, cfg.seed)  # as the run did
-        fast = use_fast_path(cfg)
-        nets = {"pretrained": load_network(cfg, fast), "adapted": prepare(load_monodepth2(
-            wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast) if adapted else None}
-        summary, flat = Summary(), flatten(old)  # the run's summary without its dense.* keys
-        summary.notes = {k: v for k, v in (flat.pop("notes", None) or {}).items() if not k.startswith("dense.")}
-        summary.values = {k: v for k, v in flat.items() if not k.startswith("dense.")}
-        run_dense(folder, seq, vo, nets, cfg, fast, summary, progress)
-        data = to_dict(cfg)
-        data["dense"]["enabled"] = True  # the folder now holds the dense results of these settings
-        write_yaml(folder / "config.yaml", data)
-        manifest["fuse"] = {"command": command, "time_s": time.perf_counter() - t0, "versions": versions(),
-                            "git_revision": git_revision(),
-                            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-        write_json(folder / "manifest.json", manifest)
-        out = summary.to_dict()
-        write_json(folder / "summary.json", out)
-    return out

@@ -1,4 +1,5 @@
-"""The front-end stage of a run: our VO or an oracle, cached per sequence + front-end config + seed.
+"""The front-end stage of a run (:func:`run_stage`): our VO or an oracle, cached per sequence +
+front-end config + seed.
 
 Every scheme of a grid reuses one front-end result, so :func:`run_frontend` keeps it in
 ``<results>/_cache/vo/<sequence>-<mode>-<key>.npz`` (key: :func:`vo_cache_key`).
@@ -16,22 +17,24 @@ import hashlib
 import json
 import logging
 import os
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from mutualslam_cli.atomic import atomic_path
+from mutualslam_cli.ba.culling import inject_outliers
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.adaptation import Progress
-from mutualslam_cli.stages.evaluation import set_ate
-from mutualslam_cli.vo.result import VOResult, vo_from_arrays, vo_to_arrays
+from mutualslam_cli.results.map_ply import write_ply
+from mutualslam_cli.results.run_folder import write_trajectories
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.slam_metrics import esi_of_log_errors, evaluate_trajectory, map_log_depth_errors, set_ate
+from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.depth_oracle import run_oracle
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION, run_vo
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
+from mutualslam_cli.vo.result import VOResult, vo_from_arrays, vo_to_arrays
 
 log = logging.getLogger(__name__)
 
@@ -115,26 +118,64 @@ def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
     return vo, False
 
 
-# ----------------------------------------------------------------------------- summary keys
+def load_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
+                  progress: Progress | None = None) -> tuple[VOResult, bool, np.ndarray]:
+    """The front end's result as a run uses it: :func:`run_frontend`, then the ``vo.inject_outliers``
+    test knob (applied to the cached result, not part of its key).
 
-
-def summarise_frontend(summary: Summary, *, keyframes: int, tracked_fraction: float, map_points: int,
-                       vo_mode: str, frames: int, vo_time_s: float, traj: dict[str, Any],
-                       map_esi: float) -> None:
-    """``vo.*``, ``timing.vo_fps``, ``map.points.vo``, ``trajectory.ate_rmse_m.{vo,all_frames}``, ``map.esi.vo``.
-
-    Args:
-        traj: :func:`mutualslam_cli.stages.evaluation.evaluate_trajectory`'s result (``kf``, ``all``, ``notes``).
-        vo_time_s: the front end's own run time (seconds).
+    Returns:
+        ``(vo, from_cache, injected)``: ``injected`` holds the ids of the corrupted map points.
     """
-    summary.set("vo.keyframes", keyframes)
-    summary.set("vo.tracked_fraction", tracked_fraction)
-    if vo_mode != "svo":
-        summary.absent("timing.vo_fps", f"oracle front end (--vo {vo_mode}): no tracking to time")
+    vo, cached = run_frontend(seq, cfg, cache_dir, progress)
+    vo, injected = inject_outliers(vo, cfg.vo.inject_outliers, cfg.seed)
+    return vo, cached, injected
+
+
+@dataclass
+class FrontEnd:
+    """What the front-end stage hands on.
+
+    Attributes:
+        vo: keyframes, map and trajectories (with the injected outliers, if any).
+        cached: loaded from the VO cache.
+        injected: ids of map points corrupted by ``vo.inject_outliers``.
+        map_errors: ``(P,)`` log-depth error of each map point in its host keyframe against GT
+            (:func:`~mutualslam_cli.stages.evaluation.map_log_depth_errors`; NaN without GT).
+        points_with_gt: map points with GT depth at their host pixel.
+    """
+
+    vo: VOResult
+    cached: bool
+    injected: np.ndarray
+    map_errors: np.ndarray
+    points_with_gt: int
+
+
+def run_stage(run: RunContext) -> FrontEnd:
+    """The front end of a run (cached per sequence, front-end config and seed): ``traj_kf.txt``,
+    ``traj_all.txt``, ``map_vo.ply`` and the keys ``vo.*``, ``timing.vo_fps``, ``map.points.vo``,
+    ``map.esi.vo`` and ``trajectory.ate_rmse_m.{vo,all_frames}``."""
+    seq, cfg, summary = run.seq, run.cfg, run.summary
+    with run.timed("frontend"):
+        vo, cached, injected = load_frontend(seq, cfg, run.cache / "vo", run.progress)
+    write_trajectories(run.folder, vo.traj_kf, vo.traj_all)
+    err = map_log_depth_errors(seq, vo)  # per point log z − log z*: the map's colours and its e_si
+    write_ply(run.folder / "map_vo.ply", vo.points_world(), err)
+    esi, n_gt = esi_of_log_errors(err)
+    mode = cfg.vo.mode
+    summary.set("vo.keyframes", len(vo.keyframes))
+    summary.set("vo.tracked_fraction", vo.tracked_fraction)
+    if mode != "svo":
+        summary.absent("timing.vo_fps", f"oracle front end (--vo {mode}): no tracking to time")
     else:
-        summary.set("timing.vo_fps", frames / vo_time_s if vo_time_s > 0 else None)
-    summary.set("map.points.vo", map_points)
-    set_ate(summary, traj, {"kf": "trajectory.ate_rmse_m.vo", "all": "trajectory.ate_rmse_m.all_frames"})
-    if vo_mode != "svo":
+        vo_time_s = float(vo.meta.get("time_s", run.timings["frontend"]))
+        summary.set("timing.vo_fps", len(seq) / vo_time_s if vo_time_s > 0 else None)
+    summary.set("map.points.vo", len(vo.points))
+    set_ate(summary, evaluate_trajectory(seq, vo, cfg.eval.ate_max_dt),
+            {"kf": "trajectory.ate_rmse_m.vo", "all": "trajectory.ate_rmse_m.all_frames"})
+    if mode != "svo":
         summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
-    summary.set("map.esi.vo", map_esi, "no map point has GT depth at its host pixel")
+    summary.set("map.esi.vo", esi, "no map point has GT depth at its host pixel")
+    summary.set("vo.from_cache", cached)
+    summary.set("vo.mode", mode)
+    return FrontEnd(vo, cached, injected, err, n_gt)

@@ -1,7 +1,7 @@
 """``comoda``: the CoMoDa-style end-to-end baseline (:mod:`mutualslam_cli.adapt.comoda`).
 
-It trains on every frame with its own pose network, not on keyframes, so it is run by
-:func:`mutualslam_cli.stages.comoda.run_comoda_stage` instead of the keyframe loop; this entry
+It trains on every frame with its own pose network, not on keyframes, so a run gives it to the
+pipeline's comoda stage instead of the keyframe loop; this entry
 makes ``--scheme comoda`` a valid name and checks its ``comoda_*`` settings before any work.
 """
 
@@ -33,5 +33,5 @@ class Comoda(Scheme):
         check_comoda_config(self.cfg)
 
     def select(self, buffer: KeyframeBuffer, newest: int, rng: np.random.Generator) -> list[int]:
-        raise ConfigError("scheme 'comoda' trains on frames, not keyframes: run it with "
-                          "mutualslam_cli.stages.comoda.run_comoda_stage")
+        raise ConfigError("scheme 'comoda' trains on frames, not keyframes: run it with mslam run "
+                          "(the pipeline's comoda stage), not with a keyframe adapter")

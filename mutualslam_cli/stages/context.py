@@ -1,0 +1,62 @@
+"""What every stage of a run works in (:class:`RunContext`): the sequence, the config, the run
+folder and its summary, the time each stage took and the progress callback."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mutualslam_cli.config import RunConfig
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.types import Progress
+
+
+@dataclass
+class RunContext:
+    """One run's shared state; each stage writes its files into ``folder`` and its keys into ``summary``.
+
+    Attributes:
+        seq: the sequence.
+        cfg: the resolved configuration (threads resolved too).
+        folder: the run folder ``<out>/<sequence>/<scheme>/seed<k>``.
+        out_root: the results root; its ``_cache/`` is shared by the runs of a grid.
+        summary: the run's ``summary.json`` under construction.
+        progress: ``progress(stage, info)`` or ``None``.
+        timings: seconds per stage (``frontend``, ``adaptation``, ``ba``, ``evaluation``, ``dense``).
+    """
+
+    seq: Sequence
+    cfg: RunConfig
+    folder: Path
+    out_root: Path
+    summary: Summary = field(default_factory=Summary)
+    progress: Progress | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def cache(self) -> Path:
+        """``<out_root>/_cache``: what the runs of a grid share (front ends, pre-trained evaluations)."""
+        return self.out_root / "_cache"
+
+    @contextmanager
+    def timed(self, stage: str) -> Iterator[None]:
+        """Add the wall time of the ``with`` block to ``timings[stage]`` (seconds)."""
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.add_time(stage, time.perf_counter() - t)
+
+    def add_time(self, stage: str, seconds: float) -> None:
+        """Add ``seconds`` to ``timings[stage]``."""
+        self.timings[stage] = self.timings.get(stage, 0.0) + seconds
+
+    def report(self, stage: str, info: dict[str, Any]) -> None:
+        """Pass ``info`` to the progress callback, if any."""
+        if self.progress is not None:
+            self.progress(stage, info)
