@@ -4,7 +4,7 @@
 modules registers their commands on it.
 """
 
-from mutualslam_cli.cli import commands, grid  # noqa: F401 - register the commands
+from mutualslam_cli.cli import data, grid, run  # noqa: F401 - register the commands
 from mutualslam_cli.cli.common import app
 
 __all__ = ["app"]

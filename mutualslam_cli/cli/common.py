@@ -1,15 +1,18 @@
-"""What every ``mslam`` command shares: the typer app, the rich consoles, the common options,
-the error boundary (:class:`~mutualslam_cli.errors.MslamError` → one red line and exit 1; anything
-else keeps its traceback) and the progress bar."""
+"""What every ``mslam`` command shares: the typer app with the one error boundary
+(:class:`~mutualslam_cli.errors.MslamError` → one red line and exit code 1; anything else, including
+the programming errors :class:`~mutualslam_cli.errors.ShapeError` and
+:class:`~mutualslam_cli.errors.TransitionError`, keeps its traceback), the rich consoles, the common
+options, the progress bar and value formatting."""
 
 from __future__ import annotations
 
-import functools
 import logging
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
+import click
 import typer
+from typer.core import TyperGroup
 from rich.console import Console, ConsoleDimensions
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -17,8 +20,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from mutualslam_cli.config import RunConfig, load_config, with_overrides
 from mutualslam_cli.errors import MslamError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
 #: Columns of output that goes to a file or a pipe, where rich would otherwise use 80 and wrap wide
 #: tables (the paper's tables are up to ~250 columns); ``$COLUMNS``, when set, wins.
 PIPED_WIDTH = 400
@@ -45,19 +46,20 @@ RegistryOpt = typer.Option(None, "--registry", help="Another datasets.yaml.")
 ResultsOutOpt = typer.Option(None, "--out", help="Results root (default results/).")
 
 
-def _boundary(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Turn a user error (:class:`MslamError`) into one red line and exit code 1; let anything
-    else (a bug, e.g. :class:`~mutualslam_cli.errors.ShapeError`) through with its traceback."""
+class _Commands(TyperGroup):
+    """The command group with the one error boundary: a user error (:class:`MslamError`) raised by any
+    command becomes one red line and exit code 1; anything else (a bug) keeps its traceback."""
 
-    @functools.wraps(fn)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
+    def invoke(self, ctx: click.Context) -> Any:
         try:
-            return fn(*args, **kwargs)
+            return super().invoke(ctx)
         except MslamError as e:
             err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
             raise typer.Exit(1) from None
 
-    return wrapper
+
+app = typer.Typer(cls=_Commands, add_completion=False, no_args_is_help=True,
+                  help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
 
 
 @app.callback()
@@ -66,19 +68,22 @@ def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progr
                         handlers=[RichHandler(console=err_console, show_path=False, show_time=False)])
 
 
-def _config(config: Optional[Path], sets: Optional[list[str]], data_root: Optional[str] = None) -> RunConfig:
+def config_from(config: Optional[Path], sets: Optional[list[str]], data_root: Optional[str] = None) -> RunConfig:
+    """The run config of a command: ``--config`` (default the paper's), ``--set`` overrides, ``--data-root``."""
     cfg = load_config(config, sets or [])
     if data_root:
         cfg = with_overrides(cfg, data={"data_root": data_root})
     return cfg
 
 
-def _progress() -> Progress:
+def progress_bar() -> Progress:
+    """The progress display every long command uses (a bar per task, with a text field ``info``)."""
     return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                     TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console, transient=False)
 
 
-def _fmt(v: Any, nd: int = 3) -> str:
+def fmt_value(v: Any, nd: int = 3) -> str:
+    """A value of a run's summary for the terminal: ``—`` for none, a float with ``nd`` decimals."""
     if v is None:
         return "—"
     if isinstance(v, float):  # a count averaged over seeds stays a count when it is whole

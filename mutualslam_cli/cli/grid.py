@@ -1,4 +1,8 @@
-"""``mslam ablate`` and ``mslam report``: the grid of runs and the paper's tables from it."""
+"""``mslam ablate`` and ``mslam report``: the grid of runs and the paper's tables from it.
+
+Library modules are imported inside each command: ``mslam --help`` and a typo stay instant instead
+of importing torch first (seconds).
+"""
 
 from __future__ import annotations
 
@@ -16,18 +20,15 @@ from mutualslam_cli.cli.common import (
     RegistryOpt,
     ResultsOutOpt,
     SetOpt,
-    _boundary,
-    _config,
-    _fmt,
-    _progress,
     app,
+    config_from,
+    progress_bar,
 )
 
 # --------------------------------------------------------------------------- ablate
 
 
 @app.command()
-@_boundary
 def ablate(
     seqs: list[str] = typer.Argument(..., help="datasets.yaml names or sequence folders."),
     schemes: Optional[str] = typer.Option(None, "--schemes",
@@ -55,12 +56,12 @@ def ablate(
     folder (with its _cache/) and the weights must then be on a filesystem every worker sees."""
     from mutualslam_cli.ablate import plan_grid, run_grid
 
-    cfg = _config(config, sets, data_root)
+    cfg = config_from(config, sets, data_root)
     root = Path(out or cfg.out)
     parts = plan_grid(cfg, list(seqs), schemes, seeds, root)
     total = sum(len(p.jobs) for p in parts)
     failed, outcomes = [], []
-    with _progress() as p:
+    with progress_bar() as p:
         task = p.add_task("grid", total=total, info="")
 
         def done(o: Any) -> None:
@@ -93,7 +94,6 @@ def ablate(
 
 
 @app.command()
-@_boundary
 def report(
     results: list[Path] = typer.Argument(..., help="Result folders (searched recursively for summary.json)."),
     out: Optional[Path] = typer.Option(None, "--out",
@@ -102,14 +102,15 @@ def report(
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
     """The paper's tables and plots from result folders."""
+    from mutualslam_cli.report.columns import cell_text
     from mutualslam_cli.report.tables import build_tables, collect, write_report
 
-    out = out or Path(_config(config, sets).out) / "report"
+    out = out or Path(config_from(config, sets).out) / "report"
     rep = build_tables(collect(list(results)))
     for name, tdf in rep.tables.items():
         t = Table(*map(str, tdf.columns), title=rep.titles[name])
         for row in tdf.itertuples(index=False):
-            t.add_row(*(("—" if v != v else _fmt(v, 3)) if isinstance(v, float) else str(v) for v in row))
+            t.add_row(*(cell_text(v) for v in row))
         common.console.print(t)
     paths = write_report(rep, out)
     common.console.print(f"wrote {len(paths)} files to {out}")

@@ -8,14 +8,13 @@ are left out of both (no table when none has it).
 
 from __future__ import annotations
 
-import re
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from mutualslam_cli.atomic import atomic_path
+from mutualslam_cli.report.columns import numeric, slug
 
 #: (column label, summary key) of the dense table.
 COLUMNS = (
@@ -30,13 +29,9 @@ TITLE = ("Dense reconstruction: TSDF meshes of each model's depth along the run'
          "and recall at 5 cm (Tanks and Temples); mean over seeds")
 
 
-def _num(runs: pd.DataFrame, key: str) -> pd.Series:
-    return pd.to_numeric(runs[key], errors="coerce") if key in runs else pd.Series(np.nan, index=runs.index)
-
-
 def dense_runs(runs: pd.DataFrame) -> pd.DataFrame:
     """The runs that ran the dense stage (``dense.time_s`` set)."""
-    return runs[_num(runs, "dense.time_s").notna()]
+    return runs[numeric(runs, "dense.time_s").notna()]
 
 
 def dense_table(runs: pd.DataFrame) -> pd.DataFrame | None:
@@ -49,22 +44,18 @@ def dense_table(runs: pd.DataFrame) -> pd.DataFrame | None:
     for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):
         row = {"sequence": seq, "scheme": scheme, "config": config}
         for label, key in COLUMNS:
-            v = _num(g, key)
+            v = numeric(g, key)
             row[label] = float(v.mean()) if v.notna().any() else float("nan")
         row["seeds"] = len(g)
         rows.append(row)
     return pd.DataFrame(rows)
 
 
-def _slug(s: str) -> str:
-    return re.sub(r"[^A-Za-z0-9.+=-]+", "_", s).strip("_")
-
-
 def dense_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
     """``dense.png`` of the lowest seed of every (sequence, scheme, config) with the stage, copied to
     ``out_dir/dense/dense_<sequence>_<scheme>[_<config>]_seed<k>.png``; returns the files written."""
     runs = dense_runs(runs.assign(config=runs["config"] if "config" in runs else ""))
-    runs = runs.assign(_seed=_num(runs, "seed"))
+    runs = runs.assign(_seed=numeric(runs, "seed"))
     written = []
     for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):
         r = g.sort_values("_seed", na_position="last").iloc[0]
@@ -72,7 +63,7 @@ def dense_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
         if not src.is_file():
             continue
         seed = "" if r["_seed"] != r["_seed"] else f"seed{int(r['_seed'])}"
-        name = "_".join(x for x in ("dense", _slug(seq), _slug(scheme), _slug(config)[:60], seed) if x)
+        name = "_".join(x for x in ("dense", slug(seq), slug(scheme), slug(config)[:60], seed) if x)
         dst = Path(out_dir) / "dense" / f"{name}.png"
         dst.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(dst) as tmp:

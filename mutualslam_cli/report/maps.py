@@ -10,7 +10,6 @@ figure per (sequence, scheme, config) with the lowest seed.
 
 from __future__ import annotations
 
-import re
 import textwrap
 from pathlib import Path
 from typing import Any
@@ -20,6 +19,7 @@ import pandas as pd
 
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.datasets.associate import read_tum_trajectory
+from mutualslam_cli.report.columns import slug
 from mutualslam_cli.results import map_ply
 
 #: (file, summary stage, panel title) of the panels, left to right.
@@ -206,10 +206,6 @@ def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> b
     return True
 
 
-def _slug(s: str) -> str:
-    return re.sub(r"[^A-Za-z0-9.+=-]+", "_", s).strip("_")
-
-
 def map_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
     """:func:`plot_maps` of the lowest seed of every (sequence, scheme, config) into
     ``out_dir/maps/maps_<sequence>_<scheme>[_<config>]_seed<k>.png``; returns the files written."""
@@ -219,7 +215,7 @@ def map_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
     for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):
         r = g.sort_values("_seed", na_position="last").iloc[0]
         seed = "" if r["_seed"] != r["_seed"] else f"seed{int(r['_seed'])}"
-        name = "_".join(x for x in ("maps", _slug(seq), _slug(scheme), _slug(config)[:60], seed) if x)
+        name = "_".join(x for x in ("maps", slug(seq), slug(scheme), slug(config)[:60], seed) if x)
         heading = f"{seq} · {scheme} · {seed or Path(r['folder']).name}" + (f" · {config}" if config else "")
         path = Path(out_dir) / "maps" / f"{name}.png"
         if plot_maps(Path(r["folder"]), path, r.to_dict(), heading):

@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from mutualslam_cli.report import paper_numbers as paper
+from mutualslam_cli.report.columns import numeric
 
 #: Scheme columns of Table 3: the paper's (a), (b), (c), then the other schemes of ours.
 SCHEME_COLUMNS = (("(a) recent", "recent"), ("(b) replay", "replay"), ("(c) replay+ewc", "replay+ewc"),
@@ -39,10 +40,6 @@ class PaperTable:
     display: pd.DataFrame
     numeric: pd.DataFrame
     bold: set[tuple[int, str]] = field(default_factory=set)
-
-
-def _num(runs: pd.DataFrame, key: str) -> pd.Series:
-    return pd.to_numeric(runs[key], errors="coerce") if key in runs else pd.Series(np.nan, index=runs.index)
 
 
 def _stat(v: pd.Series) -> tuple[float, float, int]:
@@ -136,14 +133,14 @@ def _key(key: str, scheme: str | None = None) -> Callable[[pd.DataFrame], pd.Ser
     def get(sub: pd.DataFrame) -> pd.Series:
         if scheme is not None:
             sub = sub[sub["scheme"].astype(str) == scheme]
-        return _num(sub, key)
+        return numeric(sub, key)
     return get
 
 
 def _pretrained(key: str) -> Callable[[pd.DataFrame], pd.Series]:
     """The pre-trained model's value: the same in every scheme's run of a seed, so one per seed."""
     def get(sub: pd.DataFrame) -> pd.Series:
-        v = sub.assign(_v=_num(sub, key)).dropna(subset=["_v"])
+        v = sub.assign(_v=numeric(sub, key)).dropna(subset=["_v"])
         return v.groupby("seed")["_v"].first() if "seed" in v else v["_v"]
     return get
 
@@ -164,7 +161,7 @@ def external_label(name: str) -> str:
 def _externals(runs: pd.DataFrame, key: str) -> list[Column]:
     """One column per external model: ``key`` (its scores are ``depth.*.adapted``) over its runs."""
     def getter(name: str) -> Callable[[pd.DataFrame], pd.Series]:
-        return lambda sub: _num(sub[sub["external.model"].astype(str) == name], key)
+        return lambda sub: numeric(sub[sub["external.model"].astype(str) == name], key)
     return [(external_label(n), getter(n)) for n in external_names(runs)]
 
 
@@ -292,7 +289,7 @@ def table5(runs: pd.DataFrame) -> PaperTable | None:
             for seq in seqs:
                 s = sub[sub["sequence.name"].astype(str) == seq]
                 for what, key, digits in (("points", f"map.points.{part}", 0), ("e_si", f"map.esi.{part}", 3)):
-                    m, sd, n = _stat(_num(s, key))
+                    m, sd, n = _stat(numeric(s, key))
                     d[f"{seq_label(seq)} {what}"] = cell(m, sd, n, digits)
                     n_row.update({f"{seq} {what} mean": m, f"{seq} {what} std": sd, f"{seq} {what} n": n})
                 p = paper.paper_name(seq)

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import re
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +31,7 @@ from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.datasets.associate import MAX_DT, read_tum_trajectory
 from mutualslam_cli.errors import DatasetError, MslamError
 from mutualslam_cli.metrics.trajectory import ate
+from mutualslam_cli.report.columns import slug
 from mutualslam_cli.types import Trajectory
 
 #: Fixed colour of each scheme (paper Fig. ablation_err: methods 1-4 are recent, replay, ewc, replay+ewc).
@@ -80,10 +80,6 @@ def _save(fig: Any, path: Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
     _pyplot().close(fig)
-
-
-def _slug(s: str) -> str:
-    return re.sub(r"[^A-Za-z0-9.+=-]+", "_", s).strip("_")
 
 
 def _with_config(runs: pd.DataFrame) -> pd.DataFrame:
@@ -375,7 +371,7 @@ def trajectory_figures(runs: pd.DataFrame, out_dir: Path) -> tuple[list[Path], l
         for n, page in enumerate(pages, 1):
             part = f" (page {n} of {len(pages)})" if len(pages) > 1 else ""
             heading = f"{seq}: trajectories against GT after Sim(3) alignment, lowest seed per scheme{part}"
-            path = Path(out_dir) / "trajectories" / (f"trajectories_{_slug(str(seq))}"
+            path = Path(out_dir) / "trajectories" / (f"trajectories_{slug(str(seq))}"
                                                      + (f"_p{n}" if len(pages) > 1 else "") + ".png")
             _save(trajectory_figure(page, heading, vertical, ref.time_label), path)
             written.append(path)

@@ -25,6 +25,7 @@ import yaml
 
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.report.columns import cell_text, numeric
 from mutualslam_cli.report.dense import TITLE as DENSE_TITLE
 from mutualslam_cli.report.dense import dense_figures, dense_table
 from mutualslam_cli.report.maps import map_figures
@@ -177,11 +178,6 @@ def build_tables(runs: pd.DataFrame) -> Report:
     return rep
 
 
-def _num(runs: pd.DataFrame, key: str) -> pd.Series:
-    """``runs[key]`` as floats (NaN where absent or null)."""
-    return pd.to_numeric(runs[key], errors="coerce") if key in runs else pd.Series(np.nan, index=runs.index)
-
-
 def _mean(v: pd.Series) -> float:
     return float(v.mean()) if v.notna().any() else float("nan")
 
@@ -204,8 +200,8 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
         first = len(rows)
         for seq, r in b.groupby("sequence.name", sort=True):
             rows.append({"Sequence": seq, "scheme": scheme, "config": config, "n": len(r),
-                         "Without BA": _mean(_num(r, "trajectory.ate_rmse_m.vo")),
-                         "With BA": _mean(_num(r, "trajectory.ate_rmse_m.ba"))})
+                         "Without BA": _mean(numeric(r, "trajectory.ate_rmse_m.vo")),
+                         "With BA": _mean(numeric(r, "trajectory.ate_rmse_m.ba"))})
         seqs = rows[first:]
         both = [x for x in seqs if np.isfinite(x["Without BA"]) and np.isfinite(x["With BA"])]
         avg: dict[str, Any] = {"scheme": scheme, "config": config, "n": ""}
@@ -219,7 +215,7 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
     for i, x in t.iterrows():
         if np.isfinite(x["Without BA"]) and np.isfinite(x["With BA"]):
             best = min(x["Without BA"], x["With BA"])
-            bold |= {(int(i), c) for c in ("Without BA", "With BA") if _fmt(x[c]) == _fmt(best)}
+            bold |= {(int(i), c) for c in ("Without BA", "With BA") if cell_text(x[c]) == cell_text(best)}
     schemes = sorted(runs["scheme"].unique())
     t = t.drop(columns=[c for c, keep in (("scheme", len(schemes) > 1), ("config", (runs["config"] != "").any()))
                         if not keep])
@@ -253,8 +249,8 @@ def table_map_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
     other config difference (``config``). A cell is the mean over seeds that have it; ``n``:
     seeds per sequence ("a/b" when sequences differ).
     """
-    cull = _num(runs, "map.points.culled").notna()
-    ba = _num(runs, "map.points.ba").notna()
+    cull = numeric(runs, "map.points.culled").notna()
+    ba = numeric(runs, "map.points.ba").notna()
     member = {"all": ba | ~ba, "culled": cull, "ba_only": ba & ~cull, "ba_culled": ba & cull}
     fts = runs["config.vo.max_fts"] if "config.vo.max_fts" in runs else pd.Series(None, index=runs.index)
     runs = runs.assign(_rest=config_labels(runs, exclude=("ba.culling", "ba.enabled", "vo.max_fts")),
@@ -273,8 +269,9 @@ def table_map_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
             ns = []
             for seq in seqs:
                 r = sel[sel["sequence.name"] == seq]
-                per_seed = pd.DataFrame({"points": _num(r, f"map.points.{stage}"), "esi": _num(r, f"map.esi.{stage}"),
-                                         "seed": r["_seed"]}).groupby("seed").mean()
+                per_seed = pd.DataFrame({"points": numeric(r, f"map.points.{stage}"),
+                                         "esi": numeric(r, f"map.esi.{stage}"), "seed": r["_seed"]})
+                per_seed = per_seed.groupby("seed").mean()
                 row[f"{seq} points"], row[f"{seq} e_si"] = _mean(per_seed["points"]), _mean(per_seed["esi"])
                 ns.append(len(per_seed))
             row["n"] = str(ns[0]) if len(set(ns)) == 1 else "/".join(map(str, ns))
@@ -289,19 +286,11 @@ def table_map_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
     return t, title, set()
 
 
-def _fmt(v: Any) -> str:
-    if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "—"
-    if isinstance(v, (float, np.floating)):
-        return f"{v:.4g}" if abs(v) < 1e4 else f"{v:.0f}"
-    return str(v)
-
-
 def to_markdown(t: pd.DataFrame) -> str:
     """GitHub Markdown table ("—" for values a run could not compute)."""
     head = "| " + " | ".join(map(str, t.columns)) + " |"
     sep = "|" + "|".join("---" for _ in t.columns) + "|"
-    body = ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in t.itertuples(index=False)]
+    body = ["| " + " | ".join(cell_text(v) for v in row) + " |" for row in t.itertuples(index=False)]
     return "\n".join([head, sep, *body]) + "\n"
 
 
@@ -327,7 +316,7 @@ def to_latex(t: pd.DataFrame, caption: str, bold: set[tuple[int, str]] | None = 
     for i, row in enumerate(t.itertuples(index=False)):
         if str(row[0]).startswith("Average"):
             lines.append(r"\midrule")
-        cells = [esc(_fmt(v)) for v in row]
+        cells = [esc(cell_text(v)) for v in row]
         lines.append(" & ".join(rf"\textbf{{{x}}}" if (i, c) in bold else x for x, c in zip(cells, t.columns))
                      + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]

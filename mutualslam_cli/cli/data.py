@@ -1,0 +1,197 @@
+"""``mslam datasets``, ``synth`` and ``pretrain``: the sequences, synthetic ones, and the default network.
+
+Library modules are imported inside each command: ``mslam --help`` and a typo stay instant instead
+of importing torch first (seconds).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.table import Table
+
+from mutualslam_cli.cli import common
+from mutualslam_cli.cli.common import (
+    ConfigOpt,
+    DataRootOpt,
+    RegistryOpt,
+    SetOpt,
+    app,
+    config_from,
+    fmt_value,
+    progress_bar,
+)
+from mutualslam_cli.errors import ConfigError, MslamError
+
+
+# --------------------------------------------------------------------------- datasets
+
+
+@app.command()
+def datasets(
+    name: Optional[str] = typer.Argument(None, help="A datasets.yaml name or a sequence folder (with --check)."),
+    check: bool = typer.Option(False, "--check", help="Verify files, intrinsics, GT coverage, fy sign, and decode "
+                               "every RGB and depth image (truncated, corrupt or odd-sized files fail)."),
+    sample: int = typer.Option(0, "--sample", min=0, help="With --check: decode only the images of N frames "
+                               "spread over each sequence (a quick check); 0 = every frame."),
+    registry: Optional[Path] = RegistryOpt,
+    data_root: Optional[str] = DataRootOpt,
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """List datasets.yaml entries, or check one sequence (or all) with --check.
+
+    --check decodes every image, so a bad file fails now (exit code 1, naming it) rather than in
+    the middle of a long run; --sample N makes it quick."""
+    from mutualslam_cli.datasets.check import check_sequence
+    from mutualslam_cli.datasets.registry import list_datasets
+
+    cfg = config_from(config, sets, data_root)
+    specs = list_datasets(registry, data_root=cfg.data.data_root)
+    if not check:
+        t = Table("name", "format", "found", "fx fy cx cy", "depth/m", title="datasets.yaml")
+        for s in specs:
+            intr = " ".join(f"{v:g}" for v in s.intrinsics.as_list()) if s.intrinsics else "family/data"
+            t.add_row(s.name, s.format, "yes" if Path(s.root).is_dir() else "[dim]no[/]", intr, f"{s.depth_scale:g}")
+        common.console.print(t)
+        common.console.print("roots: relative to --data-root / $MSLAM_DATA (see datasets.yaml); "
+                             "`--check NAME` verifies one")
+        return
+    targets = [name] if name else [s.name for s in specs if Path(s.root).is_dir()]
+    if not targets:
+        raise MslamError("no dataset folder exists under the data root; set MSLAM_DATA or --data-root")
+    for n in targets:
+        with progress_bar() as p:
+            task = p.add_task(f"decode {Path(n).name}", total=None, info="")
+
+            def cb(stage: str, info: dict[str, Any], task: Any = task) -> None:
+                p.update(task, completed=info["done"], total=info["total"], info=Path(info["file"]).name)
+
+            try:
+                r = check_sequence(n, sample=sample, data_root=cfg.data.data_root, registry_path=registry, progress=cb)
+            finally:
+                p.remove_task(task)  # the table replaces the bar; an error is one line, not a bar and a line
+        t = Table("check", "value", title=f"{r.name} ({r.format})", title_justify="left")
+        intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
+        rows = [
+            ("root", r.root), ("frames", str(r.frames)), ("time span", f"{r.time_span_s:.2f}"),
+            ("frames with depth", str(r.frames_with_depth)),
+            ("GT coverage", f"{r.frames_with_gt} frames ({r.gt_coverage_pct:.1f} %)"),
+            ("intrinsics fx fy cx cy", intr + (" + distortion" if len(r.intrinsics) > 4 else "")),
+            ("image size", "×".join(map(str, r.image_size))), ("depth scale", f"{r.depth_scale:g} = 1 m"),
+            ("median depth", fmt_value(r.median_depth_m, 2) + " m"),
+            ("images decoded", f"{r.images_decoded} ("
+             + ("every frame)" if r.frames_decoded == r.frames else f"{r.frames_decoded} of {r.frames} frames)")),
+        ]
+        if r.fy_sign is not None:
+            errs = ", ".join(f"{k}: {v:.3g}" for k, v in (r.fy_sign_errors or {}).items())
+            rows.append(("fy sign", f"{r.fy_sign:+d}" + (f" (photometric error {errs})" if errs else "")))
+        rows.append(("warnings", "; ".join(r.warnings) or "none"))
+        for k, v in rows:
+            t.add_row(k, v)
+        common.console.print(t)
+
+
+# --------------------------------------------------------------------------- synth
+
+
+@app.command()
+def synth(
+    out: Path = typer.Argument(..., help="Output folder (TUM layout)."),
+    scene: str = typer.Option("room", "--scene", help="room | planar | far"),
+    frames: int = typer.Option(120, "--frames", "-n", min=2),
+    size: str = typer.Option("640x480", "--size", help="WIDTHxHEIGHT"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Default: the config's seed."),
+    domain: str = typer.Option("target", "--domain", help="target | source (pre-training domain)"),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """Render a synthetic RGB-D sequence with exact depth and poses, in TUM layout."""
+    from mutualslam_cli.datasets import synthetic
+
+    seed = config_from(config, sets).seed if seed is None else seed
+    try:
+        w, h = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--size {size!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+    if scene not in synthetic.SCENES:
+        raise ConfigError(f"--scene {scene!r}: unknown scene; valid scenes: {', '.join(synthetic.SCENES)}")
+    if domain not in ("target", "source"):
+        raise ConfigError(f"--domain {domain!r}: expected target or source")
+    with progress_bar() as p:
+        task = p.add_task(f"render {scene}", total=frames, info="")
+        it = synthetic.iter_render(scene, frames, w, h, seed, domain)
+
+        def tracked():
+            for item in it:
+                yield item
+                p.advance(task)
+
+        path = synthetic.write_tum(tracked(), out, scene=scene, width=w, height=h, seed=seed, domain=domain)
+    common.console.print(f"wrote {frames} frames ({w}×{h}, scene {scene}, seed {seed}) to {path}")
+
+
+# --------------------------------------------------------------------------- pretrain
+
+
+@app.command()
+def pretrain(
+    out: Optional[Path] = typer.Option(None, "--out",
+                                       help="Folder for encoder.pth/depth.pth (default: the default model)."),
+    steps: int = typer.Option(1150, "--steps", min=1, help="Training steps (the shipped model: 1150)."),
+    batch_size: int = typer.Option(4, "--batch-size", min=1),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Default: the config's seed."),
+    threads: int = typer.Option(1, "--threads", min=1, help="torch threads (results depend on it slightly)."),
+    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop early and save after this long."),
+    quick: bool = typer.Option(False, "--quick", help="A few steps at small size (smoke test)."),
+    pose: bool = typer.Option(False, "--pose", help="Train scheme comoda's pose network instead "
+                              "(pose_encoder.pth/pose.pth, from the depth encoder in --out or the default)."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """Train the default depth network on the synthetic source domain (stand-in for KITTI pre-training)."""
+    from mutualslam_cli.adapt import pretrain as pt
+    from mutualslam_cli.adapt.weights import default_weights_dir
+
+    cfg = config_from(config, sets)
+    seed = cfg.seed if seed is None else seed
+    out = out or default_weights_dir()
+    if pose:
+        _pretrain_pose(cfg, out, steps, batch_size, seed, threads, max_minutes, quick)
+        return
+    kwargs: dict[str, Any] = {"width": cfg.net.width, "height": cfg.net.height, "steps": steps,
+                              "batch_size": batch_size, "seed": seed, "threads": threads,
+                              "max_minutes": max_minutes, "drop_fc": True, "pool_size": 240, "eval_frames": 6}
+    if quick:
+        kwargs.update(pt.QUICK)
+    with progress_bar() as p:
+        task = p.add_task("pretrain", total=kwargs["steps"], info="")
+
+        def cb(info: dict) -> None:
+            p.update(task, completed=info.get("step", 0), info=f"loss {info.get('loss', float('nan')):.4f}")
+
+        summary = pt.pretrain(out, progress=cb, **kwargs)
+    common.console.print(f"saved the pre-trained model to {out} ({summary.get('time_s', 0):.0f} s, "
+                  f"{summary.get('steps_done', summary.get('steps'))} steps)")
+
+
+def _pretrain_pose(cfg: Any, out: Path, steps: int, batch_size: int, seed: int, threads: int,
+                   max_minutes: Optional[float], quick: bool) -> None:
+    """``mslam pretrain --pose``: the pose network, initialised from the depth encoder found in ``out``."""
+    from mutualslam_cli.adapt.pretrain_pose import pretrain_pose
+    from mutualslam_cli.adapt.weights import default_weights_dir, load_monodepth2
+
+    init = load_monodepth2(out if (out / "encoder.pth").is_file() else default_weights_dir())
+    w, h, steps = (64, 32, min(steps, 3)) if quick else (cfg.net.width, cfg.net.height, steps)
+    with progress_bar() as p:
+        task = p.add_task("pretrain pose", total=steps, info="")
+
+        def cb(info: dict) -> None:
+            p.update(task, completed=info["step"], info=f"loss {info['loss']:.4f}")
+
+        rec = pretrain_pose(out, steps, w, h, batch_size, seed=seed, init=init, max_minutes=max_minutes,
+                            threads=threads, half=True, progress=cb)
+    common.console.print(f"saved the pose network to {out} ({rec['time_s']:.0f} s, {rec['steps_done']} steps, "
+                         f"final loss {rec['loss_curve'][-1]['loss']:.4f})")

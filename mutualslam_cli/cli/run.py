@@ -1,0 +1,223 @@
+"""``mslam run``, ``fuse``, ``eval-depth`` and ``ate``: one sequence, its dense reconstruction,
+another network's predictions scored alike, and the ATE of two trajectory files.
+
+Library modules are imported inside each command: ``mslam --help`` and a typo stay instant instead
+of importing torch first (seconds).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.table import Table
+
+from mutualslam_cli.cli import common
+from mutualslam_cli.cli.common import (
+    ConfigOpt,
+    DataRootOpt,
+    RegistryOpt,
+    ResultsOutOpt,
+    SetOpt,
+    app,
+    config_from,
+    fmt_value,
+    progress_bar,
+)
+from mutualslam_cli.config import with_overrides
+from mutualslam_cli.errors import ConfigError
+
+
+# --------------------------------------------------------------------------- run
+
+
+def _render_summary(folder: Path, s: dict[str, Any]) -> None:
+    from mutualslam_cli.results.summary import flatten
+
+    f = flatten(s)
+    t = Table("metric", "pre-trained", "adapted",
+              title=f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}")
+    rows = [("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")]
+    if f.get("dense.time_s") is not None:  # the dense stage ran
+        rows += [("dense accuracy m", "dense.accuracy_m"), ("dense completeness m", "dense.completeness_m"),
+                 ("dense F-score @5cm", "dense.fscore_5cm")]
+    for label, key in rows:
+        t.add_row(label, fmt_value(f.get(f"{key}.pretrained"), 3 if key.startswith("dense") else 2),
+                  fmt_value(f.get(f"{key}.adapted"), 3 if key.startswith("dense") else 2))
+    common.console.print(t)
+    t2 = Table("ATE kf m", "ATE all m", "tracked", "keyframes", "map points", "map e_si", "depth ms", "ms/step")
+    cells = [("trajectory.ate_rmse_m.vo", 4), ("trajectory.ate_rmse_m.all_frames", 4), ("vo.tracked_fraction", 3),
+             ("vo.keyframes", 3), ("map.points.vo", 3), ("map.esi.vo", 3), ("timing.depth_ms", 1),
+             ("timing.finetune_ms", 0)]
+    t2.add_row(*(fmt_value(f.get(key), nd) for key, nd in cells))
+    common.console.print(t2)
+    common.console.print(f"results: {folder}")
+
+
+@app.command()
+def run(
+    seq: str = typer.Argument(..., help="datasets.yaml name or sequence folder."),
+    scheme: Optional[str] = typer.Option(None, "--scheme", help="Adaptation scheme (default from config: replay+ewc)."),
+    vo: Optional[str] = typer.Option(
+        None, "--vo", help="svo | gt (pose oracle: our VO's tracks with GT poses) | "
+                           "gt-depth (GT poses and GT sparse depth: an upper bound)."),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="Folder with Monodepth2 encoder.pth/depth.pth."),
+    seed: Optional[int] = typer.Option(None, "--seed"),
+    out: Optional[Path] = ResultsOutOpt,
+    force: bool = typer.Option(False, "--force", help="Recompute a complete run."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+    data_root: Optional[str] = DataRootOpt,
+    registry: Optional[Path] = RegistryOpt,
+) -> None:
+    """One sequence, one scheme: front end → adaptation → evaluation → results/<seq>/<scheme>/seed<k>/."""
+    from mutualslam_cli.adapt.schemes import get_scheme
+    from mutualslam_cli.pipeline import run_sequence
+
+    cfg = config_from(config, sets, data_root)
+    over = {"adapt": {"scheme": scheme} if scheme else None, "vo": {"mode": vo} if vo else None,
+            "net": {"weights": str(weights)} if weights else None, "seed": seed}
+    cfg = with_overrides(cfg, **{k: v for k, v in over.items() if v is not None})  # type: ignore[arg-type]
+    get_scheme(cfg.adapt.scheme, cfg.adapt)  # unknown name or bad setting → ConfigError, before any work
+    with progress_bar() as p:
+        tasks: dict[str, Any] = {}
+
+        def cb(stage: str, info: dict[str, Any]) -> None:
+            total = info.get("total", info.get("n_frames"))
+            if stage not in tasks:
+                tasks[stage] = p.add_task({"vo": "front end", "adapt": "adapt", "eval": "evaluate",
+                                           "dense": "dense"}.get(stage, stage),
+                                          total=total, info="")
+            done = info.get("done", (info.get("frame", -1) + 1))
+            if stage == "vo":
+                text = f"kf {info.get('keyframes', 0)} · pts {info.get('tracked', 0)} · {info.get('state', '')}"
+                if info.get("fps"):
+                    text += f" · {info['fps']:.0f} fps"
+            elif stage == "adapt":
+                lv = info.get("l_val")
+                lv = None if lv is None or lv != lv else lv
+                what = "validate" if info.get("is_validation") else ("fine-tune" if info.get("trained") else "wait")
+                text = (f"{what} · loss {fmt_value(info.get('loss_total'), 4)} · L_val {fmt_value(lv, 4)}"
+                        f" · converged {info.get('n_converged', 0)}")
+            else:
+                text = info.get("phase", "")
+            p.update(tasks[stage], completed=done, total=total, info=text)
+
+        r = run_sequence(seq, cfg, out=out, command=sys.argv, force=force, progress=cb, registry=registry)
+    if r.skipped:
+        common.console.print(f"[yellow]already complete[/] (use --force to recompute): {r.folder}")
+    _render_summary(r.folder, r.summary)
+
+
+# --------------------------------------------------------------------------- fuse
+
+
+@app.command()
+def fuse(
+    run_dir: Path = typer.Argument(..., help="A finished run folder (<out>/<seq>/<scheme>/seed<k>) with weights/."),
+    sets: Optional[list[str]] = SetOpt,
+    registry: Optional[Path] = RegistryOpt,
+) -> None:
+    """Dense reconstruction of a finished run: TSDF meshes of both models' depth, scored against GT depth
+    fused with GT poses (needs the run's adapted weights: --set eval.save_weights=true)."""
+    from mutualslam_cli.results.summary import flatten
+    from mutualslam_cli.pipeline import fuse_run
+
+    with progress_bar() as p:
+        tasks: list[Any] = []  # the bar appears with the first step: an error before it is one line
+
+        def cb(stage: str, info: dict[str, Any]) -> None:
+            if stage == "dense":  # a front end recomputed (no VO cache) reports as "vo": not this bar
+                tasks[:] = tasks or [p.add_task("dense", total=info["total"], info="")]
+                p.update(tasks[0], completed=info["done"], total=info["total"], info=info.get("phase", ""))
+
+        s = fuse_run(run_dir, sets or [], registry, command=sys.argv, progress=cb)
+    f = flatten(s)
+    t = Table("metric", "pre-trained", "adapted", title=f"{f.get('sequence.name')} · dense ({f.get('dense.source')})")
+    for label, key in (("accuracy m", "accuracy_m"), ("completeness m", "completeness_m"),
+                       ("F-score @5cm", "fscore_5cm")):
+        t.add_row(label, fmt_value(f.get(f"dense.{key}.pretrained"), 4), fmt_value(f.get(f"dense.{key}.adapted"), 4))
+    common.console.print(t)
+    common.console.print(f"meshes and dense.png in {run_dir} ({fmt_value(f.get('dense.time_s'), 1)} s)")
+
+
+# --------------------------------------------------------------------------- eval-depth
+
+
+@app.command("eval-depth")
+def eval_depth(
+    seq: str = typer.Argument(..., help="datasets.yaml name or sequence folder."),
+    predictions: Path = typer.Argument(..., help="Folder with one prediction per frame (.npy, .npz, 16-bit .png, "
+                                       ".pfm), named by the RGB file's stem or by the frame's timestamp."),
+    name: str = typer.Option(..., "--name", help="The model's name: its row in the report (not a scheme's name)."),
+    kind: str = typer.Option("depth", "--kind", help="depth | inverse | relative-inverse (MiDaS: aligned per "
+                             "frame by least-squares scale and shift in inverse depth)."),
+    scale: float = typer.Option(1.0, "--scale", help="Multiplies every stored value (e.g. 0.0002 for 16-bit PNG "
+                                "depth at 5000 per metre)."),
+    ext: Optional[str] = typer.Option(None, "--ext", help="Read only this format when the folder holds several "
+                                      "(MiDaS writes .pfm and .png: --ext pfm)."),
+    key: Optional[str] = typer.Option(None, "--key", help="The array inside .npz files that hold several."),
+    out: Optional[Path] = ResultsOutOpt,
+    force: bool = typer.Option(False, "--force", help="Rescore a complete result."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+    data_root: Optional[str] = DataRootOpt,
+    registry: Optional[Path] = RegistryOpt,
+) -> None:
+    """Score another network's depth predictions exactly as `run` scores ours → results/<seq>/<NAME>/seed0/."""
+    from mutualslam_cli.results.summary import flatten
+    from mutualslam_cli.stages.external import eval_depth as score_external
+
+    cfg = config_from(config, sets, data_root)
+    with progress_bar() as p:
+        task = p.add_task(f"score {name}", total=None, info="")
+        r = score_external(seq, predictions, name, kind, cfg, scale=scale, out=out, ext=ext, npz_key=key,
+                           command=sys.argv, force=force, registry=registry,
+                           progress=lambda done, total: p.update(task, completed=done, total=total))
+    if r.skipped:
+        common.console.print(f"[yellow]already complete[/] (use --force to rescore): {r.folder}")
+    f = flatten(r.summary)
+    t = Table("PCD lsq (%)", "PCD median (%)", "PCD none (%)", "e_si", "frames",
+              title=f"{f.get('sequence.name')} · {name} ({f.get('external.kind')}, external, no adaptation)")
+    t.add_row(*(fmt_value(f.get(f"depth.{k}.adapted"), 2) for k in ("pcd.lsq", "pcd.median", "pcd.none")),
+              fmt_value(f.get("depth.esi.adapted"), 3), fmt_value(f.get("depth.frames_evaluated")))
+    common.console.print(t)
+    common.console.print(f"results: {r.folder}")
+
+
+# --------------------------------------------------------------------------- ate
+
+
+@app.command()
+def ate(
+    ref: Path = typer.Argument(..., help="Reference TUM trajectory (timestamp tx ty tz qx qy qz qw)."),
+    est: Path = typer.Argument(..., help="Estimated TUM trajectory."),
+    align: str = typer.Option("sim3", "--align", help="sim3 | se3 | none"),
+    max_dt: Optional[float] = typer.Option(None, "--max-dt",
+                                           help="Association threshold, s (default eval.ate_max_dt)."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object (units in the keys) instead of a table."),
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """ATE of two TUM-format trajectories (the pipeline's own code path)."""
+    import json
+
+    from mutualslam_cli.datasets.associate import read_tum_trajectory
+    from mutualslam_cli.metrics.trajectory import ate as ate_fn
+
+    max_dt = config_from(config, sets).eval.ate_max_dt if max_dt is None else max_dt
+    if align not in ("sim3", "se3", "none"):
+        raise ConfigError(f"--align {align!r}: expected sim3, se3 or none")
+    r = ate_fn(read_tum_trajectory(ref), read_tum_trajectory(est), align=align, max_dt=max_dt)  # type: ignore[arg-type]
+    if as_json:
+        stats = {f"ate_{k}_m": getattr(r, k) for k in ("rmse", "mean", "median", "max")}
+        out = {"ref": str(ref), "est": str(est), "align": align, "max_dt_s": max_dt, "pairs": r.n_pairs,
+               "scale": r.scale, **stats}
+        typer.echo(json.dumps({k: v if not isinstance(v, float) or v == v else None for k, v in out.items()}))
+        return
+    t = Table("pairs", "align", "scale", "rmse m", "mean m", "median m", "max m", title=f"ATE {est.name} vs {ref.name}")
+    t.add_row(str(r.n_pairs), align, f"{r.scale:.6f}", f"{r.rmse:.6f}", f"{r.mean:.6f}", f"{r.median:.6f}",
+              f"{r.max:.6f}")
+    common.console.print(t)
