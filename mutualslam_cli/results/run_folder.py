@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import platform
 import subprocess
 import sys
@@ -24,6 +23,7 @@ from mutualslam_cli import __version__
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.machine import cpu_info
 from mutualslam_cli.results.summary import plain
 from mutualslam_cli.types import Trajectory
 
@@ -74,13 +74,13 @@ def versions() -> dict[str, str]:
 
 
 def manifest(command: list[str] | None, seed: int, timings: dict[str, float], extra: dict | None = None) -> dict:
-    """The ``manifest.json`` content: command, versions, git revision, seed, timings, host."""
+    """The ``manifest.json`` content: command, versions, git revision, seed, timings, the CPU."""
     return {
         "command": command if command is not None else sys.argv,
         "seed": seed,
         "versions": versions(),
         "git_revision": git_revision(),
-        "cpu_count": os.cpu_count(),
+        **cpu_info(),  # model, SIMD flags, kind (DESIGN §10), cores: results and timings depend on them
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "timings_s": timings,
         **(extra or {}),

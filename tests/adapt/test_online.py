@@ -105,7 +105,7 @@ def test_scene_is_consistent():
 
 
 @pytest.mark.parametrize("scheme", sorted(k for k, v in SCHEMES.items() if not getattr(v, "frame_driven", False)))
-def test_every_scheme_runs(scheme):  # every keyframe-driven scheme; comoda is frame-driven (tests/test_comoda.py)
+def test_every_scheme_runs(scheme):  # every keyframe-driven scheme; comoda is frame-driven (tests/adapt/test_comoda.py)
     ad = run(scheme)
     hist = ad.history
     assert [h.t for h in hist] == list(range(12))

@@ -1,0 +1,40 @@
+"""The CPU record of runs and benchmarks: model, SIMD flags and the kind DESIGN §10 sets targets by."""
+
+from __future__ import annotations
+
+import pytest
+
+from mutualslam_cli.bench.suite import targets
+from mutualslam_cli.machine import cpu_info, cpu_kind
+from mutualslam_cli.results.run_folder import manifest
+
+
+def _cpuinfo(flags: str) -> str:
+    block = f"processor\t: 0\nmodel name\t: Some CPU\nflags\t\t: fpu {flags}\n"
+    return block + "\n" + block.replace("processor\t: 0", "processor\t: 1")
+
+
+@pytest.mark.parametrize("flags, kind", [
+    ("avx2 avx512f avx512_bf16 amx_tile amx_bf16 amx_int8", "AMX"),
+    ("avx2 avx512f avx512_vnni avx512_bf16", "AVX512-BF16"),
+    ("sse4_2 avx avx2 fma", "AVX2"),
+    ("sse4_2", "other"),
+])
+def test_cpu_kind_from_cpuinfo(flags, kind):
+    info = cpu_info(_cpuinfo(flags))
+    assert info["cpu_model"] == "Some CPU" and info["cpu_kind"] == kind
+    assert set(info["cpu_flags"]) <= set(flags.split())
+    assert cpu_kind(None) == "unknown"
+
+
+def test_targets_follow_the_kind():
+    assert targets("AMX")["predict_ms"] == ("<=", 15.0) and targets("AMX")["finetune_ms"] == ("<=", 250.0)
+    assert targets("AVX512-BF16")["predict_ms"] == ("<=", 40.0) and targets("AVX512-BF16")["finetune_ms"][1] == 300
+    assert "finetune_ms" not in targets("AVX2") and targets("AVX2")["predict_ms"] == ("<=", 60.0)
+    assert targets("other")["vo_fps"] == (">=", 60.0)
+
+
+def test_every_run_records_its_cpu():
+    m = manifest(["mslam", "run"], 0, {"total_s": 1.0})
+    assert m["cpu_kind"] in ("AMX", "AVX512-BF16", "AVX2", "other", "unknown") and m["cpu_count"] >= 1
+    assert "cpu_flags" in m and "cpu_model" in m
