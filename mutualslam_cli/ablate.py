@@ -32,10 +32,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.config import RunConfig, with_overrides, with_settings
+from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.errors import ConfigError, MslamError
+from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, run_dir
+from mutualslam_cli.stages.frontend import run_frontend
 
 log = logging.getLogger(__name__)
 
@@ -96,8 +100,6 @@ def plan_grid(cfg: RunConfig, sequences: list[str], schemes: str | None, seeds: 
     Raises:
         ConfigError: unknown scheme, malformed seeds or variant override.
     """
-    from mutualslam_cli.adapt.schemes import get_scheme
-
     names = ([s.strip() for s in schemes.split(",") if s.strip()] if schemes is not None
              else list(cfg.experiment.schemes) or list(DEFAULT_SCHEMES))
     for n in names:
@@ -124,8 +126,6 @@ def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, regi
 
     ``after``: ignored; Dask passes the job's front-end task result here so the job waits for it.
     """
-    from mutualslam_cli.pipeline import run_sequence
-
     try:  # run_sequence gives torch, OpenCV and BLAS the same threads, whatever the executor set up
         r = run_sequence(job.sequence, _job_config(cfg, job, threads), out=out, command=command,
                          registry=Path(registry) if registry else None)
@@ -139,9 +139,6 @@ def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, regi
 def _prepare_one(cfg: RunConfig, sequence: str, seed: int, out: str, registry: str | None, threads: int) -> str | None:
     """Run one (sequence, seed) front end into ``<out>/_cache/vo``; the error message if it failed
     (the sequence's jobs then fail with it themselves, and the other sequences go on)."""
-    from mutualslam_cli.datasets.registry import load_sequence
-    from mutualslam_cli.stages.frontend import run_frontend
-
     c = with_overrides(cfg, seed=seed, threads=threads)  # type: ignore[arg-type]
     try:
         seq = load_sequence(sequence, data_root=c.data.data_root, registry_path=registry,
@@ -161,8 +158,8 @@ def prepare_frontends(cfg: RunConfig, sequences: list[str], seeds: list[int], ou
 
 
 def _warm_up() -> None:
-    """Pool task: import what a job needs, so a worker is ready when the front ends are."""
-    import mutualslam_cli.pipeline  # noqa: F401
+    """Pool task that does nothing: a worker unpickling it imports this module, and with it the
+    pipeline (torch, seconds), so the worker is ready when the front ends are."""
 
 
 def _die_with_parent() -> None:

@@ -8,14 +8,13 @@ overrides one field; the value is parsed as YAML (``--set adapt.lr=1e-4``).
 from __future__ import annotations
 
 import dataclasses
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 
+from mutualslam_cli.config_parse import apply_overrides, build
 from mutualslam_cli.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -65,7 +64,7 @@ class VOConfig:
     gt_max_points: int = 500
     """``gt-depth`` oracle: map points per keyframe (from GT depth at detected corners)."""
     inject_outliers: float = 0.0
-    """Test knob (issue 9): after the front end, this fraction of map points (seeded) gets a gross
+    """Test knob: after the front end, this fraction of map points (seeded) gets a gross
     depth error, ×2 or ×0.4, so culling can be measured against known outliers. 0 = off. Not
     part of the front-end cache key (applied to the cached map)."""
 
@@ -220,7 +219,7 @@ class EvalConfig:
 
 @dataclass(frozen=True)
 class DenseConfig:
-    """Dense reconstruction from the adapted depth (issue 13, :mod:`~mutualslam_cli.stages.dense`):
+    """Dense reconstruction from the adapted depth (:mod:`~mutualslam_cli.stages.dense`):
     TSDF fusion of both models' depth along the run's poses, in metres, scored against the same
     fusion of GT depth with GT poses. Defaults suit rooms."""
 
@@ -283,85 +282,6 @@ class RunConfig:
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
 
 
-def _coerce(value: Any, tp: Any, where: str) -> Any:
-    """Check/convert one YAML value to the annotated type ``tp``."""
-    origin = typing.get_origin(tp)
-    if origin is Literal:
-        if isinstance(value, bool) and {"on", "off"} <= set(typing.get_args(tp)):
-            value = "on" if value else "off"  # YAML 1.1 reads a bare on/off as a boolean
-        if value not in typing.get_args(tp):
-            raise ConfigError(f"{where}: {value!r} is not one of {list(typing.get_args(tp))}")
-        return value
-    if origin is list:
-        if not isinstance(value, list):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        (elem,) = typing.get_args(tp)
-        return [_coerce(v, elem, f"{where}[{i}]") for i, v in enumerate(value)]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
-        kt, vt = typing.get_args(tp)
-        return {_coerce(k, kt, where): _coerce(v, vt, f"{where}.{k}") for k, v in value.items()}
-    if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(tp)
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _coerce(value, a, where)
-            except ConfigError as e:
-                errors.append(str(e))
-        raise ConfigError(errors[0] if errors else f"{where}: invalid value {value!r}")
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        raise ConfigError(f"{where}: expected true/false, got {value!r}")
-    if tp is int:
-        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return int(value)
-    if tp is float:
-        if isinstance(value, str):
-            try:
-                value = float(value)
-            except ValueError:
-                raise ConfigError(f"{where}: expected a number, got {value!r}") from None
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        if value != value:
-            raise ConfigError(f"{where}: NaN is not allowed")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, (str, int, float)) or isinstance(value, bool):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return str(value)
-    return value
-
-
-def _build(cls: type, data: Any, where: str) -> Any:
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys: {sorted(names)}")
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        tp = hints[f.name]
-        key = f"{where}.{f.name}" if where else f.name
-        if dataclasses.is_dataclass(tp):
-            kwargs[f.name] = _build(tp, data[f.name] or {}, key)
-        else:
-            kwargs[f.name] = _coerce(data[f.name], tp, key)
-    return cls(**kwargs)
-
-
 def _validate(cfg: RunConfig) -> None:
     checks = [
         (cfg.adapt.lr > 0, "adapt.lr must be > 0"),
@@ -397,21 +317,6 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-def parse_override(text: str) -> tuple[list[str], Any]:
-    """``"adapt.lr=1e-4"`` → ``(["adapt", "lr"], 1e-4)``; the value is parsed as YAML."""
-    if "=" not in text:
-        raise ConfigError(f"--set {text!r}: expected key=value, e.g. adapt.lr=1e-4")
-    key, raw = text.split("=", 1)
-    try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as e:
-        raise ConfigError(f"--set {text!r}: value is not valid YAML ({e})") from None
-    parts = [p for p in key.strip().split(".") if p]
-    if not parts:
-        raise ConfigError(f"--set {text!r}: empty key")
-    return parts, value
-
-
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
     """Load a YAML config (default ``configs/paper.yaml``), apply ``--set`` overrides, validate.
 
@@ -430,31 +335,14 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         data = loaded or {}
     elif path != CONFIG_DIR / "paper.yaml":
         raise ConfigError(f"{path}: config file not found")
-    for ov in overrides or []:
-        parts, value = parse_override(ov)
-        node = data
-        for p in parts[:-1]:
-            node = node.setdefault(p, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"--set {ov!r}: {p} is not a section")
-        node[parts[-1]] = value
-    cfg = _build(RunConfig, data, "")
+    cfg = build(RunConfig, apply_overrides(data, overrides or [], create=True), "")
     _validate(cfg)
     return cfg
 
 
 def with_settings(cfg: RunConfig, overrides: list[str]) -> RunConfig:
     """Return ``cfg`` with ``--set``-style ``key=value`` overrides applied (validated like a file)."""
-    data = to_dict(cfg)
-    for ov in overrides:
-        parts, value = parse_override(ov)
-        node = data
-        for p in parts[:-1]:
-            if not isinstance(node.get(p), dict):
-                raise ConfigError(f"{ov!r}: {p} is not a config section")
-            node = node[p]
-        node[parts[-1]] = value
-    out = _build(RunConfig, data, "")
+    out = build(RunConfig, apply_overrides(to_dict(cfg), overrides, create=False), "")
     _validate(out)
     return out
 
@@ -467,6 +355,6 @@ def with_overrides(cfg: RunConfig, **sections: dict[str, Any]) -> RunConfig:
             data[sec].update(vals)
         else:
             data[sec] = vals
-    out = _build(RunConfig, data, "")
+    out = build(RunConfig, data, "")
     _validate(out)
     return out

@@ -49,8 +49,7 @@ class KeyframeError(MslamError):
     """The keyframe buffer cannot serve a keyframe id.
 
     Raised by :class:`~mutualslam_cli.adapt.buffer.KeyframeBuffer` for an id that is not stored
-    (unknown or evicted; formerly ``KeyError``) and for an id that does not increase (formerly
-    ``ValueError``).
+    (unknown or evicted) and for an id that does not increase.
     """
 
 

@@ -200,3 +200,82 @@ def test_no_import_cycles_between_subpackages():
     arrows = sorted(f"{m} → {d}" for m, deps in modules.items() for d in deps if (top(m), top(d)) in steps)
     assert not cycles, ("import cycles between parts of the package:\n" + _describe(cycles)
                         + "\nmade of:\n" + "\n".join(arrows))
+
+
+# --------------------------------------------------------------------------- layers
+
+#: The house's floors: each part of the package (top-level module or subpackage) → its layer.
+LAYER_OF = {
+    "": "ground", "errors": "ground", "types": "ground", "config": "ground", "config_parse": "ground",
+    "geometry": "ground", "pixels": "ground", "atomic": "ground", "allocator": "ground", "machine": "ground",
+    "datasets": "domain", "vo": "domain", "adapt": "domain", "ba": "domain", "metrics": "domain", "dense": "domain",
+    "results": "results", "stages": "stages", "report": "report",
+    "pipeline": "doors", "ablate": "doors", "bench": "bench", "cli": "cli",
+}
+#: What each layer may import (besides itself). The ground floor imports nothing above it; the domain
+#: never imports stages, results, report, the front doors or the CLI; results know the file formats
+#: (datasets' TUM writer) and nothing that computes; the report reads results and files and re-applies
+#: the metrics' formulas for its figures, never a stage or the VO / adaptation / BA; nothing imports
+#: the CLI but the CLI.
+ALLOWED = {
+    "ground": set(),
+    "domain": {"ground"},
+    "results": {"ground", "datasets"},
+    "stages": {"ground", "domain", "results"},
+    "report": {"ground", "results", "datasets", "metrics"},
+    "doors": {"ground", "domain", "results", "stages"},
+    "bench": {"ground", "domain", "results", "stages", "doors"},
+    "cli": {"ground", "domain", "results", "stages", "report", "doors", "bench"},
+}
+
+
+def _part(module: str) -> str:
+    return module.split(".")[1] if "." in module else ""
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    """Every import arrow the layer table forbids, as ``"a → b (layer → layer)"``; a part of the
+    package missing from :data:`LAYER_OF` is a violation too (new parts must be placed)."""
+    out = []
+    for m, deps in sorted(graph.items()):
+        src = LAYER_OF.get(_part(m))
+        if src is None:
+            out.append(f"{m}: part {_part(m)!r} has no layer in LAYER_OF")
+            continue
+        for d in sorted(deps):
+            dst = LAYER_OF.get(_part(d))
+            ok = dst is not None and (dst == src or dst in ALLOWED[src] or _part(d) in ALLOWED[src])
+            if not ok:
+                out.append(f"{m} → {d} ({src} → {dst})")
+    return out
+
+
+def test_layers_hold():
+    """The house keeps its shape: no import runs against the layer table."""
+    bad = layer_violations(import_graph())
+    assert not bad, "imports against the layers:\n" + "\n".join(bad)
+
+
+def test_a_planted_forbidden_import_is_caught(tmp_path: Path):
+    """A domain module importing a stage, a report module importing the VO, the ground floor importing
+    the domain, and anything importing the CLI: each is named."""
+    pkg = tmp_path / PACKAGE
+    for rel, text in {
+        "__init__.py": "", "errors.py": "", "geometry.py": "from mutualslam_cli.vo import frontend\n",
+        "vo/__init__.py": "", "vo/frontend.py": "from mutualslam_cli.stages import ba\n",
+        "stages/__init__.py": "", "stages/ba.py": "from mutualslam_cli.vo import frontend\n",
+        "report/__init__.py": "", "report/plots.py": "from mutualslam_cli.vo.frontend import run_vo\n",
+        "metrics/__init__.py": "", "metrics/depth.py": "def f():\n    from mutualslam_cli.cli import app\n",
+        "cli/__init__.py": "", "newpart.py": "",
+    }.items():
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    bad = layer_violations(import_graph(pkg))
+    P = PACKAGE
+    assert bad == [
+        f"{P}.geometry → {P}.vo.frontend (ground → domain)",
+        f"{P}.metrics.depth → {P}.cli (domain → cli)",
+        f"{P}.newpart: part 'newpart' has no layer in LAYER_OF",
+        f"{P}.report.plots → {P}.vo.frontend (report → domain)",
+        f"{P}.vo.frontend → {P}.stages.ba (domain → stages)",
+    ]

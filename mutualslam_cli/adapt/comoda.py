@@ -52,6 +52,7 @@ from mutualslam_cli.adapt.depthnet import fast_context
 from mutualslam_cli.adapt.losses import photometric_error, smoothness_loss
 from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.adapt.warp import warp
+from mutualslam_cli.adapt.weights import default_weights_dir, has_pose_files, load_pose
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.types import check_shape
@@ -319,8 +320,6 @@ def make_pose_net(depth_net: nn.Module, cfg: AdaptConfig, default_dir: str | Non
     Raises:
         ConfigError: ``comoda_pose_weights`` names a folder without valid pose files.
     """
-    from mutualslam_cli.adapt.weights import default_weights_dir, has_pose_files, load_pose
-
     if cfg.comoda_pose_weights:
         return load_pose(cfg.comoda_pose_weights)
     folder = default_dir if default_dir is not None else default_weights_dir()

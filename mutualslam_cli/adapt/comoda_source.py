@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from mutualslam_cli.atomic import atomic_path
+from mutualslam_cli.datasets.synthetic import iter_render, synthetic_intrinsics
 from mutualslam_cli.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -49,8 +50,6 @@ def source_triplets(n: int, width: int, height: int, scenes: Sequence[str] = SOU
     Raises:
         ConfigError: ``n`` < 1.
     """
-    from mutualslam_cli.datasets.synthetic import iter_render, synthetic_intrinsics  # heavy: only when used
-
     if n < 1:
         raise ConfigError(f"comoda source replay: need at least 1 triplet, got {n}")
     K = torch.as_tensor(synthetic_intrinsics(width, height).K(), dtype=torch.float32)

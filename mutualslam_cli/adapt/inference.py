@@ -1,4 +1,4 @@
-"""Depth prediction for evaluation through OpenVINO, where it beats PyTorch (issue 10, DESIGN §10).
+"""Depth prediction for evaluation through OpenVINO, where it beats PyTorch (DESIGN §10).
 
 The frozen network of an evaluation (the pre-trained or the final adapted model) is converted
 once (``openvino.convert_model``, ~2.5 s for Monodepth2-R18 at 640×192) and compiled for the CPU

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from mutualslam_cli.adapt import losses
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
 from mutualslam_cli.adapt.depthnet import fast_context, make_adam
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
@@ -128,7 +129,6 @@ class OnlineAdapter:
                  loss_fn: LossFn | None = None, val_fn: ValFn | None = None,
                  val_scope: Literal["all", "current"] = "all", reg_mode: Literal["prox", "penalty"] = "prox") -> None:
         if loss_fn is None or val_fn is None:
-            from mutualslam_cli.adapt import losses
             loss_fn = loss_fn or losses.train_loss
             val_fn = val_fn or losses.sparse_depth_loss
         if val_scope not in ("all", "current"):

@@ -29,7 +29,9 @@ import torch
 
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, make_adam, predict_depth, prepare, resolve_fast
 from mutualslam_cli.adapt.weights import save_monodepth2
+from mutualslam_cli.datasets.synthetic import iter_render
 from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.metrics.depth import percent_correct
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +61,6 @@ class FramePool:
 def render_pool(scenes: Sequence[str], seeds: Sequence[int], n_frames: int, stride: int, width: int, height: int,
                 domain: str = "source") -> FramePool:
     """Render every ``stride``-th frame of ``n_frames`` for each (scene, seed) at ``width``×``height``."""
-    from mutualslam_cli.datasets.synthetic import iter_render  # local: keeps the import graph light
-
     rgbs, depths = [], []
     for scene in scenes:
         for seed in seeds:
@@ -126,7 +126,7 @@ def silog_loss(depth: torch.Tensor, gt: torch.Tensor, lam: float = 0.85) -> torc
         return (mean_g2 - lam * mean_g ** 2).mean()
 
 
-def _batch(pool: FramePool, idx: np.ndarray, rng: np.random.Generator, crop: tuple[int, int] | None,
+def training_batch(pool: FramePool, idx: np.ndarray, rng: np.random.Generator, crop: tuple[int, int] | None,
            augment: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Images ``(B, 3, h, w)`` in [0, 1] and depth ``(B, 1, h, w)``, with crop / flip / colour jitter."""
     rgb = pool.rgb[idx].astype(np.float32) / 255.0
@@ -199,12 +199,7 @@ def pretrain(out_dir: Path, steps: int, width: int = 640, height: int = 192, bat
     Returns:
         The ``pretrain.json`` record (dict).
     """
-    if steps < 1 or batch_size < 1:
-        raise ConfigError(f"pretrain: steps and batch_size must be ≥ 1, got {steps}, {batch_size}")
-    if width % 32 or height % 32 or min(width, height) < 64:
-        raise ConfigError(f"pretrain: width/height must be multiples of 32 and ≥ 64, got {width}×{height}")
-    if crop is not None and (crop[0] % 32 or crop[1] % 32 or min(crop) < 64 or crop[0] > height or crop[1] > width):
-        raise ConfigError(f"pretrain: crop must be multiples of 32, ≥ 64 and inside {height}×{width}, got {crop}")
+    _check_settings(steps, batch_size, width, height, crop)
     if threads is not None:
         torch.set_num_threads(int(threads))
     use_fast = resolve_fast(fast)
@@ -244,7 +239,7 @@ def pretrain(out_dir: Path, steps: int, width: int = 640, height: int = 192, bat
     for step in range(steps):
         for group in opt.param_groups:
             group["lr"] = _lr_at(step, steps, lr, min(warmup, steps))
-        x, gt = _batch(FramePool(pool.rgb, pool.depth), rng.integers(0, len(pool), batch_size), rng, crop, augment)
+        x, gt = training_batch(FramePool(pool.rgb, pool.depth), rng.integers(0, len(pool), batch_size), rng, crop, augment)
         with fast_context(use_fast):
             depth = net.predict(x)
         loss = silog_loss(depth, gt)
@@ -271,19 +266,35 @@ def pretrain(out_dir: Path, steps: int, width: int = 640, height: int = 192, bat
         curve.append({"step": done, "loss": acc / acc_n, "t": round(time.perf_counter() - t_train, 2)})
     record = save(final=True)
     if eval_frames > 0:
-        net.eval()
-        torch.manual_seed(seed + 1)
-        random_net = DepthNet().eval()
-        record["eval_target"] = {
-            "pretrained": evaluate_pcd(net, width, height, eval_frames, scenes, fast=use_fast),
-            "random_init": evaluate_pcd(random_net, width, height, eval_frames, scenes, fast=use_fast),
-        }
-        record["eval_source"] = evaluate_pcd(net, width, height, eval_frames, scenes, fast=use_fast,
-                                             domain="source", seeds=(seed * 100000 + 99999,))
+        record.update(_evaluate(net.eval(), seed, width, height, eval_frames, scenes, use_fast))
         (out_dir / "pretrain.json").write_text(json.dumps(record, indent=1))
     record["time_s"] = round(time.perf_counter() - t_start, 2)
     (out_dir / "pretrain.json").write_text(json.dumps(record, indent=1))
     return record
+
+
+def _check_settings(steps: int, batch_size: int, width: int, height: int, crop: tuple[int, int] | None) -> None:
+    """:class:`ConfigError` for settings :func:`pretrain` cannot train with."""
+    if steps < 1 or batch_size < 1:
+        raise ConfigError(f"pretrain: steps and batch_size must be ≥ 1, got {steps}, {batch_size}")
+    if width % 32 or height % 32 or min(width, height) < 64:
+        raise ConfigError(f"pretrain: width/height must be multiples of 32 and ≥ 64, got {width}×{height}")
+    if crop is not None and (crop[0] % 32 or crop[1] % 32 or min(crop) < 64 or crop[0] > height or crop[1] > width):
+        raise ConfigError(f"pretrain: crop must be multiples of 32, ≥ 64 and inside {height}×{width}, got {crop}")
+
+
+def _evaluate(net: DepthNet, seed: int, width: int, height: int, n_frames: int, scenes: Sequence[str],
+              fast: bool) -> dict[str, Any]:
+    """``eval_target`` (the trained and a random-init net on target-domain frames) and ``eval_source``
+    (the trained net on unseen source-domain frames) of ``pretrain.json``."""
+    torch.manual_seed(seed + 1)
+    random_net = DepthNet().eval()
+    return {
+        "eval_target": {"pretrained": evaluate_pcd(net, width, height, n_frames, scenes, fast=fast),
+                        "random_init": evaluate_pcd(random_net, width, height, n_frames, scenes, fast=fast)},
+        "eval_source": evaluate_pcd(net, width, height, n_frames, scenes, fast=fast, domain="source",
+                                    seeds=(seed * 100000 + 99999,)),
+    }
 
 
 def evaluate_pcd(net: DepthNet, width: int, height: int, n_frames: int,
@@ -294,8 +305,6 @@ def evaluate_pcd(net: DepthNet, width: int, height: int, n_frames: int,
 
     Renders ``n_frames`` frames (every ``stride``-th of a longer path) of each scene/seed.
     """
-    from mutualslam_cli.metrics.depth import percent_correct
-
     out: dict[str, float] = {}
     for scene in scenes:
         pool = render_pool([scene], seeds, n_frames * stride, stride, width, height, domain)

@@ -45,6 +45,7 @@ import torch
 from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.adapt.weights import save_pose
 from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.datasets.synthetic import iter_render
 from mutualslam_cli.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -58,8 +59,6 @@ def pose_batch(scene: str, seed: int, n_pairs: int, width: int, height: int
         ``(first, second, T)``: ``(B, 3, H, W)`` float in [0, 1] twice and ``(B, 4, 4)`` float32
         ground-truth ``T_{first→second}``.
     """
-    from mutualslam_cli.datasets.synthetic import iter_render  # local: keeps the import graph light
-
     frames = list(iter_render(scene, n_pairs + 1, width, height, int(seed), "source"))
     rgb = torch.from_numpy(np.stack([f[1] for f in frames])).permute(0, 3, 1, 2).float() / 255.0
     poses = np.stack([f[3] for f in frames])

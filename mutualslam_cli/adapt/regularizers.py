@@ -38,7 +38,7 @@ Two independent choices make it act; both are options, the defaults are marked:
   for SGD) makes the equilibrium ``lr·sign(g) = 2·lr·c·w·(θ − θ*)``, an offset of
   ``1/(2cw)`` independent of the data term: on a 1-D quadratic with ``cw = 10`` it settled at
   0.050 for curvatures 1e-3, 1 and 100 where the minimisers are 5e-5, 0.048 and 0.83
-  (``tests/test_regularizers.py::test_prox_minimises_the_penalised_quadratic``). The step acts on
+  (``tests/adapt/test_regularizers.py::test_prox_minimises_the_penalised_quadratic``). The step acts on
   *every* step (also the first, also with ``steps_per_keyframe = 1``) and only shrinks
   ``θ − θ*``, never pushes past θ*. Coupled into Adam instead, a quadratic this stiff (β·F̂ up
   to 5e4) is normalised by √v̂ and stored in Adam's momentum, which keeps moving θ on the next

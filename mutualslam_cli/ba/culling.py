@@ -150,7 +150,7 @@ OUTLIER_FACTORS = (2.0, 0.4)
 
 
 def inject_outliers(vo: VOResult, fraction: float, seed: int) -> tuple[VOResult, np.ndarray]:
-    """Gross depth outliers in a map, to measure culling against known outliers (issue 9).
+    """Gross depth outliers in a map, to measure culling against known outliers.
 
     ``round(fraction · P)`` points, drawn without replacement with ``seed``, get their depth in
     their host keyframe multiplied by 2 or 0.4 (each with probability ½): their inverse depth is

@@ -16,16 +16,15 @@ import logging
 import numpy as np
 
 from mutualslam_cli.ba.problem import NP
-from mutualslam_cli.ba.residuals import _Data, _huber, residuals
-from mutualslam_cli.ba.schur import _Normal
+from mutualslam_cli.ba.residuals import PatchData, huber_cost, residuals
+from mutualslam_cli.ba.schur import NormalEquations
 from mutualslam_cli.geometry import left_update
 
-# the solver's records keep the logger name they had before the split of ``photometric``
-log = logging.getLogger("mutualslam_cli.ba.photometric")
+log = logging.getLogger(__name__)
 
 
-def normal_equations(d: _Data, T: np.ndarray, ab: np.ndarray, rho: np.ndarray,
-                     huber_delta: float, res: tuple | None = None) -> _Normal:
+def normal_equations(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray,
+                     huber_delta: float, res: tuple | None = None) -> NormalEquations:
     """IRLS-weighted normal equations at the current state (Huber weights); ``res`` may pass
     the output of ``residuals(..., jac=True)`` at this state."""
     P = len(rho)
@@ -39,14 +38,14 @@ def normal_equations(d: _Data, T: np.ndarray, ab: np.ndarray, rho: np.ndarray,
     Hpp = np.bincount(d.p, np.einsum("ms,ms->m", w * Jp, Jp), minlength=P)
     bp = np.bincount(d.p, np.einsum("ms,ms->m", w * Jp, r), minlength=P)
     Hcc, bc = d.st.camera_system(Jc, Jw, bblk)
-    return _Normal(d.st, Hcc, bc, A, hcp[:, NP:], Hpp, bp)
+    return NormalEquations(d.st, Hcc, bc, A, hcp[:, NP:], Hpp, bp)
 
 
-def _centre(T: np.ndarray) -> np.ndarray:
+def centre_gauge(T: np.ndarray) -> np.ndarray:
     return -T[:3, :3].T @ T[:3, 3]
 
 
-def _apply(T, ab, rho, dc, dp, fidx):
+def apply_step(T, ab, rho, dc, dp, fidx):
     ab = ab.copy()
     d = dc.reshape(-1, NP)[fidx]
     T = left_update(T, fidx, d[:, :6])
@@ -54,18 +53,18 @@ def _apply(T, ab, rho, dc, dp, fidx):
     return T, ab, np.maximum(rho + dp, 1e-6)
 
 
-def _solve_level(d: _Data, T, ab, rho, fidx, cols, s0, iterations, huber_delta, scale_weight,
+def solve_level(d: PatchData, T, ab, rho, fidx, cols, s0, iterations, huber_delta, scale_weight,
                  lambda0, max_tries, callback, it_offset=0):
     """LM iterations at one resolution; returns ``(T, ab, rho, costs, iterations, accepted)``.
     ``s0`` is the scale-prior baseline (from the input state, shared by all levels)."""
     nk = d.nk
     k1 = int(fidx[0]) if len(fidx) else -1  # scale prior on the first free keyframe
-    c0 = _centre(T[0])
+    c0 = centre_gauge(T[0])
     ws = scale_weight / s0**2 if s0 > 1e-9 else 0.0
 
     def total(T_, res_):
-        e = np.linalg.norm(_centre(T_[k1]) - c0) - s0 if ws else 0.0
-        return _huber(res_[0], res_[2], d.host_ok, huber_delta) + ws * e * e
+        e = np.linalg.norm(centre_gauge(T_[k1]) - c0) - s0 if ws else 0.0
+        return huber_cost(res_[0], res_[2], d.host_ok, huber_delta) + ws * e * e
 
     res = residuals(d, T, ab, rho, jac=iterations > 0)  # trial states keep Jacobians for reuse
     cost = total(T, res)
@@ -73,7 +72,7 @@ def _solve_level(d: _Data, T, ab, rho, fidx, cols, s0, iterations, huber_delta, 
     for it in range(1, iterations + 1):
         ne = normal_equations(d, T, ab, rho, huber_delta, res)
         if ws:  # scale prior: ∂c_k/∂ρ_k = −R_kᵀ under the left increment, ∂c_k/∂φ_k = 0
-            c1 = _centre(T[k1])
+            c1 = centre_gauge(T[k1])
             n = (c1 - c0) / np.linalg.norm(c1 - c0)
             Js = np.zeros(nk * NP)
             Js[k1 * NP:k1 * NP + 3] = -T[k1, :3, :3] @ n
@@ -87,7 +86,7 @@ def _solve_level(d: _Data, T, ab, rho, fidx, cols, s0, iterations, huber_delta, 
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            T2, ab2, rho2 = _apply(T, ab, rho, dc, dp, fidx)
+            T2, ab2, rho2 = apply_step(T, ab, rho, dc, dp, fidx)
             res2 = residuals(d, T2, ab2, rho2, jac=True)
             c_new = total(T2, res2)
             if c_new < cost:

@@ -39,13 +39,13 @@ from typing import Callable
 import numpy as np
 
 from mutualslam_cli.ba import pyramid
-from mutualslam_cli.ba.lm import _apply, _centre, _solve_level, normal_equations
+from mutualslam_cli.ba.lm import apply_step, centre_gauge, solve_level, normal_equations
 from mutualslam_cli.ba.problem import NP, PhotoBAProblem, PhotoBAResult, validate
-from mutualslam_cli.ba.residuals import _Data, residuals
+from mutualslam_cli.ba.residuals import PatchData, residuals
 from mutualslam_cli.errors import ConfigError
 
 # the parts the BA tests reach as ``photometric.<name>`` stay importable from here
-__all__ = ["PhotoBAProblem", "PhotoBAResult", "_Data", "_apply", "normal_equations", "residuals", "solve",
+__all__ = ["PhotoBAProblem", "PhotoBAResult", "PatchData", "apply_step", "normal_equations", "residuals", "solve",
            "validate"]
 
 
@@ -96,14 +96,14 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = 0.1, 
     cols = (fidx[:, None] * NP + np.arange(NP if affine else 6)).ravel()
     k1 = int(fidx[0]) if len(fidx) else -1
     T = state[0]
-    s0 = float(np.linalg.norm(_centre(T[k1]) - _centre(T[0]))) if k1 > 0 else 0.0
+    s0 = float(np.linalg.norm(centre_gauge(T[k1]) - centre_gauge(T[0]))) if k1 > 0 else 0.0
 
     def run(d, T_, ab_, rho_, n, offset):
-        return _solve_level(d, T_, ab_, rho_, fidx, cols, s0, n, huber_delta, scale_weight,
+        return solve_level(d, T_, ab_, rho_, fidx, cols, s0, n, huber_delta, scale_weight,
                             lambda0, max_tries, callback, offset)
 
     def make_data(p):
-        return _Data(p, patch, margin)
+        return PatchData(p, patch, margin)
 
     per_level, n_it, n_acc, cost0 = [], 0, 0, None
     if levels > 1:

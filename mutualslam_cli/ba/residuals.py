@@ -22,11 +22,11 @@ from __future__ import annotations
 import numpy as np
 
 from mutualslam_cli.ba.problem import PhotoBAProblem
-from mutualslam_cli.ba.schur import _Structure
+from mutualslam_cli.ba.schur import BlockStructure
 from mutualslam_cli.pixels import in_image, in_image_uv
 
 
-class _Data:
+class PatchData:
     """Per-solve constants: image stack, patch rays, host intensities, block structure."""
 
     def __init__(self, prob: PhotoBAProblem, patch: int, margin: float):
@@ -49,7 +49,7 @@ class _Data:
         self.p, self.t = p[order], t[order]
         self.h = np.asarray(prob.host)[self.p]
         self.host_ok = hv[self.p]
-        self.st = _Structure(np.asarray(prob.host), self.p, self.t, self.nk)
+        self.st = BlockStructure(np.asarray(prob.host), self.p, self.t, self.nk)
 
     def sample(self, kf: np.ndarray, u: np.ndarray, v: np.ndarray):
         """Bilinear intensity at ``(u, v)`` (clamped inside the image) and its exact
@@ -67,7 +67,7 @@ class _Data:
         return top + ay * (bot - top), bot - top, (1 - ay) * (i01 - i00) + ay * (i11 - i10)
 
 
-def residuals(d: _Data, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, jac: bool = False):
+def residuals(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, jac: bool = False):
     """Photometric residuals ``(M, S)`` (DSO eq. 4), validity mask and optional Jacobians.
 
     Returns:
@@ -122,7 +122,7 @@ def residuals(d: _Data, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, jac: boo
     return r, valid, counted, Jc, Jp
 
 
-def _huber(r: np.ndarray, counted: np.ndarray, host_ok: np.ndarray, delta: float) -> float:
+def huber_cost(r: np.ndarray, counted: np.ndarray, host_ok: np.ndarray, delta: float) -> float:
     """Total Huber cost; a residual behind the camera costs the constant ``δ²/2``."""
     a = np.abs(r)
     c = np.where(a < delta, 0.5 * r * r, delta * (a - 0.5 * delta))

@@ -4,8 +4,8 @@ The Gauss–Newton system has a camera block ``H_cc`` (:data:`~mutualslam_cli.ba
 unknowns per keyframe), a diagonal inverse-depth block ``H_pp`` and the coupling ``H_cp``.
 The points are eliminated with the Schur complement on the diagonal inverse-depth block
 (Triggs et al. 2000, "Bundle adjustment — a modern synthesis", §6); the reduced camera system
-(8 unknowns per free keyframe) is solved densely. :class:`_Structure` holds the static
-sparsity and assembles the blocks; :class:`_Normal` takes one damped LM step from them.
+(8 unknowns per free keyframe) is solved densely. :class:`BlockStructure` holds the static
+sparsity and assembles the blocks; :class:`NormalEquations` takes one damped LM step from them.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 from mutualslam_cli.ba.problem import NP
 
 
-class _Structure:
+class BlockStructure:
     """Static sparsity of the normal equations. Observations are sorted by (host, target)
     keyframe pair, so each pair's 8×8 blocks come from one contiguous run of residuals."""
 
@@ -96,10 +96,10 @@ class _Structure:
         return S
 
 
-class _Normal:
+class NormalEquations:
     """Gauss–Newton normal equations in Schur form (point block diagonal)."""
 
-    def __init__(self, st: _Structure, Hcc, bc, A, Ct, Hpp, bp):
+    def __init__(self, st: BlockStructure, Hcc, bc, A, Ct, Hpp, bp):
         self.st, self.Hcc, self.bc, self.A, self.Ct, self.Hpp, self.bp = st, Hcc, bc, A, Ct, Hpp, bp
 
     def step(self, lam: float, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

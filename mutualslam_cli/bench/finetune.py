@@ -6,15 +6,22 @@ the machine, so treat them as indicative.
 
 from __future__ import annotations
 
+import json
 import statistics
+import sys
 import time
+from dataclasses import replace
 from typing import Any
 
 import torch
 
+from mutualslam_cli.adapt.comoda import ComodaAdapter
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, fast_path_supported, make_adam, prepare
+from mutualslam_cli.adapt.inference import openvino_predictor
 from mutualslam_cli.adapt.losses import train_loss
+from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.allocator import retain_freed_memory
+from mutualslam_cli.config import AdaptConfig
 
 
 def _setup(threads: int | None, seed: int) -> None:
@@ -65,8 +72,6 @@ def bench_inference_openvino(width: int = 640, height: int = 192, repeats: int =
     Returns:
         ``{"ms": median, "times_ms": [...], "convert_s": conversion + compilation, "threads"}``.
     """
-    from mutualslam_cli.adapt.inference import openvino_predictor
-
     _setup(threads, seed)
     t0 = time.perf_counter()
     calib = torch.rand(4, 3, height, width) if int8 else None
@@ -144,12 +149,6 @@ def bench_comoda_step(width: int = 640, height: int = 192, repeats: int = 5, fas
     Returns:
         ``{"ms": median, "times_ms": [...], "batch": targets per step, ...}``.
     """
-    from dataclasses import replace
-
-    from mutualslam_cli.adapt.comoda import ComodaAdapter
-    from mutualslam_cli.adapt.networks.pose import PoseNet
-    from mutualslam_cli.config import AdaptConfig
-
     _setup(threads, seed)
     cfg = AdaptConfig(scheme="comoda")
     if replay is not None:
@@ -209,7 +208,4 @@ def bf16_depth_difference(width: int = 640, height: int = 192, net: DepthNet | N
 
 
 if __name__ == "__main__":  # python -m mutualslam_cli.bench.finetune [threads]
-    import json
-    import sys
-
     print(json.dumps(compare(threads=int(sys.argv[1]) if len(sys.argv) > 1 else 1), indent=1))

@@ -27,6 +27,23 @@ import time
 from pathlib import Path
 from typing import Any
 
+import torch
+
+from mutualslam_cli.adapt.depthnet import fast_path_supported
+from mutualslam_cli.adapt.inference import openvino_available
+from mutualslam_cli.bench.ba import bench_ba, report
+from mutualslam_cli.bench.finetune import (
+    bench_comoda_step,
+    bench_finetune_step,
+    bench_inference,
+    bench_inference_openvino,
+    bf16_depth_difference,
+)
+from mutualslam_cli.bench.vo import bench_vo
+from mutualslam_cli.datasets.check import bench_loader
+from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.datasets.synthetic import bench_render
+from mutualslam_cli.errors import MslamError
 from mutualslam_cli.machine import cpu_info
 
 
@@ -48,19 +65,12 @@ def reference_ms(repeats: int = 7) -> float:
 
 
 def _render(quick: bool) -> dict[str, Any]:
-    from mutualslam_cli.datasets.synthetic import bench_render
-
     runs = [bench_render(640, 480, n=10 if quick else 30, scene=s) for s in ("room", "planar", "far")]
     return {"render_fps": statistics.median(r["fps"] for r in runs),
             "render_fps_by_scene": {s: r["fps"] for s, r in zip(("room", "planar", "far"), runs)}}
 
 
 def _loader_and_vo(quick: bool) -> dict[str, Any]:
-    from mutualslam_cli.bench.vo import bench_vo
-    from mutualslam_cli.datasets.check import bench_loader
-    from mutualslam_cli.datasets.registry import load_sequence
-    from mutualslam_cli.errors import MslamError
-
     try:
         seq = load_sequence("tum_fr1_xyz")
     except MslamError as e:
@@ -72,9 +82,6 @@ def _loader_and_vo(quick: bool) -> dict[str, Any]:
 
 
 def _network(quick: bool, threads: int) -> dict[str, Any]:
-    from mutualslam_cli.adapt.depthnet import fast_path_supported
-    from mutualslam_cli.bench.finetune import bench_finetune_step, bench_inference, bf16_depth_difference
-
     out: dict[str, Any] = {"threads": threads, "bf16_supported": fast_path_supported()}
     reps = 3 if quick else 10
     for name, fast, cl in (("fp32", False, False), ("fast", True, True)):
@@ -83,15 +90,8 @@ def _network(quick: bool, threads: int) -> dict[str, Any]:
             continue
         out[f"predict_{name}_ms"] = bench_inference(640, 192, 2 * reps, fast, threads, channels_last=cl)["ms"]
         out[f"finetune_{name}_ms"] = bench_finetune_step(640, 192, reps, fast, threads, channels_last=cl)["ms"]
-    from mutualslam_cli.bench.finetune import bench_comoda_step
-
-    # one CoMoDa-style update (current + 3 replayed triplets, depth and pose networks) beside our step
     out["comoda_step_ms"] = bench_comoda_step(640, 192, reps, fast_path_supported(), threads)["ms"]
-    from mutualslam_cli.adapt.inference import openvino_available
-
     if openvino_available():  # the evaluation's runtimes: bf16 where the CPU has it (net.runtime auto), int8
-        from mutualslam_cli.bench.finetune import bench_inference_openvino
-
         for name, int8 in (("openvino", False), ("openvino_int8", True)):
             if not int8 and not fast_path_supported():
                 continue  # fp32 OpenVINO: not a path auto picks
@@ -106,8 +106,6 @@ def _network(quick: bool, threads: int) -> dict[str, Any]:
 
 
 def _ba(quick: bool) -> dict[str, Any]:
-    from mutualslam_cli.bench.ba import bench_ba
-
     return bench_ba(runs=2 if quick else 5)
 
 
@@ -245,8 +243,6 @@ def _table(res: dict[str, Any]) -> str:
                      f"{res['reference_ms_start']:.0f} at the "
                      f"start, {res.get('reference_ms_end', float('nan')):.0f} at the end")
     if "ba_before" in res:
-        from mutualslam_cli.bench.ba import report
-
         p = res["ba_problem"]
         runs = ", ".join(f"{t:.2f}" for t in res["ba_s_runs"])
         lines.append(f"\nglobal BA problem: {p['keyframes']} keyframes {p['image']}, {p['points']} points, "
@@ -277,8 +273,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch threads for the network")
     ap.add_argument("--out", default="results/bench.json")
     a = ap.parse_args(argv)
-    import torch
-
     torch.set_num_threads(a.threads)
     res: dict[str, Any] = {**cpu_info(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "reference_ms_start": reference_ms()}

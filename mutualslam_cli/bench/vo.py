@@ -7,10 +7,13 @@ Usage: ``python -m mutualslam_cli.bench.vo NAME_OR_PATH...``.
 from __future__ import annotations
 
 import statistics
+import sys
 from typing import Any
 
 from mutualslam_cli.config import VOConfig
+from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, map_esi
 from mutualslam_cli.vo.frontend import STAGES, run_vo
 
 
@@ -54,8 +57,6 @@ def vo_accuracy(seq: Sequence, vo: Any) -> dict[str, Any]:
         ``None`` without GT; ``esi`` is the map points' scale-invariant log error against GT
         depth at their host pixels (distortion-aware), NaN without GT depth.
     """
-    from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, map_esi
-
     tr = evaluate_trajectory(seq, vo)
     esi, _ = map_esi(seq, vo)
     return {
@@ -72,10 +73,6 @@ def vo_accuracy(seq: Sequence, vo: Any) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m mutualslam_cli.bench.vo NAME_OR_PATH...``: the accuracy/speed table (Markdown)."""
-    import sys
-
-    from mutualslam_cli.datasets.registry import load_sequence
-
     names = list(sys.argv[1:] if argv is None else argv) or ["tum_fr1_xyz", "icl_lr_kt2", "redkitchen_7scenes"]
     print("| sequence | frames | tracked % | keyframes | map points | ATE kf [cm] | ATE all [cm] | e_si map | fps |")
     print("|---|---|---|---|---|---|---|---|---|")

@@ -12,10 +12,10 @@ from typing import Any, Optional
 
 import click
 import typer
-from typer.core import TyperGroup
 from rich.console import Console, ConsoleDimensions
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from typer.core import TyperGroup
 
 from mutualslam_cli.config import RunConfig, load_config, with_overrides
 from mutualslam_cli.errors import MslamError

@@ -25,7 +25,6 @@ from mutualslam_cli.cli.common import (
 )
 from mutualslam_cli.errors import ConfigError, MslamError
 
-
 # --------------------------------------------------------------------------- datasets
 
 

@@ -29,7 +29,6 @@ from mutualslam_cli.cli.common import (
 from mutualslam_cli.config import with_overrides
 from mutualslam_cli.errors import ConfigError
 
-
 # --------------------------------------------------------------------------- run
 
 
@@ -122,8 +121,8 @@ def fuse(
 ) -> None:
     """Dense reconstruction of a finished run: TSDF meshes of both models' depth, scored against GT depth
     fused with GT poses (needs the run's adapted weights: --set eval.save_weights=true)."""
-    from mutualslam_cli.results.summary import flatten
     from mutualslam_cli.pipeline import fuse_run
+    from mutualslam_cli.results.summary import flatten
 
     with progress_bar() as p:
         tasks: list[Any] = []  # the bar appears with the first step: an error before it is one line

@@ -28,7 +28,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from mutualslam_cli.datasets.registry import get_spec, load_sequence, load_spec
+from mutualslam_cli.datasets.registry import get_spec, list_datasets, load_sequence, load_spec
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import SequenceSpec
@@ -262,8 +262,6 @@ def check_all(names: list[str] | None = None, registry_path: str | os.PathLike |
               data_root: str | os.PathLike | None = None, sample: int = 0) -> list[CheckReport | Exception]:
     """Check several registry entries (``sample`` as for :func:`check_sequence`); a failing entry
     gives its exception instead of a report."""
-    from mutualslam_cli.datasets.registry import list_datasets
-
     specs = (list_datasets(registry_path, data_root) if names is None
              else [get_spec(n, registry_path, data_root) for n in names])
     out: list[CheckReport | Exception] = []

@@ -33,7 +33,7 @@ from typing import Callable, Iterable, Iterator, Literal
 import cv2
 import numpy as np
 
-from mutualslam_cli.datasets import scenes as _scenes
+from mutualslam_cli.datasets import scenes
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.raycast import Renderer
 from mutualslam_cli.datasets.scenes import SCENES, SceneDef, camera_pose
@@ -102,7 +102,7 @@ def _check_args(scene: str, n_frames: int, width: int, height: int, domain: str)
 def _setup(scene: str, width: int, height: int, seed: int, domain: str) -> tuple[SceneDef, Renderer]:
     """Scene layout, textures and renderer (cached: texture synthesis dominates setup)."""
     intr = synthetic_intrinsics(width, height)
-    sdef = _scenes.build_scene(scene, seed, domain)
+    sdef = scenes.build_scene(scene, seed, domain)
     style = STYLES[domain]
     # Texel density follows the render resolution (capped: above 2× 640×480 textures magnify).
     res = min(intr.fx / 525.0, 2.0)

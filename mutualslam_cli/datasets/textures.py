@@ -140,13 +140,21 @@ def face_texture(rng: np.random.Generator, w_m: float, h_m: float, ppm: float, s
     W, H = max(2, int(round(w_m * ppm))), max(2, int(round(h_m * ppm)))
     s = ppm  # metres → texels
     fs = float(feature_scale)
-    area = w_m * h_m / (fs * fs)
     n = _noise(rng, w_m, h_m, W, H, tuple(c * fs for c in style.noise_cells))
     n = np.clip((n - 0.5) * style.noise_contrast + 0.5, 0.0, 1.0)[..., None]
     c0, c1 = _color(rng, style, 2)
     img = np.ascontiguousarray((c0 * (1 - n) + c1 * n).astype(np.uint8))
 
-    # Rectangles (filled or outlined, axis-aligned or rotated), log-uniform sizes.
+    for draw in (_draw_rects, _draw_checkers, _draw_discs, _draw_lines, _draw_glyphs):  # in this order (rng)
+        draw(img, rng, style, w_m, h_m, s, fs)
+    return cv2.GaussianBlur(img, (0, 0), 0.6)
+
+
+def _draw_rects(img: np.ndarray, rng: np.random.Generator, style: TextureStyle, w_m: float, h_m: float, s: float,
+                fs: float) -> None:
+    """Rectangles (filled or outlined, axis-aligned or rotated), log-uniform sizes.
+    Drawn into ``img`` (``s`` texels per metre, feature scale ``fs``)."""
+    area = w_m * h_m / (fs * fs)
     nr = int(rng.poisson(style.rect_density * area))
     lo, hi = np.log(style.rect_size[0] * fs), np.log(style.rect_size[1] * fs)
     pos = rng.random((nr, 2)) * (w_m, h_m)
@@ -163,7 +171,12 @@ def face_texture(rng: np.random.Generator, w_m: float, h_m: float, ppm: float, s
         else:
             cv2.polylines(img, [pts], True, col, max(1, int(round(thick[k] * s))), cv2.LINE_AA, _SHIFT)
 
-    # Checker patches: small, irregular count of cells, random rotation (not a global grid).
+
+def _draw_checkers(img: np.ndarray, rng: np.random.Generator, style: TextureStyle, w_m: float, h_m: float, s: float,
+                   fs: float) -> None:
+    """Checker patches: small, irregular count of cells, random rotation (not a global grid).
+    Drawn into ``img`` (``s`` texels per metre, feature scale ``fs``)."""
+    area = w_m * h_m / (fs * fs)
     nc = int(rng.poisson(style.checker_density * area))
     for _ in range(nc):
         cx, cy = rng.random(2) * (w_m, h_m)
@@ -181,7 +194,12 @@ def face_texture(rng: np.random.Generator, w_m: float, h_m: float, ppm: float, s
                 col = ca if (i + j) % 2 == 0 else cb
                 cv2.fillConvexPoly(img, _fx(quad), tuple(float(x) for x in col), cv2.LINE_AA, _SHIFT)
 
-    # Discs and rings.
+
+def _draw_discs(img: np.ndarray, rng: np.random.Generator, style: TextureStyle, w_m: float, h_m: float, s: float,
+                fs: float) -> None:
+    """Discs and rings.
+    Drawn into ``img`` (``s`` texels per metre, feature scale ``fs``)."""
+    area = w_m * h_m / (fs * fs)
     ncir = int(rng.poisson(style.circle_density * area))
     cpos = rng.random((ncir, 2)) * (w_m, h_m)
     rad = np.exp(rng.uniform(np.log(0.01), np.log(0.12), ncir)) * fs
@@ -192,7 +210,12 @@ def face_texture(rng: np.random.Generator, w_m: float, h_m: float, ppm: float, s
         cv2.circle(img, tuple(_fx(cpos[k] * s)), max(1, int(round(rad[k] * s * _ONE))),
                    tuple(float(x) for x in ccols[k]), th, cv2.LINE_AA, _SHIFT)
 
-    # Line segments of several widths and colours.
+
+def _draw_lines(img: np.ndarray, rng: np.random.Generator, style: TextureStyle, w_m: float, h_m: float, s: float,
+                fs: float) -> None:
+    """Line segments of several widths and colours.
+    Drawn into ``img`` (``s`` texels per metre, feature scale ``fs``)."""
+    area = w_m * h_m / (fs * fs)
     nl = int(rng.poisson(style.line_density * area))
     p0 = rng.random((nl, 2)) * (w_m, h_m)
     ln = rng.uniform(0.05, 0.8, nl) * fs
@@ -204,7 +227,12 @@ def face_texture(rng: np.random.Generator, w_m: float, h_m: float, ppm: float, s
         cv2.line(img, tuple(_fx(p0[k] * s)), tuple(_fx(p1[k] * s)), tuple(float(x) for x in lcols[k]),
                  max(1, int(round(lw[k] * s))), cv2.LINE_AA, _SHIFT)
 
-    # Glyphs (letters/digits): many distinct corners at small scale.
+
+def _draw_glyphs(img: np.ndarray, rng: np.random.Generator, style: TextureStyle, w_m: float, h_m: float, s: float,
+                 fs: float) -> None:
+    """Glyphs (letters/digits): many distinct corners at small scale.
+    Drawn into ``img`` (``s`` texels per metre, feature scale ``fs``)."""
+    area = w_m * h_m / (fs * fs)
     ng = int(rng.poisson(style.glyph_density * area))
     gpos = rng.random((ng, 2)) * (w_m, h_m)
     gh = rng.uniform(0.03, 0.15, ng) * fs
@@ -217,7 +245,6 @@ def face_texture(rng: np.random.Generator, w_m: float, h_m: float, ppm: float, s
         org = (int(round(gpos[k, 0] * s)), int(round(gpos[k, 1] * s)))
         cv2.putText(img, _GLYPHS[gch[k]], org, cv2.FONT_HERSHEY_SIMPLEX, scale,
                     tuple(float(x) for x in gcols[k]), max(1, int(round(scale * 2))), cv2.LINE_AA)
-    return cv2.GaussianBlur(img, (0, 0), 0.6)
 
 
 @dataclass

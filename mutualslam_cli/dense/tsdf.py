@@ -1,6 +1,6 @@
 """Dense reconstruction: TSDF fusion of depth maps, surface extraction, surface scores, rendering.
 
-The library half of the dense stage (issue 13; :mod:`~mutualslam_cli.stages.dense` is the run
+The library half of the dense stage (:mod:`~mutualslam_cli.stages.dense` is the run
 integration). Everything here takes plain arrays in metres and returns plain arrays:
 
 - :class:`TSDFVolume` fuses ``(H, W)`` depth maps (+ RGB) seen from ``T_wc`` poses into open3d's
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.atomic import atomic_write_with
+from mutualslam_cli.atomic import atomic_write_text, atomic_write_with
 from mutualslam_cli.errors import DatasetError, GeometryError
 from mutualslam_cli.metrics.alignment import align_positions
 from mutualslam_cli.metrics.trajectory import associate_indices
@@ -232,8 +232,6 @@ def write_mesh(path: Path, mesh: Mesh) -> None:
 
     path = Path(path)
     if len(mesh.vertices) == 0:
-        from mutualslam_cli.atomic import atomic_write_text
-
         atomic_write_text(path, "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
                           "property float z\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n")
         return

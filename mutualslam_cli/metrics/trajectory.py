@@ -10,7 +10,7 @@ statistics of the translational residuals. The alignment itself is
 package's one :func:`mutualslam_cli.datasets.associate.associate`.
 
 The numbers equal ``evo_ape tum REF EST -as --t_max_diff 0.02`` (evo 1.38.1, same pairs,
-same alignment, same statistics; ``tests/test_ate_evo.py`` checks it on real data). Note
+same alignment, same statistics; ``tests/metrics/test_ate_evo.py`` checks it on real data). Note
 that the ``evo_ape`` command line defaults to ``--t_max_diff 0.01``; mslam's default is the
 TUM benchmark's 0.02 s.
 """

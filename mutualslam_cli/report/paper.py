@@ -1,4 +1,4 @@
-"""The paper's Tables 1–6 in the paper's shape, with mean ± std over seeds (issue 11, DESIGN §8).
+"""The paper's Tables 1–6 in the paper's shape, with mean ± std over seeds (DESIGN §8).
 
 Each builder takes the collected runs (:func:`mutualslam_cli.report.collect`) and returns a
 :class:`PaperTable`: a display frame (cells ``"mean ± std"``; ``"—"`` where no run has the value,
@@ -165,7 +165,7 @@ def _externals(runs: pd.DataFrame, key: str) -> list[Column]:
     return [(external_label(n), getter(n)) for n in external_names(runs)]
 
 
-#: The baselines of issue 12 that run as schemes: column label per scheme name.
+#: The baselines that run as schemes: column label per scheme name.
 BASELINES = (("Luo-style (luo)", "luo"), ("CoMoDa-style (comoda)", "comoda"))
 
 

@@ -64,7 +64,7 @@ TABLE5 = {
     (True, False, 500): {"Lab1": (19208, 0.515), "Lab2": (23998, 0.528)},
     (True, True, 500): {"Lab1": (9916, 0.493), "Lab2": (12686, 0.472)},
 }
-#: Table 6 (e_si of depth maps) for the paper's Monodepth2 rows (MiDaS and DiverseDepth rows: issue 12).
+#: Table 6 (e_si of depth maps) for the paper's Monodepth2 rows (MiDaS and DiverseDepth rows: ``mslam eval-depth``).
 TABLE6 = {"Pre-trained": {"Lab1": 0.401, "Lab2": 0.399}, "Ours": {"Lab1": 0.235, "Lab2": 0.219}}
 
 _PATTERNS = (

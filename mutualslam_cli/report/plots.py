@@ -29,6 +29,7 @@ import pandas as pd
 
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.datasets.associate import MAX_DT, read_tum_trajectory
+from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.errors import DatasetError, MslamError
 from mutualslam_cli.metrics.trajectory import ate
 from mutualslam_cli.report.columns import slug
@@ -202,8 +203,6 @@ def load_reference(run: Mapping[str, Any]) -> Reference:
     Raises:
         DatasetError: neither gives a sequence with GT poses (the message says why, shortened).
     """
-    from mutualslam_cli.datasets.registry import load_sequence
-
     folder = Path(run["folder"])
     sources = [str(run["sequence.name"])]
     try:

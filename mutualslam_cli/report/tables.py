@@ -156,7 +156,7 @@ def build_tables(runs: pd.DataFrame) -> Report:
         t = t.reset_index()
         rep.tables[name] = t if varied else t.drop(columns="config")
         rep.titles[name] = title
-    dense = dense_table(runs)  # issue 13: only when some run ran the dense stage
+    dense = dense_table(runs)  # only when some run ran the dense stage
     if dense is not None:
         rep.tables["dense"], rep.titles["dense"] = dense if varied else dense.drop(columns="config"), DENSE_TITLE
     for name, key, what in (("ablation", "depth.pcd.lsq.adapted", "every frame"),

@@ -1,4 +1,4 @@
-"""The dense stage of a run (issue 13): both models' depth fused along the run's poses, in metres,
+"""The dense stage of a run: both models' depth fused along the run's poses, in metres,
 scored against the same fusion of GT depth with GT poses.
 
 :func:`run_dense` is what ``mslam run --set dense.enabled=true`` calls after the evaluation;
@@ -58,7 +58,7 @@ from mutualslam_cli.vo.result import VOResult
 log = logging.getLogger(__name__)
 
 MODELS = ("pretrained", "adapted")
-#: The scores of issue 13, ``dense.<score>.<model>`` (DESIGN §8 style: null with a reason when absent).
+#: The dense scores, ``dense.<score>.<model>`` (DESIGN §8 style: null with a reason when absent).
 DENSE_KEYS = tuple(f"dense.{k}.{m}" for k in ("accuracy_m", "completeness_m", "fscore_5cm") for m in MODELS)
 #: Further per-model keys stored beside them.
 EXTRA_KEYS = tuple(f"dense.{k}.{m}" for k in ("precision_5cm", "recall_5cm", "accuracy_median_m",

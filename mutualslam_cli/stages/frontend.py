@@ -6,8 +6,8 @@ Every scheme of a grid reuses one front-end result, so :func:`run_frontend` keep
 
 The entry is data only: an ``np.savez`` archive of the arrays of
 :func:`~mutualslam_cli.vo.result.vo_to_arrays`, read back with ``allow_pickle=False``, so a results
-folder shared on a cluster cannot run code in whoever reads it. Entries written by earlier
-versions (``.pkl``, pickled) are ignored, never unpickled. An entry that cannot be read (truncated,
+folder shared on a cluster cannot run code in whoever reads it; any other file there (a pickle) is
+never read. An entry that cannot be read (truncated,
 garbage, another layout version) is logged as a warning naming the file, recomputed and overwritten.
 """
 
@@ -52,7 +52,7 @@ def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
         "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
         "seed": cfg.seed, "intr": seq.intrinsics.as_list(), "version": FRONTEND_VERSION,
     }
-    if cfg.vo.mode != "svo":  # "gt" was the depth oracle before version 2 of the oracles
+    if cfg.vo.mode != "svo":  # an oracle's result also depends on the oracles' version
         ident["oracle_version"] = ORACLE_VERSION
     return hashlib.sha1(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
 

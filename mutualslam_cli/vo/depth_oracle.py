@@ -26,8 +26,7 @@ from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import backproject, project, se3_inv, transform
 from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.vo.camera import distort_points as _distort
-from mutualslam_cli.vo.camera import undistort_points as _undistort
+from mutualslam_cli.vo.camera import distort_points, undistort_points
 from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 
 log = logging.getLogger(__name__)
@@ -92,7 +91,7 @@ def run_oracle(seq: Sequence, cfg: VOConfig, seed: int = 0,
         ok = d > 0
         raw, d = raw[ok][: cfg.gt_max_points], d[ok][: cfg.gt_max_points]
         hosts.append(np.full(len(d), k))
-        pixels.append(_undistort(raw, intr))
+        pixels.append(undistort_points(raw, intr))
         invd.append(1.0 / d.astype(np.float64))
         if progress:
             progress({"frame": fi, "n_frames": len(seq), "keyframes": k + 1, "tracked": int(ok.sum()),
@@ -116,7 +115,7 @@ def run_oracle(seq: Sequence, cfg: VOConfig, seed: int = 0,
             continue
         uv, z = project(transform(se3_inv(kf.pose), pw[cand]), K)
         inside = (z > 0) & in_image(uv, pin.width, pin.height)
-        dz = lookup_nearest(depths[k], _distort(uv, intr), fill=0.0)
+        dz = lookup_nearest(depths[k], distort_points(uv, intr), fill=0.0)
         vis = inside & (dz > 0) & (np.abs(dz - z) < OBS_DEPTH_TOL * np.maximum(z, 1e-6))
         for i, p in zip(cand[vis], uv[vis]):
             obs[i].append(k)

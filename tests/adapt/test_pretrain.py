@@ -10,7 +10,7 @@ import torch
 
 from mutualslam_cli.adapt.depthnet import DepthNet, make_adam
 from mutualslam_cli.adapt.pretrain import QUICK as QUICK_CFG
-from mutualslam_cli.adapt.pretrain import FramePool, _batch, pretrain, silog_loss
+from mutualslam_cli.adapt.pretrain import FramePool, pretrain, silog_loss, training_batch
 from mutualslam_cli.adapt.weights import load_monodepth2
 from mutualslam_cli.errors import ConfigError
 
@@ -37,7 +37,7 @@ def test_loss_decreases_on_fixed_batch():
     depth = (1.0 + np.linspace(0, 2, h)[:, None] * np.ones((1, w))).astype(np.float16)[None].repeat(2, 0)
     rgb = (rng.random((2, h, w, 3)) * 255).astype(np.uint8)
     rgb[..., 0] = (depth * 60).astype(np.uint8)  # a cue the net can pick up
-    x, gt = _batch(FramePool(rgb, depth), np.array([0, 1]), rng, None, augment=False)
+    x, gt = training_batch(FramePool(rgb, depth), np.array([0, 1]), rng, None, augment=False)
     net = DepthNet().train()
     opt = make_adam(net.parameters(), lr=1e-3)
     losses = []

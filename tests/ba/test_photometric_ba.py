@@ -27,7 +27,7 @@ def test_jacobians_match_central_differences():
     prob, _ = synthetic_problem(n_kf=5, n_points=150, hw=(96, 128), fy_sign=-1.0, seed=3)
     prob = perturb(prob, np.random.default_rng(3))
     prob.affine[:] = np.random.default_rng(2).normal(scale=0.1, size=prob.affine.shape)
-    d = ph._Data(prob, 3, 2.0)
+    d = ph.PatchData(prob, 3, 2.0)
     T, ab, rho = prob.T_cw, prob.affine, prob.inv_depth
     r, valid, _, Jc, Jp = ph.residuals(d, T, ab, rho, jac=True)
     obs = np.flatnonzero(valid.all(1))[:15]
@@ -40,7 +40,7 @@ def test_jacobians_match_central_differences():
             for s in (1, -1):
                 dc = np.zeros(len(T) * 8)
                 dc[kfs[j] * 8 + c % 8] = s * eps
-                T2, ab2, _ = ph._apply(T, ab, rho, dc, 0.0, np.array([kfs[j]]))
+                T2, ab2, _ = ph.apply_step(T, ab, rho, dc, 0.0, np.array([kfs[j]]))
                 out.append(ph.residuals(d, T2, ab2, rho)[0][j])
             num = (out[0] - out[1]) / (2 * eps)
             np.testing.assert_allclose(Jc[j, :, c], num, rtol=1e-4, atol=1e-6 * np.abs(num).max() + 1e-9)
@@ -52,7 +52,7 @@ def test_jacobians_match_central_differences():
 
 
 def test_zero_residual_at_truth(scene):
-    d = ph._Data(scene, 3, 2.0)
+    d = ph.PatchData(scene, 3, 2.0)
     r, valid, counted = ph.residuals(d, scene.T_cw, scene.affine, scene.inv_depth)
     assert valid.mean() > 0.99
     # only the bilinear interpolation error of the rendered images remains
@@ -67,7 +67,7 @@ def test_schur_step_equals_dense_solve(scene):
     keep = prob.obs_pt < 80
     prob = dataclasses.replace(prob, obs_pt=prob.obs_pt[keep], obs_kf=prob.obs_kf[keep])
     prob = perturb(prob, np.random.default_rng(4))
-    d = ph._Data(prob, 3, 2.0)
+    d = ph.PatchData(prob, 3, 2.0)
     T, ab, rho = prob.T_cw, prob.affine, prob.inv_depth
     nk, P = len(T), len(rho)
     ne = ph.normal_equations(d, T, ab, rho, 0.1)
@@ -163,7 +163,7 @@ def test_pyramid_downsampling_and_intrinsics_agree(scene):
     for name, K, pix in (("half-pixel", lp.K, lp.pixel),
                          ("c/2", np.diag([0.5, 0.5, 1.0]) @ scene.K, scene.pixel / 2)):
         p2 = dataclasses.replace(lp, K=K, pixel=pix)
-        r, valid, _ = ph.residuals(ph._Data(p2, 3, 2.0), p2.T_cw, p2.affine, p2.inv_depth)
+        r, valid, _ = ph.residuals(ph.PatchData(p2, 3, 2.0), p2.T_cw, p2.affine, p2.inv_depth)
         assert valid.mean() > 0.95
         med[name] = np.median(np.abs(r[valid]))  # median: patches over depth edges dominate RMS
     assert med["half-pixel"] < 3e-4  # box-filtered images are not exact renders at half size
