@@ -239,7 +239,8 @@ def pretrain(out_dir: Path, steps: int, width: int = 640, height: int = 192, bat
     for step in range(steps):
         for group in opt.param_groups:
             group["lr"] = _lr_at(step, steps, lr, min(warmup, steps))
-        x, gt = training_batch(FramePool(pool.rgb, pool.depth), rng.integers(0, len(pool), batch_size), rng, crop, augment)
+        idx = rng.integers(0, len(pool), batch_size)
+        x, gt = training_batch(FramePool(pool.rgb, pool.depth), idx, rng, crop, augment)
         with fast_context(use_fast):
             depth = net.predict(x)
         loss = silog_loss(depth, gt)
