@@ -1,7 +1,4 @@
 """``mslam datasets``, ``synth`` and ``pretrain``: the sequences, synthetic ones, and the default network.
-
-Library modules are imported inside each command: ``mslam --help`` and a typo stay instant instead
-of importing torch first (seconds).
 """
 
 from __future__ import annotations

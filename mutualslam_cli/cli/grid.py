@@ -1,7 +1,4 @@
 """``mslam ablate`` and ``mslam report``: the grid of runs and the paper's tables from it.
-
-Library modules are imported inside each command: ``mslam --help`` and a typo stay instant instead
-of importing torch first (seconds).
 """
 
 from __future__ import annotations

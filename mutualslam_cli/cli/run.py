@@ -1,8 +1,5 @@
 """``mslam run``, ``fuse``, ``eval-depth`` and ``ate``: one sequence, its dense reconstruction,
 another network's predictions scored alike, and the ATE of two trajectory files.
-
-Library modules are imported inside each command: ``mslam --help`` and a typo stay instant instead
-of importing torch first (seconds).
 """
 
 from __future__ import annotations
