@@ -1,5 +1,4 @@
-"""``mslam datasets``, ``synth`` and ``pretrain``: the sequences, synthetic ones, and the default network.
-"""
+"""``mslam datasets``, ``synth`` and ``pretrain``: the sequences, synthetic ones, and the default network."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""``mslam ablate`` and ``mslam report``: the grid of runs and the paper's tables from it.
-"""
+"""``mslam ablate`` and ``mslam report``: the grid of runs and the paper's tables from it."""
 
 from __future__ import annotations
 
