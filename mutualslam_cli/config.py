@@ -59,6 +59,18 @@ class VOConfig:
     """Fraction of last keyframe's features still tracked below which a keyframe is made."""
     min_tracked: int = 30
     """Fewer map-point tracks than this within 2 × ``ransac_threshold_px`` of the pose is a tracking loss."""
+    relocalise: bool = True
+    """After a tracking loss, look for the frame among the existing keyframes (ORB descriptors of
+    their map points, PnP-RANSAC, verified on the local map: :mod:`~mutualslam_cli.vo.relocalise`)
+    and continue in the same map; ``false`` re-initialises a new segment at once (the paper's SVO)."""
+    reloc_frames: int = 15
+    """Frames after a loss during which only relocalisation may continue the map; a new segment is
+    initialised after them (a camera that moved on to unseen parts cannot relocalise)."""
+    bridge_segments: bool = True
+    """Scale-consistent re-initialisation: a new segment (relocalisation failed) is joined to the map
+    before it by the adaptation stage, scaled by the network's depth ratio on both sides of the gap
+    and placed at the last tracked pose (:mod:`~mutualslam_cli.vo.segments`); ``false`` keeps every
+    segment in its own frame and unit (the paper's fresh start). Not part of the front end's cache key."""
     gt_kf_every: int = 5
     """``gt-depth`` oracle: a keyframe every k frames."""
     gt_max_points: int = 500

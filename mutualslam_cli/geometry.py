@@ -143,6 +143,25 @@ def exp_so3(phi: np.ndarray) -> np.ndarray:
     return np.eye(3)[None] + s * K + (1 - c) * (K @ K)
 
 
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Axis-angle ``(3,)`` of a rotation matrix ``(3, 3)`` (the inverse of :func:`exp_so3`), angle in [0, π]."""
+    q = rot_to_quat(R)  # qw ≥ 0: the angle is at most π
+    s = np.linalg.norm(q[:3])
+    if s < 1e-12:
+        return np.zeros(3)
+    return q[:3] / s * 2.0 * np.arctan2(s, q[3])
+
+
+def scale_motion(T: np.ndarray, s: float) -> np.ndarray:
+    """A relative motion ``T`` ``(4, 4)`` stretched in time by ``s``: rotation ``R^s`` (axis-angle × s),
+    translation × s. Exact for the rotation; for the translation it is the constant-velocity model's
+    first order (the motion of one frame turns a few degrees at most)."""
+    out = np.eye(4)
+    out[:3, :3] = exp_so3((s * log_so3(T[:3, :3]))[None])[0]
+    out[:3, 3] = s * T[:3, 3]
+    return out
+
+
 def left_update(T: np.ndarray, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
     """``T[idx] ← exp(d) · T[idx]`` for left increments ``d`` ``(len(idx), 6)`` = ``(ρ, φ)``,
     rotations projected back onto SO(3) (SVD); returns an updated copy of ``T`` ``(K, 4, 4)``."""

@@ -145,11 +145,11 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     evaluation.run_stage(run, fe, net0, adapted, fast)  # both models' depth on every frame with GT
     if cfg.dense.enabled:
         dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
-    return _finish(run, fe, ba, command, t_start)
+    return _finish(run, fe, ba, adapted.map.meta.get("bridges", []), command, t_start)
 
 
-def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, command: list[str] | None,
-            t_start: float) -> RunResult:
+def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, bridges: list[dict[str, Any]],
+            command: list[str] | None, t_start: float) -> RunResult:
     """The run's identity and stage times, ``manifest.json``, then ``summary.json`` (last: the run is complete)."""
     seq, cfg, summary = run.seq, run.cfg, run.summary
     total = time.perf_counter() - t_start
@@ -165,6 +165,7 @@ def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, command: list[s
         "vo_meta": {k: v for k, v in fe.vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
         "map_points_with_gt": fe.points_with_gt,
         "ba_runs": ba.record.runs,
+        "bridges": bridges,
     }))
     s = summary.to_dict()
     write_json(run.folder / "summary.json", s)

@@ -50,6 +50,9 @@ class KeyframeSample:
         pose: ``(4, 4)`` ``T_wc`` in the map frame (may be updated later by BA).
         uv: ``(M, 2)`` pixels ``(u, v)`` of the sparse map points at network resolution.
         depth: ``(M,)`` their depth in map units (D_sparse of Eq. 6).
+        segment: the front end's tracking segment. Photometric sources come from the same segment
+            only: across a re-initialisation the relative pose was not measured (a bridged segment
+            is placed by an estimate, :mod:`~mutualslam_cli.vo.segments`).
     """
 
     kf_id: int
@@ -58,6 +61,7 @@ class KeyframeSample:
     pose: np.ndarray
     uv: torch.Tensor
     depth: torch.Tensor
+    segment: int = 0
 
     def validate(self) -> None:
         """Raise :class:`~mutualslam_cli.errors.ShapeError` on a malformed sample."""
@@ -190,6 +194,16 @@ class KeyframeBuffer:
             raise KeyframeError(f"keyframe {kf_id} is unknown")
         return self._meta[kf_id].pose.copy()
 
+    def segment(self, kf_id: int) -> int:
+        """The tracking segment of a known keyframe (:attr:`KeyframeSample.segment`).
+
+        Raises:
+            KeyframeError: unknown id.
+        """
+        if kf_id not in self._meta:
+            raise KeyframeError(f"keyframe {kf_id} is unknown")
+        return self._meta[kf_id].segment
+
     @property
     def training_ids(self) -> list[int]:
         """Stored training keyframe ids, arrival order."""
@@ -217,12 +231,13 @@ class KeyframeBuffer:
         return [self._train[j] for j in (i - 1, i + 1) if 0 <= j < len(self._train)]
 
     def neighbours(self, kf_id: int) -> list[int]:
-        """Stored photometric sources of training keyframe ``kf_id``: s ∈ {i−1, i+1} (Eq. 4).
+        """Stored photometric sources of training keyframe ``kf_id``: s ∈ {i−1, i+1} (Eq. 4), of its segment.
 
         Only *training* keyframes adjacent in time count; for the newest keyframe that is just
         the previous one. Empty for the first training keyframe or an unknown id.
         """
-        return [k for k in self._adjacent(kf_id) if k in self._images]
+        seg = self._meta[kf_id].segment if kf_id in self._meta else None
+        return [k for k in self._adjacent(kf_id) if k in self._images and self._meta[k].segment == seg]
 
     def recent(self, k: int) -> list[int]:
         """The ``k`` most recent training ids, newest first."""

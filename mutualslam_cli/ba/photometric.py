@@ -39,7 +39,7 @@ from typing import Callable
 import numpy as np
 
 from mutualslam_cli.ba import pyramid
-from mutualslam_cli.ba.lm import apply_step, centre_gauge, solve_level, normal_equations
+from mutualslam_cli.ba.lm import apply_step, centre_gauge, normal_equations, solve_level
 from mutualslam_cli.ba.problem import NP, PhotoBAProblem, PhotoBAResult, validate
 from mutualslam_cli.ba.residuals import PatchData, residuals
 from mutualslam_cli.errors import ConfigError

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -28,12 +28,15 @@ from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages import comoda
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
+from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, set_ate
 from mutualslam_cli.types import Progress
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.vo.result import Keyframe, VOResult
+from mutualslam_cli.vo.segments import bridge_segment
 
 DepthOf = Callable[[int], np.ndarray]
 """``depth_of(kf_id)``: ``(h, w)`` depth of the current network at network resolution, map units."""
@@ -67,19 +70,36 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
         global_ba: run when Algorithm 1 requests global BA (module docstring); ``None``: the
             request is only recorded (``run_global_ba`` column).
 
+    A keyframe that starts a new tracking segment first joins it to the map before it, in its
+    unit, with the current network's depth (``vo.bridge_segments``, :mod:`~mutualslam_cli.vo.segments`).
+
     Returns:
         ``(adapted_net, per_keyframe_rows, adapter, map)``: ``map`` is the loop's map at the end
-        (``vo`` itself unless a BA ran); rows of BA keyframes have ``ba_s`` (seconds of the
-        trigger: L_val, culling, BA, feedback). For scheme ``none`` the network is returned
-        unchanged with no rows, ``adapter`` is ``None`` and the map is ``vo``.
+        (``vo`` itself unless a bridge or a BA moved it; ``meta["bridges"]`` lists the bridges);
+        rows of BA keyframes have ``ba_s`` (seconds of the trigger: L_val, culling, BA, feedback).
+        For scheme ``none`` the network is returned unchanged with no rows and ``adapter`` is ``None``.
     """
-    if cfg.adapt.scheme == "none":
-        return net, [], None, vo
     w, h = cfg.net.width, cfg.net.height
     K_net = torch.from_numpy(vo.intrinsics.scaled(w, h).K()).float()
     net = prepare(net, fast)
     load = keyframe_images(seq, vo, w, h)
-    held = [vo, vo.points_world()]  # the loop's map and its world points; a BA replaces both
+    held = [vo, vo.points_world()]  # the loop's map and its world points; a BA or a bridge replaces both
+    bridges: list[dict[str, Any]] = []
+    seen: set[int] = set()
+
+    def bridge(kf: Keyframe, depth_of: DepthOf) -> None:
+        """Join a new segment to the map before it, at the first keyframe of the segment."""
+        if seen and kf.segment not in seen and cfg.vo.bridge_segments:
+            out = bridge_segment(held[0], kf.id, depth_of, seq.load_gray, seq.intrinsics, held[1])
+            if out is not None:
+                held[:] = [out[0], out[0].points_world()]
+                bridges.append(vars(out[1]))
+        seen.add(kf.segment)
+
+    if cfg.adapt.scheme == "none":  # no training, but the unit still crosses the gaps (pre-trained depth)
+        for kf in vo.keyframes:
+            bridge(kf, depth_predictor(net, load, fast))
+        return net, [], None, _with_bridges(held[0], bridges)
     ba_s: dict[int, float] = {}
 
     def sparse(kf_id: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -103,9 +123,10 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
     rows = []
     t0 = time.perf_counter()
     for kf in vo.keyframes:
+        bridge(kf, depth_predictor(adapter.net, load, fast, adapter.buffer))
         uv, d = sparse(kf.id)
         sample = KeyframeSample(kf_id=kf.id, image=load(kf.id), K=K_net, pose=held[0].keyframes[kf.id].pose,
-                                uv=uv, depth=d)
+                                uv=uv, depth=d, segment=kf.segment)
         row = step_row(adapter.add_keyframe(sample))
         row["n_sparse"] = len(d)
         if kf.id in ba_s:
@@ -114,7 +135,12 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
         if progress:
             progress("adapt", {"done": kf.id + 1, "total": len(vo.keyframes), **row,
                                "elapsed_s": time.perf_counter() - t0})
-    return adapter.net, rows, adapter, held[0]
+    return adapter.net, rows, adapter, _with_bridges(held[0], bridges)
+
+
+def _with_bridges(vo: VOResult, bridges: list[dict[str, Any]]) -> VOResult:
+    """``vo`` with the segments it bridged listed under ``meta["bridges"]``."""
+    return replace(vo, meta={**vo.meta, "bridges": bridges})
 
 
 def step_row(info: StepInfo) -> dict[str, Any]:
@@ -175,7 +201,32 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, fast: bool,
     run.add_time("ba", ba_s)
     if rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
+    _summarise_bridges(run, adapted.map, cfg.adapt.scheme == "comoda")
     return adapted
+
+
+def _summarise_bridges(run: RunContext, loop_map: VOResult, comoda_scheme: bool) -> None:
+    """``vo.bridges`` and, when a segment was bridged, ``traj_{kf,all}_bridged.txt`` and
+    ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the adaptation loop's map (bridged
+    segments; Algorithm 1's BAs included) before the final BA, one Sim(3) as every headline ATE."""
+    keys = [f"trajectory.{group}.{leaf}" for group in ("ate_rmse_m", "ate_rmse_m_per_segment")
+            for leaf in ("bridged", "all_frames_bridged")]
+    if comoda_scheme:
+        why = "scheme 'comoda' does not run the keyframe loop that bridges segments"
+        for key in ("vo.bridges", *keys):
+            run.summary.absent(key, why)
+        return
+    bridges = loop_map.meta.get("bridges", [])
+    run.summary.set("vo.bridges", len(bridges))
+    if not bridges:
+        why = ("no segment to bridge" if len({k.segment for k in loop_map.keyframes}) < 2 else
+               "no bridge could be made (vo.bridge_segments=false, or no depth ratio on a side of a gap)")
+        for key in keys:
+            run.summary.absent(key, why)
+        return
+    write_trajectories(run.folder, loop_map.traj_kf, loop_map.traj_all, suffix="_bridged")
+    set_ate(run.summary, evaluate_trajectory(run.seq, loop_map, run.cfg.eval.ate_max_dt),
+            {"kf": "bridged", "all": "all_frames_bridged"})
 
 
 def _summarise(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float],

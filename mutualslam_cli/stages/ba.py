@@ -112,8 +112,9 @@ def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Modu
 
 
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).
-BA_KEYS = ("trajectory.ate_rmse_m.ba", "map.points.culled", "map.points.ba", "map.esi.culled", "map.esi.ba",
-           "timing.ba_s")
+BA_KEYS = ("trajectory.ate_rmse_m.ba", "trajectory.ate_rmse_m.all_frames_ba", "trajectory.ate_rmse_m_per_segment.ba",
+           "trajectory.ate_rmse_m_per_segment.all_frames_ba", "map.points.culled", "map.points.ba", "map.esi.culled",
+           "map.esi.ba", "timing.ba_s")
 
 
 class BAStage:
@@ -133,7 +134,7 @@ class BAStage:
     def finish(self, adapted: Adapted, fast: bool) -> None:
         """The final culling + BA of the loop's map with the final network: ``map_culled.ply`` (the front
         end's map without the culled points), ``map_ba.ply``, ``traj_{kf,all}_ba.txt``, the keys of
-        :data:`BA_KEYS`, ``trajectory.ate_rmse_m.all_frames_ba``, ``ba.*`` and, with injected
+        :data:`BA_KEYS`, ``ba.*`` and, with injected
         outliers, ``map.outliers.*`` and ``map.inliers.kept``."""
         run, fe, cfg = self.run, self.fe, self.run.cfg
         if self.step is None:
@@ -160,7 +161,7 @@ class BAStage:
         write_ply(run.folder / "map_ba.ply", vo_ba.points_world(), err_ba)
         write_trajectories(run.folder, vo_ba.traj_kf, vo_ba.traj_all, suffix="_ba")
         set_ate(summary, evaluate_trajectory(run.seq, vo_ba, run.cfg.eval.ate_max_dt),
-                {"kf": "trajectory.ate_rmse_m.ba", "all": "trajectory.ate_rmse_m.all_frames_ba"})
+                {"kf": "ba", "all": "all_frames_ba"})
         if no_culling:
             summary.absent("map.points.culled", no_culling)
             summary.absent("map.esi.culled", no_culling)

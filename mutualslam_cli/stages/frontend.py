@@ -48,7 +48,7 @@ def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
         "root": str(Path(seq.root).resolve()), "n": len(seq),
         "first": seq.frames[0].timestamp if len(seq) else None,
         "last": seq.frames[-1].timestamp if len(seq) else None,
-        "vo": {k: v for k, v in to_dict(cfg.vo).items() if k != "inject_outliers"},
+        "vo": {k: v for k, v in to_dict(cfg.vo).items() if k not in ("inject_outliers", "bridge_segments")},
         "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
         "seed": cfg.seed, "intr": seq.intrinsics.as_list(), "version": FRONTEND_VERSION,
     }
@@ -172,10 +172,17 @@ def run_stage(run: RunContext) -> FrontEnd:
         summary.set("timing.vo_fps", len(seq) / vo_time_s if vo_time_s > 0 else None)
     summary.set("map.points.vo", len(vo.points))
     set_ate(summary, evaluate_trajectory(seq, vo, cfg.eval.ate_max_dt),
-            {"kf": "trajectory.ate_rmse_m.vo", "all": "trajectory.ate_rmse_m.all_frames"})
+            {"kf": "vo", "all": "all_frames"})
     if mode != "svo":
         summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
     summary.set("map.esi.vo", esi, "no map point has GT depth at its host pixel")
+    summary.set("vo.segments", len({k.segment for k in vo.keyframes}))
+    if mode == "svo":
+        summary.set("vo.relocalisations", len(vo.meta.get("relocalisations", [])))
+        summary.set("vo.relocalisations_rejected", int(vo.meta.get("reloc_rejected", 0)))
+    else:
+        for key in ("vo.relocalisations", "vo.relocalisations_rejected"):
+            summary.absent(key, f"oracle front end (--vo {mode}): GT poses, nothing to relocalise")
     summary.set("vo.from_cache", cached)
     summary.set("vo.mode", mode)
     return FrontEnd(vo, cached, injected, err, n_gt)

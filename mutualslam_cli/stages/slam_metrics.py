@@ -20,34 +20,42 @@ from mutualslam_cli.vo.result import VOResult
 
 
 def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = MAX_DT) -> dict[str, object]:
-    """Sim(3)-aligned ATE of keyframes and of all tracked frames against the stored GT.
+    """ATE of the keyframes and of all tracked frames against the stored GT.
 
-    Re-initialised front ends (several segments) are aligned per segment (each has its own scale);
-    the result then says ``per_segment: True``.
+    The headline is one Sim(3) over the whole trajectory (evo's ``-as``, as ORB-SLAM3, DPVO and
+    DROID-SLAM report it): a front end that restarted in segments, each at the origin with its own
+    scale, pays for it there. When there are several segments, each aligned on its own is kept as
+    a secondary figure (``kf_per_segment``, ``all_per_segment``).
 
     Returns:
-        ``{"kf": AteResult|None, "all": AteResult|None, "notes": {...}}``.
+        ``{"kf": AteResult|None, "all": AteResult|None, "kf_per_segment": SegmentedAteResult|None,
+        "all_per_segment": …, "segments": int, "notes": {key: why a value is None}}``.
     """
-    out: dict[str, object] = {"kf": None, "all": None, "notes": {}}
+    out: dict[str, object] = {"kf": None, "all": None, "kf_per_segment": None, "all_per_segment": None,
+                              "notes": {}}
     notes: dict[str, str] = out["notes"]  # type: ignore[assignment]
+    kf_seg = np.array([k.segment for k in vo.keyframes])
+    out["segments"] = len(np.unique(kf_seg))
     if seq.gt is None or len(seq.gt) == 0:
         notes["trajectory"] = "sequence has no GT poses"
         return out
-    kf = vo.traj_kf
-    kf_seg = np.array([k.segment for k in vo.keyframes])
     tracked = vo.frame_segment >= 0
     all_seg = vo.frame_segment[tracked] if len(vo.frame_segment) == len(seq) else None
-    for key, traj, seg in (("kf", kf, kf_seg), ("all", vo.traj_all, all_seg)):
+    for key, traj, seg in (("kf", vo.traj_kf, kf_seg), ("all", vo.traj_all, all_seg)):
         if len(traj) < 3:
-            notes[key] = f"only {len(traj)} poses"
+            notes[key] = notes[f"{key}_per_segment"] = f"only {len(traj)} poses"
             continue
         try:
-            if seg is not None and len(seg) == len(traj) and len(np.unique(seg)) > 1:
-                out[key] = tm.ate_segments(seq.gt, traj, seg, max_dt=max_dt)
-            else:
-                out[key] = tm.ate(seq.gt, traj, align="sim3", max_dt=max_dt)
+            out[key] = tm.ate(seq.gt, traj, align="sim3", max_dt=max_dt)
         except MslamError as e:
             notes[key] = str(e)
+        if seg is None or len(seg) != len(traj) or len(np.unique(seg)) < 2:
+            notes[f"{key}_per_segment"] = "one segment: the single alignment is the only one"
+            continue
+        try:
+            out[f"{key}_per_segment"] = tm.ate_segments(seq.gt, traj, seg, max_dt=max_dt)
+        except MslamError as e:
+            notes[f"{key}_per_segment"] = str(e)
     return out
 
 
@@ -115,12 +123,19 @@ def map_esi(seq: Sequence, vo: VOResult, keep: np.ndarray | None = None) -> tupl
 
 
 def set_ate(summary: Summary, traj: dict[str, Any], names: dict[str, str]) -> None:
-    """RMSE of :func:`~mutualslam_cli.stages.evaluation.evaluate_trajectory`'s ``kf``/``all`` under ``names``."""
+    """:func:`evaluate_trajectory`'s RMSEs under ``names`` (``{"kf": leaf, "all": leaf}``): as
+    ``trajectory.ate_rmse_m.<leaf>`` (one Sim(3), the headline) and, secondary,
+    ``trajectory.ate_rmse_m_per_segment.<leaf>`` (each segment aligned on its own; equal to the
+    headline for one segment)."""
     for key, name in names.items():
-        r = traj[key]
-        if r is None:
-            summary.absent(name, traj["notes"].get(key, traj["notes"].get("trajectory", "not computed")))
-        else:
-            summary.set(name, float(r.rmse))
-            if getattr(r, "note", None):  # re-initialised VO: each segment aligned on its own
-                summary.notes[name] = r.note
+        for src, group in ((key, "ate_rmse_m"), (f"{key}_per_segment", "ate_rmse_m_per_segment")):
+            dotted = f"trajectory.{group}.{name}"
+            r = traj.get(src)
+            if r is None and src.endswith("_per_segment") and traj.get(key) is not None:
+                summary.set(dotted, float(traj[key].rmse))  # one segment
+            elif r is None:
+                summary.absent(dotted, traj["notes"].get(src, traj["notes"].get("trajectory", "not computed")))
+            else:
+                summary.set(dotted, float(r.rmse))
+                if getattr(r, "note", None):  # each segment aligned on its own
+                    summary.notes[dotted] = r.note

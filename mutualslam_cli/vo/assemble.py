@@ -31,6 +31,9 @@ class RunStats:
         reprojected: map points re-attached by re-projection.
         ba_stats: one dict per windowed BA (``points``, ``solve_ms``, …).
         ba_threaded: whether the windowed BA ran on a worker thread.
+        relocalisations: one dict per accepted relocalisation (``frame``, ``keyframe``, ``inliers``,
+            ``frames_lost``, ``candidates_tried``).
+        reloc_rejected: candidate poses the relocalisation's verification refuted.
     """
 
     segment: int
@@ -40,6 +43,8 @@ class RunStats:
     reprojected: int
     ba_stats: Seq[dict[str, Any]]
     ba_threaded: bool
+    relocalisations: Seq[dict[str, Any]] = ()
+    reloc_rejected: int = 0
 
 
 def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
@@ -95,8 +100,10 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
     timing = {k: 1000.0 * v / max(n_frames, 1) for k, v in stats.timing.items()}
     meta = {
         "mode": "svo",
-        "n_reinit": max(stats.segment, 0),
-        "segments": stats.segment + 1,
+        "n_reinit": max(len(stats.init_methods) - 1, 0),
+        "segments": len(stats.init_methods),
+        "relocalisations": list(stats.relocalisations),
+        "reloc_rejected": stats.reloc_rejected,
         "gaps": _gaps(frame_seg),
         "init_methods": list(stats.init_methods),
         "timing": timing,

@@ -41,6 +41,8 @@ class InitMixin:
 
     def _init_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
         cfg = self.cfg
+        if self._relocalise(i, gray):
+            return
         ref = self.ref
         stale = ref is None or len(ref["raw"]) < cfg.min_tracked or len(ref["hist"]) >= MAX_INIT_FRAMES
         if stale or prev_pyr is None:
@@ -58,6 +60,8 @@ class InitMixin:
         px1, x1 = self._undist(ref["raw"])
         if np.median(np.linalg.norm(px1 - px0, axis=1)) < cfg.kf_min_parallax_px:
             return
+        if self.reloc is not None and self.lost_at >= 0 and i - self.lost_at < cfg.reloc_frames:
+            return  # the map may still be found again: no new segment yet
         res = initialize(x0, x1, self.thr, min_points=cfg.min_tracked, seed=self.seed + i)
         if res is None:
             return
@@ -128,10 +132,13 @@ class InitMixin:
         self.tracks = t
         self.mapper.run(k1, self.segment)
         self.T_cw = m.T_cw(k1)
-        self.vel = np.eye(4)
+        self.vel, self.vel_dt, self.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
         self.last_kf = k1
         self._new_seeds(k1, gray)
         self.kf_imgs = {k0: ref["gray"], k1: gray}
+        if self.reloc is not None:
+            self.reloc.add_keyframe(k0, ref["gray"])
+            self.reloc.add_keyframe(k1, gray)
         self._record(i)
         self.state = "tracking"
         self.ref = None

@@ -63,3 +63,30 @@ def detect_grid(
     v = ii * grid_size + a // grid_size
     u = jj * grid_size + a % grid_size
     return np.stack([u, v], axis=1).astype(np.float32)
+
+
+#: Largest Hamming distance of an ORB match (of 256 bits) and Lowe's ratio of best to second best.
+ORB_MAX_HAMMING, ORB_RATIO = 64, 0.8
+
+
+def orb_features(gray: np.ndarray, n: int = 1000) -> tuple[np.ndarray, np.ndarray]:
+    """ORB keypoints and descriptors of a grey image (Rublee et al. 2011): ``(N, 2)`` float64 raw
+    pixels and ``(N, 32)`` uint8 descriptors (``N`` may be 0)."""
+    kps, desc = cv2.ORB_create(nfeatures=n).detectAndCompute(gray, None)
+    if desc is None:
+        return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
+    return np.array([k.pt for k in kps], np.float64), desc
+
+
+def orb_matches(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices ``(i, j)`` of ORB descriptors ``a[i]`` ↔ ``b[j]`` that pass the Hamming bound and Lowe's
+    ratio test (``(0,)`` arrays when there are none)."""
+    if len(desc_a) < 2 or len(desc_b) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(desc_a, desc_b, k=2)
+    good = [(p[0].queryIdx, p[0].trainIdx) for p in pairs
+            if len(p) == 2 and p[0].distance <= ORB_MAX_HAMMING and p[0].distance < ORB_RATIO * p[1].distance]
+    if not good:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    i, j = np.array(good, np.int64).T
+    return i, j

@@ -22,7 +22,7 @@ from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
-from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.geometry import scale_motion, se3_inv
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.assemble import RunStats, build_result
@@ -30,6 +30,7 @@ from mutualslam_cli.vo.bootstrap import InitMixin
 from mutualslam_cli.vo.camera import distort_points, focal_px, to_normalized, undistort_points
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.mapper import Mapper
+from mutualslam_cli.vo.relocalise import RelocIndex
 from mutualslam_cli.vo.reproject import reproject_points
 from mutualslam_cli.vo.result import VOResult
 from mutualslam_cli.vo.state import Map, Tracks
@@ -37,7 +38,7 @@ from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, 
 
 log = logging.getLogger(__name__)
 
-FRONTEND_VERSION = 2
+FRONTEND_VERSION = 3
 """Bumped whenever the front end's output changes for the same config (invalidates VO caches)."""
 
 BA_LAG = 4
@@ -49,6 +50,9 @@ KEEP_FACTOR = 2.0
 
 WEAK_FACTOR = 2
 """Below ``WEAK_FACTOR × min_tracked`` PnP inliers, lost map points are re-projected and matched."""
+
+MAX_STEP_RATIO = 4.0
+"""The motion prior stretches the last motion by at most this factor (or shrinks it by its inverse)."""
 
 SEED_PREDICT_SIGMA = 0.05
 """Seeds with σ below this fraction of their inverse-depth range are predicted from their mean depth."""
@@ -74,6 +78,8 @@ class _Frontend(InitMixin):
         self.ref: dict | None = None
         self.T_cw = np.eye(4)
         self.vel = np.eye(4)
+        self.vel_dt = 0.0  # the time the motion ``vel`` took (s; 0: unknown)
+        self.t_prev = 0.0  # timestamp of the last tracked frame
         self.n_at_kf = 0
         self.last_kf = -1
         self.frame_seg = -np.ones(len(seq), np.int64)
@@ -84,6 +90,9 @@ class _Frontend(InitMixin):
         self.kf_imgs: dict[int, np.ndarray] = {}
         self.n_reprojected = 0
         self.ba_due = 0
+        self.reloc = RelocIndex(self.intr) if cfg.relocalise else None
+        self.relocalisations: list[dict] = []
+        self.lost_at = -1  # frame of the last tracking loss
 
     # ---------------------------------------------------------------- helpers
     def _undist(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -98,18 +107,51 @@ class _Frontend(InitMixin):
 
     # ---------------------------------------------------------------- tracking
     def _lost(self, i: int, gray: np.ndarray, why: str) -> None:
+        if self._relocalise(i, gray):
+            return
         log.info("tracking lost at frame %d (%s)", i, why)
         self._collect_ba()
         self.state = "init"
+        self.lost_at = i
         self.tracks = Tracks.empty()
         self._start_ref(i, gray)
+
+    def _relocalise(self, i: int, gray: np.ndarray) -> bool:
+        """Find frame ``i`` in the map (:mod:`~mutualslam_cli.vo.relocalise`); on success continue the
+        matched keyframe's segment from it: tracks on the verified points, a keyframe at this frame."""
+        if self.reloc is None or not self.map.kf_frame:
+            return False
+        r = self.reloc.query(gray, self.map, self.thr, seed=self.seed + i)
+        if r is None:
+            return False
+        self._collect_ba()
+        m, n = self.map, len(r.pids)
+        self.segment = m.kf_segment[r.keyframe]
+        t = Tracks.empty()
+        t.raw = r.raw
+        t.px, t.xn = self._undist(r.raw)
+        t.pid = r.pids.astype(np.int64)
+        t.host = np.array([m.host[p] for p in r.pids], np.int64)
+        t.f_h, t.px_h = np.zeros((n, 3)), np.zeros((n, 2))
+        t.seed = dfl.new_seeds(n, dfl.SeedInit(1.0, 0.5))
+        t.kf_px, t.at_kf, t.obs = t.px.copy(), np.ones(n, bool), [[] for _ in range(n)]
+        self.tracks, self.T_cw, self.n_tracked = t, r.T_cw, r.inliers
+        self.vel, self.vel_dt, self.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
+        self.state, self.ref = "tracking", None
+        self.relocalisations.append({"frame": i, "keyframe": int(r.keyframe), "inliers": int(r.inliers),
+                                     "frames_lost": 0 if self.lost_at < 0 else i - self.lost_at,
+                                     "candidates_tried": int(r.candidates_tried)})
+        log.info("relocalised frame %d against keyframe %d (%d inliers)", i, r.keyframe, r.inliers)
+        self._keyframe(i, gray)
+        self._record(i)
+        return True
 
     def _track_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
         cfg, m = self.cfg, self.map
         if self.mapper.pending is not None and i >= self.ba_due:
             self._collect_ba()
         t0 = time.perf_counter()
-        T_prior = self.vel @ self.T_cw
+        T_prior = self._motion_prior(i) @ self.T_cw
         pred = self._predict(self.tracks, T_prior)
         raw, ok = klt_track(prev_pyr, pyr, self.tracks.raw, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px,
                             pred=pred)
@@ -140,6 +182,8 @@ class _Frontend(InitMixin):
         keep[pm[~near]] = False
         tr = tr.select(keep)
         self.vel = T @ se3_inv(self.T_cw)
+        t_i = self.seq.frames[i].timestamp
+        self.vel_dt, self.t_prev = t_i - self.t_prev, t_i
         self.T_cw = T
         self.n_tracked = int(inl.sum())
         # depth filter on the seed tracks
@@ -165,6 +209,16 @@ class _Frontend(InitMixin):
         if par > cfg.kf_min_parallax_px or ratio < cfg.kf_min_tracked_ratio:
             self._keyframe(i, gray)
         self._record(i)
+
+    def _motion_prior(self, i: int) -> np.ndarray:
+        """The constant-velocity guess of frame ``i``'s motion since the last tracked frame: the last
+        motion stretched to this frame's time step. A camera drops frames (TUM fr1: 64–68 ms gaps in a
+        30 Hz stream, often during fast motion), and a prior that assumes equal steps then misses by
+        the whole last motion."""
+        dt = self.seq.frames[i].timestamp - self.t_prev
+        if self.vel_dt <= 0 or dt <= 0:
+            return self.vel
+        return scale_motion(self.vel, float(np.clip(dt / self.vel_dt, 1.0 / MAX_STEP_RATIO, MAX_STEP_RATIO)))
 
     def _predict(self, tr: Tracks, T_cw: np.ndarray) -> np.ndarray:
         """Raw pixels where the tracks should appear under the motion prior ``T_cw``.
@@ -292,6 +346,8 @@ class _Frontend(InitMixin):
             m.add_observation(int(tr.pid[j]), kf, tr.px[j])
         for j in np.flatnonzero(tr.pid < 0):
             tr.obs[j] = tr.obs[j] + [(kf, tr.px[j])]
+        if self.reloc is not None:
+            self.reloc.add_keyframe(kf, gray)
         t1 = time.perf_counter()
         self.mapper.submit(kf, self.segment)  # solved on the worker, applied BA_LAG frames later
         self.ba_due = i + BA_LAG
@@ -338,7 +394,8 @@ class _Frontend(InitMixin):
         """The run's :class:`VOResult` (see :func:`~mutualslam_cli.vo.assemble.build_result`)."""
         stats = RunStats(segment=self.segment, init_methods=self.init_methods, timing=self.timing, total_s=total_s,
                          reprojected=self.n_reprojected, ba_stats=self.mapper.stats,
-                         ba_threaded=self.mapper.pool is not None)
+                         ba_threaded=self.mapper.pool is not None, relocalisations=self.relocalisations,
+                         reloc_rejected=self.reloc.rejected if self.reloc is not None else 0)
         return build_result(self.map, self.seq.frames, self.frame_rel, self.frame_seg, self.intr, stats)
 
 

@@ -48,16 +48,17 @@ def _fb_pass(prev: Pyramid, cur: Pyramid, p0: np.ndarray, guess: np.ndarray | No
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, KLT_ITERS, KLT_EPS_PX)
     crit_back = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, BACK_ITERS, BACK_EPS_PX)
     flags = 0 if guess is None else cv2.OPTFLOW_USE_INITIAL_FLOW
-    if guess is not None:
-        guess = guess.copy()  # OpenCV writes the result into the initial-flow array
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, guess, winSize=(win, win), maxLevel=levels,
+    start = None if guess is None else guess.copy()  # OpenCV writes the result into the initial-flow array
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, start, winSize=(win, win), maxLevel=levels,
                                           criteria=crit, flags=flags)
-    # the backward pass starts from p1 itself (no initial flow), so it cannot inherit the answer,
-    # searches the full pyramid and uses a smaller window (a consistency check, not the
-    # measurement: ~60 % of the cost)
+    # the backward pass starts where the prior says the point came from — p1 moved back by the
+    # guessed flow (no guess: p1 itself) — so it cannot inherit the forward answer; it searches the
+    # full pyramid with a smaller window (a consistency check, not the measurement: ~60 % of the cost)
     wb = max(9, (3 * win // 4) | 1)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, winSize=(wb, wb), maxLevel=back_levels,
-                                           criteria=crit_back)
+    back = None if guess is None else np.ascontiguousarray(p1 - (guess - p0), np.float32)
+    back_flags = 0 if back is None else cv2.OPTFLOW_USE_INITIAL_FLOW
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, back, winSize=(wb, wb), maxLevel=back_levels,
+                                           criteria=crit_back, flags=back_flags)
     h, w = cur.shape[:2]
     p1 = p1.reshape(-1, 2)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)

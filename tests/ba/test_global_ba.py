@@ -204,7 +204,7 @@ def test_feedback_reaches_later_batches(tmp_path, monkeypatch):
     monkeypatch.setattr(losses, "train_loss", spy)
     net, rows, adapter, loop_map = run_adaptation(seq, vo, TinyNet(), cfg, False, global_ba=fake_ba)
     assert [r["kf_id"] for r in rows if r["run_global_ba"]] == [3] and "ba_s" in rows[3]
-    assert len(maps) == 1 and loop_map is maps[0]
+    assert len(maps) == 1 and loop_map.keyframes is maps[0].keyframes and loop_map.points is maps[0].points
     refined = maps[0]
     pw = refined.points_world()
     for k in range(6):  # every stored keyframe carries the refined pose and sparse depth

@@ -123,23 +123,31 @@ def test_planar_scene_initialises_with_homography(tmp_path):
     assert ate(gt, r.traj_all).rmse < 0.01 * path_length(gt)
 
 
-def test_blackout_reinitialises_and_reports_gap(room_dir, tmp_path):
+@pytest.mark.parametrize("relocalise", [True, False])
+def test_blackout_relocalises_or_reinitialises_and_reports_gap(room_dir, tmp_path, relocalise):
+    """Five black frames: tracking is lost and the gap reported; after it the frame is found in the
+    map again (same segment), or — with relocalisation off, the paper's SVO — a new segment starts."""
     black = tmp_path / "black"
     shutil.copytree(room_dir, black)
     seq = load_sequence(black)
     for i in range(25, 30):
         cv2.imwrite(str(seq.frames[i].rgb_path), np.zeros((H, W, 3), np.uint8))
     calls = []
-    r = run_vo(load_sequence(black), VOConfig(), seed=0, progress=calls.append)
+    r = run_vo(load_sequence(black), VOConfig(relocalise=relocalise), seed=0, progress=calls.append)
     assert len(calls) == len(seq) and calls[-1]["n_frames"] == len(seq)
     assert {c["state"] for c in calls} >= {"init", "tracking"}
-    assert r.meta["n_reinit"] >= 1
     assert 0.5 < r.tracked_fraction < 1.0
     assert np.all(r.frame_segment[25:30] == -1)
     assert any(g[0] <= 25 and g[1] >= 29 for g in r.meta["gaps"])
-    assert r.frame_segment[-1] == r.meta["n_reinit"]  # tracked again, in a new segment
     segs = {k.segment for k in r.keyframes}
-    assert segs == set(range(r.meta["n_reinit"] + 1))
+    if relocalise:
+        assert r.meta["n_reinit"] == 0 and segs == {0} and r.frame_segment[-1] == 0
+        (rel,) = r.meta["relocalisations"]
+        assert rel["frame"] == 30 and rel["frames_lost"] == 5 and rel["inliers"] >= 40
+    else:
+        assert r.meta["n_reinit"] >= 1 and not r.meta["relocalisations"]
+        assert r.frame_segment[-1] == r.meta["n_reinit"]  # tracked again, in a new segment
+        assert segs == set(range(r.meta["n_reinit"] + 1))
 
 
 def test_all_black_sequence_is_untracked_not_an_error(tmp_path):

@@ -134,7 +134,8 @@ class Luo(Recent):
             return []
         pos = window.index(target)
         T = buffer.pose(target)
-        cands = sorted((k for k in window if k != target and k in buffer),
+        seg = buffer.segment(target)  # a pose across a re-initialisation was not measured
+        cands = sorted((k for k in window if k != target and k in buffer and buffer.segment(k) == seg),
                        key=lambda k: (abs(window.index(k) - pos), window.index(k)))
         return [k for k in cands
                 if is_stereo_pair(T, buffer.pose(k), c.luo_min_horizontal_ratio, c.luo_max_rotation_deg)]

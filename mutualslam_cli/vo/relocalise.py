@@ -1,0 +1,203 @@
+"""Relocalisation: a frame's pose in the existing map when frame-to-frame tracking has failed.
+
+KLT follows features from one frame to the next with a motion prior; fast rotation, a dropped
+frame and motion blur together (TUM fr1_desk: 5–10° between frames 64–68 ms apart, blurred)
+break that chain. A keyframe does not need the previous frame: each keyframe keeps its grey
+image, a thumbnail and its ORB features (:class:`RelocIndex`), and a lost frame is found against
+them.
+
+For a query frame:
+
+1. **Candidates**: the newest keyframes of the map and the keyframes whose thumbnails correlate
+   best with the frame's (zero-mean NCC), at most ``n_candidates``.
+2. **Coarse warp**: ORB features of the frame matched to the candidate's (Hamming distance,
+   Lowe's ratio test), a homography fitted to them by RANSAC: where the candidate's image content
+   went, whatever the motion (ORB needs no motion prior).
+3. **Matches**: the candidate's map points, predicted through that homography, refined by KLT from
+   the candidate's image (forward–backward checked); PnP-RANSAC on them.
+4. **Verification**, since a wrong relocalisation is worse than none: ``min_inliers`` inliers that are
+   at least ``min_ratio`` of the matches; a pose from a random half of the matches must place at
+   least ``min_ratio`` of the other half within the threshold; and where at least ``min_verified``
+   of the neighbouring keyframes' other map points fall in view, at least ``min_ratio`` of them must
+   be found by KLT (from their own keyframe images) where the pose projects them
+   (:func:`~mutualslam_cli.vo.reproject.reproject_points`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mutualslam_cli.pixels import in_image
+from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo.camera import distort_points, to_normalized, undistort_points
+from mutualslam_cli.vo.features import orb_features, orb_matches
+from mutualslam_cli.vo.reproject import reproject_points
+from mutualslam_cli.vo.state import Map
+from mutualslam_cli.vo.tracking import estimate_pose, klt_track, reprojection_errors
+
+#: Thumbnail size (width, height) for the appearance ranking, pixels.
+THUMB = (40, 30)
+#: ORB features per image.
+ORB_FEATURES = 1000
+#: RANSAC threshold of the coarse homography, pixels (it only has to bring KLT near).
+HOMOGRAPHY_PX = 8.0
+#: KLT of the relocalisation: window, pyramid levels above the prediction, forward-backward bound (px).
+KLT_WIN, KLT_LEVELS, KLT_FB_PX = 31, 2, 2.0
+
+
+@dataclass(frozen=True)
+class RelocSettings:
+    """Thresholds of a relocalisation (module docstring)."""
+
+    n_candidates: int = 4
+    """Keyframes tried per query: the newest two, then the best thumbnail matches."""
+    min_matches: int = 20
+    """ORB matches, homography inliers and PnP inliers below which a candidate is dropped."""
+    min_inliers: int = 40
+    """Inliers needed to accept (ORB-SLAM asks 50 for its relocalisation)."""
+    min_verified: int = 10
+    """Neighbours' points in view from which on they must be found where the pose projects them."""
+    min_ratio: float = 0.5
+    """Share of all matches that must be inliers."""
+    neighbours: int = 4
+    """Keyframes on either side of the candidate (same segment) whose points verify the pose."""
+
+
+@dataclass
+class Relocalisation:
+    """An accepted relocalisation.
+
+    Attributes:
+        T_cw: ``(4, 4)`` pose of the frame (world to camera, map units).
+        pids: ``(M,)`` inlying map points; raw: ``(M, 2)`` float32 their raw pixels in the frame.
+        keyframe: the candidate keyframe the pose came from.
+        inliers: matches within the RANSAC threshold of the pose.
+        candidates_tried: keyframes tried, this one included.
+    """
+
+    T_cw: np.ndarray
+    pids: np.ndarray
+    raw: np.ndarray
+    keyframe: int
+    inliers: int
+    candidates_tried: int
+
+
+def _thumb(gray: np.ndarray) -> np.ndarray:
+    """Zero-mean, unit-norm thumbnail of a grey image (appearance vector)."""
+    t = cv2.resize(gray, THUMB, interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
+    t -= t.mean()
+    n = float(np.linalg.norm(t))
+    return t / n if n > 0 else t
+
+
+class RelocIndex:
+    """What relocalisation keeps per keyframe: the grey image (the source of KLT), a thumbnail and
+    ORB features (~0.35 MB per 640×480 keyframe), and counters of its decisions."""
+
+    def __init__(self, intr: Intrinsics, settings: RelocSettings | None = None) -> None:
+        self.intr, self.K = intr, intr.K()
+        self.settings = settings or RelocSettings()
+        self.images: dict[int, np.ndarray] = {}
+        self.thumbs: dict[int, np.ndarray] = {}
+        self.features: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # kf → (raw keypoints (N, 2), descriptors)
+        self.rejected = 0  # candidate poses the verification refuted
+
+    def add_keyframe(self, kf: int, gray: np.ndarray) -> None:
+        """Record keyframe ``kf``'s grey image ``(H, W)`` uint8."""
+        self.images[kf] = gray
+        self.thumbs[kf] = _thumb(gray)
+        self.features[kf] = orb_features(gray, ORB_FEATURES)
+
+    def candidates(self, gray: np.ndarray, keyframes: list[int]) -> list[int]:
+        """The newest two of ``keyframes``, then the others by thumbnail similarity to ``gray``."""
+        ks = [k for k in keyframes if k in self.thumbs]
+        newest = sorted(ks)[-2:][::-1]
+        t = _thumb(gray)
+        rest = sorted((k for k in ks if k not in newest), key=lambda k: -float(self.thumbs[k] @ t))
+        return (newest + rest)[: self.settings.n_candidates]
+
+    def query(self, gray: np.ndarray, m: Map, thr: float, seed: int = 0,
+              keyframes: list[int] | None = None) -> Relocalisation | None:
+        """The pose of the grey frame ``gray`` in map ``m`` (``None``: no candidate passed).
+
+        Args:
+            thr: inlier threshold in normalised units (the front end's RANSAC threshold / f).
+            keyframes: keyframes that may serve (default: every keyframe of the index).
+        """
+        feats = orb_features(gray, ORB_FEATURES)
+        pool = sorted(self.images) if keyframes is None else keyframes
+        for tried, kf in enumerate(self.candidates(gray, pool), 1):
+            found = self._try(kf, m, gray, feats, thr, seed)
+            if found is not None:
+                return dataclasses.replace(found, candidates_tried=tried)
+        return None
+
+    def _try(self, kf: int, m: Map, gray: np.ndarray, feats: tuple[np.ndarray, np.ndarray], thr: float,
+             seed: int) -> Relocalisation | None:
+        s = self.settings
+        H = self._homography(self.features[kf], feats, seed)
+        pids = np.array(sorted(m.kf_points[kf]), np.int64)
+        if H is None or len(pids) < s.min_matches:
+            return None
+        src = distort_points(np.array([m.obs[p][kf] for p in pids]), self.intr).astype(np.float32)
+        pred = cv2.perspectiveTransform(src[:, None, :], H)[:, 0, :].astype(np.float32)
+        raw, ok = klt_track(self.images[kf], gray, src, KLT_WIN, KLT_LEVELS, KLT_FB_PX, pred=pred, retry=False)
+        if ok.sum() < s.min_matches:
+            return None
+        pids, raw = pids[ok], raw[ok]
+        xn = to_normalized(undistort_points(raw, self.intr), self.K)
+        T, inl = estimate_pose(m.Xw[pids], xn, [m.T_cw(kf)], thr, seed=seed)
+        if T is None or inl.sum() < s.min_matches:
+            return None
+        if not self._verified(T, kf, m, gray, pids, xn, thr, seed):
+            self.rejected += 1
+            return None
+        good = reprojection_errors(T, m.Xw[pids], xn) < thr
+        return Relocalisation(T, pids[good], raw[good].astype(np.float32), kf, int(good.sum()), 0)
+
+    def _verified(self, T: np.ndarray, kf: int, m: Map, gray: np.ndarray, pids: np.ndarray, xn: np.ndarray,
+                  thr: float, seed: int) -> bool:
+        """The tests a relocalised pose ``T`` must pass (module docstring): enough inliers among the
+        matches; a pose from a random half of them predicting the other half; and the neighbours'
+        points, where enough of them fall in view, found by KLT where ``T`` projects them."""
+        s = self.settings
+        Xw = m.Xw[pids]
+        inl = reprojection_errors(T, Xw, xn) < thr
+        if inl.sum() < s.min_inliers or inl.mean() < s.min_ratio:
+            return False
+        half = np.random.default_rng(seed).permutation(len(pids)) < len(pids) // 2
+        Ta = estimate_pose(Xw[half], xn[half], [m.T_cw(kf)], thr, seed=seed + 1)[0]
+        if Ta is None or np.mean(reprojection_errors(Ta, Xw[~half], xn[~half]) < thr) < s.min_ratio:
+            return False
+        window = [k for k in range(kf - s.neighbours, kf + s.neighbours + 1)
+                  if 0 <= k < len(m.kf_frame) and k != kf and m.kf_segment[k] == m.kf_segment[kf] and k in self.images]
+        others = np.array(sorted(set().union(*(m.kf_points[k] for k in window)) - set(pids.tolist())), np.int64)
+        h, w = gray.shape
+        if len(others):
+            Xc = m.Xw[others] @ T[:3, :3].T + T[:3, 3]
+            px = Xc[:, :2] / np.maximum(Xc[:, 2:3], 1e-9) @ self.K[:2, :2].T + self.K[:2, 2]
+            seen = (Xc[:, 2] > 0) & in_image(px, w, h, margin=KLT_WIN // 2)
+            if seen.sum() >= s.min_verified:
+                found, _ = reproject_points(m, {k: self.images[k] for k in window}, gray, T, pids, window,
+                                            self.intr, KLT_WIN, KLT_LEVELS, KLT_FB_PX, 2 * thr)
+                return len(found) >= s.min_ratio * seen.sum()
+        return True
+
+    def _homography(self, a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
+                    seed: int) -> np.ndarray | None:
+        """Raw-pixel homography from image ``a``'s ORB features to ``b``'s (``None``: too few matches)."""
+        (pa, da), (pb, db) = a, b
+        n = self.settings.min_matches
+        if len(pa) < n or len(pb) < n:
+            return None
+        i, j = orb_matches(da, db)
+        if len(i) < n:
+            return None
+        cv2.setRNGSeed(seed)  # OpenCV's RANSAC draws from its global RNG
+        H, mask = cv2.findHomography(pa[i], pb[j], cv2.RANSAC, HOMOGRAPHY_PX, maxIters=500, confidence=0.995)
+        return H if H is not None and int(mask.sum()) >= n else None

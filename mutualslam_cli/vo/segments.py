@@ -1,0 +1,173 @@
+"""Joining a re-initialised tracking segment to the map before it: scale-consistent re-initialisation.
+
+When relocalisation fails, the front end starts a new segment with its own origin and its own
+unit (median depth 1 at its initialisation). A depth predictor carries the unit across the gap:
+its ratio to the map on the last keyframe before the gap, ``r_prev = median(z_map / z_pred)``
+over that keyframe's map points, and on the new segment's first keyframe, ``r_new``, give the new
+segment's scale in the old unit, ``s = r_prev / r_new``. The predictor's own unit cancels, so any
+depth network serves; the adapted one, trained on this map's sparse depths, has ``r_prev ≈ 1``
+(CNN-SVO seeds its depth filter from a CNN in the same spirit).
+
+The new segment's first keyframe is placed at the last tracked pose before the gap, turned by the
+rotation between that frame's image and the keyframe's when the two give one (ORB matches, a
+homography by RANSAC on normalised coordinates, the rotation fitted to the inliers' bearings:
+over a few frames the camera turns far more than it moves); the translation over the gap is not
+observed and taken as zero. The segment keeps its id: its placement is an estimate (a *bridge*),
+so it shares no observation with the map before it, and everything that solves per connected part
+(the global BA) keeps treating it on its own — in the one unit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from mutualslam_cli.pixels import lookup_nearest
+from mutualslam_cli.types import Trajectory
+from mutualslam_cli.vo.camera import to_normalized, undistort_points
+from mutualslam_cli.vo.features import orb_features, orb_matches
+from mutualslam_cli.vo.result import MapPoints, VOResult
+
+#: Map points with a depth prediction a keyframe needs for its scale ratio.
+MIN_RATIO_POINTS = 10
+#: Homography inliers (normalised coordinates, this many pixels at the focal length) for a rotation.
+ROTATION_PX, MIN_ROTATION_MATCHES = 3.0, 30
+#: Median angle between the rotated bearings of the inliers (degrees) above which the rotation is not used.
+MAX_ROTATION_RESIDUAL_DEG = 1.0
+
+
+@dataclass
+class Bridge:
+    """How a segment was joined (``summary.json``'s ``vo.bridges`` counts them; the list goes to the manifest).
+
+    Attributes:
+        segment: the segment moved; onto: the segment before the gap.
+        frame: the segment's first keyframe's frame; last_frame: the last tracked frame before it.
+        scale: ``s``, old units per new unit; ratio_prev, ratio_new: ``median(z_map / z_pred)`` on
+            either side, from n_prev and n_new points.
+        rotation_deg: the rotation applied across the gap; rotation_from: ``images`` or ``none``.
+    """
+
+    segment: int
+    onto: int
+    frame: int
+    last_frame: int
+    scale: float
+    ratio_prev: float
+    ratio_new: float
+    n_prev: int
+    n_new: int
+    rotation_deg: float
+    rotation_from: str
+
+
+def depth_ratio(vo: VOResult, kf_id: int, depth: np.ndarray, points_w: np.ndarray | None = None) -> tuple[float, int]:
+    """``median(z_map / z_pred)`` over the map points keyframe ``kf_id`` observes, with ``depth``
+    ``(h, w)`` the predictor's map of that keyframe; ``(nan, n)`` with fewer than
+    :data:`MIN_RATIO_POINTS` points that have a positive prediction."""
+    uv, z = vo.sparse_depth(kf_id, points_w)
+    d = lookup_nearest(np.asarray(depth, float), uv, (vo.intrinsics.width, vo.intrinsics.height))
+    ok = np.isfinite(d) & (d > 0)
+    n = int(ok.sum())
+    return (float(np.median(z[ok] / d[ok])) if n >= MIN_RATIO_POINTS else float("nan")), n
+
+
+def rotation_between(gray_a: np.ndarray, gray_b: np.ndarray, vo: VOResult, intr_raw) -> np.ndarray | None:
+    """Rotation ``R`` with ``bearing_a ≈ R · bearing_b`` of two raw grey images, when their ORB matches
+    agree on one (``None`` otherwise). ``intr_raw``: the camera of the raw images (with distortion)."""
+    (pa, da), (pb, db) = orb_features(gray_a), orb_features(gray_b)
+    i, j = orb_matches(da, db)
+    if len(i) < MIN_ROTATION_MATCHES:
+        return None
+    K = vo.intrinsics.K()
+    xa = to_normalized(undistort_points(pa[i], intr_raw), K)
+    xb = to_normalized(undistort_points(pb[j], intr_raw), K)
+    f = abs(K[0, 0])
+    cv2.setRNGSeed(0)
+    H, mask = cv2.findHomography(xb, xa, cv2.RANSAC, ROTATION_PX / f, maxIters=1000, confidence=0.999)
+    if H is None or int(mask.sum()) < MIN_ROTATION_MATCHES:
+        return None
+    inl = mask.ravel().astype(bool)
+    ba = np.c_[xa[inl], np.ones(inl.sum())]
+    bb = np.c_[xb[inl], np.ones(inl.sum())]
+    ba /= np.linalg.norm(ba, axis=1, keepdims=True)
+    bb /= np.linalg.norm(bb, axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(ba.T @ bb)  # Wahba's problem (Kabsch): argmin Σ ‖b_a − R b_b‖²
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    resid = np.degrees(np.arccos(np.clip(np.sum(ba * (bb @ R.T), axis=1), -1.0, 1.0)))
+    return R if float(np.median(resid)) < MAX_ROTATION_RESIDUAL_DEG else None
+
+
+def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarray],
+                   gray_of_frame: Callable[[int], np.ndarray], intr_raw, points_w: np.ndarray | None = None,
+                   ) -> tuple[VOResult, Bridge] | None:
+    """Join the segment that starts at keyframe ``first_kf`` to the map before it (module docstring).
+
+    Args:
+        vo: the map (its segments before ``first_kf`` already in their final unit).
+        first_kf: the first keyframe of a segment that is not the first.
+        depth_of: ``kf_id → (h, w)`` predicted depth of a keyframe (any unit, positive).
+        gray_of_frame: ``frame index → (H, W)`` uint8 raw grey image.
+        intr_raw: the camera of the raw images (distortion included).
+        points_w: ``vo.points_world()`` when already computed.
+
+    Returns:
+        ``(vo', bridge)`` with the segment's keyframes, points and frames moved and scaled, or
+        ``None`` when a scale ratio cannot be measured on either side (the segment stays apart).
+    """
+    kfs = vo.keyframes
+    seg = kfs[first_kf].segment
+    before = [k for k in kfs[:first_kf] if k.segment != seg]
+    if not before:
+        return None
+    prev = before[-1]
+    pw = vo.points_world() if points_w is None else points_w
+    r_prev, n_prev = depth_ratio(vo, prev.id, depth_of(prev.id), pw)
+    r_new, n_new = depth_ratio(vo, first_kf, depth_of(first_kf), pw)
+    if not (np.isfinite(r_prev) and np.isfinite(r_new) and r_new > 0):
+        return None
+    s = r_prev / r_new
+    # the last tracked frame before the gap and its pose (in the old map's frame)
+    tracked = np.flatnonzero(vo.frame_segment >= 0)
+    pos = {int(f): n for n, f in enumerate(tracked)}
+    first_frame = kfs[first_kf].frame_index
+    last = max((f for f in tracked if f < first_frame and vo.frame_segment[f] == prev.segment),
+               default=prev.frame_index)
+    T_last = vo.traj_all.poses[pos[last]] if last in pos else prev.pose
+    R_rel = rotation_between(gray_of_frame(int(last)), gray_of_frame(first_frame), vo, intr_raw)
+    P = T_last.copy()
+    if R_rel is not None:
+        P[:3, :3] = T_last[:3, :3] @ R_rel
+    T0 = kfs[first_kf].pose
+    R_g = P[:3, :3] @ T0[:3, :3].T
+    t_g = P[:3, 3] - s * R_g @ T0[:3, 3]
+    moved = _apply(vo, seg, R_g, t_g, s)
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(R_rel) - 1) / 2, -1, 1)))) if R_rel is not None else 0.0
+    return moved, Bridge(int(seg), int(prev.segment), int(first_frame), int(last), float(s), r_prev, r_new, n_prev,
+                         n_new, angle, "images" if R_rel is not None else "none")
+
+
+def _apply(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float) -> VOResult:
+    """``vo`` with segment ``seg`` moved by the similarity ``x ↦ s·R·x + t``: keyframe and frame poses
+    ``T_wc ↦ [R·R_wc | s·R·t_wc + t]``, inverse depths ÷ ``s`` (points follow their hosts)."""
+    def move(T: np.ndarray) -> np.ndarray:
+        out = T.copy()
+        out[..., :3, :3] = R @ T[..., :3, :3]
+        out[..., :3, 3] = s * T[..., :3, 3] @ R.T + t
+        return out
+
+    kfs = [replace(k, pose=move(k.pose)) if k.segment == seg else k for k in vo.keyframes]
+    in_seg = np.array([k.segment == seg for k in vo.keyframes])
+    pts = vo.points
+    hosted = in_seg[pts.host] if len(pts.host) else np.zeros(0, bool)
+    points = MapPoints(pts.ids, pts.host, pts.pixel, np.where(hosted, pts.inv_depth / s, pts.inv_depth),
+                       np.where(hosted, pts.sigma / s, pts.sigma), pts.observations, pts.obs_pixels)
+    tracked = vo.frame_segment[vo.frame_segment >= 0]
+    poses = vo.traj_all.poses.copy()
+    sel = tracked == seg
+    if sel.any():
+        poses[sel] = move(poses[sel])
+    return replace(vo, keyframes=kfs, points=points, traj_all=Trajectory(vo.traj_all.timestamps, poses))

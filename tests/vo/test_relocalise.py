@@ -1,0 +1,78 @@
+"""Relocalisation against a map (mutualslam_cli.vo.relocalise) and its use by the front end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.vo.camera import to_normalized
+from mutualslam_cli.vo.features import detect_grid
+from mutualslam_cli.vo.relocalise import RelocIndex
+from mutualslam_cli.vo.state import Map
+from synth import make_sequence
+
+W, H = 320, 240
+THR = 2.0 / 250.0  # 2 px at the synthetic camera's focal length (~250 px at 320 px wide)
+
+
+@pytest.fixture(scope="module")
+def room():
+    return make_sequence("room", n=60, width=W, height=H, seed=3)
+
+
+def _gray(rgb: np.ndarray) -> np.ndarray:
+    return (0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]).astype(np.uint8)
+
+
+def _map(seq, kf_frames: list[int]) -> tuple[Map, RelocIndex]:
+    """A metric map with GT poses: keyframes at ``kf_frames``, map points from GT depth at grid corners."""
+    K = seq.intrinsics.K()
+    m, index = Map(), RelocIndex(seq.intrinsics)
+    for fi in kf_frames:
+        k = m.add_keyframe(fi, float(seq.timestamps[fi]), seq.poses[fi], 0)
+        gray = _gray(seq.rgb[fi])
+        px = detect_grid(gray, 16, 300)
+        z = seq.depth[fi][np.rint(px[:, 1]).astype(int), np.rint(px[:, 0]).astype(int)]
+        ok = z > 0
+        px, z = px[ok], z[ok]
+        m.add_points(np.full(len(z), k), px, to_normalized(px, K), 1.0 / z, np.zeros(len(z)), [{k: p} for p in px])
+        index.add_keyframe(k, gray)
+    return m, index
+
+
+def _pose_error(T_cw: np.ndarray, T_wc_gt: np.ndarray) -> tuple[float, float]:
+    """Position (map units = metres here) and rotation (degrees) error of an estimate."""
+    D = T_cw @ T_wc_gt
+    ang = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(se3_inv(T_cw)[:3, 3] - T_wc_gt[:3, 3])), float(ang)
+
+
+@pytest.mark.parametrize("query", [27, 41])
+def test_relocalisation_recovers_the_pose_of_an_unseen_frame(room, query):
+    """A frame between keyframes (no motion prior, no previous frame) is found within 1 cm and 0.5°."""
+    m, index = _map(room, [0, 10, 20, 30, 40, 50])
+    r = index.query(_gray(room.rgb[query]), m, THR, seed=query)
+    assert r is not None
+    dt, dr = _pose_error(r.T_cw, room.poses[query])
+    assert dt < 0.01 and dr < 0.5, (dt, dr)
+    assert r.inliers >= index.settings.min_inliers and len(r.pids) == r.inliers and r.raw.shape == (r.inliers, 2)
+    assert index.rejected == 0
+
+
+def test_a_frame_of_another_place_is_not_relocalised(room):
+    """No candidate of this room explains a frame of another scene: None, nothing accepted."""
+    m, index = _map(room, [0, 10, 20, 30, 40, 50])
+    other = make_sequence("far", n=2, width=W, height=H, seed=1)
+    assert index.query(_gray(other.rgb[1]), m, THR, seed=0) is None
+
+
+def test_a_planted_wrong_candidate_is_rejected(room):
+    """The only candidate offered carries another keyframe's image under its map points: its matches
+    give a pose that the verification refutes (or no pose at all), never an accepted relocalisation."""
+    m, index = _map(room, [0, 30])
+    index.images[1], index.features[1], index.thumbs[1] = index.images[0], index.features[0], index.thumbs[0]
+    assert index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[1]) is None
+    m2, honest = _map(room, [0, 30])
+    r = honest.query(_gray(room.rgb[31]), m2, THR, seed=0, keyframes=[1])  # the same query, honest candidate
+    assert r is not None and _pose_error(r.T_cw, room.poses[31])[0] < 0.01
