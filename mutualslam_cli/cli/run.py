@@ -43,12 +43,19 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
         t.add_row(label, fmt_value(f.get(f"{key}.pretrained"), 3 if key.startswith("dense") else 2),
                   fmt_value(f.get(f"{key}.adapted"), 3 if key.startswith("dense") else 2))
     common.console.print(t)
-    t2 = Table("ATE kf m", "ATE all m", "tracked", "keyframes", "map points", "map e_si", "depth ms", "ms/step")
-    cells = [("trajectory.ate_rmse_m.vo", 4), ("trajectory.ate_rmse_m.all_frames", 4), ("vo.tracked_fraction", 3),
+    t2 = Table("trajectory (keyframes, one Sim(3))", "ATE m", "per segment m")
+    for label, leaf in (("front end", "vo"), ("bridged segments", "bridged"), ("after global BA", "ba")):
+        if f.get(f"trajectory.ate_rmse_m.{leaf}") is not None:
+            t2.add_row(label, fmt_value(f.get(f"trajectory.ate_rmse_m.{leaf}"), 4),
+                       fmt_value(f.get(f"trajectory.ate_rmse_m_per_segment.{leaf}"), 4))
+    common.console.print(t2)
+    t3 = Table("tracked", "segments", "relocalised", "bridged", "keyframes", "map points", "map e_si", "depth ms",
+               "ms/step")
+    cells = [("vo.tracked_fraction", 3), ("vo.segments", 0), ("vo.relocalisations", 0), ("vo.bridges", 0),
              ("vo.keyframes", 3), ("map.points.vo", 3), ("map.esi.vo", 3), ("timing.depth_ms", 1),
              ("timing.finetune_ms", 0)]
-    t2.add_row(*(fmt_value(f.get(key), nd) for key, nd in cells))
-    common.console.print(t2)
+    t3.add_row(*(fmt_value(f.get(key), nd) for key, nd in cells))
+    common.console.print(t3)
     common.console.print(f"results: {folder}")
 
 

@@ -49,7 +49,12 @@ LINE_STYLES: tuple[Any, ...] = ("-", "-.", ":", (0, (3, 1, 1, 1, 1, 1)))
 MAX_ROWS = 6
 #: Trajectory colours: GT reference, VO, after global BA.
 TRAJ_STYLE = {"gt": ("GT reference", "#222222", "--"), "vo": ("VO (Sim(3)-aligned)", "#1f77b4", "-"),
+              "bridged": ("bridged segments (Sim(3)-aligned)", "#9467bd", "-"),
               "ba": ("after global BA (Sim(3)-aligned)", "#ff7f0e", "-")}
+#: Marks of the front end's events on the trajectories: kind → (legend label, colour, marker).
+EVENT_STYLE = {"segment": ("new segment (re-initialised)", "#d62728", "x"),
+               "bridge": ("new segment, bridged", "#9467bd", "s"),
+               "relocalised": ("relocalised", "#2ca02c", "^")}
 AXES = "xyz"
 
 
@@ -252,6 +257,23 @@ class TrackRow:
     stages: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     ate_text: list[str] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)
+    events: list[tuple[float, str]] = field(default_factory=list)
+
+
+def run_events(folder: Path) -> list[tuple[float, str]]:
+    """``(timestamp, kind)`` of the front end's events of a run (``manifest.json``): the start of every
+    segment after the first (``segment``, or ``bridge`` when the adaptation bridged it) and every
+    relocalisation; ``[]`` when the manifest does not have them."""
+    try:
+        m = json.loads((Path(folder) / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return []
+    meta = m.get("vo_meta") or {}
+    bridged = {b.get("segment") for b in m.get("bridges") or []}
+    out = [(float(s["timestamp"]), "bridge" if s["segment"] in bridged else "segment")
+           for s in meta.get("segment_starts", [])[1:]]
+    out += [(float(r["timestamp"]), "relocalised") for r in meta.get("relocalisations", []) if "timestamp" in r]
+    return sorted(out)
 
 
 def _read(folder: Path, name: str) -> Trajectory | None:
@@ -262,13 +284,14 @@ def _read(folder: Path, name: str) -> Trajectory | None:
 def track_row(folder: Path, gt: Trajectory, max_dt: float = MAX_DT, title: str = "") -> TrackRow:
     """Align a run's trajectories to ``gt`` (Sim(3), per file, as the pipeline's ATE).
 
-    Stage ``vo`` is ``traj_all.txt`` (else ``traj_kf.txt``), ``ba`` is ``traj_all_ba.txt``
-    (else ``traj_kf_ba.txt``); ``ate_text`` gives each stage's ATE RMSE of keyframes and of all
-    frames. A file that cannot be aligned (no overlap, degenerate) becomes a ``problems`` line.
+    Stage ``vo`` is ``traj_all.txt`` (else ``traj_kf.txt``), ``bridged`` ``traj_all_bridged.txt`` and
+    ``ba`` ``traj_all_ba.txt`` (else their ``traj_kf`` files); ``ate_text`` gives each stage's ATE
+    RMSE of keyframes and of all frames; ``events`` the run's :func:`run_events`. A file that cannot
+    be aligned (no overlap, degenerate) becomes a ``problems`` line.
     """
-    row = TrackRow(title, np.zeros(0), np.zeros((0, 3)))
+    row = TrackRow(title, np.zeros(0), np.zeros((0, 3)), events=run_events(folder))
     t_lo, t_hi = np.inf, -np.inf
-    for stage, suffix, label in (("vo", "", "VO"), ("ba", "_ba", "after BA")):
+    for stage, suffix, label in (("vo", "", "VO"), ("bridged", "_bridged", "bridged"), ("ba", "_ba", "after BA")):
         rmse = {}
         for which in ("kf", "all"):
             est = _read(folder, f"traj_{which}{suffix}.txt")
@@ -301,7 +324,7 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
         time_label: x label of the height panels (times are shown from the first GT pose drawn).
     Returns:
         A matplotlib Figure with ``2 * len(rows)`` axes (top view, height per row); lines carry
-        ``gid`` ``gt``, ``vo`` or ``ba``.
+        ``gid`` ``gt``, ``vo``, ``bridged`` or ``ba``, event marks ``event-<kind>``.
     """
     plt = _pyplot()
     k, sign = vertical
@@ -315,7 +338,8 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
         problems = [textwrap.shorten(p, 110) for p in row.problems] or ([] if row.stages else ["no trajectory file"])
         sf.suptitle("\n".join([row.title, ate_line, *problems]).replace("\n\n", "\n").strip(), fontsize=10)
         t0 = row.gt_t[0] if len(row.gt_t) else 0.0
-        curves = [("gt", row.gt_t, row.gt_p)] + [(s, *row.stages[s]) for s in ("vo", "ba") if s in row.stages]
+        curves = [("gt", row.gt_t, row.gt_p)] + [(s, *row.stages[s]) for s in ("vo", "bridged", "ba")
+                                                 if s in row.stages]
         for stage, t, p in curves if row.stages else []:
             label, colour, ls = TRAJ_STYLE[stage]
             z, lw = (3, 1.1) if stage == "gt" else (2, 1.4)  # the dashed GT over the estimates, as evo
@@ -324,6 +348,13 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
             handles.setdefault(label, line)
         if len(row.gt_p):
             top.plot(row.gt_p[:1, h], row.gt_p[:1, v], "o", color=TRAJ_STYLE["gt"][1], ms=4, gid="start")
+        est = row.stages.get("bridged") or row.stages.get("vo")
+        for t_event, kind in row.events if est is not None and len(est[0]) else []:
+            label, colour, marker = EVENT_STYLE[kind]
+            p = est[1][int(np.argmin(np.abs(est[0] - t_event)))]
+            (mark,) = top.plot(p[h], p[v], marker, color=colour, ms=7, mew=1.6, zorder=4, gid=f"event-{kind}")
+            height.axvline(t_event - t0, color=colour, lw=0.9, ls=":", zorder=1, gid=f"event-{kind}")
+            handles.setdefault(label, mark)
         top.set_aspect("equal", adjustable="datalim")
         top.set_xlabel(f"{AXES[h]} (m)")
         top.set_ylabel(f"{AXES[v]} (m)")

@@ -105,6 +105,9 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         "relocalisations": list(stats.relocalisations),
         "reloc_rejected": stats.reloc_rejected,
         "gaps": _gaps(frame_seg),
+        "segment_starts": [{"segment": int(sg), "frame": int(i), "timestamp": float(frames[i].timestamp)}
+                           for sg in sorted(set(frame_seg[frame_seg >= 0].tolist()))
+                           for i in [int(np.flatnonzero(frame_seg == sg)[0])]],
         "init_methods": list(stats.init_methods),
         "timing": timing,
         "timing_unit": "ms per frame (mean over all frames)",

@@ -138,7 +138,8 @@ class _Frontend(InitMixin):
         self.tracks, self.T_cw, self.n_tracked = t, r.T_cw, r.inliers
         self.vel, self.vel_dt, self.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
         self.state, self.ref = "tracking", None
-        self.relocalisations.append({"frame": i, "keyframe": int(r.keyframe), "inliers": int(r.inliers),
+        self.relocalisations.append({"frame": i, "timestamp": float(self.seq.frames[i].timestamp),
+                                     "keyframe": int(r.keyframe), "inliers": int(r.inliers),
                                      "frames_lost": 0 if self.lost_at < 0 else i - self.lost_at,
                                      "candidates_tried": int(r.candidates_tried)})
         log.info("relocalised frame %d against keyframe %d (%d inliers)", i, r.keyframe, r.inliers)

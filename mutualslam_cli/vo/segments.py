@@ -45,7 +45,8 @@ class Bridge:
 
     Attributes:
         segment: the segment moved; onto: the segment before the gap.
-        frame: the segment's first keyframe's frame; last_frame: the last tracked frame before it.
+        frame: the segment's first keyframe's frame, at ``timestamp`` (s); last_frame: the last
+            tracked frame before it.
         scale: ``s``, old units per new unit; ratio_prev, ratio_new: ``median(z_map / z_pred)`` on
             either side, from n_prev and n_new points.
         rotation_deg: the rotation applied across the gap; rotation_from: ``images`` or ``none``.
@@ -54,6 +55,7 @@ class Bridge:
     segment: int
     onto: int
     frame: int
+    timestamp: float
     last_frame: int
     scale: float
     ratio_prev: float
@@ -146,8 +148,8 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
     t_g = P[:3, 3] - s * R_g @ T0[:3, 3]
     moved = _apply(vo, seg, R_g, t_g, s)
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R_rel) - 1) / 2, -1, 1)))) if R_rel is not None else 0.0
-    return moved, Bridge(int(seg), int(prev.segment), int(first_frame), int(last), float(s), r_prev, r_new, n_prev,
-                         n_new, angle, "images" if R_rel is not None else "none")
+    return moved, Bridge(int(seg), int(prev.segment), int(first_frame), float(kfs[first_kf].timestamp), int(last),
+                         float(s), r_prev, r_new, n_prev, n_new, angle, "images" if R_rel is not None else "none")
 
 
 def _apply(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float) -> VOResult:

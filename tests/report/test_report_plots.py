@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -193,3 +194,30 @@ def test_vertical_axis(world_up, expected, rng):
         fwd = np.cross(right, down)
         rots.append(np.stack([right, down, fwd], axis=1))
     assert rp.vertical_axis(np.asarray(rots)) == expected
+
+
+def test_segment_starts_bridges_and_relocalisations_are_marked(seq_dir: Path, tmp_path: Path, rng):
+    """The manifest's front-end events become marks on the trajectory and lines over time; a bridged
+    segment is drawn as one, with its own curve."""
+    gt = load_sequence(seq_dir).gt
+    folder = _run(tmp_path / "runs", "synth", "replay+ewc", 0, seq_root=seq_dir)
+    write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 0.4, rng, noise=0.001))
+    write_tum_trajectory(folder / "traj_all_bridged.txt", _sim3(gt, 0.4, rng, noise=0.001))
+    t = gt.timestamps
+    m = json.loads((folder / "manifest.json").read_text())
+    m["vo_meta"] = {"segment_starts": [{"segment": 0, "frame": 0, "timestamp": t[0]},
+                                       {"segment": 1, "frame": 5, "timestamp": t[5]},
+                                       {"segment": 2, "frame": 8, "timestamp": t[8]}],
+                    "relocalisations": [{"frame": 3, "timestamp": t[3]}]}
+    m["bridges"] = [{"segment": 2, "onto": 1}]
+    write_json(folder / "manifest.json", m)
+    assert rp.run_events(folder) == [(t[3], "relocalised"), (t[5], "segment"), (t[8], "bridge")]
+    row = rp.track_row(folder, gt, 0.02)
+    assert set(row.stages) == {"vo", "bridged"}
+    fig = rp.trajectory_figure([row], "synth", rp.vertical_axis(gt.poses[:, :3, :3]), "time (s)")
+    top, height = fig.axes
+    assert {ln.get_gid() for ln in top.get_lines()} >= {"bridged", "event-relocalised", "event-segment", "event-bridge"}
+    assert sum(ln.get_gid() == "event-bridge" for ln in height.get_lines()) == 1
+    assert {t.get_text() for t in fig.legends[0].get_texts()} >= {"relocalised", "new segment (re-initialised)",
+                                                                   "new segment, bridged"}
+    assert rp.run_events(tmp_path) == []  # no manifest: no marks
