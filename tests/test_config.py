@@ -23,7 +23,7 @@ def test_paper_values():
     assert (c.adapt.ewc_beta, c.adapt.ewc_max_f, c.adapt.mas_lambda, c.adapt.si_lambda) == (5e7, 1e-3, 0.5, 1.0)
     assert (c.adapt.validate_every, c.adapt.patience, c.adapt.tau_val) == (5, 3, 0.2)
     assert (c.vo.grid_size, c.vo.max_fts, c.vo.core_kfs) == (20, 500, 5)
-    assert (c.ba.gamma, c.ba.d_max, c.ba.patch, c.ba.max_targets) == (0.5, 1.5, 3, 5)
+    assert (c.ba.gamma, c.ba.d_max, c.ba.pattern, c.ba.max_targets) == (0.5, 1.5, "square3", 5)
     assert (c.net.width, c.net.height, c.net.min_depth, c.net.max_depth) == (640, 192, 0.1, 100.0)
 
 

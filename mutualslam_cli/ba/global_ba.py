@@ -16,13 +16,22 @@ Choices the paper leaves open (written down here):
   request) to 64 mm and map e_si from 0.176 to 0.238. A projected host pixel is off the tracked
   feature by the reprojection error, so each re-hosting moves the patch off its corner.
   ``n_judged_elsewhere`` counts the points judged in another keyframe than their host.
-- **Targets** (≤ ``max_targets`` per point): the point's existing observations, nearest keyframe
-  index first, where the point projects inside the image (patch + 2 px margin). DESIGN §6 would
-  add nearby keyframes with a good patch correlation; not done: on the plane scene of
-  :mod:`~mutualslam_cli.bench.ba` a 5×5 NCC ≥ 0.95 test let occluded patches in (8 of 56 added
-  targets) and 72 added targets among 5 264 took the poses from 0.2 mm to 1–8 cm; on
-  ``tum_fr1_xyz`` (NCC ≥ 0.8, half resolution, one level) they gave keyframe ATE 13.3 vs 12.6 mm
-  and map e_si 0.137 vs 0.146: no clear gain for that risk.
+- **Targets** (≤ ``max_targets`` per point, paper §III-C: "re-projections to the nearby keyframes,
+  including the existing 3D-2D constraints"): the point's existing observations first (nearest
+  keyframe index first, at most ``max_targets − nearby_slots``), then the keyframes of its segment
+  nearest to its host *in space* (camera centres), where it projects inside the image in front of
+  the camera, not more than
+  :data:`MAX_DEPTH_RATIO` farther or nearer than in its host, and where its block passes the robust
+  test at the start (:func:`~mutualslam_cli.ba.residuals.classify`). Keyframes far apart in time
+  that see the same place are what pulls drift out of a sequence that returns; an occluded or
+  mismatched target is kept out by that test and again at every round of the solver. The slots
+  kept for them matter: a tracked point has its five neighbours in time as observations, and with
+  all five taken first a synthetic 1,600-frame room sequence that returns to its start got 223
+  nearby targets of 23,034 and keyframe ATE 5.5 → 4.7 mm; with two slots kept, 2.6 mm.
+- **Host pixels** sit on integer positions of the BA images (rounded; the refined point keeps the
+  rounded pixel): the host intensities of the residual pattern are samples, not interpolations.
+- **Dropped points**: a point whose blocks are mostly outliers at the end (the solver's
+  ``dropped``) leaves the map like a culled one; ``n_dropped`` counts them (culling: ``n_culled``).
 - **Unrefined points**: a kept point with no valid target (or whose host patch leaves the image)
   is not in the BA and is kept *as it is* (host, pixel, inverse depth unchanged; it moves with its
   host keyframe's pose). Counted in ``n_unrefined``. So is a point whose inverse depth the BA
@@ -31,7 +40,7 @@ Choices the paper leaves open (written down here):
   the map's e_si from 0.11 to 0.62; the other 648 moved by 9 % (median).
 - **Segments**: a re-initialised front end has one map frame and scale per segment and no point
   is shared between segments, so each segment is its own BA (its first keyframe fixed, the scale
-  held by the solver's prior on its first free baseline). Keyframes without any residual stay fixed.
+  held by the solver's prior on the extent of its keyframe trajectory). Keyframes without any residual stay fixed.
 - **Partial BA** (``upto``): only keyframes ``≤ upto`` and the points they host exist yet
   (Algorithm 1 triggers mid-run). Everything else follows the correction of its nearest refined
   keyframe, ``T_new = T_ref_new · T_ref_old⁻¹ · T``: later keyframes that of the last refined
@@ -48,7 +57,8 @@ from typing import Callable, Mapping
 import numpy as np
 
 from mutualslam_cli.ba.culling import cull_map_points
-from mutualslam_cli.ba.photometric import PhotoBAProblem, solve
+from mutualslam_cli.ba.photometric import PhotoBAProblem, PhotoBAResult, solve
+from mutualslam_cli.ba.residuals import DSO_PATTERN, SQUARE3, PatchData, classify, residuals
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
@@ -58,11 +68,11 @@ from mutualslam_cli.vo.result import VOResult
 
 #: Pixels at the border of the BA image where a projection is invalid (the solver's margin).
 MARGIN = 2.0
-#: Pyramid levels of the solver (coarse-to-fine; 1 when the image is under 64 px on a side). On the
-#: 6-keyframe plane scene at 320×240 with 1 cm / 0.3° / 2 % noise, one level stops at 7× the cost
-#: of the true state (pose errors up to 1.1 mm), two go below it (0.2 mm). On ``tum_fr1_xyz`` at
-#: half resolution the two are close: map e_si after BA 0.113 vs 0.115, keyframe ATE 13.2 vs 12.6 mm.
-LEVELS = 2
+#: A nearby keyframe is a target only if the point's depth there is within this factor of its host depth
+#: (the pattern is compared fronto-parallel: a large change of scale makes it a different patch).
+MAX_DEPTH_RATIO = 1.5
+#: Nearby keyframes (by camera centre) tried per point beyond its existing observations.
+NEARBY = 8
 #: Largest factor by which the BA may change a point's inverse depth; beyond it the point keeps
 #: its value before BA (an under-constrained depth, e.g. one short-baseline target). The same
 #: factor as a gross outlier of Eq. 10 with γ = 0.5.
@@ -74,41 +84,94 @@ class GlobalBAResult:
     """Output of :func:`run_global_ba`.
 
     Attributes:
-        vo: refined copy of the input: keyframe poses ≤ ``upto`` and the inverse depths of refined
-            points replaced (hosts and pixels stay), the rest following (module docstring). Culled
-            points are still in it, unchanged; :meth:`kept` drops them.
+        vo: refined copy of the input: keyframe poses ≤ ``upto``, and the inverse depths and (integer)
+            host pixels of refined points replaced (hosts stay), the rest following (module
+            docstring). Culled and dropped points are still in it, unchanged; :meth:`kept` drops them.
         keep: ``(P,)`` bool over the input's points, False = culled by Eq. 10.
+        dropped: ``(P,)`` bool, points the BA found to be outliers (mostly outlier blocks).
         stats: ``n_points, n_culled, n_judged, n_judged_elsewhere, n_refined, n_unrefined`` (kept, not
-            refined; ``n_diverged`` of them by :data:`MAX_CHANGE`), ``n_targets, keyframes, cost0,
-            cost`` (summed over segments), ``costs`` (per segment, the full-resolution sequence),
-            ``iterations, accepted, seconds``.
+            refined; ``n_diverged`` of them by :data:`MAX_CHANGE`), ``n_dropped``, ``n_targets``
+            (``n_nearby_targets`` of them beyond the existing observations), ``n_blocks``,
+            ``n_outlier_blocks``, ``keyframes``, ``cost0``, ``cost`` (summed over segments), ``costs``
+            (per segment, the last round's sequence), ``iterations``, ``accepted``, ``seconds``.
     """
 
     vo: VOResult
     keep: np.ndarray
+    dropped: np.ndarray
     stats: dict = field(default_factory=dict)
 
     def kept(self) -> VOResult:
-        """The refined map without the culled points."""
-        return replace(self.vo, points=self.vo.points.subset(self.keep))
+        """The refined map without the culled and the dropped points."""
+        return replace(self.vo, points=self.vo.points.subset(self.keep & ~self.dropped))
 
 
-def _targets(K, T_cw, host, pix, rho, obs, max_targets, shape, border):
+def _project(K: np.ndarray, T_cw: np.ndarray, host: np.ndarray, pix: np.ndarray, rho: np.ndarray,
+             pt: np.ndarray, kf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels ``(N, 2)``, depths ``(N,)`` in keyframe ``kf`` and host depths ``(N,)`` of points ``pt``."""
+    h = host[pt]
+    ray = np.c_[(pix[pt] - K[:2, 2]) / np.diag(K)[:2], np.ones(len(pt))] / rho[pt, None]
+    T_th = T_cw[kf] @ np.linalg.inv(T_cw[h])
+    X = np.einsum("nij,nj->ni", T_th[:, :3, :3], ray) + T_th[:, :3, 3]
+    z = X[:, 2]
+    uv = (X[:, :2] / np.where(z > 1e-9, z, 1.0)[:, None]) * np.diag(K)[:2] + K[:2, 2]
+    return uv, z, 1.0 / rho[pt]
+
+
+def _existing_targets(K, T_cw, host, pix, rho, obs, max_targets, shape, border):
     """``(obs_pt, obs_kf)`` of one segment (local keyframe indices): per point its observations
     ``obs[i]`` where it projects inside, nearest keyframe index first, at most ``max_targets``."""
     cand_p = np.repeat(np.arange(len(host)), [len(o) for o in obs]).astype(np.int64)
     cand_k = np.concatenate(obs).astype(np.int64) if obs else np.zeros(0, np.int64)
+    uv, z, _ = _project(K, T_cw, host, pix, rho, cand_p, cand_k)
     h = host[cand_p]
-    ray = np.c_[(pix[cand_p] - K[:2, 2]) / np.diag(K)[:2], np.ones(len(cand_p))] / rho[cand_p, None]
-    T_th = T_cw[cand_k] @ np.linalg.inv(T_cw[h])
-    X = np.einsum("nij,nj->ni", T_th[:, :3, :3], ray) + T_th[:, :3, 3]
-    z = X[:, 2]
-    uv = (X[:, :2] / np.where(z > 1e-9, z, 1.0)[:, None]) * np.diag(K)[:2] + K[:2, 2]
     sel = np.flatnonzero((z > 1e-9) & (cand_k != h) & in_image(uv, shape[1], shape[0], border))
     order = sel[np.lexsort((cand_k[sel], np.abs(cand_k[sel] - h[sel]), cand_p[sel]))]
-    p = cand_p[order]
-    take = order[np.arange(len(p)) - np.searchsorted(p, p) < max_targets]  # rank within the point
-    return cand_p[take], cand_k[take]
+    return _first_per_point(cand_p[order], cand_k[order], max_targets)
+
+
+def _first_per_point(p: np.ndarray, k: np.ndarray, n: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``n`` (per point, or one number) of the pairs ``(p, k)``, already grouped by point."""
+    if len(p) == 0:
+        return p, k
+    rank = np.arange(len(p)) - np.searchsorted(p, p)  # position within the point's run
+    take = rank < (n[p] if isinstance(n, np.ndarray) else n)
+    return p[take], k[take]
+
+
+def _nearby_targets(stack, K, T_cw, ab, rho, host, pix, op, ok, cfg, border):
+    """More targets for points with fewer than ``max_targets``: keyframes near the host in space where
+    the point projects inside, at a similar depth, and whose block passes the robust test now."""
+    nk, P = len(T_cw), len(host)
+    have = np.bincount(op, minlength=P)
+    want = np.maximum(cfg.max_targets - have, 0)
+    if nk < 3 or not want.any():
+        return op[:0], ok[:0]
+    c = -np.einsum("kji,kj->ki", T_cw[:, :3, :3], T_cw[:, :3, 3])
+    near = np.argsort(np.linalg.norm(c[:, None] - c[None], axis=2), axis=1, kind="stable")[:, 1:NEARBY + 1]
+    pts = np.flatnonzero(want > 0)
+    cand_p = np.repeat(pts, near.shape[1])
+    cand_k = near[host[pts]].ravel()
+    taken = set((op.astype(np.int64) * nk + ok).tolist())
+    fresh = ~np.isin(cand_p * nk + cand_k, list(taken)) & (cand_k != host[cand_p])
+    cand_p, cand_k = cand_p[fresh], cand_k[fresh]
+    uv, z, zh = _project(K, T_cw, host, pix, rho, cand_p, cand_k)
+    ratio = z / zh
+    sel = (z > 1e-9) & (ratio < MAX_DEPTH_RATIO) & (ratio > 1 / MAX_DEPTH_RATIO)
+    sel &= in_image(uv, stack.shape[2], stack.shape[1], border)
+    cand_p, cand_k = cand_p[sel], cand_k[sel]
+    if not len(cand_p):
+        return op[:0], ok[:0]
+    probe = PhotoBAProblem(stack, K, T_cw, ab, host, pix, rho, cand_p, cand_k)
+    d = PatchData(probe, _pattern(cfg), MARGIN)
+    passed = np.zeros(len(cand_p), bool)
+    passed[d.order] = classify(d, *residuals(d, T_cw, ab, rho), cfg.huber_grey / 255, cfg.outlier_grey / 255)
+    cand_p, cand_k = cand_p[passed], cand_k[passed]  # still in nearest-first order within each point
+    return _first_per_point(cand_p, cand_k, want)
+
+
+def _pattern(cfg: BAConfig) -> np.ndarray:
+    return DSO_PATTERN if cfg.pattern == "dso" else SQUARE3
 
 
 def _follow(poses: np.ndarray, times: np.ndarray, segs: np.ndarray, ref_times: np.ndarray,
@@ -138,12 +201,13 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
         depth_of: ``kf_id → (h, w)`` CNN depth in map units at any resolution (looked up at the
             nearest pixel); ``None`` = no culling.
         val_loss: ``{kf_id: L_val}`` of the current network (host choice); ``None`` = front-end hosts.
-        cfg: γ, d_max, patch, max_targets, iterations, huber_delta.
+        cfg: γ, d_max, pattern, max_targets, iterations, levels, rounds, robust thresholds.
         cull: apply Eq. 10 (and re-host by L_val).
         upto: last keyframe that exists yet (default: the last one).
 
     Returns:
-        :class:`GlobalBAResult`. Within each segment the robust cost never increases.
+        :class:`GlobalBAResult`. Within each segment and round of the solver the robust cost never
+        increases.
     """
     t0 = time.perf_counter()
     nk = len(vo.keyframes)
@@ -155,79 +219,133 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     sub = replace(vo, keyframes=vo.keyframes[:upto + 1],
                   points=replace(pts.subset(pts.host <= upto), observations=sub_obs, obs_pixels=sub_pix))
     keep = np.ones(len(pts), bool)
-    host = sub.points.host  # the BA keeps the front end's hosts (module docstring)
     stats = {"n_points": len(pts), "n_culled": 0, "n_judged": 0, "n_judged_elsewhere": 0}
     if cull and depth_of is not None and len(sub_idx):
-        cache: dict[int, np.ndarray] = {}
-
-        def depth_at(k: int, uv: np.ndarray) -> np.ndarray:
-            d = cache.setdefault(k, np.asarray(depth_of(k), float))
-            if d.ndim != 2:
-                raise ShapeError(f"depth_of({k}): expected an (h, w) depth map, got shape {d.shape}")
-            return lookup_nearest(d, uv, (vo.intrinsics.width, vo.intrinsics.height))
-
-        cr = cull_map_points(sub, val_loss or {}, depth_at, cfg.gamma, cfg.d_max)
-        keep[sub_idx] = cr.keep
-        stats.update(n_culled=int((~cr.keep).sum()), n_judged=int(cr.judged.sum()),
-                     n_judged_elsewhere=int(np.sum(cr.host != host)))
-    pix, rho = sub.points.pixel, sub.points.inv_depth
-
-    # BA, one problem per segment, at the resolution of the images
-    T_wc = np.stack([k.pose for k in vo.keyframes])
-    T_new = T_wc.copy()
-    refined = np.zeros(len(sub_idx), bool)
-    new_rho = rho.copy()
+        keep[sub_idx], culled = _cull(sub, vo, depth_of, val_loss, cfg)
+        stats.update(culled)
     stack_all = {k: np.asarray(images(k), np.float32) for k in range(upto + 1)} if len(sub_idx) else {}
     H, W = next(iter(stack_all.values())).shape if stack_all else (vo.intrinsics.height, vo.intrinsics.width)
     if any(im.shape != (H, W) for im in stack_all.values()):
         raise ShapeError("run_global_ba: keyframe images must all have one size")
     s = np.array([W / vo.intrinsics.width, H / vo.intrinsics.height])
-    K_ba = vo.intrinsics.scaled(W, H).K()
-    pix_ba = (pix + 0.5) * s - 0.5
-    border = MARGIN + cfg.patch // 2
-    segs = np.array([k.segment for k in vo.keyframes])
-    kf_in = np.arange(upto + 1)
-    costs, tot = [], {"n_targets": 0, "n_diverged": 0, "iterations": 0, "accepted": 0, "cost0": 0.0, "cost": 0.0}
-    for sg in np.unique(segs[kf_in]):
-        ks = kf_in[segs[kf_in] == sg]
+    pix_ba = np.rint((sub.points.pixel + 0.5) * s - 0.5)  # host pixels on the BA images' pixel grid
+    T_wc = np.stack([k.pose for k in vo.keyframes])
+    solved = _solve_segments(sub, sub_obs, keep[sub_idx], stack_all, vo.intrinsics.scaled(W, H).K(), T_wc, pix_ba,
+                             upto, cfg)
+    T_new, new_rho, refined, dropped_sub, tot, costs = solved
+    dropped = np.zeros(len(pts), bool)
+    dropped[sub_idx] = dropped_sub
+    out = _assemble(vo, upto, T_wc, T_new, sub_idx, refined, new_rho, (pix_ba + 0.5) / s - 0.5)
+    stats.update(tot, n_refined=int(refined.sum()), n_unrefined=int((keep[sub_idx] & ~refined & ~dropped_sub).sum()),
+                 n_dropped=int(dropped.sum()), keyframes=upto + 1, costs=costs, seconds=time.perf_counter() - t0)
+    return GlobalBAResult(out, keep, dropped, stats)
+
+
+def _cull(sub: VOResult, vo: VOResult, depth_of: Callable[[int], np.ndarray], val_loss: Mapping[int, float] | None,
+          cfg: BAConfig) -> tuple[np.ndarray, dict]:
+    """Eq. 10 on the points of ``sub``: their keep mask and the culling counts."""
+    cache: dict[int, np.ndarray] = {}
+
+    def depth_at(k: int, uv: np.ndarray) -> np.ndarray:
+        d = cache.setdefault(k, np.asarray(depth_of(k), float))
+        if d.ndim != 2:
+            raise ShapeError(f"depth_of({k}): expected an (h, w) depth map, got shape {d.shape}")
+        return lookup_nearest(d, uv, (vo.intrinsics.width, vo.intrinsics.height))
+
+    cr = cull_map_points(sub, val_loss or {}, depth_at, cfg.gamma, cfg.d_max)
+    return cr.keep, {"n_culled": int((~cr.keep).sum()), "n_judged": int(cr.judged.sum()),
+                     "n_judged_elsewhere": int(np.sum(cr.host != sub.points.host))}
+
+
+def _solve_segments(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, stack_all: dict[int, np.ndarray],
+                    K: np.ndarray, T_wc: np.ndarray, pix: np.ndarray, upto: int, cfg: BAConfig) -> tuple:
+    """One photometric BA per segment (module docstring) of the points of ``sub`` that ``keep``.
+
+    Returns:
+        ``(T_wc after, inverse depths, refined (P,), dropped (P,), summed counts, costs per segment)``.
+    """
+    host, rho = sub.points.host, sub.points.inv_depth
+    nk = len(T_wc)
+    H, W = next(iter(stack_all.values())).shape if stack_all else (1, 1)
+    T_new, new_rho = T_wc.copy(), rho.copy()
+    refined, dropped = np.zeros(len(host), bool), np.zeros(len(host), bool)
+    border = MARGIN + 2  # the pattern reaches 2 px from its centre
+    segs = np.array([k.segment for k in sub.keyframes])
+    costs, tot = [], {k: 0 for k in ("n_targets", "n_nearby_targets", "n_diverged", "n_blocks", "n_outlier_blocks",
+                                     "iterations", "accepted")} | {"cost0": 0.0, "cost": 0.0}
+    for sg in np.unique(segs):
+        ks = np.flatnonzero(segs == sg)
         loc = np.full(nk, -1)
         loc[ks] = np.arange(len(ks))
-        cand = np.flatnonzero(keep[sub_idx] & (loc[host] >= 0) & in_image(pix_ba, W, H, border))
+        cand = np.flatnonzero(keep & (loc[host] >= 0) & in_image(pix, W, H, border))
         if len(ks) < 2 or not len(cand):
             continue
         stack = np.stack([stack_all[k] for k in ks])
         T_cw = np.stack([se3_inv(T_wc[k]) for k in ks])
+        lh = loc[host[cand]]
         obs = [loc[sub_obs[i]][loc[sub_obs[i]] >= 0] for i in cand]
-        op, ok_ = _targets(K_ba, T_cw, loc[host[cand]], pix_ba[cand], rho[cand], obs, cfg.max_targets,
-                           (H, W), border)
-        used = np.unique(op)
-        if not len(used):
+        n_own = cfg.max_targets - (cfg.nearby_slots if cfg.nearby_targets else 0)
+        op, ok = _existing_targets(K, T_cw, lh, pix[cand], rho[cand], obs, n_own, (H, W), border)
+        state = (T_cw, np.zeros((len(ks), 2)), rho[cand])
+        n_near = 0
+        if cfg.nearby_targets:
+            np_, nk_ = _nearby_targets(stack, K, *state, lh, pix[cand], op, ok, cfg, border)
+            op, ok, n_near = np.r_[op, np_], np.r_[ok, nk_], len(np_)
+        r = _phase(stack, K, state, lh, pix[cand], op, ok, cfg, (H, W))
+        if r is None:
             continue
-        remap = np.full(len(cand), -1)
-        remap[used] = np.arange(len(used))
-        pts_in = cand[used]
-        free = np.zeros(len(ks), bool)
-        free[np.unique(np.r_[ok_, loc[host[pts_in]]])] = True
-        free[0] = False
-        prob = PhotoBAProblem(stack, K_ba, T_cw, np.zeros((len(ks), 2)), loc[host[pts_in]], pix_ba[pts_in],
-                              rho[pts_in], remap[op], ok_, free)
-        r = solve(prob, iterations=cfg.iterations, huber_delta=cfg.huber_delta, patch=cfg.patch,
-                  max_targets=cfg.max_targets, levels=LEVELS if min(H, W) >= 64 else 1)
+        used = np.unique(op)
+        pts_in, free = cand[used], r.stats["free"]
         T_new[ks[free]] = np.stack([se3_inv(T) for T in r.T_cw[free]])  # fixed ones keep their bits
-        sane = np.abs(np.log(r.inv_depth / rho[pts_in])) < np.log(MAX_CHANGE)
+        gone = r.stats["dropped"]
+        sane = ~gone & (np.abs(np.log(r.inv_depth / rho[pts_in])) < np.log(MAX_CHANGE))
         new_rho[pts_in[sane]] = r.inv_depth[sane]
         refined[pts_in[sane]] = True
-        costs.append(r.stats["costs"])
-        for k, v in (("n_targets", len(op)), ("n_diverged", int((~sane).sum())),
+        dropped[pts_in[gone]] = True
+        costs.extend(x["costs"] for x in r.stats["rounds"])
+        for k, v in (("n_targets", len(op)), ("n_nearby_targets", n_near), ("n_diverged", int((~sane & ~gone).sum())),
+                     ("n_blocks", r.stats["n_blocks"]), ("n_outlier_blocks", r.stats["n_outlier_blocks"]),
                      ("iterations", r.stats["iterations"]), ("accepted", r.stats["accepted"]),
                      ("cost0", r.stats["cost0"]), ("cost", r.stats["cost"])):
             tot[k] += v
+    return T_new, new_rho, refined, dropped, tot, costs
 
-    # assemble: refined rows get their new inverse depth; the rest stay as they are
-    inv = pts.inv_depth.copy()
+
+def _phase(stack: np.ndarray, K: np.ndarray, state: tuple, host: np.ndarray, pix: np.ndarray, op: np.ndarray,
+           ok: np.ndarray, cfg: BAConfig, hw: tuple[int, int]) -> PhotoBAResult | None:
+    """The solve of one segment over the blocks ``(op, ok)`` (segment-local point and keyframe indices)
+    from ``state`` ``(T_cw, affine, inverse depths of every candidate point)``; ``None`` without any
+    block. The result's inverse depths are those of ``np.unique(op)``; ``stats["free"]`` marks the
+    keyframes it could move (observed, not the segment's first)."""
+    used = np.unique(op)
+    if not len(used):
+        return None
+    remap = np.full(len(host), -1)
+    remap[used] = np.arange(len(used))
+    free = np.zeros(len(state[0]), bool)
+    free[np.unique(np.r_[ok, host[used]])] = True
+    free[0] = False
+    prob = PhotoBAProblem(stack, K, state[0], state[1], host[used], pix[used], state[2][used], remap[op], ok, free)
+    H, W = hw
+    r = solve(prob, iterations=cfg.iterations, huber_delta=cfg.huber_grey / 255, outlier_delta=cfg.outlier_grey / 255,
+              pattern=_pattern(cfg), max_targets=cfg.max_targets,
+              levels=max(1, min(cfg.levels, int(np.log2(min(H, W) / 32)) + 1)), rounds=cfg.rounds)
+    r.stats["free"] = free
+    return r
+
+
+def _assemble(vo: VOResult, upto: int, T_wc: np.ndarray, T_new: np.ndarray, sub_idx: np.ndarray,
+              refined: np.ndarray, new_rho: np.ndarray, new_pix: np.ndarray) -> VOResult:
+    """The refined map: refined points get their new inverse depth and (integer) host pixel; keyframes
+    and frames after ``upto`` follow the correction of their nearest refined keyframe (:func:`_follow`)."""
+    pts, nk = vo.points, len(vo.keyframes)
+    inv, pixel = pts.inv_depth.copy(), pts.pixel.copy()
     inv[sub_idx[refined]] = new_rho[refined]
+    pixel[sub_idx[refined]] = new_pix[refined]
     times = np.array([k.timestamp for k in vo.keyframes])
+    segs = np.array([k.segment for k in vo.keyframes])
     later = np.arange(nk) > upto
+    T_new = T_new.copy()
     T_new[later] = _follow(T_wc[later], times[later], segs[later], times[~later], segs[~later],
                            T_wc[~later], T_new[~later])
     fs = vo.frame_segment
@@ -237,9 +355,6 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     kf_ref = ~later if known else ~later & (segs == seg0)
     all_new = _follow(vo.traj_all.poses, vo.traj_all.timestamps, seg_rows, times[kf_ref], segs[kf_ref],
                       T_wc[kf_ref], T_new[kf_ref])
-    out = replace(vo, keyframes=[replace(k, pose=T_new[k.id]) for k in vo.keyframes],
-                  points=replace(pts, inv_depth=inv),
-                  traj_all=Trajectory(vo.traj_all.timestamps, all_new))
-    stats.update(tot, n_refined=int(refined.sum()), n_unrefined=int((keep[sub_idx] & ~refined).sum()),
-                 keyframes=upto + 1, costs=costs, seconds=time.perf_counter() - t0)
-    return GlobalBAResult(out, keep, stats)
+    return replace(vo, keyframes=[replace(k, pose=T_new[k.id]) for k in vo.keyframes],
+                   points=replace(pts, inv_depth=inv, pixel=pixel),
+                   traj_all=Trajectory(vo.traj_all.timestamps, all_new))

@@ -1,12 +1,21 @@
-"""Levenberg–Marquardt for the photometric BA at one image resolution.
+"""Levenberg–Marquardt for the photometric BA at one image resolution and one set of active blocks.
 
-Each iteration builds the Gauss–Newton normal equations with IRLS weights of the Huber loss
-(Alismail et al. 2016, "Photometric Bundle Adjustment for Vision-Based SLAM"), adds the
-monocular scale prior ``w_s (‖c_1 − c_0‖ − s_0)²`` (keyframe 0 fixed as the gauge; paper
-§III-C runs this BA after culling), and tries damped steps through the Schur complement
-(:mod:`mutualslam_cli.ba.schur`) until the robust cost decreases. Pose increments are left
-increments on ``T_cw`` (:func:`mutualslam_cli.geometry.left_update`), as in
-:mod:`mutualslam_cli.vo.local_ba`.
+Each iteration builds the Gauss–Newton normal equations of the active blocks with IRLS weights
+(Huber × the host pixel's gradient weight, :mod:`mutualslam_cli.ba.residuals`; Alismail et al.
+2016), adds the scale anchor, and tries damped steps through the Schur complement
+(:mod:`mutualslam_cli.ba.schur`) until the robust cost decreases: within one call the cost never
+increases across accepted steps. Given the cameras the cost is a sum over points, so a trial step
+keeps the inverse depth of each point whose own cost it raised (:func:`_trial`): one point in a
+narrow basin no longer forces up the damping of every unknown (on the unit tests' scene LM stalled
+at the first iteration of its second round without this). Pose increments are left increments on ``T_cw``
+(:func:`mutualslam_cli.geometry.left_update`), as in :mod:`mutualslam_cli.vo.local_ba`.
+
+**Scale anchor.** Keyframe 0 fixes the position and orientation of the map; its unit would drift
+freely in a monocular BA. It is held by the prior ``w_s (s − s_0)²`` on the *extent* of the keyframe
+trajectory, ``s = sqrt(mean_k ‖c_k − c̄‖²)`` over every keyframe of the problem (``s_0``: its value
+at the input), with ``w_s·s_0²`` the cost of a relative scale error of 1. A prior on the first
+baseline alone — one short distance between two keyframes, often the noisiest — let the scale of a
+whole map follow that pair.
 """
 
 from __future__ import annotations
@@ -16,21 +25,23 @@ import logging
 import numpy as np
 
 from mutualslam_cli.ba.problem import NP
-from mutualslam_cli.ba.residuals import PatchData, huber_cost, residuals
+from mutualslam_cli.ba.residuals import PatchData, point_costs, residuals, robust_cost
 from mutualslam_cli.ba.schur import NormalEquations
 from mutualslam_cli.geometry import left_update
 
 log = logging.getLogger(__name__)
 
 
-def normal_equations(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray,
-                     huber_delta: float, res: tuple | None = None) -> NormalEquations:
-    """IRLS-weighted normal equations at the current state (Huber weights); ``res`` may pass
-    the output of ``residuals(..., jac=True)`` at this state."""
+def normal_equations(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, huber_delta: float,
+                     active: np.ndarray | None = None, res: tuple | None = None) -> NormalEquations:
+    """IRLS-weighted normal equations of the active blocks (``None``: all) at the current state;
+    ``res`` may pass the output of ``residuals(..., jac=True)`` at this state."""
     P = len(rho)
     r, valid, _, Jc, Jp = residuals(d, T, ab, rho, jac=True) if res is None else res
     a = np.abs(r)
-    w = np.where(a < huber_delta, 1.0, huber_delta / np.maximum(a, 1e-12)) * valid  # IRLS
+    w = np.where(a < huber_delta, 1.0, huber_delta / np.maximum(a, 1e-12)) * valid * d.wg[d.p]  # IRLS
+    if active is not None:
+        w = w * active[:, None]
     Jw = Jc * w[..., None]
     bblk = np.einsum("msi,ms->mi", Jw, r)
     hcp = np.einsum("msi,ms->mi", Jw, Jp)  # (M, 16) column of H_cp per observation
@@ -41,8 +52,15 @@ def normal_equations(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarra
     return NormalEquations(d.st, Hcc, bc, A, hcp[:, NP:], Hpp, bp)
 
 
-def centre_gauge(T: np.ndarray) -> np.ndarray:
-    return -T[:3, :3].T @ T[:3, 3]
+def centres(T: np.ndarray) -> np.ndarray:
+    """Camera centres ``(K, 3)`` of world-to-camera poses ``(K, 4, 4)``: ``c = −Rᵀt``."""
+    return -np.einsum("kji,kj->ki", T[:, :3, :3], T[:, :3, 3])
+
+
+def extent(T: np.ndarray) -> float:
+    """The scale anchor's ``s``: RMS distance of the camera centres from their mean."""
+    c = centres(T)
+    return float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1))))
 
 
 def apply_step(T, ab, rho, dc, dp, fidx):
@@ -53,30 +71,58 @@ def apply_step(T, ab, rho, dc, dp, fidx):
     return T, ab, np.maximum(rho + dp, 1e-6)
 
 
+def _scale_prior(T: np.ndarray, fidx: np.ndarray, s0: float, ws: float) -> tuple[np.ndarray, float]:
+    """Gradient row ``J`` ``(8K,)`` and residual ``e = s − s0`` of the scale anchor. Under the left
+    increment ``∂c_k/∂ρ_k = −R_k``ᵀ, ``∂c_k/∂φ_k = 0``, and ``∂s/∂c_k = (c_k − c̄)/(K·s)``."""
+    c = centres(T)
+    K = len(c)
+    s = float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1))))
+    J = np.zeros(K * NP)
+    if s > 1e-12:
+        g = (c - c.mean(0)) / (K * s)
+        for k in fidx:
+            J[k * NP:k * NP + 3] = -T[k, :3, :3] @ g[k]
+    return J, s - s0
+
+
+def _trial(d: PatchData, T, ab, rho, res, dc, dp, fidx, act, huber_delta, total):
+    """The state after the step ``(dc, dp)`` and its residuals and cost. Given the cameras, the cost is a
+    sum over points, each depending on its own inverse depth only: a point whose share of the cost
+    rose with its step keeps its inverse depth instead (and its residuals at the new cameras). One
+    point in a narrow basin (a sharp edge, a sub-pixel shift away) then no longer forces the damping
+    of every unknown up; the cost returned is still the exact cost of the state returned."""
+    T2, ab2, rho2 = apply_step(T, ab, rho, dc, dp, fidx)
+    res2 = residuals(d, T2, ab2, rho2, jac=True)
+    P = len(rho)
+    worse = point_costs(d, res2[0], res2[2], act, huber_delta, P) > point_costs(d, res[0], res[2], act, huber_delta, P)
+    if worse.any():
+        rho3 = np.where(worse, rho, rho2)
+        res3 = residuals(d, T2, ab2, rho3, jac=True)
+        pick = worse[d.p]
+        res2 = tuple(np.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), b, a) for a, b in zip(res2, res3))
+        rho2 = rho3
+    return T2, ab2, rho2, res2, total(T2, res2)
+
+
 def solve_level(d: PatchData, T, ab, rho, fidx, cols, s0, iterations, huber_delta, scale_weight,
-                 lambda0, max_tries, callback, it_offset=0):
-    """LM iterations at one resolution; returns ``(T, ab, rho, costs, iterations, accepted)``.
-    ``s0`` is the scale-prior baseline (from the input state, shared by all levels)."""
-    nk = d.nk
-    k1 = int(fidx[0]) if len(fidx) else -1  # scale prior on the first free keyframe
-    c0 = centre_gauge(T[0])
-    ws = scale_weight / s0**2 if s0 > 1e-9 else 0.0
+                lambda0, max_tries, callback, it_offset=0, active=None):
+    """LM iterations at one resolution over the ``active`` blocks (``None``: all); returns
+    ``(T, ab, rho, costs, iterations, accepted)``. ``s0``: the scale anchor's target (from the
+    input state, shared by all levels and rounds)."""
+    ws = scale_weight / s0 ** 2 if s0 > 1e-9 and len(fidx) else 0.0
+    act = np.ones(len(d.p), bool) if active is None else active
 
     def total(T_, res_):
-        e = np.linalg.norm(centre_gauge(T_[k1]) - c0) - s0 if ws else 0.0
-        return huber_cost(res_[0], res_[2], d.host_ok, huber_delta) + ws * e * e
+        e = _scale_prior(T_, fidx, s0, ws)[1] if ws else 0.0
+        return robust_cost(d, res_[0], res_[2], act, huber_delta) + ws * e * e
 
     res = residuals(d, T, ab, rho, jac=iterations > 0)  # trial states keep Jacobians for reuse
     cost = total(T, res)
     costs, accepted, lam, it = [cost], 0, lambda0, 0
     for it in range(1, iterations + 1):
-        ne = normal_equations(d, T, ab, rho, huber_delta, res)
-        if ws:  # scale prior: ∂c_k/∂ρ_k = −R_kᵀ under the left increment, ∂c_k/∂φ_k = 0
-            c1 = centre_gauge(T[k1])
-            n = (c1 - c0) / np.linalg.norm(c1 - c0)
-            Js = np.zeros(nk * NP)
-            Js[k1 * NP:k1 * NP + 3] = -T[k1, :3, :3] @ n
-            es = np.linalg.norm(c1 - c0) - s0
+        ne = normal_equations(d, T, ab, rho, huber_delta, act, res)
+        if ws:
+            Js, es = _scale_prior(T, fidx, s0, ws)
             ne.Hcc += 2 * ws * np.outer(Js, Js)
             ne.bc += 2 * ws * Js * es
         ok = False
@@ -86,9 +132,7 @@ def solve_level(d: PatchData, T, ab, rho, fidx, cols, s0, iterations, huber_delt
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            T2, ab2, rho2 = apply_step(T, ab, rho, dc, dp, fidx)
-            res2 = residuals(d, T2, ab2, rho2, jac=True)
-            c_new = total(T2, res2)
+            T2, ab2, rho2, res2, c_new = _trial(d, T, ab, rho, res, dc, dp, fidx, act, huber_delta, total)
             if c_new < cost:
                 T, ab, rho, cost, res = T2, ab2, rho2, c_new, res2
                 lam, ok = max(lam / 10, 1e-7), True

@@ -1,121 +1,156 @@
 """Global photometric bundle adjustment (DSO-style direct BA over keyframes).
 
 Unknowns: per free keyframe an SE(3) left increment ``(ρ, φ)`` on ``T_cw`` plus the affine
-brightness ``(a, b)`` (8 values); per point its inverse depth in the host keyframe. One
-residual per (point, target keyframe) pair and per pixel of a ``patch × patch`` pattern around
-the host pixel, all sharing the point's inverse depth (fronto-parallel patch), with DSO's affine
-brightness model (Engel et al. 2018, "Direct Sparse Odometry", eq. 4):
+brightness ``(a, b)`` (8 values); per point its inverse depth in the host keyframe. One *block* of
+residuals per (point, target keyframe) pair, one residual per pixel of a pattern around the host pixel
+(the paper's 3×3 patch by default, or DSO's eight pixels), with DSO's affine brightness model (Engel et al. 2018,
+"Direct Sparse Odometry", eq. 4), weighted and robustified as DSO does (Huber on grey levels, a
+gradient-dependent weight, blocks above an energy threshold out: :mod:`mutualslam_cli.ba.residuals`).
+Solver: Levenberg–Marquardt with the Schur complement on the diagonal inverse-depth block (Triggs et
+al. 2000, §6); the reduced camera system (8 unknowns per free keyframe) is solved densely. Gauge:
+keyframe 0 fixed; the monocular scale held by a prior on the keyframe trajectory's extent
+(:mod:`mutualslam_cli.ba.lm`).
 
-    r = (I_t(π(T_t T_h⁻¹ π⁻¹(p + δ, ρ))) − b_t) − exp(a_t − a_h) · (I_h(p + δ) − b_h)
-
-robustified with the Huber loss through IRLS weights (Alismail et al. 2016, "Photometric
-Bundle Adjustment for Vision-Based SLAM"). Solver: Levenberg–Marquardt with the Schur
-complement on the diagonal inverse-depth block (Triggs et al. 2000, §6); the reduced camera
-system (8 unknowns per free keyframe) is solved densely. Gauge: keyframe 0 fixed; the
-monocular scale is held by the prior ``w_s (‖c_1 − c_0‖ − s_0)²`` (paper §III-C runs this BA
-after culling). Conventions follow :mod:`mutualslam_cli.vo.local_ba` (left increments on
-``T_cw``, :func:`mutualslam_cli.geometry.left_update`).
-
-Image derivatives are those of the bilinear interpolant itself (not interpolated central-
-difference gradient images): the Jacobians are then exact for the cost being minimised, which
-the LM acceptance test compares. Residuals beyond the 2-px margin get weight 0 but keep their
-(clamped) value in the cost, so the cost is continuous and a step is never rejected only
-because one patch crossed the margin.
+**Levels and rounds.** Optionally coarse-to-fine over an image pyramid (each coarse level one round
+of ``coarse_iterations``); at full resolution ``rounds`` rounds share ``iterations``. Each round starts
+by deciding which blocks take part (:func:`~mutualslam_cli.ba.residuals.classify`, at the round's
+start state) and keeps that set: within a round the robust cost never increases across accepted
+steps. A point whose blocks are mostly outliers (more than ``drop_ratio`` of them, or all) takes no
+part in the round (its inlier blocks neither: the point itself is in doubt), and at the end it is
+*dropped*: no map point of this scene the images agree on (``stats["dropped"]``). A free keyframe
+with fewer than ``min_blocks`` active blocks in a round is held fixed in it: nearly unconstrained,
+LM's damped step moved one such keyframe of a 161-keyframe synthetic sequence by half a metre.
 
 Modules, each importing only those listed before it:
 :mod:`~mutualslam_cli.ba.problem` (inputs, outputs, validation),
 :mod:`~mutualslam_cli.ba.schur` (sparsity, reduced camera system, LM step),
-:mod:`~mutualslam_cli.ba.residuals` (residuals, Jacobians, robust cost),
-:mod:`~mutualslam_cli.ba.lm` (LM iterations at one resolution),
-:mod:`~mutualslam_cli.ba.pyramid` (image pyramid, coarse-to-fine levels) and this module
+:mod:`~mutualslam_cli.ba.residuals` (residuals, Jacobians, weights, block energies, robust cost),
+:mod:`~mutualslam_cli.ba.lm` (LM iterations at one resolution, the scale anchor),
+:mod:`~mutualslam_cli.ba.pyramid` (image pyramid, problems per level) and this module
 (:func:`solve`, the entry point).
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Callable
 
 import numpy as np
 
 from mutualslam_cli.ba import pyramid
-from mutualslam_cli.ba.lm import apply_step, centre_gauge, normal_equations, solve_level
+from mutualslam_cli.ba.lm import apply_step, extent, normal_equations, solve_level
 from mutualslam_cli.ba.problem import NP, PhotoBAProblem, PhotoBAResult, validate
-from mutualslam_cli.ba.residuals import PatchData, residuals
+from mutualslam_cli.ba.residuals import GRADIENT_C, SQUARE3, PatchData, classify, residuals, robust_cost
 from mutualslam_cli.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 # the parts the BA tests reach as ``photometric.<name>`` stay importable from here
 __all__ = ["PhotoBAProblem", "PhotoBAResult", "PatchData", "apply_step", "normal_equations", "residuals", "solve",
            "validate"]
 
+#: Huber threshold and outlier threshold of a residual, intensity in [0, 1] (5 and 12 grey levels; DSO: 9 and 12).
+HUBER_DELTA, OUTLIER_DELTA = 5.0 / 255.0, 12.0 / 255.0
+#: Fewest active blocks (as host or target) that let a keyframe's pose move in a round.
+MIN_BLOCKS = 30
 
-def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = 0.1, patch: int = 3,
-          max_targets: int = 5, scale_weight: float = 1e4, margin: float = 2.0,
-          lambda0: float = 1e-3, max_tries: int = 4, affine: bool = True,
-          callback: Callable[[int, float], None] | None = None, levels: int = 1,
-          coarse_iterations: int = 5) -> PhotoBAResult:
-    """Levenberg–Marquardt photometric BA with a Schur complement on the inverse depths,
-    optionally coarse-to-fine over an image pyramid (:mod:`mutualslam_cli.ba.pyramid`).
+
+def _mostly_outliers(d: PatchData, inlier: np.ndarray, n_points: int, drop_ratio: float) -> np.ndarray:
+    """``(P,)`` points with blocks of which more than ``drop_ratio`` (or all) are not ``inlier``."""
+    n_blocks = np.bincount(d.p, minlength=n_points)
+    n_inlier = np.bincount(d.p, inlier.astype(float), minlength=n_points)
+    return (n_blocks > 0) & ((n_inlier == 0) | (n_blocks - n_inlier > drop_ratio * n_blocks))
+
+
+def _blocks_per_keyframe(d: PatchData, active: np.ndarray) -> np.ndarray:
+    """``(K,)`` active blocks per keyframe, as host or as target."""
+    return np.bincount(d.h[active], minlength=d.nk) + np.bincount(d.t[active], minlength=d.nk)
+
+
+def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER_DELTA,
+          outlier_delta: float = OUTLIER_DELTA, pattern: np.ndarray = SQUARE3, max_targets: int = 5,
+          scale_weight: float = 1e4, margin: float = 2.0, lambda0: float = 1e-3, max_tries: int = 4,
+          affine: bool = True, callback: Callable[[int, float], None] | None = None, levels: int = 1,
+          coarse_iterations: int = 5, rounds: int = 2, grad_c: float = GRADIENT_C,
+          drop_ratio: float = 0.5, min_blocks: int = MIN_BLOCKS) -> PhotoBAResult:
+    """Levenberg–Marquardt photometric BA with a Schur complement on the inverse depths, coarse-to-fine
+    over an image pyramid, with DSO's outlier handling (module docstring).
 
     Args:
-        prob: the problem (see :class:`PhotoBAProblem`).
-        iterations: LM iterations at full resolution (each tries at most ``max_tries`` dampings).
-        huber_delta: Huber threshold in intensity units.
-        patch: side of the square residual pattern, pixels of each level.
+        prob: the problem (see :class:`PhotoBAProblem`); host pixels should lie on integer positions
+            at full resolution (the host intensities are then exact samples, not interpolations).
+        iterations: LM iterations at full resolution, shared by its ``rounds``.
+        huber_delta, outlier_delta: Huber threshold and per-pixel outlier threshold, intensity in [0, 1].
+        pattern: ``(S, 2)`` residual pattern offsets, pixels of each level.
         max_targets: largest allowed number of targets per point.
-        scale_weight: ``w_s · s_0²`` of the scale prior ``w_s (‖c_1 − c_0‖ − s_0)²``, i.e. the
-            cost of a relative scale error of 1 (``s_0`` from the input, shared by all levels).
+        scale_weight: cost of a relative error of 1 in the scale anchor (:mod:`mutualslam_cli.ba.lm`).
         margin: pixels (of each level) at the border where a projection is invalid.
-        lambda0: initial LM damping (reset at each level).
-        max_tries: damping increases per iteration before giving up (ends that level).
+        lambda0: initial LM damping (reset at each round).
+        max_tries: damping increases per iteration before giving up (ends that round).
         affine: optimise the affine brightness ``(a, b)`` (else keep it fixed).
-        callback: ``callback(iteration, cost)`` after each iteration (iterations count across
-            levels; the cost is the current level's).
-        levels: pyramid levels. 1 (default): full resolution only, bit-identical to the solver
-            before the pyramid existed. ``L > 1``: ``coarse_iterations`` at each level
-            ``L−1 … 1`` (resolution / 2^level), then ``iterations`` at full resolution. An
-            iteration costs about the same at every level (it scales with points, not pixels).
+        callback: ``callback(iteration, cost)`` after each iteration (counted across levels).
+        levels: pyramid levels (1: full resolution only).
         coarse_iterations: LM iterations at each coarse level.
+        rounds: rounds of outlier classification at full resolution.
+        grad_c: ``c`` of the gradient weight (``inf``: all weights 1).
+        drop_ratio: a point with more than this share of its blocks outliers (or all) is dropped.
+        min_blocks: a free keyframe with fewer active blocks (as host or target) in a round is held
+            fixed in that round (module docstring).
 
     Returns:
-        :class:`PhotoBAResult`. Within each level the robust cost never increases across
-        accepted steps; costs of different levels are not comparable. ``stats``: ``cost0`` and
-        ``cost`` full-resolution costs of the input and final states (``cost <= cost0``),
-        ``costs`` the full-resolution stage's sequence, ``levels`` per level (coarsest first)
-        ``{level, shape, costs, iterations, accepted}``, ``iterations``/``accepted`` totals.
+        :class:`PhotoBAResult`; ``stats``: ``cost0``/``cost`` the full-resolution cost of the input
+        and final states over the final active blocks, ``rounds`` per round ``{level, shape, costs,
+        iterations, accepted, active}`` (coarsest first; within each the cost never increases),
+        ``iterations``, ``accepted``, ``n_blocks``, ``n_outlier_blocks`` (at the end), ``n_dropped``.
     """
     t0 = time.perf_counter()
     free = validate(prob, max_targets)
-    if patch < 1 or patch % 2 == 0:
-        raise ConfigError(f"solve: patch must be a positive odd integer, got {patch}")
-    if coarse_iterations < 0:
-        raise ConfigError(f"solve: coarse_iterations must be >= 0, got {coarse_iterations}")
+    if rounds < 1 or coarse_iterations < 0 or not 0 <= drop_ratio <= 1:
+        raise ConfigError(f"solve: expected rounds >= 1, coarse_iterations >= 0, drop_ratio in [0, 1]; got {rounds}, "
+                          f"{coarse_iterations}, {drop_ratio}")
     stack = pyramid.build(np.asarray(prob.images), levels)
-    state = tuple(np.asarray(x, float).copy() for x in (prob.T_cw, prob.affine, prob.inv_depth))
-    fidx = np.flatnonzero(free)
-    cols = (fidx[:, None] * NP + np.arange(NP if affine else 6)).ravel()
-    k1 = int(fidx[0]) if len(fidx) else -1
-    T = state[0]
-    s0 = float(np.linalg.norm(centre_gauge(T[k1]) - centre_gauge(T[0]))) if k1 > 0 else 0.0
+    state0 = tuple(np.asarray(x, float).copy() for x in (prob.T_cw, prob.affine, prob.inv_depth))
+    state = state0
+    s0 = extent(state0[0])
+    per_round, n_it, n_acc = [], 0, 0
 
-    def run(d, T_, ab_, rho_, n, offset):
-        return solve_level(d, T_, ab_, rho_, fidx, cols, s0, n, huber_delta, scale_weight,
-                            lambda0, max_tries, callback, offset)
+    def round_(d: PatchData, st: tuple, n: int, level: int) -> tuple:
+        nonlocal n_it, n_acc
+        active = classify(d, *residuals(d, *st), huber_delta, outlier_delta)
+        active &= ~_mostly_outliers(d, active, len(st[2]), drop_ratio)[d.p]  # the rest of a dropped point too
+        fidx = np.flatnonzero(free & (_blocks_per_keyframe(d, active) >= min_blocks))
+        cols = (fidx[:, None] * NP + np.arange(NP if affine else 6)).ravel()
+        T, ab, rho, costs, it, acc = solve_level(d, *st, fidx, cols, s0, n, huber_delta, scale_weight, lambda0,
+                                                 max_tries, callback, n_it, active)
+        per_round.append({"level": level, "shape": (d.H, d.W),
+                          "costs": [float(c) for c in costs], "iterations": it, "accepted": acc,
+                          "active": int(active.sum()), "held": int(free.sum() - len(fidx))})
+        n_it, n_acc = n_it + it, n_acc + acc
+        return T, ab, rho
 
-    def make_data(p):
-        return PatchData(p, patch, margin)
-
-    per_level, n_it, n_acc, cost0 = [], 0, 0, None
-    if levels > 1:
-        state, per_level, n_it, n_acc, d, cost0 = pyramid.coarse_to_fine(
-            prob, stack, state, coarse_iterations, make_data, run)
-    else:
-        d = make_data(prob)
-    T, ab, rho, costs, it, acc = run(d, *state, iterations, n_it)
-    costs = [float(c) for c in costs]
-    per_level.append({"level": 0, "shape": stack[0].shape[1:], "costs": costs,
-                      "iterations": it, "accepted": acc})
-    stats = {"cost0": float(costs[0] if cost0 is None else cost0), "cost": costs[-1],
-             "costs": costs, "iterations": n_it + it, "accepted": n_acc + acc,
-             "levels": per_level, "seconds": time.perf_counter() - t0}
+    for lv in range(len(stack) - 1, 0, -1):  # coarse levels, coarsest first
+        d = PatchData(pyramid.level_problem(prob, stack[lv], lv, *state), pattern, margin, grad_c)
+        state = round_(d, state, coarse_iterations, lv)
+    d0 = PatchData(prob, pattern, margin, grad_c)
+    if levels > 1:  # the coarse levels are other cost functions: keep their result only if full resolution agrees
+        act0 = classify(d0, *residuals(d0, *state0), huber_delta, outlier_delta)
+        before = robust_cost(d0, *residuals(d0, *state0)[::2], act0, huber_delta)
+        if robust_cost(d0, *residuals(d0, *state)[::2], act0, huber_delta) > before:
+            log.warning("photometric BA: the coarse levels raised the full-resolution cost; restarting from the input")
+            state = state0
+    share = [iterations // rounds + (1 if k < iterations % rounds else 0) for k in range(rounds)]
+    for n in share:
+        state = round_(d0, state, n, 0)
+    T, ab, rho = state
+    final = classify(d0, *residuals(d0, *state), huber_delta, outlier_delta)
+    dropped = _mostly_outliers(d0, final, len(rho), drop_ratio)
+    final &= ~dropped[d0.p]
+    r0 = residuals(d0, *state0)
+    r1 = residuals(d0, *state)
+    stats = {"cost0": robust_cost(d0, r0[0], r0[2], final, huber_delta),
+             "cost": robust_cost(d0, r1[0], r1[2], final, huber_delta),
+             "costs": per_round[-1]["costs"], "rounds": per_round, "iterations": n_it, "accepted": n_acc,
+             "n_blocks": int(len(final)), "n_outlier_blocks": int((~final).sum()), "n_dropped": int(dropped.sum()),
+             "dropped": dropped, "seconds": time.perf_counter() - t0}
     return PhotoBAResult(T, ab, rho, stats)

