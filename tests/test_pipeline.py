@@ -35,7 +35,7 @@ def default_run(setup):
     # The random network predicts ~0.23 everywhere, the oracle map is metric (~1.8 m): Eq. 10 would
     # cull all but a lucky few. With d_max below the network's depth every point counts as far and
     # is kept, so the BA has the whole map to refine (culling itself: tests/ba/test_culling.py).
-    return run_sequence(seq, _cfg(tmp, "ba.d_max=0.2"), out=tmp / "res", command=["test"])
+    return run_sequence(seq, _cfg(tmp, "ba.d_max=0.2", "ba.final=always"), out=tmp / "res", command=["test"])
 
 
 def test_run_writes_complete_result(setup, default_run):
@@ -54,9 +54,11 @@ def test_run_writes_complete_result(setup, default_run):
     # Depth metrics are real numbers in percent.
     assert 0 <= flat["depth.pcd.lsq.adapted"] <= 100 and 0 <= flat["depth.pcd.median.pretrained"] <= 100
     assert flat["depth.eval_stride"] == 1 and flat["depth.frames_evaluated"] == 12  # every frame by default
-    # Culling + global BA ran once, at the end (the smoke run's Algorithm 1 never requests it).
-    assert flat["ba.requested"] == 0 and flat["ba.triggers"] == 0 and flat["timing.ba_s"] > 0
-    assert 0 < flat["map.points.ba"] == flat["map.points.culled"] <= flat["map.points.vo"]
+    # Culling + global BA ran once, at the end (ba.final=always; the smoke run's Algorithm 1 never requests it).
+    assert flat["ba.requested"] == 0 and flat["ba.runs"] == 1 and flat["timing.ba_s"] > 0
+    assert flat["ba.last.keyframes"] == flat["vo.keyframes"] and flat["ba.points_dropped"] >= 0
+    # the BA's map: the culled one without the points the BA dropped as outliers
+    assert 0 < flat["map.points.ba"] == flat["map.points.culled"] - flat["ba.last.n_dropped"] <= flat["map.points.vo"]
     assert flat["trajectory.ate_rmse_m.ba"] is not None and flat["map.esi.ba"] is not None
     assert len(read_tum_trajectory(f / "traj_kf_ba.txt")) == flat["vo.keyframes"]
     assert len(read_tum_trajectory(f / "traj_all_ba.txt")) == len(read_tum_trajectory(f / "traj_all.txt"))
@@ -94,6 +96,27 @@ def test_threads_are_resolved_and_recorded(setup):
 
 
 
+def test_final_ba_on_request_says_why_not(setup, default_run):
+    """ba.final=on_request (the paper's policy): Algorithm 1 never requested a BA, so no after-BA
+    figures, each null with Algorithm 1's reason in its own terms (L_val against τ)."""
+    tmp, seq = setup
+    r = run_sequence(seq, _cfg(tmp, "ba.d_max=0.2"), out=tmp / "onreq")
+    flat, notes = flatten(r.summary), r.summary["notes"]
+    assert flat["ba.requested"] == 0 and flat["ba.runs"] == 0
+    for k in BA_KEYS:
+        assert flat[k] is None and "never requested global BA" in notes[k] and "τ = 0.2" in notes[k], k
+    v = flat["adaptation.l_val.validations"]
+    assert v > 0 and f"over {v} validations" in notes["trajectory.ate_rmse_m.ba"]
+    assert flat["adaptation.l_val.min"] <= flat["adaptation.l_val.median"]
+    assert flat["adaptation.l_val.longest_below_tau"] < 3  # else Algorithm 1 would have requested
+    assert not list(r.folder.glob("*_ba.*"))
+    # the run before BA is the same run: every key outside the BA's equals the always-run's
+    on = flatten(default_run.summary)
+    same = [k for k in on if not k.startswith(("timing.", "ba.", "notes")) and k not in BA_KEYS
+            and not k.endswith("_ba")]
+    assert {k: flat[k] for k in same} == {k: on[k] for k in same}
+
+
 def test_ba_switches(setup, default_run):
     tmp, seq = setup
     on = flatten(default_run.summary)
@@ -107,10 +130,10 @@ def test_ba_switches(setup, default_run):
             and not k.endswith("_ba")]
     assert {k: flat[k] for k in same} == {k: on[k] for k in same}
     # ba.culling=false: BA of the whole front-end map, culled figures null with the reason
-    nc = run_sequence(seq, _cfg(tmp, "ba.culling=false"), out=tmp / "nocull")
+    nc = run_sequence(seq, _cfg(tmp, "ba.culling=false", "ba.final=always"), out=tmp / "nocull")
     flat = flatten(nc.summary)
     assert flat["map.points.culled"] is None and "ba.culling=false" in nc.summary["notes"]["map.points.culled"]
-    assert flat["map.points.ba"] == flat["map.points.vo"] and flat["map.esi.ba"] is not None
+    assert flat["map.points.ba"] == flat["map.points.vo"] - flat["ba.points_dropped"] and flat["map.esi.ba"] is not None
     assert (nc.folder / "map_ba.ply").exists() and not (nc.folder / "map_culled.ply").exists()
 
 
@@ -163,15 +186,17 @@ def test_ablate_grid_resumes(setup):
 def test_injected_outliers_are_counted(setup, default_run):
     tmp, seq = setup
     on = flatten(default_run.summary)
-    r = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2"), out=tmp / "outl")
+    r = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "ba.final=always"), out=tmp / "outl")
     flat = flatten(r.summary)
     assert flat["map.outliers.injected"] == round(0.2 * on["map.points.vo"]) > 0
     assert flat["map.points.vo"] == on["map.points.vo"] and flat["map.esi.vo"] > on["map.esi.vo"]
     assert 0 <= flat["map.outliers.culled"] <= 1 and 0 <= flat["map.inliers.kept"] <= 1
+    assert 0 <= flat["map.outliers.dropped"] <= 1
     # the knob is applied to the cached front end, not part of its key
     loaded = load_sequence(seq)
     assert vo_cache_key(loaded, _cfg(tmp, "vo.inject_outliers=0.2")) == vo_cache_key(loaded, _cfg(tmp))
-    nc = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "ba.culling=false"), out=tmp / "outl_nc")
+    nc = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "ba.culling=false", "ba.final=always"),
+                      out=tmp / "outl_nc")
     assert nc.summary["map"]["outliers"]["culled"] is None
     assert "no culling" in nc.summary["notes"]["map.outliers.culled"]
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -169,12 +169,45 @@ class Adapted:
             schemes ``none`` and ``comoda``.
         map: the loop's map at the end: the front end's, or after the BAs Algorithm 1 requested.
         requested: how many times Algorithm 1 requested global BA.
+        l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).
     """
 
     net: torch.nn.Module
     adapter: OnlineAdapter | None
     map: VOResult
     requested: int
+    l_val: dict[str, Any] = field(default_factory=dict)
+
+    def why_no_request(self, tau: float, patience: int) -> str:
+        """Why Algorithm 1 never requested global BA, in its terms (L_val vs τ over ``patience`` validations)."""
+        v = self.l_val
+        if not v.get("validations"):
+            return "Algorithm 1 never validated (no validation keyframe with sparse points)"
+        return (f"Algorithm 1 never requested global BA: L_val < τ = {tau:g} in {v['longest_below_tau']} "
+                f"validation(s) in a row at most, {patience} needed (min L_val {v['min']:.3g} over "
+                f"{v['validations']} validations)")
+
+
+#: The keys of :func:`l_val_stats` (``adaptation.l_val.*`` in ``summary.json``).
+L_VAL_KEYS = ("validations", "min", "median", "longest_below_tau", "map_median_depth")
+
+
+def l_val_stats(rows: list[dict[str, Any]], tau: float, vo: VOResult) -> dict[str, Any]:
+    """Algorithm 1's validations from the keyframe rows: ``validations`` (with an L_val), ``min``,
+    ``median`` (L_val, Eq. 9, inverse map units), ``longest_below_tau`` (most consecutive ones below τ)
+    and ``map_median_depth`` (median depth of the map points in their hosts, map units). The front end
+    sets the median depth of its first map to 1, as SVO does, so τ means here what it means in the
+    paper as long as that unit holds; ``L_val × map_median_depth`` is the scale-free form."""
+    vals = [float(r["l_val"]) for r in rows if r.get("is_validation") and r.get("l_val") is not None
+            and np.isfinite(float(r["l_val"]))]
+    run = best = 0
+    for v in vals:
+        run = run + 1 if v < tau else 0
+        best = max(best, run)
+    depth = float(np.median(1.0 / vo.points.inv_depth)) if len(vo.points) else None
+    return {"validations": len(vals), "min": min(vals) if vals else None,
+            "median": float(np.median(vals)) if vals else None, "longest_below_tau": best,
+            "map_median_depth": depth}
 
 
 def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, fast: bool,
@@ -189,10 +222,16 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, fast: bool,
     if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
         net = comoda.run_stage(run, copy.deepcopy(net0), fast)
         adapted, rows = Adapted(net, None, fe.vo, 0), []
+        for k in L_VAL_KEYS:
+            summary.absent(f"adaptation.l_val.{k}", "scheme 'comoda' has no Algorithm 1")
     else:
         net, rows, adapter, loop_map = run_adaptation(run.seq, fe.vo, copy.deepcopy(net0), cfg, fast, run.progress,
                                                       global_ba)
-        adapted = Adapted(net, adapter, loop_map, sum(bool(r.get("run_global_ba")) for r in rows))
+        adapted = Adapted(net, adapter, loop_map, sum(bool(r.get("run_global_ba")) for r in rows),
+                          l_val_stats(rows, cfg.adapt.tau_val, loop_map))
+        why = "no validation keyframe had an L_val"
+        for k, v in adapted.l_val.items():
+            summary.set(f"adaptation.l_val.{k}", v, why)
         _summarise(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
                    adapter.finetune_ms if adapter else [], rows)
         summary.absent(comoda.POSENET_ATE_KEY, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")

@@ -33,15 +33,6 @@ from mutualslam_cli.vo.result import VOResult
 
 log = logging.getLogger(__name__)
 
-#: Global BA image resolution, relative to the VO camera. Half: an LM iteration costs the same at
-#: any resolution (it scales with points × targets), the images take 4× less memory (300 TUM
-#: keyframes: 92 MB instead of 370 MB), the area-averaged images widen the convergence basin, and
-#: on tum_fr1_xyz (16 keyframes, 659 points, GT depth as the CNN) it gave keyframe ATE 13.2 mm and
-#: map e_si 0.113 where full resolution gave 13.9 mm and 0.118, in about the same time (0.5 s on an
-#: idle core). Not the network resolution: 640×192 squeezes a 4:3 image vertically by 2.5.
-BA_SCALE = 0.5
-
-
 def no_culling_reason(cfg: RunConfig) -> str | None:
     """Why a run's global BA does not cull (``None``: it culls with the adapted network)."""
     if not cfg.ba.enabled:
@@ -53,7 +44,7 @@ def no_culling_reason(cfg: RunConfig) -> str | None:
     return None
 
 
-def ba_images(seq: Sequence, vo: VOResult, scale: float = BA_SCALE) -> Callable[[int], np.ndarray]:
+def ba_images(seq: Sequence, vo: VOResult, scale: float = 1.0) -> Callable[[int], np.ndarray]:
     """``kf_id → (H, W)`` float32 grey in [0, 1] of the keyframes, undistorted, at ``scale`` × the
     VO camera (area resampling; cached for the run)."""
     und = Undistorter(seq.intrinsics)
@@ -71,31 +62,37 @@ def ba_images(seq: Sequence, vo: VOResult, scale: float = BA_SCALE) -> Callable[
 
 @dataclass
 class BALog:
-    """What the culling + BA runs of one run did: each run's ``stats`` (triggers, then the final
-    one) and the ids of every culled map point."""
+    """What the culling + BA runs of one run did: each run's ``stats`` (Algorithm 1's requests, then
+    the final one), the ids of every culled map point and of every point dropped as an outlier."""
 
     runs: list[dict[str, Any]] = field(default_factory=list)
     culled: set[int] = field(default_factory=set)
+    dropped: set[int] = field(default_factory=set)
 
     def culled_mask(self, ids: np.ndarray) -> np.ndarray:
         """``(P,)`` bool: which of the map-point ``ids`` were culled."""
         return np.isin(ids, np.fromiter(self.culled, np.int64, len(self.culled)))
 
+    def dropped_mask(self, ids: np.ndarray) -> np.ndarray:
+        """``(P,)`` bool: which of the map-point ``ids`` the BA dropped as outliers."""
+        return np.isin(ids, np.fromiter(self.dropped, np.int64, len(self.dropped)))
+
 
 def make_ba_step(seq: Sequence, vo: VOResult, cfg: RunConfig, record: BALog) -> GlobalBA:
     """The :data:`~mutualslam_cli.stages.adaptation.GlobalBA` step of a run (culling unless
     ``ba.culling=false`` or scheme ``none``), recording into ``record``."""
-    images = ba_images(seq, vo)
+    images = ba_images(seq, vo, cfg.ba.image_scale)
     cull = no_culling_reason(cfg) is None
 
     def step(v: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
              val_loss: Mapping[int, float]) -> VOResult:
         r = run_global_ba(v, images, depth_of, val_loss, cfg.ba, cull=cull, upto=kf_id)
         record.culled.update(v.points.ids[~r.keep].tolist())
+        record.dropped.update(v.points.ids[r.dropped].tolist())
         record.runs.append({"kf_id": kf_id, **{k: x for k, x in r.stats.items() if k != "costs"}})
-        log.info("global BA after keyframe %d: %d culled, %d refined (%d unrefined), cost %.4g -> %.4g, %.2f s",
-                 kf_id, r.stats["n_culled"], r.stats["n_refined"], r.stats["n_unrefined"], r.stats["cost0"],
-                 r.stats["cost"], r.stats["seconds"])
+        log.info("global BA after keyframe %d: %d culled, %d dropped, %d refined (%d unrefined), cost %.4g -> %.4g, "
+                 "%.2f s", kf_id, r.stats["n_culled"], r.stats["n_dropped"], r.stats["n_refined"],
+                 r.stats["n_unrefined"], r.stats["cost0"], r.stats["cost"], r.stats["seconds"])
         return r.kept()
 
     return step
@@ -132,25 +129,39 @@ class BAStage:
         self.step = make_ba_step(run.seq, fe.vo, run.cfg, self.record) if run.cfg.ba.enabled else None
 
     def finish(self, adapted: Adapted, fast: bool) -> None:
-        """The final culling + BA of the loop's map with the final network: ``map_culled.ply`` (the front
-        end's map without the culled points), ``map_ba.ply``, ``traj_{kf,all}_ba.txt``, the keys of
-        :data:`BA_KEYS`, ``ba.*`` and, with injected
-        outliers, ``map.outliers.*`` and ``map.inliers.kept``."""
+        """The map after culling + BA, by ``ba.final``: ``always`` — one more culling + BA of the loop's
+        map over every keyframe with the final network; ``on_request`` — the loop's map after the BAs
+        Algorithm 1 requested (no after-BA figures when it requested none: the keys are null with
+        Algorithm 1's reason, L_val vs τ). Writes ``map_culled.ply`` (the front end's map without the
+        culled points), ``map_ba.ply``, ``traj_{kf,all}_ba.txt``, the keys of :data:`BA_KEYS`, ``ba.*``
+        and, with injected outliers, ``map.outliers.*`` and ``map.inliers.kept``."""
         run, fe, cfg = self.run, self.fe, self.run.cfg
+        run.summary.set("ba.requested", adapted.requested)
         if self.step is None:
-            for key in BA_KEYS:
-                run.summary.absent(key, "disabled (ba.enabled=false)")
-            run.summary.set("ba.triggers", 0)
-            run.summary.set("ba.requested", adapted.requested)
-        else:
+            self._absent("disabled (ba.enabled=false)")
+        elif cfg.ba.final == "always":
             with run.timed("ba"):
                 vo_ba = final_ba(run.seq, fe.vo, adapted.map, adapted.net, adapted.adapter, cfg, fast, self.step)
-            self._write(vo_ba, adapted.requested)
+            self._write(vo_ba)
+        elif self.record.runs:
+            self._write(adapted.map)
+        else:
+            self._absent("ba.final=on_request and " + (adapted.why_no_request(cfg.adapt.tau_val, cfg.adapt.patience)
+                                                       if adapted.adapter is not None else
+                                                       f"scheme {cfg.adapt.scheme!r} runs no Algorithm 1"))
         if len(fe.injected):
-            culled = self.record.culled_mask(fe.vo.points.ids) if no_culling_reason(cfg) is None else None
-            _summarise_outliers(run.summary, fe.vo.points.ids, fe.injected, culled)
+            culled = self.record.culled_mask(fe.vo.points.ids) if self.record.runs and no_culling_reason(cfg) is None \
+                else None
+            _summarise_outliers(run.summary, fe.vo.points.ids, fe.injected, culled,
+                                self.record.dropped_mask(fe.vo.points.ids) if self.record.runs else None)
 
-    def _write(self, vo_ba: VOResult, requested: int) -> None:
+    def _absent(self, why: str) -> None:
+        summary = self.run.summary
+        for key in BA_KEYS + BA_RUN_KEYS:
+            summary.absent(key, why)
+        summary.set("ba.runs", 0)
+
+    def _write(self, vo_ba: VOResult) -> None:
         run, fe, summary = self.run, self.fe, self.run.summary
         vo, err = fe.vo, fe.map_errors
         keep = ~self.record.culled_mask(vo.points.ids)
@@ -171,26 +182,39 @@ class BAStage:
                         "no kept map point has GT depth at its host pixel")
         summary.set("map.points.ba", len(vo_ba.points))
         summary.set("map.esi.ba", esi_of_log_errors(err_ba)[0], "no map point has GT depth at its host pixel after BA")
-        summary.set("timing.ba_s", run.timings.get("ba", 0.0))  # Algorithm 1's triggers and the final one
+        summary.set("timing.ba_s", run.timings.get("ba", 0.0))  # Algorithm 1's requests and the final one
         runs = self.record.runs
-        summary.set("ba.triggers", len(runs) - 1)
-        summary.set("ba.requested", requested)
-        for key in ("n_judged_elsewhere", "n_refined", "n_unrefined", "n_diverged", "n_targets", "iterations",
-                    "cost0", "cost"):
-            summary.set(f"ba.final.{key}", runs[-1][key])
+        summary.set("ba.runs", len(runs))
+        summary.set("ba.points_dropped", len(self.record.dropped))
+        for key in BA_RUN_KEYS[1:]:
+            summary.set(key, runs[-1][key.rsplit(".", 1)[1]])
 
 
-def _summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, culled: np.ndarray | None) -> None:
-    """``map.outliers.{injected,culled}`` and ``map.inliers.kept`` of a run with ``vo.inject_outliers``.
+#: ``summary.json`` keys of the last culling + BA of a run (its counts, ``ba.last.*``) and the points
+#: the BAs dropped as outliers (``ba.points_dropped``).
+BA_RUN_KEYS = ("ba.points_dropped",) + tuple(
+    f"ba.last.{k}" for k in ("keyframes", "n_culled", "n_judged_elsewhere", "n_refined", "n_unrefined", "n_diverged",
+                             "n_dropped", "n_targets", "n_nearby_targets", "n_blocks", "n_outlier_blocks",
+                             "iterations", "cost0", "cost"))
+
+
+def _summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, culled: np.ndarray | None,
+                        dropped: np.ndarray | None) -> None:
+    """``map.outliers.{injected,culled,dropped}`` and ``map.inliers.kept`` of a run with ``vo.inject_outliers``.
 
     Args:
         ids: ``(P,)`` ids of every map point; injected: ids of the corrupted ones.
         culled: ``(P,)`` bool, culled points (``None``: this run did not cull).
+        dropped: ``(P,)`` bool, points a BA dropped as outliers (``None``: no BA ran).
     """
     bad = np.isin(ids, injected)
     summary.set("map.outliers.injected", int(bad.sum()))
+    if dropped is None:
+        summary.absent("map.outliers.dropped", "no global BA ran")
+    else:
+        summary.set("map.outliers.dropped", float(dropped[bad].mean()) if bad.any() else None, "no outlier injected")
     if culled is None:
-        why = "no culling in this run (ba.enabled=false, ba.culling=false or scheme 'none')"
+        why = "no culling in this run (ba.enabled=false, ba.culling=false, scheme 'none', or no BA ran)"
         summary.absent("map.outliers.culled", why)
         summary.absent("map.inliers.kept", why)
         return
