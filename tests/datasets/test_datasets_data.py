@@ -10,7 +10,7 @@ from mutualslam_cli.datasets.associate import poses_at, read_list_file
 
 pytestmark = pytest.mark.data
 
-SHARED = ["tum_fr1_xyz", "tum_fr1_desk_9f", "icl_lr_kt2", "redkitchen_7scenes"]
+SHARED = ["tum_fr1_xyz", "tum_fr1_desk_9f", "tum_fr1_desk_loss", "icl_lr_kt2", "redkitchen_7scenes"]
 
 
 @pytest.mark.parametrize("name", SHARED)
