@@ -214,35 +214,26 @@ def test_luo_settings_reach_the_adapter():
     assert sum(bool(h.sources) for h in loose.history) > sum(bool(h.sources) for h in strict.history)
 
 
-class OldBatches(OnlineAdapter):
-    """``_make_batch`` as it was before scheme-chosen sources: always ``buffer.neighbours`` (Eq. 3)."""
+class _NeighbourSources:
+    """A scheme whose photometric sources are always ``buffer.neighbours`` (Eq. 3): the batches as
+    they were before schemes chose their sources."""
 
-    def _make_batch(self, ids):
-        items = [(k, self.buffer.neighbours(k)) for k in ids]
-        items = [(k, n) for k, n in items if n]
-        if not items:
-            return None
-        samples = [self.buffer.get(k) for k, _ in items]
-        n_src = max(len(n) for _, n in items)
-        sources, T_t2s = [], []
-        for s in range(n_src):
-            imgs, poses = [], []
-            for tgt, (_, nb) in zip(samples, items):
-                src = self.buffer.get(nb[min(s, len(nb) - 1)])
-                imgs.append(src.image)
-                poses.append(se3_inv(src.pose) @ tgt.pose)
-            sources.append(torch.stack(imgs))
-            T_t2s.append(torch.as_tensor(np.stack(poses), dtype=torch.float32))
-        m = max(s.uv.shape[0] for s in samples)
-        uv = torch.zeros(len(samples), m, 2)
-        d = torch.zeros(len(samples), m)
-        mask = torch.zeros(len(samples), m, dtype=torch.bool)
-        for b, s in enumerate(samples):
-            n = s.uv.shape[0]
-            uv[b, :n], d[b, :n], mask[b, :n] = s.uv, s.depth, True
-        K_ = torch.stack([s.K.to(torch.float32) for s in samples])
-        return {"ids": [k for k, _ in items], "target": torch.stack([s.image for s in samples]), "sources": sources,
-                "T_t2s": T_t2s, "K": K_, "uv": uv, "d": d, "mask": mask}
+    def __init__(self, scheme):
+        self._scheme = scheme
+
+    def __getattr__(self, name):
+        return getattr(self._scheme, name)
+
+    def sources(self, buffer, kf_id):
+        return buffer.neighbours(kf_id)
+
+
+class OldBatches(OnlineAdapter):
+    """The adapter with the sources of :class:`_NeighbourSources`."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.scheme = _NeighbourSources(self.scheme)
 
 
 @pytest.mark.parametrize("scheme", ["recent", "replay+ewc"])
