@@ -26,8 +26,8 @@ Choices the paper leaves open (written down here):
   that see the same place are what pulls drift out of a sequence that returns; an occluded or
   mismatched target is kept out by that test and again at every round of the solver. The slots
   kept for them matter: a tracked point has its five neighbours in time as observations, and with
-  all five taken first a synthetic 1,600-frame room sequence that returns to its start got 223
-  nearby targets of 23,034 and keyframe ATE 5.5 → 4.7 mm; with two slots kept, 2.6 mm.
+  all five taken first a synthetic 1,600-frame room sequence that returns to its start got 244
+  nearby targets of 23,055 and keyframe ATE 5.5 → 7.5 mm; with two slots kept, 2.75 mm.
 - **Host pixels** sit on integer positions of the BA images (rounded; the refined point keeps the
   rounded pixel): the host intensities of the residual pattern are samples, not interpolations.
 - **Dropped points**: a point whose blocks are mostly outliers at the end (the solver's

@@ -6,8 +6,8 @@ pixel, all sharing the point's inverse depth (fronto-parallel), with DSO's affin
 on an integer host pixel (1 px from the corner it was detected on), or DSO's eight pixels spread over
 5×5 (§II-C). Measured: on the synthetic plane scenes, started at the true state, the 3×3 patch stays
 within 0.1 mm and DSO's pattern moves by millimetres (its 2-pixel arms reach where the
-fronto-parallel model errs); on real windows the two are close (ICL lr kt2 from our VO 2.2 →
-0.65 mm and 0.90 mm), so the paper's patch is the default:
+fronto-parallel model errs); on real windows the two are close (ICL lr kt2 window from our VO
+2.2 → 0.60 mm with the 3×3 patch, 0.80 mm with DSO's), so the paper's patch is the default:
 
     r = (I_t(π(T_t T_h⁻¹ π⁻¹(p + δ, ρ))) − b_t) − exp(a_t − a_h) · (I_h(p + δ) − b_h)
 
