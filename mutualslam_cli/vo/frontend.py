@@ -4,8 +4,9 @@ Per frame: decode → KLT (forward–backward checked) → PnP-RANSAC + robust r
 map-point tracks → depth-filter update of the seed tracks → promotion of converged seeds.
 Per keyframe (parallax / overlap policy): re-projection of lost window points, observations,
 grid detection of new seeds, windowed BA (solved on a worker thread, applied ``BA_LAG`` frames
-later). Decoding of the next frame runs on a second thread. Tracking loss re-initialises a
-new segment with its own scale (see :mod:`~mutualslam_cli.vo.bootstrap`).
+later). Decoding of the next frame runs on a second thread. After a tracking loss the frame is
+looked for among the keyframes (:mod:`~mutualslam_cli.vo.recovery`); failing that, a new segment
+starts with its own scale (:mod:`~mutualslam_cli.vo.bootstrap`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from mutualslam_cli.vo.bootstrap import InitMixin
 from mutualslam_cli.vo.camera import distort_points, focal_px, to_normalized, undistort_points
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.mapper import Mapper
+from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
 from mutualslam_cli.vo.reproject import reproject_points
 from mutualslam_cli.vo.result import VOResult
@@ -60,7 +62,7 @@ SEED_PREDICT_SIGMA = 0.05
 STAGES = ("decode", "track", "pose", "filter", "keyframe", "local_ba")
 
 
-class _Frontend(InitMixin):
+class _Frontend(InitMixin, RecoveryMixin):
     """State machine ``init`` → ``tracking`` → (loss) → ``init`` … over one sequence."""
 
     def __init__(self, seq: Sequence, cfg: VOConfig, seed: int) -> None:
@@ -106,47 +108,6 @@ class _Frontend(InitMixin):
         self.frame_seg[i] = self.segment
 
     # ---------------------------------------------------------------- tracking
-    def _lost(self, i: int, gray: np.ndarray, why: str) -> None:
-        if self._relocalise(i, gray):
-            return
-        log.info("tracking lost at frame %d (%s)", i, why)
-        self._collect_ba()
-        self.state = "init"
-        self.lost_at = i
-        self.tracks = Tracks.empty()
-        self._start_ref(i, gray)
-
-    def _relocalise(self, i: int, gray: np.ndarray) -> bool:
-        """Find frame ``i`` in the map (:mod:`~mutualslam_cli.vo.relocalise`); on success continue the
-        matched keyframe's segment from it: tracks on the verified points, a keyframe at this frame."""
-        if self.reloc is None or not self.map.kf_frame:
-            return False
-        r = self.reloc.query(gray, self.map, self.thr, seed=self.seed + i)
-        if r is None:
-            return False
-        self._collect_ba()
-        m, n = self.map, len(r.pids)
-        self.segment = m.kf_segment[r.keyframe]
-        t = Tracks.empty()
-        t.raw = r.raw
-        t.px, t.xn = self._undist(r.raw)
-        t.pid = r.pids.astype(np.int64)
-        t.host = np.array([m.host[p] for p in r.pids], np.int64)
-        t.f_h, t.px_h = np.zeros((n, 3)), np.zeros((n, 2))
-        t.seed = dfl.new_seeds(n, dfl.SeedInit(1.0, 0.5))
-        t.kf_px, t.at_kf, t.obs = t.px.copy(), np.ones(n, bool), [[] for _ in range(n)]
-        self.tracks, self.T_cw, self.n_tracked = t, r.T_cw, r.inliers
-        self.vel, self.vel_dt, self.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
-        self.state, self.ref = "tracking", None
-        self.relocalisations.append({"frame": i, "timestamp": float(self.seq.frames[i].timestamp),
-                                     "keyframe": int(r.keyframe), "inliers": int(r.inliers),
-                                     "frames_lost": 0 if self.lost_at < 0 else i - self.lost_at,
-                                     "candidates_tried": int(r.candidates_tried)})
-        log.info("relocalised frame %d against keyframe %d (%d inliers)", i, r.keyframe, r.inliers)
-        self._keyframe(i, gray)
-        self._record(i)
-        return True
-
     def _track_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
         cfg, m = self.cfg, self.map
         if self.mapper.pending is not None and i >= self.ba_due:

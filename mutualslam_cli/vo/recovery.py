@@ -1,0 +1,60 @@
+"""What the front end does when tracking is lost: relocalise against the map's keyframes
+(:mod:`~mutualslam_cli.vo.relocalise`) and continue the matched keyframe's segment, or else start
+a new segment from a fresh reference frame (:mod:`~mutualslam_cli.vo.bootstrap`)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from mutualslam_cli.vo import depth_filter as dfl
+from mutualslam_cli.vo.state import Tracks
+
+log = logging.getLogger("mutualslam_cli.vo.frontend")
+
+
+class RecoveryMixin:
+    """Methods of the front end (``_Frontend``) for a lost frame."""
+
+    def _lost(self, i: int, gray: np.ndarray, why: str) -> None:
+        if self._relocalise(i, gray):
+            return
+        log.info("tracking lost at frame %d (%s)", i, why)
+        self._collect_ba()
+        self.state = "init"
+        self.lost_at = i
+        self.tracks = Tracks.empty()
+        self._start_ref(i, gray)
+
+    def _relocalise(self, i: int, gray: np.ndarray) -> bool:
+        """Find frame ``i`` in the map (:mod:`~mutualslam_cli.vo.relocalise`); on success continue the
+        matched keyframe's segment from it: tracks on the verified points, a keyframe at this frame."""
+        if self.reloc is None or not self.map.kf_frame:
+            return False
+        r = self.reloc.query(gray, self.map, self.thr, seed=self.seed + i)
+        if r is None:
+            return False
+        self._collect_ba()
+        m, n = self.map, len(r.pids)
+        self.segment = m.kf_segment[r.keyframe]
+        t = Tracks.empty()
+        t.raw = r.raw
+        t.px, t.xn = self._undist(r.raw)
+        t.pid = r.pids.astype(np.int64)
+        t.host = np.array([m.host[p] for p in r.pids], np.int64)
+        t.f_h, t.px_h = np.zeros((n, 3)), np.zeros((n, 2))
+        t.seed = dfl.new_seeds(n, dfl.SeedInit(1.0, 0.5))
+        t.kf_px, t.at_kf, t.obs = t.px.copy(), np.ones(n, bool), [[] for _ in range(n)]
+        self.tracks, self.T_cw, self.n_tracked = t, r.T_cw, r.inliers
+        self.vel, self.vel_dt, self.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
+        self.state, self.ref = "tracking", None
+        self.relocalisations.append({"frame": i, "timestamp": float(self.seq.frames[i].timestamp),
+                                     "keyframe": int(r.keyframe), "inliers": int(r.inliers),
+                                     "frames_lost": 0 if self.lost_at < 0 else i - self.lost_at,
+                                     "candidates_tried": int(r.candidates_tried)})
+        log.info("relocalised frame %d against keyframe %d (%d inliers)", i, r.keyframe, r.inliers)
+        self._keyframe(i, gray)
+        self._record(i)
+        return True
+
