@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from mutualslam_cli.cli import common
@@ -68,7 +69,7 @@ def datasets(
                 r = check_sequence(n, sample=sample, data_root=cfg.data.data_root, registry_path=registry, progress=cb)
             finally:
                 p.remove_task(task)  # the table replaces the bar; an error is one line, not a bar and a line
-        t = Table("check", "value", title=f"{r.name} ({r.format})", title_justify="left")
+        t = Table("check", "value", title=escape(f"{r.name} ({r.format})"), title_justify="left")
         intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
         rows = [
             ("root", r.root), ("frames", str(r.frames)), ("time span", f"{r.time_span_s:.2f}"),

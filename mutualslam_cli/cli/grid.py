@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from mutualslam_cli.cli import common
@@ -104,9 +105,10 @@ def report(
     out = out or Path(config_from(config, sets).out) / "report"
     rep = build_tables(collect(list(results)))
     for name, tdf in rep.tables.items():
-        t = Table(*map(str, tdf.columns), title=rep.titles[name])
+        # titles and cells are text, not rich markup: a config label "[vo.inject_outliers=0.1]" stays
+        t = Table(*(escape(str(c)) for c in tdf.columns), title=escape(rep.titles[name]))
         for row in tdf.itertuples(index=False):
-            t.add_row(*(cell_text(v) for v in row))
+            t.add_row(*(escape(cell_text(v)) for v in row))
         common.console.print(t)
     paths = write_report(rep, out)
     common.console.print(f"wrote {len(paths)} files to {out}")

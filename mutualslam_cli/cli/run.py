@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from mutualslam_cli.cli import common
@@ -34,7 +35,7 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
 
     f = flatten(s)
     t = Table("metric", "pre-trained", "adapted",
-              title=f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}")
+              title=escape(f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}"))
     rows = [("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")]
     if f.get("dense.time_s") is not None:  # the dense stage ran
         rows += [("dense accuracy m", "dense.accuracy_m"), ("dense completeness m", "dense.completeness_m"),
@@ -56,7 +57,7 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
              ("timing.finetune_ms", 0)]
     t3.add_row(*(fmt_value(f.get(key), nd) for key, nd in cells))
     common.console.print(t3)
-    common.console.print(f"results: {folder}")
+    common.console.print(f"results: {escape(str(folder))}")
 
 
 @app.command()
@@ -138,7 +139,8 @@ def fuse(
 
         s = fuse_run(run_dir, sets or [], registry, command=sys.argv, progress=cb)
     f = flatten(s)
-    t = Table("metric", "pre-trained", "adapted", title=f"{f.get('sequence.name')} · dense ({f.get('dense.source')})")
+    t = Table("metric", "pre-trained", "adapted",
+              title=escape(f"{f.get('sequence.name')} · dense ({f.get('dense.source')})"))
     for label, key in (("accuracy m", "accuracy_m"), ("completeness m", "completeness_m"),
                        ("F-score @5cm", "fscore_5cm")):
         t.add_row(label, fmt_value(f.get(f"dense.{key}.pretrained"), 4), fmt_value(f.get(f"dense.{key}.adapted"), 4))
@@ -183,11 +185,11 @@ def eval_depth(
         common.console.print(f"[yellow]already complete[/] (use --force to rescore): {r.folder}")
     f = flatten(r.summary)
     t = Table("PCD lsq (%)", "PCD median (%)", "PCD none (%)", "e_si", "frames",
-              title=f"{f.get('sequence.name')} · {name} ({f.get('external.kind')}, external, no adaptation)")
+              title=escape(f"{f.get('sequence.name')} · {name} ({f.get('external.kind')}, external, no adaptation)"))
     t.add_row(*(fmt_value(f.get(f"depth.{k}.adapted"), 2) for k in ("pcd.lsq", "pcd.median", "pcd.none")),
               fmt_value(f.get("depth.esi.adapted"), 3), fmt_value(f.get("depth.frames_evaluated")))
     common.console.print(t)
-    common.console.print(f"results: {r.folder}")
+    common.console.print(f"results: {escape(str(r.folder))}")
 
 
 # --------------------------------------------------------------------------- ate
@@ -220,7 +222,8 @@ def ate(
                "scale": r.scale, **stats}
         typer.echo(json.dumps({k: v if not isinstance(v, float) or v == v else None for k, v in out.items()}))
         return
-    t = Table("pairs", "align", "scale", "rmse m", "mean m", "median m", "max m", title=f"ATE {est.name} vs {ref.name}")
+    t = Table("pairs", "align", "scale", "rmse m", "mean m", "median m", "max m",
+              title=escape(f"ATE {est.name} vs {ref.name}"))
     t.add_row(str(r.n_pairs), align, f"{r.scale:.6f}", f"{r.rmse:.6f}", f"{r.mean:.6f}", f"{r.median:.6f}",
               f"{r.max:.6f}")
     common.console.print(t)

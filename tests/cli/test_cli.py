@@ -181,6 +181,24 @@ def test_piped_report_tables_are_not_wrapped_at_80_columns(tmp_path: Path, fresh
     assert any("a_rather_long_sequence_name" in ln and "40.25" in ln for ln in r.stdout.splitlines())  # as in report.md
 
 
+def test_report_prints_brackets_as_text(tmp_path: Path, fresh_console):
+    """A name in brackets ("[vo.inject_outliers=0.1]" names a config group) is text, not rich markup."""
+    from mutualslam_cli.results.run_folder import run_dir, write_json
+    from mutualslam_cli.results.summary import Summary
+
+    folder = run_dir(tmp_path / "runs", "room[v2]", "replay+ewc", 0)
+    folder.mkdir(parents=True)
+    s = Summary()
+    for k, v in (("sequence.name", "room[v2]"), ("scheme", "replay+ewc"), ("seed", 0),
+                 ("depth.pcd.lsq.pretrained", 21.5), ("depth.pcd.lsq.adapted", 40.25)):
+        s.set(k, v)
+    write_json(folder / "summary.json", s.to_dict())
+    fresh_console()
+    r = runner.invoke(app, ["report", str(tmp_path / "runs"), "--out", str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    assert "room[v2]" in r.stdout
+
+
 def test_columns_env_sets_the_piped_width(tmp_path: Path, fresh_console, monkeypatch):
     _wide_runs(tmp_path / "runs")
     monkeypatch.setenv("COLUMNS", "90")
