@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 import yaml
 
-from mutualslam_cli.config_parse import apply_overrides, build
+from mutualslam_cli.config_parse import apply_overrides, build, check_run
 from mutualslam_cli.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -319,40 +319,6 @@ class RunConfig:
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
 
 
-def _validate(cfg: RunConfig) -> None:
-    checks = [
-        (cfg.adapt.lr > 0, "adapt.lr must be > 0"),
-        (cfg.adapt.validate_every >= 1, "adapt.validate_every (m) must be ≥ 1"),
-        (cfg.adapt.patience >= 1, "adapt.patience (n) must be ≥ 1"),
-        (cfg.adapt.steps_per_keyframe >= 1, "adapt.steps_per_keyframe must be ≥ 1"),
-        (0 <= cfg.adapt.alpha <= 1, "adapt.alpha must be in [0, 1]"),
-        (cfg.net.width % 32 == 0 and cfg.net.height % 32 == 0, "net.width and net.height must be multiples of 32"),
-        (0 < cfg.net.min_depth < cfg.net.max_depth, "net.min_depth must be in (0, net.max_depth)"),
-        (cfg.data.stride >= 1, "data.stride must be ≥ 1"),
-        (cfg.data.max_frames >= 0, "data.max_frames must be ≥ 0"),
-        (cfg.eval.pcd_threshold > 0, "eval.pcd_threshold must be > 0"),
-        (cfg.eval.batch >= 1, "eval.batch must be ≥ 1"),
-        (cfg.vo.grid_size >= 4 and cfg.vo.max_fts >= 10, "vo.grid_size ≥ 4 and vo.max_fts ≥ 10"),
-        (cfg.vo.core_kfs >= 2, "vo.core_kfs must be ≥ 2"),
-        (0 <= cfg.vo.inject_outliers < 1, "vo.inject_outliers must be in [0, 1)"),
-        (cfg.ba.max_targets >= 1 and cfg.ba.rounds >= 1 and cfg.ba.levels >= 1,
-         "ba.max_targets, ba.rounds and ba.levels must be ≥ 1"),
-        (0 <= cfg.ba.nearby_slots < cfg.ba.max_targets, "ba.nearby_slots must be in [0, ba.max_targets)"),
-        (0 < cfg.ba.image_scale <= 1, "ba.image_scale must be in (0, 1]"),
-        (0 < cfg.ba.huber_grey <= cfg.ba.outlier_grey, "ba.huber_grey must be in (0, ba.outlier_grey]"),
-        (cfg.dense.every >= 0, "dense.every must be ≥ 0 (0 = keyframes)"),
-        (cfg.dense.voxel_size > 0 and cfg.dense.trunc_voxels >= 1, "dense.voxel_size > 0 and dense.trunc_voxels ≥ 1"),
-        (0 < cfg.dense.depth_min < cfg.dense.depth_max, "dense.depth_min must be in (0, dense.depth_max)"),
-        (cfg.dense.block_resolution >= 2 and cfg.dense.block_count >= 1,
-         "dense.block_resolution ≥ 2 and dense.block_count ≥ 1"),
-        (cfg.dense.weight_threshold >= 0, "dense.weight_threshold must be ≥ 0"),
-        (cfg.dense.render_width >= 32, "dense.render_width must be ≥ 32"),
-    ]
-    for ok, msg in checks:
-        if not ok:
-            raise ConfigError(msg)
-
-
 def to_dict(cfg: Any) -> dict[str, Any]:
     """Plain nested dict of a config (safe for ``yaml.safe_dump`` and JSON)."""
     return dataclasses.asdict(cfg)
@@ -377,14 +343,14 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     elif path != CONFIG_DIR / "paper.yaml":
         raise ConfigError(f"{path}: config file not found")
     cfg = build(RunConfig, apply_overrides(data, overrides or [], create=True), "")
-    _validate(cfg)
+    check_run(cfg)
     return cfg
 
 
 def with_settings(cfg: RunConfig, overrides: list[str]) -> RunConfig:
     """Return ``cfg`` with ``--set``-style ``key=value`` overrides applied (validated like a file)."""
     out = build(RunConfig, apply_overrides(to_dict(cfg), overrides, create=False), "")
-    _validate(out)
+    check_run(out)
     return out
 
 
@@ -397,5 +363,5 @@ def with_overrides(cfg: RunConfig, **sections: dict[str, Any]) -> RunConfig:
         else:
             data[sec] = vals
     out = build(RunConfig, data, "")
-    _validate(out)
+    check_run(out)
     return out

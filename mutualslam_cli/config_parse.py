@@ -1,4 +1,5 @@
-"""Plain (YAML) values into typed, frozen dataclasses, and ``--set key=value`` overrides.
+"""Plain (YAML) values into typed, frozen dataclasses, ``--set key=value`` overrides, and the checks
+of the values the tool cannot work with (:func:`check_run`, :func:`check_vo`).
 
 The machinery behind :mod:`mutualslam_cli.config`: every field is checked against its annotation
 (``Literal`` choices, lists, mappings, optionals, bool / int / float / str), and an error names the
@@ -131,3 +132,56 @@ def apply_overrides(data: dict[str, Any], overrides: list[str], create: bool) ->
             node = node[p]
         node[parts[-1]] = value
     return data
+
+
+def check_vo(cfg: Any) -> None:
+    """Raise :class:`ConfigError` for options of a ``VOConfig`` the front end cannot work with."""
+    rules = [
+        ("grid_size", cfg.grid_size >= 4, "an integer ≥ 4 (pixels)"),
+        ("max_fts", cfg.max_fts >= max(cfg.min_tracked, 8), f"≥ min_tracked ({cfg.min_tracked}) and ≥ 8"),
+        ("min_tracked", cfg.min_tracked >= 6, "≥ 6 (PnP needs at least 6 matches)"),
+        ("core_kfs", cfg.core_kfs >= 2, "≥ 2 keyframes"),
+        ("klt_window", cfg.klt_window >= 5, "≥ 5 pixels"),
+        ("klt_levels", cfg.klt_levels >= 0, "≥ 0"),
+        ("fb_threshold_px", cfg.fb_threshold_px > 0, "> 0 pixels"),
+        ("ransac_threshold_px", cfg.ransac_threshold_px > 0, "> 0 pixels"),
+        ("kf_min_parallax_px", cfg.kf_min_parallax_px > 0, "> 0 pixels"),
+        ("kf_min_tracked_ratio", 0 < cfg.kf_min_tracked_ratio <= 1, "in (0, 1]"),
+        ("inject_outliers", 0 <= cfg.inject_outliers < 1, "in [0, 1)"),
+    ]
+    for name, ok, expected in rules:
+        if not ok:
+            raise ConfigError(f"vo.{name} = {getattr(cfg, name)!r}: expected {expected}")
+
+
+def check_run(cfg: Any) -> None:
+    """Raise :class:`ConfigError` naming the first value of a ``RunConfig`` the tool cannot work with."""
+    check_vo(cfg.vo)
+    checks = [
+        (cfg.adapt.lr > 0, "adapt.lr must be > 0"),
+        (cfg.adapt.validate_every >= 1, "adapt.validate_every (m) must be ≥ 1"),
+        (cfg.adapt.patience >= 1, "adapt.patience (n) must be ≥ 1"),
+        (cfg.adapt.steps_per_keyframe >= 1, "adapt.steps_per_keyframe must be ≥ 1"),
+        (0 <= cfg.adapt.alpha <= 1, "adapt.alpha must be in [0, 1]"),
+        (cfg.net.width % 32 == 0 and cfg.net.height % 32 == 0, "net.width and net.height must be multiples of 32"),
+        (0 < cfg.net.min_depth < cfg.net.max_depth, "net.min_depth must be in (0, net.max_depth)"),
+        (cfg.data.stride >= 1, "data.stride must be ≥ 1"),
+        (cfg.data.max_frames >= 0, "data.max_frames must be ≥ 0"),
+        (cfg.eval.pcd_threshold > 0, "eval.pcd_threshold must be > 0"),
+        (cfg.eval.batch >= 1, "eval.batch must be ≥ 1"),
+        (cfg.ba.max_targets >= 1 and cfg.ba.rounds >= 1 and cfg.ba.levels >= 1,
+         "ba.max_targets, ba.rounds and ba.levels must be ≥ 1"),
+        (0 <= cfg.ba.nearby_slots < cfg.ba.max_targets, "ba.nearby_slots must be in [0, ba.max_targets)"),
+        (0 < cfg.ba.image_scale <= 1, "ba.image_scale must be in (0, 1]"),
+        (0 < cfg.ba.huber_grey <= cfg.ba.outlier_grey, "ba.huber_grey must be in (0, ba.outlier_grey]"),
+        (cfg.dense.every >= 0, "dense.every must be ≥ 0 (0 = keyframes)"),
+        (cfg.dense.voxel_size > 0 and cfg.dense.trunc_voxels >= 1, "dense.voxel_size > 0 and dense.trunc_voxels ≥ 1"),
+        (0 < cfg.dense.depth_min < cfg.dense.depth_max, "dense.depth_min must be in (0, dense.depth_max)"),
+        (cfg.dense.block_resolution >= 2 and cfg.dense.block_count >= 1,
+         "dense.block_resolution ≥ 2 and dense.block_count ≥ 1"),
+        (cfg.dense.weight_threshold >= 0, "dense.weight_threshold must be ≥ 0"),
+        (cfg.dense.render_width >= 32, "dense.render_width must be ≥ 32"),
+    ]
+    for ok, msg in checks:
+        if not ok:
+            raise ConfigError(msg)

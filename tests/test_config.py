@@ -104,3 +104,15 @@ def test_experiment_section_lists_and_variants_are_checked(tmp_path):
     with pytest.raises(ConfigError, match="not a config section"):
         with_settings(t5, ["seed.x=1"])
     assert yaml.safe_load(yaml.safe_dump(to_dict(t5)))["experiment"]["variants"]["fts120"] == ["vo.max_fts=120"]
+
+
+@pytest.mark.parametrize("override, match", [
+    ("vo.min_tracked=3", r"vo.min_tracked = 3: expected ≥ 6"),
+    ("vo.grid_size=2", r"vo.grid_size = 2: expected an integer ≥ 4"),
+    ("vo.inject_outliers=1.0", r"vo.inject_outliers = 1.0: expected in \[0, 1\)"),
+    ("ba.nearby_slots=5", r"ba.nearby_slots must be in \[0, ba.max_targets\)"),
+])
+def test_values_the_tool_cannot_work_with_are_named(override, match):
+    """One check per value, at load time: the message names the key, the value and what was expected."""
+    with pytest.raises(ConfigError, match=match):
+        load_config(None, [override])

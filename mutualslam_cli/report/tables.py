@@ -30,7 +30,8 @@ from mutualslam_cli.report.dense import TITLE as DENSE_TITLE
 from mutualslam_cli.report.dense import dense_figures, dense_table
 from mutualslam_cli.report.maps import map_figures
 from mutualslam_cli.report.paper import paper_tables
-from mutualslam_cli.report.plots import report_figures
+from mutualslam_cli.report.plots import plot_accuracy
+from mutualslam_cli.report.trajectories import trajectory_figures
 from mutualslam_cli.results.run_folder import read_summary
 from mutualslam_cli.results.summary import flatten
 
@@ -328,8 +329,8 @@ def to_latex(t: pd.DataFrame, caption: str, bold: set[tuple[int, str]] | None = 
 
 
 def write_report(rep: Report, out_dir: Path) -> list[Path]:
-    """Write every table as ``<name>.md``, ``<name>.tex``, ``<name>.csv``, the plots and the map
-    figures (``maps/*.png``, :func:`~mutualslam_cli.report.maps.map_figures`), and ``report.md``
+    """Write every table as ``<name>.md``, ``<name>.tex``, ``<name>.csv``, the figures (accuracy over
+    frames, trajectories, maps, dense), and ``report.md``
     with every table and figure; return the paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -341,8 +342,10 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
         atomic_write_text(out_dir / f"{name}.md", f"### {rep.titles[name]}\n\n" + to_markdown(t))
         md.append(f"## {rep.titles[name]}\n\n" + to_markdown(t))
         written += [out_dir / f"{name}.{e}" for e in ("csv", "tex", "md")]
-    figures, notes = report_figures(rep.runs, out_dir)
-    figures += map_figures(rep.runs, out_dir)
+    acc = out_dir / "accuracy_over_frames.png"
+    figures = [acc] if plot_accuracy(rep.runs, acc) else []
+    traj, notes = trajectory_figures(rep.runs, out_dir)
+    figures += traj + map_figures(rep.runs, out_dir)
     figures += dense_figures(rep.runs, out_dir)
     md.append("## Figures\n\n" + "".join(f"{n}\n\n" for n in notes)
               + "".join(f"![{f.stem}]({f.relative_to(out_dir).as_posix()})\n\n" for f in figures))

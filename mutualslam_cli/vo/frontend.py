@@ -21,8 +21,9 @@ from threadpoolctl import threadpool_limits
 
 from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import VOConfig
+from mutualslam_cli.config_parse import check_vo
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.errors import ConfigError, DatasetError
+from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import scale_motion, se3_inv
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
@@ -378,28 +379,9 @@ def run_vo(seq: Sequence, cfg: VOConfig, seed: int = 0,
     """
     if len(seq) == 0:
         raise DatasetError(f"{seq.root}: sequence has no frames")
-    check_config(cfg)
+    check_vo(cfg)
     retain_freed_memory()  # per-frame buffers reuse mapped pages instead of faulting new ones
     # numpy's OpenBLAS would spin up its own threads for the BA's products and busy-wait on
     # both cores, starving the tracker and the decoder (measured: ~40 % more CPU per frame)
     with threadpool_limits(limits=1, user_api="blas"):
         return _Frontend(seq, cfg, seed).run(progress)
-
-
-def check_config(cfg: VOConfig) -> None:
-    """Raise :class:`ConfigError` for VO options the front end cannot work with."""
-    rules = [
-        ("grid_size", cfg.grid_size >= 4, "an integer ≥ 4 (pixels)"),
-        ("max_fts", cfg.max_fts >= max(cfg.min_tracked, 8), f"≥ min_tracked ({cfg.min_tracked}) and ≥ 8"),
-        ("min_tracked", cfg.min_tracked >= 6, "≥ 6 (PnP needs at least 6 matches)"),
-        ("core_kfs", cfg.core_kfs >= 2, "≥ 2 keyframes"),
-        ("klt_window", cfg.klt_window >= 5, "≥ 5 pixels"),
-        ("klt_levels", cfg.klt_levels >= 0, "≥ 0"),
-        ("fb_threshold_px", cfg.fb_threshold_px > 0, "> 0 pixels"),
-        ("ransac_threshold_px", cfg.ransac_threshold_px > 0, "> 0 pixels"),
-        ("kf_min_parallax_px", cfg.kf_min_parallax_px > 0, "> 0 pixels"),
-        ("kf_min_tracked_ratio", 0 < cfg.kf_min_tracked_ratio <= 1, "in (0, 1]"),
-    ]
-    for name, ok, expected in rules:
-        if not ok:
-            raise ConfigError(f"vo.{name} = {getattr(cfg, name)!r}: expected {expected}")

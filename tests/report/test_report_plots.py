@@ -15,6 +15,7 @@ from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import exp_so3
 from mutualslam_cli.report import plots as rp
+from mutualslam_cli.report import trajectories as tp
 from mutualslam_cli.report.tables import build_tables, collect, write_report
 from mutualslam_cli.results.run_folder import run_dir, write_json, write_yaml
 from mutualslam_cli.results.summary import Summary
@@ -116,7 +117,7 @@ def test_track_row_aligns_each_file_like_the_pipeline(seq_dir: Path, tmp_path: P
     write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 0.3, rng))
     write_tum_trajectory(folder / "traj_kf.txt", _sim3(gt.subset(np.arange(0, 12, 3)), 2.0, rng))
     write_tum_trajectory(folder / "traj_all_ba.txt", _sim3(gt, 0.5, rng, noise=0.002))
-    row = rp.track_row(folder, gt, 0.02, "replay · seed 0")
+    row = tp.track_row(folder, gt, 0.02, "replay · seed 0")
     assert set(row.stages) == {"vo", "ba"} and not row.problems
     t, p = row.stages["vo"]
     np.testing.assert_allclose(p, gt.positions, atol=1e-5)  # an exact Sim(3) copy aligns back onto GT
@@ -133,11 +134,11 @@ def test_trajectory_figure_one_row_per_run(seq_dir: Path, tmp_path: Path, rng):
             write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 0.4, rng, noise=0.001))
     write_tum_trajectory(folder / "traj_all_ba.txt", _sim3(gt, 0.4, rng))  # replay+ewc seed 1 only
     runs = collect([tmp_path / "runs"])
-    files, notes = rp.trajectory_figures(runs, tmp_path / "out")
+    files, notes = tp.trajectory_figures(runs, tmp_path / "out")
     assert notes == [] and [f.name for f in files] == ["trajectories_synth.png"] and files[0].is_file()
     folders = [Path(f) for f in runs["folder"]]
-    rows = [rp.track_row(f, gt, 0.02) for f in folders]
-    fig = rp.trajectory_figure(rows, "synth", rp.vertical_axis(gt.poses[:, :3, :3]), "time (s)")
+    rows = [tp.track_row(f, gt, 0.02) for f in folders]
+    fig = tp.trajectory_figure(rows, "synth", tp.vertical_axis(gt.poses[:, :3, :3]), "time (s)")
     assert len(fig.axes) == 2 * len(rows) == 8
     gids = [{ln.get_gid() for ln in ax.get_lines()} - {"start"} for ax in fig.axes]
     with_ba = [f == folder for f in folders for _ in ("top", "height")]
@@ -150,12 +151,12 @@ def test_trajectory_figure_one_row_per_run(seq_dir: Path, tmp_path: Path, rng):
 
 
 def test_trajectory_pages_hold_at_most_max_rows(seq_dir: Path, tmp_path: Path, rng, monkeypatch):
-    monkeypatch.setattr(rp, "MAX_ROWS", 1)
+    monkeypatch.setattr(tp, "MAX_ROWS", 1)
     gt = load_sequence(seq_dir).gt
     for scheme in ("recent", "replay"):
         folder = _run(tmp_path / "runs", "synth", scheme, 0, seq_root=seq_dir)
         write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 1.0, rng))
-    files, _ = rp.trajectory_figures(collect([tmp_path / "runs"]), tmp_path / "out")
+    files, _ = tp.trajectory_figures(collect([tmp_path / "runs"]), tmp_path / "out")
     assert [f.name for f in files] == ["trajectories_synth_p1.png", "trajectories_synth_p2.png"]
 
 
@@ -193,7 +194,7 @@ def test_vertical_axis(world_up, expected, rng):
         down = -(np.cos(pitch) * up + np.sin(pitch) * fwd)
         fwd = np.cross(right, down)
         rots.append(np.stack([right, down, fwd], axis=1))
-    assert rp.vertical_axis(np.asarray(rots)) == expected
+    assert tp.vertical_axis(np.asarray(rots)) == expected
 
 
 def test_segment_starts_bridges_and_relocalisations_are_marked(seq_dir: Path, tmp_path: Path, rng):
@@ -211,13 +212,13 @@ def test_segment_starts_bridges_and_relocalisations_are_marked(seq_dir: Path, tm
                     "relocalisations": [{"frame": 3, "timestamp": t[3]}]}
     m["bridges"] = [{"segment": 2, "onto": 1}]
     write_json(folder / "manifest.json", m)
-    assert rp.run_events(folder) == [(t[3], "relocalised"), (t[5], "segment"), (t[8], "bridge")]
-    row = rp.track_row(folder, gt, 0.02)
+    assert tp.run_events(folder) == [(t[3], "relocalised"), (t[5], "segment"), (t[8], "bridge")]
+    row = tp.track_row(folder, gt, 0.02)
     assert set(row.stages) == {"vo", "bridged"}
-    fig = rp.trajectory_figure([row], "synth", rp.vertical_axis(gt.poses[:, :3, :3]), "time (s)")
+    fig = tp.trajectory_figure([row], "synth", tp.vertical_axis(gt.poses[:, :3, :3]), "time (s)")
     top, height = fig.axes
     assert {ln.get_gid() for ln in top.get_lines()} >= {"bridged", "event-relocalised", "event-segment", "event-bridge"}
     assert sum(ln.get_gid() == "event-bridge" for ln in height.get_lines()) == 1
     assert {t.get_text() for t in fig.legends[0].get_texts()} >= {"relocalised", "new segment (re-initialised)",
                                                                    "new segment, bridged"}
-    assert rp.run_events(tmp_path) == []  # no manifest: no marks
+    assert tp.run_events(tmp_path) == []  # no manifest: no marks
