@@ -264,6 +264,20 @@ class OnlineAdapter:
         return {"ids": [k for k, _ in items], "target": torch.stack([s.image for s in samples]), "sources": sources,
                 "T_t2s": T_t2s, "K": K, "uv": uv, "d": d, "mask": mask}
 
+    def _sample_grads(self, batch: dict[str, object]) -> list[list[torch.Tensor]]:
+        """Per batch keyframe, the gradients of its own L_train at the current parameters (EWC's Fisher, Eq. 2)."""
+        cfg, out = self.cfg, []
+        for b in range(len(batch["ids"])):
+            one = slice(b, b + 1)
+            target = batch["target"][one]
+            loss, _ = self.loss_fn(self._predict(target), target, [s[one] for s in batch["sources"]],
+                                   batch["K"][one], [t[one] for t in batch["T_t2s"]], batch["uv"][one],
+                                   batch["d"][one], batch["mask"][one], cfg.lambda_sparse, cfg.lambda_smooth,
+                                   cfg.alpha)
+            grads = torch.autograd.grad(loss, self.params, allow_unused=True)
+            out.append([torch.zeros_like(p) if g is None else g.detach() for p, g in zip(self.params, grads)])
+        return out
+
     def _fine_tune(self, kf_id: int, info: StepInfo) -> None:
         """Alg. 2 for one keyframe: ``steps_per_keyframe`` Adam steps on L_train (+ regulariser)."""
         if not self.scheme.trains or self.optimizer is None:
@@ -304,7 +318,8 @@ class OnlineAdapter:
         if reg is not None:
             with torch.no_grad():
                 pen_val = float(reg.penalty(self.net))  # distance from θ* left at the end of the batch
-            reg.after_batch(self.net, batch["target"][:1])  # consolidate (Alg. 2 line 7)
+            per_kf = self._sample_grads(batch) if reg.needs_sample_grads else None
+            reg.after_batch(self.net, batch["target"][:1], per_kf)  # consolidate (Alg. 2 line 7)
         info.loss["penalty"] = pen_val
         info.trained = True
         info.batch = list(batch["ids"])

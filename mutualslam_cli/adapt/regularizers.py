@@ -3,9 +3,16 @@
 All three add ``c · Σ_i w_i (θ_i − θ*_i)²`` to L_train and differ in the importance ``w``:
 
 - **EWC** (Kirkpatrick et al. 2017; paper Eq. 1–2, Alg. 2): ``c = β/2``, ``w = F̂``; ``F`` sums the
-  empirical Fisher of each batch (squared gradients of L_train, averaged over the batch's
-  optimiser steps), ``j`` counts batches, ``F̂ = min(F / j, max_F)``. The paper prints ``max`` but
-  calls max_F "the maximum value of F̂"; a literal max with β = 5e7 freezes the net (DESIGN §5).
+  empirical Fisher of each batch, ``j`` counts batches, ``F̂ = min(F / j, max_F)``. The batch's
+  empirical Fisher is taken where the paper takes it, "at the end of every training batch": the
+  mean over the batch's keyframes of the *per-keyframe* squared gradient of L_train at the
+  parameters the batch reached, ``F^(j) = 1/N Σ_k (∂L_k/∂θ)²`` (Kirkpatrick et al.'s empirical
+  Fisher: per-sample gradients at the consolidated parameters). Squared gradients of the
+  batch-*mean* loss, or of the steps on the way, measure the misfit of the keyframe being learnt,
+  not curvature: at a minimum of the mean loss they vanish while the per-sample ones do not
+  (``tests/adapt/test_regularizers.py``). Cost: one forward/backward pass per batch keyframe per
+  batch. The paper prints ``max`` but calls max_F "the maximum value of F̂"; a literal max with
+  β = 5e7 freezes the net (DESIGN §5).
 - **MAS** (Aljundi et al. 2018; Appendix B Eq. 19–20): ``c = λ``, ``w = Ω`` = mean over samples of
   ``|∂ mean(G(x)²) / ∂θ|``. G is the *inverse* depth map: the CNN's own output is a disparity
   (depth is an affine-in-inverse post-processing, Monodepth2 ``disp_to_depth``); with G = depth
@@ -61,7 +68,15 @@ Hook order per batch, as called by :class:`~mutualslam_cli.adapt.online.OnlineAd
     reg.before_batch(model)
     for each step: loss = L_train (+ reg.penalty(model) if mode == "penalty"); backward; Adam step;
                    reg.prox(model, optimizer) if mode == "prox"; reg.after_step(model, grads_of_L_train)
-    reg.after_batch(model, newest_images)
+    reg.after_batch(model, newest_images, sample_grads)   # sample_grads only if reg.needs_sample_grads
+
+**Strength.** The three importances differ by orders of magnitude for the same coefficient, so
+each run measures what its regulariser does: after every proximal step the *shrink*
+``1 − ‖θ − θ*‖₂ / ‖x − θ*‖₂`` — the share of the batch's Adam displacement the regulariser took
+back (0: inert, 1: frozen) — kept in :attr:`Regularizer.shrinks` and summarised as
+``adaptation.reg.shrink.{mean,median}`` in ``summary.json``. The default coefficients are set so
+the three regularisers shrink alike (README, "Regulariser strength"; ``python -m
+mutualslam_cli.bench.strength``).
 """
 
 from __future__ import annotations
@@ -95,6 +110,8 @@ class Regularizer:
     """
 
     name = "base"
+    #: ``after_batch`` wants the per-keyframe gradients of L_train at the parameters reached (EWC).
+    needs_sample_grads = False
 
     def __init__(self, model: nn.Module, coef: float, anchor: str = "previous_batch", mode: str = "prox") -> None:
         if anchor not in ANCHORS:
@@ -110,6 +127,7 @@ class Regularizer:
         # θ at the start of the previous batch (kept only for the lagged anchor)
         self._prev_start = [t.clone() for t in self.star] if anchor == "lagged" else None
         self.batches = 0
+        self.shrinks: list[float] = []  # per proximal step: 1 − ‖θ − θ*‖ / ‖x − θ*‖ (module docstring)
 
     def before_batch(self, model: nn.Module) -> None:
         """Set θ* for the coming batch (module docstring: anchor policy)."""
@@ -139,6 +157,7 @@ class Regularizer:
             ConfigError: the optimiser is not Adam/AdamW (or uses amsgrad), so ``P`` is unknown.
         """
         groups = {id(q): g for g in optimizer.param_groups for q in g["params"]}
+        before = after = 0.0
         for p, w, s in zip(trainable(model), self.weights, self.star):
             g = groups.get(id(p))
             if g is None or g.get("amsgrad", False) or "betas" not in g:
@@ -148,13 +167,26 @@ class Regularizer:
                 continue
             bias2 = 1.0 - g["betas"][1] ** float(st["step"])
             step = (st["exp_avg_sq"] / bias2).sqrt_().add_(g["eps"]).reciprocal_().mul_(g["lr"])  # P = lr/(√v̂+ε)
-            p.sub_(s).div_(step.mul_(w).mul_(2.0 * self.coef).add_(1.0)).add_(s)  # θ* + (x − θ*)/(1 + 2Pcw)
+            p.sub_(s)
+            before += float(p.square().sum())
+            p.div_(step.mul_(w).mul_(2.0 * self.coef).add_(1.0))  # (x − θ*)/(1 + 2Pcw)
+            after += float(p.square().sum())
+            p.add_(s)  # θ* + (x − θ*)/(1 + 2Pcw)
+        if before > 0.0:
+            self.shrinks.append(1.0 - (after / before) ** 0.5)
 
     def after_step(self, model: nn.Module, grads: list[torch.Tensor]) -> None:
         """Called after each optimiser step with the gradients of L_train (no penalty) of that step."""
 
-    def after_batch(self, model: nn.Module, newest: torch.Tensor | None = None) -> None:
-        """Consolidate the importance at the end of a batch; ``newest`` is ``(B, 3, H, W)``."""
+    def after_batch(self, model: nn.Module, newest: torch.Tensor | None = None,
+                    sample_grads: list[list[torch.Tensor]] | None = None) -> None:
+        """Consolidate the importance at the end of a batch.
+
+        Args:
+            newest: ``(B, 3, H, W)`` images of the batch's newest keyframe(s) (MAS).
+            sample_grads: per batch keyframe, the gradients of its own L_train at the parameters
+                reached (one tensor per trainable parameter); given when ``needs_sample_grads``.
+        """
         self.batches += 1
 
 
@@ -169,32 +201,23 @@ class EWC(Regularizer):
     """
 
     name = "ewc"
+    needs_sample_grads = True
 
     def __init__(self, model: nn.Module, beta: float, max_f: float, anchor: str = "previous_batch",
                  mode: str = "prox") -> None:
         super().__init__(model, beta / 2.0, anchor, mode)  # Eq. 1: Σ β/2 F̂ (θ − θ*)²
         self.max_f = float(max_f)
         self.fisher_sum = [torch.zeros_like(w) for w in self.weights]  # F of Eq. 2
-        self._batch_f = [torch.zeros_like(w) for w in self.weights]
-        self._steps = 0
 
-    def before_batch(self, model: nn.Module) -> None:
-        super().before_batch(model)
-        for f in self._batch_f:
-            f.zero_()
-        self._steps = 0
-
-    def after_step(self, model: nn.Module, grads: list[torch.Tensor]) -> None:
-        for f, g in zip(self._batch_f, grads):
-            f.add_(g.detach() ** 2)  # empirical Fisher: squared gradient of L_train
-        self._steps += 1
-
-    def after_batch(self, model: nn.Module, newest: torch.Tensor | None = None) -> None:
-        if self._steps == 0:
+    def after_batch(self, model: nn.Module, newest: torch.Tensor | None = None,
+                    sample_grads: list[list[torch.Tensor]] | None = None) -> None:
+        if not sample_grads:
             return
-        super().after_batch(model, newest)
-        for F, fb, w in zip(self.fisher_sum, self._batch_f, self.weights):
-            F.add_(fb / self._steps)  # Eq. 2: F = F + F^(j)
+        super().after_batch(model, newest, sample_grads)
+        n = len(sample_grads)
+        for i, (F, w) in enumerate(zip(self.fisher_sum, self.weights)):
+            for grads in sample_grads:  # F^(j) = 1/N Σ_k (∂L_k/∂θ)², at the parameters reached
+                F.add_(grads[i].detach().square(), alpha=1.0 / n)  # Eq. 2: F = F + F^(j)
             torch.clamp(F / self.batches, max=self.max_f, out=w)  # Eq. 2: F̂ = min(F / j, max_F)
 
 
@@ -218,7 +241,8 @@ class MAS(Regularizer):
         self.omega_sum = [torch.zeros_like(w) for w in self.weights]
         self.samples = 0
 
-    def after_batch(self, model: nn.Module, newest: torch.Tensor | None = None) -> None:
+    def after_batch(self, model: nn.Module, newest: torch.Tensor | None = None,
+                    sample_grads: list[list[torch.Tensor]] | None = None) -> None:
         if newest is None or newest.shape[0] == 0:
             return
         super().after_batch(model, newest)
@@ -267,7 +291,8 @@ class SI(Regularizer):
             o.sub_(g.detach() * (p.detach() - last))  # Zenke Eq. 3: ω -= g · Δθ
             last.copy_(p.detach())
 
-    def after_batch(self, model: nn.Module, newest: torch.Tensor | None = None) -> None:
+    def after_batch(self, model: nn.Module, newest: torch.Tensor | None = None,
+                    sample_grads: list[list[torch.Tensor]] | None = None) -> None:
         super().after_batch(model, newest)
         for w, o, start, p in zip(self.weights, self.omega, self._batch_start, trainable(model)):
             total = p.detach() - start  # Δθ over the batch (the task)

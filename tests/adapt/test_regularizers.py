@@ -85,24 +85,55 @@ def test_ewc_fisher_is_squared_gradient_by_hand():
     x, y = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64), 3.0
     m = Linear([0.2, 0.1, -0.4])
     ewc = EWC(m, beta=2.0, max_f=1e9)
-    # batch 1: two steps at fixed w, hand gradient of 0.5 (w·x − y)² is (w·x − y) x
+    # batch 1: two keyframes; hand gradient of 0.5 (w·x − y)² is (w·x − y) x
     r = float((m.w.detach() * x).sum()) - y
     g_hand = r * x
     ewc.before_batch(m)
     loss = 0.5 * (m(x) - y) ** 2
     (g_auto,) = torch.autograd.grad(loss, [m.w])
     torch.testing.assert_close(g_auto, g_hand)
-    ewc.after_step(m, [g_auto])
-    ewc.after_step(m, [2 * g_auto])
-    ewc.after_batch(m)
-    F1 = (g_hand ** 2 + (2 * g_hand) ** 2) / 2  # per-batch Fisher = mean over steps of g²
+    ewc.after_step(m, [g_auto])  # the optimiser's steps do not enter the Fisher
+    ewc.after_batch(m, None, [[g_auto], [2 * g_auto]])
+    F1 = (g_hand ** 2 + (2 * g_hand) ** 2) / 2  # per-batch Fisher = mean over keyframes of g_k²
     torch.testing.assert_close(ewc.weights[0], F1)
-    # batch 2: one step with gradient g3; F̂ = (F1 + g3²) / j, j = 2
+    # batch 2: one keyframe with gradient g3; F̂ = (F1 + g3²) / j, j = 2
     g3 = torch.tensor([0.3, 0.0, -1.0], dtype=torch.float64)
     ewc.before_batch(m)
-    ewc.after_step(m, [g3])
-    ewc.after_batch(m)
+    ewc.after_batch(m, None, [[g3]])
     torch.testing.assert_close(ewc.weights[0], (F1 + g3 ** 2) / 2)
+
+
+def test_ewc_fisher_of_per_keyframe_gradients_where_the_mean_gradient_is_zero():
+    """Two keyframes pulling opposite ways: the batch-mean loss is at its minimum (gradient 0), its
+    squared gradient says "no curvature"; the per-keyframe squared gradients (Eq. 2) do not."""
+    y = torch.tensor([1.0, -1.0, 2.0, 0.0], dtype=torch.float64)
+    tgt = torch.stack([y, -y])  # keyframe targets: the mean loss is minimal at w = 0
+    cfg = AdaptConfig(scheme="replay+ewc", ewc_max_f=1e9, steps_per_keyframe=1)
+
+    def loss_fn(depth, target, *rest):
+        return 0.5 * ((depth.reshape(depth.shape[0], -1) - target.reshape(target.shape[0], -1)) ** 2).sum(1).mean(), {}
+
+    class Direct(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(4, dtype=torch.float64))
+
+        def predict(self, x):
+            return self.w.expand(x.shape[0], 4).reshape(x.shape[0], 1, 1, 4)
+
+    net = Direct()
+    ad = OnlineAdapter(net, cfg, torch.eye(3), loss_fn=loss_fn, val_fn=val_fn)
+    batch = {"ids": [0, 1], "target": tgt.reshape(2, 1, 1, 4), "sources": [tgt.reshape(2, 1, 1, 4)],
+             "K": torch.eye(3).expand(2, 3, 3), "T_t2s": [torch.eye(4).expand(2, 4, 4)],
+             "uv": torch.zeros(2, 1, 2), "d": torch.zeros(2, 1), "mask": torch.zeros(2, 1, dtype=torch.bool)}
+    mean_grad = torch.autograd.grad(loss_fn(net.predict(batch["target"]), batch["target"])[0], [net.w])[0]
+    assert float(mean_grad.abs().max()) == 0.0
+    grads = ad._sample_grads(batch)
+    ewc = ad.regularizer
+    ewc.before_batch(net)
+    ewc.after_batch(net, None, grads)
+    torch.testing.assert_close(ewc.weights[0], y ** 2)  # mean of (w − y_k)² over k = y²
+    assert float(ewc.weights[0].sum()) > 0
 
 
 def test_ewc_fisher_capped_at_max_f():
@@ -110,8 +141,7 @@ def test_ewc_fisher_capped_at_max_f():
     ewc = EWC(m, beta=5e7, max_f=1e-3)
     for g in ([10.0, 0.01, 1e-5], [5.0, 0.0, 0.0], [0.0, 0.0, 0.0]):
         ewc.before_batch(m)
-        ewc.after_step(m, [torch.tensor(g, dtype=torch.float64)])
-        ewc.after_batch(m)
+        ewc.after_batch(m, None, [[torch.tensor(g, dtype=torch.float64)]])
         assert float(ewc.weights[0].max()) <= 1e-3
     assert float(ewc.weights[0][0]) == 1e-3  # capped: min, not max (DESIGN §5)
     assert float(ewc.weights[0][2]) < 1e-3  # small Fisher is not raised to max_F
@@ -121,8 +151,7 @@ def test_ewc_penalty_value_by_hand():
     m = Linear([1.0, 2.0])
     ewc = EWC(m, beta=4.0, max_f=1.0)
     ewc.before_batch(m)
-    ewc.after_step(m, [torch.tensor([0.5, 0.1], dtype=torch.float64)])
-    ewc.after_batch(m)
+    ewc.after_batch(m, None, [[torch.tensor([0.5, 0.1], dtype=torch.float64)]])
     ewc.before_batch(m)
     with torch.no_grad():
         m.w += torch.tensor([0.1, -0.2], dtype=torch.float64)
@@ -166,8 +195,7 @@ def test_prox_step_by_hand():
     m = Linear([1.0, 2.0])
     ewc = EWC(m, beta=4.0, max_f=1.0)
     ewc.before_batch(m)
-    ewc.after_step(m, [torch.tensor([0.5, 0.1], dtype=torch.float64)])
-    ewc.after_batch(m)  # F̂ = [0.25, 0.01], θ* will be [1, 2]
+    ewc.after_batch(m, None, [[torch.tensor([0.5, 0.1], dtype=torch.float64)]])  # F̂ = [0.25, 0.01], θ* will be [1, 2]
     ewc.before_batch(m)
     opt = torch.optim.Adam([m.w], lr=0.5, betas=(0.9, 0.99), eps=1e-8)
     m.w.grad = torch.tensor([-0.2, 0.4], dtype=torch.float64)
