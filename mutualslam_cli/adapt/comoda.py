@@ -24,8 +24,18 @@ and attributes part of the gap to the pose network, which was never trained indo
   fixed bank of ``comoda_replay_capacity`` triplets of the *pre-training* domain
   (:mod:`~mutualslam_cli.adapt.comoda_source`: CoMoDa replays KITTI training samples, its "distant
   past"), each with its own intrinsics; or (``sequence``) a reservoir of this sequence's past
-  triplets, each stored after its update. Triplets are uint8 at network resolution. BatchNorm
-  stays in eval mode (batches of ≤ 4, as in our adapter).
+  triplets, each stored after its update. Triplets are uint8 at network resolution.
+- **BatchNorm** as CoMoDa's code has it (``CoMoDA.set_adapt``): both networks in eval mode, so the
+  running statistics stay those of pre-training (batches of ≤ 4), *and* BatchNorm's affine weight
+  and bias frozen (``requires_grad = False``, so Adam never sees them; CoMoDa's code freezes them),
+  in the depth and the pose network (:func:`freeze_batchnorm`). Gradients still flow through the
+  layers; convolutions and decoder biases are trained. CoMoDa selects the frozen parameters by name
+  (``"bn"`` in it), which misses the BatchNorm of the ResNet shortcuts (``layerN.0.downsample.1``);
+  here every BatchNorm layer is frozen, found by type. Eval mode is re-asserted at each call.
+- **Pose network source** (:func:`make_pose_net`): ``adapt.comoda_pose_weights``, else the depth
+  weights folder ``net.weights`` when it holds pose files, else the default weights folder's, else
+  an encoder copied from the depth encoder with a random decoder; ``summary.json`` names it
+  (``adaptation.pose_network``).
 - **Not transferred indoors**: CoMoDa's velocity loss (GPS speed gives metric scale; TUM / ICL-NUIM
   have no speed) and its static-frame rule (a translation below 0.2 m by GPS speed; here an
   optional photometric gate, ``comoda_min_motion``, off by default).
@@ -43,6 +53,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -63,6 +74,10 @@ log = logging.getLogger(__name__)
 IDENTITY_NOISE = 1e-5
 #: A reprojection outside the source image gets this error, so it never wins the minimum.
 INVALID_PE = 1e4
+#: ``adaptation.pose_network`` when no pose files were found (:func:`make_pose_net`).
+RANDOM_POSE = "random (encoder from the depth encoder, decoder random)"
+#: The BatchNorm layers :func:`freeze_batchnorm` freezes.
+BATCHNORM_TYPES = (nn.BatchNorm1d, nn.BatchNorm2d, nn.BatchNorm3d, nn.SyncBatchNorm)
 
 
 def check_comoda_config(c: AdaptConfig) -> None:
@@ -80,6 +95,21 @@ def check_comoda_config(c: AdaptConfig) -> None:
     for ok, msg in checks:
         if not ok:
             raise ConfigError(msg)
+
+
+def freeze_batchnorm(*modules: nn.Module) -> int:
+    """CoMoDa's adaptation mode (its ``set_adapt``): each module in eval mode (BatchNorm running
+    statistics frozen) and the affine ``weight``/``bias`` of every BatchNorm layer set to
+    ``requires_grad = False`` (in place). Returns the number of parameter tensors frozen."""
+    n = 0
+    for module in modules:
+        module.eval()
+        for m in module.modules():
+            if isinstance(m, BATCHNORM_TYPES):
+                for p in m.parameters(recurse=False):
+                    p.requires_grad_(False)
+                    n += 1
+    return n
 
 
 def se3_inv_torch(T: torch.Tensor) -> torch.Tensor:
@@ -178,7 +208,8 @@ class ComodaAdapter:
         self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32)
         check_shape(self.K_net, [3, 3], "ComodaAdapter: K_net")
         torch.manual_seed(seed)
-        self.net, self.pose_net = depth_net.eval(), pose_net.eval()
+        self.n_bn_frozen = freeze_batchnorm(depth_net, pose_net)  # eval mode + BN affine frozen (CoMoDa)
+        self.net, self.pose_net = depth_net, pose_net
         self.cfg, self.fast = cfg, bool(fast)
         params = [p for m in (depth_net, pose_net) for p in m.parameters() if p.requires_grad]
         self.optimizer = torch.optim.Adam(params, lr=cfg.comoda_lr, betas=(0.9, 0.999))
@@ -206,6 +237,7 @@ class ComodaAdapter:
         to t+1 extends the trajectory.
         """
         check_shape(image, [3, "H", "W"], "ComodaAdapter.add_frame")
+        self._eval_mode()
         idx = len(self.poses)
         self.window = (self.window + [(idx, to_uint8(image))])[-3:]
         info = FrameStep(frame=idx)
@@ -224,6 +256,7 @@ class ComodaAdapter:
         """
         check_shape(triplet, [3, 3, "H", "W"], "ComodaAdapter.train_triplet")
         info = info if info is not None else FrameStep(frame=target + 1, target=target)
+        self._eval_mode()
         if self._is_static(triplet):
             info.static = True
             return info
@@ -238,11 +271,17 @@ class ComodaAdapter:
     def loss_on(self, triplets: torch.Tensor) -> dict[str, float]:
         """The loss parts of the current networks on ``(B, 3, 3, H, W)`` uint8 triplets of this
         sequence's camera, without training."""
+        self._eval_mode()
         with torch.no_grad():
             _, parts = self._loss(triplets, self.K_net.expand(triplets.shape[0], 3, 3))
         return parts
 
     # ------------------------------------------------------------------ internals
+    def _eval_mode(self) -> None:
+        """Both networks back in eval mode (BatchNorm statistics frozen) even if a caller set ``train()``."""
+        self.net.eval()
+        self.pose_net.eval()
+
     def _is_static(self, triplet: torch.Tensor) -> bool:
         if self.cfg.comoda_min_motion <= 0:
             return False
@@ -309,24 +348,50 @@ class ComodaAdapter:
         self.poses.append(self.poses[-1] @ np.linalg.inv(T))
 
 
-def make_pose_net(depth_net: nn.Module, cfg: AdaptConfig, default_dir: str | None = None) -> PoseNet:
-    """The pose network of scheme ``comoda`` (``AdaptConfig.comoda_pose_weights``).
+def _pose_folder(cfg: AdaptConfig, weights_dir: str | Path | None,
+                default_dir: str | Path | None) -> tuple[Path | None, str]:
+    """``(folder, origin)`` of the pose files :func:`make_pose_net` loads, ``(None, "")`` when none."""
+    if cfg.comoda_pose_weights:
+        return Path(cfg.comoda_pose_weights).expanduser(), "adapt.comoda_pose_weights"
+    if weights_dir and has_pose_files(Path(weights_dir).expanduser()):
+        return Path(weights_dir).expanduser(), "net.weights"
+    folder = Path(default_dir if default_dir is not None else default_weights_dir()).expanduser()
+    if has_pose_files(folder):
+        if weights_dir:
+            log.warning("comoda: net.weights %s has no pose_encoder.pth/pose.pth; using the default weights "
+                        "folder's pose network %s, trained beside another depth network", weights_dir, folder)
+        return folder, "the default weights folder"
+    return None, ""
 
-    ``cfg.comoda_pose_weights`` if set (must hold the files); else ``default_dir``'s pose files when
-    both exist; else the pose encoder initialised from ``depth_net.encoder`` (``conv1`` repeated over
+
+def make_pose_net(depth_net: nn.Module, cfg: AdaptConfig, default_dir: str | Path | None = None,
+                  weights_dir: str | Path | None = None) -> tuple[PoseNet, str]:
+    """The pose network of scheme ``comoda`` and where it came from.
+
+    Order of preference: ``cfg.comoda_pose_weights`` if set (must hold the files); else
+    ``weights_dir`` (the run's ``net.weights``, the depth network's folder) when it holds
+    ``pose_encoder.pth`` + ``pose.pth``; else ``default_dir``'s (default: :func:`default_weights_dir`)
+    pose files; else the pose encoder initialised from ``depth_net.encoder`` (``conv1`` repeated over
     the two frames and halved, as Monodepth2 does from ImageNet) and a random decoder (its 0.01 output
     scale starts it near the identity), with a warning.
 
+    Returns:
+        ``(net, source)``: the network in eval mode; ``source`` is the resolved path of the pose
+        files' folder, or :data:`RANDOM_POSE` (the ``adaptation.pose_network`` of ``summary.json``).
+
     Raises:
-        ConfigError: ``comoda_pose_weights`` names a folder without valid pose files.
+        ConfigError: ``comoda_pose_weights`` names a folder without valid pose files, or a folder's
+            pose files are not Monodepth2's.
     """
-    if cfg.comoda_pose_weights:
-        return load_pose(cfg.comoda_pose_weights)
-    folder = default_dir if default_dir is not None else default_weights_dir()
-    if has_pose_files(folder):
-        return load_pose(folder)
+    folder, origin = _pose_folder(cfg, weights_dir, default_dir)
+    if folder is not None:
+        net = load_pose(folder)
+        source = str(folder.resolve())
+        log.info("comoda: pose network from %s (%s)", source, origin)
+        return net, source
+    where = ", ".join(str(f) for f in (weights_dir, default_dir or default_weights_dir()) if f)
     log.warning("comoda: no pose_encoder.pth/pose.pth in %s; pose encoder initialised from the depth "
-                "encoder, decoder random (set adapt.comoda_pose_weights to load Monodepth2's)", folder)
+                "encoder, decoder random (set adapt.comoda_pose_weights to load Monodepth2's)", where)
     net = PoseNet()
     net.encoder.init_from_single_image(depth_net.encoder)
-    return net.eval()
+    return net.eval(), RANDOM_POSE

@@ -7,14 +7,17 @@ and the VO's ATE are unchanged), so Table 4 can show the PoseNet trajectory besi
 
 Outputs, in the run folder: ``frames.csv`` (one row per frame: trained, static, batch, loss parts,
 step ms) and ``traj_posenet.txt`` (TUM format); in ``summary.json``: ``timing.finetune_ms`` (median
-per Adam step), ``timing.finetune_kf_ms`` (median per *frame* update) and
+per Adam step), ``timing.finetune_kf_ms`` (median per *frame* update),
 ``trajectory.ate_rmse_m.posenet`` (Sim(3)-aligned ATE of the chained poses against GT, null with a
-reason when not computable).
+reason when not computable) and ``adaptation.pose_network`` (the resolved folder of the pose files the
+pose network started from, or ``"random (encoder from the depth encoder, decoder random)"``;
+:func:`~mutualslam_cli.adapt.comoda.make_pose_net`).
 """
 
 from __future__ import annotations
 
 import io
+import logging
 import time
 from typing import Any
 
@@ -35,8 +38,12 @@ from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.camera import Undistorter
 
+log = logging.getLogger(__name__)
+
 #: summary.json key of the PoseNet trajectory's ATE (metres after Sim(3) alignment).
 POSENET_ATE_KEY = "trajectory.ate_rmse_m.posenet"
+#: summary.json key naming the pose network the run started from (a folder, or random).
+POSE_NETWORK_KEY = "adaptation.pose_network"
 
 
 def frame_row(info: FrameStep) -> dict[str, Any]:
@@ -63,8 +70,9 @@ def run_stage(run: RunContext, net: torch.nn.Module, fast: bool) -> torch.nn.Mod
     """Adapt ``net`` on every frame of the sequence with the CoMoDa-style adapter; write its outputs.
 
     Args:
-        run: the run (``cfg.adapt.comoda_*`` settings, ``cfg.net`` resolution, ``cfg.seed``; the
-            source-domain replay bank is kept in ``<cache>/comoda`` for the next runs).
+        run: the run (``cfg.adapt.comoda_*`` settings, ``cfg.net`` resolution and ``weights`` (its pose
+            files, if any, start the pose network), ``cfg.seed``; the source-domain replay bank is
+            kept in ``<cache>/comoda`` for the next runs).
         net: the depth network to adapt (a copy of the pre-trained one; changed in place).
         fast: bf16 autocast for the forward passes.
 
@@ -77,7 +85,10 @@ def run_stage(run: RunContext, net: torch.nn.Module, fast: bool) -> torch.nn.Mod
     net = prepare(net, fast)
     bank = (source_triplets(cfg.adapt.comoda_replay_capacity, w, h, cache_dir=cache_dir)
             if cfg.adapt.comoda_replay_from == "source" and cfg.adapt.comoda_replay_per_step > 0 else None)
-    adapter = ComodaAdapter(net, make_pose_net(net, cfg.adapt), cfg.adapt,
+    pose_net, pose_source = make_pose_net(net, cfg.adapt, weights_dir=cfg.net.weights)
+    log.info("comoda: pose network: %s", pose_source)
+    summary.set(POSE_NETWORK_KEY, pose_source)
+    adapter = ComodaAdapter(net, pose_net, cfg.adapt,
                             seq.intrinsics.scaled(w, h).K(), seed=cfg.seed, fast=fast, replay_bank=bank)
     und = Undistorter(seq.intrinsics)
     rows, t0 = [], time.perf_counter()

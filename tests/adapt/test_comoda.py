@@ -171,12 +171,12 @@ def test_bad_settings_fail_naming_the_key(seq, key, value):
 
 def test_pose_net_default_and_files(tmp_path, caplog):
     depth = DepthNet()
-    net = make_pose_net(depth, AdaptConfig(), default_dir=str(tmp_path))
-    assert "pose encoder initialised from the depth encoder" in caplog.text
+    net, source = make_pose_net(depth, AdaptConfig(), default_dir=str(tmp_path))
+    assert "pose encoder initialised from the depth encoder" in caplog.text and source.startswith("random")
     w = depth.encoder.state_dict()["encoder.conv1.weight"]
     assert torch.allclose(net.encoder.state_dict()["encoder.conv1.weight"], torch.cat([w, w], 1) / 2)
     save_pose(net, tmp_path / "p")
-    again = make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "p")), default_dir=str(tmp_path))
+    again, _ = make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "p")), default_dir=str(tmp_path))
     assert torch.equal(again.decoder.net[3].weight, net.decoder.net[3].weight)
     with pytest.raises(ConfigError, match="pose_encoder.pth"):
         make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "none")))
