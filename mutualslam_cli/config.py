@@ -184,9 +184,11 @@ class AdaptConfig:
     0 = off (default). ≥ 0."""
     comoda_pose_weights: str = ""
     """Scheme ``comoda``: folder with Monodepth2's ``pose_encoder.pth`` + ``pose.pth``. Empty: the
-    default weights folder's pose files when present (``mslam pretrain`` writes them), else the pose
-    encoder is initialised from the depth encoder (``conv1`` repeated over the two frames and halved,
-    as Monodepth2 initialises it from ImageNet) with a random decoder, and a warning is logged."""
+    depth weights folder's (``net.weights``) pose files when present (Monodepth2's released models
+    ship them beside ``encoder.pth``), else the default weights folder's (``mslam pretrain`` writes
+    them), else the pose encoder is initialised from the depth encoder (``conv1`` repeated over the
+    two frames and halved, as Monodepth2 initialises it from ImageNet) with a random decoder, and a
+    warning is logged. ``summary.json`` names the choice (``adaptation.pose_network``)."""
 
 
 @dataclass(frozen=True)
@@ -252,6 +254,9 @@ class EvalConfig:
     """Frames per forward pass in the depth evaluation (results do not depend on it beyond
     floating-point rounding). Measured per frame, 640×192 bf16, 2 threads, AVX512-BF16: batch 1
     60 ms, 2 58 ms, 4 59 ms, 8 72 ms — batching does not pay on this CPU."""
+    online: bool = True
+    """Also score every evaluated frame with the model of its time, as the adaptation loop goes
+    (:mod:`~mutualslam_cli.stages.online_eval`; ``depth.pcd_online.*``): one more prediction per frame."""
 
 
 @dataclass(frozen=True)
@@ -264,6 +269,11 @@ class DenseConfig:
     """Run the dense stage after the evaluation (``mslam fuse RUN_DIR`` runs it on a finished run)."""
     every: int = 0
     """Frames fused: 0 = the keyframes; k > 0 = every k-th frame that has a pose."""
+    scalings: list[Literal["sequence", "frame", "gt"]] = field(default_factory=lambda: ["sequence", "frame", "gt"])
+    """Depth scalings fused and scored (:mod:`~mutualslam_cli.dense.scaling`), each one TSDF per model:
+    ``sequence`` (one VO scale per sequence, the ``dense.<metric>.<model>`` keys; always included),
+    ``frame`` (each frame's own VO scale, ``dense.frame_scale.*``), ``gt`` (each frame scaled to GT
+    depth, an oracle, ``dense.gt_scale.*``). Leaving one out saves its fusion; its keys are null."""
     voxel_size: float = 0.02
     """TSDF voxel edge, metres (the F-score's 5 cm is 2.5 voxels). > 0."""
     trunc_voxels: float = 4.0

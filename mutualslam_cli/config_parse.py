@@ -175,6 +175,8 @@ def check_run(cfg: Any) -> None:
         (0 < cfg.ba.image_scale <= 1, "ba.image_scale must be in (0, 1]"),
         (0 < cfg.ba.huber_grey <= cfg.ba.outlier_grey, "ba.huber_grey must be in (0, ba.outlier_grey]"),
         (cfg.dense.every >= 0, "dense.every must be ≥ 0 (0 = keyframes)"),
+        ("sequence" in cfg.dense.scalings and len(set(cfg.dense.scalings)) == len(cfg.dense.scalings),
+         "dense.scalings must hold 'sequence' (the headline scores) and no name twice"),
         (cfg.dense.voxel_size > 0 and cfg.dense.trunc_voxels >= 1, "dense.voxel_size > 0 and dense.trunc_voxels ≥ 1"),
         (0 < cfg.dense.depth_min < cfg.dense.depth_max, "dense.depth_min must be in (0, dense.depth_max)"),
         (cfg.dense.block_resolution >= 2 and cfg.dense.block_count >= 1,

@@ -308,10 +308,89 @@ def test_report_shows_the_dense_table(dense_run, tmp_path):
     tmp, _, r = dense_run
     rep = build_tables(collect([tmp / "dense"]))
     t = rep.tables["dense"]
-    assert len(t) == 1 and t.iloc[0]["F@5cm adapt"] == pytest.approx(r.summary["dense"]["fscore_5cm"]["adapted"])
+    # one row per scaling, the headline (one VO scale per sequence) first
+    assert list(t["scaling"]) == ["sequence (VO)", "per frame (VO)", "per frame to GT (oracle)"]
+    assert t.iloc[0]["F@5cm adapt"] == pytest.approx(r.summary["dense"]["fscore_5cm"]["adapted"])
     assert t.iloc[0]["acc pre m"] == pytest.approx(r.summary["dense"]["accuracy_m"]["pretrained"])
+    for row, p in ((1, "frame_scale"), (2, "gt_scale")):
+        assert t.iloc[row]["F@5cm pre"] == pytest.approx(r.summary["dense"][p]["fscore_5cm"]["pretrained"])
+        assert t.iloc[row]["fallback frames"] == r.summary["dense"][p]["fallback_frames"]["adapted"]
+    assert "oracle" in rep.titles["dense"] and "one scale per model and sequence" in rep.titles["dense"]
     files = write_report(rep, tmp_path / "rep")
     assert any(p.parent.name == "dense" and p.suffix == ".png" for p in files)
     assert "dense/dense_" in (tmp_path / "rep" / "report.md").read_text()
     # runs without the stage: no table
     assert "dense" not in build_tables(collect([tmp / "dense"]).drop(columns=["dense.time_s"])).tables
+
+
+# ----------------------------------------------------------------------------- the three depth scalings
+
+
+def _gt_predictors(monkeypatch, seq_dir: Path, cfg_factors: dict[str, np.ndarray]) -> None:
+    """Make the dense stage's networks predict GT depth (nearest pixel at network resolution, 96 × 64)
+    times a per-frame factor: ``cfg_factors[model][frame]`` (models in the stage's order)."""
+    import cv2
+
+    from mutualslam_cli.datasets.registry import load_sequence
+    from mutualslam_cli.stages import dense as dense_stage
+    from mutualslam_cli.vo.camera import Undistorter
+
+    seq = load_sequence(seq_dir)
+    und = Undistorter(seq.intrinsics)
+    frame_of = {und.image(seq.load_rgb(i)).tobytes(): i for i in range(len(seq))}
+    depth = [cv2.resize(und.depth(seq.load_depth(i)), (96, 64), interpolation=cv2.INTER_NEAREST)
+             for i in range(len(seq))]
+    models = iter(cfg_factors)
+
+    def make_predictor(net, cfg, fast, calibration=None):
+        c = cfg_factors[next(models)]
+
+        def predict(frames):
+            idx = [frame_of[f.tobytes()] for f in frames]
+            return np.stack([depth[i] * c[i] for i in idx]).astype(np.float32)
+        return predict
+
+    monkeypatch.setattr(dense_stage, "make_predictor", make_predictor)
+
+
+def test_per_frame_scalings_tell_scale_jitter_from_shape(dense_run, tmp_path, monkeypatch):
+    # Both "models" predict exact GT depth up to scale: the pre-trained one with a random factor per frame
+    # (±40 %: scale jitter), the adapted one with one factor for the whole sequence. One scale per sequence
+    # fixes the adapted one only; each frame's own scale from the oracle front end's exact sparse points
+    # (gt-depth), and each frame scaled to GT, fix both: what is left is the network-resolution shape.
+    tmp, seq_dir, r = dense_run
+    jitter = np.exp(np.random.default_rng(3).uniform(-0.4, 0.4, 12))
+    _gt_predictors(monkeypatch, seq_dir, {"pretrained": jitter, "adapted": np.full(12, 1.7)})
+    root = tmp_path / "scalings"
+    shutil.copytree(r.folder.parents[2], root)
+    folder = root / r.folder.relative_to(r.folder.parents[2])
+    s = flatten(fuse_run(folder))
+    F = {p: {m: s[f"dense.{p}fscore_5cm.{m}"] for m in ("pretrained", "adapted")}
+         for p in ("", "frame_scale.", "gt_scale.")}
+    assert F[""]["adapted"] > 0.9 and F[""]["pretrained"] < 0.5  # the jitter is punished at one scale
+    for p in ("frame_scale.", "gt_scale."):
+        assert F[p]["pretrained"] > 0.9 and F[p]["adapted"] > 0.9, p
+        assert F[p]["pretrained"] == pytest.approx(F[p]["adapted"], abs=0.02), p  # the same shape
+        assert s[f"dense.{p}fallback_frames.pretrained"] == 0
+    # the per-frame factors found are the inverse of the ones planted (up to the shape at 96 × 64)
+    from mutualslam_cli.datasets.associate import read_tum_trajectory
+    from mutualslam_cli.datasets.registry import load_sequence
+
+    index = {f.timestamp: i for i, f in enumerate(load_sequence(seq_dir).frames)}
+    kf = [index[float(t)] for t in read_tum_trajectory(folder / "traj_kf.txt").timestamps]
+    assert len(kf) == s["dense.frames"] == 6
+    truth = float(np.std(np.log(1 / jitter[kf])))
+    for p in ("frame_scale.", "gt_scale."):
+        assert s[f"dense.{p}metric_scale_log_std.pretrained"] == pytest.approx(truth, rel=0.05), p
+        assert s[f"dense.{p}metric_scale_log_std.adapted"] < 0.02, p
+        assert s[f"dense.{p}metric_scale_median.adapted"] == pytest.approx(1 / 1.7, rel=0.02), p
+    assert s["dense.metric_scale.adapted"] == pytest.approx(1 / 1.7, rel=0.02)
+    # every frame, without the GT scaling: only keyframes observe map points, the others take the sequence
+    # factor (counted); the GT scaling's keys are null with the reason, and the sequence keys are unchanged
+    _gt_predictors(monkeypatch, seq_dir, {"pretrained": jitter, "adapted": np.full(12, 1.7)})
+    e = fuse_run(folder, ["dense.every=1", "dense.scalings=[sequence, frame]"])
+    f = flatten(e)
+    assert f["dense.frames"] == 12 and f["dense.frame_scale.fallback_frames.pretrained"] == 12 - 6
+    assert f["dense.frame_scale.fscore_5cm.pretrained"] > f["dense.fscore_5cm.pretrained"]
+    for key in ("dense.gt_scale.fscore_5cm.adapted", "dense.gt_scale.fallback_frames.pretrained"):
+        assert f[key] is None and "dense.scalings leaves out 'gt'" in e["notes"][key]
