@@ -13,6 +13,15 @@ Scaling protocols (monocular depth has no metric scale), named in every output:
 - ``lsq``: ``s = Σ D·D_gt / Σ D²``, the least-squares fit of ``s·D`` to ``D_gt`` per frame
   ("scaled to GT", the paper's Tables 1 and 3).
 - ``none``: ``s = 1``.
+- ``seq_lsq``: one least-squares scale for the whole sequence, ``s = Σ_frames Σ D·D_gt / Σ_frames Σ D²``
+  ("scaled to GT" read as one scale per sequence). It needs every frame before any frame can be
+  scored, so each frame keeps a sketch of its log depth ratios (:func:`ratio_sketch`, 2,049
+  quantiles) and is scored from it once the scale is known (:func:`pcd_from_sketch`): at most
+  two quantile steps (≤ 0.1 percentage points) from the exact count.
+
+PCD is averaged over frames (each frame's percentage weighs the same, as Monodepth2 averages its
+metrics); *pooled* over pixels it is the ``n_valid``-weighted mean of the frames' percentages
+(:func:`pooled_mean`).
 
 Relative inverse depth (MiDaS-style outputs, known up to scale *and shift*) is first turned into
 depth by :func:`align_inverse_depth` (least-squares scale and shift in inverse depth per frame),
@@ -31,6 +40,8 @@ from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.types import check_shape
 
 SCALINGS = ("lsq", "median", "none")
+SKETCH_POINTS = 2049
+"""Quantiles of ``log(D / D_gt)`` a frame keeps for sequence-level scaling (:func:`ratio_sketch`)."""
 PCD_THRESHOLD = 0.1
 """Relative error below which a pixel counts as correct (paper §IV-B, after Luo et al.)."""
 MAX_DEPTH = 10.0
@@ -256,7 +267,9 @@ class DepthStats:
         esi: scale-invariant log error over valid pixels.
         abs_rel: mean absolute relative error after median scaling.
         scale_lsq, scale_median: the per-frame scale factors.
+        sum_pg, sum_pp: ``Σ D·D_gt`` and ``Σ D²`` over the valid pixels (m², the sequence's lsq scale).
         n_valid: number of valid pixels (all values are NaN when 0).
+        sketch: :func:`ratio_sketch` of the frame when asked for (not a ``per_frame.csv`` column).
     """
 
     pcd_lsq: float
@@ -266,20 +279,24 @@ class DepthStats:
     abs_rel: float
     scale_lsq: float
     scale_median: float
+    sum_pg: float
+    sum_pp: float
     n_valid: int
+    sketch: np.ndarray | None = None
 
 
 def depth_stats(
-    pred: Any, gt: Any, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD
+    pred: Any, gt: Any, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD, sketch: bool = False
 ) -> DepthStats:
-    """All per-frame depth metrics of one prediction (resized to GT resolution first)."""
+    """All per-frame depth metrics of one prediction (resized to GT resolution first);
+    ``sketch``: also keep :func:`ratio_sketch` of the frame (sequence-level scaling)."""
     g = _as_map(gt, "gt")
     p = resize_to(pred, g.shape)
     m = valid_mask(g, max_depth, p)
     pv, gv = p[m], g[m]
     if pv.size == 0:
         nan = float("nan")
-        return DepthStats(nan, nan, nan, nan, nan, nan, nan, 0)
+        return DepthStats(nan, nan, nan, nan, nan, nan, nan, 0.0, 0.0, 0, None)
     # One pass over the ratio r = D / D_gt serves every metric (this runs on every frame):
     # |s·D − D_gt| / D_gt = |s·r − 1|, and log z − log z* = log r.
     r = pv / gv
@@ -299,15 +316,52 @@ def depth_stats(
         abs_rel=float(np.mean(np.abs(s_med * r - 1.0))),  # abs_rel after median scaling
         scale_lsq=s_lsq,
         scale_median=s_med,
+        sum_pg=float(np.dot(pv, gv)),
+        sum_pp=float(np.dot(pv, pv)),
         n_valid=int(n),
+        sketch=ratio_sketch(d) if sketch else None,
     )
+
+
+def ratio_sketch(log_r: np.ndarray) -> np.ndarray:
+    """``(SKETCH_POINTS,)`` float32 evenly spaced quantiles (0 to 1) of a frame's ``log(D / D_gt)``."""
+    return np.quantile(log_r, np.linspace(0.0, 1.0, SKETCH_POINTS)).astype(np.float32)
+
+
+def pcd_from_sketch(sketch: np.ndarray | None, scale: float, threshold: float = PCD_THRESHOLD) -> float:
+    """PCD (%) of a frame under ``scale`` from its :func:`ratio_sketch`: the share of pixels with
+    ``|s·r − 1| < threshold`` ⇔ ``log r ∈ (log((1 − t)/s), log((1 + t)/s))``, read off the sketch's
+    piecewise-linear distribution function (≤ 0.1 points from the exact count). NaN without a sketch."""
+    if sketch is None or not np.isfinite(scale) or scale <= 0:
+        return float("nan")
+    q = np.asarray(sketch, dtype=np.float64)
+    cdf = np.linspace(0.0, 1.0, q.size)
+    lo, hi = np.log((1.0 - threshold) / scale), np.log((1.0 + threshold) / scale)
+    return float(100.0 * (np.interp(hi, q, cdf) - np.interp(lo, q, cdf)))
+
+
+def sequence_lsq_scale(sum_pg: Any, sum_pp: Any) -> float:
+    """One least-squares scale for a sequence from the frames' ``Σ D·D_gt`` and ``Σ D²`` (NaN if none)."""
+    pg, pp = _as_array(sum_pg), _as_array(sum_pp)
+    ok = np.isfinite(pg) & np.isfinite(pp)
+    den = float(pp[ok].sum())
+    return float(pg[ok].sum() / den) if den > 0 else float("nan")  # argmin_s Σ_frames Σ (s·p − g)²
+
+
+def pooled_mean(values: Any, n_valid: Any) -> float:
+    """Pixel-pooled mean of per-frame percentages: ``Σ v·n / Σ n`` over frames with a finite value."""
+    v, n = _as_array(values), _as_array(n_valid)
+    ok = np.isfinite(v) & (n > 0)
+    return float(np.dot(v[ok], n[ok]) / n[ok].sum()) if ok.any() else float("nan")
 
 
 def depth_frame_metrics(
     pred: Any, gt: Any, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD
 ) -> dict[str, float | int]:
-    """:func:`depth_stats` as a plain dict (keys = :class:`DepthStats` fields) for ``per_frame.csv``."""
-    return asdict(depth_stats(pred, gt, max_depth, threshold))
+    """:func:`depth_stats` as a plain dict (keys = :class:`DepthStats` fields but ``sketch``) for ``per_frame.csv``."""
+    out = asdict(depth_stats(pred, gt, max_depth, threshold))
+    out.pop("sketch")
+    return out
 
 
 def running_mean(values: Any) -> np.ndarray:

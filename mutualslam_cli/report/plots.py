@@ -2,8 +2,10 @@
 plotting helpers the report's figures share.
 
 :func:`accuracy_figure` is the paper's Fig. ``ablation_err``: one panel per sequence, x the frame
-index, y the running mean over frames ``0..t`` of the final adapted model's percent correct depth
-(``per_frame.csv``'s ``adapted_pcd_lsq_running``: δ < 0.1, least-squares scaling), one line per
+index, y the running mean over frames ``0..t`` of the adapted model's percent correct depth, each
+frame scored by the model of its time (``per_frame.csv``'s ``online_pcd_lsq_running``: δ < 0.1,
+per-frame least-squares scaling; :mod:`~mutualslam_cli.stages.online_eval`) — the final model's
+``adapted_pcd_lsq_running`` for runs without online scores, said in the legend — one line per
 scheme (and config) = the mean over seeds with a min–max band over seeds, and the pre-trained
 model dashed grey. Each scheme keeps its colour (:data:`SCHEME_COLOURS`) in every figure.
 
@@ -103,6 +105,7 @@ def accuracy_figure(runs: pd.DataFrame) -> Any | None:
     fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.7 * nrows + 1.0), squeeze=False,
                              layout="constrained")
     handles: dict[str, Any] = {}
+    drawn: set[str] = set()  # "online" (model of each frame's time) and/or "final" (runs without online scores)
     max_seeds = 1
     styles: dict[tuple[str, str], Any] = {}  # one line style per (scheme, config) in every panel
     for (scheme, config), _ in by_scheme(runs):
@@ -116,7 +119,13 @@ def accuracy_figure(runs: pd.DataFrame) -> Any | None:
                            label="pre-trained")
             handles.setdefault("pre-trained", h)
         for (scheme, config), g in by_scheme(sub):
-            curves = [c for c in (_running(f, "adapted") for f in g["folder"]) if c is not None]
+            online = [_running(f, "online") for f in g["folder"]]
+            curves = [c for c in online if c is not None]
+            if not curves:
+                curves = [c for c in (_running(f, "adapted") for f in g["folder"]) if c is not None]
+                drawn.add("final")
+            else:
+                drawn.add("online")
             if not curves:
                 continue
             both = pd.concat(curves, axis=1)
@@ -141,10 +150,19 @@ def accuracy_figure(runs: pd.DataFrame) -> Any | None:
     widest = max(len(line) for label in handles for line in label.splitlines())
     ncol = min(len(handles), 4 if widest < 30 else 2 if widest < 60 else 1)
     fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=ncol,
-               fontsize=9, frameon=False, title=f"final model, PCD δ<0.1 (lsq scaling) averaged over frames 0..t; "
-                                                f"{what}", title_fontsize=9)
+               fontsize=9, frameon=False, title=f"{_drawn(drawn)}, PCD δ<0.1 (per-frame lsq scaling) averaged over "
+                                                f"frames 0..t; {what}", title_fontsize=9)
     fig.suptitle("Depth accuracy over frames per adaptation scheme", fontsize=12)
     return fig
+
+
+def _drawn(drawn: set[str]) -> str:
+    """The legend's words for what the adapted lines show."""
+    if drawn == {"final"}:
+        return "final model on every frame"
+    if drawn == {"online"}:
+        return "each frame by the model of its time (online)"
+    return "online where the run has it, else the final model"
 
 
 def plot_accuracy(runs: pd.DataFrame, path: Path) -> bool:

@@ -32,6 +32,7 @@ from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages import comoda
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, set_ate
 from mutualslam_cli.types import Progress
@@ -60,6 +61,7 @@ def depth_predictor(net: torch.nn.Module, load: Callable[[int], torch.Tensor], f
 
 def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunConfig, fast: bool,
                    progress: Progress | None = None, global_ba: GlobalBA | None = None,
+                   scorer: OnlineScorer | None = None,
                    ) -> tuple[torch.nn.Module, list[dict[str, Any]], OnlineAdapter | None, VOResult]:
     """Feed the keyframes, in order, through Algorithm 1 with the configured scheme.
 
@@ -69,6 +71,8 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
     Args:
         global_ba: run when Algorithm 1 requests global BA (module docstring); ``None``: the
             request is only recorded (``run_global_ba`` column).
+        scorer: scores the frames before each keyframe with the network of their time
+            (:mod:`~mutualslam_cli.stages.online_eval`); the caller finishes it.
 
     A keyframe that starts a new tracking segment first joins it to the map before it, in its
     unit, with the current network's depth (``vo.bridge_segments``, :mod:`~mutualslam_cli.vo.segments`).
@@ -127,6 +131,8 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
         uv, d = sparse(kf.id)
         sample = KeyframeSample(kf_id=kf.id, image=load(kf.id), K=K_net, pose=held[0].keyframes[kf.id].pose,
                                 uv=uv, depth=d, segment=kf.segment)
+        if scorer is not None:  # frames before this keyframe: the model after the previous one
+            scorer.score_until(adapter.net, kf.frame_index, kf.id - 1)
         row = step_row(adapter.add_keyframe(sample))
         row["n_sparse"] = len(d)
         if kf.id in ba_s:
@@ -170,6 +176,8 @@ class Adapted:
         map: the loop's map at the end: the front end's, or after the BAs Algorithm 1 requested.
         requested: how many times Algorithm 1 requested global BA.
         l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).
+        online: the ``online_*`` per-frame scores of the model of each frame's time
+            (:mod:`~mutualslam_cli.stages.online_eval`); ``None`` when not computed.
     """
 
     net: torch.nn.Module
@@ -177,6 +185,7 @@ class Adapted:
     map: VOResult
     requested: int
     l_val: dict[str, Any] = field(default_factory=dict)
+    online: pd.DataFrame | None = None
 
     def why_no_request(self, tau: float, patience: int) -> str:
         """Why Algorithm 1 never requested global BA, in its terms (L_val vs τ over ``patience`` validations)."""
@@ -221,23 +230,31 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, fast: bool,
     t = time.perf_counter()
     if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
         net = comoda.run_stage(run, copy.deepcopy(net0), fast)
-        adapted, rows = Adapted(net, None, fe.vo, 0), []
+        adapted, rows, online_s = Adapted(net, None, fe.vo, 0), [], 0.0
         for k in L_VAL_KEYS:
             summary.absent(f"adaptation.l_val.{k}", "scheme 'comoda' has no Algorithm 1")
+        _summarise_strength(summary, None)
     else:
+        scorer = (OnlineScorer(run.seq, eval_frames(run.seq, cfg.eval.stride), cfg, fast)
+                  if cfg.eval.online and run.seq.has_depth and cfg.adapt.scheme != "none" else None)
         net, rows, adapter, loop_map = run_adaptation(run.seq, fe.vo, copy.deepcopy(net0), cfg, fast, run.progress,
-                                                      global_ba)
+                                                      global_ba, scorer)
+        online = scorer.finish(net, len(fe.vo.keyframes) - 1) if scorer is not None else None
         adapted = Adapted(net, adapter, loop_map, sum(bool(r.get("run_global_ba")) for r in rows),
-                          l_val_stats(rows, cfg.adapt.tau_val, loop_map))
+                          l_val_stats(rows, cfg.adapt.tau_val, loop_map), online)
+        online_s = scorer.seconds if scorer is not None else 0.0
         why = "no validation keyframe had an L_val"
         for k, v in adapted.l_val.items():
             summary.set(f"adaptation.l_val.{k}", v, why)
         _summarise(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
                    adapter.finetune_ms if adapter else [], rows)
-        summary.absent(comoda.POSENET_ATE_KEY, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
+        _summarise_strength(summary, adapter)
+        for key in (comoda.POSENET_ATE_KEY, comoda.POSE_NETWORK_KEY):
+            summary.absent(key, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
     ba_s = float(sum(r.get("ba_s", 0.0) for r in rows))  # Algorithm 1's BAs, inside the loop
-    run.add_time("adaptation", time.perf_counter() - t - ba_s)
+    run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s)
     run.add_time("ba", ba_s)
+    run.add_time("evaluation", online_s)  # the online scores are evaluation, done inside the loop
     if rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
     _summarise_bridges(run, adapted.map, cfg.adapt.scheme == "comoda")
@@ -266,6 +283,31 @@ def _summarise_bridges(run: RunContext, loop_map: VOResult, comoda_scheme: bool)
     write_trajectories(run.folder, loop_map.traj_kf, loop_map.traj_all, suffix="_bridged")
     set_ate(run.summary, evaluate_trajectory(run.seq, loop_map, run.cfg.eval.ate_max_dt),
             {"kf": "bridged", "all": "all_frames_bridged"})
+
+
+#: The keys of :func:`_summarise_strength` (``adaptation.reg.*``).
+STRENGTH_KEYS = ("shrink.mean", "shrink.median", "importance.mean")
+
+
+def _summarise_strength(summary: Summary, adapter: OnlineAdapter | None) -> None:
+    """``adaptation.reg.shrink.{mean,median}``: the share of each batch's Adam displacement the
+    regulariser's proximal step took back, over every step (0: inert, 1: frozen;
+    :mod:`~mutualslam_cli.adapt.regularizers`), and ``adaptation.reg.importance.mean``: the mean of
+    ``c·w`` over the parameters at the end (the penalty's curvature per unit of squared displacement)."""
+    reg = adapter.regularizer if adapter is not None else None
+    if reg is None:
+        for k in STRENGTH_KEYS:
+            summary.absent(f"adaptation.reg.{k}", "the scheme has no regulariser")
+        return
+    why = ("adapt.reg_mode = 'penalty': the penalty enters Adam's gradient, there is no proximal step"
+           if reg.mode == "penalty" else "no proximal step was taken")
+    shrink = np.asarray(reg.shrinks, dtype=float)
+    summary.set("adaptation.reg.shrink.mean", float(shrink.mean()) if shrink.size else None, why)
+    summary.set("adaptation.reg.shrink.median", float(np.median(shrink)) if shrink.size else None, why)
+    n = sum(w.numel() for w in reg.weights)
+    summary.set("adaptation.reg.importance.mean",
+                reg.coef * float(sum(float(w.sum()) for w in reg.weights)) / n if n else None,
+                "the network has no trainable parameter")
 
 
 def _summarise(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float],

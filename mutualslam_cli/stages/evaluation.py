@@ -11,6 +11,7 @@ import hashlib
 import json
 import logging
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
@@ -29,13 +30,15 @@ from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
+from mutualslam_cli.stages.online_eval import eval_frames
 from mutualslam_cli.vo.camera import Undistorter
 
 log = logging.getLogger(__name__)
 
 #: Version of the depth evaluation's protocol (in the pre-trained evaluation's cache key).
 #: 2: frames and GT depth are undistorted to the pinhole camera the network is trained in.
-EVAL_VERSION = 2
+#: 3: the sequence's least-squares scale (``pcd_seq_lsq``) and the sums it is made of.
+EVAL_VERSION = 3
 #: Frames decoded at once in :func:`evaluate_depth`; each model then predicts all of them in turn.
 _GROUP = 16
 #: Frames the int8 evaluation runtime calibrates its activation ranges on.
@@ -43,11 +46,6 @@ CALIBRATION_FRAMES = 8
 
 Predictor = Callable[[list[np.ndarray]], np.ndarray]
 """``B`` frames ``(H, W, 3)`` uint8 RGB (pinhole geometry) → ``(B, h, w)`` float32 depth at network resolution."""
-
-
-def eval_frames(seq: Sequence, stride: int) -> list[int]:
-    """Indices of the frames the depth evaluation scores: every ``stride``-th frame with GT depth."""
-    return [i for i, f in enumerate(seq.frames) if f.depth_path is not None][:: max(1, stride)]
 
 
 def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConfig,
@@ -68,13 +66,16 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
 
     Returns:
         ``per_frame`` table (one row per evaluated frame: ``frame``, ``timestamp``, ``is_keyframe``,
-        ``<model>_pcd_{lsq,median,none}`` in percent, ``<model>_esi``, ``<model>_abs_rel``,
-        ``<model>_scale_{lsq,median}``, ``n_valid``, and ``<model>_pcd_lsq_running``), and the median
+        ``<model>_pcd_{lsq,median,none,seq_lsq}`` in percent (``seq_lsq``: one least-squares scale
+        for all evaluated frames, :mod:`~mutualslam_cli.metrics.depth`), ``<model>_esi``,
+        ``<model>_abs_rel``, ``<model>_scale_{lsq,median,seq_lsq}``, ``<model>_sum_{pg,pp}``,
+        ``n_valid``, and ``<model>_pcd_lsq_running``), and the median
         prediction time in ms per frame and model (each batch's time over its frames).
     """
     frames = eval_frames(seq, cfg.eval.stride)
     rows = []
     times: dict[str, list[float]] = {k: [] for k in predictors}
+    sketches: dict[str, list[np.ndarray | None]] = {k: [] for k in predictors}
     und = Undistorter(seq.intrinsics)
     bs = max(1, cfg.eval.batch)
     group = bs * max(1, _GROUP // bs)
@@ -95,8 +96,9 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
             row: dict[str, float | int | bool] = {"frame": i, "timestamp": seq.frames[i].timestamp,
                                                    "is_keyframe": bool(keyframe_frames and i in keyframe_frames)}
             for name in predictors:
-                m = dm.depth_frame_metrics(preds[name][j], gt, max_depth=cfg.eval.max_depth,
-                                           threshold=cfg.eval.pcd_threshold)
+                m = asdict(dm.depth_stats(preds[name][j], gt, max_depth=cfg.eval.max_depth,
+                                          threshold=cfg.eval.pcd_threshold, sketch=True))
+                sketches[name].append(m.pop("sketch"))
                 row["n_valid"] = m["n_valid"]
                 for key, val in m.items():
                     if key != "n_valid":
@@ -108,6 +110,10 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
     for name in predictors:
         col = f"{name}_pcd_lsq"
         if col in table:
+            # one least-squares scale for the whole sequence, then every frame scored under it
+            s = dm.sequence_lsq_scale(table[f"{name}_sum_pg"], table[f"{name}_sum_pp"])
+            table[f"{name}_pcd_seq_lsq"] = [dm.pcd_from_sketch(k, s, cfg.eval.pcd_threshold) for k in sketches[name]]
+            table[f"{name}_scale_seq_lsq"] = s
             table[f"{col}_running"] = dm.running_mean(table[col].to_numpy(dtype=float))
     ms = {k: float(np.median(v)) if v else float("nan") for k, v in times.items()}
     return table, ms
@@ -185,9 +191,13 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, adapted: Ada
         table, ms = evaluate_models(run.seq, net0, net, cfg, fast, {k.frame_index for k in fe.vo.keyframes},
                                     run.cache / "pretrained",
                                     lambda d, n: run.report("eval", {"done": d, "total": n}))
+    if adapted.online is not None and len(table):
+        table = table.merge(adapted.online, on="frame", how="left")
+        table["online_pcd_lsq_running"] = dm.running_mean(table["online_pcd_lsq"].to_numpy(dtype=float))
     if len(table):
         atomic_write_text(run.folder / "per_frame.csv", table.to_csv(index=False))
     _summarise(run.summary, table, ms, cfg.adapt.scheme)
+    _summarise_online(run.summary, table, cfg)
     run.summary.set("depth.eval_stride", cfg.eval.stride)  # every k-th frame with GT depth was evaluated
     run.summary.set("depth.fast_path", fast)
     if cfg.eval.save_weights and net is not None:
@@ -203,14 +213,21 @@ def depth_means(table: pd.DataFrame, model: str, suffix: str = "") -> dict[str, 
         suffix: appended to the metric name (``_nonkf`` → ``pcd_nonkf.lsq``).
 
     Returns:
-        ``{"pcd<suffix>.lsq": %, "pcd<suffix>.median": %, "esi<suffix>": log units}``; ``None``
+        ``{"pcd<suffix>.{lsq,median,seq_lsq}": %, "pcd_pooled<suffix>.{lsq,median,seq_lsq}": %,
+        "esi<suffix>": log units}`` (frame means; ``pcd_pooled``: pooled over pixels); ``None``
         where no row has the value (no frame with valid GT depth).
     """
     def mean(col: str) -> float | None:
         return float(np.nanmean(table[col])) if col in table and table[col].notna().any() else None
 
-    return {f"pcd{suffix}.lsq": mean(f"{model}_pcd_lsq"), f"pcd{suffix}.median": mean(f"{model}_pcd_median"),
-            f"esi{suffix}": mean(f"{model}_esi")}
+    def pooled(col: str) -> float | None:
+        v = dm.pooled_mean(table[col], table["n_valid"]) if col in table and len(table) else float("nan")
+        return v if np.isfinite(v) else None
+
+    out = {f"pcd{suffix}.{k}": mean(f"{model}_pcd_{k}") for k in ("lsq", "median", "seq_lsq")}
+    out.update({f"pcd_pooled{suffix}.{k}": pooled(f"{model}_pcd_{k}") for k in ("lsq", "median", "seq_lsq")})
+    out[f"esi{suffix}"] = mean(f"{model}_esi")
+    return out
 
 
 def _summarise(summary: Summary, table: pd.DataFrame, ms: dict[str, float], scheme: str) -> None:
@@ -231,3 +248,24 @@ def _summarise(summary: Summary, table: pd.DataFrame, ms: dict[str, float], sche
     if scheme == "none":
         summary.notes["depth.pcd.lsq.adapted"] = "scheme 'none': the adapted model is the pre-trained model"
     summary.set("depth.frames_evaluated", int(len(table)))
+
+
+def _summarise_online(summary: Summary, table: pd.DataFrame, cfg: RunConfig) -> None:
+    """``depth.pcd_online[_nonkf].{lsq,median,seq_lsq}`` and ``depth.esi_online``: each frame scored with the
+    model of its time (:mod:`~mutualslam_cli.stages.online_eval`), means over frames."""
+    if "online_pcd_lsq" in table:
+        why = "no frame with valid GT depth"
+        for group, rows in (("", table), ("_nonkf", table[~table["is_keyframe"]])):
+            for k in ("lsq", "median", "seq_lsq"):
+                col = rows[f"online_pcd_{k}"]
+                summary.set(f"depth.pcd_online{group}.{k}", float(np.nanmean(col)) if col.notna().any() else None, why)
+        esi = table["online_esi"]
+        summary.set("depth.esi_online", float(np.nanmean(esi)) if esi.notna().any() else None, why)
+        return
+    why = ("eval.online = false" if not cfg.eval.online else
+           f"scheme {cfg.adapt.scheme!r} has no keyframe loop to score online" if cfg.adapt.scheme in ("none", "comoda")
+           else "no frame with GT depth")
+    for group in ("", "_nonkf"):
+        for k in ("lsq", "median", "seq_lsq"):
+            summary.absent(f"depth.pcd_online{group}.{k}", why)
+    summary.absent("depth.esi_online", why)

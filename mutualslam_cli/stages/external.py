@@ -46,7 +46,8 @@ from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, manifest, read_summary, run_dir, write_json, write_yaml
 from mutualslam_cli.results.summary import SUMMARY_KEYS, Summary
-from mutualslam_cli.stages.evaluation import depth_means, eval_frames
+from mutualslam_cli.stages.evaluation import depth_means
+from mutualslam_cli.stages.online_eval import eval_frames
 from mutualslam_cli.vo.camera import Undistorter
 
 KINDS: tuple[str, ...] = ("depth", "inverse", "relative-inverse")
@@ -220,6 +221,9 @@ def _summary(table: pd.DataFrame, seq: Sequence, name: str, info: dict, cfg: Run
         s.set(f"depth.{key}.{MODEL}", val, why)
         s.absent(f"depth.{key}.pretrained", f"external model {name!r}: not adapted, so no pre-trained/adapted pair; "
                  f"its scores are depth.{key}.adapted")
+    for key in ("pcd.seq_lsq", "pcd_pooled.seq_lsq", "pcd_nonkf.seq_lsq", "pcd_pooled_nonkf.seq_lsq"):
+        if f"{MODEL}_pcd_seq_lsq" not in table:
+            s.absent(f"depth.{key}.{MODEL}", "external models are scored with per-frame scales only")
     none = table[f"{MODEL}_pcd_none"]
     s.set(f"depth.pcd.none.{MODEL}", float(none.mean()) if none.notna().any() else None, why)
     for key in SUMMARY_KEYS:

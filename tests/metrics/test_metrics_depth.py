@@ -12,6 +12,9 @@ from mutualslam_cli.metrics.depth import (
     abs_rel,
     align_inverse_depth,
     depth_frame_metrics,
+    pcd_from_sketch,
+    pooled_mean,
+    sequence_lsq_scale,
     depth_stats,
     esi,
     percent_correct,
@@ -102,7 +105,8 @@ def test_empty_mask_gives_nan_not_zero(gt: np.ndarray) -> None:
     assert np.isnan(esi(np.zeros(5), np.zeros(5)))
     assert np.isnan(abs_rel(gt, gt, empty))
     row = depth_frame_metrics(far, far)
-    assert row["n_valid"] == 0 and all(np.isnan(v) for k, v in row.items() if k != "n_valid")
+    assert row["n_valid"] == 0 and row["sum_pg"] == row["sum_pp"] == 0.0
+    assert all(np.isnan(v) for k, v in row.items() if k not in ("n_valid", "sum_pg", "sum_pp"))
 
 
 @pytest.mark.parametrize("k", [1.0, 0.01, 0.37, 2.0, 1e3])
@@ -172,7 +176,7 @@ def test_accepts_torch_tensors(gt: np.ndarray) -> None:
 
 def test_depth_frame_metrics_row(gt: np.ndarray) -> None:
     row = depth_frame_metrics(1.2 * gt, gt, max_depth=10.0, threshold=0.1)
-    assert set(row) == set(DepthStats.__dataclass_fields__)
+    assert set(row) == set(DepthStats.__dataclass_fields__) - {"sketch"}
     assert row["pcd_none"] == 0.0 and row["pcd_median"] == 100.0 and row["pcd_lsq"] == 100.0
     assert row["scale_median"] == pytest.approx(1 / 1.2) and row["scale_lsq"] == pytest.approx(1 / 1.2)
     assert row["abs_rel"] == pytest.approx(0.0, abs=1e-12) and row["esi"] < 1e-12
@@ -216,7 +220,7 @@ def _ref_stats(pred: np.ndarray, gt: np.ndarray, max_depth: float = 10.0, thr: f
 
 
 def _assert_row(row: dict, ref: dict) -> None:
-    assert set(row) == set(DepthStats.__dataclass_fields__)
+    assert set(row) == set(DepthStats.__dataclass_fields__) - {"sketch"}
     assert row["n_valid"] == ref["n_valid"]
     for k in ("scale_lsq", "scale_median", "esi", "abs_rel"):
         assert row[k] == pytest.approx(ref[k], rel=1e-9), k
@@ -268,7 +272,7 @@ def test_depth_stats_depth_dependent_error_matches_reference() -> None:
     row = depth_frame_metrics(pred, gt)
     _assert_row(row, ref)
     # depth_stats (the dataclass) and the dict row the pipeline writes are the same numbers
-    assert depth_stats(pred, gt).__dict__ == row
+    assert {k: v for k, v in depth_stats(pred, gt).__dict__.items() if k != "sketch"} == row
     # the per-metric functions agree with the row
     assert percent_correct(pred, gt, "lsq") == pytest.approx(row["pcd_lsq"], abs=1e-9)
     assert percent_correct(pred, gt, "median") == pytest.approx(row["pcd_median"], abs=1e-9)
@@ -343,3 +347,40 @@ def test_align_inverse_depth_degenerate_is_nan_not_zero(gt: np.ndarray) -> None:
     for x in (np.full_like(gt, 0.7), np.full_like(gt, 0.3), one_pixel):
         depth, s, t = align_inverse_depth(x, gt)
         assert np.isnan(s) and np.isnan(t) and np.isnan(depth).all()
+
+
+# ---- sequence-level least squares from per-frame sketches, pooled means ------------------------------
+
+
+def _exact_pcd(p: np.ndarray, g: np.ndarray, s: float, thr: float = 0.1) -> float:
+    return 100.0 * float(np.mean(np.abs(s * p - g) / g < thr))
+
+
+def test_sequence_scale_and_sketch_match_the_exact_pooled_fit() -> None:
+    """Three frames with different scale errors: one lsq scale over all their pixels (computed here
+    on the concatenation), and each frame's PCD under it, read off its sketch within 0.1 points."""
+    rng = np.random.default_rng(4)
+    frames = []
+    for f in (0.8, 1.0, 1.3):
+        g = rng.uniform(0.5, 6.0, size=(60, 80))
+        p = f * g * np.exp(rng.normal(0.0, 0.08, size=g.shape))
+        frames.append((p, g))
+    stats = [depth_stats(p, g, sketch=True) for p, g in frames]
+    s = sequence_lsq_scale([st.sum_pg for st in stats], [st.sum_pp for st in stats])
+    P = np.concatenate([p.ravel() for p, _ in frames])
+    G = np.concatenate([g.ravel() for _, g in frames])
+    assert s == pytest.approx(float(np.dot(P, G) / np.dot(P, P)), rel=1e-12)
+    for st, (p, g) in zip(stats, frames):
+        exact = _exact_pcd(p.ravel(), g.ravel(), s)
+        assert pcd_from_sketch(st.sketch, s) == pytest.approx(exact, abs=0.1)
+        assert pcd_from_sketch(st.sketch, st.scale_lsq) == pytest.approx(st.pcd_lsq, abs=0.1)
+    # frames at 0.8 and 1.3 are far from one common scale: their seq_lsq PCD drops, per-frame lsq does not
+    assert pcd_from_sketch(stats[2].sketch, s) < stats[2].pcd_lsq - 20
+    assert np.isnan(pcd_from_sketch(None, s)) and np.isnan(sequence_lsq_scale([np.nan], [np.nan]))
+    assert depth_stats(frames[0][0], frames[0][1]).sketch is None
+
+
+def test_pooled_mean_weights_frames_by_pixels() -> None:
+    assert pooled_mean([100.0, 0.0], [3, 1]) == pytest.approx(75.0)
+    assert pooled_mean([100.0, np.nan, 0.0], [3, 5, 1]) == pytest.approx(75.0)
+    assert np.isnan(pooled_mean([np.nan], [4]))

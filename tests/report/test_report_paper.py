@@ -6,7 +6,17 @@ import pandas as pd
 import pytest
 
 from mutualslam_cli.report import paper_numbers
-from mutualslam_cli.report.paper import cell, paper_tables, table1, table2, table3, table4, table5, table6
+from mutualslam_cli.report.paper import (
+    cell,
+    paper_tables,
+    table1,
+    table1_scalings,
+    table2,
+    table3,
+    table4,
+    table5,
+    table6,
+)
 
 
 @pytest.mark.parametrize("ours, theirs", [
@@ -86,7 +96,7 @@ def test_paper_tables_skip_tables_without_values_and_split_config_groups():
     names = [t.name for t in paper_tables(r)]
     assert "table4_ate_ba" not in names and {"table1_pcd", "table3_schemes", "table6_esi"} <= set(names)
     r2 = pd.concat([r, r.assign(config="adapt.lr=0.0001")])
-    titles = [t.title for t in paper_tables(r2) if t.name.startswith("table1")]
+    titles = [t.title for t in paper_tables(r2) if t.name.startswith("table1_pcd")]
     assert len(titles) == 2 and any("adapt.lr=0.0001" in x for x in titles)
     assert cell(float("nan"), 0.0, 0, 2) == "—" and cell(1.0, float("nan"), 1, 1) == "1.0"
 
@@ -158,3 +168,16 @@ def test_table1_has_a_luo_style_column_when_luo_ran_and_the_papers_luo_numbers()
     assert list(d.columns[:3]) == ["Pre-trained", "Luo-style (luo)", "Ours"]
     assert d.loc["icl_lr_kt2 (ICL/living2)", "paper: Luo"] == "21.00"  # 20.995 in the paper
     assert "Luo-style (luo)" not in table1(_runs()).display.columns
+
+
+def test_scalings_table_shows_each_scaling_beside_both_paper_tables():
+    r = _runs().assign(**{"depth.pcd.seq_lsq.pretrained": 11.0, "depth.pcd.seq_lsq.adapted": 33.0})
+    t = table1_scalings(r)
+    assert {"Pre-trained lsq/sequence", "Ours lsq/sequence", "Pre-trained median/frame",
+            "paper: T1 pre-trained", "paper: T2 pre-trained"} <= set(t.display.columns)
+    assert "scale per sequence" in t.title and "median" in t.title
+    row = t.display.iloc[0]
+    assert row["Pre-trained lsq/sequence"].startswith("11.00") and row["Ours lsq/sequence"].startswith("33.00")
+    assert row["Ours online lsq/frame"] == "—"  # no run has online scores: shown as absent, never 0
+    icl = t.display[t.display["Sequence"].str.contains("icl_lr_kt2")].iloc[0]
+    assert icl["paper: T1 pre-trained"] == "13.51" and icl["paper: T2 pre-trained"] == "21.61"  # ICL/living2

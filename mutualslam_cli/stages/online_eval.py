@@ -1,0 +1,85 @@
+"""Online depth evaluation: every evaluated frame scored with the model *of its time*.
+
+The evaluation stage (:mod:`~mutualslam_cli.stages.evaluation`) scores the final model on every
+frame, so a frame seen early is scored with a network that trained on keyframes long after it.
+Luo et al. score each keyframe with the model of its time (the paper notes this under Table 1),
+and it is what a SLAM system consuming the depth sees live. Here frame ``f`` is scored with the
+network as it was right after the adaptation loop processed the last keyframe whose frame index
+is ``≤ f`` (its fine-tuning and any global BA it triggered); frames before the first keyframe get
+the pre-trained network. Frames and GT are those of the evaluation (every ``eval.stride``-th frame
+with GT depth, undistorted to the network's pinhole camera); prediction is the torch path of the
+training loop (bf16 with ``fast``), so the last frames — scored online by the final network — also
+show how far this path is from the evaluation's runtime.
+
+Outputs: ``online_*`` columns of ``per_frame.csv`` (``online_pcd_{lsq,median,seq_lsq}``,
+``online_esi``, ``online_kf``: the keyframe id whose model scored the frame, -1 = pre-trained) and the
+summary keys ``depth.pcd_online[_nonkf].{lsq,median,seq_lsq}`` and ``depth.esi_online``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict
+
+import numpy as np
+import pandas as pd
+import torch
+
+from mutualslam_cli.adapt.depthnet import predict_depth
+from mutualslam_cli.adapt.inputs import to_net_image
+from mutualslam_cli.config import RunConfig
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.metrics import depth as dm
+from mutualslam_cli.vo.camera import Undistorter
+
+def eval_frames(seq: Sequence, stride: int) -> list[int]:
+    """Indices of the frames the depth evaluation scores: every ``stride``-th frame with GT depth."""
+    return [i for i, f in enumerate(seq.frames) if f.depth_path is not None][:: max(1, stride)]
+
+
+#: Columns of :meth:`OnlineScorer.table` besides ``frame`` (per-frame metrics of the model of its time).
+COLUMNS = ("pcd_lsq", "pcd_median", "esi", "sum_pg", "sum_pp")
+
+
+class OnlineScorer:
+    """Scores the evaluation's frames as the adaptation loop goes (module docstring).
+
+    Args:
+        seq: the sequence.
+        frames: frame indices to score, ascending (:func:`eval_frames`).
+        cfg: run config (``net.width/height``, ``eval.max_depth``, ``eval.pcd_threshold``).
+        fast: bf16 autocast for the predictions.
+    """
+
+    def __init__(self, seq: Sequence, frames: list[int], cfg: RunConfig, fast: bool) -> None:
+        self.seq, self.cfg, self.fast = seq, cfg, fast
+        self._todo = sorted(frames)
+        self._next = 0
+        self._und = Undistorter(seq.intrinsics)
+        self._rows: list[dict[str, float | int]] = []
+        self._sketches: list[np.ndarray | None] = []
+        self.seconds = 0.0
+
+    def score_until(self, net: torch.nn.Module, frame_index: int, kf_id: int) -> None:
+        """Score, with ``net`` (the model after keyframe ``kf_id``; -1 = pre-trained), every pending
+        frame whose index is ``< frame_index``."""
+        t = time.perf_counter()
+        cfg = self.cfg
+        while self._next < len(self._todo) and self._todo[self._next] < frame_index:
+            i = self._todo[self._next]
+            rgb = self._und.image(self.seq.load_rgb(i))
+            depth = predict_depth(net, to_net_image(rgb, cfg.net.width, cfg.net.height)[None], self.fast)[0]
+            st = asdict(dm.depth_stats(depth, self._und.depth(self.seq.load_depth(i)), cfg.eval.max_depth,
+                                       cfg.eval.pcd_threshold, sketch=True))
+            self._sketches.append(st.pop("sketch"))
+            self._rows.append({"frame": i, "online_kf": kf_id, **{f"online_{k}": st[k] for k in COLUMNS}})
+            self._next += 1
+        self.seconds += time.perf_counter() - t
+
+    def finish(self, net: torch.nn.Module, kf_id: int) -> pd.DataFrame:
+        """Score the frames left with the final ``net``; the ``online_*`` table, one row per frame."""
+        self.score_until(net, np.iinfo(np.int64).max, kf_id)
+        table = pd.DataFrame(self._rows, columns=["frame", "online_kf", *(f"online_{k}" for k in COLUMNS)])
+        s = dm.sequence_lsq_scale(table["online_sum_pg"], table["online_sum_pp"])
+        table["online_pcd_seq_lsq"] = [dm.pcd_from_sketch(k, s, self.cfg.eval.pcd_threshold) for k in self._sketches]
+        return table.drop(columns=["online_sum_pg", "online_sum_pp"])

@@ -1,0 +1,49 @@
+"""The online evaluation: each frame scored with the network of its time (stages/online_eval.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from synth import make_tum_dir
+
+from mutualslam_cli.config import RunConfig, with_overrides
+from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.metrics.depth import depth_stats
+from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
+from mutualslam_cli.vo.camera import Undistorter
+
+
+class ConstNet(torch.nn.Module):
+    """Predicts ``value`` everywhere and counts the images it was given."""
+
+    def __init__(self, value: float) -> None:
+        super().__init__()
+        self.value, self.seen = value, 0
+
+    def predict(self, x: torch.Tensor) -> torch.Tensor:
+        self.seen += x.shape[0]
+        return torch.full((x.shape[0], 1, x.shape[2], x.shape[3]), self.value)
+
+
+def test_each_frame_scored_by_the_model_after_the_last_keyframe_before_it(tmp_path):
+    seq = load_sequence(make_tum_dir(tmp_path, scene="room", n=9, width=64, height=48))
+    cfg = with_overrides(RunConfig(), net={"width": 32, "height": 32})
+    frames = eval_frames(seq, 1)
+    assert frames == list(range(9))
+    pre, a, b = ConstNet(1.0), ConstNet(2.0), ConstNet(3.0)
+    sc = OnlineScorer(seq, frames, cfg, fast=False)
+    sc.score_until(pre, 2, -1)  # keyframe 0 at frame 2: frames 0, 1 by the pre-trained model
+    sc.score_until(a, 5, 0)     # keyframe 1 at frame 5: frames 2–4 by the model after keyframe 0
+    table = sc.finish(b, 1)     # the rest by the final model
+    assert (pre.seen, a.seen, b.seen) == (2, 3, 4)
+    assert table["frame"].tolist() == frames
+    assert table["online_kf"].tolist() == [-1, -1, 0, 0, 0, 1, 1, 1, 1]
+    # the scores are those of the model that predicted the frame (constant depth: e_si = spread of log GT)
+    und = Undistorter(seq.intrinsics)
+    for i in (0, 4, 8):
+        gt = und.depth(seq.load_depth(i))
+        ref = depth_stats(np.full((32, 32), 1.0), gt)
+        assert table.loc[i, "online_pcd_lsq"] == pytest.approx(ref.pcd_lsq) and table.loc[i, "online_esi"] == pytest.approx(ref.esi)
+    # one scale for the sequence: models 1, 2, 3 disagree by 3×, so it fits the frames worse than per-frame scales
+    assert table["online_pcd_seq_lsq"].mean() < table["online_pcd_lsq"].mean()
