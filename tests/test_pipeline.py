@@ -85,6 +85,19 @@ def test_run_writes_complete_result(setup, default_run):
         assert flat[f"depth.pcd.lsq.{model}"] == pytest.approx(pf[f"{model}_pcd_lsq"].mean())
     m = json.loads((f / "manifest.json").read_text())
     assert m["seed"] == 0 and "torch" in m["versions"] and m["timings_s"]["total_s"] > 0
+    # one least-squares scale per sequence, pooled over pixels, and online: the per-frame columns and their means
+    for model in ("pretrained", "adapted"):
+        assert pf[f"{model}_scale_seq_lsq"].nunique() == 1
+        assert flat[f"depth.pcd.seq_lsq.{model}"] == pytest.approx(pf[f"{model}_pcd_seq_lsq"].mean())
+        pooled = (pf[f"{model}_pcd_lsq"] * pf["n_valid"]).sum() / pf["n_valid"].sum()
+        assert flat[f"depth.pcd_pooled.lsq.{model}"] == pytest.approx(pooled)
+    assert pf["online_kf"].is_monotonic_increasing and pf["online_kf"].iloc[-1] == flat["vo.keyframes"] - 1
+    assert flat["depth.pcd_online.lsq"] == pytest.approx(pf["online_pcd_lsq"].mean())
+    # the last frames are scored online by the final model: the same numbers as the final evaluation's
+    last = pf[pf["online_kf"] == pf["online_kf"].max()]
+    assert (last["online_pcd_lsq"] - last["adapted_pcd_lsq"]).abs().max() < 1.0
+    # the regulariser's measured strength, and which pose network (none: not comoda)
+    assert 0.0 <= flat["adaptation.reg.shrink.mean"] < 1.0 and flat["adaptation.pose_network"] is None
 
 
 def test_threads_are_resolved_and_recorded(setup):

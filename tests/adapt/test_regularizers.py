@@ -209,6 +209,9 @@ def test_prox_step_by_hand():
     # it minimises β/2 F̂ (θ − θ*)² + (θ − x)² / (2P): that objective's gradient vanishes there
     grad = 4.0 * ewc.weights[0] * (m.w.detach() - star) + (m.w.detach() - x) / P
     assert float(grad.abs().max()) < 1e-9
+    # the strength it records: the share of the displacement from θ* the step took back
+    shrink = 1.0 - float((m.w.detach() - star).norm() / (x - star).norm())
+    assert len(ewc.shrinks) == 1 and ewc.shrinks[0] == pytest.approx(shrink, rel=1e-12) and 0.0 < shrink < 1.0
 
 
 class Vector(nn.Module):
