@@ -181,8 +181,8 @@ def _baselines(runs: pd.DataFrame, key: str) -> list[Column]:
 def table1(runs: pd.DataFrame) -> PaperTable:
     """Table 1: PCD (%, δ < 0.1, per-frame least-squares scale), pre-trained vs ours."""
     ours = _ours(runs)
-    return _by_sequence("table1_pcd", f"Table 1: percentage of correct depth (%, δ<0.1, per-frame least-squares scaling), "
-                        f"pre-trained vs ours ({ours}); mean ± std over seeds", runs,
+    return _by_sequence("table1_pcd", "Table 1: percentage of correct depth (%, δ<0.1, per-frame least-squares "
+                        f"scaling), pre-trained vs ours ({ours}); mean ± std over seeds", runs,
                         [("Pre-trained", _pretrained("depth.pcd.lsq.pretrained"))]
                         + _baselines(runs, "depth.pcd.lsq.adapted")
                         + [("Ours", _key("depth.pcd.lsq.adapted", ours))] + _externals(runs, "depth.pcd.lsq.adapted"),
@@ -193,8 +193,8 @@ def table1(runs: pd.DataFrame) -> PaperTable:
 def table2(runs: pd.DataFrame) -> PaperTable:
     """Table 2: PCD with median scaling, pre-trained vs ours (paper: and CoMoDa)."""
     ours = _ours(runs)
-    return _by_sequence("table2_pcd_median", f"Table 2: percentage of correct depth (%, δ<0.1, per-frame median scaling), "
-                        f"pre-trained vs ours ({ours}); mean ± std over seeds", runs,
+    return _by_sequence("table2_pcd_median", "Table 2: percentage of correct depth (%, δ<0.1, per-frame median "
+                        f"scaling), pre-trained vs ours ({ours}); mean ± std over seeds", runs,
                         [("Pre-trained", _pretrained("depth.pcd.median.pretrained"))]
                         + _baselines(runs, "depth.pcd.median.adapted")
                         + [("Ours", _key("depth.pcd.median.adapted", ours))]
@@ -231,8 +231,8 @@ def table3(runs: pd.DataFrame) -> PaperTable:
     present = set(runs["scheme"].astype(str))
     cols: list[Column] = [("Pre-trained", _pretrained("depth.pcd.lsq.pretrained"))]
     cols += [(label, _key("depth.pcd.lsq.adapted", s)) for label, s in SCHEME_COLUMNS if s in present]
-    return _by_sequence("table3_schemes", "Table 3: percentage of correct depth (%, δ<0.1, per-frame least-squares scaling) "
-                        "of the final model per adaptation scheme; mean ± std over seeds", runs, cols,
+    return _by_sequence("table3_schemes", "Table 3: percentage of correct depth (%, δ<0.1, per-frame least-squares "
+                        "scaling) of the final model per adaptation scheme; mean ± std over seeds", runs, cols,
                         paper.TABLE3, [("Pre-trained", "none"), ("(a)", "recent"), ("(b)", "replay"),
                                        ("(c)", "replay+ewc")], 2, False)
 

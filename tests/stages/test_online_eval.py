@@ -44,6 +44,7 @@ def test_each_frame_scored_by_the_model_after_the_last_keyframe_before_it(tmp_pa
     for i in (0, 4, 8):
         gt = und.depth(seq.load_depth(i))
         ref = depth_stats(np.full((32, 32), 1.0), gt)
-        assert table.loc[i, "online_pcd_lsq"] == pytest.approx(ref.pcd_lsq) and table.loc[i, "online_esi"] == pytest.approx(ref.esi)
+        assert table.loc[i, "online_pcd_lsq"] == pytest.approx(ref.pcd_lsq)
+        assert table.loc[i, "online_esi"] == pytest.approx(ref.esi)
     # one scale for the sequence: models 1, 2, 3 disagree by 3×, so it fits the frames worse than per-frame scales
     assert table["online_pcd_seq_lsq"].mean() < table["online_pcd_lsq"].mean()
