@@ -79,6 +79,21 @@ def test_accuracy_one_panel_per_sequence_one_line_per_scheme(tmp_path: Path):
     assert axes[0].get_xlabel() == "frame" and "PCD (%)" in axes[0].get_ylabel()
 
 
+def test_accuracy_is_drawn_from_the_online_scores_when_the_run_has_them(tmp_path: Path):
+    folder = _run(tmp_path, "seqA", "replay+ewc", 0, running=(20.0, 60.0))
+    pf = pd.read_csv(folder / "per_frame.csv")
+    pf["online_pcd_lsq_running"] = 35.0 * pf["frame"] / 9  # the model of each frame's time: lower
+    pf.to_csv(folder / "per_frame.csv", index=False)
+    fig = rp.accuracy_figure(collect([tmp_path]))
+    a = _lines(fig.axes[0])
+    np.testing.assert_allclose(a["replay+ewc|"][-1], 35.0)
+    assert "model of its time" in fig.legends[0].get_title().get_text()
+    _run(tmp_path, "seqA", "recent", 0, running=(20.0, 30.0))  # a run without online scores: its final model
+    fig = rp.accuracy_figure(collect([tmp_path]))
+    np.testing.assert_allclose(_lines(fig.axes[0])["recent|"][-1], 30.0)
+    assert "else the final model" in fig.legends[0].get_title().get_text()
+
+
 def test_scheme_colours_are_fixed():
     assert rp.scheme_colour("replay") == rp.SCHEME_COLOURS["replay"]
     c = rp.scheme_colour("my+scheme")
