@@ -139,11 +139,16 @@ def fuse(
 
         s = fuse_run(run_dir, sets or [], registry, command=sys.argv, progress=cb)
     f = flatten(s)
-    t = Table("metric", "pre-trained", "adapted",
+    t = Table("scale", "metric", "pre-trained", "adapted",
               title=escape(f"{f.get('sequence.name')} · dense ({f.get('dense.source')})"))
-    for label, key in (("accuracy m", "accuracy_m"), ("completeness m", "completeness_m"),
-                       ("F-score @5cm", "fscore_5cm")):
-        t.add_row(label, fmt_value(f.get(f"dense.{key}.pretrained"), 4), fmt_value(f.get(f"dense.{key}.adapted"), 4))
+    for scale, prefix in (("sequence (VO)", "dense."), ("per frame (VO)", "dense.frame_scale."),
+                          ("per frame (GT, oracle)", "dense.gt_scale.")):
+        if f.get(f"{prefix}fscore_5cm.adapted") is None and prefix != "dense.":
+            continue  # a scaling not fused (dense.scalings) or without a GT reference
+        for label, key in (("accuracy m", "accuracy_m"), ("completeness m", "completeness_m"),
+                           ("F-score @5cm", "fscore_5cm")):
+            t.add_row(scale if key == "accuracy_m" else "", label, fmt_value(f.get(f"{prefix}{key}.pretrained"), 4),
+                      fmt_value(f.get(f"{prefix}{key}.adapted"), 4))
     common.console.print(t)
     common.console.print(f"meshes and dense.png in {run_dir} ({fmt_value(f.get('dense.time_s'), 1)} s)")
 

@@ -394,3 +394,14 @@ def test_per_frame_scalings_tell_scale_jitter_from_shape(dense_run, tmp_path, mo
     assert f["dense.frame_scale.fscore_5cm.pretrained"] > f["dense.fscore_5cm.pretrained"]
     for key in ("dense.gt_scale.fscore_5cm.adapted", "dense.gt_scale.fallback_frames.pretrained"):
         assert f[key] is None and "dense.scalings leaves out 'gt'" in e["notes"][key]
+
+
+def test_fuse_prints_every_scaling_it_scored(dense_run, tmp_path):
+    _, _, r = dense_run
+    root = tmp_path / "cli"
+    shutil.copytree(r.folder.parents[2], root)
+    out = CliRunner().invoke(app, ["fuse", str(root / r.folder.relative_to(r.folder.parents[2]))],
+                             env={"COLUMNS": "200"})
+    assert out.exit_code == 0, out.output
+    for scale in ("sequence (VO)", "per frame (VO)", "per frame (GT, oracle)"):
+        assert scale in out.output
