@@ -128,6 +128,21 @@ class AdaptConfig:
     """ξ damping of SI's importance (Zenke et al.)."""
     steps_per_keyframe: int = 8
     """Optimiser steps per training keyframe (the paper's loop is asynchronous and does not fix it)."""
+    schedule: Literal["fixed", "realtime"] = "fixed"
+    """``fixed``: ``steps_per_keyframe`` steps each; ``realtime``: the steps that fit, at ``step_cost_ms``
+    each, into the sequence time until the next keyframe (at most ``max_steps``; the paper's asynchronous
+    loop on a given machine)."""
+    step_cost_ms: float = 250.0
+    """``realtime``: the cost of one optimiser step, ms of sequence time (250: the paper's GPU, DESIGN §10)."""
+    max_steps: int = 32
+    """``realtime``: cap on one keyframe's steps (a camera at rest makes long keyframe intervals)."""
+    train_width: int = 0
+    """Fine-tuning resolution (multiple of 32, ≤ net.width; 0 = net.width): batches are resampled (area)
+    to it, intrinsics and sparse pixels scaled. Depth is still predicted and evaluated at net size."""
+    train_height: int = 0
+    """Fine-tuning height (multiple of 32, ≤ net.height; 0 = net.height)."""
+    freeze_stages: int = 0
+    """Leading encoder stages kept fixed (0–5: conv1+bn1, layer1, …, layer4): no gradient, no backward."""
     anchor: Literal["previous_batch", "batch_start", "lagged"] = "previous_batch"
     """θ*: parameters after the previous batch (paper; = start of this batch) or one batch earlier (lagged)."""
     reg_mode: Literal["prox", "penalty"] = "prox"

@@ -212,3 +212,21 @@ def make_adam(params: Iterable[torch.nn.Parameter], lr: float = 1e-3, **kwargs) 
         return torch.optim.Adam(params, lr=lr, fused=True, **kwargs)
     except (RuntimeError, TypeError, ValueError):
         return torch.optim.Adam(params, lr=lr, **kwargs)
+
+
+#: The encoder's stages in forward order (:class:`~mutualslam_cli.adapt.networks.resnet_encoder.ResnetEncoder`).
+ENCODER_STAGES = (("conv1", "bn1"), ("layer1",), ("layer2",), ("layer3",), ("layer4",))
+
+
+def freeze_encoder_stages(net: DepthNet, n: int) -> int:
+    """Stop training the first ``n`` encoder stages (``requires_grad = False``); returns the parameters frozen.
+
+    Autograd then does not backpropagate into those stages at all (the input needs no gradient either),
+    which saves their backward pass — the costliest part of a step, at the highest resolution."""
+    frozen = 0
+    for stage in ENCODER_STAGES[:n]:
+        for name in stage:
+            for p in getattr(net.encoder.encoder, name).parameters():
+                p.requires_grad_(False)
+                frozen += p.numel()
+    return frozen

@@ -46,7 +46,7 @@ from torch import nn
 
 from mutualslam_cli.adapt import losses
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
-from mutualslam_cli.adapt.depthnet import fast_context, make_adam
+from mutualslam_cli.adapt.depthnet import fast_context, freeze_encoder_stages, make_adam
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
 from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.adapt.state import (
@@ -84,6 +84,7 @@ class StepInfo:
             its stereo partners, empty when none qualified); empty for validation keyframes.
         loss: ``{"photo", "sparse", "smooth", "total", "penalty"}`` floats (empty if not trained).
         l_val: L_val on validation keyframes (None otherwise; NaN if no sparse points).
+        steps: optimiser steps taken on this keyframe's batch.
         n_converged: Alg. 1's counter after the tick.
         run_global_ba: Alg. 1 requested global BA on this tick.
         ms: wall time of the tick, milliseconds.
@@ -98,6 +99,7 @@ class StepInfo:
     sources: list[int] = field(default_factory=list)
     loss: dict[str, float] = field(default_factory=dict)
     l_val: float | None = None
+    steps: int = 0
     n_converged: int = 0
     run_global_ba: bool = False
     ms: float = 0.0
@@ -144,6 +146,8 @@ class OnlineAdapter:
         self.scheme = get_scheme(cfg.scheme, cfg)
         self.buffer = KeyframeBuffer(cfg.replay_capacity, seed=seed + 1)
         self.rng = np.random.default_rng(seed)
+        if cfg.freeze_stages:
+            freeze_encoder_stages(net, cfg.freeze_stages)
         self.params = trainable(net)
         self.optimizer = make_adam(self.params, lr=cfg.lr) if self.scheme.trains else None
         self.regularizer: Regularizer | None = self.scheme.make_regularizer(net, cfg, self._predict, reg_mode)
@@ -154,11 +158,12 @@ class OnlineAdapter:
         self.history: list[StepInfo] = []
 
     # ------------------------------------------------------------------ public
-    def add_keyframe(self, sample: KeyframeSample) -> StepInfo:
+    def add_keyframe(self, sample: KeyframeSample, steps: int | None = None) -> StepInfo:
         """Consume one keyframe: one tick of Algorithm 1.
 
         Args:
             sample: the keyframe at network resolution (see :class:`KeyframeSample`).
+            steps: optimiser steps for it when trained on (default ``cfg.steps_per_keyframe``; 0: none).
 
         Returns:
             What happened (:class:`StepInfo`).
@@ -179,7 +184,7 @@ class OnlineAdapter:
             self.buffer.add(sample, training=True)
             self.fsm, actions = step(self.fsm, TrainingKeyframe(), self.fsm_params)
             if Action.FINE_TUNE in actions:
-                self._fine_tune(sample.kf_id, info)
+                self._fine_tune(sample.kf_id, info, self.cfg.steps_per_keyframe if steps is None else steps)
             self.fsm, _ = step(self.fsm, FineTuneDone(), self.fsm_params)
         info.state = self.fsm.mode.value
         info.n_converged = self.fsm.n_converged
@@ -261,8 +266,9 @@ class OnlineAdapter:
             n = s.uv.shape[0]
             uv[b, :n], d[b, :n], mask[b, :n] = s.uv, s.depth, True
         K = torch.stack([s.K.to(torch.float32) for s in samples])
-        return {"ids": [k for k, _ in items], "target": torch.stack([s.image for s in samples]), "sources": sources,
-                "T_t2s": T_t2s, "K": K, "uv": uv, "d": d, "mask": mask}
+        batch = {"ids": [k for k, _ in items], "target": torch.stack([s.image for s in samples]), "sources": sources,
+                 "T_t2s": T_t2s, "K": K, "uv": uv, "d": d, "mask": mask}
+        return resample_batch(batch, self.cfg.train_width, self.cfg.train_height)
 
     def _sample_grads(self, batch: dict[str, object]) -> list[list[torch.Tensor]]:
         """Per batch keyframe, the gradients of its own L_train at the current parameters (EWC's Fisher, Eq. 2)."""
@@ -278,9 +284,9 @@ class OnlineAdapter:
             out.append([torch.zeros_like(p) if g is None else g.detach() for p, g in zip(self.params, grads)])
         return out
 
-    def _fine_tune(self, kf_id: int, info: StepInfo) -> None:
-        """Alg. 2 for one keyframe: ``steps_per_keyframe`` Adam steps on L_train (+ regulariser)."""
-        if not self.scheme.trains or self.optimizer is None:
+    def _fine_tune(self, kf_id: int, info: StepInfo, steps: int) -> None:
+        """Alg. 2 for one keyframe: ``steps`` Adam steps on L_train (+ regulariser)."""
+        if not self.scheme.trains or self.optimizer is None or steps <= 0:
             return
         info.sources = self.scheme.sources(self.buffer, kf_id)
         batch = self._make_batch(self.scheme.select(self.buffer, kf_id, self.rng))
@@ -291,7 +297,7 @@ class OnlineAdapter:
         if reg is not None:
             reg.before_batch(self.net)  # θ* (Alg. 2 line 4: θ_cpy = θ)
         pen_val = 0.0
-        for s in range(cfg.steps_per_keyframe):
+        for s in range(steps):
             ts = time.perf_counter()
             self.optimizer.zero_grad(set_to_none=True)
             depth = self._predict(batch["target"])
@@ -322,5 +328,25 @@ class OnlineAdapter:
             reg.after_batch(self.net, batch["target"][:1], per_kf)  # consolidate (Alg. 2 line 7)
         info.loss["penalty"] = pen_val
         info.trained = True
+        info.steps = steps
         info.batch = list(batch["ids"])
         self.finetune_ms.append(1000.0 * (time.perf_counter() - t0))
+
+
+def resample_batch(batch: dict[str, object], width: int, height: int) -> dict[str, object]:
+    """A training batch at ``width × height`` (0: unchanged): images area-resampled, ``K`` and the sparse
+    pixels ``uv`` scaled with pixel centres kept (``c' = (c + 0.5)·s − 0.5``, as ``Intrinsics.scaled``)."""
+    h0, w0 = batch["target"].shape[-2:]
+    width, height = width or w0, height or h0
+    if (width, height) == (w0, h0):
+        return batch
+
+    def small(x: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.interpolate(x, size=(height, width), mode="area")
+
+    s = torch.tensor([width / w0, height / h0])
+    K = batch["K"].clone()
+    K[:, :2, :] *= s[None, :, None]
+    K[:, :2, 2] += 0.5 * s - 0.5
+    return {**batch, "target": small(batch["target"]), "sources": [small(x) for x in batch["sources"]], "K": K,
+            "uv": (batch["uv"] + 0.5) * s - 0.5}

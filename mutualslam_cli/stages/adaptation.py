@@ -126,6 +126,7 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
                             val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode)
     rows = []
     t0 = time.perf_counter()
+    budget = realtime_steps(seq, vo, cfg) if cfg.adapt.schedule == "realtime" else None
     for kf in vo.keyframes:
         bridge(kf, depth_predictor(adapter.net, load, fast, adapter.buffer))
         uv, d = sparse(kf.id)
@@ -133,7 +134,7 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
                                 uv=uv, depth=d, segment=kf.segment)
         if scorer is not None:  # frames before this keyframe: the model after the previous one
             scorer.score_until(adapter.net, kf.frame_index, kf.id - 1)
-        row = step_row(adapter.add_keyframe(sample))
+        row = step_row(adapter.add_keyframe(sample, None if budget is None else budget[kf.id]))
         row["n_sparse"] = len(d)
         if kf.id in ba_s:
             row["ba_s"] = ba_s[kf.id]
@@ -142,6 +143,15 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
             progress("adapt", {"done": kf.id + 1, "total": len(vo.keyframes), **row,
                                "elapsed_s": time.perf_counter() - t0})
     return adapter.net, rows, adapter, _with_bridges(held[0], bridges)
+
+
+def realtime_steps(seq: Sequence, vo: VOResult, cfg: RunConfig) -> list[int]:
+    """Steps per keyframe of ``adapt.schedule = realtime``: ``⌊Δt / step_cost⌋`` capped at ``max_steps``, Δt the
+    sequence time from the keyframe to the next one (the last: to the sequence's last frame). The paper's
+    fine-tuning runs beside the SLAM thread, so a keyframe is trained on until the next one arrives."""
+    a = cfg.adapt
+    times = [seq.frames[k.frame_index].timestamp for k in vo.keyframes] + [seq.frames[len(seq) - 1].timestamp]
+    return [int(min(a.max_steps, max(0.0, 1000.0 * (t1 - t0) // a.step_cost_ms))) for t0, t1 in zip(times, times[1:])]
 
 
 def _with_bridges(vo: VOResult, bridges: list[dict[str, Any]]) -> VOResult:
@@ -319,6 +329,7 @@ def _summarise(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms:
     summary.set("timing.finetune_ms", float(np.median(step_ms)) if step_ms else None, why)
     summary.set("timing.finetune_kf_ms", float(np.median(keyframe_ms)) if keyframe_ms else None, why)
     summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
+    summary.set("adaptation.steps", int(sum(int(r.get("steps") or 0) for r in kf_rows)))
     if scheme == "luo":
         training = [r for r in kf_rows if not r.get("is_validation")]
         summary.set("adaptation.luo_keyframes_with_partner", sum(bool(str(r.get("sources") or "").strip())
