@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from mutualslam_cli.bench.suite import targets
+from mutualslam_cli.bench.suite import _table, step_in_run, targets
 from mutualslam_cli.machine import cpu_info, cpu_kind
 from mutualslam_cli.results.run_folder import manifest
 
@@ -32,6 +32,18 @@ def test_targets_follow_the_kind():
     assert targets("AVX512-BF16")["predict_ms"] == ("<=", 40.0) and targets("AVX512-BF16")["finetune_ms"][1] == 300
     assert "finetune_ms" not in targets("AVX2") and targets("AVX2")["predict_ms"] == ("<=", 60.0)
     assert targets("other")["vo_fps"] == (">=", 60.0)
+    assert targets("AMX")["finetune_run_ms"] == ("<=", 250.0) and targets("AVX2")["finetune_run_vs_bench"][1] == 1.1
+
+
+def test_the_step_inside_the_run_is_held_against_the_bench():
+    res = {"cpu_kind": "AVX512-BF16", "finetune_fast_ms": 250.0, "finetune_run_ms": 290.0}
+    res.update(step_in_run(res))
+    assert res["finetune_run_vs_bench"] == pytest.approx(1.16)
+    table = _table(res)
+    assert "| step inside the run / step on the bench (×) | 1.16 | ≤ 1.1 | **no** |" in table
+    assert "| fine-tuning step inside mslam run, replay+ewc, median (ms) | 290 | ≤ 300 | yes |" in table
+    assert step_in_run({"finetune_fp32_ms": 500.0, "finetune_run_ms": 510.0})["finetune_run_vs_bench"] == 1.02
+    assert step_in_run({"finetune_fast_ms": 250.0}) == {}
 
 
 def test_every_run_records_its_cpu():

@@ -1,0 +1,109 @@
+"""The fine-tuning budget: steps per keyframe (fixed or realtime), training resolution, frozen encoder stages."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from mutualslam_cli.adapt.depthnet import DepthNet, freeze_encoder_stages
+from mutualslam_cli.adapt.online import OnlineAdapter, resample_batch
+from mutualslam_cli.config import AdaptConfig, RunConfig, load_config
+from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.stages.adaptation import realtime_steps
+from mutualslam_cli.types import Intrinsics
+from tests.adapt.test_online import K, SCENE, make_net
+
+torch.set_num_threads(1)
+
+
+def test_resampled_batch_keeps_the_geometry():
+    """K and the sparse pixels at the training size are those of the same camera resized (pixel centres kept):
+    a 3-D point projects with the new K exactly where its old pixel moved."""
+    ad = OnlineAdapter(make_net(), AdaptConfig(scheme="replay"), K)
+    for s in SCENE[:3]:
+        ad.buffer.add(s, training=True)
+    full = ad._make_batch([2, 1])
+    small = resample_batch(full, 64, 32)
+    assert small["target"].shape[-2:] == (32, 64) and all(x.shape[-2:] == (32, 64) for x in small["sources"])
+    cam = Intrinsics(width=96, height=64, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2]).scaled(64, 32)
+    np.testing.assert_allclose(small["K"][0].numpy(), cam.K(), rtol=1e-6)
+    P = torch.tensor([0.3, -0.2, 2.0])
+    uv_full = (full["K"][0] @ P)[:2] / P[2]
+    uv_small = (small["K"][0] @ P)[:2] / P[2]
+    moved = resample_batch({**full, "uv": uv_full.reshape(1, 1, 2).expand(2, 1, 2)}, 64, 32)["uv"][0, 0]
+    torch.testing.assert_close(moved, uv_small)
+    assert torch.allclose(small["target"].mean(), full["target"].mean(), atol=1e-3)  # area resampling
+    assert resample_batch(full, 0, 0) is full and resample_batch(full, 96, 64) is full
+
+
+def test_training_at_a_smaller_size_trains_and_validates_at_full_size():
+    ad = OnlineAdapter(make_net(), AdaptConfig(scheme="replay", steps_per_keyframe=2, train_width=64,
+                                               train_height=32), K)
+    seen = []
+    predict = ad.net.predict
+    ad.net.predict = lambda x: seen.append(tuple(x.shape[-2:])) or predict(x)
+    infos = [ad.add_keyframe(s) for s in SCENE[:6]]
+    assert any(i.trained for i in infos) and (32, 64) in seen
+    assert infos[5].is_validation and np.isfinite(infos[5].l_val)
+    assert seen[-1] == (64, 96)  # L_val of the validation keyframe: the stored, full-size image
+
+
+@pytest.mark.parametrize("n", [0, 2, 5])
+def test_frozen_stages_stay_put_and_the_rest_trains(n):
+    net = DepthNet()
+    ad = OnlineAdapter(net, AdaptConfig(scheme="replay", steps_per_keyframe=1, freeze_stages=n), K)
+    enc = net.encoder.encoder
+    before = {k: v.detach().clone() for k, v in net.named_parameters()}
+    for s in SCENE[:3]:
+        ad.add_keyframe(s)
+    frozen = [f"encoder.encoder.{m}." for stage in (("conv1", "bn1"), ("layer1",), ("layer2",), ("layer3",),
+                                                      ("layer4",))[:n] for m in stage]
+    for k, v in net.named_parameters():
+        moved = not torch.equal(v, before[k])
+        if any(k.startswith(f) for f in frozen):
+            assert not moved and not v.requires_grad, k
+    assert any(not torch.equal(v, before[k]) for k, v in net.named_parameters() if k.startswith("decoder."))
+    assert (n < 5) == any(not torch.equal(v, before[k]) for k, v in net.named_parameters()
+                          if k.startswith("encoder.encoder.layer4"))
+    assert len(ad.params) == sum(p.requires_grad for p in net.parameters())
+    assert (n == 0) == enc.conv1.weight.requires_grad
+    assert freeze_encoder_stages(DepthNet(), 1) == enc.conv1.weight.numel() + 2 * enc.bn1.weight.numel()
+
+
+def test_steps_given_per_keyframe():
+    ad = OnlineAdapter(make_net(), AdaptConfig(scheme="replay", steps_per_keyframe=8), K)
+    ad.add_keyframe(SCENE[0])
+    info = ad.add_keyframe(SCENE[1], steps=3)
+    assert info.trained and info.steps == 3 and len(ad.step_ms) == 3
+    info = ad.add_keyframe(SCENE[2], steps=0)
+    assert not info.trained and info.steps == 0 and len(ad.step_ms) == 3
+    assert ad.add_keyframe(SCENE[3]).steps == 8
+
+
+class _Seq:
+    def __init__(self, times):
+        self.frames = [SimpleNamespace(timestamp=t) for t in times]
+
+    def __len__(self):
+        return len(self.frames)
+
+
+def test_realtime_steps_fill_the_interval_to_the_next_keyframe():
+    seq = _Seq(np.arange(300) / 30.0)  # 30 Hz, 10 s
+    vo = SimpleNamespace(keyframes=[SimpleNamespace(frame_index=i) for i in (0, 15, 16, 200)])
+    cfg = load_config(None, ["adapt.schedule=realtime", "adapt.step_cost_ms=100", "adapt.max_steps=20"])
+    # 0.5 s → 5 steps; 1/30 s → 0; 6.13 s → capped at 20; last keyframe to the last frame: 3.3 s → 20
+    assert realtime_steps(seq, vo, cfg) == [5, 0, 20, 20]
+    cfg = load_config(None, ["adapt.schedule=realtime", "adapt.step_cost_ms=1000"])
+    assert realtime_steps(seq, vo, cfg) == [0, 0, 6, 3]
+
+
+@pytest.mark.parametrize("bad", ["adapt.train_width=300", "adapt.train_height=224", "adapt.freeze_stages=6",
+                                 "adapt.step_cost_ms=0", "adapt.max_steps=0"])
+def test_bad_budget_settings(bad):
+    with pytest.raises(ConfigError):
+        load_config(None, [bad])
+    assert isinstance(load_config(None, []), RunConfig)
