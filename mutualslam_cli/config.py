@@ -149,6 +149,8 @@ class AdaptConfig:
     """How EWC/MAS/SI enter the update: a proximal step after each Adam step, or added to the loss."""
     val_scope: Literal["all", "current"] = "all"
     """L_val over all validation keyframes so far, or only the arriving one."""
+    val_max: int = 0
+    """``all``: at most this many validation keyframes, evenly spread from the first to the newest (0 = every one)."""
     validate_every: int = 5
     """m of Algorithm 1."""
     patience: int = 3
@@ -252,6 +254,9 @@ class BAConfig:
     calibrated images; on ours (measured with DSO's pattern and 3 levels) 5 moved GT poses least (ICL
     lr kt2 window: 0.8 mm instead of 1.2) and lowered the VO's ATE as much or more on four of the
     five sequences measured."""
+    window: int = 0
+    """Keyframes a trigger's culling + BA works on: the newest W (the first of them fixed), older keyframes
+    and their points untouched (0 = the whole map, the paper's global BA; > 0 bounds a trigger's cost)."""
     outlier_grey: float = 12.0
     """A block whose weighted energy exceeds this residual at every pixel is an outlier (DSO: 12)."""
 

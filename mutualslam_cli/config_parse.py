@@ -168,6 +168,7 @@ def check_run(cfg: Any) -> None:
          and 0 <= cfg.adapt.train_width <= cfg.net.width and 0 <= cfg.adapt.train_height <= cfg.net.height,
          "adapt.train_width/train_height must be multiples of 32 in [0, net.width/net.height] (0 = the net's)"),
         (0 <= cfg.adapt.freeze_stages <= 5, "adapt.freeze_stages must be in 0..5 (encoder stages)"),
+        (cfg.adapt.val_max >= 0 and cfg.ba.window >= 0, "adapt.val_max and ba.window must be ≥ 0 (0 = all)"),
         (0 <= cfg.adapt.alpha <= 1, "adapt.alpha must be in [0, 1]"),
         (cfg.net.width % 32 == 0 and cfg.net.height % 32 == 0, "net.width and net.height must be multiples of 32"),
         (0 < cfg.net.min_depth < cfg.net.max_depth, "net.min_depth must be in (0, net.max_depth)"),

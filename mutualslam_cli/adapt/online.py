@@ -238,6 +238,8 @@ class OnlineAdapter:
     def _l_val(self, kf_id: int) -> float:
         """Alg. 1's L_val: mean per-keyframe L_sparse over the validation set (see module docstring)."""
         ids = self.buffer.validation_ids if self.val_scope == "all" else [kf_id]
+        if self.cfg.val_max and len(ids) > self.cfg.val_max:  # evenly spread, first and newest included
+            ids = [ids[i] for i in np.unique(np.linspace(0, len(ids) - 1, self.cfg.val_max).round().astype(int))]
         vals = [v for v in self.per_keyframe_val_loss(ids).values() if not math.isnan(v)]
         return float(np.mean(vals)) if vals else float("nan")
 

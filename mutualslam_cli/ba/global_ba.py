@@ -205,6 +205,10 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
         cull: apply Eq. 10 (and re-host by L_val).
         upto: last keyframe that exists yet (default: the last one).
 
+    With ``cfg.window = W > 0`` only the newest ``W`` keyframes up to ``upto`` and the points they host
+    are culled and refined; the window's first keyframe is held fixed (the gauge) and older keyframes
+    and points are left as they are, so a trigger's cost does not grow with the map.
+
     Returns:
         :class:`GlobalBAResult`. Within each segment and round of the solver the robust cost never
         increases.
@@ -212,18 +216,21 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     t0 = time.perf_counter()
     nk = len(vo.keyframes)
     upto = nk - 1 if upto is None else int(upto)
+    first = max(0, upto - cfg.window + 1) if cfg.window else 0  # the keyframes [first, upto] take part
     pts = vo.points
-    sub_idx = np.flatnonzero(pts.host <= upto)  # the points that exist at keyframe ``upto``
-    sub_obs = [pts.observations[i][pts.observations[i] <= upto] for i in sub_idx]
-    sub_pix = [pts.obs_pixels[i][pts.observations[i] <= upto] for i in sub_idx]
+    inside = (pts.host <= upto) & (pts.host >= first)
+    sub_idx = np.flatnonzero(inside)  # the points that exist at keyframe ``upto`` (hosted in the window)
+    seen = [(pts.observations[i] <= upto) & (pts.observations[i] >= first) for i in sub_idx]
+    sub_obs = [pts.observations[i][m] for i, m in zip(sub_idx, seen)]
+    sub_pix = [pts.obs_pixels[i][m] for i, m in zip(sub_idx, seen)]
     sub = replace(vo, keyframes=vo.keyframes[:upto + 1],
-                  points=replace(pts.subset(pts.host <= upto), observations=sub_obs, obs_pixels=sub_pix))
+                  points=replace(pts.subset(inside), observations=sub_obs, obs_pixels=sub_pix))
     keep = np.ones(len(pts), bool)
     stats = {"n_points": len(pts), "n_culled": 0, "n_judged": 0, "n_judged_elsewhere": 0}
     if cull and depth_of is not None and len(sub_idx):
         keep[sub_idx], culled = _cull(sub, vo, depth_of, val_loss, cfg)
         stats.update(culled)
-    stack_all = {k: np.asarray(images(k), np.float32) for k in range(upto + 1)} if len(sub_idx) else {}
+    stack_all = {k: np.asarray(images(k), np.float32) for k in range(first, upto + 1)} if len(sub_idx) else {}
     H, W = next(iter(stack_all.values())).shape if stack_all else (vo.intrinsics.height, vo.intrinsics.width)
     if any(im.shape != (H, W) for im in stack_all.values()):
         raise ShapeError("run_global_ba: keyframe images must all have one size")
@@ -231,13 +238,14 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     pix_ba = np.rint((sub.points.pixel + 0.5) * s - 0.5)  # host pixels on the BA images' pixel grid
     T_wc = np.stack([k.pose for k in vo.keyframes])
     solved = _solve_segments(sub, sub_obs, keep[sub_idx], stack_all, vo.intrinsics.scaled(W, H).K(), T_wc, pix_ba,
-                             upto, cfg)
+                             first, cfg)
     T_new, new_rho, refined, dropped_sub, tot, costs = solved
     dropped = np.zeros(len(pts), bool)
     dropped[sub_idx] = dropped_sub
     out = _assemble(vo, upto, T_wc, T_new, sub_idx, refined, new_rho, (pix_ba + 0.5) / s - 0.5)
     stats.update(tot, n_refined=int(refined.sum()), n_unrefined=int((keep[sub_idx] & ~refined & ~dropped_sub).sum()),
-                 n_dropped=int(dropped.sum()), keyframes=upto + 1, costs=costs, seconds=time.perf_counter() - t0)
+                 n_dropped=int(dropped.sum()), keyframes=upto + 1 - first, costs=costs,
+                 seconds=time.perf_counter() - t0)
     return GlobalBAResult(out, keep, dropped, stats)
 
 
@@ -258,8 +266,9 @@ def _cull(sub: VOResult, vo: VOResult, depth_of: Callable[[int], np.ndarray], va
 
 
 def _solve_segments(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, stack_all: dict[int, np.ndarray],
-                    K: np.ndarray, T_wc: np.ndarray, pix: np.ndarray, upto: int, cfg: BAConfig) -> tuple:
-    """One photometric BA per segment (module docstring) of the points of ``sub`` that ``keep``.
+                    K: np.ndarray, T_wc: np.ndarray, pix: np.ndarray, first: int, cfg: BAConfig) -> tuple:
+    """One photometric BA per segment (module docstring) of the points of ``sub`` that ``keep``, over the
+    keyframes from ``first`` on (each segment's first of them fixed).
 
     Returns:
         ``(T_wc after, inverse depths, refined (P,), dropped (P,), summed counts, costs per segment)``.
@@ -274,7 +283,7 @@ def _solve_segments(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, 
     costs, tot = [], {k: 0 for k in ("n_targets", "n_nearby_targets", "n_diverged", "n_blocks", "n_outlier_blocks",
                                      "iterations", "accepted")} | {"cost0": 0.0, "cost": 0.0}
     for sg in np.unique(segs):
-        ks = np.flatnonzero(segs == sg)
+        ks = np.flatnonzero((segs == sg) & (np.arange(len(segs)) >= first))
         loc = np.full(nk, -1)
         loc[ks] = np.arange(len(ks))
         cand = np.flatnonzero(keep & (loc[host] >= 0) & in_image(pix, W, H, border))

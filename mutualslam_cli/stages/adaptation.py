@@ -113,10 +113,11 @@ def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunCo
     def on_global_ba(info: StepInfo) -> None:
         assert global_ba is not None
         t = time.perf_counter()
+        first = max(0, info.kf_id - cfg.ba.window + 1) if cfg.ba.window else 0  # the keyframes the BA refines
+        ids = [k.id for k in held[0].keyframes[first:info.kf_id + 1]]
         new = global_ba(held[0], info.kf_id, depth_predictor(adapter.net, load, fast, adapter.buffer),
-                        adapter.per_keyframe_val_loss())
+                        adapter.per_keyframe_val_loss(ids))
         held[:] = [new, new.points_world()]
-        ids = [k.id for k in new.keyframes[:info.kf_id + 1]]
         adapter.update_poses({k: new.keyframes[k].pose for k in ids})
         adapter.update_sparse({k: sparse(k) for k in ids})
         ba_s[info.kf_id] = time.perf_counter() - t

@@ -73,6 +73,22 @@ class MapPoints:
         z = np.zeros(0)
         return MapPoints(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), z, z, [], [])
 
+    def observed_in(self, kf_id: int) -> np.ndarray:
+        """Ascending indices of the points keyframe ``kf_id`` observes. The index over every keyframe is
+        built on the first call (O(observations)), so a call costs O(its points), not O(P)."""
+        index = self.__dict__.get("_by_keyframe")
+        if index is None:
+            lens = np.array([len(o) for o in self.observations], dtype=np.int64)
+            kf = np.concatenate(self.observations).astype(np.int64) if lens.sum() else np.zeros(0, np.int64)
+            pt = np.repeat(np.arange(len(lens)), lens)
+            order = np.lexsort((pt, kf))
+            kf, pt = kf[order], pt[order]
+            keys, starts = np.unique(kf, return_index=True)
+            bounds = np.r_[starts, len(kf)]
+            index = {int(k): np.unique(pt[bounds[i]:bounds[i + 1]]) for i, k in enumerate(keys)}
+            self.__dict__["_by_keyframe"] = index  # never stale: nothing edits ``observations`` in place
+        return index.get(int(kf_id), np.zeros(0, np.int64))
+
     def subset(self, keep: np.ndarray) -> "MapPoints":
         """Rows where the boolean mask ``keep`` is true."""
         idx = np.flatnonzero(keep)
@@ -139,8 +155,8 @@ class VOResult:
             D_sparse of Eq. 6.
         """
         pw = self.points_world() if points_w is None else points_w
-        sel = np.array([kf_id in obs for obs in self.points.observations], dtype=bool)
-        if not np.any(sel):
+        sel = self.points.observed_in(kf_id)
+        if not len(sel):
             return np.zeros((0, 2)), np.zeros(0)
         pc = transform(se3_inv(self.keyframes[kf_id].pose), pw[sel])
         pix, z = project(pc, self.intrinsics.K())

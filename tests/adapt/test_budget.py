@@ -107,3 +107,11 @@ def test_bad_budget_settings(bad):
     with pytest.raises(ConfigError):
         load_config(None, [bad])
     assert isinstance(load_config(None, []), RunConfig)
+
+
+def test_l_val_over_an_even_spread_of_the_validation_keyframes():
+    ad = OnlineAdapter(make_net(), AdaptConfig(scheme="replay", steps_per_keyframe=1, validate_every=2, val_max=3), K)
+    infos = [ad.add_keyframe(s) for s in SCENE[:11]]
+    assert ad.buffer.validation_ids == [2, 4, 6, 8, 10] and infos[10].is_validation
+    assert infos[10].l_val == pytest.approx(np.mean(list(ad.per_keyframe_val_loss([2, 6, 10]).values())))
+    assert infos[10].l_val != pytest.approx(np.mean(list(ad.per_keyframe_val_loss([2, 4, 6, 8, 10]).values())))

@@ -229,3 +229,29 @@ def test_feedback_reaches_later_batches(tmp_path, monkeypatch):
             old = vo.sparse_depth(k)[1]
             differs.append(len(old) != len(want) or not np.allclose(old, want))
     assert any(differs)  # (not the front end's labels)
+
+
+def test_a_window_refines_only_the_newest_keyframes(scene):
+    """``ba.window = 3``: keyframes 0–2 and their points are untouched, keyframe 3 holds the gauge, only the
+    window's images and depths are read, and the window's photometric cost goes down."""
+    prob, deps = scene
+    vo = as_vo(perturb(prob, np.random.default_rng(5), trans=0.01, rot_deg=0.3, rho_rel=0.02))
+    images, depths = set(), set()
+    r = gba.run_global_ba(vo, lambda k: images.add(k) or prob.images[k], lambda k: depths.add(k) or deps[k], None,
+                          dataclasses.replace(CFG, window=3), cull=True)
+    assert r.stats["keyframes"] == 3 and images == {3, 4, 5} and depths and depths <= {3, 4, 5}
+    for k in range(4):
+        np.testing.assert_array_equal(r.vo.keyframes[k].pose, vo.keyframes[k].pose)
+    assert all(not np.array_equal(r.vo.keyframes[k].pose, vo.keyframes[k].pose) for k in (4, 5))
+    old = vo.points.host < 3
+    np.testing.assert_array_equal(r.vo.points.inv_depth[old], vo.points.inv_depth[old])
+    assert (r.vo.points.inv_depth[~old] != vo.points.inv_depth[~old]).sum() > 0.5 * (~old).sum()
+    assert r.stats["cost"] < 0.5 * r.stats["cost0"]
+
+
+def test_points_observed_in_a_keyframe_match_a_scan(scene):
+    vo = as_vo(scene[0])
+    for k in range(len(vo.keyframes)):
+        scan = np.flatnonzero([k in o for o in vo.points.observations])
+        np.testing.assert_array_equal(vo.points.observed_in(k), scan)
+    assert len(vo.points.observed_in(99)) == 0 and len(MapPoints.empty().observed_in(0)) == 0
