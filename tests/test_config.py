@@ -85,7 +85,9 @@ def test_bare_on_off_reach_the_on_off_options_although_yaml_reads_them_as_boolea
 def test_experiment_section_lists_and_variants_are_checked(tmp_path):
     from mutualslam_cli.config import with_settings
 
-    for f in sorted(CONFIG_DIR.glob("table*.yaml")) + sorted(CONFIG_DIR.glob("figure*.yaml")):
+    experiments = [*sorted(CONFIG_DIR.glob("table*.yaml")), *sorted(CONFIG_DIR.glob("figure*.yaml")),
+                   CONFIG_DIR / "frontier.yaml"]
+    for f in experiments:
         cfg = load_config(f)
         assert cfg.experiment.name == f.stem and cfg.experiment.schemes and cfg.experiment.seeds == [0, 1, 2]
         assert to_dict(cfg)["vo"] == to_dict(RunConfig())["vo"]  # everything else is the paper's

@@ -25,6 +25,7 @@ import yaml
 
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.report.budget import BUDGET_TITLE, budget_table, frontier_figure
 from mutualslam_cli.report.columns import cell_text, numeric
 from mutualslam_cli.report.dense import TITLE as DENSE_TITLE
 from mutualslam_cli.report.dense import dense_figures, dense_table
@@ -161,6 +162,9 @@ def build_tables(runs: pd.DataFrame) -> Report:
         t = t.reset_index()
         rep.tables[name] = t if varied else t.drop(columns="config")
         rep.titles[name] = title
+    budget = budget_table(runs)  # only when configs differ
+    if budget is not None:
+        rep.tables["budget"], rep.titles["budget"] = budget, BUDGET_TITLE
     dense = dense_table(runs)  # only when some run ran the dense stage
     if dense is not None:
         rep.tables["dense"], rep.titles["dense"] = dense if varied else dense.drop(columns="config"), DENSE_TITLE
@@ -347,6 +351,8 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
     traj, notes = trajectory_figures(rep.runs, out_dir)
     figures += traj + map_figures(rep.runs, out_dir)
     figures += dense_figures(rep.runs, out_dir)
+    if frontier_figure(rep.tables.get("budget"), out_dir / "frontier.png"):
+        figures.append(out_dir / "frontier.png")
     md.append("## Figures\n\n" + "".join(f"{n}\n\n" for n in notes)
               + "".join(f"![{f.stem}]({f.relative_to(out_dir).as_posix()})\n\n" for f in figures))
     atomic_write_text(out_dir / "report.md", "# mslam report\n\n" + "\n".join(md))
