@@ -50,3 +50,24 @@ def test_every_run_records_its_cpu():
     m = manifest(["mslam", "run"], 0, {"total_s": 1.0})
     assert m["cpu_kind"] in ("AMX", "AVX512-BF16", "AVX2", "other", "unknown") and m["cpu_count"] >= 1
     assert "cpu_flags" in m and "cpu_model" in m
+
+
+def test_onednn_kernels_are_read_by_isa_and_data_type():
+    from mutualslam_cli.bench.kernels import parse_verbose
+
+    head = "onednn_verbose,v1,primitive,exec,cpu,"
+    lines = [head + "convolution,brg_conv_fwd:avx512_core_amx,forward_training,src:bf16:a:blocked:acdb::f0 wei:bf16,"
+                    ",,mb2_ic64oc64,1.5",
+             head + "convolution,brg_conv_bwd:avx512_core_amx+brg_conv_fwd:avx512_core_amx,backward_data,"
+                    "src:bf16::blocked:acdb::f0,,,mb2,2.0",
+             head + "convolution,jit_dw:avx512_core,forward_training,src:f32:ap:blocked:aBcd16b::f0,,,g9mb4,0.5",
+             head + "reorder,jit:uni,undef,src:bf16::blocked:acdb::f0 dst:bf16,,,64x64x3x3,0.25",
+             "onednn_verbose,v1,info,cpu,isa:Intel AVX-512 with AMX",
+             "unrelated output"]
+    k = parse_verbose(lines)
+    assert k["convolutions"] == {"brg_conv_fwd:avx512_core_amx": 1, "jit_dw:avx512_core": 1,
+                                 "brg_conv_bwd:avx512_core_amx+brg_conv_fwd:avx512_core_amx": 1}
+    assert k["convolution_dtypes"] == {"bf16": 2, "f32": 1}
+    assert k["convolution_ms"] == pytest.approx(4.0) and k["reorder_ms"] == pytest.approx(0.25)
+    table = _table({"cpu_kind": "AMX", "step_kernels": k})
+    assert "avx512_core_amx ×2" in table and "f32 ×1" in table

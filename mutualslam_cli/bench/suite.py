@@ -16,6 +16,7 @@ stdout (a Markdown table) and to a JSON file.
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import os
 import resource
@@ -39,6 +40,7 @@ from mutualslam_cli.bench.finetune import (
     bench_inference_openvino,
     bf16_depth_difference,
 )
+from mutualslam_cli.bench.kernels import step_kernels
 from mutualslam_cli.bench.vo import bench_vo
 from mutualslam_cli.datasets.check import bench_loader
 from mutualslam_cli.datasets.registry import load_sequence
@@ -102,6 +104,7 @@ def _network(quick: bool, threads: int) -> dict[str, Any]:
         out["predict_speedup"] = out["predict_fp32_ms"] / out["predict_fast_ms"]
         out["finetune_speedup"] = out["finetune_fp32_ms"] / out["finetune_fast_ms"]
         out["bf16_rel_depth_diff"] = bf16_depth_difference(640, 192)
+        out["step_kernels"] = step_kernels(fast=True)
     return out
 
 
@@ -273,6 +276,15 @@ def _table(res: dict[str, Any]) -> str:
     if res.get("cpu_flags") is not None:
         lines.append(f"\nCPU: {res['cpu_model']} ({kind}), {res['cpu_count']} cores; SIMD flags: "
                      f"{' '.join(res['cpu_flags'])}")
+    k = res.get("step_kernels") or {}
+    if k.get("convolutions"):
+        isa = collections.Counter()
+        for name, n in k["convolutions"].items():
+            isa[name.split(":")[-1]] += n
+        lines.append("\noneDNN kernels of one fast-path step: convolutions by ISA "
+                     f"{', '.join(f'{i} ×{n}' for i, n in isa.most_common())}; by data type "
+                     f"{', '.join(f'{d} ×{n}' for d, n in k['convolution_dtypes'].items())} (f32: the loss's box "
+                     f"filter); reorders {k['reorder_ms']:.0f} ms beside {k['convolution_ms']:.0f} ms of convolutions")
     if "vo_ms_per_frame" in res:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in res["vo_ms_per_frame"].items())
         lines.append(f"\nVO per-stage ms/frame: {stages}")
