@@ -44,9 +44,9 @@ def no_culling_reason(cfg: RunConfig) -> str | None:
     return None
 
 
-def ba_images(seq: Sequence, vo: VOResult, scale: float = 1.0) -> Callable[[int], np.ndarray]:
+def ba_images(seq: Sequence, vo: VOResult, scale: float = 1.0, keep: int = 0) -> Callable[[int], np.ndarray]:
     """``kf_id → (H, W)`` float32 grey in [0, 1] of the keyframes, undistorted, at ``scale`` × the
-    VO camera (area resampling; cached for the run)."""
+    VO camera (area resampling; cached for the run, at most the ``keep`` newest ids when ``keep > 0``)."""
     und = Undistorter(seq.intrinsics)
     size = (round(vo.intrinsics.width * scale), round(vo.intrinsics.height * scale))
     cache: dict[int, np.ndarray] = {}
@@ -55,6 +55,8 @@ def ba_images(seq: Sequence, vo: VOResult, scale: float = 1.0) -> Callable[[int]
         if kf_id not in cache:
             grey = cv2.cvtColor(und.image(seq.load_rgb(vo.keyframes[kf_id].frame_index)), cv2.COLOR_RGB2GRAY)
             cache[kf_id] = cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+            if keep and len(cache) > keep:  # a windowed BA (ba.window) asks for newer keyframes only
+                del cache[next(iter(cache))]  # the oldest read
         return cache[kf_id]
 
     return load
@@ -81,7 +83,7 @@ class BALog:
 def make_ba_step(seq: Sequence, vo: VOResult, cfg: RunConfig, record: BALog) -> GlobalBA:
     """The :data:`~mutualslam_cli.stages.adaptation.GlobalBA` step of a run (culling unless
     ``ba.culling=false`` or scheme ``none``), recording into ``record``."""
-    images = ba_images(seq, vo, cfg.ba.image_scale)
+    images = ba_images(seq, vo, cfg.ba.image_scale, keep=cfg.ba.window)
     cull = no_culling_reason(cfg) is None
 
     def step(v: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
@@ -100,12 +102,14 @@ def make_ba_step(seq: Sequence, vo: VOResult, cfg: RunConfig, record: BALog) -> 
 
 def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Module,
              adapter: OnlineAdapter | None, cfg: RunConfig, fast: bool, step: GlobalBA) -> VOResult:
-    """The final culling + BA of the loop's map over every keyframe with the final network
-    (L_val of every stored keyframe; none for scheme ``none``)."""
+    """The final culling + BA of the loop's map over every keyframe (the newest ``ba.window`` with a window)
+    with the final network (L_val of those keyframes; none for scheme ``none``)."""
     load = keyframe_images(seq, vo, cfg.net.width, cfg.net.height)
     depth_of = depth_predictor(net, load, fast, adapter.buffer if adapter is not None else None)
-    val_loss = adapter.per_keyframe_val_loss() if adapter is not None else {}
-    return step(loop_map, len(loop_map.keyframes) - 1, depth_of, val_loss)
+    last = len(loop_map.keyframes) - 1
+    ids = list(range(max(0, last - cfg.ba.window + 1), last + 1)) if cfg.ba.window else None
+    val_loss = adapter.per_keyframe_val_loss(ids) if adapter is not None else {}
+    return step(loop_map, last, depth_of, val_loss)
 
 
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).

@@ -255,3 +255,19 @@ def test_points_observed_in_a_keyframe_match_a_scan(scene):
         scan = np.flatnonzero([k in o for o in vo.points.observations])
         np.testing.assert_array_equal(vo.points.observed_in(k), scan)
     assert len(vo.points.observed_in(99)) == 0 and len(MapPoints.empty().observed_in(0)) == 0
+
+
+def test_ba_images_keep_only_the_newest_with_a_window(tmp_path):
+    from mutualslam_cli.stages.ba import ba_images
+
+    seq = load_sequence(str(make_tum_dir(tmp_path / "seq", n=6)))
+    vo = run_oracle(seq, VOConfig(mode="gt-depth", gt_kf_every=1))
+    calls = []
+    real = seq.load_rgb
+    seq.load_rgb = lambda i: calls.append(i) or real(i)
+    load = ba_images(seq, vo, keep=2)
+    first = [load(k).copy() for k in (0, 1, 2)]
+    load(2), load(1)  # cached
+    assert len(calls) == 3
+    load(0)  # evicted: read again, same pixels
+    assert len(calls) == 4 and np.array_equal(load(0), first[0])
