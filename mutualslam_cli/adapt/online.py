@@ -155,6 +155,8 @@ class OnlineAdapter:
         self.fsm = FsmState()
         self.finetune_ms: list[float] = []
         self.step_ms: list[float] = []
+        self.batch_ms: list[float] = []  # per trained keyframe: assembling the batch (replay decode, resampling)
+        self.consolidate_ms: list[float] = []  # … and the regulariser's end of batch (Fisher, importance)
         self.history: list[StepInfo] = []
 
     # ------------------------------------------------------------------ public
@@ -290,11 +292,12 @@ class OnlineAdapter:
         """Alg. 2 for one keyframe: ``steps`` Adam steps on L_train (+ regulariser)."""
         if not self.scheme.trains or self.optimizer is None or steps <= 0:
             return
+        t0 = time.perf_counter()
         info.sources = self.scheme.sources(self.buffer, kf_id)
         batch = self._make_batch(self.scheme.select(self.buffer, kf_id, self.rng))
         if batch is None:
             return
-        t0 = time.perf_counter()
+        self.batch_ms.append(1000.0 * (time.perf_counter() - t0))
         reg, cfg = self.regularizer, self.cfg
         if reg is not None:
             reg.before_batch(self.net)  # θ* (Alg. 2 line 4: θ_cpy = θ)
@@ -323,11 +326,13 @@ class OnlineAdapter:
             if s == 0:
                 info.loss = {k: float(v) for k, v in parts.items()}
             self.step_ms.append(1000.0 * (time.perf_counter() - ts))
+        tc = time.perf_counter()
         if reg is not None:
             with torch.no_grad():
                 pen_val = float(reg.penalty(self.net))  # distance from θ* left at the end of the batch
             per_kf = self._sample_grads(batch) if reg.needs_sample_grads else None
             reg.after_batch(self.net, batch["target"][:1], per_kf)  # consolidate (Alg. 2 line 7)
+        self.consolidate_ms.append(1000.0 * (time.perf_counter() - tc))
         info.loss["penalty"] = pen_val
         info.trained = True
         info.steps = steps

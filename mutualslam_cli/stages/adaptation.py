@@ -257,8 +257,7 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, fast: bool,
         why = "no validation keyframe had an L_val"
         for k, v in adapted.l_val.items():
             summary.set(f"adaptation.l_val.{k}", v, why)
-        _summarise(summary, cfg.adapt.scheme, adapter.step_ms if adapter else [],
-                   adapter.finetune_ms if adapter else [], rows)
+        _summarise(summary, cfg.adapt.scheme, adapter, rows)
         _summarise_strength(summary, adapter)
         for key in (comoda.POSENET_ATE_KEY, comoda.POSE_NETWORK_KEY):
             summary.absent(key, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
@@ -321,14 +320,17 @@ def _summarise_strength(summary: Summary, adapter: OnlineAdapter | None) -> None
                 "the network has no trainable parameter")
 
 
-def _summarise(summary: Summary, scheme: str, step_ms: list[float], keyframe_ms: list[float],
-               kf_rows: list[dict[str, Any]]) -> None:
-    """``timing.finetune_ms`` (median per optimiser step) and ``timing.finetune_kf_ms`` (per keyframe),
-    ``adaptation.keyframes_trained`` and, for scheme ``luo``, ``adaptation.luo_keyframes_with_partner``
-    (training keyframes that found a simulated stereo partner)."""
+def _summarise(summary: Summary, scheme: str, adapter: OnlineAdapter | None, kf_rows: list[dict[str, Any]]) -> None:
+    """``timing.finetune_ms`` (median per optimiser step), ``timing.finetune_kf_ms`` (per keyframe, the steps
+    included) and of it ``timing.finetune_batch_ms`` (assembling the batch) and ``timing.finetune_consolidate_ms``
+    (the regulariser's end of batch: EWC's per-keyframe Fisher, MAS's importance), ``adaptation.keyframes_trained``,
+    ``adaptation.steps`` and, for scheme ``luo``, ``adaptation.luo_keyframes_with_partner`` (training keyframes
+    that found a simulated stereo partner)."""
     why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
-    summary.set("timing.finetune_ms", float(np.median(step_ms)) if step_ms else None, why)
-    summary.set("timing.finetune_kf_ms", float(np.median(keyframe_ms)) if keyframe_ms else None, why)
+    for key, ms in (("finetune_ms", "step_ms"), ("finetune_kf_ms", "finetune_ms"), ("finetune_batch_ms", "batch_ms"),
+                    ("finetune_consolidate_ms", "consolidate_ms")):
+        values = getattr(adapter, ms) if adapter is not None else []
+        summary.set(f"timing.{key}", float(np.median(values)) if values else None, why)
     summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
     summary.set("adaptation.steps", int(sum(int(r.get("steps") or 0) for r in kf_rows)))
     if scheme == "luo":

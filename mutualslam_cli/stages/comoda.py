@@ -106,6 +106,9 @@ def run_stage(run: RunContext, net: torch.nn.Module, fast: bool) -> torch.nn.Mod
     summary.set("timing.finetune_ms", float(np.median(adapter.step_ms)) / cfg.adapt.comoda_steps_per_frame
                 if adapter.step_ms else None, why)
     summary.set("timing.finetune_kf_ms", float(np.median(per_frame)) if per_frame else None, why)
+    summary.set("adaptation.steps", len(per_frame) * cfg.adapt.comoda_steps_per_frame)
+    for key in ("timing.finetune_batch_ms", "timing.finetune_consolidate_ms"):
+        summary.absent(key, "scheme 'comoda' updates per frame, without keyframe batches or a regulariser")
     value, reason = posenet_ate(seq, traj, cfg.eval.ate_max_dt)
     summary.set(POSENET_ATE_KEY, value, reason)
     return adapter.net

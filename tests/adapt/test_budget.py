@@ -81,6 +81,8 @@ def test_steps_given_per_keyframe():
     info = ad.add_keyframe(SCENE[2], steps=0)
     assert not info.trained and info.steps == 0 and len(ad.step_ms) == 3
     assert ad.add_keyframe(SCENE[3]).steps == 8
+    assert len(ad.batch_ms) == len(ad.consolidate_ms) == len(ad.finetune_ms) == 2  # the trained keyframes
+    assert all(c <= f for c, f in zip(ad.consolidate_ms, ad.finetune_ms))
 
 
 class _Seq:
