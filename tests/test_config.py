@@ -119,3 +119,11 @@ def test_values_the_tool_cannot_work_with_are_named(override, match):
     """One check per value, at load time: the message names the key, the value and what was expected."""
     with pytest.raises(ConfigError, match=match):
         load_config(None, [override])
+
+
+def test_fast_config_changes_only_the_budget_and_the_bounds():
+    fast, paper = to_dict(load_config(CONFIG_DIR / "fast.yaml")), to_dict(load_config(CONFIG_DIR / "paper.yaml"))
+    changed = {f"{sec}.{k}" for sec, vals in paper.items() if isinstance(vals, dict)
+               for k, v in vals.items() if fast[sec][k] != v}
+    assert changed == {"adapt.freeze_stages", "adapt.val_max", "ba.window", "eval.online"}
+    assert fast["adapt"]["scheme"] == "replay+ewc" and fast["net"] == paper["net"]  # evaluated as the paper's

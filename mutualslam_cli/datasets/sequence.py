@@ -20,6 +20,10 @@ from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
 log = logging.getLogger(__name__)
 
 
+#: Frames per second of ICL-NUIM's renderings, whose timestamps are frame numbers (Handa et al. 2014).
+ICL_FPS = 30.0
+
+
 @dataclass
 class Sequence:
     """An associated RGB-D sequence on disk.
@@ -42,6 +46,12 @@ class Sequence:
     frames: list[FrameRef]
     gt: Trajectory | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+
+    def seconds(self, i: int) -> float:
+        """Time of frame ``i`` in seconds: its timestamp, except ICL-NUIM's, which are frame numbers of a
+        30 frames/s rendering (:data:`ICL_FPS`)."""
+        t = float(self.frames[i].timestamp)
+        return t / ICL_FPS if self.meta.get("format") in ("icl", "icl_loop") else t
 
     def __len__(self) -> int:
         return len(self.frames)

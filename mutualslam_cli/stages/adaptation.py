@@ -151,7 +151,7 @@ def realtime_steps(seq: Sequence, vo: VOResult, cfg: RunConfig) -> list[int]:
     sequence time from the keyframe to the next one (the last: to the sequence's last frame). The paper's
     fine-tuning runs beside the SLAM thread, so a keyframe is trained on until the next one arrives."""
     a = cfg.adapt
-    times = [seq.frames[k.frame_index].timestamp for k in vo.keyframes] + [seq.frames[len(seq) - 1].timestamp]
+    times = [seq.seconds(k.frame_index) for k in vo.keyframes] + [seq.seconds(len(seq) - 1)]
     return [int(min(a.max_steps, max(0.0, 1000.0 * (t1 - t0) // a.step_cost_ms))) for t0, t1 in zip(times, times[1:])]
 
 

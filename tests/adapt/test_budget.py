@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,9 +12,10 @@ import torch
 from mutualslam_cli.adapt.depthnet import DepthNet, freeze_encoder_stages
 from mutualslam_cli.adapt.online import OnlineAdapter, resample_batch
 from mutualslam_cli.config import AdaptConfig, RunConfig, load_config
+from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.stages.adaptation import realtime_steps
-from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.types import FrameRef, Intrinsics
 from tests.adapt.test_online import K, SCENE, make_net
 
 torch.set_num_threads(1)
@@ -85,22 +87,21 @@ def test_steps_given_per_keyframe():
     assert all(c <= f for c, f in zip(ad.consolidate_ms, ad.finetune_ms))
 
 
-class _Seq:
-    def __init__(self, times):
-        self.frames = [SimpleNamespace(timestamp=t) for t in times]
-
-    def __len__(self):
-        return len(self.frames)
+def _seq(times, fmt="tum") -> Sequence:
+    return Sequence("s", Path("."), Intrinsics(500.0, 500.0, 320.0, 240.0, 640, 480), 5000.0,
+                    [FrameRef(i, float(t), Path("x.png"), None) for i, t in enumerate(times)], meta={"format": fmt})
 
 
 def test_realtime_steps_fill_the_interval_to_the_next_keyframe():
-    seq = _Seq(np.arange(300) / 30.0)  # 30 Hz, 10 s
+    seq = _seq(np.arange(300) / 30.0)  # 30 Hz, 10 s
     vo = SimpleNamespace(keyframes=[SimpleNamespace(frame_index=i) for i in (0, 15, 16, 200)])
     cfg = load_config(None, ["adapt.schedule=realtime", "adapt.step_cost_ms=100", "adapt.max_steps=20"])
     # 0.5 s → 5 steps; 1/30 s → 0; 6.13 s → capped at 20; last keyframe to the last frame: 3.3 s → 20
     assert realtime_steps(seq, vo, cfg) == [5, 0, 20, 20]
     cfg = load_config(None, ["adapt.schedule=realtime", "adapt.step_cost_ms=1000"])
     assert realtime_steps(seq, vo, cfg) == [0, 0, 6, 3]
+    icl = _seq(np.arange(300), fmt="icl")  # ICL-NUIM: frame numbers as timestamps, 30 frames/s
+    assert realtime_steps(icl, vo, cfg) == [0, 0, 6, 3] and icl.seconds(30) == 1.0
 
 
 @pytest.mark.parametrize("bad", ["adapt.train_width=300", "adapt.train_height=224", "adapt.freeze_stages=6",
