@@ -324,8 +324,21 @@ def depth_stats(
 
 
 def ratio_sketch(log_r: np.ndarray) -> np.ndarray:
-    """``(SKETCH_POINTS,)`` float32 evenly spaced quantiles (0 to 1) of a frame's ``log(D / D_gt)``."""
-    return np.quantile(log_r, np.linspace(0.0, 1.0, SKETCH_POINTS)).astype(np.float32)
+    """``(SKETCH_POINTS,)`` float32 evenly spaced quantiles (0 to 1) of a frame's ``log(D / D_gt)``.
+
+    ``np.quantile``'s linear method, to the bit, read off one sort: its partition around 2,049 positions
+    took ~10× longer (the slowest part of a frame's evaluation)."""
+    x = np.sort(np.asarray(log_r).ravel())  # its own dtype: numpy interpolates float32 values in float32 steps
+    pos = (x.size - 1) * np.linspace(0.0, 1.0, SKETCH_POINTS)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, x.size - 1)
+    t = pos - lo
+    a, b = x[lo], x[hi]
+    diff = b - a
+    out = a + diff * t  # numpy's _lerp: from below for t < 0.5, from above otherwise
+    upper = t >= 0.5
+    out[upper] = b[upper] - diff[upper] * (1.0 - t[upper])
+    return out.astype(np.float32)
 
 
 def pcd_from_sketch(sketch: np.ndarray | None, scale: float, threshold: float = PCD_THRESHOLD) -> float:
