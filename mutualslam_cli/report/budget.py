@@ -35,16 +35,17 @@ def _per_sequence(sub: pd.DataFrame, key: str) -> pd.Series:
 
 
 def budget_table(runs: pd.DataFrame) -> pd.DataFrame | None:
-    """One row per (scheme, config) of runs that fine-tuned (``adaptation.steps``), when the configs differ;
+    """One row per (scheme, config) of the fine-tuning schemes (not ``none``), when the configs differ;
     ``None`` otherwise. Only sequences every config of the scheme ran are counted, so rows compare."""
     if "adaptation.steps" not in runs or "config" not in runs or runs["config"].nunique() < 2:
         return None
-    runs = runs[pd.to_numeric(runs["adaptation.steps"], errors="coerce") > 0]
+    runs = runs[runs["scheme"] != "none"]  # a run with 0 steps (realtime, keyframes too close) still counts
     rows = []
     for scheme, by_scheme in runs.groupby("scheme"):
         common = set.intersection(*(set(g["sequence.name"]) for _, g in by_scheme.groupby("config")))
         for config, sub in by_scheme[by_scheme["sequence.name"].isin(common)].groupby("config"):
-            row = {"scheme": scheme, "config": config or "(as configured)", "sequences": len(common), "runs": len(sub)}
+            row = {"scheme": scheme, "config": short_label(config) if config else "(as configured)",
+                   "sequences": len(common), "runs": len(sub)}
             row.update({label: _per_sequence(sub, key).mean() for label, key in PCD_COLUMNS.items()})
             row["step ms"] = float(pd.to_numeric(sub["timing.finetune_ms"], errors="coerce").median())
             row.update({label: _per_sequence(sub, key).sum() for label, key in COST_COLUMNS.items()})
@@ -88,7 +89,7 @@ def frontier_figure(table: pd.DataFrame | None, path: Path) -> bool:
         front = g[g["frontier"]].sort_values("adaptation s")
         ax.plot(front["adaptation s"], front["PCD lsq"], color=pts.get_facecolor()[0], lw=1, zorder=2)
         for _, r in g.iterrows():
-            ax.annotate(short_label(r["config"]), (r["adaptation s"], r["PCD lsq"]), fontsize=6, xytext=(3, 3),
+            ax.annotate(r["config"], (r["adaptation s"], r["PCD lsq"]), fontsize=6, xytext=(3, 3),
                         textcoords="offset points")
     ax.set_xlabel(f"adaptation stage, seconds (sum over {int(table['sequences'].max())} sequences)")
     ax.set_ylabel("PCD % (lsq scaling, final model)")
