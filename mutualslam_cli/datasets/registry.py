@@ -17,6 +17,7 @@ import yaml
 
 from mutualslam_cli.datasets.associate import read_list_file
 from mutualslam_cli.datasets.icl_nuim import NATIVE_RE, load_icl, load_icl_loop
+from mutualslam_cli.datasets.recording import RecordingOptions, open_recording, recording_kind
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.datasets.tum import load_tum, tum_family
 from mutualslam_cli.errors import DatasetError
@@ -183,25 +184,41 @@ def subset_frames(seq: Sequence, max_frames: int = 0, stride: int = 1) -> Sequen
 
 
 def load_sequence(name_or_path: str | os.PathLike, data_root: str | os.PathLike | None = None,
-                  registry_path: str | os.PathLike | None = None, max_frames: int = 0, stride: int = 1) -> Sequence:
-    """Load a sequence by registry name or folder path.
+                  registry_path: str | os.PathLike | None = None, max_frames: int = 0, stride: int = 1,
+                  recording: RecordingOptions | None = None) -> Sequence:
+    """Load a sequence by registry name, folder path or recording.
 
     Args:
-        name_or_path: a ``datasets.yaml`` name, or a folder (format autodetected).
+        name_or_path: a ``datasets.yaml`` name, a folder (format autodetected), or a recording (a ROS
+            bag, a video, an image folder with ``recording.camera``: converted once,
+            :mod:`~mutualslam_cli.datasets.recording`).
         data_root: base of relative registry roots (else ``$MSLAM_DATA``, else the yaml's folder).
         registry_path: the registry file (default: the repository's ``datasets.yaml``).
         max_frames: keep at most this many frames after striding (0 = all).
         stride: keep every ``stride``-th associated frame.
+        recording: how to read a recording (topics, camera file, GT file, conversion cache); its
+            ``camera`` and ``gt`` also replace a folder's intrinsics and GT file.
 
     Raises:
         DatasetError: unknown name (valid names listed), unknown layout, or any loader error.
     """
     s = str(name_or_path)
+    opts = recording or RecordingOptions()
+    if Path(s).expanduser().exists() and recording_kind(Path(s).expanduser(), opts) is not None:
+        return load_spec(open_recording(s, opts), max_frames=max_frames, stride=stride)
+    if Path(s).is_file():  # a file that is not a recording: the one line says what is expected
+        recording_kind(Path(s), opts)
     is_path = isinstance(name_or_path, os.PathLike) or os.sep in s or "/" in s
     if not is_path:
         path = _registry_path(registry_path)
         is_path = s not in _read_registry(path) and Path(s).is_dir()
     spec = _registered_folder(s, registry_path, data_root) if is_path else get_spec(s, registry_path, data_root)
+    if opts.camera is not None:
+        from mutualslam_cli.datasets.camera_file import read_camera_file
+
+        spec = replace(spec, intrinsics=read_camera_file(Path(opts.camera)))
+    if opts.gt is not None:
+        spec = replace(spec, gt_file=str(Path(opts.gt).expanduser().resolve()))
     return load_spec(spec, max_frames=max_frames, stride=stride)
 
 
@@ -211,4 +228,6 @@ def load_spec(spec: SequenceSpec, max_frames: int = 0, stride: int = 1) -> Seque
         raise DatasetError(f"{spec.root}: format '{spec.format}' unknown; expected one of {', '.join(FORMATS)}")
     seq = LOADERS[spec.format](spec)
     seq.meta.setdefault("format", spec.format)
+    if "recording" in spec.extra:  # where a converted recording came from, into the run's manifest
+        seq.meta["recording"] = spec.extra["recording"]
     return subset_frames(seq, max_frames, stride)

@@ -60,20 +60,23 @@ def tum_family(*names: str) -> str | None:
 
 
 def read_intrinsics_txt(path: Path) -> Intrinsics:
-    """Parse ``intrinsics.txt``: one line ``fx fy cx cy width height`` (``#`` comments)."""
+    """Parse ``intrinsics.txt``: one line ``fx fy cx cy width height [k1 k2 p1 p2 [k3]]`` (``#`` comments;
+    the OpenCV distortion is optional, as a converted recording writes it)."""
     for k, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
         s = raw.strip()
         if not s or s.startswith("#"):
             continue
         f = s.split()
         try:
-            if len(f) != 6:
+            if len(f) not in (6, 10, 11, 14):
                 raise ValueError
             fx, fy, cx, cy = (float(x) for x in f[:4])
             w, h = int(f[4]), int(f[5])
+            dist = tuple(float(x) for x in f[6:]) or None
         except ValueError:
-            raise DatasetError(f"{path}:{k}: expected 'fx fy cx cy width height', got {s!r}") from None
-        return Intrinsics(fx, fy, cx, cy, w, h)
+            raise DatasetError(f"{path}:{k}: expected 'fx fy cx cy width height [k1 k2 p1 p2 [k3]]', "
+                               f"got {s!r}") from None
+        return Intrinsics(fx, fy, cx, cy, w, h, dist)
     raise DatasetError(f"{path}: empty; expected one line 'fx fy cx cy width height'")
 
 
