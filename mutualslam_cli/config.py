@@ -274,9 +274,11 @@ class EvalConfig:
     ate_max_dt: float = 0.02
     """Trajectory association threshold in seconds (TUM benchmark)."""
     batch: int = 1
-    """Frames per forward pass in the depth evaluation (results do not depend on it beyond
-    floating-point rounding). Measured per frame, 640×192 bf16, 2 threads, AVX512-BF16: batch 1
-    60 ms, 2 58 ms, 4 59 ms, 8 72 ms — batching does not pay on this CPU."""
+    """Frames per forward pass in the depth evaluation (results do not depend on it beyond rounding).
+    Per frame, 640×192 bf16, 2 threads, AVX512-BF16: batch 1 60 ms, 2 58, 4 59, 8 72 — it does not pay."""
+    export_frames: int = 4
+    """Frames, evenly spread over the sequence, whose depth both models save (``depth/``: 16-bit PNG at
+    5000 per unit, TUM's convention, and ``.npy``) and show in ``depth.png``, GT or not. 0 = none."""
     online: bool = True
     """Also score every evaluated frame with the model of its time, as the adaptation loop goes
     (:mod:`~mutualslam_cli.stages.online_eval`; ``depth.pcd_online.*``): one more prediction per frame."""

@@ -175,7 +175,7 @@ def check_run(cfg: Any) -> None:
         (cfg.data.stride >= 1, "data.stride must be ≥ 1"),
         (cfg.data.max_frames >= 0, "data.max_frames must be ≥ 0"),
         (cfg.eval.pcd_threshold > 0, "eval.pcd_threshold must be > 0"),
-        (cfg.eval.batch >= 1, "eval.batch must be ≥ 1"),
+        (cfg.eval.batch >= 1 and cfg.eval.export_frames >= 0, "eval.batch must be ≥ 1, eval.export_frames ≥ 0"),
         (cfg.ba.max_targets >= 1 and cfg.ba.rounds >= 1 and cfg.ba.levels >= 1,
          "ba.max_targets, ba.rounds and ba.levels must be ≥ 1"),
         (0 <= cfg.ba.nearby_slots < cfg.ba.max_targets, "ba.nearby_slots must be in [0, ba.max_targets)"),

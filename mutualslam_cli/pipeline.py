@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,7 @@ from mutualslam_cli.adapt.inputs import load_network, use_fast_path
 from mutualslam_cli.adapt.weights import DECODER_FILE, ENCODER_FILE, load_monodepth2
 from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import RunConfig, load_config, to_dict, with_overrides
+from mutualslam_cli.datasets.recording import RecordingOptions
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
@@ -41,7 +42,7 @@ from mutualslam_cli.results.run_folder import (
     write_yaml,
 )
 from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages import adaptation, dense, evaluation, frontend
+from mutualslam_cli.stages import adaptation, dense, depth_export, evaluation, frontend
 from mutualslam_cli.stages.ba import BAStage
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Progress
@@ -82,12 +83,14 @@ def use_threads(cfg: RunConfig) -> RunConfig:
     return cfg
 
 
-def open_sequence(sequence: str | Path | Sequence, cfg: RunConfig, registry: Path | None = None) -> Sequence:
-    """The sequence a run reads: a loaded one as is, else a ``datasets.yaml`` name or a folder."""
+def open_sequence(sequence: str | Path | Sequence, cfg: RunConfig, registry: Path | None = None,
+                  recording: RecordingOptions | None = None) -> Sequence:
+    """The sequence a run reads: a loaded one as is, else a ``datasets.yaml`` name, a folder or a recording
+    (converted once into ``recording.cache``)."""
     if isinstance(sequence, Sequence):
         return sequence
     return load_sequence(sequence, data_root=cfg.data.data_root, registry_path=registry,
-                         max_frames=cfg.data.max_frames, stride=cfg.data.stride)
+                         max_frames=cfg.data.max_frames, stride=cfg.data.stride, recording=recording)
 
 
 # ----------------------------------------------------------------------------- mslam run
@@ -95,7 +98,8 @@ def open_sequence(sequence: str | Path | Sequence, cfg: RunConfig, registry: Pat
 
 def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Path | None = None,
                  command: list[str] | None = None, force: bool = False,
-                 progress: Progress | None = None, registry: Path | None = None) -> RunResult:
+                 progress: Progress | None = None, registry: Path | None = None,
+                 recording: RecordingOptions | None = None) -> RunResult:
     """Run one sequence with one scheme and write ``<out>/<seq>/<scheme>/seed<k>/`` (DESIGN §8).
 
     Args:
@@ -106,6 +110,8 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         force: recompute even when the run is complete.
         progress: ``progress(stage, info)`` with stages ``vo``, ``adapt``, ``eval``, ``dense``.
         registry: an alternative ``datasets.yaml``.
+        recording: how to read a ROS bag, video or image folder (topics, camera file, GT file); it is
+            converted once into ``<out>/_cache/recordings`` unless ``recording.cache`` says otherwise.
 
     Returns:
         :class:`RunResult`. A complete run (``summary.json`` present) is returned as is unless
@@ -118,8 +124,11 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     torch.manual_seed(cfg.seed)
     retain_freed_memory()  # image-sized buffers reuse pages (VO, warps, evaluation)
     cfg = use_threads(cfg)
-    seq = open_sequence(sequence, cfg, registry)
     out_root = Path(out if out is not None else cfg.out)
+    recording = recording or RecordingOptions()
+    if recording.cache is None:
+        recording = replace(recording, cache=out_root / "_cache" / "recordings")
+    seq = open_sequence(sequence, cfg, registry, recording)
     folder = run_dir(out_root, seq.name, cfg.adapt.scheme, cfg.seed)
     run = RunContext(seq, cfg, folder, out_root, progress=progress, timings={"load": time.perf_counter() - t_start})
     if is_complete(folder) and not force:
@@ -143,6 +152,7 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     adapted = adaptation.run_stage(run, fe, net0, fast, ba.step)  # online fine-tuning, Algorithm 1
     ba.finish(adapted, fast)
     evaluation.run_stage(run, fe, net0, adapted, fast)  # both models' depth on every frame with GT
+    depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:
         dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
     return _finish(run, fe, ba, adapted.map.meta.get("bridges", []), command, t_start)

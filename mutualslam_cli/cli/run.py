@@ -75,8 +75,25 @@ def run(
     sets: Optional[list[str]] = SetOpt,
     data_root: Optional[str] = DataRootOpt,
     registry: Optional[Path] = RegistryOpt,
+    rgb_topic: Optional[str] = typer.Option(None, "--rgb-topic", help="Bag: colour image topic (Image or "
+                                            "CompressedImage; default the only non-depth image topic)."),
+    depth_topic: Optional[str] = typer.Option(None, "--depth-topic", help="Bag: depth topic (16UC1 mm or 32FC1 m; "
+                                              "default none)."),
+    camera_info_topic: Optional[str] = typer.Option(None, "--camera-info-topic", help="Bag: CameraInfo topic "
+                                                    "(default the one beside the colour topic)."),
+    pose_topic: Optional[str] = typer.Option(None, "--pose-topic", help="Bag: GT poses (PoseStamped, "
+                                             "TransformStamped or Odometry; camera-to-world)."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="GT trajectory file (TUM: timestamp tx ty tz qx qy qz qw)."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file: OpenCV calibration YAML, ROS "
+                                          "camera YAML, or a line 'fx fy cx cy \\[k1 k2 p1 p2 k3]'."),
+    fps: Optional[float] = typer.Option(None, "--fps", help="Image folder without timestamps in the file names: "
+                                        "frames per second (default 30)."),
 ) -> None:
-    """One sequence, one scheme: front end → adaptation → evaluation → results/<seq>/<scheme>/seed<k>/."""
+    """One sequence, one scheme: front end → adaptation → evaluation → results/<seq>/<scheme>/seed<k>/.
+
+    SEQ may also be a ROS 1/2 bag, a video, or an image folder with --camera: converted once into a
+    TUM-layout folder under <out>/_cache/recordings. Without GT, every GT metric is null with its reason."""
+    from mutualslam_cli.datasets.recording import RecordingOptions
     from mutualslam_cli.adapt.schemes import get_scheme
     from mutualslam_cli.pipeline import run_sequence
 
@@ -109,7 +126,9 @@ def run(
                 text = info.get("phase", "")
             p.update(tasks[stage], completed=done, total=total, info=text)
 
-        r = run_sequence(seq, cfg, out=out, command=sys.argv, force=force, progress=cb, registry=registry)
+        rec = RecordingOptions(rgb_topic, depth_topic, camera_info_topic, pose_topic, gt, camera, fps)
+        r = run_sequence(seq, cfg, out=out, command=sys.argv, force=force, progress=cb, registry=registry,
+                         recording=rec)
     if r.skipped:
         common.console.print(f"[yellow]already complete[/] (use --force to recompute): {r.folder}")
     _render_summary(r.folder, r.summary)

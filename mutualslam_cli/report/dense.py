@@ -10,13 +10,12 @@ without the stage are left out of both (no table when none has it).
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import pandas as pd
 
-from mutualslam_cli.atomic import atomic_path
-from mutualslam_cli.report.columns import numeric, slug
+from mutualslam_cli.report.columns import numeric
+from mutualslam_cli.report.pictures import run_pictures
 
 #: Summary key prefix of each depth scaling, in the order of the rows: the keys the dense stage writes
 #: (:data:`mutualslam_cli.dense.scaling.PREFIX`; the report reads files, it does not import the domain).
@@ -79,19 +78,4 @@ def dense_table(runs: pd.DataFrame) -> pd.DataFrame | None:
 def dense_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
     """``dense.png`` of the lowest seed of every (sequence, scheme, config) with the stage, copied to
     ``out_dir/dense/dense_<sequence>_<scheme>[_<config>]_seed<k>.png``; returns the files written."""
-    runs = dense_runs(runs.assign(config=runs["config"] if "config" in runs else ""))
-    runs = runs.assign(_seed=numeric(runs, "seed"))
-    written = []
-    for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):
-        r = g.sort_values("_seed", na_position="last").iloc[0]
-        src = Path(r["folder"]) / "dense.png"
-        if not src.is_file():
-            continue
-        seed = "" if r["_seed"] != r["_seed"] else f"seed{int(r['_seed'])}"
-        name = "_".join(x for x in ("dense", slug(seq), slug(scheme), slug(config)[:60], seed) if x)
-        dst = Path(out_dir) / "dense" / f"{name}.png"
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(dst) as tmp:
-            shutil.copyfile(src, tmp)
-        written.append(dst)
-    return written
+    return run_pictures(dense_runs(runs), out_dir, "dense")

@@ -30,6 +30,7 @@ from mutualslam_cli.report.columns import cell_text, numeric
 from mutualslam_cli.report.dense import TITLE as DENSE_TITLE
 from mutualslam_cli.report.dense import dense_figures, dense_table
 from mutualslam_cli.report.maps import map_figures
+from mutualslam_cli.report.pictures import run_pictures
 from mutualslam_cli.report.paper import paper_tables
 from mutualslam_cli.report.plots import plot_accuracy
 from mutualslam_cli.report.trajectories import trajectory_figures
@@ -334,7 +335,7 @@ def to_latex(t: pd.DataFrame, caption: str, bold: set[tuple[int, str]] | None = 
 
 def write_report(rep: Report, out_dir: Path) -> list[Path]:
     """Write every table as ``<name>.md``, ``<name>.tex``, ``<name>.csv``, the figures (accuracy over
-    frames, trajectories, maps, dense), and ``report.md``
+    frames, trajectories, maps, dense, depth of chosen frames), and ``report.md``
     with every table and figure; return the paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -350,7 +351,7 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
     figures = [acc] if plot_accuracy(rep.runs, acc) else []
     traj, notes = trajectory_figures(rep.runs, out_dir)
     figures += traj + map_figures(rep.runs, out_dir)
-    figures += dense_figures(rep.runs, out_dir)
+    figures += dense_figures(rep.runs, out_dir) + run_pictures(rep.runs, out_dir, "depth")
     if frontier_figure(rep.tables.get("budget"), out_dir / "frontier.png"):
         figures.append(out_dir / "frontier.png")
     md.append("## Figures\n\n" + "".join(f"{n}\n\n" for n in notes)

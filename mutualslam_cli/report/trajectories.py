@@ -56,9 +56,9 @@ def _plain(v: Any) -> Any:
 def load_reference(run: Mapping[str, Any]) -> Reference:
     """GT poses of a run's sequence, read where the run found them.
 
-    Tries the ``sequence.name`` of ``summary.json`` in ``datasets.yaml`` (with the run's
-    ``data.data_root``, else ``$MSLAM_DATA``), then the ``sequence.root`` folder of its
-    ``manifest.json``, with :func:`~mutualslam_cli.datasets.registry.load_sequence`.
+    Tries the ``sequence.root`` folder of the run's ``manifest.json``, then the ``sequence.name`` of
+    ``summary.json`` in ``datasets.yaml`` (with the run's ``data.data_root``, else ``$MSLAM_DATA``),
+    with :func:`~mutualslam_cli.datasets.registry.load_sequence`.
 
     Args:
         run: one row of :func:`~mutualslam_cli.report.collect` (``folder``, ``sequence.name``,
@@ -70,7 +70,7 @@ def load_reference(run: Mapping[str, Any]) -> Reference:
     sources = [str(run["sequence.name"])]
     try:
         root = json.loads((folder / "manifest.json").read_text())["sequence"]["root"]
-        sources += [root] if root and Path(root).is_dir() else []
+        sources = ([root] if root and Path(root).is_dir() else []) + sources  # the folder the run read, first
     except (OSError, ValueError, KeyError, TypeError):
         pass
     errors = []
@@ -172,12 +172,25 @@ def track_row(folder: Path, gt: Trajectory, max_dt: float = MAX_DT, title: str =
     return row
 
 
-def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, float], time_label: str) -> Any:
+def unaligned_row(folder: Path, title: str = "") -> TrackRow:
+    """A run's trajectories as estimated, in the front end's frame and units (a sequence without GT poses):
+    stages as in :func:`track_row`, no GT, no ATE."""
+    row = TrackRow(title, np.zeros(0), np.zeros((0, 3)), events=run_events(folder))
+    for stage, suffix in (("vo", ""), ("bridged", "_bridged"), ("ba", "_ba")):
+        est = _read(folder, f"traj_all{suffix}.txt") or _read(folder, f"traj_kf{suffix}.txt")
+        if est is not None:
+            row.stages[stage] = (est.timestamps, est.positions)
+    return row
+
+
+def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, float], time_label: str,
+                      aligned: bool = True) -> Any:
     """One row per run: top view (equal aspect) and height over time, metres.
 
     Args:
         rows: :func:`track_row` of each run (a row without stages shows its problems instead).
         heading: the figure's title.
+        aligned: the rows are aligned to GT (metres); ``False``: :func:`unaligned_row` (VO units, no GT).
         vertical: :func:`vertical_axis` of the GT.
         time_label: x label of the height panels (times are shown from the first GT pose drawn).
     Returns:
@@ -200,6 +213,7 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
                                                  if s in row.stages]
         for stage, t, p in curves if row.stages else []:
             label, colour, ls = TRAJ_STYLE[stage]
+            label = label if aligned else label.replace("Sim(3)-aligned", "as estimated, VO units")
             z, lw = (3, 1.1) if stage == "gt" else (2, 1.4)  # the dashed GT over the estimates, as evo
             (line,) = top.plot(p[:, h], p[:, v], ls, color=colour, lw=lw, zorder=z, gid=stage, label=label)
             height.plot(t - t0, sign * p[:, k], ls, color=colour, lw=lw, zorder=z, gid=stage, label=label)
@@ -214,14 +228,16 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
             height.axvline(t_event - t0, color=colour, lw=0.9, ls=":", zorder=1, gid=f"event-{kind}")
             handles.setdefault(label, mark)
         top.set_aspect("equal", adjustable="datalim")
-        top.set_xlabel(f"{AXES[h]} (m)")
-        top.set_ylabel(f"{AXES[v]} (m)")
+        unit = "m" if aligned else "VO units"
+        top.set_xlabel(f"{AXES[h]} ({unit})")
+        top.set_ylabel(f"{AXES[v]} ({unit})")
         height.set_xlabel(time_label)
-        height.set_ylabel(f"height = {'' if sign > 0 else '−'}{AXES[k]} (m)")
+        height.set_ylabel(f"height = {'' if sign > 0 else '−'}{AXES[k]} ({unit})")
         for ax in (top, height):
             ax.grid(alpha=0.3)
             ax.tick_params(labelsize=8)
-    handles["start (GT)"] = plt.Line2D([], [], color=TRAJ_STYLE["gt"][1], marker="o", lw=0, ms=4)
+    if aligned:
+        handles["start (GT)"] = plt.Line2D([], [], color=TRAJ_STYLE["gt"][1], marker="o", lw=0, ms=4)
     fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=len(handles), fontsize=9,
                frameon=False)
     fig.suptitle(heading, fontsize=12)
@@ -245,22 +261,28 @@ def trajectory_figures(runs: pd.DataFrame, out_dir: Path) -> tuple[list[Path], l
                 break
             except MslamError as e:
                 why = str(e)
-        if ref is None:
-            notes.append(f"Trajectories of {seq}: no figure, GT poses not found ({why}).")
-            continue
-        vertical = vertical_axis(ref.gt.poses[:, :3, :3])
         rows = []
         for r in picks:
             seed = "" if r["_seed"] != r["_seed"] else f"seed {int(r['_seed'])}"
             title = " · ".join(x for x in (str(r["scheme"]), seed or Path(r["folder"]).name, r["config"]) if x)
             max_dt = _plain(r.get("config.eval.ate_max_dt")) or MAX_DT
-            rows.append(track_row(Path(r["folder"]), ref.gt, float(max_dt), title))
+            rows.append(track_row(Path(r["folder"]), ref.gt, float(max_dt), title) if ref is not None
+                        else unaligned_row(Path(r["folder"]), title))
+        if ref is None:  # no GT: the trajectories as estimated, in the front end's frame and units
+            notes.append(f"Trajectories of {seq}: as estimated, not aligned (GT poses not found: {why}).")
+            kf = _read(Path(picks[0]["folder"]), "traj_kf.txt")
+            if kf is None:
+                continue
+            vertical, time_label, aligned = vertical_axis(kf.poses[:, :3, :3]), "time (s)", False
+        else:
+            vertical, time_label, aligned = vertical_axis(ref.gt.poses[:, :3, :3]), ref.time_label, True
         pages = [rows[i:i + MAX_ROWS] for i in range(0, len(rows), MAX_ROWS)]
         for n, page in enumerate(pages, 1):
             part = f" (page {n} of {len(pages)})" if len(pages) > 1 else ""
-            heading = f"{seq}: trajectories against GT after Sim(3) alignment, lowest seed per scheme{part}"
+            heading = (f"{seq}: trajectories against GT after Sim(3) alignment, lowest seed per scheme{part}"
+                       if aligned else f"{seq}: trajectories as estimated (no GT), lowest seed per scheme{part}")
             path = Path(out_dir) / "trajectories" / (f"trajectories_{slug(str(seq))}"
                                                      + (f"_p{n}" if len(pages) > 1 else "") + ".png")
-            save_png(trajectory_figure(page, heading, vertical, ref.time_label), path)
+            save_png(trajectory_figure(page, heading, vertical, time_label, aligned), path)
             written.append(path)
     return written, notes

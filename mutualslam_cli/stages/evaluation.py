@@ -106,7 +106,8 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
             rows.append(row)
         if progress:
             progress(start + len(chunk), len(frames))
-    table = pd.DataFrame(rows)
+    # no frame with GT depth (a recording without depth): an empty table with the key columns
+    table = pd.DataFrame(rows) if rows else pd.DataFrame(columns=["frame", "timestamp", "is_keyframe", "n_valid"])
     for name in predictors:
         col = f"{name}_pcd_lsq"
         if col in table:
@@ -196,8 +197,9 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, adapted: Ada
         table["online_pcd_lsq_running"] = dm.running_mean(table["online_pcd_lsq"].to_numpy(dtype=float))
     if len(table):
         atomic_write_text(run.folder / "per_frame.csv", table.to_csv(index=False))
-    _summarise(run.summary, table, ms, cfg.adapt.scheme)
-    _summarise_online(run.summary, table, cfg)
+    no_depth = None if run.seq.has_depth else "the sequence has no depth images (no GT depth)"
+    _summarise(run.summary, table, ms, cfg.adapt.scheme, no_depth)
+    _summarise_online(run.summary, table, cfg, no_depth)
     run.summary.set("depth.eval_stride", cfg.eval.stride)  # every k-th frame with GT depth was evaluated
     run.summary.set("depth.fast_path", fast)
     if cfg.eval.save_weights and net is not None:
@@ -230,19 +232,20 @@ def depth_means(table: pd.DataFrame, model: str, suffix: str = "") -> dict[str, 
     return out
 
 
-def _summarise(summary: Summary, table: pd.DataFrame, ms: dict[str, float], scheme: str) -> None:
+def _summarise(summary: Summary, table: pd.DataFrame, ms: dict[str, float], scheme: str,
+               no_depth: str | None = None) -> None:
     """``timing.depth_ms`` and ``depth.{pcd,esi}[_nonkf].*.{pretrained,adapted}`` from the per-frame table.
 
     All frames (the paper's figure) and the frames the adaptation never saw (not keyframes). For
     scheme ``none`` the adapted values are the pre-trained model's.
     """
-    summary.set("timing.depth_ms", ms.get("adapted", ms.get("pretrained")))
+    summary.set("timing.depth_ms", ms.get("adapted", ms.get("pretrained")), no_depth or "not computed")
     evaluated = {k for k in ("pretrained", "adapted") if f"{k}_pcd_lsq" in table}
     for model in ("pretrained", "adapted"):
         src = model if model in evaluated else "pretrained"
-        for group, rows, why in (("", table, "no frame with valid GT depth"),
+        for group, rows, why in (("", table, no_depth or "no frame with valid GT depth"),
                                  ("_nonkf", table[~table["is_keyframe"]] if len(table) else table,
-                                  "no non-keyframe with valid GT depth")):
+                                  no_depth or "no non-keyframe with valid GT depth")):
             for key, val in depth_means(rows, src, group).items():
                 summary.set(f"depth.{key}.{model}", val, why)
     if scheme == "none":
@@ -250,7 +253,7 @@ def _summarise(summary: Summary, table: pd.DataFrame, ms: dict[str, float], sche
     summary.set("depth.frames_evaluated", int(len(table)))
 
 
-def _summarise_online(summary: Summary, table: pd.DataFrame, cfg: RunConfig) -> None:
+def _summarise_online(summary: Summary, table: pd.DataFrame, cfg: RunConfig, no_depth: str | None = None) -> None:
     """``depth.pcd_online[_nonkf].{lsq,median,seq_lsq}`` and ``depth.esi_online``: each frame scored with the
     model of its time (:mod:`~mutualslam_cli.stages.online_eval`), means over frames."""
     if "online_pcd_lsq" in table:
@@ -262,7 +265,7 @@ def _summarise_online(summary: Summary, table: pd.DataFrame, cfg: RunConfig) -> 
         esi = table["online_esi"]
         summary.set("depth.esi_online", float(np.nanmean(esi)) if esi.notna().any() else None, why)
         return
-    why = ("eval.online = false" if not cfg.eval.online else
+    why = (no_depth if no_depth else "eval.online = false" if not cfg.eval.online else
            f"scheme {cfg.adapt.scheme!r} has no keyframe loop to score online" if cfg.adapt.scheme in ("none", "comoda")
            else "no frame with GT depth")
     for group in ("", "_nonkf"):
