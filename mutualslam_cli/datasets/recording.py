@@ -19,71 +19,24 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
-from dataclasses import asdict, dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
-import cv2
-import numpy as np
-
-from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.datasets.associate import read_tum_trajectory, write_tum_trajectory
+from mutualslam_cli.datasets.associate import read_tum_trajectory
+from mutualslam_cli.datasets.conversion import (
+    BAG_SUFFIXES,
+    CONVERSION_VERSION,
+    IMAGE_SUFFIXES,
+    VIDEO_SUFFIXES,
+    RecordingOptions,
+    TumWriter,
+    file_stamp,
+)
 from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.types import Intrinsics, SequenceSpec, Trajectory
+from mutualslam_cli.types import SequenceSpec
 
-#: File suffixes read as videos (whatever OpenCV's FFmpeg backend decodes).
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
-#: File suffixes read as bags: ROS 1 ``.bag``; ROS 2 storage files (their folder holds ``metadata.yaml``).
-BAG_SUFFIXES = (".bag", ".db3", ".mcap")
-#: Image suffixes of a plain image folder.
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
-#: Version of the converted layout; a change converts every recording anew.
-CONVERSION_VERSION = 1
-
-
-@dataclass(frozen=True)
-class RecordingOptions:
-    """How to read a recording; every field is optional.
-
-    Attributes:
-        rgb_topic: bag topic of the colour images (``sensor_msgs/Image`` or ``CompressedImage``);
-            ``None``: the only image topic that is not depth.
-        depth_topic: bag topic of depth images (``16UC1`` millimetres or ``32FC1`` metres); ``None``: no depth.
-        camera_info_topic: bag topic of ``sensor_msgs/CameraInfo``; ``None``: the one beside the RGB topic.
-        pose_topic: bag topic of GT poses (``PoseStamped``, ``TransformStamped``, ``Odometry``),
-            camera-to-world.
-        gt: a TUM trajectory file (``timestamp tx ty tz qx qy qz qw``, camera-to-world) of GT poses.
-        camera: a camera file; it wins over a bag's ``CameraInfo``.
-        fps: frames per second: an image folder whose file names are not timestamps (default 30), or a
-            video whose container times are to be replaced by ``index / fps``.
-        cache: folder of converted recordings (default ``<recording's folder>/.mslam/``).
-    """
-
-    rgb_topic: str | None = None
-    depth_topic: str | None = None
-    camera_info_topic: str | None = None
-    pose_topic: str | None = None
-    gt: Path | None = None
-    camera: Path | None = None
-    fps: float | None = None
-    cache: Path | None = None
-
-    def key_fields(self) -> dict[str, Any]:
-        """The fields that change a conversion's result (not where it is cached)."""
-        d = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self).items() if k != "cache"}
-        for k in ("gt", "camera"):  # an edited GT or camera file converts anew
-            if getattr(self, k) is not None:
-                d[k] = _file_stamp(Path(getattr(self, k)))
-        return d
-
-
-def _file_stamp(path: Path) -> str:
-    if not path.exists():
-        raise DatasetError(f"{path}: not found")
-    st = path.stat()
-    return f"{path.resolve()}:{st.st_size}:{st.st_mtime_ns}"
-
+__all__ = ["RecordingOptions", "TumWriter", "conversion_folder", "open_recording", "recording_kind",
+           "spec_of_conversion", "IMAGE_SUFFIXES"]
 
 def recording_kind(path: str | os.PathLike, opts: RecordingOptions | None = None) -> str | None:
     """``"bag"``, ``"video"``, ``"images"`` or ``None`` (a sequence folder or a registry name).
@@ -112,7 +65,7 @@ def _stamp_of_recording(path: Path) -> str:
     if path.is_dir():  # a ROS 2 bag folder or an image folder: every file's size and mtime
         parts = sorted(f"{q.name}:{q.stat().st_size}:{q.stat().st_mtime_ns}" for q in path.iterdir() if q.is_file())
         return f"{path.resolve()}|" + "|".join(parts)
-    return _file_stamp(path)
+    return file_stamp(path)
 
 
 def conversion_folder(path: Path, opts: RecordingOptions) -> Path:
@@ -123,99 +76,6 @@ def conversion_folder(path: Path, opts: RecordingOptions) -> Path:
     cache = Path(opts.cache) if opts.cache is not None else path.resolve().parent / ".mslam"
     stem = path.name if path.is_dir() else path.stem
     return cache / f"{stem}-{digest}"
-
-
-class TumWriter:
-    """Builds a TUM-layout folder in a temporary sibling; :meth:`finish` renames it into place.
-
-    RGB frames go to ``rgb/<t>.<ext>`` (encoded bytes written as they are: no re-encoding) or stay
-    where they are (:meth:`add_rgb_path`); depth to ``depth/<t>.png`` as 16-bit raw units.
-    """
-
-    def __init__(self, folder: Path):
-        self.folder = Path(folder)
-        self.tmp = self.folder.with_name(f".{self.folder.name}.converting-{os.getpid()}")
-        if self.tmp.exists():
-            shutil.rmtree(self.tmp)
-        (self.tmp / "rgb").mkdir(parents=True)
-        (self.tmp / "depth").mkdir()
-        self.rgb: list[tuple[float, str]] = []
-        self.depth: list[tuple[float, str]] = []
-        self.gt: Trajectory | None = None
-        self.size: tuple[int, int] | None = None  # (width, height) of the first RGB frame
-
-    def _name(self, t: float, ext: str, taken: list[tuple[float, str]], sub: str) -> str:
-        name = f"{sub}/{t:.6f}{ext}"
-        if (self.tmp / name).exists():  # frames within a microsecond: keep them all
-            name = f"{sub}/{t:.6f}_{len(taken)}{ext}"
-        return name
-
-    def add_rgb(self, t: float, image: bytes | np.ndarray, ext: str = ".png") -> None:
-        """One colour frame at time ``t`` (s): encoded file bytes (``ext`` names the format), or a
-        ``(H, W, 3)`` uint8 RGB / ``(H, W)`` uint8 grey array, written as PNG."""
-        if isinstance(image, np.ndarray):
-            arr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
-            ok, buf = cv2.imencode(".png", arr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-            if not ok:
-                raise DatasetError(f"{self.folder}: cannot encode frame at {t:.6f} s as PNG")
-            image, ext = buf.tobytes(), ".png"
-            if self.size is None:
-                self.size = (int(arr.shape[1]), int(arr.shape[0]))
-        name = self._name(t, ext, self.rgb, "rgb")
-        (self.tmp / name).write_bytes(image)
-        if self.size is None:
-            img = cv2.imread(str(self.tmp / name), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise DatasetError(f"{self.folder}: frame at {t:.6f} s cannot be decoded (expected {ext} bytes)")
-            self.size = (int(img.shape[1]), int(img.shape[0]))
-        self.rgb.append((t, name))
-
-    def add_rgb_path(self, t: float, path: Path) -> None:
-        """One colour frame that stays where it is (an image folder): listed by its absolute path."""
-        self.rgb.append((t, str(Path(path).resolve())))
-
-    def add_depth(self, t: float, depth: np.ndarray) -> None:
-        """One ``(H, W)`` uint16 depth image at time ``t`` (s), in the raw units of ``depth_scale``."""
-        if depth.dtype != np.uint16 or depth.ndim != 2:
-            raise DatasetError(f"{self.folder}: depth at {t:.6f} s is {depth.dtype} {depth.shape}; expected 2-D uint16")
-        name = self._name(t, ".png", self.depth, "depth")
-        if not cv2.imwrite(str(self.tmp / name), depth, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-            raise DatasetError(f"{self.tmp / name}: cannot write the depth image")
-        self.depth.append((t, name))
-
-    def set_gt(self, traj: Trajectory) -> None:
-        """GT poses (camera-to-world), written as ``groundtruth.txt``."""
-        self.gt = traj
-
-    def finish(self, intrinsics: Intrinsics, depth_scale: float, meta: dict[str, Any]) -> Path:
-        """Write the lists, ``intrinsics.txt`` and ``source.json``, then rename into place."""
-        if not self.rgb:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-            raise DatasetError(f"{meta.get('source', self.folder)}: no colour frame found "
-                               f"({meta.get('what', 'expected at least one image')})")
-        head = "# timestamp filename (written by mslam from {})\n".format(meta.get("source", "a recording"))
-        atomic_write_text(self.tmp / "rgb.txt", head + "".join(f"{t:.6f} {n}\n" for t, n in self.rgb))
-        if self.depth:
-            atomic_write_text(self.tmp / "depth.txt", head + "".join(f"{t:.6f} {n}\n" for t, n in self.depth))
-        if self.gt is not None:
-            write_tum_trajectory(self.tmp / "groundtruth.txt", self.gt)
-        w, h = self.size if self.size is not None else (intrinsics.width, intrinsics.height)
-        line = f"{intrinsics.fx!r} {intrinsics.fy!r} {intrinsics.cx!r} {intrinsics.cy!r} {w} {h}"
-        if intrinsics.dist:
-            line += " " + " ".join(repr(float(d)) for d in intrinsics.dist)
-        atomic_write_text(self.tmp / "intrinsics.txt",
-                          "# fx fy cx cy width height [k1 k2 p1 p2 k3] (pixels; OpenCV distortion)\n" + line + "\n")
-        meta = {**meta, "depth_scale": depth_scale, "frames": len(self.rgb), "depth_frames": len(self.depth),
-                "gt_poses": 0 if self.gt is None else len(self.gt), "conversion_version": CONVERSION_VERSION}
-        atomic_write_text(self.tmp / "source.json", json.dumps(meta, indent=1, default=str) + "\n")
-        if self.folder.exists():
-            shutil.rmtree(self.folder)
-        os.replace(self.tmp, self.folder)
-        return self.folder
-
-    def abort(self) -> None:
-        """Remove the temporary folder (after an error)."""
-        shutil.rmtree(self.tmp, ignore_errors=True)
 
 
 def open_recording(path: str | os.PathLike, opts: RecordingOptions) -> SequenceSpec:
