@@ -27,24 +27,37 @@ from mutualslam_cli.errors import ConfigError, MslamError
 
 @app.command()
 def datasets(
-    name: Optional[str] = typer.Argument(None, help="A datasets.yaml name or a sequence folder (with --check)."),
+    name: Optional[list[str]] = typer.Argument(None, help="With --check: a datasets.yaml name or a sequence folder. "
+                                               "`download NAME…`: fetch, verify and unpack those sequences."),
     check: bool = typer.Option(False, "--check", help="Verify files, intrinsics, GT coverage, fy sign, and decode "
                                "every RGB and depth image (truncated, corrupt or odd-sized files fail)."),
-    sample: int = typer.Option(0, "--sample", min=0, help="With --check: decode only the images of N frames "
-                               "spread over each sequence (a quick check); 0 = every frame."),
+    sample: int = typer.Option(0, "--sample", min=0, help="With --check or download: decode only the images of N "
+                               "frames spread over each sequence (a quick check); 0 = every frame."),
+    base_url: Optional[str] = typer.Option(None, "--base-url", help="download: a mirror; each URL becomes "
+                                           "BASE_URL/<file name> (default $MSLAM_DOWNLOAD_BASE_URL)."),
+    force: bool = typer.Option(False, "--force", help="download: unpack again and replace an existing sequence "
+                               "folder (downloaded archives are reused)."),
     registry: Optional[Path] = RegistryOpt,
     data_root: Optional[str] = DataRootOpt,
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
-    """List datasets.yaml entries, or check one sequence (or all) with --check.
+    """List datasets.yaml entries, check one sequence (or all) with --check, or `download NAME…`.
 
     --check decodes every image, so a bad file fails now (exit code 1, naming it) rather than in
-    the middle of a long run; --sample N makes it quick."""
-    from mutualslam_cli.datasets.check import check_sequence
+    the middle of a long run; --sample N makes it quick. `download` fetches the public archives of
+    entries with a `download:` block into <data root>/_downloads (resuming a cut download), checks
+    their size and checksum, unpacks them into the entry's folder and runs the same check."""
     from mutualslam_cli.datasets.registry import list_datasets
 
     cfg = config_from(config, sets, data_root)
+    words = list(name or [])
+    if words and words[0] == "download":
+        _download(words[1:], sample, base_url, force, registry, cfg.data.data_root)
+        return
+    if len(words) > 1:
+        raise MslamError(f"datasets: expected one NAME or PATH, got {len(words)} ({' '.join(words)}); "
+                         "to fetch sequences: mslam datasets download NAME…")
     specs = list_datasets(registry, data_root=cfg.data.data_root)
     if not check:
         t = Table("name", "format", "found", "fx fy cx cy", "depth/m", title="datasets.yaml")
@@ -53,41 +66,83 @@ def datasets(
             t.add_row(s.name, s.format, "yes" if Path(s.root).is_dir() else "[dim]no[/]", intr, f"{s.depth_scale:g}")
         common.console.print(t)
         common.console.print("roots: relative to --data-root / $MSLAM_DATA (see datasets.yaml); "
-                             "`--check NAME` verifies one")
+                             "`--check NAME` verifies one, `download NAME…` fetches one")
         return
-    targets = [name] if name else [s.name for s in specs if Path(s.root).is_dir()]
+    targets = words or [s.name for s in specs if Path(s.root).is_dir()]
     if not targets:
         raise MslamError("no dataset folder exists under the data root; set MSLAM_DATA or --data-root")
     for n in targets:
-        with progress_bar() as p:
-            task = p.add_task(f"decode {Path(n).name}", total=None, info="")
+        _check_and_print(n, sample, cfg.data.data_root, registry)
 
-            def cb(stage: str, info: dict[str, Any], task: Any = task) -> None:
-                p.update(task, completed=info["done"], total=info["total"], info=Path(info["file"]).name)
 
-            try:
-                r = check_sequence(n, sample=sample, data_root=cfg.data.data_root, registry_path=registry, progress=cb)
-            finally:
-                p.remove_task(task)  # the table replaces the bar; an error is one line, not a bar and a line
-        t = Table("check", "value", title=escape(f"{r.name} ({r.format})"), title_justify="left")
-        intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
-        rows = [
-            ("root", r.root), ("frames", str(r.frames)), ("time span", f"{r.time_span_s:.2f}"),
-            ("frames with depth", str(r.frames_with_depth)),
-            ("GT coverage", f"{r.frames_with_gt} frames ({r.gt_coverage_pct:.1f} %)"),
-            ("intrinsics fx fy cx cy", intr + (" + distortion" if len(r.intrinsics) > 4 else "")),
-            ("image size", "×".join(map(str, r.image_size))), ("depth scale", f"{r.depth_scale:g} = 1 m"),
-            ("median depth", fmt_value(r.median_depth_m, 2) + " m"),
-            ("images decoded", f"{r.images_decoded} ("
-             + ("every frame)" if r.frames_decoded == r.frames else f"{r.frames_decoded} of {r.frames} frames)")),
-        ]
-        if r.fy_sign is not None:
-            errs = ", ".join(f"{k}: {v:.3g}" for k, v in (r.fy_sign_errors or {}).items())
-            rows.append(("fy sign", f"{r.fy_sign:+d}" + (f" (photometric error {errs})" if errs else "")))
-        rows.append(("warnings", "; ".join(r.warnings) or "none"))
-        for k, v in rows:
-            t.add_row(k, v)
-        common.console.print(t)
+def _check_and_print(target: Any, sample: int, data_root: Optional[str], registry: Optional[Path]) -> None:
+    """``check_sequence`` of ``target`` (a name, folder or spec) with a decode bar, then its table."""
+    from mutualslam_cli.datasets.check import check_sequence
+
+    label = getattr(target, "name", None) or Path(str(target)).name
+    with progress_bar() as p:
+        task = p.add_task(f"decode {label}", total=None, info="")
+
+        def cb(stage: str, info: dict[str, Any], task: Any = task) -> None:
+            p.update(task, completed=info["done"], total=info["total"], info=Path(info["file"]).name)
+
+        try:
+            r = check_sequence(target, sample=sample, data_root=data_root, registry_path=registry, progress=cb)
+        finally:
+            p.remove_task(task)  # the table replaces the bar; an error is one line, not a bar and a line
+    t = Table("check", "value", title=escape(f"{r.name} ({r.format})"), title_justify="left")
+    intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
+    rows = [
+        ("root", r.root), ("frames", str(r.frames)), ("time span", f"{r.time_span_s:.2f}"),
+        ("frames with depth", str(r.frames_with_depth)),
+        ("GT coverage", f"{r.frames_with_gt} frames ({r.gt_coverage_pct:.1f} %)"),
+        ("intrinsics fx fy cx cy", intr + (" + distortion" if len(r.intrinsics) > 4 else "")),
+        ("image size", "×".join(map(str, r.image_size))), ("depth scale", f"{r.depth_scale:g} = 1 m"),
+        ("median depth", fmt_value(r.median_depth_m, 2) + " m"),
+        ("images decoded", f"{r.images_decoded} ("
+         + ("every frame)" if r.frames_decoded == r.frames else f"{r.frames_decoded} of {r.frames} frames)")),
+    ]
+    if r.fy_sign is not None:
+        errs = ", ".join(f"{k}: {v:.3g}" for k, v in (r.fy_sign_errors or {}).items())
+        rows.append(("fy sign", f"{r.fy_sign:+d}" + (f" (photometric error {errs})" if errs else "")))
+    rows.append(("warnings", "; ".join(r.warnings) or "none"))
+    for k, v in rows:
+        t.add_row(k, v)
+    common.console.print(t)
+
+
+def _download(names: list[str], sample: int, base_url: Optional[str], force: bool, registry: Optional[Path],
+              data_root: Optional[str]) -> None:
+    """``mslam datasets download NAME…``: each sequence fetched, verified, unpacked, then checked."""
+    from mutualslam_cli.datasets.download import DOWNLOAD_DIR, data_root_of, downloadable_specs
+
+    specs = downloadable_specs(names, registry, data_root)
+    folder = data_root_of(registry, data_root) / DOWNLOAD_DIR
+    for spec in specs:
+        _download_one(spec, folder, base_url, force)
+        _check_and_print(spec, sample, data_root, registry)
+
+
+def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool) -> None:
+    """One entry's download and unpacking, with a bar (size, speed) per file; the bars go when it is done."""
+    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
+
+    from mutualslam_cli.datasets.download import download_sequence
+
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
+                  TimeRemainingColumn(), console=common.console, transient=True) as p:
+        tasks: dict[tuple[str, str], Any] = {}
+
+        def cb(stage: str, info: dict[str, Any]) -> None:
+            key = (stage, info["file"])
+            if key not in tasks:
+                tasks[key] = p.add_task(escape(f"{stage} {info['file']}"), total=info["total"])
+            p.update(tasks[key], completed=info["done"], total=info["total"])
+
+        def say(msg: str) -> None:
+            p.console.print(escape(msg), highlight=False, soft_wrap=True)
+
+        download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say)
 
 
 # --------------------------------------------------------------------------- synth
