@@ -7,6 +7,8 @@ Two families, told apart by what the CLI does with them:
   job.
 
   - :class:`DatasetError`: a sequence on disk is missing, malformed or inconsistent.
+    :class:`CameraFileError` (inside a camera file) and :class:`ArchiveError` (:class:`CorruptArchive`,
+    :class:`UnsafeMember`: a downloaded archive) are the datasets' own, caught where they are raised.
   - :class:`ConfigError`: a setting (config file, ``--set``, a constructor argument that comes
     from one) is invalid.
   - :class:`GeometryError`: an alignment is degenerate (too few pairs, collinear positions).
@@ -35,6 +37,24 @@ class DatasetError(MslamError):
 
     The message names the file, the line (when there is one) and the expected format.
     """
+
+
+class CameraFileError(DatasetError):
+    """What is wrong inside a camera file (:mod:`~mutualslam_cli.datasets.camera_file`); the reader turns it
+    into one :class:`DatasetError` line naming the file and the formats it accepts."""
+
+
+class ArchiveError(DatasetError):
+    """A downloaded archive cannot be unpacked (:mod:`~mutualslam_cli.datasets.unpack`); the download removes
+    what it unpacked and reports one line."""
+
+
+class CorruptArchive(ArchiveError):
+    """The archive is truncated or corrupt (its reader failed); the message is the reader's reason."""
+
+
+class UnsafeMember(ArchiveError):
+    """An archive member would be written outside the target folder (absolute path or ``..``)."""
 
 
 class ConfigError(MslamError):

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.errors import CameraFileError, DatasetError
 from mutualslam_cli.types import Intrinsics
 
 EXPECTED = ("expected an OpenCV calibration YAML/XML (camera_matrix, distortion_coefficients), a ROS "
@@ -36,10 +36,6 @@ _WIDTH_KEYS = ("image_width", "width", "imageWidth")
 _HEIGHT_KEYS = ("image_height", "height", "imageHeight")
 _DIST_LENGTHS = (0, 4, 5, 8, 12, 14)  # the lengths cv2.undistort accepts
 _RADTAN_MODELS = ("plumb_bob", "rational_polynomial", "radtan", "radial-tangential", "pinhole", "")
-
-
-class _Bad(Exception):
-    """What is wrong with a camera file (turned into a one-line DatasetError naming it)."""
 
 
 def read_camera_file(path: Path) -> Intrinsics:
@@ -65,9 +61,9 @@ def read_camera_file(path: Path) -> Intrinsics:
         try:
             text = raw.decode("utf-8")
         except UnicodeDecodeError:
-            raise _Bad("not a text file") from None
+            raise CameraFileError("not a text file") from None
         if not text.strip():
-            raise _Bad("empty file")
+            raise CameraFileError("empty file")
         head = text.lstrip()
         if head.startswith("%YAML:") or "!!opencv-matrix" in text or head.startswith(("<?xml", "<opencv_storage")):
             return _from_mapping(_read_filestorage(path), "OpenCV")
@@ -75,7 +71,7 @@ def read_camera_file(path: Path) -> Intrinsics:
         if mapping is not None:
             return _from_mapping(mapping, "YAML")
         return _from_text(text)
-    except _Bad as e:
+    except CameraFileError as e:
         raise DatasetError(f"{path}: {e}; {EXPECTED}") from None
 
 
@@ -89,10 +85,10 @@ def _read_filestorage(path: Path) -> dict[str, Any]:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as e:
         msg = str(e.__cause__ or e).strip().splitlines()
-        raise _Bad(f"OpenCV cannot parse it ({msg[-1] if msg else 'parse error'})") from None
+        raise CameraFileError(f"OpenCV cannot parse it ({msg[-1] if msg else 'parse error'})") from None
     try:
         if not fs.isOpened():
-            raise _Bad("OpenCV cannot open it")
+            raise CameraFileError("OpenCV cannot open it")
         root = fs.root()
         return {k: _fs_value(fs.getNode(k)) for k in root.keys()}
     finally:
@@ -142,18 +138,18 @@ def _numbers(name: str, value: Any) -> np.ndarray:
     try:
         if isinstance(value, dict):
             if "data" not in value:
-                raise _Bad(f"{name} has no 'data'")
+                raise CameraFileError(f"{name} has no 'data'")
             data = np.asarray(value["data"], dtype=np.float64).ravel()
             rows, cols = value.get("rows"), value.get("cols")
             if rows is None or cols is None:
                 return data[None, :]
             rows, cols = int(rows), int(cols)
             if rows * cols != data.size:
-                raise _Bad(f"{name} says {rows}×{cols} but holds {data.size} numbers")
+                raise CameraFileError(f"{name} says {rows}×{cols} but holds {data.size} numbers")
             return data.reshape(rows, cols)
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise _Bad(f"{name} is not a list of numbers") from None
+        raise CameraFileError(f"{name} is not a list of numbers") from None
     return arr.reshape(1, -1) if arr.ndim < 2 else arr
 
 
@@ -162,18 +158,19 @@ def _camera_matrix(name: str, value: Any) -> tuple[float, float, float, float]:
     if K.size == 9 and K.shape[0] == 1:  # a flat list of 9 (ROS 'K: [...]')
         K = K.reshape(3, 3)
     if K.shape != (3, 3):
-        raise _Bad(f"{name} is {'×'.join(str(s) for s in K.shape)}; expected 3×3")
+        raise CameraFileError(f"{name} is {'×'.join(str(s) for s in K.shape)}; expected 3×3")
     if not np.allclose([K[1, 0], K[2, 0], K[2, 1], K[2, 2]], [0, 0, 0, 1], atol=1e-9):
-        raise _Bad(f"{name} is not a camera matrix (its lower part must be [0 fy cy; 0 0 1])")
+        raise CameraFileError(f"{name} is not a camera matrix (its lower part must be [0 fy cy; 0 0 1])")
     return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
 
 
 def _dist(name: str, value: Any) -> tuple[float, ...] | None:
     d = _numbers(name, value).ravel() if value is not None else np.zeros(0)
     if d.size not in _DIST_LENGTHS:
-        raise _Bad(f"{name} has {d.size} coefficients; expected 4, 5, 8, 12 or 14 (OpenCV k1 k2 p1 p2 [k3 ...])")
+        raise CameraFileError(f"{name} has {d.size} coefficients; expected 4, 5, 8, 12 or 14 "
+                              "(OpenCV k1 k2 p1 p2 [k3 ...])")
     if not np.all(np.isfinite(d)):
-        raise _Bad(f"{name} holds a non-finite number")
+        raise CameraFileError(f"{name} holds a non-finite number")
     return _radtan(d)
 
 
@@ -191,7 +188,7 @@ def _size(mapping: dict[str, Any], keys: tuple[str, ...]) -> int:
         if v < 0 or v != int(v):
             raise ValueError
     except (TypeError, ValueError):
-        raise _Bad(f"{hit[0]} is {hit[1]!r}; expected a whole number of pixels") from None
+        raise CameraFileError(f"{hit[0]} is {hit[1]!r}; expected a whole number of pixels") from None
     return int(v)
 
 
@@ -203,11 +200,11 @@ def _from_mapping(mapping: dict[str, Any], kind: str) -> Intrinsics:
         return _from_kalibr(mapping)
     hit = _first(mapping, _MATRIX_KEYS)
     if hit is None:
-        raise _Bad(f"{kind} file without camera_matrix (or K / cameraMatrix)")
+        raise CameraFileError(f"{kind} file without camera_matrix (or K / cameraMatrix)")
     fx, fy, cx, cy = _camera_matrix(*hit)
     model = str(mapping.get("distortion_model", "") or "").strip().lower()
     if model not in _RADTAN_MODELS:
-        raise _Bad(f"distortion_model '{model}' is not supported; expected plumb_bob or rational_polynomial")
+        raise CameraFileError(f"distortion_model '{model}' is not supported; expected plumb_bob or rational_polynomial")
     dhit = _first(mapping, _DIST_KEYS)
     dist = _dist(*dhit) if dhit is not None else None
     return _checked(fx, fy, cx, cy, _size(mapping, _WIDTH_KEYS), _size(mapping, _HEIGHT_KEYS), dist)
@@ -217,14 +214,14 @@ def _from_kalibr(cam: dict[str, Any]) -> Intrinsics:
     model = str(cam.get("camera_model", "pinhole")).lower()
     dmodel = str(cam.get("distortion_model", "radtan")).lower()
     if model != "pinhole" or dmodel not in _RADTAN_MODELS:
-        raise _Bad(f"Kalibr model {model}-{dmodel} is not supported; expected pinhole-radtan")
+        raise CameraFileError(f"Kalibr model {model}-{dmodel} is not supported; expected pinhole-radtan")
     v = _numbers("intrinsics", cam.get("intrinsics")).ravel()
     if v.size != 4:
-        raise _Bad(f"intrinsics has {v.size} numbers; expected 4 (fu fv pu pv)")
+        raise CameraFileError(f"intrinsics has {v.size} numbers; expected 4 (fu fv pu pv)")
     dist = _dist("distortion_coeffs", cam["distortion_coeffs"]) if cam.get("distortion_coeffs") is not None else None
     res = _numbers("resolution", cam["resolution"]).ravel() if cam.get("resolution") is not None else np.zeros(2)
     if res.size != 2 or np.any(res < 0) or np.any(res != np.round(res)):
-        raise _Bad("resolution must be [width, height] in whole pixels")
+        raise CameraFileError("resolution must be [width, height] in whole pixels")
     return _checked(*(float(x) for x in v), int(res[0]), int(res[1]), dist)
 
 
@@ -239,14 +236,14 @@ def _from_text(text: str) -> Intrinsics:
         try:
             rows.append([float(x) for x in s.split()])
         except ValueError:
-            raise _Bad(f"line {k} is {s[:40]!r}, not numbers") from None
+            raise CameraFileError(f"line {k} is {s[:40]!r}, not numbers") from None
     if len(rows) == 3 and all(len(r) == 3 for r in rows):  # a 3×3 camera matrix
         return _checked(*_camera_matrix("the camera matrix", rows), 0, 0, None)
     if len(rows) != 1:
-        raise _Bad(f"{len(rows)} lines of numbers; expected one line")
+        raise CameraFileError(f"{len(rows)} lines of numbers; expected one line")
     v = rows[0]
     if len(v) not in (4, 8, 9):
-        raise _Bad(f"{len(v)} numbers; expected 4 (fx fy cx cy), 8 or 9 (with k1 k2 p1 p2 [k3])")
+        raise CameraFileError(f"{len(v)} numbers; expected 4 (fx fy cx cy), 8 or 9 (with k1 k2 p1 p2 [k3])")
     dist = _radtan(np.asarray(v[4:], dtype=np.float64)) if len(v) > 4 else None
     return _checked(v[0], v[1], v[2], v[3], 0, 0, dist)
 
@@ -255,9 +252,9 @@ def _checked(fx: float, fy: float, cx: float, cy: float, width: int, height: int
              dist: tuple[float, ...] | None) -> Intrinsics:
     for name, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
         if not math.isfinite(v):
-            raise _Bad(f"{name} is {v}; expected a finite number")
+            raise CameraFileError(f"{name} is {v}; expected a finite number")
     if fx <= 0 or fy <= 0:
-        raise _Bad(f"{'fx' if fx <= 0 else 'fy'} is {fx if fx <= 0 else fy:g}; fx and fy must be > 0")
+        raise CameraFileError(f"{'fx' if fx <= 0 else 'fy'} is {fx if fx <= 0 else fy:g}; fx and fy must be > 0")
     if (width == 0) != (height == 0):
-        raise _Bad(f"image size {width}×{height}: give both width and height, or neither")
+        raise CameraFileError(f"image size {width}×{height}: give both width and height, or neither")
     return Intrinsics(float(fx), float(fy), float(cx), float(cy), int(width), int(height), dist)

@@ -37,8 +37,8 @@ from typing import Any, Callable
 
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.registry import DEFAULT_REGISTRY, list_datasets
-from mutualslam_cli.datasets.unpack import CorruptArchive, install_archive, is_complete
-from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.datasets.unpack import install_archive, is_complete
+from mutualslam_cli.errors import CorruptArchive, DatasetError
 from mutualslam_cli.types import SequenceSpec
 
 DOWNLOAD_DIR = "_downloads"

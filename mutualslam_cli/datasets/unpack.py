@@ -38,7 +38,7 @@ from typing import IO, Callable, Iterator
 import cv2
 import numpy as np
 
-from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.errors import CorruptArchive, DatasetError, UnsafeMember
 from mutualslam_cli.geometry import rot_to_quat
 
 log = logging.getLogger(__name__)
@@ -54,14 +54,6 @@ SEVEN_SCENES_INVALID_DEPTH = 65535
 
 _FRAME_RE = re.compile(r"frame-(\d+)\.(color\.png|color\.jpg|depth\.png|pose\.txt)$")
 _CHUNK = 1 << 20
-
-
-class UnsafeMember(Exception):
-    """An archive member would be written outside the target folder (absolute path or ``..``)."""
-
-
-class CorruptArchive(Exception):
-    """The archive is truncated or corrupt (its reader failed); the message is the reader's reason."""
 
 
 def _copy(src: IO[bytes], dst: IO[bytes]) -> None:
