@@ -17,6 +17,7 @@ import yaml
 
 from mutualslam_cli.datasets.associate import read_list_file
 from mutualslam_cli.datasets.icl_nuim import NATIVE_RE, load_icl, load_icl_loop
+from mutualslam_cli.datasets.conversion import BAG_SUFFIXES, VIDEO_SUFFIXES
 from mutualslam_cli.datasets.recording import RecordingOptions, open_recording, recording_kind
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.datasets.tum import load_tum, tum_family
@@ -140,7 +141,8 @@ def detect_format(folder: str | os.PathLike) -> str:
         return "icl" if _depth_listed_first(root / "associations.txt") else "lab"
     raise DatasetError(
         f"{root}: unknown sequence layout; looked for associations.txt + *.gt.freiburg (ICL-NUIM), "
-        "rgb.txt + depth.txt (TUM / lab / synthetic), scene_00_NNNN.png (native ICL-NUIM)"
+        "rgb.txt + depth.txt (TUM / lab / synthetic), scene_00_NNNN.png (native ICL-NUIM); "
+        "a folder of images runs with a camera file (--camera)"
     )
 
 
@@ -208,6 +210,8 @@ def load_sequence(name_or_path: str | os.PathLike, data_root: str | os.PathLike 
         return load_spec(open_recording(s, opts), max_frames=max_frames, stride=stride)
     if Path(s).is_file():  # a file that is not a recording: the one line says what is expected
         recording_kind(Path(s), opts)
+    if Path(s).suffix.lower() in BAG_SUFFIXES + VIDEO_SUFFIXES and not Path(s).expanduser().exists():
+        raise DatasetError(f"{s}: recording not found")
     is_path = isinstance(name_or_path, os.PathLike) or os.sep in s or "/" in s
     if not is_path:
         path = _registry_path(registry_path)
