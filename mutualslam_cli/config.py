@@ -1,9 +1,6 @@
-"""Run configuration: frozen dataclasses, loaded with ``yaml.safe_load`` and validated.
-
-``configs/paper.yaml`` holds the paper's values (DESIGN §4–7); the dataclass defaults are
-the same values, so a missing key means "the paper's value". ``--set section.key=value``
-overrides one field; the value is parsed as YAML (``--set adapt.lr=1e-4``).
-"""
+"""Run configuration: frozen dataclasses, loaded with ``yaml.safe_load`` and validated. ``configs/paper.yaml``
+holds the paper's values (DESIGN §4–7), which are the defaults: a missing key means "the paper's value".
+``--set section.key=value`` overrides one field; the value is parsed as YAML (``--set adapt.lr=1e-4``)."""
 
 from __future__ import annotations
 
