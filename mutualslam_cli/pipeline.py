@@ -84,13 +84,15 @@ def use_threads(cfg: RunConfig) -> RunConfig:
 
 
 def open_sequence(sequence: str | Path | Sequence, cfg: RunConfig, registry: Path | None = None,
-                  recording: RecordingOptions | None = None) -> Sequence:
+                  recording: RecordingOptions | None = None, progress: Progress | None = None) -> Sequence:
     """The sequence a run reads: a loaded one as is, else a ``datasets.yaml`` name, a folder or a recording
-    (converted once into ``recording.cache``)."""
+    (converted once into ``recording.cache``, reported as ``progress("convert", {"done": frames})``)."""
     if isinstance(sequence, Sequence):
         return sequence
+    report = None if progress is None else (lambda n: progress("convert", {"done": n, "total": None}))
     return load_sequence(sequence, data_root=cfg.data.data_root, registry_path=registry,
-                         max_frames=cfg.data.max_frames, stride=cfg.data.stride, recording=recording)
+                         max_frames=cfg.data.max_frames, stride=cfg.data.stride, recording=recording,
+                         progress=report)
 
 
 # ----------------------------------------------------------------------------- mslam run
@@ -108,7 +110,8 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         out: results root (default ``cfg.out``).
         command: the command line, recorded in ``manifest.json``.
         force: recompute even when the run is complete.
-        progress: ``progress(stage, info)`` with stages ``vo``, ``adapt``, ``eval``, ``dense``.
+        progress: ``progress(stage, info)`` with stages ``convert`` (a recording), ``vo``, ``adapt``, ``eval``,
+            ``dense``.
         registry: an alternative ``datasets.yaml``.
         recording: how to read a ROS bag, video or image folder (topics, camera file, GT file); it is
             converted once into ``<out>/_cache/recordings`` unless ``recording.cache`` says otherwise.
@@ -128,7 +131,7 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
     recording = recording or RecordingOptions()
     if recording.cache is None:
         recording = replace(recording, cache=out_root / "_cache" / "recordings")
-    seq = open_sequence(sequence, cfg, registry, recording)
+    seq = open_sequence(sequence, cfg, registry, recording, progress)
     folder = run_dir(out_root, seq.name, cfg.adapt.scheme, cfg.seed)
     run = RunContext(seq, cfg, folder, out_root, progress=progress, timings={"load": time.perf_counter() - t_start})
     if is_complete(folder) and not force:

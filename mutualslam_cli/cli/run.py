@@ -108,8 +108,8 @@ def run(
         def cb(stage: str, info: dict[str, Any]) -> None:
             total = info.get("total", info.get("n_frames"))
             if stage not in tasks:
-                tasks[stage] = p.add_task({"vo": "front end", "adapt": "adapt", "eval": "evaluate",
-                                           "dense": "dense"}.get(stage, stage),
+                tasks[stage] = p.add_task({"convert": "convert recording", "vo": "front end", "adapt": "adapt",
+                                           "eval": "evaluate", "dense": "dense"}.get(stage, stage),
                                           total=total, info="")
             done = info.get("done", (info.get("frame", -1) + 1))
             if stage == "vo":

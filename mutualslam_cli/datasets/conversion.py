@@ -10,7 +10,7 @@ import os
 import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -82,8 +82,9 @@ class TumWriter:
     where they are (:meth:`add_rgb_path`); depth to ``depth/<t>.png`` as 16-bit raw units.
     """
 
-    def __init__(self, folder: Path):
+    def __init__(self, folder: Path, progress: Callable[[int], None] | None = None):
         self.folder = Path(folder)
+        self.progress = progress  # called with the number of colour frames so far
         self.tmp = self.folder.with_name(f".{self.folder.name}.converting-{os.getpid()}")
         if self.tmp.exists():
             shutil.rmtree(self.tmp)
@@ -119,10 +120,14 @@ class TumWriter:
                 raise DatasetError(f"{self.folder}: frame at {t:.6f} s cannot be decoded (expected {ext} bytes)")
             self.size = (int(img.shape[1]), int(img.shape[0]))
         self.rgb.append((t, name))
+        if self.progress is not None:
+            self.progress(len(self.rgb))
 
     def add_rgb_path(self, t: float, path: Path) -> None:
         """One colour frame that stays where it is (an image folder): listed by its absolute path."""
         self.rgb.append((t, str(Path(path).resolve())))
+        if self.progress is not None:
+            self.progress(len(self.rgb))
 
     def add_depth(self, t: float, depth: np.ndarray) -> None:
         """One ``(H, W)`` uint16 depth image at time ``t`` (s), in the raw units of ``depth_scale``."""

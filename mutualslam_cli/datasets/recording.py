@@ -21,6 +21,7 @@ import json
 import os
 from dataclasses import replace
 from pathlib import Path
+from typing import Callable
 
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.conversion import (
@@ -78,8 +79,10 @@ def conversion_folder(path: Path, opts: RecordingOptions) -> Path:
     return cache / f"{stem}-{digest}"
 
 
-def open_recording(path: str | os.PathLike, opts: RecordingOptions) -> SequenceSpec:
-    """Convert a recording once (cached) and return the spec of its TUM-layout folder.
+def open_recording(path: str | os.PathLike, opts: RecordingOptions,
+                   progress: Callable[[int], None] | None = None) -> SequenceSpec:
+    """Convert a recording once (cached) and return the spec of its TUM-layout folder; ``progress`` is
+    called with the number of colour frames converted so far.
 
     Raises:
         DatasetError: an unreadable recording, no colour frames, no intrinsics (no ``CameraInfo``
@@ -94,7 +97,7 @@ def open_recording(path: str | os.PathLike, opts: RecordingOptions) -> SequenceS
     folder = conversion_folder(path, opts)
     if not (folder / "source.json").is_file():
         camera = read_camera_file(Path(opts.camera)) if opts.camera is not None else None
-        writer = TumWriter(folder)
+        writer = TumWriter(folder, progress)
         try:
             if kind == "bag":
                 from mutualslam_cli.datasets.rosbag import convert_bag

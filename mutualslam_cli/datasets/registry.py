@@ -187,7 +187,7 @@ def subset_frames(seq: Sequence, max_frames: int = 0, stride: int = 1) -> Sequen
 
 def load_sequence(name_or_path: str | os.PathLike, data_root: str | os.PathLike | None = None,
                   registry_path: str | os.PathLike | None = None, max_frames: int = 0, stride: int = 1,
-                  recording: RecordingOptions | None = None) -> Sequence:
+                  recording: RecordingOptions | None = None, progress: Callable[[int], None] | None = None) -> Sequence:
     """Load a sequence by registry name, folder path or recording.
 
     Args:
@@ -200,6 +200,7 @@ def load_sequence(name_or_path: str | os.PathLike, data_root: str | os.PathLike 
         stride: keep every ``stride``-th associated frame.
         recording: how to read a recording (topics, camera file, GT file, conversion cache); its
             ``camera`` and ``gt`` also replace a folder's intrinsics and GT file.
+        progress: called with the frames converted so far while a recording is converted.
 
     Raises:
         DatasetError: unknown name (valid names listed), unknown layout, or any loader error.
@@ -207,7 +208,7 @@ def load_sequence(name_or_path: str | os.PathLike, data_root: str | os.PathLike 
     s = str(name_or_path)
     opts = recording or RecordingOptions()
     if Path(s).expanduser().exists() and recording_kind(Path(s).expanduser(), opts) is not None:
-        return load_spec(open_recording(s, opts), max_frames=max_frames, stride=stride)
+        return load_spec(open_recording(s, opts, progress), max_frames=max_frames, stride=stride)
     if Path(s).is_file():  # a file that is not a recording: the one line says what is expected
         recording_kind(Path(s), opts)
     if Path(s).suffix.lower() in BAG_SUFFIXES + VIDEO_SUFFIXES and not Path(s).expanduser().exists():

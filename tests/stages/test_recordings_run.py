@@ -52,7 +52,10 @@ def test_bag_run_equals_folder_run(frames, tmp_path, ros):
     info = write_bag_from_tum(root, tmp_path / ("seq.bag" if ros == 1 else "seq_ros2"), ros_version=ros,
                               depth="32FC1", pose_topic="pose")
     opts = RecordingOptions(rgb_topic=info["rgb"], depth_topic=info["depth"], pose_topic=info["pose"])
-    bag_run = run_sequence(info["bag"], cfg, out=tmp_path / "res", recording=opts)
+    converted: list[int] = []
+    bag_run = run_sequence(info["bag"], cfg, out=tmp_path / "res", recording=opts,
+                           progress=lambda stage, i: converted.append(i["done"]) if stage == "convert" else None)
+    assert converted == list(range(1, N + 1))  # the conversion's bar: one step per colour frame
     assert results(bag_run.summary) == results(folder_run.summary)
     for a, b in zip(exported(bag_run.folder), exported(folder_run.folder), strict=True):
         np.testing.assert_array_equal(a, b)
