@@ -43,12 +43,17 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
     for label, key in rows:
         t.add_row(label, fmt_value(f.get(f"{key}.pretrained"), 3 if key.startswith("dense") else 2),
                   fmt_value(f.get(f"{key}.adapted"), 3 if key.startswith("dense") else 2))
+    notes = s.get("notes") or {}
+    if f.get("depth.pcd.lsq.adapted") is None and notes.get("depth.pcd.lsq.adapted"):
+        t.caption = escape(f"no depth score: {notes['depth.pcd.lsq.adapted']}")  # a recording without GT, say
     common.console.print(t)
     t2 = Table("trajectory (keyframes, one Sim(3))", "ATE m", "per segment m")
     for label, leaf in (("front end", "vo"), ("bridged segments", "bridged"), ("after global BA", "ba")):
         if f.get(f"trajectory.ate_rmse_m.{leaf}") is not None:
             t2.add_row(label, fmt_value(f.get(f"trajectory.ate_rmse_m.{leaf}"), 4),
                        fmt_value(f.get(f"trajectory.ate_rmse_m_per_segment.{leaf}"), 4))
+    if not t2.row_count:
+        t2.caption = escape(f"no ATE: {notes.get('trajectory.ate_rmse_m.vo', 'not computed')}")
     common.console.print(t2)
     t3 = Table("tracked", "segments", "relocalised", "bridged", "keyframes", "map points", "map e_si", "depth ms",
                "ms/step")
@@ -111,6 +116,9 @@ def run(
                 tasks[stage] = p.add_task({"convert": "convert recording", "vo": "front end", "adapt": "adapt",
                                            "eval": "evaluate", "dense": "dense"}.get(stage, stage),
                                           total=total, info="")
+            if stage != "convert" and "convert" in tasks:  # the conversion is over: its bar stops its clock
+                tid = tasks.pop("convert")
+                p.update(tid, total=next(t.completed for t in p.tasks if t.id == tid))
             done = info.get("done", (info.get("frame", -1) + 1))
             if stage == "vo":
                 text = f"kf {info.get('keyframes', 0)} · pts {info.get('tracked', 0)} · {info.get('state', '')}"

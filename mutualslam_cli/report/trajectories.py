@@ -209,8 +209,8 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
         problems = [textwrap.shorten(p, 110) for p in row.problems] or ([] if row.stages else ["no trajectory file"])
         sf.suptitle("\n".join([row.title, ate_line, *problems]).replace("\n\n", "\n").strip(), fontsize=10)
         t0 = row.gt_t[0] if len(row.gt_t) else 0.0
-        curves = [("gt", row.gt_t, row.gt_p)] + [(s, *row.stages[s]) for s in ("vo", "bridged", "ba")
-                                                 if s in row.stages]
+        curves = [("gt", row.gt_t, row.gt_p)] * bool(len(row.gt_t)) + [(s, *row.stages[s]) for s in
+                                                                   ("vo", "bridged", "ba") if s in row.stages]
         for stage, t, p in curves if row.stages else []:
             label, colour, ls = TRAJ_STYLE[stage]
             label = label if aligned else label.replace("Sim(3)-aligned", "as estimated, VO units")
