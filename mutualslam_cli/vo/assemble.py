@@ -85,10 +85,9 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
     pts = MapPoints(np.arange(n, dtype=np.int64), np.array(m.host, np.int64).reshape(-1),
                     np.array(m.px_h, np.float64).reshape(-1, 2), np.array(m.rho, np.float64).reshape(-1),
                     np.array(m.sigma, np.float64).reshape(-1), obs_k, obs_px)
-    keep = (pts.inv_depth > 0) & np.isfinite(pts.inv_depth)
+    keep = (pts.inv_depth > 0) & np.isfinite(pts.inv_depth)  # removed points have NaN; ids stay the map's
     if not keep.all():
         pts = pts.subset(keep)
-        pts.ids = np.arange(len(pts), dtype=np.int64)
     covis: dict[int, dict[int, int]] = {k: {} for k in range(len(kfs))}
     for o in pts.observations:
         for a, b in combinations(o.tolist(), 2):

@@ -72,7 +72,7 @@ class InitMixin:
         """Create the two first keyframes and the initial map of a new segment."""
         ref = self.ref
         self.segment += 1
-        self.init_methods.append(res.method)
+        self.state_map.start_segment(self.segment, ref["frame"], res.method)
         m = self.map
         k0 = m.add_keyframe(ref["frame"], self.seq.frames[ref["frame"]].timestamp, np.eye(4), self.segment)
         k1 = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(res.T_10), self.segment)
@@ -103,8 +103,7 @@ class InitMixin:
             if T is not None and inl.sum() >= self.cfg.min_tracked:
                 self.T_cw = T
                 self._record(fi)
-        self.frame_seg[ref["frame"]] = self.segment
-        self.frame_rel[ref["frame"]] = (k0, np.eye(4))
+        self.state_map.track_frame(ref["frame"], self.segment, k0, np.eye(4))
         t = Tracks.empty()
         n = len(idx)
         raw = ref["raw"][idx]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -27,16 +27,19 @@ from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import scale_motion, se3_inv
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
-from mutualslam_cli.vo.assemble import RunStats, build_result
+from mutualslam_cli.vo.assemble import RunStats
 from mutualslam_cli.vo.bootstrap import InitMixin
-from mutualslam_cli.vo.camera import distort_points, focal_px, to_normalized, undistort_points
+from mutualslam_cli.vo.camera import distort_points, focal_px, pinhole, to_normalized, undistort_points
 from mutualslam_cli.vo.features import detect_grid
+from mutualslam_cli.vo.feedback import FeedbackMixin
+from mutualslam_cli.vo.journal import Journal
+from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
 from mutualslam_cli.vo.reproject import reproject_points
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.state import Map, Tracks
+from mutualslam_cli.vo.state import Tracks
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 
 log = logging.getLogger(__name__)
@@ -63,17 +66,23 @@ SEED_PREDICT_SIGMA = 0.05
 STAGES = ("decode", "track", "pose", "filter", "keyframe", "local_ba")
 
 
-class _Frontend(InitMixin, RecoveryMixin):
-    """State machine ``init`` → ``tracking`` → (loss) → ``init`` … over one sequence."""
+class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
+    """State machine ``init`` → ``tracking`` → (loss) → ``init`` … over one sequence, one frame per
+    :meth:`process`. Every change to the map and the frame records is journaled in :attr:`journal`
+    (:mod:`~mutualslam_cli.vo.journal`); between frames the adaptation loop may join a new segment to
+    the map (:meth:`transform_segment`) or hand it a global BA's refinement (:meth:`refine`)."""
 
-    def __init__(self, seq: Sequence, cfg: VOConfig, seed: int) -> None:
+    def __init__(self, seq: Sequence, cfg: VOConfig, seed: int, journal: Journal | None = None) -> None:
+        check_vo(cfg)
         self.seq, self.cfg, self.seed = seq, cfg, seed
         self.intr = seq.intrinsics
         self.K = self.intr.K()
         self.f = focal_px(self.intr)
         self.thr = cfg.ransac_threshold_px / self.f
         self.px_err_angle = 2.0 * np.arctan(0.5 / self.f)  # SVO: one-pixel bearing error
-        self.map = Map()
+        self.journal = journal if journal is not None else Journal()
+        self.state_map = MapState(pinhole(self.intr), len(seq), self.journal)
+        self.map = self.state_map.map
         self.mapper = Mapper(self.map, self.K, cfg.core_kfs, self.thr)
         self.tracks = Tracks.empty()
         self.state = "init"
@@ -85,17 +94,16 @@ class _Frontend(InitMixin, RecoveryMixin):
         self.t_prev = 0.0  # timestamp of the last tracked frame
         self.n_at_kf = 0
         self.last_kf = -1
-        self.frame_seg = -np.ones(len(seq), np.int64)
-        self.frame_rel: dict[int, tuple[int, np.ndarray]] = {}
-        self.init_methods: list[str] = []
         self.timing = {k: 0.0 for k in STAGES}
         self.n_tracked = 0
         self.kf_imgs: dict[int, np.ndarray] = {}
         self.n_reprojected = 0
         self.ba_due = 0
         self.reloc = RelocIndex(self.intr) if cfg.relocalise else None
-        self.relocalisations: list[dict] = []
         self.lost_at = -1  # frame of the last tracking loss
+        self.prev_pyr = None  # the previous frame's pyramid
+        self.frame = -1  # the last frame processed
+        self.wall_s = 0.0  # time spent in process()
 
     # ---------------------------------------------------------------- helpers
     def _undist(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -105,8 +113,7 @@ class _Frontend(InitMixin, RecoveryMixin):
     def _record(self, i: int) -> None:
         """Store frame ``i``'s pose relative to the current reference keyframe."""
         T_wc = se3_inv(self.T_cw)
-        self.frame_rel[i] = (self.last_kf, self.map.poses_cw()[self.last_kf] @ T_wc)
-        self.frame_seg[i] = self.segment
+        self.state_map.track_frame(i, self.segment, self.last_kf, self.map.poses_cw()[self.last_kf] @ T_wc)
 
     # ---------------------------------------------------------------- tracking
     def _track_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
@@ -305,8 +312,8 @@ class _Frontend(InitMixin, RecoveryMixin):
         self.tracks = self._reproject(self.tracks, gray, self.T_cw)
         m, tr = self.map, self.tracks
         kf = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(self.T_cw), self.segment)
-        for j in np.flatnonzero(tr.pid >= 0):
-            m.add_observation(int(tr.pid[j]), kf, tr.px[j])
+        seen = np.flatnonzero(tr.pid >= 0)
+        m.observe(kf, tr.pid[seen], tr.px[seen])
         for j in np.flatnonzero(tr.pid < 0):
             tr.obs[j] = tr.obs[j] + [(kf, tr.px[j])]
         if self.reloc is not None:
@@ -322,49 +329,65 @@ class _Frontend(InitMixin, RecoveryMixin):
         self.timing["local_ba"] += t2 - t1
 
     # ---------------------------------------------------------------- main loop
-    def run(self, progress: Callable[[dict], None] | None) -> VOResult:
-        cfg = self.cfg
-        prev_pyr = None
-        n = len(self.seq)
-        t_start = time.perf_counter()
-        pool = ThreadPoolExecutor(max_workers=1)  # decodes frame i+1 while frame i is tracked
-        try:
-            nxt = pool.submit(self.seq.load_gray, 0)
-            for i in range(n):
-                t0 = time.perf_counter()
-                gray = nxt.result()
-                if i + 1 < n:
-                    nxt = pool.submit(self.seq.load_gray, i + 1)
-                pyr = build_pyramid(gray, cfg.klt_window, cfg.klt_levels)
-                self.timing["decode"] += time.perf_counter() - t0
-                if self.state == "init":
-                    self._init_step(i, gray, pyr, prev_pyr)
-                else:
-                    self._track_step(i, gray, pyr, prev_pyr)
-                prev_pyr = pyr
-                if progress is not None:
-                    el = time.perf_counter() - t_start
-                    progress({"frame": i, "n_frames": n, "keyframes": len(self.map.kf_frame),
-                              "tracked": self.n_tracked if self.state == "tracking" else 0,
-                              "fps": (i + 1) / el if el > 0 else 0.0, "state": self.state})
-            self._collect_ba()
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
-            self.mapper.close()
-        return self._result(time.perf_counter() - t_start)
+    def process(self, i: int, gray: np.ndarray) -> None:
+        """Track frame ``i`` (the next one: frames come in order) from its ``(H, W)`` uint8 grey image."""
+        t0 = time.perf_counter()
+        self.journal.frame = i
+        pyr = build_pyramid(gray, self.cfg.klt_window, self.cfg.klt_levels)
+        self.timing["decode"] += time.perf_counter() - t0
+        if self.state == "init":
+            self._init_step(i, gray, pyr, self.prev_pyr)
+        else:
+            self._track_step(i, gray, pyr, self.prev_pyr)
+        self.prev_pyr = pyr
+        self.frame = i
+        self.wall_s += time.perf_counter() - t0
 
-    def _result(self, total_s: float) -> VOResult:
-        """The run's :class:`VOResult` (see :func:`~mutualslam_cli.vo.assemble.build_result`)."""
-        stats = RunStats(segment=self.segment, init_methods=self.init_methods, timing=self.timing, total_s=total_s,
-                         reprojected=self.n_reprojected, ba_stats=self.mapper.stats,
-                         ba_threaded=self.mapper.pool is not None, relocalisations=self.relocalisations,
-                         reloc_rejected=self.reloc.rejected if self.reloc is not None else 0)
-        return build_result(self.map, self.seq.frames, self.frame_rel, self.frame_seg, self.intr, stats)
+    def finish(self) -> None:
+        """The end of the sequence: apply the pending windowed BA, stop the worker."""
+        self.journal.frame = self.frame
+        self._collect_ba()
+        self.mapper.close()
+
+    def progress_info(self) -> dict:
+        """What a progress bar shows after a frame."""
+        i, n = self.frame, len(self.seq)
+        return {"frame": i, "n_frames": n, "keyframes": len(self.map.kf_frame),
+                "tracked": self.n_tracked if self.state == "tracking" else 0,
+                "fps": (i + 1) / self.wall_s if self.wall_s > 0 else 0.0, "state": self.state}
+
+    def stats(self) -> RunStats:
+        """Counters and timings so far (the :class:`VOResult`'s ``meta``)."""
+        return RunStats(segment=self.segment, init_methods=list(self.state_map.init_methods), timing=self.timing,
+                        total_s=self.wall_s, reprojected=self.n_reprojected, ba_stats=self.mapper.stats,
+                        ba_threaded=self.mapper.pool is not None,
+                        relocalisations=list(self.state_map.relocalisations),
+                        reloc_rejected=self.reloc.rejected if self.reloc is not None else 0)
+
+    def result(self) -> VOResult:
+        """The map and trajectories now (see :func:`~mutualslam_cli.vo.assemble.build_result`)."""
+        return self.state_map.snapshot(self.seq.frames, self.stats())
+
+
+def frames_from(seq: Sequence, start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
+    """``(i, grey image)`` for frames ``start…`` in order; frame i+1 is decoded on a second thread while
+    the caller works on frame i."""
+    n = len(seq)
+    pool = ThreadPoolExecutor(max_workers=1)
+    try:
+        nxt = pool.submit(seq.load_gray, start) if start < n else None
+        for i in range(start, n):
+            gray = nxt.result()
+            if i + 1 < n:
+                nxt = pool.submit(seq.load_gray, i + 1)
+            yield i, gray
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def run_vo(seq: Sequence, cfg: VOConfig, seed: int = 0,
            progress: Callable[[dict], None] | None = None) -> VOResult:
-    """Run the monocular front end over a sequence.
+    """Run the monocular front end over a sequence, on its own (no network: nothing joins its segments).
 
     Args:
         seq: the sequence (frames are decoded one at a time).
@@ -379,9 +402,16 @@ def run_vo(seq: Sequence, cfg: VOConfig, seed: int = 0,
     """
     if len(seq) == 0:
         raise DatasetError(f"{seq.root}: sequence has no frames")
-    check_vo(cfg)
     retain_freed_memory()  # per-frame buffers reuse mapped pages instead of faulting new ones
     # numpy's OpenBLAS would spin up its own threads for the BA's products and busy-wait on
     # both cores, starving the tracker and the decoder (measured: ~40 % more CPU per frame)
     with threadpool_limits(limits=1, user_api="blas"):
-        return _Frontend(seq, cfg, seed).run(progress)
+        fe = FrontEnd(seq, cfg, seed)
+        try:
+            for i, gray in frames_from(seq):
+                fe.process(i, gray)
+                if progress is not None:
+                    progress(fe.progress_info())
+        finally:
+            fe.finish()
+        return fe.result()

@@ -97,6 +97,15 @@ class Mapper:
             job.result = self._solve(prob)
         self.job = job
 
+    def resume(self, kf: int, kfs: list[int], free: np.ndarray, pids: list[int], o_id: list[tuple[int, int]],
+               prob: BAProblem) -> None:
+        """Put back a job a checkpoint captured in flight (:mod:`~mutualslam_cli.vo.checkpoint`): solved again
+        from its problem, so its result is the one the captured front end would have applied."""
+        assert self.job is None, "collect() the pending BA before resuming another"
+        job = _Job(kf, kfs, free, pids, o_id, prob)
+        job.result = self.pool.submit(self._solve, prob) if self.pool is not None else self._solve(prob)
+        self.job = job
+
     def _solve(self, prob: BAProblem) -> tuple:
         t0 = time.perf_counter()
         T_new, rho_new, st = solve(prob, self.thr, iters=self.iters)
@@ -118,21 +127,15 @@ class Mapper:
         T_new, rho_new, st = res  # type: ignore[misc]
         st.update(kf=job.kf, points=len(job.pids), obs=len(job.o_id))
         self.stats.append(st)
-        for j, k in enumerate(job.kfs):
-            if job.free[j]:
-                m.set_pose(k, se3_inv(T_new[j]))
-        for j, p in enumerate(job.pids):
-            m.rho[p] = float(rho_new[j])
+        free = np.flatnonzero(job.free)
+        m.set_poses(np.array(job.kfs, np.int64)[free], np.array([se3_inv(T) for T in T_new[free]]).reshape(-1, 4, 4))
+        m.set_depths(np.array(job.pids, np.int64), rho_new)
         # reject observations the optimised window cannot explain
         r, front = residuals(job.prob, T_new, rho_new)
         err = np.where(front, np.linalg.norm(r, axis=1), np.inf)
-        bad_kf = []
-        for e, (p, k) in zip(err, job.o_id):
-            if not np.isfinite(e) or e > OUTLIER_FACTOR * self.thr:
-                m.obs[p].pop(k, None)
-                m.kf_points[k].discard(p)
-                if k == job.kf:
-                    bad_kf.append(p)
+        bad = [(p, k) for e, (p, k) in zip(err, job.o_id) if not np.isfinite(e) or e > OUTLIER_FACTOR * self.thr]
+        m.remove_observations(np.array([p for p, _ in bad], np.int64), np.array([k for _, k in bad], np.int64))
+        bad_kf = [p for p, k in bad if k == job.kf]
         all_pids = sorted(set().union(*(m.kf_points[k] for k in job.kfs)))
         m.refresh(np.array(all_pids, dtype=np.int64))
         return np.array(bad_kf, np.int64)

@@ -21,6 +21,7 @@ class RecoveryMixin:
         if self._relocalise(i, gray):
             return
         log.info("tracking lost at frame %d (%s)", i, why)
+        self.state_map.lose(i, why)
         self._collect_ba()
         self.state = "init"
         self.lost_at = i
@@ -49,10 +50,10 @@ class RecoveryMixin:
         self.tracks, self.T_cw, self.n_tracked = t, r.T_cw, r.inliers
         self.vel, self.vel_dt, self.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
         self.state, self.ref = "tracking", None
-        self.relocalisations.append({"frame": i, "timestamp": float(self.seq.frames[i].timestamp),
-                                     "keyframe": int(r.keyframe), "inliers": int(r.inliers),
-                                     "frames_lost": 0 if self.lost_at < 0 else i - self.lost_at,
-                                     "candidates_tried": int(r.candidates_tried)})
+        self.state_map.relocalise({"frame": i, "timestamp": float(self.seq.frames[i].timestamp),
+                                   "keyframe": int(r.keyframe), "inliers": int(r.inliers),
+                                   "frames_lost": 0 if self.lost_at < 0 else i - self.lost_at,
+                                   "candidates_tried": int(r.candidates_tried)})
         log.info("relocalised frame %d against keyframe %d (%d inliers)", i, r.keyframe, r.inliers)
         self._keyframe(i, gray)
         self._record(i)

@@ -2,8 +2,9 @@
 
 When relocalisation fails, the front end starts a new segment with its own origin and its own
 unit (median depth 1 at its initialisation). A depth predictor carries the unit across the gap:
-its ratio to the map on the last keyframe before the gap, ``r_prev = median(z_map / z_pred)``
-over that keyframe's map points, and on the new segment's first keyframe, ``r_new``, give the new
+its ratio to the map on the last keyframe before the gap that sees enough of the map (of the last
+:data:`MAX_BACK`), ``r_prev = median(z_map / z_pred)`` over that keyframe's map points, and on the new
+segment's first keyframe, ``r_new``, give the new
 segment's scale in the old unit, ``s = r_prev / r_new``. The predictor's own unit cancels, so any
 depth network serves; the adapted one, trained on this map's sparse depths, has ``r_prev ≈ 1``
 (CNN-SVO seeds its depth filter from a CNN in the same spirit).
@@ -33,6 +34,8 @@ from mutualslam_cli.vo.result import MapPoints, VOResult
 
 #: Map points with a depth prediction a keyframe needs for its scale ratio.
 MIN_RATIO_POINTS = 10
+#: Keyframes before a gap (newest first) tried for the old unit's ratio.
+MAX_BACK = 3
 #: Homography inliers (normalised coordinates, this many pixels at the focal length) for a rotation.
 ROTATION_PX, MIN_ROTATION_MATCHES = 3.0, 30
 #: Median angle between the rotated bearings of the inliers (degrees) above which the rotation is not used.
@@ -50,6 +53,7 @@ class Bridge:
         scale: ``s``, old units per new unit; ratio_prev, ratio_new: ``median(z_map / z_pred)`` on
             either side, from n_prev and n_new points.
         rotation_deg: the rotation applied across the gap; rotation_from: ``images`` or ``none``.
+        R, t: the similarity ``x ↦ s·R·x + t`` that moves the segment (lists, so the record is JSON).
     """
 
     segment: int
@@ -64,6 +68,12 @@ class Bridge:
     n_new: int
     rotation_deg: float
     rotation_from: str
+    R: list[list[float]] | None = None
+    t: list[float] | None = None
+
+    def similarity(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(R (3, 3), t (3,), s)`` of the move ``x ↦ s·R·x + t`` applied to the segment."""
+        return np.array(self.R, float), np.array(self.t, float), self.scale
 
 
 def depth_ratio(vo: VOResult, kf_id: int, depth: np.ndarray, points_w: np.ndarray | None = None) -> tuple[float, int]:
@@ -103,10 +113,10 @@ def rotation_between(gray_a: np.ndarray, gray_b: np.ndarray, vo: VOResult, intr_
     return R if float(np.median(resid)) < MAX_ROTATION_RESIDUAL_DEG else None
 
 
-def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarray],
-                   gray_of_frame: Callable[[int], np.ndarray], intr_raw, points_w: np.ndarray | None = None,
-                   ) -> tuple[VOResult, Bridge] | None:
-    """Join the segment that starts at keyframe ``first_kf`` to the map before it (module docstring).
+def plan_bridge(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarray],
+                gray_of_frame: Callable[[int], np.ndarray], intr_raw, points_w: np.ndarray | None = None,
+                ) -> Bridge | None:
+    """How to join the segment that starts at keyframe ``first_kf`` to the map before it (module docstring).
 
     Args:
         vo: the map (its segments before ``first_kf`` already in their final unit).
@@ -117,17 +127,25 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
         points_w: ``vo.points_world()`` when already computed.
 
     Returns:
-        ``(vo', bridge)`` with the segment's keyframes, points and frames moved and scaled, or
-        ``None`` when a scale ratio cannot be measured on either side (the segment stays apart).
+        The :class:`Bridge` (its similarity moves the segment's keyframes, points and frames), or ``None``
+        when a scale ratio cannot be measured on either side (the segment stays apart).
     """
     kfs = vo.keyframes
     seg = kfs[first_kf].segment
     before = [k for k in kfs[:first_kf] if k.segment != seg]
     if not before:
         return None
-    prev = before[-1]
     pw = vo.points_world() if points_w is None else points_w
-    r_prev, n_prev = depth_ratio(vo, prev.id, depth_of(prev.id), pw)
+    # the old unit's ratio on the newest keyframe before the gap that sees enough of its map: the very last
+    # one may have been made on the failing frames (a blurred or black image) with hardly any point
+    onto = before[-1].segment
+    cands = [k for k in before if k.segment == onto][-MAX_BACK:][::-1]
+    prev, r_prev, n_prev = cands[0], float("nan"), 0
+    for k in cands:
+        if len(vo.points.observed_in(k.id)) >= MIN_RATIO_POINTS:
+            prev = k
+            r_prev, n_prev = depth_ratio(vo, k.id, depth_of(k.id), pw)
+            break
     r_new, n_new = depth_ratio(vo, first_kf, depth_of(first_kf), pw)
     if not (np.isfinite(r_prev) and np.isfinite(r_new) and r_new > 0):
         return None
@@ -146,13 +164,33 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
     T0 = kfs[first_kf].pose
     R_g = P[:3, :3] @ T0[:3, :3].T
     t_g = P[:3, 3] - s * R_g @ T0[:3, 3]
-    moved = _apply(vo, seg, R_g, t_g, s)
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R_rel) - 1) / 2, -1, 1)))) if R_rel is not None else 0.0
-    return moved, Bridge(int(seg), int(prev.segment), int(first_frame), float(kfs[first_kf].timestamp), int(last),
-                         float(s), r_prev, r_new, n_prev, n_new, angle, "images" if R_rel is not None else "none")
+    return Bridge(int(seg), int(prev.segment), int(first_frame), float(kfs[first_kf].timestamp), int(last),
+                  float(s), r_prev, r_new, n_prev, n_new, angle, "images" if R_rel is not None else "none",
+                  R_g.tolist(), t_g.tolist())
 
 
-def _apply(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float) -> VOResult:
+def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarray],
+                   gray_of_frame: Callable[[int], np.ndarray], intr_raw, points_w: np.ndarray | None = None,
+                   ) -> tuple[VOResult, Bridge] | None:
+    """:func:`plan_bridge` and the move it plans applied to ``vo`` (:func:`move_segment`): ``(vo', bridge)``,
+    or ``None`` when the segment stays apart."""
+    b = plan_bridge(vo, first_kf, depth_of, gray_of_frame, intr_raw, points_w)
+    if b is None:
+        return None
+    R, t, s = b.similarity()
+    return move_segment(vo, b.segment, R, t, s), b
+
+
+def unbridged(vo: VOResult, moves: dict[int, tuple[np.ndarray, np.ndarray, float]]) -> VOResult:
+    """``vo`` with each segment's similarity (``{segment: (R, t, s)}``, as applied) undone: every segment
+    in its own frame and unit again."""
+    for seg, (R, t, s) in moves.items():
+        vo = move_segment(vo, seg, R.T, -(R.T @ t) / s, 1.0 / s)
+    return vo
+
+
+def move_segment(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float) -> VOResult:
     """``vo`` with segment ``seg`` moved by the similarity ``x ↦ s·R·x + t``: keyframe and frame poses
     ``T_wc ↦ [R·R_wc | s·R·t_wc + t]``, inverse depths ÷ ``s`` (points follow their hosts)."""
     def move(T: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.vo.journal import Journal
 
 _SEED_KEYS = ("a", "b", "mu", "sigma2", "z_range")
 
@@ -77,7 +78,13 @@ class Map:
     """Keyframes and map points of all segments.
 
     Map points are stored as (host keyframe, host pixel, inverse depth z⁻¹ along the host ray),
-    the ``MapPoints`` parametrisation; ``Xw`` caches their world positions.
+    the ``MapPoints`` parametrisation; ``Xw`` caches their world positions (recomputed by
+    :meth:`refresh`, which the callers ask for where a pose or a depth changed). A removed point
+    keeps its id with a NaN depth and no observation.
+
+    Every change goes through a method here and is recorded in ``journal`` (when given) as an
+    :class:`~mutualslam_cli.vo.journal.Event`; a map built by replaying those events
+    (:meth:`~mutualslam_cli.vo.map_state.MapState.apply`) is identical to this one.
     """
 
     kf_frame: list[int] = field(default_factory=list)
@@ -94,6 +101,11 @@ class Map:
     Xw: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     _wc: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     _cw: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    journal: Journal | None = field(default=None, repr=False, compare=False)
+
+    def _emit(self, kind: str, **data) -> None:
+        if self.journal is not None:
+            self.journal.emit(kind, **data)
 
     def add_keyframe(self, frame: int, t: float, T_wc: np.ndarray, segment: int) -> int:
         """Append a keyframe, return its id."""
@@ -109,13 +121,23 @@ class Map:
             self._cw = np.concatenate([self._cw, grow.copy()])
         self._wc[k] = T_wc
         self._cw[k] = se3_inv(T_wc)
+        self._emit("keyframe", kf=k, frame=frame, t=t, segment=segment, T_wc=T_wc)
         return k
+
+    def set_poses(self, kfs: np.ndarray, T_wc: np.ndarray) -> None:
+        """Replace the poses ``T_wc`` ``(n, 4, 4)`` of keyframes ``kfs`` (points' ``Xw``: :meth:`refresh`)."""
+        kfs = np.asarray(kfs, np.int64).reshape(-1)
+        T_wc = np.asarray(T_wc, np.float64).reshape(-1, 4, 4)
+        for k, T in zip(kfs.tolist(), T_wc):
+            self.kf_T_wc[k] = T.copy()
+            self._wc[k] = T
+            self._cw[k] = se3_inv(T)
+        if len(kfs):
+            self._emit("pose", kfs=kfs, T_wc=T_wc)
 
     def set_pose(self, kf: int, T_wc: np.ndarray) -> None:
         """Replace the pose of keyframe ``kf`` (``T_wc``)."""
-        self.kf_T_wc[kf] = T_wc.copy()
-        self._wc[kf] = T_wc
-        self._cw[kf] = se3_inv(T_wc)
+        self.set_poses(np.array([kf]), T_wc[None])
 
     def poses_wc(self) -> np.ndarray:
         """``(K, 4, 4)`` stacked ``T_wc`` of all keyframes (a view; do not modify)."""
@@ -130,6 +152,8 @@ class Map:
         """Append points (host observation included in ``obs``), return their ids."""
         start = len(self.host)
         ids = np.arange(start, start + len(host))
+        px_h, xn_h = np.asarray(px_h, np.float64), np.asarray(xn_h, np.float64)  # as a replayed journal holds them
+        obs = [{int(k): np.asarray(x, np.float64) for k, x in o.items()} for o in obs]
         for j, pid in enumerate(ids):
             self.host.append(int(host[j]))
             self.px_h.append(px_h[j])
@@ -140,10 +164,14 @@ class Map:
             for k in obs[j]:
                 self.kf_points[k].add(int(pid))
         self.Xw = np.concatenate([self.Xw, np.zeros((len(ids), 3))])
-        self.refresh(ids)
+        self.refresh(ids, emit=False)
+        if len(ids):
+            self._emit("points", first=start, host=host, px_h=px_h, xn_h=xn_h, rho=rho, sigma=sigma,
+                       obs_n=[len(o) for o in obs], obs_kf=[k for o in obs for k in o],
+                       obs_px=np.array([p for o in obs for p in o.values()], np.float64).reshape(-1, 2))
         return ids
 
-    def refresh(self, ids: np.ndarray) -> None:
+    def refresh(self, ids: np.ndarray, emit: bool = True) -> None:
         """Recompute cached world positions of points ``ids`` from host pose and inverse depth."""
         if len(ids) == 0:
             return
@@ -154,11 +182,81 @@ class Map:
         T = self._wc[h]
         Xh = ray / rho[:, None]
         self.Xw[ids] = np.einsum("nij,nj->ni", T[:, :3, :3], Xh) + T[:, :3, 3]
+        if emit:
+            self._emit("refresh", pids=ids)
 
-    def add_observation(self, pid: int, kf: int, px: np.ndarray) -> None:
-        """Record that keyframe ``kf`` observes point ``pid`` at undistorted pixel ``px``."""
-        self.obs[pid][kf] = px
-        self.kf_points[kf].add(int(pid))
+    def observe(self, kf: int, pids: np.ndarray, px: np.ndarray) -> None:
+        """Record that keyframe ``kf`` observes points ``pids`` at undistorted pixels ``px`` ``(n, 2)``."""
+        pids = np.asarray(pids, np.int64).reshape(-1)
+        for p, x in zip(pids.tolist(), np.asarray(px, np.float64)):
+            self.obs[p][kf] = x
+            self.kf_points[kf].add(p)
+        if len(pids):
+            self._emit("observe", kf=kf, pids=pids, px=px)
+
+    def set_depths(self, pids: np.ndarray, rho: np.ndarray) -> None:
+        """Replace the inverse depths of points ``pids`` (``Xw``: :meth:`refresh`)."""
+        pids = np.asarray(pids, np.int64).reshape(-1)
+        for p, r in zip(pids.tolist(), np.asarray(rho, np.float64).reshape(-1).tolist()):
+            self.rho[p] = r
+        if len(pids):
+            self._emit("depth", pids=pids, rho=rho)
+
+    def remove_observations(self, pids: np.ndarray, kfs: np.ndarray) -> None:
+        """Forget that keyframe ``kfs[j]`` observes point ``pids[j]``."""
+        pids = np.asarray(pids, np.int64).reshape(-1)
+        kfs = np.asarray(kfs, np.int64).reshape(-1)
+        for p, k in zip(pids.tolist(), kfs.tolist()):
+            self.obs[p].pop(k, None)
+            self.kf_points[k].discard(p)
+        if len(pids):
+            self._emit("unobserve", pids=pids, kfs=kfs)
+
+    def remove_points(self, pids: np.ndarray) -> None:
+        """Take points out of the map: no observation left, depth NaN (their ids stay taken)."""
+        pids = np.asarray(pids, np.int64).reshape(-1)
+        for p in pids.tolist():
+            for k in self.obs[p]:
+                self.kf_points[k].discard(p)
+            self.obs[p] = {}
+            self.rho[p] = float("nan")
+        if len(pids):
+            self.Xw[pids] = np.nan
+            self._emit("remove", pids=pids)
+
+    def set_host_pixels(self, pids: np.ndarray, px_h: np.ndarray, xn_h: np.ndarray) -> None:
+        """Move points' host pixels (undistorted ``px_h`` and normalised ``xn_h``, ``(n, 2)`` each)."""
+        pids = np.asarray(pids, np.int64).reshape(-1)
+        for j, p in enumerate(pids.tolist()):
+            self.px_h[p] = np.array(px_h[j], np.float64)
+            self.xn_h[p] = np.array(xn_h[j], np.float64)
+        if len(pids):
+            self._emit("pixel", pids=pids, px_h=px_h, xn_h=xn_h)
+
+    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
+        """Move segment ``segment`` by the similarity ``x ↦ s·R·x + t``: its keyframes' ``T_wc ↦ [R·R_wc |
+        s·R·t_wc + t]``, the inverse depths (and σ) of the points they host ÷ ``s`` (points follow their
+        hosts). Not journaled here (:meth:`~mutualslam_cli.vo.map_state.MapState.transform_segment` is).
+
+        Returns:
+            ids of the points hosted in the segment.
+        """
+        kfs = [k for k, sg in enumerate(self.kf_segment) if sg == segment]
+        for k in kfs:
+            T = self.kf_T_wc[k].copy()
+            T[:3, :3] = R @ T[:3, :3]
+            T[:3, 3] = s * R @ T[:3, 3] + t
+            self.kf_T_wc[k] = T
+            self._wc[k] = T
+            self._cw[k] = se3_inv(T)
+        in_seg = set(kfs)
+        hosted = np.array([p for p, h in enumerate(self.host) if h in in_seg], np.int64)
+        for p in hosted.tolist():
+            self.rho[p] = self.rho[p] / s
+            self.sigma[p] = self.sigma[p] / s
+        live = hosted[np.isfinite(np.array([self.rho[p] for p in hosted.tolist()]))] if len(hosted) else hosted
+        self.refresh(live, emit=False)
+        return hosted
 
     def T_cw(self, kf: int) -> np.ndarray:
         """World-to-camera transform of keyframe ``kf``."""

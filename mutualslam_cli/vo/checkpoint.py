@@ -1,0 +1,107 @@
+"""Resuming the front end mid-sequence from a cached journal (DESIGN §9).
+
+A run replays the per-sequence journal up to its first event that depends on the network (a bridge,
+a BA's feedback); from there its front end must run live, in the state it had at that frame. The
+map and frame records are the journal's events replayed (:class:`~mutualslam_cli.vo.map_state.MapState`);
+what is left — the KLT tracks and their depth-filter seeds, the current pose and motion, counters,
+which keyframe images the reprojection and the relocalisation hold, the windowed BA in flight (its
+problem, solved again) — is a :func:`capture` taken at a frame where the front end tracks (no
+initialisation under way), every few keyframes. :func:`restore` rebuilds a
+:class:`~mutualslam_cli.vo.frontend.FrontEnd` from both; keyframe images are decoded again and their ORB
+features recomputed (deterministic), the previous frame's pyramid rebuilt. Plain arrays and JSON: read without pickle.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+from typing import Any
+
+import numpy as np
+
+from mutualslam_cli.config import VOConfig
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.vo.frontend import FrontEnd
+from mutualslam_cli.vo.journal import Event
+from mutualslam_cli.vo.local_ba import BAProblem
+from mutualslam_cli.vo.state import Tracks
+from mutualslam_cli.vo.tracking import build_pyramid
+
+_SCALARS = ("frame", "segment", "n_at_kf", "last_kf", "n_tracked", "n_reprojected", "ba_due", "lost_at", "vel_dt",
+            "t_prev", "wall_s")
+_TRACK_ARRAYS = ("raw", "px", "xn", "pid", "host", "f_h", "px_h", "kf_px", "at_kf")
+
+
+def resumable(fe: FrontEnd) -> bool:
+    """Whether ``fe``'s state after its last frame can be captured (tracking, no initialisation under way)."""
+    return fe.state == "tracking" and fe.ref is None and fe.frame >= 0
+
+
+def capture(fe: FrontEnd) -> dict[str, np.ndarray]:
+    """``fe``'s state besides its map, as arrays (``header``: uint8 JSON of the scalars)."""
+    if not resumable(fe):
+        raise ValueError("the front end is not at a resumable frame")
+    tr = fe.tracks
+    header: dict[str, Any] = {k: getattr(fe, k) for k in _SCALARS}
+    header.update(timing=fe.timing, ba_stats=fe.mapper.stats, kf_imgs=sorted(fe.kf_imgs),
+                  reloc=None if fe.reloc is None else {"keyframes": sorted(fe.reloc.images),
+                                                        "rejected": fe.reloc.rejected})
+    out = {"header": np.frombuffer(json.dumps(header, default=float).encode("utf-8"), np.uint8),
+           "T_cw": fe.T_cw.copy(), "vel": fe.vel.copy()}
+    for k in _TRACK_ARRAYS:
+        out[f"tr.{k}"] = np.asarray(getattr(tr, k)).copy()
+    for k, v in tr.seed.items():
+        out[f"tr.seed.{k}"] = v.copy()
+    job = fe.mapper.job  # a windowed BA in flight: its problem, solved again on restore (deterministic)
+    if job is not None:
+        out.update({"job.kf": np.array([job.kf], np.int64), "job.kfs": np.array(job.kfs, np.int64),
+                    "job.free": job.free, "job.pids": np.array(job.pids, np.int64),
+                    "job.o_id": np.array(job.o_id, np.int64).reshape(-1, 2)})
+        out.update({f"job.prob.{f.name}": np.asarray(getattr(job.prob, f.name)) for f in fields(BAProblem)})
+    out["tr.obs_n"] = np.array([len(o) for o in tr.obs], np.int64)
+    out["tr.obs_kf"] = np.array([k for o in tr.obs for k, _ in o], np.int64)
+    out["tr.obs_px"] = np.array([p for o in tr.obs for _, p in o], np.float64).reshape(-1, 2)
+    return out
+
+
+def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: Any) -> FrontEnd:
+    """A front end in the state ``ckpt`` (a :func:`capture`) describes, with its map rebuilt from
+    ``events`` (the journal up to the captured frame). New events go to a fresh journal."""
+    fe = FrontEnd(seq, cfg, seed)
+    journal = fe.journal
+    fe.state_map.journal = fe.map.journal = None  # the replay is the past: not journaled again
+    for e in events:
+        fe.state_map.apply(e)
+    fe.state_map.journal = fe.map.journal = journal
+    h = json.loads(bytes(np.asarray(ckpt["header"], np.uint8)).decode("utf-8"))
+    for k in _SCALARS:
+        setattr(fe, k, type(getattr(fe, k))(h[k]))
+    fe.timing = {k: float(v) for k, v in h["timing"].items()}
+    fe.mapper.stats = list(h["ba_stats"])
+    fe.T_cw, fe.vel = np.array(ckpt["T_cw"]), np.array(ckpt["vel"])
+    fe.state, fe.ref = "tracking", None
+    gray_of = {k: seq.load_gray(fe.map.kf_frame[k]) for k in set(h["kf_imgs"]) | set((h["reloc"] or {}).get(
+        "keyframes", []))}
+    fe.kf_imgs = {k: gray_of[k] for k in h["kf_imgs"]}
+    if fe.reloc is not None and h["reloc"] is not None:
+        for k in h["reloc"]["keyframes"]:
+            fe.reloc.add_keyframe(k, gray_of[k])
+        fe.reloc.rejected = int(h["reloc"]["rejected"])
+    tr = Tracks.empty()
+    for k in _TRACK_ARRAYS:
+        setattr(tr, k, np.array(ckpt[f"tr.{k}"]))
+    tr.seed = {k: np.array(ckpt[f"tr.seed.{k}"]) for k in tr.seed}
+    cut = np.cumsum(np.asarray(ckpt["tr.obs_n"]))[:-1] if len(ckpt["tr.obs_n"]) else []
+    kfs = np.split(np.asarray(ckpt["tr.obs_kf"]), cut) if len(ckpt["tr.obs_n"]) else []
+    pxs = np.split(np.asarray(ckpt["tr.obs_px"]), cut) if len(ckpt["tr.obs_n"]) else []
+    tr.obs = [[(int(k), p) for k, p in zip(ks.tolist(), px)] for ks, px in zip(kfs, pxs)]
+    fe.tracks = tr
+    if "job.kf" in ckpt:
+        prob = BAProblem(**{f.name: np.array(ckpt[f"job.prob.{f.name}"]) for f in fields(BAProblem)})
+        fe.mapper.resume(int(ckpt["job.kf"][0]), [int(k) for k in ckpt["job.kfs"]], np.array(ckpt["job.free"]),
+                         [int(p) for p in ckpt["job.pids"]], [tuple(map(int, o)) for o in ckpt["job.o_id"]], prob)
+    fe.prev_pyr = build_pyramid(seq.load_gray(fe.frame), cfg.klt_window, cfg.klt_levels)
+    fe.journal.frame = fe.frame
+    return fe
+
+

@@ -1,0 +1,109 @@
+"""What the network's side hands back to the map while the front end runs (the mutual loop, DESIGN §5).
+
+Two changes reach the map between frames: a new segment joined to the map before it
+(:meth:`FeedbackMixin.transform_segment`, a similarity from :mod:`~mutualslam_cli.vo.segments`) and
+a global BA's refinement (:class:`MapRefinement`: keyframe poses, point depths and host pixels,
+removed points). Each is applied to a :class:`~mutualslam_cli.vo.map_state.MapState` — the live
+front end's (journaled, so the adaptation loop's replica follows) or, when there is no live front
+end (hindsight labels, an oracle), the loop's own — and the front end goes on from it: its current
+pose follows its reference keyframe, seeds follow their hosts, tracks of removed points end.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.vo.camera import to_normalized
+from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.vo.result import VOResult
+
+
+@dataclass
+class MapRefinement:
+    """A global BA's changes to a map.
+
+    Attributes:
+        kfs: ``(n,)`` keyframes whose pose changed; T_wc: ``(n, 4, 4)`` their new poses.
+        pids: ``(m,)`` points whose inverse depth or host pixel changed; rho: ``(m,)`` new inverse
+            depths (1/map units); px_h: ``(m, 2)`` new host pixels (undistorted pinhole).
+        removed: ``(r,)`` points culled (Eq. 10) or dropped as outliers.
+    """
+
+    kfs: np.ndarray
+    T_wc: np.ndarray
+    pids: np.ndarray
+    rho: np.ndarray
+    px_h: np.ndarray
+    removed: np.ndarray
+
+    @staticmethod
+    def between(before: VOResult, after: VOResult, removed: np.ndarray) -> "MapRefinement":
+        """What changed from ``before`` to ``after`` (same keyframes, same point ids), plus ``removed`` ids."""
+        kfs = [k.id for k, a in zip(before.keyframes, after.keyframes) if not np.array_equal(k.pose, a.pose)]
+        pb, pa = before.points, after.points
+        if not np.array_equal(pb.ids, pa.ids):
+            raise ValueError("MapRefinement.between: the two maps hold different points")
+        changed = (pb.inv_depth != pa.inv_depth) | np.any(pb.pixel != pa.pixel, axis=1)
+        changed &= ~np.isin(pb.ids, removed)
+        by_id = {k.id: k for k in after.keyframes}
+        return MapRefinement(np.array(kfs, np.int64), np.array([by_id[k].pose for k in kfs]).reshape(-1, 4, 4),
+                             pa.ids[changed], pa.inv_depth[changed], pa.pixel[changed],
+                             np.asarray(removed, np.int64).reshape(-1))
+
+
+def apply_refinement(state: MapState, r: MapRefinement) -> None:
+    """Write ``r`` into ``state``'s map: poses, depths, host pixels, removals, then the world positions
+    of every point whose host moved or which changed."""
+    m = state.map
+    m.set_poses(r.kfs, r.T_wc)
+    m.set_depths(r.pids, r.rho)
+    m.set_host_pixels(r.pids, r.px_h, to_normalized(r.px_h, state.K))
+    m.remove_points(r.removed)
+    moved = set(r.kfs.tolist())
+    touched = set(r.pids.tolist()) | {p for p, h in enumerate(m.host) if h in moved}
+    touched -= set(r.removed.tolist())
+    ids = np.array(sorted(p for p in touched if np.isfinite(m.rho[p])), np.int64)
+    m.refresh(ids)
+
+
+class FeedbackMixin:
+    """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that take the network
+    side's changes between two frames."""
+
+    def settle(self) -> None:
+        """Apply the pending windowed BA now, so the map is whole before it is read or changed."""
+        self._collect_ba()
+
+    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float) -> None:
+        """Move ``segment`` by ``x ↦ s·R·x + t`` (a bridge) and go on tracking in that frame and unit."""
+        self.settle()
+        self.state_map.transform_segment(segment, R, t, s)
+        if segment != self.segment or self.state != "tracking":
+            return
+        T = se3_inv(self.T_cw)
+        T[:3, :3] = R @ T[:3, :3]
+        T[:3, 3] = s * R @ T[:3, 3] + t
+        self.T_cw = se3_inv(T)
+        self.vel = self.vel.copy()
+        self.vel[:3, 3] *= s  # a motion between two camera frames: its translation in the new unit
+        tr = self.tracks
+        in_seg = np.array([sg == segment for sg in self.map.kf_segment], bool)
+        seeds = (tr.pid < 0) & in_seg[np.clip(tr.host, 0, len(in_seg) - 1)] if len(tr) else np.zeros(0, bool)
+        tr.seed["mu"][seeds] /= s  # inverse distances along the host bearings
+        tr.seed["sigma2"][seeds] /= s * s
+        tr.seed["z_range"][seeds] /= s
+
+    def refine(self, r: MapRefinement) -> None:
+        """Take a global BA's refinement and go on from it: the current pose follows its reference
+        keyframe's correction; tracks of removed points end."""
+        self.settle()
+        ref = self.last_kf
+        old = self.map.kf_T_wc[ref].copy() if ref >= 0 else None
+        apply_refinement(self.state_map, r)
+        if old is not None and self.state == "tracking":
+            self.T_cw = se3_inv(self.map.kf_T_wc[ref] @ se3_inv(old) @ se3_inv(self.T_cw))
+        if len(r.removed) and len(self.tracks):
+            self.tracks = self.tracks.select(~np.isin(self.tracks.pid, r.removed))
