@@ -53,8 +53,6 @@ import cv2
 import numpy as np
 import torch
 
-from mutualslam_cli.adapt.inference import resolve_runtime
-from mutualslam_cli.adapt.inputs import make_predictor
 from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.dense import scaling, tsdf
@@ -66,7 +64,7 @@ from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.dense_frames import FusedFrame, front_end_scales, select_frames
-from mutualslam_cli.stages.evaluation import calibration_frames
+from mutualslam_cli.stages.evaluation import predictors_for
 from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.camera import Undistorter, pinhole
@@ -280,8 +278,7 @@ def _predict(tmp: Path, seq: Sequence, vo: VOResult, fused: list[FusedFrame], ne
     rgbs = np.lib.format.open_memmap(tmp / "rgb.npy", "w+", np.uint8, (len(fused), h, w, 3))
     if len(need) < OPENVINO_MIN_FRAMES:
         cfg = with_overrides(cfg, net={"runtime": "torch"})
-    calib = calibration_frames(seq) if resolve_runtime(cfg.net.runtime, cfg.net.fast) == "openvino-int8" else None
-    predictors = {m: make_predictor(net, cfg, fast, calib) for m, net in nets.items()}
+    predictors = predictors_for(seq, nets, cfg, fast)
     vo_scale = front_end_scales(seq, vo, cfg)
     pw = vo.points_world()
     ratios: dict[str, list[tuple[float, float]]] = {m: [] for m in nets}

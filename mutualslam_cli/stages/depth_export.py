@@ -26,11 +26,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from mutualslam_cli.adapt.inputs import make_predictor
 from mutualslam_cli.atomic import atomic_path, atomic_write_text, atomic_write_with
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.evaluation import predictors_for
 from mutualslam_cli.vo.camera import Undistorter
 
 log = logging.getLogger(__name__)
@@ -63,8 +63,7 @@ def predict_frames(seq: Sequence, frames: list[int], nets: dict[str, torch.nn.Mo
     rgbs = [und.image(seq.load_rgb(i)) for i in frames]
     gts = [None if seq.frames[i].depth_path is None else und.depth(seq.load_depth(i)) for i in frames]
     out: dict[str, list[np.ndarray]] = {}
-    for name, net in nets.items():
-        predict = make_predictor(net, run.cfg, fast)
+    for name, predict in predictors_for(seq, nets, run.cfg, fast).items():
         out[name] = [cv2.resize(np.asarray(d, np.float32), (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_LINEAR)
                      for rgb, d in zip(rgbs, (predict([rgb])[0] for rgb in rgbs))]
     return rgbs, out, gts

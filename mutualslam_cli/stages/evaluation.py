@@ -130,6 +130,14 @@ def calibration_frames(seq: Sequence, n: int = CALIBRATION_FRAMES) -> list[np.nd
     return [und.image(seq.load_rgb(int(i))) for i in idx]
 
 
+def predictors_for(seq: Sequence, nets: dict[str, torch.nn.Module], cfg: RunConfig,
+                   fast: bool) -> dict[str, Callable[[list[np.ndarray]], np.ndarray]]:
+    """One batched predictor per model (:func:`~mutualslam_cli.adapt.inputs.make_predictor`), in the runtime the
+    config resolves to; the int8 runtime is calibrated on :func:`calibration_frames` of ``seq`` (read once)."""
+    calib = calibration_frames(seq) if resolve_runtime(cfg.net.runtime, cfg.net.fast) == "openvino-int8" else None
+    return {name: make_predictor(net, cfg, fast, calib) for name, net in nets.items()}
+
+
 def model_digest(net: torch.nn.Module) -> str:
     """Short SHA-1 of a model's state dict (names and values): the identity of its weights."""
     h = hashlib.sha1()
@@ -158,12 +166,8 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
     }, sort_keys=True, default=str).encode()).hexdigest()[:16]
     path = Path(cache_dir) / f"{seq.name}-{key}.csv" if cache_dir is not None else None
     cached = pd.read_csv(path) if path is not None and path.is_file() else None
-    calib = calibration_frames(seq) if resolve_runtime(cfg.net.runtime, cfg.net.fast) == "openvino-int8" else None
-    predictors = {}
-    if cached is None:
-        predictors["pretrained"] = make_predictor(net0, cfg, fast, calib)
-    if net is not None:
-        predictors["adapted"] = make_predictor(net, cfg, fast, calib)
+    predictors = predictors_for(seq, {k: m for k, m in (("pretrained", net0 if cached is None else None),
+                                                          ("adapted", net)) if m is not None}, cfg, fast)
     if not predictors:  # scheme none with a cached pre-trained evaluation
         table, ms = cached.copy(), {}
     else:
