@@ -125,12 +125,16 @@ class AdaptConfig:
     """ξ damping of SI's importance (Zenke et al.)."""
     steps_per_keyframe: int = 8
     """Optimiser steps per training keyframe (the paper's loop is asynchronous and does not fix it)."""
+    labels: Literal["causal", "hindsight"] = "causal"
+    """``causal``: the front end and Algorithm 1 share one clock — a step or validation at time t uses the map
+    as it stood at t, bridges and global BAs reach the front end then (DESIGN §5). ``hindsight`` (a diagnostic):
+    the front end runs to the end first, every keyframe is trained on the final map, segments bridged after it."""
     schedule: Literal["fixed", "realtime"] = "fixed"
-    """``fixed``: ``steps_per_keyframe`` steps each; ``realtime``: the steps that fit, at ``step_cost_ms``
-    each, into the sequence time until the next keyframe (at most ``max_steps``; the paper's asynchronous
-    loop on a given machine)."""
-    step_cost_ms: float = 250.0
-    """``realtime``: the cost of one optimiser step, ms of sequence time (250: the paper's GPU, DESIGN §10)."""
+    """``fixed``: ``steps_per_keyframe`` steps each; ``realtime``: the loop on the sequence's clock, every piece
+    of its work charged, trained until the next keyframe arrives (:mod:`~mutualslam_cli.stages.realtime`)."""
+    step_cost_ms: float | Literal["measured"] = 250.0
+    """``realtime``: the cost of one optimiser step, ms of sequence time (250: the paper's GPU, DESIGN §10);
+    ``measured``: this machine's step, all other work at its wall time (:mod:`~mutualslam_cli.stages.realtime`)."""
     max_steps: int = 32
     """``realtime``: cap on one keyframe's steps (a camera at rest makes long keyframe intervals)."""
     train_width: int = 0
@@ -157,11 +161,9 @@ class AdaptConfig:
     replay_capacity: int = 0
     """Keyframes kept for replay (0 = all, stored at network resolution)."""
     luo_window: int = 3
-    """Scheme ``luo``: the most recent training keyframes (the target included) among which a
-    target's stereo partners are sought, so it has at most ``luo_window − 1`` sources. 3 bounds
-    that at 2, the sources of Eq. 3, so a step costs what ``recent``'s does. Measured on our front
-    end's keyframes of tum_fr1_xyz, redkitchen_7scenes and icl_lr_kt2 (default rule), windows 4
-    and 5 find a partner for exactly as many keyframes as 3 does. Must be ≥ 2."""
+    """Scheme ``luo``: the most recent training keyframes (target included) searched for its stereo partners
+    (≤ ``luo_window − 1`` sources; 3: Eq. 3's two, a step costs what ``recent``'s does; 4 and 5 found no more
+    partners on tum_fr1_xyz, redkitchen_7scenes, icl_lr_kt2). ≥ 2."""
     luo_min_horizontal_ratio: float = 0.8
     """Scheme ``luo``: a keyframe pair is a simulated stereo pair only if |t_x| / ‖t‖ ≥ this, t the
     partner's camera centre in the target camera's frame (x: along the image rows). 0.8 = at most

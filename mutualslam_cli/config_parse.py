@@ -162,8 +162,10 @@ def check_run(cfg: Any) -> None:
         (cfg.adapt.validate_every >= 1, "adapt.validate_every (m) must be ≥ 1"),
         (cfg.adapt.patience >= 1, "adapt.patience (n) must be ≥ 1"),
         (cfg.adapt.steps_per_keyframe >= 1, "adapt.steps_per_keyframe must be ≥ 1"),
-        (cfg.adapt.step_cost_ms > 0 and cfg.adapt.max_steps >= 1,
-         "adapt.step_cost_ms must be > 0, adapt.max_steps ≥ 1"),
+        ((cfg.adapt.step_cost_ms == "measured" or cfg.adapt.step_cost_ms > 0) and cfg.adapt.max_steps >= 1,
+         "adapt.step_cost_ms must be > 0 or 'measured', adapt.max_steps ≥ 1"),
+        (cfg.vo.inject_outliers == 0 or cfg.adapt.labels == "hindsight",
+         "vo.inject_outliers corrupts the finished front end's map: it needs adapt.labels=hindsight"),
         (cfg.adapt.train_width % 32 == 0 and cfg.adapt.train_height % 32 == 0
          and 0 <= cfg.adapt.train_width <= cfg.net.width and 0 <= cfg.adapt.train_height <= cfg.net.height,
          "adapt.train_width/train_height must be multiples of 32 in [0, net.width/net.height] (0 = the net's)"),

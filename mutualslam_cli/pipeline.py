@@ -45,6 +45,7 @@ from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages import adaptation, dense, depth_export, evaluation, frontend
 from mutualslam_cli.stages.ba import BAStage
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.frontend import FRONTEND_FILE, load_frontend_file, save_frontend
 from mutualslam_cli.types import Progress
 
 log = logging.getLogger(__name__)
@@ -148,17 +149,21 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     """Algorithm 1 around a sequence, in its run folder, under the folder's lock."""
     cfg = run.cfg
     write_yaml(run.folder / "config.yaml", to_dict(cfg))
-    fe = frontend.run_stage(run)  # keyframes, map, trajectory (cached per sequence: every scheme reuses it)
     fast = use_fast_path(cfg)
     net0 = load_network(cfg, fast)  # the pre-trained model
-    ba = BAStage(run, fe)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
-    adapted = adaptation.run_stage(run, fe, net0, fast, ba.step)  # online fine-tuning, Algorithm 1
-    ba.finish(adapted, fast)
+    ba = BAStage(run)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
+    adapted = adaptation.run_stage(run, net0, fast, ba if cfg.ba.enabled else None)  # front end + Algorithm 1
+    src = adapted.source
+    fe = frontend.run_stage(run, adapted.frontend, src.replayed, adapted.injected,
+                            src.changed_at if src.live_feedback else None)  # the front end's map and trajectories
+    ba.finish(adapted, fe, fast)
     evaluation.run_stage(run, fe, net0, adapted, fast)  # both models' depth on every frame with GT
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:
         dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
-    return _finish(run, fe, ba, adapted.map.meta.get("bridges", []), command, t_start)
+    if cfg.eval.save_weights and src.live_feedback:  # `mslam fuse` needs this run's front end, not the cache's
+        save_frontend(run.folder / FRONTEND_FILE, adapted.frontend)
+    return _finish(run, fe, ba, adapted.bridges or [], command, t_start)
 
 
 def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, bridges: list[dict[str, Any]],
@@ -240,7 +245,8 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
     with hold_lock(folder, "mslam fuse"):
         cfg = use_threads(cfg)
         seq = open_sequence(seq if seq is not None else root, cfg, registry)
-        vo, _, _ = frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)
+        vo = (load_frontend_file(folder / FRONTEND_FILE) if (folder / FRONTEND_FILE).is_file() else
+              frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)[0])
         fast = use_fast_path(cfg)
         nets = {"pretrained": load_network(cfg, fast), "adapted": prepare(load_monodepth2(
             wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast) if adapted else None}

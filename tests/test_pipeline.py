@@ -13,11 +13,12 @@ import yaml
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.report.tables import build_tables, collect, write_report
 from mutualslam_cli.results.summary import SUMMARY_KEYS, flatten
 from mutualslam_cli.stages.ba import BA_KEYS
-from mutualslam_cli.stages.frontend import vo_cache_key
+from mutualslam_cli.stages.vo_cache import vo_cache_key
 
 
 @pytest.fixture(scope="module")
@@ -199,7 +200,8 @@ def test_ablate_grid_resumes(setup):
 def test_injected_outliers_are_counted(setup, default_run):
     tmp, seq = setup
     on = flatten(default_run.summary)
-    r = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "ba.final=always"), out=tmp / "outl")
+    r = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "adapt.labels=hindsight", "ba.final=always"),
+                     out=tmp / "outl")
     flat = flatten(r.summary)
     assert flat["map.outliers.injected"] == round(0.2 * on["map.points.vo"]) > 0
     assert flat["map.points.vo"] == on["map.points.vo"] and flat["map.esi.vo"] > on["map.esi.vo"]
@@ -207,9 +209,12 @@ def test_injected_outliers_are_counted(setup, default_run):
     assert 0 <= flat["map.outliers.dropped"] <= 1
     # the knob is applied to the cached front end, not part of its key
     loaded = load_sequence(seq)
-    assert vo_cache_key(loaded, _cfg(tmp, "vo.inject_outliers=0.2")) == vo_cache_key(loaded, _cfg(tmp))
-    nc = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "ba.culling=false", "ba.final=always"),
+    hindsight = "adapt.labels=hindsight"
+    assert vo_cache_key(loaded, _cfg(tmp, "vo.inject_outliers=0.2", hindsight)) == vo_cache_key(loaded, _cfg(tmp))
+    nc = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", hindsight, "ba.culling=false", "ba.final=always"),
                       out=tmp / "outl_nc")
+    with pytest.raises(ConfigError, match="inject_outliers .* needs adapt.labels=hindsight"):
+        _cfg(tmp, "vo.inject_outliers=0.2")
     assert nc.summary["map"]["outliers"]["culled"] is None
     assert "no culling" in nc.summary["notes"]["map.outliers.culled"]
 

@@ -3,9 +3,11 @@
 What is stored (DESIGN §5, paper §III-A/B):
 
 - Every keyframe's *metadata* (K, pose, sparse points) is kept for the whole run (a few KB
-  each), so BA-refined poses and points (:meth:`KeyframeBuffer.update_poses`,
-  :meth:`KeyframeBuffer.update_sparse`) reach every keyframe that is still trained on or
-  validated (paper §III-A: "the keyframe graph … is beneficial for improving the training loss").
+  each). With a :class:`LabelSource` (the pipeline's), pose and sparse points are read from the
+  map *when they are used*, so a replayed keyframe trains on the map as it stands then — refined by
+  BA, grown by later observations (paper §III-A: "the keyframe graph … is beneficial for improving
+  the training loss") — and never on a later one (DESIGN §5). Without one, the values given at
+  arrival are used, replaced by :meth:`KeyframeBuffer.update_poses` / :meth:`KeyframeBuffer.update_sparse`.
 - Images are kept at network resolution, as uint8 when that is lossless (images decoded from
   8-bit files, the pipeline's case: 4× less memory), else as given. With ``capacity == 0`` every
   image is kept. With ``capacity = C > 0``:
@@ -28,7 +30,7 @@ from __future__ import annotations
 import logging
 from bisect import bisect_left
 from dataclasses import dataclass, replace
-from typing import Mapping
+from typing import Mapping, Protocol
 
 import numpy as np
 import torch
@@ -37,6 +39,17 @@ from mutualslam_cli.errors import ConfigError, KeyframeError
 from mutualslam_cli.types import check_shape
 
 log = logging.getLogger(__name__)
+
+
+class LabelSource(Protocol):
+    """Where a stored keyframe's pose and sparse depth are read at the time they are used (the online
+    rule, DESIGN §5): the map as it stands then, not as it stood when the keyframe arrived."""
+
+    def pose(self, kf_id: int) -> np.ndarray:
+        """``(4, 4)`` ``T_wc`` of the keyframe now."""
+
+    def sparse(self, kf_id: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``uv (M, 2)`` at network resolution and ``depth (M,)`` (map units) of its map points now."""
 
 
 @dataclass
@@ -107,10 +120,11 @@ class KeyframeBuffer:
         ConfigError: ``capacity`` is negative or 1–2.
     """
 
-    def __init__(self, capacity: int = 0, seed: int = 0) -> None:
+    def __init__(self, capacity: int = 0, seed: int = 0, labels: LabelSource | None = None) -> None:
         if capacity < 0 or 0 < capacity < 3:
             raise ConfigError(f"adapt.replay_capacity must be 0 (unbounded) or >= 3, got {capacity}")
         self.capacity = capacity
+        self.labels = labels
         self._meta: dict[int, KeyframeSample] = {}  # every keyframe, image dropped when evicted
         self._images: dict[int, torch.Tensor] = {}
         self._train: list[int] = []  # all training ids ever, arrival order
@@ -182,7 +196,11 @@ class KeyframeBuffer:
         if kf_id not in self._images:
             raise KeyframeError(f"keyframe {kf_id} is not stored (unknown or evicted)")
         img = self._images[kf_id]
-        return replace(self._meta[kf_id], image=img.float().div_(255.0) if img.dtype == torch.uint8 else img)
+        meta = self._meta[kf_id]
+        if self.labels is not None:  # the map as it stands now (DESIGN §5), not as it stood at arrival
+            uv, d = self.labels.sparse(kf_id)
+            meta = replace(meta, pose=self.labels.pose(kf_id), uv=uv, depth=d)
+        return replace(meta, image=img.float().div_(255.0) if img.dtype == torch.uint8 else img)
 
     def pose(self, kf_id: int) -> np.ndarray:
         """A copy of the current ``(4, 4)`` ``T_wc`` of a known keyframe (its image stored or not), without its image.
@@ -192,7 +210,7 @@ class KeyframeBuffer:
         """
         if kf_id not in self._meta:
             raise KeyframeError(f"keyframe {kf_id} is unknown")
-        return self._meta[kf_id].pose.copy()
+        return self.labels.pose(kf_id) if self.labels is not None else self._meta[kf_id].pose.copy()
 
     def segment(self, kf_id: int) -> int:
         """The tracking segment of a known keyframe (:attr:`KeyframeSample.segment`).

@@ -37,16 +37,26 @@ def scale_pixels(uv: np.ndarray, src: Intrinsics, width: int, height: int) -> np
     return (uv + 0.5) * s - 0.5
 
 
-def keyframe_images(seq: Sequence, vo: VOResult, width: int, height: int) -> Callable[[int], torch.Tensor]:
-    """A loader ``kf_id → (3, height, width)`` of keyframe images, undistorted to ``vo.intrinsics``.
+def frame_lookup(keyframes: VOResult | Callable[[int], int]) -> Callable[[int], int]:
+    """``kf_id → frame index``: of a map's keyframes, or the given function (a map that grows)."""
+    if isinstance(keyframes, VOResult):
+        return lambda kf_id: keyframes.keyframes[kf_id].frame_index
+    return keyframes
 
-    The same :class:`~mutualslam_cli.vo.camera.Undistorter` geometry as the evaluation's
+
+def keyframe_images(seq: Sequence, keyframes: VOResult | Callable[[int], int], width: int,
+                    height: int) -> Callable[[int], torch.Tensor]:
+    """A loader ``kf_id → (3, height, width)`` of keyframe images, undistorted to the pinhole camera.
+
+    ``keyframes``: the map whose keyframes are read, or ``kf_id → frame index``. The same
+    :class:`~mutualslam_cli.vo.camera.Undistorter` geometry as the evaluation's
     (:func:`mutualslam_cli.stages.evaluation.evaluate_depth`).
     """
     und = Undistorter(seq.intrinsics)
+    frame_of = frame_lookup(keyframes)
 
     def load(kf_id: int) -> torch.Tensor:
-        return to_net_image(und.image(seq.load_rgb(vo.keyframes[kf_id].frame_index)), width, height)
+        return to_net_image(und.image(seq.load_rgb(frame_of(kf_id))), width, height)
 
     return load
 

@@ -45,7 +45,7 @@ import torch
 from torch import nn
 
 from mutualslam_cli.adapt import losses
-from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
+from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample, LabelSource
 from mutualslam_cli.adapt.depthnet import fast_context, freeze_encoder_stages, make_adam
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
 from mutualslam_cli.adapt.schemes import get_scheme
@@ -60,7 +60,7 @@ from mutualslam_cli.adapt.state import (
     step,
 )
 from mutualslam_cli.config import AdaptConfig
-from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.errors import ConfigError, TransitionError
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.types import check_shape
 
@@ -121,6 +121,8 @@ class OnlineAdapter:
         val_fn: L_sparse with the signature of :func:`mutualslam_cli.adapt.losses.sparse_depth_loss`.
         val_scope: ``"all"`` validation keyframes so far (default) or ``"current"`` only.
         reg_mode: ``"prox"`` (default) or ``"penalty"``, how the regulariser enters the update.
+        labels: where stored keyframes' poses and sparse depths are read when used (the map as it stands
+            then, DESIGN §5); ``None``: the values each sample arrived with.
 
     Raises:
         ConfigError: unknown scheme, bad capacity, anchor, ``val_scope`` or FSM constants.
@@ -129,7 +131,8 @@ class OnlineAdapter:
     def __init__(self, net: nn.Module, cfg: AdaptConfig, K_net: torch.Tensor | np.ndarray, seed: int = 0,
                  fast: bool = False, on_global_ba: Callable[[StepInfo], None] | None = None, *,
                  loss_fn: LossFn | None = None, val_fn: ValFn | None = None,
-                 val_scope: Literal["all", "current"] = "all", reg_mode: Literal["prox", "penalty"] = "prox") -> None:
+                 val_scope: Literal["all", "current"] = "all", reg_mode: Literal["prox", "penalty"] = "prox",
+                 labels: LabelSource | None = None) -> None:
         if loss_fn is None or val_fn is None:
             loss_fn = loss_fn or losses.train_loss
             val_fn = val_fn or losses.sparse_depth_loss
@@ -144,7 +147,8 @@ class OnlineAdapter:
         self.on_global_ba = on_global_ba
         self.loss_fn, self.val_fn, self.val_scope = loss_fn, val_fn, val_scope
         self.scheme = get_scheme(cfg.scheme, cfg)
-        self.buffer = KeyframeBuffer(cfg.replay_capacity, seed=seed + 1)
+        self.buffer = KeyframeBuffer(cfg.replay_capacity, seed=seed + 1, labels=labels)
+        self._pending: tuple[StepInfo, dict[str, object], float] | None = None  # a batch waiting for its steps
         self.rng = np.random.default_rng(seed)
         if cfg.freeze_stages:
             freeze_encoder_stages(net, cfg.freeze_stages)
@@ -161,7 +165,8 @@ class OnlineAdapter:
 
     # ------------------------------------------------------------------ public
     def add_keyframe(self, sample: KeyframeSample, steps: int | None = None) -> StepInfo:
-        """Consume one keyframe: one tick of Algorithm 1.
+        """Consume one keyframe: one tick of Algorithm 1, its fine-tuning included (:meth:`begin_keyframe`
+        then :meth:`train_pending`).
 
         Args:
             sample: the keyframe at network resolution (see :class:`KeyframeSample`).
@@ -173,6 +178,17 @@ class OnlineAdapter:
         Raises:
             ShapeError: malformed sample.
         """
+        info = self.begin_keyframe(sample)
+        self.train_pending(self.cfg.steps_per_keyframe if steps is None else steps)
+        return info
+
+    def begin_keyframe(self, sample: KeyframeSample) -> StepInfo:
+        """One tick of Algorithm 1 up to the optimiser steps: a validation keyframe (every m-th) is stored
+        and L_val computed (the FSM may request global BA: ``info.run_global_ba``); another is stored and,
+        when the scheme trains, its batch assembled now — its labels are the map's now — and kept for
+        :meth:`train_pending`, which must come before the next keyframe."""
+        if self._pending is not None:
+            raise TransitionError("train_pending() the previous keyframe's batch before the next keyframe")
         t0 = time.perf_counter()
         t = self.fsm.t
         info = StepInfo(kf_id=sample.kf_id, t=t, state=self.fsm.mode.value, is_validation=False, trained=False)
@@ -185,17 +201,37 @@ class OnlineAdapter:
         else:
             self.buffer.add(sample, training=True)
             self.fsm, actions = step(self.fsm, TrainingKeyframe(), self.fsm_params)
-            if Action.FINE_TUNE in actions:
-                self._fine_tune(sample.kf_id, info, self.cfg.steps_per_keyframe if steps is None else steps)
+            t_batch = time.perf_counter()
+            batch = self._begin_fine_tune(sample.kf_id, info) if Action.FINE_TUNE in actions else None
+            if batch is not None:
+                self._pending = (info, batch, 1000.0 * (time.perf_counter() - t_batch))
             self.fsm, _ = step(self.fsm, FineTuneDone(), self.fsm_params)
         info.state = self.fsm.mode.value
         info.n_converged = self.fsm.n_converged
         info.ms = 1000.0 * (time.perf_counter() - t0)
         self.history.append(info)
-        log.debug("kf %d t=%d val=%s trained=%s loss=%s l_val=%s n_conv=%d ba=%s", info.kf_id, t, info.is_validation,
-                  info.trained, info.loss, info.l_val, info.n_converged, info.run_global_ba)
+        log.debug("kf %d t=%d val=%s l_val=%s n_conv=%d ba=%s", info.kf_id, t, info.is_validation, info.l_val,
+                  info.n_converged, info.run_global_ba)
         if info.run_global_ba and self.on_global_ba is not None:
             self.on_global_ba(info)
+        return info
+
+    @property
+    def pending(self) -> StepInfo | None:
+        """The keyframe whose batch waits for :meth:`train_pending` (``None``: none)."""
+        return None if self._pending is None else self._pending[0]
+
+    def train_pending(self, steps: int) -> StepInfo | None:
+        """Alg. 2 on the batch :meth:`begin_keyframe` assembled: ``steps`` Adam steps (+ regulariser), then
+        the regulariser's consolidation; returns the keyframe's (updated) :class:`StepInfo`, ``None`` when
+        no batch waits."""
+        if self._pending is None:
+            return None
+        info, batch, batch_ms = self._pending
+        self._pending = None
+        t0 = time.perf_counter()
+        self._fine_tune(batch, info, steps, batch_ms)
+        info.ms += 1000.0 * (time.perf_counter() - t0)
         return info
 
     def update_poses(self, poses: Mapping[int, np.ndarray]) -> int:
@@ -288,16 +324,20 @@ class OnlineAdapter:
             out.append([torch.zeros_like(p) if g is None else g.detach() for p, g in zip(self.params, grads)])
         return out
 
-    def _fine_tune(self, kf_id: int, info: StepInfo, steps: int) -> None:
-        """Alg. 2 for one keyframe: ``steps`` Adam steps on L_train (+ regulariser)."""
-        if not self.scheme.trains or self.optimizer is None or steps <= 0:
-            return
-        t0 = time.perf_counter()
+    def _begin_fine_tune(self, kf_id: int, info: StepInfo) -> dict[str, object] | None:
+        """Keyframe ``kf_id``'s batch (the scheme's selection, labels as they stand now); ``None``: nothing to train."""
+        if not self.scheme.trains or self.optimizer is None:
+            return None
         info.sources = self.scheme.sources(self.buffer, kf_id)
-        batch = self._make_batch(self.scheme.select(self.buffer, kf_id, self.rng))
-        if batch is None:
+        return self._make_batch(self.scheme.select(self.buffer, kf_id, self.rng))
+
+    def _fine_tune(self, batch: dict[str, object], info: StepInfo, steps: int, batch_ms: float) -> None:
+        """Alg. 2 for one keyframe: ``steps`` Adam steps on L_train (+ regulariser), then consolidation
+        (``batch_ms``: what assembling the batch took)."""
+        if steps <= 0:
             return
-        self.batch_ms.append(1000.0 * (time.perf_counter() - t0))
+        self.batch_ms.append(batch_ms)
+        t0 = time.perf_counter()
         reg, cfg = self.regularizer, self.cfg
         if reg is not None:
             reg.before_batch(self.net)  # θ* (Alg. 2 line 4: θ_cpy = θ)
@@ -337,7 +377,7 @@ class OnlineAdapter:
         info.trained = True
         info.steps = steps
         info.batch = list(batch["ids"])
-        self.finetune_ms.append(1000.0 * (time.perf_counter() - t0))
+        self.finetune_ms.append(1000.0 * (time.perf_counter() - t0) + batch_ms)
 
 
 def resample_batch(batch: dict[str, object], width: int, height: int) -> dict[str, object]:

@@ -1,21 +1,31 @@
-"""The adaptation stage of a run (:func:`run_stage`): the front end's keyframes through Algorithm 1
-(DESIGN §1, §5), or every frame through the CoMoDa-style adapter (:mod:`~mutualslam_cli.stages.comoda`).
+"""The adaptation stage of a run: Algorithm 1 over the front end's events (DESIGN §1, §5), or every frame
+through the CoMoDa-style adapter (:mod:`~mutualslam_cli.stages.comoda`).
 
-With a ``global_ba`` step this is the *mutual* loop (paper §III-A, §III-C): when Algorithm 1
-requests global BA after keyframe t, the step culls and refines the map of keyframes ≤ t with the
-current network, and the refined keyframe poses and sparse depths replace those of every stored
-keyframe (:meth:`~mutualslam_cli.adapt.online.OnlineAdapter.update_poses`,
-:meth:`~mutualslam_cli.adapt.online.OnlineAdapter.update_sparse`), so later batches' sparse loss
-and photometric warps use them. Keyframes arriving later are read from the refined map, whose
-later poses followed the correction (:func:`mutualslam_cli.ba.global_ba.run_global_ba`).
+:class:`OnlineLoop` reads as the paper's Algorithm 1 on one clock, the front end's frames. After each
+frame's events (:class:`~mutualslam_cli.stages.event_source.FrontEndSource`) the map —
+:attr:`~mutualslam_cli.stages.event_source.FrontEndSource.state`, the one object that holds it — is the
+map as it stood then, and for each keyframe the frame created:
+
+1. the previous keyframe's optimiser steps, when the realtime schedule waited for this arrival to know them;
+2. the online scores of the frames before it, with the model of their time;
+3. a new tracking segment is joined to the map before it by the network as adapted up to now (a bridge);
+4. Algorithm 1's tick: a validation keyframe's L_val (the FSM may request global BA), or a training
+   keyframe's batch — the newest keyframe plus the scheme's replay — with every label (poses, sparse
+   depths) read from the map now (:class:`MapLabels`);
+5. a requested global BA culls with the network of now, refines the map, and hands the refinement to the
+   front end, which tracks and maps from it (the mutual loop, paper §III-A, §III-C).
+
+With causal labels (``adapt.labels: causal``, the default) bridges and BAs reach the live front end; with
+``hindsight`` (a diagnostic) the front end ran to the end first, labels are the final map's and the changes
+are made to that map only.
 """
 
 from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -26,26 +36,26 @@ from mutualslam_cli.adapt.depthnet import predict_depth, prepare
 from mutualslam_cli.adapt.inputs import keyframe_images, scale_pixels
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.config import RunConfig
-from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.results.run_folder import write_trajectories
-from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages import comoda
+from mutualslam_cli.stages.adaptation_summary import (
+    L_VAL_KEYS,
+    l_val_stats,
+    summarise_bridges,
+    summarise_finetuning,
+    summarise_strength,
+)
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.event_source import FrontEndSource
+from mutualslam_cli.stages.frontend import corrupt
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
-from mutualslam_cli.stages.frontend import FrontEnd
-from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, set_ate
-from mutualslam_cli.types import Progress
-from mutualslam_cli.vo.result import Keyframe, VOResult
-from mutualslam_cli.vo.segments import bridge_segment
+from mutualslam_cli.stages.realtime import RealtimeClock
+from mutualslam_cli.vo.feedback import MapRefinement
+from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.vo.segments import plan_bridge, unbridged
 
 DepthOf = Callable[[int], np.ndarray]
 """``depth_of(kf_id)``: ``(h, w)`` depth of the current network at network resolution, map units."""
-
-GlobalBA = Callable[[VOResult, int, DepthOf, Mapping[int, float]], VOResult]
-"""``global_ba(vo, kf_id, depth_of, val_loss) -> vo'``: culling + global BA of keyframes ≤ ``kf_id``
-of the loop's map ``vo`` with the current network (``val_loss``: L_val per stored keyframe);
-returns the loop's new map (culled points dropped, later keyframes following the correction)."""
 
 
 def depth_predictor(net: torch.nn.Module, load: Callable[[int], torch.Tensor], fast: bool,
@@ -59,105 +69,20 @@ def depth_predictor(net: torch.nn.Module, load: Callable[[int], torch.Tensor], f
     return depth_of
 
 
-def run_adaptation(seq: Sequence, vo: VOResult, net: torch.nn.Module, cfg: RunConfig, fast: bool,
-                   progress: Progress | None = None, global_ba: GlobalBA | None = None,
-                   scorer: OnlineScorer | None = None,
-                   ) -> tuple[torch.nn.Module, list[dict[str, Any]], OnlineAdapter | None, VOResult]:
-    """Feed the keyframes, in order, through Algorithm 1 with the configured scheme.
+class MapLabels:
+    """A keyframe's labels read from the map when they are used (DESIGN §5): pose ``T_wc`` and the sparse
+    depths of the points it observes, at network resolution ``width × height``."""
 
-    Each keyframe is given at network resolution (``cfg.net.width × height``, undistorted) with
-    the map points it observes as sparse depth (map units), from the loop's current map.
+    def __init__(self, state: MapState, width: int, height: int) -> None:
+        self.state, self.width, self.height = state, width, height
 
-    Args:
-        global_ba: run when Algorithm 1 requests global BA (module docstring); ``None``: the
-            request is only recorded (``run_global_ba`` column).
-        scorer: scores the frames before each keyframe with the network of their time
-            (:mod:`~mutualslam_cli.stages.online_eval`); the caller finishes it.
+    def pose(self, kf_id: int) -> np.ndarray:
+        return self.state.pose(kf_id)
 
-    A keyframe that starts a new tracking segment first joins it to the map before it, in its
-    unit, with the current network's depth (``vo.bridge_segments``, :mod:`~mutualslam_cli.vo.segments`).
-
-    Returns:
-        ``(adapted_net, per_keyframe_rows, adapter, map)``: ``map`` is the loop's map at the end
-        (``vo`` itself unless a bridge or a BA moved it; ``meta["bridges"]`` lists the bridges);
-        rows of BA keyframes have ``ba_s`` (seconds of the trigger: L_val, culling, BA, feedback).
-        For scheme ``none`` the network is returned unchanged with no rows and ``adapter`` is ``None``.
-    """
-    w, h = cfg.net.width, cfg.net.height
-    K_net = torch.from_numpy(vo.intrinsics.scaled(w, h).K()).float()
-    net = prepare(net, fast)
-    load = keyframe_images(seq, vo, w, h)
-    held = [vo, vo.points_world()]  # the loop's map and its world points; a BA or a bridge replaces both
-    bridges: list[dict[str, Any]] = []
-    seen: set[int] = set()
-
-    def bridge(kf: Keyframe, depth_of: DepthOf) -> None:
-        """Join a new segment to the map before it, at the first keyframe of the segment."""
-        if seen and kf.segment not in seen and cfg.vo.bridge_segments:
-            out = bridge_segment(held[0], kf.id, depth_of, seq.load_gray, seq.intrinsics, held[1])
-            if out is not None:
-                held[:] = [out[0], out[0].points_world()]
-                bridges.append(vars(out[1]))
-        seen.add(kf.segment)
-
-    if cfg.adapt.scheme == "none":  # no training, but the unit still crosses the gaps (pre-trained depth)
-        for kf in vo.keyframes:
-            bridge(kf, depth_predictor(net, load, fast))
-        return net, [], None, _with_bridges(held[0], bridges)
-    ba_s: dict[int, float] = {}
-
-    def sparse(kf_id: int) -> tuple[torch.Tensor, torch.Tensor]:
-        uv, d = held[0].sparse_depth(kf_id, held[1])
-        return torch.from_numpy(scale_pixels(uv, vo.intrinsics, w, h)).float(), torch.from_numpy(d).float()
-
-    def on_global_ba(info: StepInfo) -> None:
-        assert global_ba is not None
-        t = time.perf_counter()
-        first = max(0, info.kf_id - cfg.ba.window + 1) if cfg.ba.window else 0  # the keyframes the BA refines
-        ids = [k.id for k in held[0].keyframes[first:info.kf_id + 1]]
-        new = global_ba(held[0], info.kf_id, depth_predictor(adapter.net, load, fast, adapter.buffer),
-                        adapter.per_keyframe_val_loss(ids))
-        held[:] = [new, new.points_world()]
-        adapter.update_poses({k: new.keyframes[k].pose for k in ids})
-        adapter.update_sparse({k: sparse(k) for k in ids})
-        ba_s[info.kf_id] = time.perf_counter() - t
-
-    adapter = OnlineAdapter(net, cfg.adapt, K_net, seed=cfg.seed, fast=fast,
-                            on_global_ba=on_global_ba if global_ba is not None else None,
-                            val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode)
-    rows = []
-    t0 = time.perf_counter()
-    budget = realtime_steps(seq, vo, cfg) if cfg.adapt.schedule == "realtime" else None
-    for kf in vo.keyframes:
-        bridge(kf, depth_predictor(adapter.net, load, fast, adapter.buffer))
-        uv, d = sparse(kf.id)
-        sample = KeyframeSample(kf_id=kf.id, image=load(kf.id), K=K_net, pose=held[0].keyframes[kf.id].pose,
-                                uv=uv, depth=d, segment=kf.segment)
-        if scorer is not None:  # frames before this keyframe: the model after the previous one
-            scorer.score_until(adapter.net, kf.frame_index, kf.id - 1)
-        row = step_row(adapter.add_keyframe(sample, None if budget is None else budget[kf.id]))
-        row["n_sparse"] = len(d)
-        if kf.id in ba_s:
-            row["ba_s"] = ba_s[kf.id]
-        rows.append(row)
-        if progress:
-            progress("adapt", {"done": kf.id + 1, "total": len(vo.keyframes), **row,
-                               "elapsed_s": time.perf_counter() - t0})
-    return adapter.net, rows, adapter, _with_bridges(held[0], bridges)
-
-
-def realtime_steps(seq: Sequence, vo: VOResult, cfg: RunConfig) -> list[int]:
-    """Steps per keyframe of ``adapt.schedule = realtime``: ``⌊Δt / step_cost⌋`` capped at ``max_steps``, Δt the
-    sequence time from the keyframe to the next one (the last: to the sequence's last frame). The paper's
-    fine-tuning runs beside the SLAM thread, so a keyframe is trained on until the next one arrives."""
-    a = cfg.adapt
-    times = [seq.seconds(k.frame_index) for k in vo.keyframes] + [seq.seconds(len(seq) - 1)]
-    return [int(min(a.max_steps, max(0.0, 1000.0 * (t1 - t0) // a.step_cost_ms))) for t0, t1 in zip(times, times[1:])]
-
-
-def _with_bridges(vo: VOResult, bridges: list[dict[str, Any]]) -> VOResult:
-    """``vo`` with the segments it bridged listed under ``meta["bridges"]``."""
-    return replace(vo, meta={**vo.meta, "bridges": bridges})
+    def sparse(self, kf_id: int) -> tuple[torch.Tensor, torch.Tensor]:
+        uv, d = self.state.sparse_depth(kf_id)
+        uv = scale_pixels(uv, self.state.intr, self.width, self.height)
+        return torch.from_numpy(uv).float(), torch.from_numpy(d).float()
 
 
 def step_row(info: StepInfo) -> dict[str, Any]:
@@ -173,6 +98,154 @@ def step_row(info: StepInfo) -> dict[str, Any]:
     return row
 
 
+class OnlineLoop:
+    """Algorithm 1 over the front end's events, for one run (module docstring).
+
+    Args:
+        run: the run (sequence, config, progress).
+        source: the front end's events; its ``state`` is the map at the loop's time.
+        net: the network to adapt (a copy of the pre-trained one).
+        fast: bf16 autocast for the network.
+        ba: culling + global BA (:class:`~mutualslam_cli.stages.ba.BAStage`), ``None`` without BA.
+        scorer: scores evaluated frames with the model of their time (``None``: not scored).
+
+    Attributes:
+        rows: one ``keyframes.csv`` row per keyframe; bridges: one record per bridge made.
+    """
+
+    def __init__(self, run: RunContext, source: FrontEndSource, net: torch.nn.Module, fast: bool,
+                 ba: Any | None = None, scorer: OnlineScorer | None = None) -> None:
+        cfg = run.cfg
+        self.run, self.source, self.state, self.cfg, self.fast = run, source, source.state, cfg, fast
+        self.ba, self.scorer = ba, scorer
+        w, h = cfg.net.width, cfg.net.height
+        self.net = prepare(net, fast)
+        self.load = keyframe_images(run.seq, lambda k: self.state.map.kf_frame[k], w, h)
+        self.adapter: OnlineAdapter | None = None
+        if cfg.adapt.scheme != "none":
+            K_net = torch.from_numpy(self.state.intr.scaled(w, h).K()).float()
+            self.adapter = OnlineAdapter(self.net, cfg.adapt, K_net, seed=cfg.seed, fast=fast,
+                                         val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode,
+                                         labels=MapLabels(self.state, w, h))
+        self.clock = None
+        if cfg.adapt.schedule == "realtime" and self.adapter is not None:
+            cost = cfg.adapt.step_cost_ms
+            self.clock = RealtimeClock(None if cost == "measured" else float(cost), cfg.adapt.max_steps)
+        self.rows: list[dict[str, Any]] = []
+        self.bridges: list[dict[str, Any]] = []
+        self._segments: set[int] = set()
+        self._row_of: dict[int, dict[str, Any]] = {}
+        self._extra: dict[int, dict[str, float]] = {}  # seconds spent on a keyframe before its row exists
+
+    # ------------------------------------------------------------------ Algorithm 1
+    def run_loop(self) -> None:
+        """Every frame in order; each keyframe it created through Algorithm 1 (module docstring)."""
+        t0 = time.perf_counter()
+        for _frame, keyframes in self.source.timeline():
+            for kf in keyframes:
+                arrival = self.run.seq.seconds(self.state.created_at[kf]) * 1000.0
+                self._train_pending(until_ms=arrival)           # realtime: the last keyframe's steps, now
+                self._score_until(self.state.created_at[kf], kf - 1)  # frames before it: the model of their time
+                if self.clock is not None:
+                    self.clock.arrive(arrival)
+                self._join_segment(kf)                          # a new segment: the network of now bridges it
+                info = self._tick(kf)                           # validate, or assemble the batch (labels of now)
+                if info is not None and info.run_global_ba:
+                    self._global_ba(kf)                         # cull + BA; the refined map goes back to the front end
+                if self.clock is None and self.adapter is not None:
+                    self._train(self.cfg.adapt.steps_per_keyframe)
+                self._report(kf, t0)
+        self._train_pending(until_ms=self.run.seq.seconds(len(self.run.seq) - 1) * 1000.0)
+
+    def _tick(self, kf: int) -> StepInfo | None:
+        if self.adapter is None:
+            return None
+        info = self.adapter.begin_keyframe(KeyframeSample(
+            kf_id=kf, image=self.load(kf), K=self.adapter.K_net, pose=self.state.pose(kf),
+            uv=torch.zeros(0, 2), depth=torch.zeros(0), segment=self.state.segment(kf)))
+        if self.clock is not None:
+            self.clock.charge(info.ms)
+        row = step_row(info)
+        row["n_sparse"] = len(self.state.sparse_depth(kf)[1])
+        row.update(self._extra.pop(kf, {}))
+        self.rows.append(row)
+        self._row_of[kf] = row
+        return info
+
+    def _train(self, steps: int) -> None:
+        """The pending batch's ``steps`` optimiser steps and its consolidation; its row updated."""
+        if self.adapter is None or self.adapter.pending is None:
+            return
+        n_steps, n_cons = len(self.adapter.step_ms), len(self.adapter.consolidate_ms)
+        info = self.adapter.train_pending(steps)
+        if self.clock is not None:
+            self.clock.stepped(self.adapter.step_ms[n_steps:])
+            self.clock.charge(sum(self.adapter.consolidate_ms[n_cons:]))
+        self._row_of[info.kf_id].update(step_row(info))
+
+    def _train_pending(self, until_ms: float) -> None:
+        """Realtime: the waiting keyframe trains until ``until_ms`` (the next arrival); then its work is done."""
+        if self.clock is None:
+            return
+        if self.adapter.pending is not None:
+            kf = self.adapter.pending.kf_id
+            start = self.clock.now_ms
+            self._train(self.clock.steps_until(until_ms))
+            self._row_of[kf].update(rt_start_ms=start, rt_end_ms=self.clock.now_ms)
+        self.clock.done()
+
+    def _join_segment(self, kf: int) -> None:
+        """The first keyframe of a new segment: join it to the map before it (``vo.bridge_segments``)."""
+        seg = self.state.segment(kf)
+        if seg in self._segments:
+            return
+        first = not self._segments
+        self._segments.add(seg)
+        if first or not self.cfg.vo.bridge_segments:
+            return
+        t = time.perf_counter()
+        snap = self.state.snapshot(self.run.seq.frames)
+        b = plan_bridge(snap, kf, self._depth_of(), self.run.seq.load_gray, self.run.seq.intrinsics)
+        if b is not None:
+            self.source.transform_segment(b.segment, *b.similarity())
+            self.bridges.append({k: v for k, v in asdict(b).items()})
+        self._busy("bridge_s", kf, time.perf_counter() - t)
+
+    def _global_ba(self, kf: int) -> None:
+        """Culling + global BA of keyframes ≤ ``kf`` with the network of now; the refinement back to the map."""
+        if self.ba is None:
+            return
+        t = time.perf_counter()
+        self.source.settle()
+        snap = self.state.snapshot(self.run.seq.frames)
+        first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
+        ids = [k.id for k in snap.keyframes[first:kf + 1]]
+        r = self.ba.run_ba(snap, kf, self._depth_of(), self.adapter.per_keyframe_val_loss(ids))
+        removed = snap.points.ids[~r.keep | r.dropped]
+        self.source.refine(MapRefinement.between(snap, r.vo, removed))
+        self._busy("ba_s", kf, time.perf_counter() - t)
+
+    # ------------------------------------------------------------------ helpers
+    def _depth_of(self) -> DepthOf:
+        return depth_predictor(self.net, self.load, self.fast, self.adapter.buffer if self.adapter else None)
+
+    def _busy(self, key: str, kf: int, seconds: float) -> None:
+        """``seconds`` of work on keyframe ``kf`` (a bridge, a BA): into its row and onto the clock."""
+        row = self._row_of.get(kf, self._extra.setdefault(kf, {}))
+        row[key] = row.get(key, 0.0) + seconds
+        if self.clock is not None:
+            self.clock.charge(1000.0 * seconds)
+
+    def _score_until(self, frame: int, kf: int) -> None:
+        if self.scorer is not None:
+            self.scorer.score_until(self.net, frame, kf)
+
+    def _report(self, kf: int, t0: float) -> None:
+        if self.run.progress is not None:
+            row = self._row_of.get(kf, {"kf_id": kf})
+            self.run.progress("adapt", {"done": kf + 1, "total": None, **row, "elapsed_s": time.perf_counter() - t0})
+
+
 # ----------------------------------------------------------------------------- the stage
 
 
@@ -184,8 +257,13 @@ class Adapted:
         net: the final network (for scheme ``none`` the pre-trained one, unchanged).
         adapter: the keyframe adapter (its replay buffer and L_val per keyframe), ``None`` for
             schemes ``none`` and ``comoda``.
-        map: the loop's map at the end: the front end's, or after the BAs Algorithm 1 requested.
+        map: the loop's map at the end (bridged segments; the BAs Algorithm 1 requested in it).
+        frontend: the front end's map with its segments apart, each in its own unit (causal: as the front
+            end held it at the end with the bridges it was given undone; hindsight: before the loop).
+        source: the front end's event source (cache use, replayed frames).
+        injected: ids of map points corrupted by ``vo.inject_outliers``.
         requested: how many times Algorithm 1 requested global BA.
+        bridges: one record per bridge made (:class:`~mutualslam_cli.vo.segments.Bridge`).
         l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).
         online: the ``online_*`` per-frame scores of the model of each frame's time
             (:mod:`~mutualslam_cli.stages.online_eval`); ``None`` when not computed.
@@ -194,7 +272,11 @@ class Adapted:
     net: torch.nn.Module
     adapter: OnlineAdapter | None
     map: VOResult
+    frontend: VOResult
+    source: FrontEndSource
+    injected: np.ndarray
     requested: int
+    bridges: list[dict[str, Any]] | None = None
     l_val: dict[str, Any] = field(default_factory=dict)
     online: pd.DataFrame | None = None
 
@@ -208,133 +290,56 @@ class Adapted:
                 f"{v['validations']} validations)")
 
 
-#: The keys of :func:`l_val_stats` (``adaptation.l_val.*`` in ``summary.json``).
-L_VAL_KEYS = ("validations", "min", "median", "longest_below_tau", "map_median_depth")
+def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None = None) -> Adapted:
+    """The front end and the adaptation of a copy of ``net0``, on one clock: ``keyframes.csv`` and the keys
+    ``timing.finetune_*``, ``adaptation.*``, ``vo.bridges`` (scheme ``comoda``: its own outputs).
 
-
-def l_val_stats(rows: list[dict[str, Any]], tau: float, vo: VOResult) -> dict[str, Any]:
-    """Algorithm 1's validations from the keyframe rows: ``validations`` (with an L_val), ``min``,
-    ``median`` (L_val, Eq. 9, inverse map units), ``longest_below_tau`` (most consecutive ones below τ)
-    and ``map_median_depth`` (median depth of the map points in their hosts, map units). The front end
-    sets the median depth of its first map to 1, as SVO does, so τ means here what it means in the
-    paper as long as that unit holds; ``L_val × map_median_depth`` is the scale-free form."""
-    vals = [float(r["l_val"]) for r in rows if r.get("is_validation") and r.get("l_val") is not None
-            and np.isfinite(float(r["l_val"]))]
-    run = best = 0
-    for v in vals:
-        run = run + 1 if v < tau else 0
-        best = max(best, run)
-    depth = float(np.median(1.0 / vo.points.inv_depth)) if len(vo.points) else None
-    return {"validations": len(vals), "min": min(vals) if vals else None,
-            "median": float(np.median(vals)) if vals else None, "longest_below_tau": best,
-            "map_median_depth": depth}
-
-
-def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, fast: bool,
-              global_ba: GlobalBA | None = None) -> Adapted:
-    """Adapt a copy of ``net0`` online: ``keyframes.csv`` and the keys ``timing.finetune_ms``,
-    ``timing.finetune_kf_ms`` and ``adaptation.*`` (scheme ``comoda``: its own outputs).
-
-    The time of the BAs Algorithm 1 triggered (``global_ba``) is booked to the ``ba`` stage, the rest
-    to ``adaptation``."""
-    cfg, summary = run.cfg, run.summary
+    The time of the BAs Algorithm 1 triggered is booked to the ``ba`` stage, the front end's to
+    ``frontend``, the online scores' to ``evaluation``, the rest to ``adaptation``."""
+    cfg, summary, seq = run.cfg, run.summary, run.seq
     t = time.perf_counter()
-    if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
-        net = comoda.run_stage(run, copy.deepcopy(net0), fast)
-        adapted, rows, online_s = Adapted(net, None, fe.vo, 0), [], 0.0
-        for k in L_VAL_KEYS:
-            summary.absent(f"adaptation.l_val.{k}", "scheme 'comoda' has no Algorithm 1")
-        _summarise_strength(summary, None)
-    else:
-        scorer = (OnlineScorer(run.seq, eval_frames(run.seq, cfg.eval.stride), cfg, fast)
-                  if cfg.eval.online and run.seq.has_depth and cfg.adapt.scheme != "none" else None)
-        net, rows, adapter, loop_map = run_adaptation(run.seq, fe.vo, copy.deepcopy(net0), cfg, fast, run.progress,
-                                                      global_ba, scorer)
-        online = scorer.finish(net, len(fe.vo.keyframes) - 1) if scorer is not None else None
-        adapted = Adapted(net, adapter, loop_map, sum(bool(r.get("run_global_ba")) for r in rows),
-                          l_val_stats(rows, cfg.adapt.tau_val, loop_map), online)
-        online_s = scorer.seconds if scorer is not None else 0.0
-        why = "no validation keyframe had an L_val"
-        for k, v in adapted.l_val.items():
-            summary.set(f"adaptation.l_val.{k}", v, why)
-        _summarise(summary, cfg.adapt.scheme, adapter, rows)
-        _summarise_strength(summary, adapter)
-        for key in (comoda.POSENET_ATE_KEY, comoda.POSE_NETWORK_KEY):
-            summary.absent(key, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
+    causal = cfg.adapt.labels == "causal" and cfg.adapt.scheme != "comoda"
+    source = FrontEndSource(seq, cfg, run.cache / "vo", run.progress, live_feedback=causal)
+    try:
+        injected = np.zeros(0, np.int64)
+        if not causal:  # hindsight (or comoda): the front end on its own, to the end, first
+            source.run_all()
+            if cfg.vo.inject_outliers:  # the test knob corrupts the finished map (hindsight only)
+                injected = corrupt(source.state, source.result(), cfg)
+        pure = source.result() if not causal else None
+        if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
+            net = comoda.run_stage(run, copy.deepcopy(net0), fast)
+            adapted, rows, online_s = Adapted(net, None, pure, pure, source, injected, 0), [], 0.0
+            for k in L_VAL_KEYS:
+                summary.absent(f"adaptation.l_val.{k}", "scheme 'comoda' has no Algorithm 1")
+            summarise_strength(summary, None)
+        else:
+            scorer = (OnlineScorer(seq, eval_frames(seq, cfg.eval.stride), cfg, fast)
+                      if cfg.eval.online and seq.has_depth and cfg.adapt.scheme != "none" else None)
+            loop = OnlineLoop(run, source, copy.deepcopy(net0), fast, ba, scorer)
+            loop.run_loop()
+            final = source.result()
+            rows, adapter = loop.rows, loop.adapter
+            online = scorer.finish(loop.net, final.keyframes[-1].id if final.keyframes else -1) if scorer else None
+            adapted = Adapted(loop.net, adapter, final, pure if pure is not None else unbridged(
+                final, source.state.bridges), source, injected, sum(bool(r.get("run_global_ba")) for r in rows),
+                loop.bridges, l_val_stats(rows, cfg.adapt.tau_val, final), online)
+            online_s = scorer.seconds if scorer is not None else 0.0
+            for k, v in adapted.l_val.items():
+                summary.set(f"adaptation.l_val.{k}", v, "no validation keyframe had an L_val")
+            summarise_finetuning(summary, cfg.adapt.scheme, adapter, rows)
+            summarise_strength(summary, adapter)
+            for key in (comoda.POSENET_ATE_KEY, comoda.POSE_NETWORK_KEY):
+                summary.absent(key, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
+    finally:
+        source.close()
     ba_s = float(sum(r.get("ba_s", 0.0) for r in rows))  # Algorithm 1's BAs, inside the loop
-    run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s)
+    run.add_time("frontend", source.seconds)
+    run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s - source.seconds)
     run.add_time("ba", ba_s)
     run.add_time("evaluation", online_s)  # the online scores are evaluation, done inside the loop
     if rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
-    _summarise_bridges(run, adapted.map, cfg.adapt.scheme == "comoda")
+    summarise_bridges(run, adapted.map, adapted.bridges)
+    summary.set("adaptation.labels", cfg.adapt.labels if cfg.adapt.scheme != "comoda" else "hindsight")
     return adapted
-
-
-def _summarise_bridges(run: RunContext, loop_map: VOResult, comoda_scheme: bool) -> None:
-    """``vo.bridges`` and, when a segment was bridged, ``traj_{kf,all}_bridged.txt`` and
-    ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the adaptation loop's map (bridged
-    segments; Algorithm 1's BAs included) before the final BA, one Sim(3) as every headline ATE."""
-    keys = [f"trajectory.{group}.{leaf}" for group in ("ate_rmse_m", "ate_rmse_m_per_segment")
-            for leaf in ("bridged", "all_frames_bridged")]
-    if comoda_scheme:
-        why = "scheme 'comoda' does not run the keyframe loop that bridges segments"
-        for key in ("vo.bridges", *keys):
-            run.summary.absent(key, why)
-        return
-    bridges = loop_map.meta.get("bridges", [])
-    run.summary.set("vo.bridges", len(bridges))
-    if not bridges:
-        why = ("no segment to bridge" if len({k.segment for k in loop_map.keyframes}) < 2 else
-               "no bridge could be made (vo.bridge_segments=false, or no depth ratio on a side of a gap)")
-        for key in keys:
-            run.summary.absent(key, why)
-        return
-    write_trajectories(run.folder, loop_map.traj_kf, loop_map.traj_all, suffix="_bridged")
-    set_ate(run.summary, evaluate_trajectory(run.seq, loop_map, run.cfg.eval.ate_max_dt),
-            {"kf": "bridged", "all": "all_frames_bridged"})
-
-
-#: The keys of :func:`_summarise_strength` (``adaptation.reg.*``).
-STRENGTH_KEYS = ("shrink.mean", "shrink.median", "importance.mean")
-
-
-def _summarise_strength(summary: Summary, adapter: OnlineAdapter | None) -> None:
-    """``adaptation.reg.shrink.{mean,median}``: the share of each batch's Adam displacement the
-    regulariser's proximal step took back, over every step (0: inert, 1: frozen;
-    :mod:`~mutualslam_cli.adapt.regularizers`), and ``adaptation.reg.importance.mean``: the mean of
-    ``c·w`` over the parameters at the end (the penalty's curvature per unit of squared displacement)."""
-    reg = adapter.regularizer if adapter is not None else None
-    if reg is None:
-        for k in STRENGTH_KEYS:
-            summary.absent(f"adaptation.reg.{k}", "the scheme has no regulariser")
-        return
-    why = ("adapt.reg_mode = 'penalty': the penalty enters Adam's gradient, there is no proximal step"
-           if reg.mode == "penalty" else "no proximal step was taken")
-    shrink = np.asarray(reg.shrinks, dtype=float)
-    summary.set("adaptation.reg.shrink.mean", float(shrink.mean()) if shrink.size else None, why)
-    summary.set("adaptation.reg.shrink.median", float(np.median(shrink)) if shrink.size else None, why)
-    n = sum(w.numel() for w in reg.weights)
-    summary.set("adaptation.reg.importance.mean",
-                reg.coef * float(sum(float(w.sum()) for w in reg.weights)) / n if n else None,
-                "the network has no trainable parameter")
-
-
-def _summarise(summary: Summary, scheme: str, adapter: OnlineAdapter | None, kf_rows: list[dict[str, Any]]) -> None:
-    """``timing.finetune_ms`` (median per optimiser step), ``timing.finetune_kf_ms`` (per keyframe, the steps
-    included) and of it ``timing.finetune_batch_ms`` (assembling the batch) and ``timing.finetune_consolidate_ms``
-    (the regulariser's end of batch: EWC's per-keyframe Fisher, MAS's importance), ``adaptation.keyframes_trained``,
-    ``adaptation.steps`` and, for scheme ``luo``, ``adaptation.luo_keyframes_with_partner`` (training keyframes
-    that found a simulated stereo partner)."""
-    why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
-    for key, ms in (("finetune_ms", "step_ms"), ("finetune_kf_ms", "finetune_ms"), ("finetune_batch_ms", "batch_ms"),
-                    ("finetune_consolidate_ms", "consolidate_ms")):
-        values = getattr(adapter, ms) if adapter is not None else []
-        summary.set(f"timing.{key}", float(np.median(values)) if values else None, why)
-    summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
-    summary.set("adaptation.steps", int(sum(int(r.get("steps") or 0) for r in kf_rows)))
-    if scheme == "luo":
-        training = [r for r in kf_rows if not r.get("is_validation")]
-        summary.set("adaptation.luo_keyframes_with_partner", sum(bool(str(r.get("sources") or "").strip())
-                                                                 for r in training))
-        summary.set("adaptation.training_keyframes", len(training))

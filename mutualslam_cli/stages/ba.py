@@ -16,18 +16,19 @@ import cv2
 import numpy as np
 import torch
 
-from mutualslam_cli.adapt.inputs import keyframe_images
+from mutualslam_cli.adapt.inputs import frame_lookup, keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter
-from mutualslam_cli.ba.global_ba import run_global_ba
+from mutualslam_cli.ba.global_ba import GlobalBAResult, run_global_ba
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.map_ply import write_ply
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.adaptation import Adapted, GlobalBA, depth_predictor
+from mutualslam_cli.stages.adaptation import Adapted, depth_predictor
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.stages.slam_metrics import esi_of_log_errors, evaluate_trajectory, map_log_depth_errors, set_ate
+from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.result import VOResult
 
@@ -44,16 +45,20 @@ def no_culling_reason(cfg: RunConfig) -> str | None:
     return None
 
 
-def ba_images(seq: Sequence, vo: VOResult, scale: float = 1.0, keep: int = 0) -> Callable[[int], np.ndarray]:
-    """``kf_id → (H, W)`` float32 grey in [0, 1] of the keyframes, undistorted, at ``scale`` × the
-    VO camera (area resampling; cached for the run, at most the ``keep`` newest ids when ``keep > 0``)."""
+def ba_images(seq: Sequence, keyframes: VOResult | Callable[[int], int], scale: float = 1.0,
+              keep: int = 0, camera: Intrinsics | None = None) -> Callable[[int], np.ndarray]:
+    """``kf_id → (H, W)`` float32 grey in [0, 1] of the keyframes (of a map, or ``kf_id → frame index``),
+    undistorted, at ``scale`` × the pinhole camera (area resampling; cached for the run, at most the
+    ``keep`` newest ids when ``keep > 0``)."""
     und = Undistorter(seq.intrinsics)
-    size = (round(vo.intrinsics.width * scale), round(vo.intrinsics.height * scale))
+    cam = camera or (keyframes.intrinsics if isinstance(keyframes, VOResult) else seq.intrinsics)
+    size = (round(cam.width * scale), round(cam.height * scale))
+    frame_of = frame_lookup(keyframes)
     cache: dict[int, np.ndarray] = {}
 
     def load(kf_id: int) -> np.ndarray:
         if kf_id not in cache:
-            grey = cv2.cvtColor(und.image(seq.load_rgb(vo.keyframes[kf_id].frame_index)), cv2.COLOR_RGB2GRAY)
+            grey = cv2.cvtColor(und.image(seq.load_rgb(frame_of(kf_id))), cv2.COLOR_RGB2GRAY)
             cache[kf_id] = cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
             if keep and len(cache) > keep:  # a windowed BA (ba.window) asks for newer keyframes only
                 del cache[next(iter(cache))]  # the oldest read
@@ -80,36 +85,17 @@ class BALog:
         return np.isin(ids, np.fromiter(self.dropped, np.int64, len(self.dropped)))
 
 
-def make_ba_step(seq: Sequence, vo: VOResult, cfg: RunConfig, record: BALog) -> GlobalBA:
-    """The :data:`~mutualslam_cli.stages.adaptation.GlobalBA` step of a run (culling unless
-    ``ba.culling=false`` or scheme ``none``), recording into ``record``."""
-    images = ba_images(seq, vo, cfg.ba.image_scale, keep=cfg.ba.window)
-    cull = no_culling_reason(cfg) is None
-
-    def step(v: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
-             val_loss: Mapping[int, float]) -> VOResult:
-        r = run_global_ba(v, images, depth_of, val_loss, cfg.ba, cull=cull, upto=kf_id)
-        record.culled.update(v.points.ids[~r.keep].tolist())
-        record.dropped.update(v.points.ids[r.dropped].tolist())
-        record.runs.append({"kf_id": kf_id, **{k: x for k, x in r.stats.items() if k != "costs"}})
-        log.info("global BA after keyframe %d: %d culled, %d dropped, %d refined (%d unrefined), cost %.4g -> %.4g, "
-                 "%.2f s", kf_id, r.stats["n_culled"], r.stats["n_dropped"], r.stats["n_refined"],
-                 r.stats["n_unrefined"], r.stats["cost0"], r.stats["cost"], r.stats["seconds"])
-        return r.kept()
-
-    return step
-
-
-def final_ba(seq: Sequence, vo: VOResult, loop_map: VOResult, net: torch.nn.Module,
-             adapter: OnlineAdapter | None, cfg: RunConfig, fast: bool, step: GlobalBA) -> VOResult:
+def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: OnlineAdapter | None,
+             cfg: RunConfig, fast: bool, stage: "BAStage") -> VOResult:
     """The final culling + BA of the loop's map over every keyframe (the newest ``ba.window`` with a window)
-    with the final network (L_val of those keyframes; none for scheme ``none``)."""
-    load = keyframe_images(seq, vo, cfg.net.width, cfg.net.height)
+    with the final network (L_val of those keyframes; none for scheme ``none``); the refined map without
+    the culled and dropped points."""
+    load = keyframe_images(seq, loop_map, cfg.net.width, cfg.net.height)
     depth_of = depth_predictor(net, load, fast, adapter.buffer if adapter is not None else None)
     last = len(loop_map.keyframes) - 1
     ids = list(range(max(0, last - cfg.ba.window + 1), last + 1)) if cfg.ba.window else None
     val_loss = adapter.per_keyframe_val_loss(ids) if adapter is not None else {}
-    return step(loop_map, last, depth_of, val_loss)
+    return stage.run_ba(loop_map, last, depth_of, val_loss).kept()
 
 
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).
@@ -119,36 +105,53 @@ BA_KEYS = ("trajectory.ate_rmse_m.ba", "trajectory.ate_rmse_m.all_frames_ba", "t
 
 
 class BAStage:
-    """Culling + global BA of a run: :attr:`step` at Algorithm 1's requests (handed to the
-    adaptation stage: the mutual loop), then :meth:`finish` once at the end.
+    """Culling + global BA of a run: :meth:`run_ba` at Algorithm 1's requests (the adaptation loop hands the
+    refined map back to the front end: the mutual loop), then :meth:`finish` once at the end.
 
     Attributes:
-        step: the :data:`~mutualslam_cli.stages.adaptation.GlobalBA` step, ``None`` with ``ba.enabled=false``.
         record: what each culling + BA did (:class:`BALog`).
     """
 
-    def __init__(self, run: RunContext, fe: FrontEnd) -> None:
-        self.run, self.fe = run, fe
+    def __init__(self, run: RunContext) -> None:
+        self.run = run
         self.record = BALog()
-        self.step = make_ba_step(run.seq, fe.vo, run.cfg, self.record) if run.cfg.ba.enabled else None
+        cfg = run.cfg
+        self._frame_of: dict[int, int] = {}  # keyframe → frame, of the maps BA has seen (the map grows)
+        self.images = ba_images(run.seq, self._frame_of.__getitem__, cfg.ba.image_scale, keep=cfg.ba.window,
+                                camera=run.seq.intrinsics)
+        self.cull = no_culling_reason(cfg) is None
 
-    def finish(self, adapted: Adapted, fast: bool) -> None:
+    def run_ba(self, vo: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
+               val_loss: Mapping[int, float]) -> GlobalBAResult:
+        """Culling (unless ``ba.culling=false`` or scheme ``none``) + global BA of ``vo``'s keyframes ≤ ``kf_id``,
+        recorded into :attr:`record`."""
+        self._frame_of.update((k.id, k.frame_index) for k in vo.keyframes)
+        r = run_global_ba(vo, self.images, depth_of, val_loss, self.run.cfg.ba, cull=self.cull, upto=kf_id)
+        self.record.culled.update(vo.points.ids[~r.keep].tolist())
+        self.record.dropped.update(vo.points.ids[r.dropped].tolist())
+        self.record.runs.append({"kf_id": kf_id, **{k: x for k, x in r.stats.items() if k != "costs"}})
+        log.info("global BA after keyframe %d: %d culled, %d dropped, %d refined (%d unrefined), cost %.4g -> %.4g, "
+                 "%.2f s", kf_id, r.stats["n_culled"], r.stats["n_dropped"], r.stats["n_refined"],
+                 r.stats["n_unrefined"], r.stats["cost0"], r.stats["cost"], r.stats["seconds"])
+        return r
+
+    def finish(self, adapted: Adapted, fe: FrontEnd, fast: bool) -> None:
         """The map after culling + BA, by ``ba.final``: ``always`` — one more culling + BA of the loop's
         map over every keyframe with the final network; ``on_request`` — the loop's map after the BAs
         Algorithm 1 requested (no after-BA figures when it requested none: the keys are null with
         Algorithm 1's reason, L_val vs τ). Writes ``map_culled.ply`` (the front end's map without the
         culled points), ``map_ba.ply``, ``traj_{kf,all}_ba.txt``, the keys of :data:`BA_KEYS`, ``ba.*``
         and, with injected outliers, ``map.outliers.*`` and ``map.inliers.kept``."""
-        run, fe, cfg = self.run, self.fe, self.run.cfg
+        run, cfg = self.run, self.run.cfg
         run.summary.set("ba.requested", adapted.requested)
-        if self.step is None:
+        if not cfg.ba.enabled:
             self._absent("disabled (ba.enabled=false)")
         elif cfg.ba.final == "always":
             with run.timed("ba"):
-                vo_ba = final_ba(run.seq, fe.vo, adapted.map, adapted.net, adapted.adapter, cfg, fast, self.step)
-            self._write(vo_ba)
+                vo_ba = final_ba(run.seq, adapted.map, adapted.net, adapted.adapter, cfg, fast, self)
+            self._write(vo_ba, fe)
         elif self.record.runs:
-            self._write(adapted.map)
+            self._write(adapted.map, fe)
         else:
             self._absent("ba.final=on_request and " + (adapted.why_no_request(cfg.adapt.tau_val, cfg.adapt.patience)
                                                        if adapted.adapter is not None else
@@ -165,8 +168,8 @@ class BAStage:
             summary.absent(key, why)
         summary.set("ba.runs", 0)
 
-    def _write(self, vo_ba: VOResult) -> None:
-        run, fe, summary = self.run, self.fe, self.run.summary
+    def _write(self, vo_ba: VOResult, fe: FrontEnd) -> None:
+        run, summary = self.run, self.run.summary
         vo, err = fe.vo, fe.map_errors
         keep = ~self.record.culled_mask(vo.points.ids)
         no_culling = no_culling_reason(run.cfg)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,10 +10,9 @@ import torch
 from mutualslam_cli.adapt.depthnet import DepthNet, freeze_encoder_stages
 from mutualslam_cli.adapt.online import OnlineAdapter, resample_batch
 from mutualslam_cli.config import AdaptConfig, RunConfig, load_config
-from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError
-from mutualslam_cli.stages.adaptation import realtime_steps
-from mutualslam_cli.types import FrameRef, Intrinsics
+from mutualslam_cli.stages.realtime import RealtimeClock
+from mutualslam_cli.types import Intrinsics
 from tests.adapt.test_online import K, SCENE, make_net
 
 torch.set_num_threads(1)
@@ -87,29 +84,37 @@ def test_steps_given_per_keyframe():
     assert all(c <= f for c, f in zip(ad.consolidate_ms, ad.finetune_ms))
 
 
-def _seq(times, fmt="tum") -> Sequence:
-    return Sequence("s", Path("."), Intrinsics(500.0, 500.0, 320.0, 240.0, 640, 480), 5000.0,
-                    [FrameRef(i, float(t), Path("x.png"), None) for i, t in enumerate(times)], meta={"format": fmt})
-
-
-def test_realtime_steps_fill_the_interval_to_the_next_keyframe():
-    seq = _seq(np.arange(300) / 30.0)  # 30 Hz, 10 s
-    vo = SimpleNamespace(keyframes=[SimpleNamespace(frame_index=i) for i in (0, 15, 16, 200)])
-    cfg = load_config(None, ["adapt.schedule=realtime", "adapt.step_cost_ms=100", "adapt.max_steps=20"])
-    # 0.5 s → 5 steps; 1/30 s → 0; 6.13 s → capped at 20; last keyframe to the last frame: 3.3 s → 20
-    assert realtime_steps(seq, vo, cfg) == [5, 0, 20, 20]
-    cfg = load_config(None, ["adapt.schedule=realtime", "adapt.step_cost_ms=1000"])
-    assert realtime_steps(seq, vo, cfg) == [0, 0, 6, 3]
-    icl = _seq(np.arange(300), fmt="icl")  # ICL-NUIM: frame numbers as timestamps, 30 frames/s
-    assert realtime_steps(icl, vo, cfg) == [0, 0, 6, 3] and icl.seconds(30) == 1.0
+def test_realtime_clock_trains_until_the_next_keyframe_and_charges_everything():
+    clock = RealtimeClock(step_cost_ms=100.0, max_steps=20)
+    assert clock.arrive(0.0) == 0.0
+    clock.charge(30.0)  # the tick (batch assembly): wall ms here, no step timed yet → scale 1
+    assert clock.steps_until(500.0) == 5  # steps that start before the next arrival: at 30, 130, …, 430
+    clock.stepped([40.0] * 5)  # 5 steps on the modelled clock, 40 ms each here
+    assert clock.now_ms == pytest.approx(530.0) and clock.scale() == pytest.approx(2.5)
+    clock.charge(20.0)  # consolidation: 20 ms here = 50 ms modelled
+    clock.done()
+    assert clock.now_ms == pytest.approx(580.0)
+    assert clock.arrive(500.0) == pytest.approx(580.0)  # busy past the arrival: starts when free
+    assert clock.steps_until(560.0) == 0  # the next keyframe came before it could start: only stored
+    clock.done()
+    assert clock.arrive(1000.0) == 1000.0 and clock.steps_until(1000.0 + 10_000) == 20  # capped
+    measured = RealtimeClock(step_cost_ms=None, max_steps=32)
+    measured.arrive(0.0)
+    assert measured.steps_until(100.0) == 1  # nothing timed yet: one step, to time it
+    measured.stepped([250.0])
+    assert measured.now_ms == 250.0 and measured.scale() == 1.0 and measured.step_ms() == 250.0
+    measured.done()
+    measured.arrive(260.0)
+    assert measured.steps_until(1000.0) == 3  # starts at 260, 510, 760
 
 
 @pytest.mark.parametrize("bad", ["adapt.train_width=300", "adapt.train_height=224", "adapt.freeze_stages=6",
-                                 "adapt.step_cost_ms=0", "adapt.max_steps=0"])
+                                 "adapt.step_cost_ms=0", "adapt.max_steps=0", "adapt.step_cost_ms=guessed"])
 def test_bad_budget_settings(bad):
     with pytest.raises(ConfigError):
         load_config(None, [bad])
     assert isinstance(load_config(None, []), RunConfig)
+    assert load_config(None, ["adapt.step_cost_ms=measured"]).adapt.step_cost_ms == "measured"
 
 
 def test_l_val_over_an_even_spread_of_the_validation_keyframes():

@@ -6,17 +6,13 @@ import dataclasses
 
 import numpy as np
 import pytest
-import torch
 from synth import make_tum_dir
 
-from mutualslam_cli.adapt import losses
-from mutualslam_cli.adapt.inputs import scale_pixels
 from mutualslam_cli.ba import global_ba as gba
 from mutualslam_cli.bench.ba import perturb, synthetic_problem
-from mutualslam_cli.config import AdaptConfig, BAConfig, DataConfig, NetConfig, RunConfig, VOConfig
+from mutualslam_cli.config import BAConfig, VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.stages.adaptation import run_adaptation
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.depth_oracle import run_oracle
 from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
@@ -165,70 +161,6 @@ def test_segments_are_separate_problems(scene):
     assert len(r.stats["costs"]) == 2 * CFG.rounds  # per segment, per round
     for k in (0, 3):  # each segment's first keyframe is its gauge
         np.testing.assert_array_equal(r.vo.keyframes[k].pose, vo.keyframes[k].pose)
-
-
-# ----------------------------------------------------------------------------- the mutual loop
-
-
-class TinyNet(torch.nn.Module):
-    def __init__(self):
-        super().__init__()
-        self.c = torch.nn.Conv2d(3, 1, 3, padding=1)
-
-    def predict(self, x):
-        return 1.0 / (0.1 + torch.sigmoid(self.c(x)))
-
-
-def test_feedback_reaches_later_batches(tmp_path, monkeypatch):
-    seq = load_sequence(make_tum_dir(tmp_path, n=12, width=96, height=64))
-    vo = run_oracle(seq, VOConfig(mode="gt-depth", gt_kf_every=2, gt_max_points=40))
-    assert len(vo.keyframes) == 6
-    cfg = RunConfig(data=DataConfig(), net=NetConfig(width=96, height=64, fast="off"),
-                    adapt=AdaptConfig(scheme="replay", steps_per_keyframe=1, validate_every=3, patience=1,
-                                      tau_val=1e9))  # one request: validation keyframe t = 3
-    calls, maps = [], []
-    orig = losses.train_loss
-
-    def spy(depth, target, sources, K, T, uv, d, mask, *a):
-        calls.append((uv.clone(), d.clone(), mask.clone()))
-        return orig(depth, target, sources, K, T, uv, d, mask, *a)
-
-    def fake_ba(v, kf_id, depth_of, val_loss):  # "refines": depths of points hosted ≤ kf_id × 1.1, poses moved
-        assert depth_of(kf_id).shape == (64, 96) and set(val_loss) == set(range(kf_id + 1))
-        pts = v.points
-        inv = np.where(pts.host <= kf_id, pts.inv_depth / 1.1, pts.inv_depth)
-        kfs = []
-        for k in v.keyframes:
-            pose = k.pose.copy()
-            pose[0, 3] += 0.01 * (k.id > 0)  # later keyframes follow the correction
-            kfs.append(dataclasses.replace(k, pose=pose))
-        maps.append(dataclasses.replace(v, keyframes=kfs, points=dataclasses.replace(pts, inv_depth=inv)))
-        return maps[-1]
-
-    monkeypatch.setattr(losses, "train_loss", spy)
-    net, rows, adapter, loop_map = run_adaptation(seq, vo, TinyNet(), cfg, False, global_ba=fake_ba)
-    assert [r["kf_id"] for r in rows if r["run_global_ba"]] == [3] and "ba_s" in rows[3]
-    assert len(maps) == 1 and loop_map.keyframes is maps[0].keyframes and loop_map.points is maps[0].points
-    refined = maps[0]
-    pw = refined.points_world()
-    for k in range(6):  # every stored keyframe carries the refined pose and sparse depth
-        s = adapter.buffer.get(k)
-        np.testing.assert_array_equal(s.pose, refined.keyframes[k].pose)
-        uv, d = refined.sparse_depth(k, pw)
-        np.testing.assert_allclose(s.depth.numpy(), d, rtol=1e-6)
-        np.testing.assert_allclose(s.uv.numpy(), scale_pixels(uv, vo.intrinsics, 96, 64), atol=1e-4)
-    trained = [r for r in rows if r["trained"]]
-    after = [(r, c) for r, c in zip(trained, calls) if r["kf_id"] > 3]
-    assert after and all(int(r["kf_id"]) in (4, 5) for r, _ in after)
-    differs = []
-    for r, (uv, d, mask) in after:  # a later batch's sparse labels are the refined depths
-        for b, k in enumerate(int(x) for x in str(r["batch"]).split()):
-            px, want = refined.sparse_depth(k, pw)
-            np.testing.assert_allclose(d[b][mask[b]].numpy(), want, rtol=1e-6)
-            np.testing.assert_allclose(uv[b][mask[b]].numpy(), scale_pixels(px, vo.intrinsics, 96, 64), atol=1e-4)
-            old = vo.sparse_depth(k)[1]
-            differs.append(len(old) != len(want) or not np.allclose(old, want))
-    assert any(differs)  # (not the front end's labels)
 
 
 def test_a_window_refines_only_the_newest_keyframes(scene):

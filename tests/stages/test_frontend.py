@@ -1,4 +1,5 @@
-"""The VO cache: a data-only .npz (never pickle) that round-trips a VOResult; bad entries are recomputed."""
+"""The front end's files: the journal cache and a run's ``frontend.npz`` — data-only .npz (never pickle),
+exact round trips; bad cache entries are recomputed."""
 
 from __future__ import annotations
 
@@ -13,9 +14,11 @@ from synth import make_tum_dir
 
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.stages.frontend import cache_path, load_cached, run_frontend, save_cached, vo_cache_key
+from mutualslam_cli.stages.frontend import load_frontend_file, run_frontend, save_frontend
+from mutualslam_cli.stages.vo_cache import CHECKPOINT_EVERY, cache_path, load_entry, vo_cache_key
 from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.vo.result import VO_ARRAYS_VERSION, Keyframe, MapPoints, VOResult, vo_to_arrays
+from mutualslam_cli.vo.journal import JOURNAL_VERSION
+from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 
 
 def _cfg(mode: str):
@@ -87,9 +90,8 @@ def _varied(seed: int = 3) -> VOResult:
 def test_round_trip_of_real_results_gives_equal_fields(results, tmp_path, mode):
     vo = results[mode]
     path = tmp_path / "entry.npz"
-    save_cached(path, vo)
-    back = load_cached(path)
-    assert back is not None
+    save_frontend(path, vo)
+    back = load_frontend_file(path)
     assert_same(vo, back)
     assert len(back.points.observations) == len(vo.points) and back.covisibility == vo.covisibility
 
@@ -97,29 +99,31 @@ def test_round_trip_of_real_results_gives_equal_fields(results, tmp_path, mode):
 @pytest.mark.parametrize("make", [_empty, _varied])
 def test_round_trip_of_made_results(tmp_path, make):
     path = tmp_path / "made.npz"
-    save_cached(path, make())
-    back = load_cached(path)
-    assert back is not None
-    assert_same(make(), back)
+    save_frontend(path, make())
+    assert_same(make(), load_frontend_file(path))
 
 
 def test_round_trip_keeps_distortion_and_isolated_keyframes(tmp_path):
-    save_cached(tmp_path / "a.npz", _empty())
-    save_cached(tmp_path / "b.npz", _varied())
-    a, b = load_cached(tmp_path / "a.npz"), load_cached(tmp_path / "b.npz")
-    assert a is not None and b is not None
+    save_frontend(tmp_path / "a.npz", _empty())
+    save_frontend(tmp_path / "b.npz", _varied())
+    a, b = load_frontend_file(tmp_path / "a.npz"), load_frontend_file(tmp_path / "b.npz")
     assert a.intrinsics.dist == (0.1, -0.2, 0.0, 0.0, 0.3) and b.intrinsics.dist is None
     assert b.covisibility[3] == {} and [k.segment for k in b.keyframes] == [0, 0, 1, 1]
     assert [o.tolist() for o in b.points.observations] == [[0, 1], [1], [0, 1, 2]]
 
 
-def test_entry_is_data_only(results, tmp_path):
-    path = tmp_path / "entry.npz"
-    save_cached(path, results["gt"])
+@pytest.mark.parametrize("mode", ["svo", "gt"])
+def test_entry_is_data_only(seq, tmp_path, mode):
+    vo, _ = run_frontend(seq, _cfg(mode), cache_dir=tmp_path)
+    path = cache_path(tmp_path, seq, _cfg(mode))
     with np.load(path, allow_pickle=False) as z:  # every member loads without pickle
         kinds = {k: z[k].dtype.kind for k in z.files}
     assert "O" not in kinds.values() and kinds["header"] == "u"
+    resumable = mode == "svo" and len(vo.keyframes) >= CHECKPOINT_EVERY  # our VO's resumption points
+    assert any(k.startswith("ck") for k in kinds) == resumable
     assert not list(tmp_path.glob(".*.tmp"))  # the atomic writer left no temporary file
+    entry = load_entry(path)
+    assert entry is not None and entry.complete and entry.meta["mode"] == ("svo" if mode == "svo" else "gt")
 
 
 def test_serialiser_knows_every_field():
@@ -131,12 +135,12 @@ def test_serialiser_knows_every_field():
         "ids", "host", "pixel", "inv_depth", "sigma", "observations", "obs_pixels"]
 
 
-def test_second_run_loads_the_npz(seq, results, tmp_path):
+def test_second_run_replays_the_journal(seq, results, tmp_path):
     vo, cached = run_frontend(seq, _cfg("svo"), cache_dir=tmp_path)
-    assert not cached and cache_path(tmp_path, seq, _cfg("svo")).suffix == ".npz"
+    assert not cached and cache_path(tmp_path, seq, _cfg("svo")).name.endswith(".journal.npz")
     again, cached = run_frontend(seq, _cfg("svo"), cache_dir=tmp_path)
     assert cached
-    assert_same(vo, again)
+    assert_same(vo, again)  # the journal replayed is the front end's map, bit for bit
     no_meta = {"meta": {}}  # meta holds timings
     assert_same(dataclasses.replace(results["svo"], **no_meta), dataclasses.replace(again, **no_meta))  # deterministic
 
@@ -144,45 +148,61 @@ def test_second_run_loads_the_npz(seq, results, tmp_path):
 # ----------------------------------------------------------------------------- invalid entries
 
 
-def _wrong_version(vo: VOResult, path: Path) -> None:
-    arrays = vo_to_arrays(vo)
-    arrays["header"] = np.frombuffer(bytes(arrays["header"]).replace(
-        f'"version": {VO_ARRAYS_VERSION}'.encode(), b'"version": 999'), np.uint8)
+def _rewrite(path: Path, change) -> None:
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    change(arrays)
     with open(path, "wb") as f:
         np.savez(f, **arrays)
 
 
-def _object_array(vo: VOResult, path: Path) -> None:
-    arrays = dict(vo_to_arrays(vo), pt_ids=np.array([object()] * len(vo.points), dtype=object))
-    with open(path, "wb") as f:
-        np.savez(f, **arrays)
+def _wrong_version(path: Path) -> None:
+    def change(a):
+        a["header"] = np.frombuffer(bytes(a["header"]).replace(
+            f'"version": {JOURNAL_VERSION}'.encode(), b'"version": 999'), np.uint8)
+    _rewrite(path, change)
 
 
-def _plain_npy(vo: VOResult, path: Path) -> None:
+def _object_array(path: Path) -> None:
+    def change(a):
+        a["ev.frame"] = np.array([object()] * len(a["ev.frame"]), dtype=object)
+    _rewrite(path, change)
+
+
+def _plain_npy(path: Path) -> None:
     with open(path, "wb") as f:  # a file object: np.save would append ".npy" to the name
         np.save(f, np.arange(3))
 
 
+def _disagreeing(path: Path) -> None:
+    def change(a):
+        a["ev.frame"] = a["ev.frame"][:-1]
+    _rewrite(path, change)
+
+
 @pytest.mark.parametrize("spoil, why", [
-    (lambda vo, p: p.write_bytes(b"not an archive at all"), "BadZipFile|pickled|not an"),
-    (lambda vo, p: (save_cached(p, vo), p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])), ""),
+    (lambda p: p.write_bytes(b"not an archive at all"), "BadZipFile|pickled|not an|Failed"),
+    (lambda p: p.write_bytes(p.read_bytes()[: p.stat().st_size // 2]), ""),
     (_wrong_version, "version 999"),
     (_object_array, "pickle"),
-    (_plain_npy, "not an .npz"),
+    (_plain_npy, ""),
+    (_disagreeing, "disagree"),
 ])
 def test_invalid_entry_is_recomputed_and_replaced(seq, results, tmp_path, caplog, spoil, why):
     cfg = _cfg("svo")
     path = cache_path(tmp_path, seq, cfg)
-    spoil(results["svo"], path)
-    with caplog.at_level(logging.WARNING, logger="mutualslam_cli.stages.frontend"):
+    run_frontend(seq, cfg, cache_dir=tmp_path)
+    spoil(path)
+    with caplog.at_level(logging.WARNING, logger="mutualslam_cli.stages.vo_cache"):
         vo, cached = run_frontend(seq, cfg, cache_dir=tmp_path)
     assert not cached
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warned) == 1 and str(path) in warned[0] and "recomputing" in warned[0], warned
     assert why == "" or any(w in warned[0] for w in why.split("|")), warned[0]
-    fixed = load_cached(path)  # overwritten with a valid entry
-    assert fixed is not None
-    assert_same(vo, fixed)
+    assert load_entry(path) is not None  # overwritten with a valid entry
+    again, cached = run_frontend(seq, cfg, cache_dir=tmp_path)
+    assert cached
+    assert_same(vo, again)
 
 
 # ----------------------------------------------------------------------------- old pickles
@@ -210,8 +230,8 @@ def test_old_pkl_entry_is_never_unpickled(seq, results, tmp_path, monkeypatch):
     monkeypatch.setattr(pickle, "load", refuse)
     monkeypatch.setattr(pickle, "loads", refuse)
     monkeypatch.setattr(pickle, "Unpickler", refuse)
-    _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # no .npz yet: recomputed, the .pkl ignored
+    _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # no journal yet: recomputed, the .pkl ignored
     assert not cached and not marker.exists()
     assert cache_path(tmp_path, seq, cfg).is_file() and old.is_file()
-    _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # then the .npz is used
+    _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # then the journal is used
     assert cached and not marker.exists()

@@ -1,0 +1,108 @@
+"""The adaptation stage's summary keys: Algorithm 1's validations (``adaptation.l_val.*``), the bridges
+(``vo.bridges``, ``trajectory.*.bridged``), the regulariser's strength (``adaptation.reg.*``) and the
+fine-tuning's cost (``timing.finetune_*``, ``adaptation.steps``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from mutualslam_cli.adapt.online import OnlineAdapter
+from mutualslam_cli.results.run_folder import write_trajectories
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, set_ate
+from mutualslam_cli.vo.result import VOResult
+
+
+#: The keys of :func:`l_val_stats` (``adaptation.l_val.*`` in ``summary.json``).
+L_VAL_KEYS = ("validations", "min", "median", "longest_below_tau", "map_median_depth")
+
+
+def l_val_stats(rows: list[dict[str, Any]], tau: float, vo: VOResult) -> dict[str, Any]:
+    """Algorithm 1's validations from the keyframe rows: ``validations`` (with an L_val), ``min``,
+    ``median`` (L_val, Eq. 9, inverse map units), ``longest_below_tau`` (most consecutive ones below τ)
+    and ``map_median_depth`` (median depth of the map points in their hosts, map units). The front end
+    sets the median depth of its first map to 1, as SVO does, so τ means here what it means in the
+    paper as long as that unit holds; ``L_val × map_median_depth`` is the scale-free form."""
+    vals = [float(r["l_val"]) for r in rows if r.get("is_validation") and r.get("l_val") is not None
+            and np.isfinite(float(r["l_val"]))]
+    run = best = 0
+    for v in vals:
+        run = run + 1 if v < tau else 0
+        best = max(best, run)
+    depth = float(np.median(1.0 / vo.points.inv_depth)) if len(vo.points) else None
+    return {"validations": len(vals), "min": min(vals) if vals else None,
+            "median": float(np.median(vals)) if vals else None, "longest_below_tau": best,
+            "map_median_depth": depth}
+
+
+def summarise_bridges(run: RunContext, loop_map: VOResult, bridges: list[dict[str, Any]] | None) -> None:
+    """``vo.bridges`` and, when a segment was bridged, ``traj_{kf,all}_bridged.txt`` and
+    ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the adaptation loop's map (bridged
+    segments; Algorithm 1's BAs included) before the final BA, one Sim(3) as every headline ATE.
+    ``bridges``: the bridges made, ``None`` when no keyframe loop ran (scheme ``comoda``)."""
+    keys = [f"trajectory.{group}.{leaf}" for group in ("ate_rmse_m", "ate_rmse_m_per_segment")
+            for leaf in ("bridged", "all_frames_bridged")]
+    if bridges is None:
+        why = "scheme 'comoda' does not run the keyframe loop that bridges segments"
+        for key in ("vo.bridges", *keys):
+            run.summary.absent(key, why)
+        return
+    run.summary.set("vo.bridges", len(bridges))
+    if not bridges:
+        why = ("no segment to bridge" if len({k.segment for k in loop_map.keyframes}) < 2 else
+               "no bridge could be made (vo.bridge_segments=false, or no depth ratio on a side of a gap)")
+        for key in keys:
+            run.summary.absent(key, why)
+        return
+    write_trajectories(run.folder, loop_map.traj_kf, loop_map.traj_all, suffix="_bridged")
+    set_ate(run.summary, evaluate_trajectory(run.seq, loop_map, run.cfg.eval.ate_max_dt),
+            {"kf": "bridged", "all": "all_frames_bridged"})
+
+
+#: The keys of :func:`summarise_strength` (``adaptation.reg.*``).
+STRENGTH_KEYS = ("shrink.mean", "shrink.median", "importance.mean")
+
+
+def summarise_strength(summary: Summary, adapter: OnlineAdapter | None) -> None:
+    """``adaptation.reg.shrink.{mean,median}``: the share of each batch's Adam displacement the
+    regulariser's proximal step took back, over every step (0: inert, 1: frozen;
+    :mod:`~mutualslam_cli.adapt.regularizers`), and ``adaptation.reg.importance.mean``: the mean of
+    ``c·w`` over the parameters at the end (the penalty's curvature per unit of squared displacement)."""
+    reg = adapter.regularizer if adapter is not None else None
+    if reg is None:
+        for k in STRENGTH_KEYS:
+            summary.absent(f"adaptation.reg.{k}", "the scheme has no regulariser")
+        return
+    why = ("adapt.reg_mode = 'penalty': the penalty enters Adam's gradient, there is no proximal step"
+           if reg.mode == "penalty" else "no proximal step was taken")
+    shrink = np.asarray(reg.shrinks, dtype=float)
+    summary.set("adaptation.reg.shrink.mean", float(shrink.mean()) if shrink.size else None, why)
+    summary.set("adaptation.reg.shrink.median", float(np.median(shrink)) if shrink.size else None, why)
+    n = sum(w.numel() for w in reg.weights)
+    summary.set("adaptation.reg.importance.mean",
+                reg.coef * float(sum(float(w.sum()) for w in reg.weights)) / n if n else None,
+                "the network has no trainable parameter")
+
+
+def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter | None,
+                         kf_rows: list[dict[str, Any]]) -> None:
+    """``timing.finetune_ms`` (median per optimiser step), ``timing.finetune_kf_ms`` (per keyframe, the steps
+    included) and of it ``timing.finetune_batch_ms`` (assembling the batch) and ``timing.finetune_consolidate_ms``
+    (the regulariser's end of batch: EWC's per-keyframe Fisher, MAS's importance), ``adaptation.keyframes_trained``,
+    ``adaptation.steps`` and, for scheme ``luo``, ``adaptation.luo_keyframes_with_partner`` (training keyframes
+    that found a simulated stereo partner)."""
+    why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
+    for key, ms in (("finetune_ms", "step_ms"), ("finetune_kf_ms", "finetune_ms"), ("finetune_batch_ms", "batch_ms"),
+                    ("finetune_consolidate_ms", "consolidate_ms")):
+        values = getattr(adapter, ms) if adapter is not None else []
+        summary.set(f"timing.{key}", float(np.median(values)) if values else None, why)
+    summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
+    summary.set("adaptation.steps", int(sum(int(r.get("steps") or 0) for r in kf_rows)))
+    if scheme == "luo":
+        training = [r for r in kf_rows if not r.get("is_validation")]
+        summary.set("adaptation.luo_keyframes_with_partner", sum(bool(str(r.get("sources") or "").strip())
+                                                                 for r in training))
+        summary.set("adaptation.training_keyframes", len(training))

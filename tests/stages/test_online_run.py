@@ -1,0 +1,139 @@
+"""A causal run end to end with our VO: the front end is lost, the new segment is bridged by the network of its
+time and tracked on in that unit, Algorithm 1's global BA reaches the front end, and a run that reads the
+journal cache (resumed from a resumption point, checked event by event) is the uncached run, bit for bit."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from synth import make_tum_dir, plant_tracking_failures
+
+from mutualslam_cli.adapt.depthnet import DepthNet, predict_depth
+from mutualslam_cli.adapt.weights import save_monodepth2
+from mutualslam_cli.config import CONFIG_DIR, load_config
+from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.pipeline import run_sequence
+from mutualslam_cli.results.summary import flatten
+from mutualslam_cli.stages import adaptation
+from mutualslam_cli.stages.frontend import run_frontend
+from mutualslam_cli.stages.vo_cache import cache_path, load_entry
+
+
+@pytest.fixture(scope="module")
+def lost(tmp_path_factory):
+    """100 rendered frames, black at 40–44: with relocalisation off, two segments (the second from frame 45)."""
+    tmp = tmp_path_factory.mktemp("online_run")
+    torch.manual_seed(0)
+    save_monodepth2(DepthNet(), tmp / "weights", 64, 96)
+    root = plant_tracking_failures(make_tum_dir(tmp, scene="room", n=100, width=320, height=240, seed=2),
+                                   blackout=(40, 44))
+    return tmp, root
+
+
+def _cfg(tmp: Path, *extra: str):
+    return load_config(CONFIG_DIR / "smoke.yaml", [
+        f"net.weights={tmp / 'weights'}", "vo.mode=svo", "vo.relocalise=false", "vo.kf_min_parallax_px=8",
+        "vo.grid_size=16", "adapt.steps_per_keyframe=1", "adapt.validate_every=10", "adapt.patience=1",
+        "adapt.tau_val=1e9", "ba.d_max=0.2", "eval.stride=5", "eval.export_frames=0", *extra])
+
+
+@pytest.fixture(scope="module")
+def causal(lost):
+    """The causal run, uncached (a fresh results root), watched: the bridge's network and the loop's steps."""
+    tmp, root = lost
+    seen, loops = [], []
+    mp = pytest.MonkeyPatch()
+    plan, run_loop = adaptation.plan_bridge, adaptation.OnlineLoop.run_loop
+
+    def spy_loop(self):
+        loops.append(self)
+        return run_loop(self)
+
+    def spy_plan(snap, kf, depth_of, *a):
+        loop = loops[-1]
+        now = predict_depth(loop.net, loop.load(kf)[None], False)[0]
+        seen.append({"kf": kf, "frame": loop.source.frame, "steps": len(loop.adapter.step_ms),
+                     "depth_of": depth_of(kf), "now": now})
+        return plan(snap, kf, depth_of, *a)
+
+    mp.setattr(adaptation.OnlineLoop, "run_loop", spy_loop)
+    mp.setattr(adaptation, "plan_bridge", spy_plan)
+    try:
+        r = run_sequence(root, _cfg(tmp), out=tmp / "a", command=["test"])
+    finally:
+        mp.undo()
+    return r, seen, loops[-1]
+
+
+def test_a_lost_front_end_is_bridged_then_and_goes_on_in_that_unit(lost, causal):
+    tmp, root = lost
+    r, seen, loop = causal
+    flat = flatten(r.summary)
+    assert flat["adaptation.labels"] == "causal" and flat["vo.segments"] == 2
+    assert flat["vo.bridges"] >= 1 and flat["ba.runs"] >= 1 and flat["ba.requested"] >= 1
+    for name in ("traj_kf_bridged.txt", "traj_all_bridged.txt", "traj_kf.txt", "traj_kf_ba.txt"):
+        assert (r.folder / name).is_file(), name
+    # the bridge was made when the segment appeared, by the network as adapted up to then
+    (b,) = seen
+    state = loop.state
+    first = next(k for k in range(state.n_keyframes) if state.segment(k) == 1)
+    assert b["kf"] == first and b["frame"] == state.created_at[first] < len(load_sequence(root)) - 1
+    np.testing.assert_array_equal(b["depth_of"], b["now"])
+    rows = pd.read_csv(r.folder / "keyframes.csv")
+    before = rows[rows["kf_id"] < first]["steps"].sum()
+    assert b["steps"] == before and 0 < before < rows["steps"].sum()  # not the final network
+    # the front end went on in the bridged unit: segment 1's later keyframes lie s times as far from its first
+    # keyframe as in the front end run alone (tracking, seeds and their promotion all in the new unit)
+    s = json.loads((r.folder / "manifest.json").read_text())["bridges"][0]["scale"]
+    assert abs(s - 1) > 0.1
+
+    def spread(vo) -> dict[int, float]:
+        seg1 = [k for k in vo.keyframes if k.segment == 1]
+        return {k.frame_index: float(np.linalg.norm(k.pose[:3, 3] - seg1[0].pose[:3, 3]))
+                for k in seg1 if k.frame_index > b["frame"]}
+
+    alone, _ = run_frontend(load_sequence(root), _cfg(tmp))
+    ours, theirs = spread(loop.source.result()), spread(alone)
+    common = sorted(set(ours) & set(theirs))
+    assert len(common) >= 3
+    ratio = sum(ours[f] for f in common) / sum(theirs[f] for f in common)
+    assert ratio == pytest.approx(s, rel=0.1), (ratio, s)
+
+
+def test_online_scores_are_the_model_of_their_time(causal):
+    r, _, loop = causal
+    table = pd.read_csv(r.folder / "per_frame.csv")
+    created = np.array(loop.state.created_at)
+    for f, k in zip(table["frame"], table["online_kf"]):
+        before = np.flatnonzero(created <= f)
+        assert k == (before.max() if len(before) else -1), (f, k)
+
+
+def test_a_cached_run_is_the_uncached_run(lost, causal):
+    """The second run replays the journal the first one stored (up to its first change, the bridge), resumes the
+    front end from a resumption point, re-runs the frames after it checking every event, and goes on live."""
+    tmp, root = lost
+    r, _, _ = causal
+    seq = load_sequence(root)
+    entry = load_entry(cache_path(tmp / "a" / "_cache" / "vo", seq, _cfg(tmp)))
+    assert entry is not None and not entry.complete and entry.checkpoints and min(entry.checkpoints) <= entry.until
+    first = tmp / "first"
+    shutil.copytree(r.folder, first)
+    again = run_sequence(root, _cfg(tmp), out=tmp / "a", command=["test"], force=True)
+    a, b = flatten(r.summary), flatten(again.summary)
+    assert b["vo.frames_from_cache"] == entry.until + 1 and a["vo.frames_from_cache"] == 0
+    skip = ("timing.", "vo.from_cache", "vo.frames_from_cache", "notes.timing")
+    differ = [k for k in a if not k.startswith(skip) and a[k] != b.get(k)
+              and not (isinstance(a[k], float) and np.isnan(a[k]) and np.isnan(b[k]))]
+    assert not differ, differ
+    for name in ("traj_kf.txt", "traj_all.txt", "traj_kf_bridged.txt", "traj_kf_ba.txt", "per_frame.csv"):
+        assert (first / name).read_bytes() == (again.folder / name).read_bytes(), name
+    ka, kb = pd.read_csv(first / "keyframes.csv"), pd.read_csv(again.folder / "keyframes.csv")
+    timing = [c for c in ka.columns if c in ("ms",) or c.endswith("_s") or c.startswith("rt_")]
+    pd.testing.assert_frame_equal(ka.drop(columns=timing), kb.drop(columns=timing))
