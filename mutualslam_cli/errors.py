@@ -8,7 +8,10 @@ Two families, told apart by what the CLI does with them:
 
   - :class:`DatasetError`: a sequence on disk is missing, malformed or inconsistent.
     :class:`CameraFileError` (inside a camera file) and :class:`ArchiveError` (:class:`CorruptArchive`,
-    :class:`UnsafeMember`: a downloaded archive) are the datasets' own, caught where they are raised.
+    :class:`UnsafeMember`, :class:`ArchiveTooLarge`: a downloaded archive) are the datasets' own, caught
+    where they are raised. :class:`UnsafeName` (a file name from a URL or a registry field that would
+    not be one file in its folder) and :class:`DownloadLocked` (another process downloads the same file)
+    reach the user as they are.
   - :class:`ConfigError`: a setting (config file, ``--set``, a constructor argument that comes
     from one) is invalid.
   - :class:`GeometryError`: an alignment is degenerate (too few pairs, collinear positions).
@@ -54,7 +57,24 @@ class CorruptArchive(ArchiveError):
 
 
 class UnsafeMember(ArchiveError):
-    """An archive member would be written outside the target folder (absolute path or ``..``)."""
+    """An archive member that is not a plain file or folder inside the target folder: an absolute path, ``..``,
+    a path too deep or too long, a link or special file, an unsupported zip compression
+    (:mod:`~mutualslam_cli.datasets.members`)."""
+
+
+class ArchiveTooLarge(ArchiveError):
+    """Unpacking the archive would pass a limit (:mod:`~mutualslam_cli.datasets.limits`): total bytes, free
+    disk, member count or a member's compression ratio; the message names the limit and how to change it."""
+
+
+class UnsafeName(DatasetError):
+    """A name from outside (a URL's last segment, a registry field) is not a safe single file name
+    (:mod:`~mutualslam_cli.datasets.safe_names`)."""
+
+
+class DownloadLocked(DatasetError):
+    """Another live process downloads or unpacks the same file (:mod:`~mutualslam_cli.datasets.download_lock`);
+    the message names the file and the holder."""
 
 
 class ConfigError(MslamError):

@@ -36,7 +36,10 @@ def datasets(
     base_url: Optional[str] = typer.Option(None, "--base-url", help="download: a mirror; each URL becomes "
                                            "BASE_URL/<file name> (default $MSLAM_DOWNLOAD_BASE_URL)."),
     force: bool = typer.Option(False, "--force", help="download: unpack again and replace an existing sequence "
-                               "folder (downloaded archives are reused)."),
+                               "folder (downloaded archives are reused; the old folder stays if that fails)."),
+    max_unpack_gb: Optional[float] = typer.Option(None, "--max-unpack-gb", min=0, help="download: most GB an "
+                                                  "archive may unpack to (default 10× its size; never more than "
+                                                  "the free disk)."),
     registry: Optional[Path] = RegistryOpt,
     data_root: Optional[str] = DataRootOpt,
     config: Optional[Path] = ConfigOpt,
@@ -53,7 +56,7 @@ def datasets(
     cfg = config_from(config, sets, data_root)
     words = list(name or [])
     if words and words[0] == "download":
-        _download(words[1:], sample, base_url, force, registry, cfg.data.data_root)
+        _download(words[1:], sample, base_url, force, registry, cfg.data.data_root, max_unpack_gb)
         return
     if len(words) > 1:
         raise MslamError(f"datasets: expected one NAME or PATH, got {len(words)} ({' '.join(words)}); "
@@ -112,18 +115,20 @@ def _check_and_print(target: Any, sample: int, data_root: Optional[str], registr
 
 
 def _download(names: list[str], sample: int, base_url: Optional[str], force: bool, registry: Optional[Path],
-              data_root: Optional[str]) -> None:
+              data_root: Optional[str], max_unpack_gb: Optional[float]) -> None:
     """``mslam datasets download NAME…``: each sequence fetched, verified, unpacked, then checked."""
     from mutualslam_cli.datasets.download import DOWNLOAD_DIR, data_root_of, downloadable_specs
+    from mutualslam_cli.datasets.limits import UnpackLimits
 
     specs = downloadable_specs(names, registry, data_root)
     folder = data_root_of(registry, data_root) / DOWNLOAD_DIR
+    limits = UnpackLimits(max_bytes=None if max_unpack_gb is None else int(max_unpack_gb * 1e9))
     for spec in specs:
-        _download_one(spec, folder, base_url, force)
+        _download_one(spec, folder, base_url, force, limits)
         _check_and_print(spec, sample, data_root, registry)
 
 
-def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool) -> None:
+def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool, limits: Any) -> None:
     """One entry's download and unpacking, with a bar (size, speed) per file; the bars go when it is done."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
 
@@ -142,7 +147,7 @@ def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool)
         def say(msg: str) -> None:
             p.console.print(escape(msg), highlight=False, soft_wrap=True)
 
-        download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say)
+        download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say, limits=limits)
 
 
 # --------------------------------------------------------------------------- synth

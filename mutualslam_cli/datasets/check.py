@@ -8,8 +8,8 @@ reported before a long run rather than in its middle:
 - a file the decoder cannot read, or a depth PNG that is not 16-bit single-channel;
 - an image whose shape or dtype differs from the sequence's first image of its kind;
 - a truncated or corrupted PNG or JPEG. OpenCV decodes some truncated PNGs partially with only a
-  warning, so the file structure is checked first: a PNG must be a chain of chunks with matching
-  CRCs ending in ``IEND``, a JPEG must start with SOI and end with EOI (:func:`image_file_problem`).
+  warning, so the file structure is checked first (:mod:`~mutualslam_cli.datasets.image_files`, shared
+  with the recording converters).
 
 Depth values only warn: a median valid depth outside :data:`PLAUSIBLE_DEPTH_M` suggests a wrong
 ``depth_scale``.
@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -28,10 +27,14 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
+from mutualslam_cli.datasets.image_files import image_file_problem, jpeg_problem, png_problem
 from mutualslam_cli.datasets.registry import get_spec, list_datasets, load_sequence, load_spec
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import SequenceSpec
+
+__all__ = ["CheckReport", "bench_loader", "check_all", "check_sequence", "image_file_problem", "jpeg_problem",
+           "png_problem"]
 
 PLAUSIBLE_DEPTH_M = (0.2, 20.0)
 """Median valid depth outside this range (metres) suggests a wrong ``depth_scale``."""
@@ -39,9 +42,6 @@ PLAUSIBLE_DEPTH_M = (0.2, 20.0)
 #: ``progress("decode", info)`` after each decoded image; ``info``: ``done`` and ``total`` (images),
 #: ``file`` (the image just decoded), ``sequence`` (its name). The pipeline's callback style.
 CheckProgress = Callable[[str, dict[str, Any]], None]
-
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
 
 @dataclass
 class CheckReport:
@@ -85,51 +85,6 @@ def _as_sequence(seq_or_spec: Sequence | SequenceSpec | str | os.PathLike, regis
     if isinstance(seq_or_spec, SequenceSpec):
         return load_spec(seq_or_spec)
     return load_sequence(seq_or_spec, data_root=data_root, registry_path=registry_path)
-
-
-def png_problem(data: bytes | memoryview) -> str | None:
-    """What is wrong with the structure of a PNG file, or ``None``.
-
-    Walks the chunks (length, type, data, CRC-32) from the signature to ``IEND``: a chunk running
-    past the end of the file or a missing ``IEND`` means a truncated file, a CRC mismatch a
-    corrupted one. Bytes after ``IEND`` are ignored, as decoders do.
-    """
-    data = memoryview(data)
-    if bytes(data[:8]) != _PNG_SIGNATURE:
-        return "not a PNG file (no PNG signature)"
-    pos, n = 8, len(data)
-    while pos + 12 <= n:
-        length = int.from_bytes(data[pos:pos + 4], "big")
-        kind = bytes(data[pos + 4:pos + 8]).decode("latin-1")
-        end = pos + 12 + length
-        if end > n:
-            return f"truncated PNG: chunk {kind!r} at byte {pos} needs {end} bytes, the file has {n}"
-        if zlib.crc32(data[pos + 4:pos + 8 + length]) != int.from_bytes(data[end - 4:end], "big"):
-            return f"corrupted PNG: CRC mismatch in chunk {kind!r} at byte {pos}"
-        if kind == "IEND":
-            return None
-        pos = end
-    return f"truncated PNG: no IEND chunk before the end of the file ({n} bytes)"
-
-
-def jpeg_problem(data: bytes | memoryview) -> str | None:
-    """What is wrong with the framing of a JPEG file (SOI at the start, EOI at the end), or ``None``."""
-    data = bytes(data[:2]) + bytes(data[-64:]).rstrip(b"\x00\r\n ")  # some writers pad after EOI
-    if data[:2] != b"\xff\xd8":
-        return "not a JPEG file (no SOI marker)"
-    if not data.endswith(b"\xff\xd9"):
-        return "truncated JPEG: no EOI marker at the end of the file"
-    return None
-
-
-def image_file_problem(path: Path, data: bytes | memoryview) -> str | None:
-    """Structural problem of the image file ``path`` with content ``data`` (PNG and JPEG), or ``None``."""
-    suffix = path.suffix.lower()
-    if suffix == ".png":
-        return png_problem(data)
-    if suffix in (".jpg", ".jpeg"):
-        return jpeg_problem(data)
-    return None
 
 
 def _describe(img: np.ndarray, dtype: bool = True) -> str:

@@ -17,6 +17,7 @@ import numpy as np
 
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.associate import write_tum_trajectory
+from mutualslam_cli.datasets.image_files import decode_frame
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import Intrinsics, Trajectory
 
@@ -80,11 +81,19 @@ class TumWriter:
 
     RGB frames go to ``rgb/<t>.<ext>`` (encoded bytes written as they are: no re-encoding) or stay
     where they are (:meth:`add_rgb_path`); depth to ``depth/<t>.png`` as 16-bit raw units.
+
+    Every colour frame is checked as it arrives, so a bad one stops the conversion before any run, in
+    one line naming it: its file structure (a truncated PNG or JPEG), that it decodes, and that its
+    size (``(width, height)`` pixels) is the first frame's — and ``expect_size``'s, the camera file's,
+    when it gives one.
     """
 
-    def __init__(self, folder: Path, progress: Callable[[int], None] | None = None):
+    def __init__(self, folder: Path, progress: Callable[[int], None] | None = None, source: str | None = None,
+                 expect_size: tuple[int, int] | None = None, camera: str | None = None):
         self.folder = Path(folder)
         self.progress = progress  # called with the number of colour frames so far
+        self.source = source or str(self.folder)  # the recording, for messages
+        self.expect_size, self.camera = expect_size, camera  # the camera file's size and name, if it gives one
         self.tmp = self.folder.with_name(f".{self.folder.name}.converting-{os.getpid()}")
         if self.tmp.exists():
             shutil.rmtree(self.tmp)
@@ -94,6 +103,7 @@ class TumWriter:
         self.depth: list[tuple[float, str]] = []
         self.gt: Trajectory | None = None
         self.size: tuple[int, int] | None = None  # (width, height) of the first RGB frame
+        self._first = ""  # how the first frame is named in messages
 
     def _name(self, t: float, ext: str, taken: list[tuple[float, str]], sub: str) -> str:
         name = f"{sub}/{t:.6f}{ext}"
@@ -101,31 +111,61 @@ class TumWriter:
             name = f"{sub}/{t:.6f}_{len(taken)}{ext}"
         return name
 
+    def _check_size(self, img: np.ndarray, what: str) -> None:
+        """``img`` must have the first frame's size (and the camera file's); ``what`` names the frame."""
+        size = (int(img.shape[1]), int(img.shape[0]))
+        if self.size is None:
+            self.size, self._first = size, what
+            if self.expect_size and self.expect_size != size:
+                raise DatasetError(f"{self.camera}: the camera is for {self.expect_size[0]}×{self.expect_size[1]} "
+                                   f"but the frames are {size[0]}×{size[1]} (first frame: {what})")
+        elif size != self.size:
+            raise DatasetError(f"{what}: the frame is {size[0]}×{size[1]}, expected {self.size[0]}×{self.size[1]} "
+                               f"like the first frame ({self._first}); every frame of a recording must have one size")
+
     def add_rgb(self, t: float, image: bytes | np.ndarray, ext: str = ".png") -> None:
         """One colour frame at time ``t`` (s): encoded file bytes (``ext`` names the format), or a
-        ``(H, W, 3)`` uint8 RGB / ``(H, W)`` uint8 grey array, written as PNG."""
+        ``(H, W, 3)`` uint8 RGB / ``(H, W)`` uint8 grey array, written as PNG.
+
+        Raises:
+            DatasetError: the frame does not decode, or its size differs from the first frame's.
+        """
+        what = f"{self.source}: frame {len(self.rgb)} at {t:.6f} s"
         if isinstance(image, np.ndarray):
+            self._check_size(image, what)
             arr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
             ok, buf = cv2.imencode(".png", arr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
             if not ok:
-                raise DatasetError(f"{self.folder}: cannot encode frame at {t:.6f} s as PNG")
+                raise DatasetError(f"{what}: cannot encode the frame as PNG")
             image, ext = buf.tobytes(), ".png"
-            if self.size is None:
-                self.size = (int(arr.shape[1]), int(arr.shape[0]))
+        else:
+            img, problem = decode_frame(image, ext)
+            if img is None:
+                raise DatasetError(f"{what}: {problem}; expected a complete {ext} colour image")
+            self._check_size(img, what)
         name = self._name(t, ext, self.rgb, "rgb")
         (self.tmp / name).write_bytes(image)
-        if self.size is None:
-            img = cv2.imread(str(self.tmp / name), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise DatasetError(f"{self.folder}: frame at {t:.6f} s cannot be decoded (expected {ext} bytes)")
-            self.size = (int(img.shape[1]), int(img.shape[0]))
         self.rgb.append((t, name))
         if self.progress is not None:
             self.progress(len(self.rgb))
 
     def add_rgb_path(self, t: float, path: Path) -> None:
-        """One colour frame that stays where it is (an image folder): listed by its absolute path."""
-        self.rgb.append((t, str(Path(path).resolve())))
+        """One colour frame that stays where it is (an image folder): checked (decoded), listed by its absolute path.
+
+        Raises:
+            DatasetError: the file cannot be read or decoded, or its size differs from the first frame's.
+        """
+        path = Path(path)
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise DatasetError(f"{path}: cannot read the image ({e.strerror})") from None
+        img, problem = decode_frame(data, path.suffix.lower())
+        if img is None:
+            raise DatasetError(f"{path}: {problem}; expected a complete {path.suffix} colour image (frame "
+                               f"{len(self.rgb)} of {self.source})")
+        self._check_size(img, str(path))
+        self.rgb.append((t, str(path.resolve())))
         if self.progress is not None:
             self.progress(len(self.rgb))
 

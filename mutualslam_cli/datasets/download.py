@@ -7,57 +7,56 @@ An entry that can be downloaded has a ``download:`` block (see the header of ``d
       gt: URL                 # optional: a trajectory file published beside it (ICL-NUIM *.gt.freiburg),
                               # saved in the sequence folder under the entry's `gt:` name
       layout: 7scenes         # optional: a 7-Scenes scene zip, of which `sequence:` (e.g. seq-01) is
-      sequence: seq-01        #   converted to the TUM layout (unpack.convert_7scenes)
+      sequence: seq-01        #   converted to the TUM layout (seven_scenes.convert_7scenes)
       checksums: {FILE: "sha256:HEX" | "md5:HEX"}   # optional, published checksums by file name
 
-Files go to ``<data root>/_downloads/`` as ``FILE.part`` while they arrive; an existing ``.part`` is
-resumed with an HTTP ``Range`` request (a server that answers 200 instead of 206 restarts it). A
-complete file is checked against its size, a published checksum when the block gives one, and
-otherwise against the SHA-256 recorded in ``_downloads/checksums.json`` at its first complete
-download (recorded once its archive has unpacked); a mismatching file is removed. The archive is
-unpacked into a temporary folder beside the sequence folder (same file system) and renamed into
-place only when complete, so the sequence folder either does not exist or is whole. Sizes in
-messages are in MB (10⁶ bytes); timeouts in seconds.
+What comes from outside is checked before it touches the disk, in this order:
+
+- **names**: each URL's file name, the entry's ``gt:`` and ``sequence:`` must be safe single file
+  names (:mod:`~mutualslam_cli.datasets.safe_names`), so nothing lands outside ``<data root>/_downloads/``
+  or the sequence folder;
+- **one process per file**: the files of the entry are locked (:mod:`~mutualslam_cli.datasets.download_lock`);
+  a second command on the same file stops at once, naming the holder;
+- **the bytes**: files arrive as ``FILE.part``; a ``.part`` is resumed only when it is the same version
+  of the file (``If-Range`` with the recorded ETag / Last-Modified, :mod:`~mutualslam_cli.datasets.fetch`).
+  A complete file is checked against its size, a published checksum when the block gives one, and
+  otherwise against what ``_downloads/checksums.json`` recorded at its first complete download
+  (:mod:`~mutualslam_cli.datasets.checksums`: SHA-256, size, URL, ETag; recorded once its archive has
+  unpacked); a mismatching file is removed, and the message says whether the publisher changed it;
+- **the archive**: unpacked within limits (:mod:`~mutualslam_cli.datasets.limits`) into a temporary
+  folder beside the sequence folder and renamed into place only when complete
+  (:mod:`~mutualslam_cli.datasets.unpack`), so the sequence folder either does not exist or is whole, and
+  ``force`` keeps the old folder until the new one takes its place.
+
+Sizes in messages are in MB (10⁶ bytes); timeouts in seconds.
 """
 
 from __future__ import annotations
 
-import errno
-import hashlib
-import http.client
-import json
 import os
 import re
-import urllib.error
-import urllib.parse
-import urllib.request
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
-from typing import Any, Callable
+from pathlib import Path
+from typing import Callable
 
-from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.datasets.checksums import ALGORITHMS, CHECKSUMS_FILE, ChecksumStore, verify
+from mutualslam_cli.datasets.download_lock import download_lock
+from mutualslam_cli.datasets.fetch import TIMEOUT_S, DownloadProgress, Entity, fetch
+from mutualslam_cli.datasets.limits import UnpackLimits
 from mutualslam_cli.datasets.registry import DEFAULT_REGISTRY, list_datasets
-from mutualslam_cli.datasets.unpack import install_archive, is_complete
+from mutualslam_cli.datasets.safe_names import check_name, path_inside, url_file_name
+from mutualslam_cli.datasets.unpack import install_archive, is_complete, recover_leftovers
 from mutualslam_cli.errors import CorruptArchive, DatasetError
 from mutualslam_cli.types import SequenceSpec
 
+__all__ = ["BASE_URL_ENV", "CHECKSUMS_FILE", "DOWNLOAD_DIR", "DownloadBlock", "DownloadProgress", "DownloadResult",
+           "FetchedFile", "TIMEOUT_S", "data_root_of", "download_block", "download_sequence", "downloadable_specs",
+           "file_url", "get_file", "url_file_name"]
+
 DOWNLOAD_DIR = "_downloads"
 """Folder in the data root that holds the downloaded files and ``checksums.json``."""
-CHECKSUMS_FILE = "checksums.json"
 BASE_URL_ENV = "MSLAM_DOWNLOAD_BASE_URL"
 """Environment variable that replaces everything before the file name of each URL (a mirror)."""
-TIMEOUT_S = 60.0
-"""Seconds to wait for a connection or for the next bytes of a response."""
-
-#: ``progress(stage, info)``: stage ``"download"`` with ``done``/``total`` bytes (``total`` None when the
-#: server does not say), ``file`` and ``url``; stage ``"unpack"`` with ``done``/``total`` bytes of the archive
-#: and ``file``.
-DownloadProgress = Callable[[str, dict[str, Any]], None]
-
-_CHUNK = 1 << 20
-_CONTENT_RANGE = re.compile(r"bytes\s+(\d+)-(\d+)/(\d+|\*)")
-_RANGE_TOTAL = re.compile(r"bytes\s+\*/(\d+)")
-_ALGOS = ("sha256", "md5")
 
 
 @dataclass(frozen=True)
@@ -87,6 +86,8 @@ class FetchedFile:
     resumed_from: int = 0
     reused: bool = False
     recorded: bool = False  # its SHA-256 was recorded now (first complete download that unpacked)
+    entity: Entity | None = None  # what the server said of it (None: reused)
+    note: str | None = None  # a discarded .part, and why
 
 
 @dataclass
@@ -104,7 +105,12 @@ def _mb(n: int | None) -> str:
 
 
 def download_block(spec: SequenceSpec) -> DownloadBlock | None:
-    """The entry's ``download:`` block, validated, or ``None`` when it has none."""
+    """The entry's ``download:`` block, validated (URL file names, ``gt:`` and ``sequence:`` are safe file
+    names), or ``None`` when it has none.
+
+    Raises:
+        DatasetError: a malformed block; :class:`~mutualslam_cli.errors.UnsafeName` for an unsafe name.
+    """
     raw = spec.extra.get("download")
     if raw is None:
         return None
@@ -120,12 +126,19 @@ def download_block(spec: SequenceSpec) -> DownloadBlock | None:
     checksums: dict[str, tuple[str, str]] = {}
     for fname, value in (raw.get("checksums") or {}).items():
         algo, _, hexd = str(value).partition(":")
-        if algo.lower() not in _ALGOS or not re.fullmatch(r"[0-9a-fA-F]+", hexd):
+        if algo.lower() not in ALGORITHMS or not re.fullmatch(r"[0-9a-fA-F]+", hexd):
             raise DatasetError(f"{where}: checksum of {fname} must be 'sha256:HEX' or 'md5:HEX', got {value!r}")
         checksums[str(fname)] = (algo.lower(), hexd.lower())
-    gt = raw.get("gt")
-    return DownloadBlock(raw["archive"], str(gt) if gt else None, layout,
-                         str(raw["sequence"]) if raw.get("sequence") else None, checksums)
+    gt = str(raw["gt"]) if raw.get("gt") else None
+    block = DownloadBlock(raw["archive"], gt, layout, str(raw["sequence"]) if raw.get("sequence") else None,
+                          checksums)
+    for url in block.urls:
+        url_file_name(url)
+    if block.sequence is not None:
+        check_name(block.sequence, f"{where}: sequence")
+    if gt is not None and spec.gt_file:
+        check_name(spec.gt_file, f"datasets.yaml entry '{spec.name}': gt")
+    return block
 
 
 def data_root_of(registry_path: str | os.PathLike | None = None, data_root: str | os.PathLike | None = None) -> Path:
@@ -139,13 +152,15 @@ def downloadable_specs(names: list[str], registry_path: str | os.PathLike | None
                        data_root: str | os.PathLike | None = None) -> list[SequenceSpec]:
     """The specs of ``names``; an unknown name or one without a ``download:`` block lists the downloadable ones."""
     specs = {s.name: s for s in list_datasets(registry_path, data_root)}
-    ok = [n for n, s in specs.items() if download_block(s) is not None]
+    ok = [n for n, s in specs.items() if s.extra.get("download") is not None]
     bad = [n for n in names if n not in ok]
     if bad or not names:
         registry = Path(registry_path) if registry_path is not None else DEFAULT_REGISTRY
         what = (f"cannot download {', '.join(bad)}: not in {registry} or no 'download:' block there" if bad
                 else "name the sequences to download")
         raise DatasetError(f"{what}; downloadable: {', '.join(ok) or 'none'}")
+    for n in names:
+        download_block(specs[n])  # every entry's names checked before anything is fetched
     return [specs[n] for n in names]
 
 
@@ -154,183 +169,22 @@ def file_url(url: str, base_url: str | None = None) -> str:
     return url if not base_url else base_url.rstrip("/") + "/" + url_file_name(url)
 
 
-def url_file_name(url: str) -> str:
-    """The file name at the end of ``url``'s path."""
-    name = urllib.parse.unquote(PurePosixPath(urllib.parse.urlsplit(url).path).name)
-    if not name or name in (".", ".."):
-        raise DatasetError(f"{url}: expected a URL ending in a file name")
-    return name
-
-
-# ----------------------------------------------------------------------------- checksums
-
-
-class ChecksumStore:
-    """``checksums.json``: file name → ``{"sha256", "bytes", "url"}`` of its first complete download."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.data: dict[str, dict[str, Any]] = {}
-        if path.is_file():
-            try:
-                data = json.loads(path.read_text(encoding="utf-8"))
-                if not isinstance(data, dict):
-                    raise ValueError
-            except ValueError:
-                raise DatasetError(f"{path}: invalid JSON; expected file name → {{sha256, bytes, url}} "
-                                   "(delete it to record the checksums anew)") from None
-            self.data = data
-
-    def get(self, name: str) -> dict[str, Any] | None:
-        """The record of file ``name``, if any."""
-        return self.data.get(name)
-
-    def put(self, name: str, record: dict[str, Any]) -> None:
-        """Record file ``name`` and save the file atomically."""
-        self.data[name] = record
-        self._save()
-
-    def drop(self, name: str) -> None:
-        """Forget file ``name`` (saved at once)."""
-        if self.data.pop(name, None) is not None:
-            self._save()
-
-    def _save(self) -> None:
-        atomic_write_text(self.path, json.dumps(self.data, indent=2, sort_keys=True) + "\n")
-
-
-def _digests(path: Path, algos: set[str]) -> dict[str, str]:
-    hs = {a: hashlib.new(a) for a in algos}
-    with open(path, "rb") as f:
-        while buf := f.read(_CHUNK):
-            for h in hs.values():
-                h.update(buf)
-    return {a: h.hexdigest() for a, h in hs.items()}
-
-
-def _verify(path: Path, name: str, url: str, block: DownloadBlock, store: ChecksumStore) -> str:
-    """SHA-256 of ``path`` after checking it against the published or the recorded checksum (a mismatch
-    removes the file and raises :class:`DatasetError`)."""
-    published = block.checksums.get(name)
-    got = _digests(path, {"sha256"} | ({published[0]} if published else set()))
-    problem = None
-    if published and got[published[0]] != published[1]:
-        label = {"sha256": "SHA-256", "md5": "MD5"}[published[0]]
-        problem = f"{label} {got[published[0]]} does not match the published {published[1]} (datasets.yaml)"
-    elif (rec := store.get(name)) is not None and rec.get("sha256") != got["sha256"]:
-        problem = (f"SHA-256 {got['sha256']} does not match {rec.get('sha256')} recorded in {store.path} at its "
-                   "first download (delete that entry if the publisher changed the file)")
-    if problem:
-        path.unlink(missing_ok=True)
-        raise DatasetError(f"{name} from {url}: {problem}; removed the file, run the command again to download "
-                           "it anew")
-    return got["sha256"]
-
-
-# ----------------------------------------------------------------------------- HTTP
-
-
-def _open(url: str, start: int, timeout: float) -> Any:
-    """The response to GET ``url`` (``Range: bytes=start-`` when ``start``); a 416 answer is returned, not raised."""
-    headers = {"User-Agent": "mslam-datasets-download"}
-    if start:
-        headers["Range"] = f"bytes={start}-"
-    try:
-        return urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=timeout)
-    except urllib.error.HTTPError as e:
-        if e.code == 416 and start:
-            return e
-        raise DatasetError(f"{url}: HTTP {e.code} {e.reason}; expected the file (check the URL in datasets.yaml "
-                           "or --base-url)") from None
-    except (urllib.error.URLError, OSError, http.client.HTTPException) as e:
-        raise DatasetError(f"{url}: cannot connect ({getattr(e, 'reason', e)}); check the network, the URL or "
-                           "--base-url") from None
-    except ValueError:
-        raise DatasetError(f"{url}: expected an http:// or https:// URL") from None
-
-
-def _start(url: str, part: Path, timeout: float) -> tuple[Any, int, int | None]:
-    """Open ``url`` for the rest of ``part``: ``(response or None, start byte, total bytes or None)``.
-
-    ``None`` as the response: ``part`` is already complete (the server answered 416 with its size)."""
-    have = part.stat().st_size if part.is_file() else 0
-    resp = _open(url, have, timeout)
-    if have and resp.getcode() == 416:
-        m = _RANGE_TOTAL.match(resp.headers.get("Content-Range", ""))
-        resp.close()
-        if m and int(m.group(1)) == have:
-            return None, have, have
-        resp, have = _open(url, 0, timeout), 0
-    if have and resp.getcode() == 206:
-        m = _CONTENT_RANGE.match(resp.headers.get("Content-Range", ""))
-        if m and int(m.group(1)) == have:
-            return resp, have, None if m.group(3) == "*" else int(m.group(3))
-        resp.close()
-        resp = _open(url, 0, timeout)
-    length = resp.headers.get("Content-Length")
-    return resp, 0, int(length) if length and length.isdigit() else None
-
-
-def fetch(url: str, dest: Path, progress: DownloadProgress | None = None,
-          timeout: float = TIMEOUT_S) -> tuple[int, int]:
-    """Download ``url`` into ``dest`` + ``.part``, resuming an existing ``.part``; returns ``(bytes, resumed_from)``.
-
-    The ``.part`` file is left in place on any failure, and is complete (not renamed) on success.
-
-    Raises:
-        DatasetError: HTTP error, no connection, an interrupted transfer (``.part`` kept for resuming),
-            more bytes than announced, or a full disk.
-    """
-    part = dest.with_name(dest.name + ".part")
-    resp, start, total = _start(url, part, timeout)
-    if resp is None:
-        return start, start
-    done = start
-    with resp, open(part, "ab" if start else "wb") as f:
-        while True:
-            try:
-                buf = resp.read(_CHUNK)
-            except (OSError, http.client.HTTPException):
-                buf = None
-            if not buf:
-                break
-            try:
-                f.write(buf)
-            except OSError as e:
-                if e.errno == errno.ENOSPC:
-                    raise DatasetError(f"no space left on device while downloading {url} to {part} "
-                                       f"({_mb(done)} of {_mb(total)} MB written, kept for resuming); free some "
-                                       "space and run the command again") from None
-                raise DatasetError(f"{part}: cannot write ({e.strerror or e})") from None
-            done += len(buf)
-            if progress:
-                progress("download", {"done": done, "total": total, "file": dest.name, "url": url})
-    if total is not None and done > total:
-        part.unlink(missing_ok=True)
-        raise DatasetError(f"{url}: the server sent {done} bytes, it announced {total}; removed {part.name}, run "
-                           "the command again")
-    if (total is not None and done < total) or buf is None:
-        raise DatasetError(f"download of {url} interrupted at {_mb(done)} of {_mb(total)} MB; run the command "
-                           "again to resume")
-    return done, start
-
-
 def get_file(url: str, folder: Path, block: DownloadBlock, store: ChecksumStore,
              progress: DownloadProgress | None = None, timeout: float = TIMEOUT_S) -> FetchedFile:
     """``folder/<file name of url>``: reused when complete there, else downloaded; verified either way
     (its SHA-256 is recorded by :func:`download_sequence` once the archive has unpacked)."""
     name = url_file_name(url)
-    dest = folder / name
+    dest = path_inside(folder, name, url)
+    published = block.checksums.get(name)
     if dest.is_file():
-        sha = _verify(dest, name, url, block, store)
-        got = FetchedFile(dest, url, dest.stat().st_size, sha, reused=True)
-    else:
-        size, start = fetch(url, dest, progress, timeout)
-        part = dest.with_name(name + ".part")
-        sha = _verify(part, name, url, block, store)
-        os.replace(part, dest)
-        got = FetchedFile(dest, url, size, sha, resumed_from=start)
-    return got
+        sha = verify(dest, name, url, None, published, store)
+        return FetchedFile(dest, url, dest.stat().st_size, sha, reused=True)
+    got = fetch(url, dest, progress, timeout)
+    part = dest.with_name(name + ".part")
+    sha = verify(part, name, url, got.entity, published, store)
+    os.replace(part, dest)
+    dest.with_name(name + ".partinfo").unlink(missing_ok=True)
+    return FetchedFile(dest, url, got.size, sha, resumed_from=got.resumed_from, entity=got.entity, note=got.note)
 
 
 # ----------------------------------------------------------------------------- the whole entry
@@ -338,7 +192,7 @@ def get_file(url: str, folder: Path, block: DownloadBlock, store: ChecksumStore,
 
 def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | None = None, force: bool = False,
                       progress: DownloadProgress | None = None, on_message: Callable[[str], None] | None = None,
-                      timeout: float = TIMEOUT_S) -> DownloadResult:
+                      timeout: float = TIMEOUT_S, limits: UnpackLimits | None = None) -> DownloadResult:
     """Download, verify and unpack the registry entry ``spec`` into ``spec.root`` (see the module docstring).
 
     Args:
@@ -346,9 +200,10 @@ def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | No
         download_dir: where the files go (``<data root>/_downloads``), with ``checksums.json``.
         base_url: a mirror replacing everything before each file name (default ``$MSLAM_DOWNLOAD_BASE_URL``).
         force: unpack again and replace an existing sequence folder (the downloaded files are reused).
-        progress: see :data:`DownloadProgress`.
-        on_message: one-line notes (skipped, reused, resumed, checksum recorded).
+        progress: see :data:`~mutualslam_cli.datasets.fetch.DownloadProgress`.
+        on_message: one-line notes (skipped, reused, resumed, restarted, checksum recorded).
         timeout: seconds for a connection or the next bytes.
+        limits: unpacking limits (default :class:`~mutualslam_cli.datasets.limits.UnpackLimits`).
 
     Raises:
         DatasetError: every failure, as one line naming the URL or file and what was expected.
@@ -358,15 +213,27 @@ def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | No
     if block is None:
         raise DatasetError(f"datasets.yaml entry '{spec.name}' has no 'download:' block")
     root = Path(spec.root)
-    if is_complete(root) and not force:
-        say(f"{spec.name}: {root} already exists; download skipped (--force unpacks it again)")
-        return DownloadResult(spec.name, root, skipped=True)
     base = base_url if base_url is not None else os.environ.get(BASE_URL_ENV) or None
+    urls = [file_url(url, base) for url in block.urls]
     download_dir.mkdir(parents=True, exist_ok=True)
+    with download_lock(download_dir, [url_file_name(u) for u in urls]):
+        for note in recover_leftovers(root):
+            say(note)
+        if is_complete(root) and not force:
+            say(f"{spec.name}: {root} already exists; download skipped (--force unpacks it again)")
+            return DownloadResult(spec.name, root, skipped=True)
+        return _fetch_and_install(spec, block, root, urls, download_dir, force, progress, say, timeout, limits)
+
+
+def _fetch_and_install(spec: SequenceSpec, block: DownloadBlock, root: Path, urls: list[str], download_dir: Path,
+                       force: bool, progress: DownloadProgress | None, say: Callable[[str], None], timeout: float,
+                       limits: UnpackLimits | None) -> DownloadResult:
     store = ChecksumStore(download_dir / CHECKSUMS_FILE)
     files = []
-    for url in block.urls:
-        got = get_file(file_url(url, base), download_dir, block, store, progress, timeout)
+    for url in urls:
+        got = get_file(url, download_dir, block, store, progress, timeout)
+        if got.note:
+            say(got.note)
         if got.reused:
             say(f"{got.path.name}: using the file downloaded before ({_mb(got.size)} MB)")
         elif got.resumed_from:
@@ -381,7 +248,7 @@ def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | No
 
     try:
         install_archive(archive, root, layout=block.layout, sequence=block.sequence, extra=extra, force=force,
-                        progress=cb)
+                        progress=cb, limits=limits)
     except CorruptArchive as e:
         archive.unlink(missing_ok=True)
         store.drop(archive.name)
@@ -389,8 +256,9 @@ def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | No
                            "run the command again to download it anew") from None
     for got in files:  # recorded once the archive has proved whole, so a bad first download is never the reference
         if store.get(got.path.name) is None:
-            store.put(got.path.name, {"sha256": got.sha256, "bytes": got.size, "url": got.url})
+            store.put(got.path.name, got.sha256, got.size, got.entity or Entity(got.url, total=got.size))
             got.recorded = True
-            say(f"{got.path.name}: SHA-256 {got.sha256} recorded in {store.path}")
+            say(f"{got.path.name}: SHA-256 {got.sha256} recorded in {store.path} (first download: trusted on "
+                "first use, later downloads are compared with it)")
     say(f"{spec.name}: unpacked {files[0].path.name} into {root}")
     return DownloadResult(spec.name, root, skipped=False, files=files)

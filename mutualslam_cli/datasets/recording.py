@@ -97,7 +97,8 @@ def open_recording(path: str | os.PathLike, opts: RecordingOptions,
     folder = conversion_folder(path, opts)
     if not (folder / "source.json").is_file():
         camera = read_camera_file(Path(opts.camera)) if opts.camera is not None else None
-        writer = TumWriter(folder, progress)
+        size = (camera.width, camera.height) if camera is not None and camera.width and camera.height else None
+        writer = TumWriter(folder, progress, source=str(path), expect_size=size, camera=str(opts.camera))
         try:
             if kind == "bag":
                 from mutualslam_cli.datasets.rosbag import convert_bag

@@ -14,6 +14,7 @@ from typing import Any, Iterator
 import cv2
 import numpy as np
 
+from mutualslam_cli.datasets.image_files import image_file_problem
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
 
@@ -76,21 +77,35 @@ class Sequence:
             np.stack([self.frames[i].pose for i in idx]),  # type: ignore[misc]
         )
 
-    def load_rgb(self, i: int) -> np.ndarray:
-        """Frame ``i`` as ``(H, W, 3)`` uint8 RGB."""
+    def _read(self, i: int, flags: int) -> np.ndarray:
+        """Frame ``i`` decoded with ``flags``, its file structure checked first (a truncated PNG is named, not
+        decoded partially) and its size checked against the sequence's (the intrinsics')."""
         path = self.frames[i].rgb_path
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        try:
+            data = Path(path).read_bytes()
+        except OSError as e:
+            raise DatasetError(f"{path}: cannot read image ({e.strerror})") from None
+        problem = image_file_problem(Path(path), data)
+        if problem:
+            raise DatasetError(f"{path}: {problem}; expected a complete colour image file (mslam datasets --check "
+                               "finds every such file)")
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
         if img is None:
             raise DatasetError(f"{path}: cannot read image (expected a PNG/JPEG colour image)")
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        w, h = self.intrinsics.width, self.intrinsics.height
+        if w and h and img.shape[:2] != (h, w):  # else the front end fails deep inside OpenCV
+            raise DatasetError(f"{path}: frame {i} is {img.shape[1]}×{img.shape[0]}, expected {w}×{h} like the "
+                               "sequence's first frame; every frame must have one size (mslam datasets --check "
+                               "finds them all)")
+        return img
+
+    def load_rgb(self, i: int) -> np.ndarray:
+        """Frame ``i`` as ``(H, W, 3)`` uint8 RGB; :class:`DatasetError` when it is not the sequence's size."""
+        return cv2.cvtColor(self._read(i, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
     def load_gray(self, i: int) -> np.ndarray:
-        """Frame ``i`` as ``(H, W)`` uint8 grey."""
-        path = self.frames[i].rgb_path
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise DatasetError(f"{path}: cannot read image (expected a PNG/JPEG colour image)")
-        return img
+        """Frame ``i`` as ``(H, W)`` uint8 grey; :class:`DatasetError` when it is not the sequence's size."""
+        return self._read(i, cv2.IMREAD_GRAYSCALE)
 
     def load_depth(self, i: int) -> np.ndarray | None:
         """Frame ``i`` depth as ``(H, W)`` float32 metres (0 = invalid), or ``None``.

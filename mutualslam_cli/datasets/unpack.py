@@ -1,140 +1,158 @@
-"""Unpacking downloaded dataset archives safely, and converting 7-Scenes sequences to the TUM layout.
+"""Unpacking downloaded dataset archives safely (used by :mod:`~mutualslam_cli.datasets.download`).
 
-Used by :mod:`~mutualslam_cli.datasets.download`. Every function writes only inside the folder it
-is given (a temporary folder the caller removes on failure):
+Every function writes only inside the folder it is given (a temporary folder the caller removes on
+failure), and every byte it writes is counted against the :mod:`~mutualslam_cli.datasets.limits`
+(total bytes, free disk, member count, per-member compression ratio):
 
-- :func:`extract_archive`: a ``.tar``/``.tgz``/``.tar.gz`` or ``.zip`` archive, member by member. A
-  member with an absolute path or a ``..`` component is refused (:class:`UnsafeMember`); links and
-  special files are skipped. A truncated or corrupt archive raises :class:`CorruptArchive`.
+- :func:`extract_archive`: a ``.tar`` (plain, gzip, bzip2 or xz) or ``.zip`` archive, member by member,
+  each streamed to disk. What a member may be is :mod:`~mutualslam_cli.datasets.members`' rule
+  (:func:`safe_relpath`: relative, no ``..``, at most :data:`MAX_MEMBER_DEPTH` components; no links,
+  no special files, zip members stored or deflated), else :class:`UnsafeMember`. A truncated or corrupt
+  archive raises :class:`CorruptArchive`.
 - :func:`content_root`: the sequence folder inside an extracted archive (TUM archives hold one
   top folder, ICL-NUIM ``*_frei_png`` archives hold the files at their top level).
 - :func:`install_archive`: all of it into a temporary folder beside the sequence folder, then one
-  rename into place (so the sequence folder is absent or whole).
-- :func:`convert_7scenes`: one ``seq-NN`` of a Microsoft 7-Scenes scene zip (nested ``seq-NN.zip``
-  with ``frame-XXXXXX.color.png``, ``.depth.png``, ``.pose.txt``) → TUM layout: ``rgb/``, ``depth/``,
-  ``rgb.txt``, ``depth.txt`` (timestamps index / 30 s), ``groundtruth.txt`` (quaternions of the
-  4×4 camera-to-world poses); depth stays in millimetres with the invalid value 65535 set to 0.
+  rename into place (so the sequence folder is absent or whole). ``force`` replaces an existing
+  folder by moving it aside first and moving it back if the new one cannot take its place;
+  :func:`recover_leftovers` finishes or undoes such a swap that a killed process left half done.
+- 7-Scenes scene zips: :mod:`~mutualslam_cli.datasets.seven_scenes`.
 
 Progress: ``progress(done, total)`` in bytes of the archive (of the sequence's members for 7-Scenes).
 """
 
 from __future__ import annotations
 
+import bz2
 import errno
 import gzip
 import logging
+import lzma
 import os
-import re
 import secrets
 import shutil
-import tempfile
 import tarfile
 import zipfile
-import zlib
-from contextlib import contextmanager
-from pathlib import Path, PurePosixPath
-from typing import IO, Callable, Iterator
+from pathlib import Path
+from typing import IO, Callable
 
-import cv2
-import numpy as np
+from mutualslam_cli.datasets.limits import MAX_HEADER_BYTES, Budget, UnpackLimits
+from mutualslam_cli.datasets.members import (
+    MAX_MEMBER_CHARS,
+    MAX_MEMBER_DEPTH,
+    check_zip_member,
+    member_path,
+    open_zip,
+    reading_archive,
+    refuse_special,
+    safe_relpath,
+)
+from mutualslam_cli.datasets.safe_names import path_inside
+from mutualslam_cli.datasets.seven_scenes import convert_7scenes
+from mutualslam_cli.errors import ArchiveTooLarge, CorruptArchive, DatasetError, UnsafeMember
 
-from mutualslam_cli.errors import CorruptArchive, DatasetError, UnsafeMember
-from mutualslam_cli.geometry import rot_to_quat
+__all__ = ["MAX_MEMBER_CHARS", "MAX_MEMBER_DEPTH", "UnpackProgress", "UnsafeMember", "content_root", "extract_archive",
+           "install_archive", "is_complete", "recover_leftovers", "safe_relpath"]
 
 log = logging.getLogger(__name__)
 
 #: ``progress(done, total)``: bytes of the archive consumed so far, and its size.
 UnpackProgress = Callable[[int, int], None]
 
-SEVEN_SCENES_FPS = 30.0
-"""Frame rate used for the synthetic 7-Scenes timestamps (index / 30 s)."""
+class _TarStream:
+    """The decompressed tar stream for ``tarfile`` (mode ``r:``): a read larger than
+    :data:`MAX_HEADER_BYTES` is refused (``tarfile`` reads pax and long-name headers whole), and a
+    decompressor's complaint becomes :class:`CorruptArchive`."""
 
-SEVEN_SCENES_INVALID_DEPTH = 65535
-"""7-Scenes' value of a depth pixel without a measurement (written as 0, the loaders' invalid value)."""
+    def __init__(self, f: IO[bytes]):
+        self.f = f
 
-_FRAME_RE = re.compile(r"frame-(\d+)\.(color\.png|color\.jpg|depth\.png|pose\.txt)$")
-_CHUNK = 1 << 20
+    def read(self, n: int = -1) -> bytes:
+        if n is None or n < 0 or n > MAX_HEADER_BYTES:
+            raise ArchiveTooLarge(f"a tar header asks for {n} bytes at once (limit {MAX_HEADER_BYTES}; a crafted "
+                                  "pax or long-name header?)")
+        try:
+            return self.f.read(n)
+        except OSError as e:
+            if e.errno is not None:
+                raise
+            raise CorruptArchive(str(e)) from None  # bz2: "Invalid data stream"
 
+    def seek(self, pos: int, whence: int = 0) -> int:
+        return self.f.seek(pos, whence)
 
-def _copy(src: IO[bytes], dst: IO[bytes]) -> None:
-    """Copy one member's bytes (a separate function so that tests can make the disk fill up here)."""
-    shutil.copyfileobj(src, dst, _CHUNK)
-
-
-def safe_relpath(name: str) -> PurePosixPath:
-    """The relative path of archive member ``name``; :class:`UnsafeMember` when it is absolute or has ``..``."""
-    norm = name.replace("\\", "/")
-    p = PurePosixPath(norm)
-    if norm.startswith("/") or re.match(r"^[A-Za-z]:", norm) or ".." in p.parts:
-        raise UnsafeMember(name)
-    parts = [s for s in p.parts if s not in ("", ".")]
-    return PurePosixPath(*parts) if parts else PurePosixPath(".")
-
-
-def _write(dest: Path, rel: PurePosixPath, src: IO[bytes]) -> None:
-    target = dest.joinpath(*rel.parts)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with open(target, "wb") as f:
-        _copy(src, f)
+    def tell(self) -> int:
+        return self.f.tell()
 
 
-def _extract_tar(archive: Path, dest: Path, progress: UnpackProgress | None) -> None:
+def _decompressed(raw: IO[bytes]) -> IO[bytes]:
+    head = raw.read(6)
+    raw.seek(0)
+    if head.startswith(b"\x1f\x8b"):
+        return gzip.GzipFile(fileobj=raw, mode="rb")  # type: ignore[return-value]
+    if head.startswith(b"BZh"):
+        return bz2.BZ2File(raw)  # type: ignore[return-value]
+    if head.startswith(b"\xfd7zXZ\x00"):
+        return lzma.LZMAFile(raw)  # type: ignore[return-value]
+    return raw
+
+
+def _extract_tar(archive: Path, dest: Path, budget: Budget, progress: UnpackProgress | None) -> None:
     size = archive.stat().st_size
-    with open(archive, "rb") as raw, tarfile.open(fileobj=raw, mode="r:*") as tf:
+    with open(archive, "rb") as raw, _decompressed(raw) as stream, \
+            tarfile.open(fileobj=_TarStream(stream), mode="r:") as tf:  # type: ignore[call-overload]
         for m in tf:
+            budget.add_members()
             rel = safe_relpath(m.name)
+            if m.issym() or m.islnk():
+                refuse_special("sym" if m.issym() else "hard", m.name, m.linkname)
             if m.isdir():
-                dest.joinpath(*rel.parts).mkdir(parents=True, exist_ok=True)
+                member_path(dest, rel, folder=True)
             elif m.isfile():
+                budget.room(m.name, m.size)
                 src = tf.extractfile(m)
                 assert src is not None
-                with src:
-                    _write(dest, rel, src)
+                with src, open(member_path(dest, rel), "wb") as f:
+                    budget.copy(src, f, m.name, consumed=raw.tell)
             else:
-                log.warning("%s: skipped %s (not a regular file or folder)", archive, m.name)
+                refuse_special("special", m.name)
             if progress:
                 progress(raw.tell(), size)
 
 
-def _extract_zip(archive: Path, dest: Path, progress: UnpackProgress | None) -> None:
-    with zipfile.ZipFile(archive) as zf:
+def _extract_zip(archive: Path, dest: Path, budget: Budget, progress: UnpackProgress | None) -> None:
+    with open_zip(archive, budget) as zf:
         infos = zf.infolist()
         total, done = sum(i.compress_size for i in infos) or 1, 0
         for info in infos:
-            rel = safe_relpath(info.filename)
+            rel = check_zip_member(info, budget)
             if info.is_dir():
-                dest.joinpath(*rel.parts).mkdir(parents=True, exist_ok=True)
+                member_path(dest, rel, folder=True)
             else:
-                with zf.open(info) as src:
-                    _write(dest, rel, src)
+                with zf.open(info) as src, open(member_path(dest, rel), "wb") as f:
+                    budget.copy(src, f, info.filename)
             done += info.compress_size
             if progress:
                 progress(done, total)
 
 
-@contextmanager
-def _reading() -> Iterator[None]:
-    """Translate the archive readers' many errors for a bad file into :class:`CorruptArchive`."""
-    try:
-        yield
-    except (tarfile.TarError, zipfile.BadZipFile, EOFError, zlib.error, gzip.BadGzipFile) as e:
-        raise CorruptArchive(str(e) or type(e).__name__) from None
-
-
-def extract_archive(archive: Path, dest: Path, progress: UnpackProgress | None = None) -> None:
+def extract_archive(archive: Path, dest: Path, progress: UnpackProgress | None = None,
+                    budget: Budget | None = None) -> None:
     """Extract every member of ``archive`` (tar, possibly compressed, or zip) into the folder ``dest``.
 
     Raises:
-        UnsafeMember: a member with an absolute path or ``..`` (some members may be written already).
+        UnsafeMember: a member path that :func:`safe_relpath` refuses, a link or special file, an
+            unsupported zip compression (some members may be written already).
+        ArchiveTooLarge: a limit of ``budget`` (default :class:`~mutualslam_cli.datasets.limits.UnpackLimits`).
         CorruptArchive: the archive is truncated or corrupt.
         OSError: writing failed (e.g. ``errno.ENOSPC``).
     """
     dest.mkdir(parents=True, exist_ok=True)
-    with _reading():
+    budget = budget or Budget(archive, dest)
+    with reading_archive():
         if archive.suffix.lower() == ".zip" or zipfile.is_zipfile(archive):
-            _extract_zip(archive, dest, progress)
+            _extract_zip(archive, dest, budget, progress)
         else:
-            _extract_tar(archive, dest, progress)
+            _extract_tar(archive, dest, budget, progress)
 
 
 def content_root(folder: Path) -> Path:
@@ -145,113 +163,6 @@ def content_root(folder: Path) -> Path:
     return folder
 
 
-# ----------------------------------------------------------------------------- 7-Scenes
-
-
-def _find_sequence(outer: zipfile.ZipFile, sequence: str) -> tuple[zipfile.ZipInfo | None, list[zipfile.ZipInfo]]:
-    """The nested ``<sequence>.zip`` member of a scene zip, or the frame members of an unzipped ``<sequence>/``."""
-    nested = [i for i in outer.infolist() if PurePosixPath(i.filename).name == f"{sequence}.zip"]
-    if nested:
-        return nested[0], []
-    frames = [i for i in outer.infolist()
-              if sequence in PurePosixPath(i.filename).parts[:-1] and _FRAME_RE.search(i.filename)]
-    return None, frames
-
-
-def _pose_line(t: float, text: str) -> str | None:
-    """``'t tx ty tz qx qy qz qw'`` from a 7-Scenes 4×4 camera-to-world pose text, ``None`` if not finite."""
-    vals = np.array(text.split(), dtype=np.float64)
-    if vals.size != 16 or not np.all(np.isfinite(vals)):
-        return None
-    T = vals.reshape(4, 4)
-    q = rot_to_quat(T[:3, :3])
-    return f"{t:.6f} " + " ".join(f"{v:.8f}" for v in (*T[:3, 3], *q))
-
-
-def _depth_png(data: bytes, name: str) -> bytes:
-    """The depth PNG with 65535 (no measurement) set to 0; unchanged bytes when it has no such pixel."""
-    d = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if d is None or d.dtype != np.uint16 or d.ndim != 2:
-        raise CorruptArchive(f"{name} is not a 16-bit single-channel depth PNG")
-    bad = d == SEVEN_SCENES_INVALID_DEPTH
-    if not bad.any():
-        return data
-    d[bad] = 0
-    ok, buf = cv2.imencode(".png", d)
-    if not ok:
-        raise OSError(f"{name}: could not encode the depth PNG")
-    return buf.tobytes()
-
-
-def _convert_frames(zf: zipfile.ZipFile, infos: list[zipfile.ZipInfo], dest: Path, source: str,
-                    progress: UnpackProgress | None) -> int:
-    frames: dict[int, dict[str, zipfile.ZipInfo]] = {}
-    for info in infos:
-        m = _FRAME_RE.search(info.filename)
-        if m:
-            frames.setdefault(int(m.group(1)), {})[m.group(2).split(".")[0]] = info
-    (dest / "rgb").mkdir(parents=True, exist_ok=True)
-    (dest / "depth").mkdir(parents=True, exist_ok=True)
-    note = f"# {source}; timestamps = frame index / {SEVEN_SCENES_FPS:g} s"
-    rgb = ["# color images", note, "# timestamp filename"]
-    dep = ["# depth maps (uint16 millimetres, 0 = invalid)", note, "# timestamp filename"]
-    gt = ["# ground truth trajectory (camera-to-world, from frame-XXXXXX.pose.txt)", note,
-          "# timestamp tx ty tz qx qy qz qw"]
-    total, done = sum(i.compress_size for parts in frames.values() for i in parts.values()) or 1, 0
-    for idx in sorted(frames):
-        parts, t = frames[idx], idx / SEVEN_SCENES_FPS
-        if "color" in parts:
-            name = PurePosixPath(parts["color"].filename).name
-            with zf.open(parts["color"]) as src, open(dest / "rgb" / name, "wb") as f:
-                _copy(src, f)
-            rgb.append(f"{t:.6f} rgb/{name}")
-        if "depth" in parts:
-            name = PurePosixPath(parts["depth"].filename).name
-            (dest / "depth" / name).write_bytes(_depth_png(zf.read(parts["depth"]), name))
-            dep.append(f"{t:.6f} depth/{name}")
-        if "pose" in parts:
-            line = _pose_line(t, zf.read(parts["pose"]).decode("ascii", "replace"))
-            if line:
-                gt.append(line)
-        done += sum(i.compress_size for i in parts.values())
-        if progress:
-            progress(done, total)
-    for fname, lines in (("rgb.txt", rgb), ("depth.txt", dep), ("groundtruth.txt", gt)):
-        (dest / fname).write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return len(frames)
-
-
-def convert_7scenes(archive: Path, sequence: str, dest: Path, progress: UnpackProgress | None = None) -> int:
-    """Write sequence ``sequence`` (e.g. ``seq-01``) of the 7-Scenes scene zip ``archive`` into ``dest``
-    in TUM layout (see the module docstring). Returns the number of frames.
-
-    Raises:
-        CorruptArchive: the zip (or the nested one) is truncated or corrupt, or a depth image does not
-            decode as 16-bit.
-        DatasetError: the archive holds no frame of ``sequence``.
-        UnsafeMember, OSError: as :func:`extract_archive`.
-    """
-    dest.mkdir(parents=True, exist_ok=True)
-    with _reading(), zipfile.ZipFile(archive) as outer:
-        nested, infos = _find_sequence(outer, sequence)
-        source = f"7-Scenes {archive.name} {sequence}"
-        if nested is not None:
-            inner_path = dest / f".{sequence}.zip"  # the nested zip is extracted first: zips need seeking
-            with outer.open(nested) as src, open(inner_path, "wb") as f:
-                _copy(src, f)
-            try:
-                with zipfile.ZipFile(inner_path) as inner:
-                    n = _convert_frames(inner, inner.infolist(), dest, source, progress)
-            finally:
-                inner_path.unlink(missing_ok=True)
-        else:
-            n = _convert_frames(outer, infos, dest, source, progress)
-    if n == 0:
-        raise DatasetError(f"{archive}: no {sequence}.zip nor {sequence}/frame-XXXXXX.* members; expected a 7-Scenes "
-                           f"scene zip holding {sequence} (check 'sequence:' in datasets.yaml)")
-    return n
-
-
 # ----------------------------------------------------------------------------- install
 
 
@@ -260,56 +171,96 @@ def is_complete(root: Path) -> bool:
     return root.is_dir() and any(root.iterdir())
 
 
+def recover_leftovers(root: Path) -> list[str]:
+    """Finish what a killed unpacking of ``root`` left beside it; returns one note per thing done.
+
+    A ``.<name>.old-*`` folder holds the sequence folder a ``force`` swap moved aside: it is moved
+    back when ``root`` is missing (the swap was cut before the new folder took its place), else
+    removed. ``.<name>.unpack-*`` temporary folders are removed. Call it while holding the download
+    lock, so that no live process owns them.
+    """
+    notes: list[str] = []
+    if not root.parent.is_dir():
+        return notes
+    for old in sorted(root.parent.glob(f".{root.name}.old-*")):
+        if (old / root.name).is_dir() and not is_complete(root):
+            if root.is_dir():
+                root.rmdir()
+            os.rename(old / root.name, root)
+            notes.append(f"{root}: restored the folder an interrupted --force had moved to {old.name}")
+        shutil.rmtree(old, ignore_errors=True)
+    for tmp in root.parent.glob(f".{root.name}.unpack-*"):
+        shutil.rmtree(tmp, ignore_errors=True)
+        notes.append(f"{root.parent}: removed {tmp.name}, left by an interrupted unpacking")
+    return notes
+
+
 def _rename_into(content: Path, root: Path, force: bool) -> None:
-    """Rename the unpacked ``content`` folder to ``root`` (replacing an existing one with ``force``)."""
+    """Rename the unpacked ``content`` folder to ``root``; with ``force`` an existing ``root`` is moved
+    aside first and moved back when the rename fails."""
     if root.is_dir() and not any(root.iterdir()):
         root.rmdir()
-    if root.exists():
-        if not force:
-            raise DatasetError(f"{root}: appeared while unpacking; not replaced (--force replaces it)")
-        old = Path(tempfile.mkdtemp(prefix=f".{root.name}.old-", dir=root.parent))
-        os.replace(root, old / root.name)
+    if not root.exists():
         os.rename(content, root)
-        shutil.rmtree(old, ignore_errors=True)
         return
-    os.rename(content, root)
+    if not force:
+        raise DatasetError(f"{root}: appeared while unpacking; not replaced (--force replaces it)")
+    old = root.parent / f".{root.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
+    old.mkdir()
+    os.rename(root, old / root.name)
+    try:
+        os.rename(content, root)
+    except BaseException:
+        os.rename(old / root.name, root)  # the old folder back in place
+        old.rmdir()
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    if old.exists():
+        log.warning("%s: could not remove the replaced folder %s; the next download removes it", root, old)
 
 
 def install_archive(archive: Path, root: Path, *, layout: str = "archive", sequence: str | None = None,
                     extra: dict[str, Path] | None = None, force: bool = False,
-                    progress: UnpackProgress | None = None) -> None:
+                    progress: UnpackProgress | None = None, limits: UnpackLimits | None = None) -> None:
     """Unpack ``archive`` into a temporary folder beside ``root`` (same file system), copy the ``extra``
-    files (name in the sequence folder → source path) into it, then rename it to ``root``.
+    files (safe file name in the sequence folder → source path) into it, then rename it to ``root``.
 
     ``layout``: ``"archive"`` (the sequence is the archive's only top folder, or its top level) or
-    ``"7scenes"`` (:func:`convert_7scenes` of ``sequence``). The temporary folder is removed in every
-    case; ``root`` is only ever absent or complete.
+    ``"7scenes"`` (:func:`~mutualslam_cli.datasets.seven_scenes.convert_7scenes` of ``sequence``). The
+    temporary folder is removed in every case; ``root`` is only ever absent or complete, and with
+    ``force`` an existing ``root`` survives any failure.
 
     Raises:
         CorruptArchive: the archive is truncated or corrupt (the caller decides what to do with it).
-        DatasetError: a member with an absolute path or ``..``, a full disk, another write error.
+        DatasetError: an unsafe member, a limit (:mod:`~mutualslam_cli.datasets.limits`), a full disk,
+            another write error — one line each.
     """
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = root.parent / f".{root.name}.unpack-{os.getpid()}-{secrets.token_hex(4)}"
     tmp.mkdir()  # not mkdtemp: the folder may become the sequence folder, so it gets the usual permissions
     try:
+        budget = Budget(archive, root.parent, limits)
         if layout == "7scenes":
-            convert_7scenes(archive, str(sequence), tmp, progress)
+            convert_7scenes(archive, str(sequence), tmp, progress, budget)
             content = tmp
         else:
-            extract_archive(archive, tmp, progress)
+            extract_archive(archive, tmp, progress, budget)
             content = content_root(tmp)
         for name, src in (extra or {}).items():
-            shutil.copyfile(src, content / name)
+            with open(src, "rb") as s, open(path_inside(content, name, f"{archive.name}: extra file"), "wb") as d:
+                budget.copy(s, d, name)
         _rename_into(content, root, force)
     except UnsafeMember as e:
-        raise DatasetError(f"{archive}: member {str(e)!r} has an absolute path or '..'; refused to unpack the "
-                           f"archive (removed the temporary folder {tmp.name})") from None
+        raise DatasetError(f"{archive}: {e}; refused to unpack the archive (removed the temporary folder "
+                           f"{tmp.name})") from None
+    except ArchiveTooLarge as e:
+        raise DatasetError(f"refused to unpack {archive}: {e}; removed the temporary folder, the archive stays "
+                           "in place") from None
     except OSError as e:
         if e.errno == errno.ENOSPC:
             raise DatasetError(f"no space left on device while unpacking {archive} into {root.parent}; removed "
                                "the temporary folder, free some space and run the command again") from None
         raise DatasetError(f"{root.parent}: cannot unpack {archive.name} there ({e.strerror or e}); removed the "
-                           "temporary folder") from None
+                           "temporary folder" + (f", {root} is unchanged" if force else "")) from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

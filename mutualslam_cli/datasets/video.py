@@ -171,8 +171,9 @@ def _stem_times(files: list[Path]) -> tuple[list[float], str] | None:
 def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) -> dict[str, Any]:
     """List a folder of images (``conversion.IMAGE_SUFFIXES``) as the colour frames of ``writer``.
 
-    The images stay where they are (listed by absolute path); only the first is decoded, for the
-    image size (``writer.size``, ``(width, height)`` pixels). ``mslam datasets --check`` decodes all.
+    The images stay where they are (listed by absolute path); each is decoded once here, so that a
+    truncated or undecodable image, or one whose size differs from the first's, stops the conversion
+    in one line naming it (``writer.size``: ``(width, height)`` pixels of the first).
 
     Args:
         path: the folder (no ``rgb.txt``; subfolders such as ``depth/`` are not read).
@@ -184,7 +185,8 @@ def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) 
         ``fps_used``, ``first``/``last`` file names, ``notes``.
 
     Raises:
-        DatasetError: no image, an unreadable first image, or two images with the same time.
+        DatasetError: no image, two images with the same time, or the first image that is truncated, does not
+            decode, or differs in size from the first.
     """
     from mutualslam_cli.datasets.conversion import IMAGE_SUFFIXES
 
@@ -215,12 +217,9 @@ def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) 
         if times[a] <= times[a - 1]:
             raise DatasetError(f"{files[a]}: same time as {files[a - 1].name} ({times[a]:.6f} s); "
                                "expected file names with distinct times")
-    first = cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED)
-    if first is None:
-        raise DatasetError(f"{files[0]}: cannot decode the image; expected a {files[0].suffix} colour image")
-    writer.size = (int(first.shape[1]), int(first.shape[0]))
     for t, f in zip(times, files):
-        writer.add_rgb_path(t, f)
+        writer.add_rgb_path(t, f)  # decodes and checks every image: structure, decoding, one size
+    assert writer.size is not None
     meta.update(first=files[0].name, last=files[-1].name, width=writer.size[0], height=writer.size[1],
                 duration_s=round(times[-1] - times[0], 6))
     return meta
