@@ -204,7 +204,7 @@ class OnlineLoop:
         if first or not self.cfg.vo.bridge_segments:
             return
         t = time.perf_counter()
-        snap = self.state.snapshot(self.run.seq.frames)
+        snap = self.state.snapshot(self.run.seq.frames, covisibility=False)
         b = plan_bridge(snap, kf, self._depth_of(), self.run.seq.load_gray, self.run.seq.intrinsics)
         if b is not None:
             self.source.transform_segment(b.segment, *b.similarity())
@@ -217,7 +217,7 @@ class OnlineLoop:
             return
         t = time.perf_counter()
         self.source.settle()
-        snap = self.state.snapshot(self.run.seq.frames)
+        snap = self.state.snapshot(self.run.seq.frames, covisibility=False)
         first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
         ids = [k.id for k in snap.keyframes[first:kf + 1]]
         r = self.ba.run_ba(snap, kf, self._depth_of(), self.adapter.per_keyframe_val_loss(ids))

@@ -62,7 +62,7 @@ def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
 
 
 def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, np.ndarray]],
-                 frame_seg: np.ndarray, intr: Intrinsics, stats: RunStats) -> VOResult:
+                 frame_seg: np.ndarray, intr: Intrinsics, stats: RunStats, covisibility: bool = True) -> VOResult:
     """Final keyframe poses, frame poses re-anchored on them, map points and covisibility.
 
     Args:
@@ -72,6 +72,8 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         frame_seg: ``(N,)`` tracking segment of every frame, -1 where untracked.
         intr: the sequence's (possibly distorted) intrinsics; the result is in their pinhole camera.
         stats: counters and timings of the run.
+        covisibility: count the points each keyframe pair shares (``False``: an empty graph; a mid-run
+            snapshot for a bridge or a BA does not read it).
     """
     kfs = [Keyframe(k, m.kf_frame[k], m.kf_time[k], m.kf_T_wc[k].copy(), m.kf_segment[k])
            for k in range(len(m.kf_frame))]
@@ -89,7 +91,7 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
     if not keep.all():
         pts = pts.subset(keep)
     covis: dict[int, dict[int, int]] = {k: {} for k in range(len(kfs))}
-    for o in pts.observations:
+    for o in pts.observations if covisibility else ():
         for a, b in combinations(o.tolist(), 2):
             covis[a][b] = covis[a].get(b, 0) + 1
             covis[b][a] = covis[b].get(a, 0) + 1

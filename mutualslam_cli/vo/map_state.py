@@ -167,14 +167,15 @@ class MapState:
         ok = (z > 1e-6) & in_image(pix, self.intr.width, self.intr.height)
         return pix[ok], z[ok]
 
-    def snapshot(self, frames: list[FrameRef], stats: RunStats | None = None) -> VOResult:
+    def snapshot(self, frames: list[FrameRef], stats: RunStats | None = None, covisibility: bool = True) -> VOResult:
         """The map now as a :class:`~mutualslam_cli.vo.result.VOResult` (point ids = map ids; removed and
-        non-positive-depth points left out); ``stats``: the front end's counters (default: what the events say)."""
+        non-positive-depth points left out); ``stats``: the front end's counters (default: what the events say);
+        ``covisibility=False`` skips the keyframe graph (a mid-run snapshot)."""
         if stats is None:
             stats = RunStats(segment=len(self.init_methods) - 1, init_methods=list(self.init_methods), timing={},
                              total_s=0.0, reprojected=0, ba_stats=(), ba_threaded=False,
                              relocalisations=list(self.relocalisations))
-        return build_result(self.map, frames, self.frame_rel, self.frame_seg, self.intr, stats)
+        return build_result(self.map, frames, self.frame_rel, self.frame_seg, self.intr, stats, covisibility)
 
 
 def events_from_result(vo: VOResult, n_frames: int) -> list[Event]:
