@@ -236,7 +236,7 @@ class FrontEndSource:
         if self.changed_at is not None or self.path is None:
             return
         if self.state.n_keyframes - self._ck_keyframes >= CHECKPOINT_EVERY and checkpoint.resumable(fe):
-            self.pure_ckpts[fe.frame] = checkpoint.capture(fe)
+            self.pure_ckpts[fe.st.frame] = checkpoint.capture(fe)
             self._ck_keyframes = self.state.n_keyframes
 
     def _change(self) -> FrontEnd:

@@ -37,20 +37,20 @@ class InitMixin:
 
     def _start_ref(self, i: int, gray: np.ndarray) -> None:
         pts = detect_grid(gray, self.cfg.grid_size, self.cfg.max_fts)
-        self.ref = {"frame": i, "gray": gray, "raw0": pts, "raw": pts, "alive": np.arange(len(pts)), "hist": []}
+        self.st.ref = {"frame": i, "gray": gray, "raw0": pts, "raw": pts, "alive": np.arange(len(pts)), "hist": []}
 
     def _init_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
         cfg = self.cfg
         if self._relocalise(i, gray):
             return
-        ref = self.ref
+        ref = self.st.ref
         stale = ref is None or len(ref["raw"]) < cfg.min_tracked or len(ref["hist"]) >= MAX_INIT_FRAMES
         if stale or prev_pyr is None:
             self._start_ref(i, gray)
             return
         t0 = time.perf_counter()
         raw, ok = klt_track(prev_pyr, pyr, ref["raw"], cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px)
-        self.timing["track"] += time.perf_counter() - t0
+        self.st.timing["track"] += time.perf_counter() - t0
         ref["raw"], ref["alive"] = raw[ok], ref["alive"][ok]
         ref["hist"].append((i, ref["alive"].copy(), ref["raw"].copy()))
         if len(ref["raw"]) < cfg.min_tracked:
@@ -60,7 +60,7 @@ class InitMixin:
         px1, x1 = self._undist(ref["raw"])
         if np.median(np.linalg.norm(px1 - px0, axis=1)) < cfg.kf_min_parallax_px:
             return
-        if self.reloc is not None and self.lost_at >= 0 and i - self.lost_at < cfg.reloc_frames:
+        if self.reloc is not None and self.st.lost_at >= 0 and i - self.st.lost_at < cfg.reloc_frames:
             return  # the map may still be found again: no new segment yet
         res = initialize(x0, x1, self.thr, min_points=cfg.min_tracked, seed=self.seed + i)
         if res is None:
@@ -70,12 +70,12 @@ class InitMixin:
     def _bootstrap(self, i: int, gray: np.ndarray, res: InitResult, px0: np.ndarray, px1: np.ndarray,
                    x1: np.ndarray) -> None:
         """Create the two first keyframes and the initial map of a new segment."""
-        ref = self.ref
-        self.segment += 1
-        self.state_map.start_segment(self.segment, ref["frame"], res.method)
+        ref = self.st.ref
+        self.st.segment += 1
+        self.state_map.start_segment(self.st.segment, ref["frame"], res.method)
         m = self.map
-        k0 = m.add_keyframe(ref["frame"], self.seq.frames[ref["frame"]].timestamp, np.eye(4), self.segment)
-        k1 = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(res.T_10), self.segment)
+        k0 = m.add_keyframe(ref["frame"], self.seq.frames[ref["frame"]].timestamp, np.eye(4), self.st.segment)
+        k1 = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(res.T_10), self.st.segment)
         # well-triangulated correspondences become map points; the rest become seeds of kf0
         # initialised from their two-view depth (ORB-SLAM keeps only parallax > ~0.4°; the
         # filter decides about ours)
@@ -91,7 +91,7 @@ class InitMixin:
         pids = m.add_points(np.full(len(idx), k0), px0[idx], to_normalized(px0[idx], self.K),
                             1.0 / X0[:, 2], np.nan_to_num(sig_rho[strong], nan=1.0), obs)
         # poses of the frames between the two keyframes: PnP on the stored track positions
-        self.last_kf = k0
+        self.st.last_kf = k0
         alive_ref = ref["alive"][idx]
         for fi, alive, raw in ref["hist"][:-1]:
             sel = np.isin(alive, alive_ref)
@@ -99,11 +99,11 @@ class InitMixin:
                 continue
             pos = np.searchsorted(alive_ref, alive[sel])
             _, xn = self._undist(raw[sel])
-            T, inl = estimate_pose(m.Xw[pids[pos]], xn, [np.eye(4), self.T_cw], self.thr, seed=self.seed + fi)
+            T, inl = estimate_pose(m.Xw[pids[pos]], xn, [np.eye(4), self.st.T_cw], self.thr, seed=self.seed + fi)
             if T is not None and inl.sum() >= self.cfg.min_tracked:
-                self.T_cw = T
+                self.st.T_cw = T
                 self._record(fi)
-        self.state_map.track_frame(ref["frame"], self.segment, k0, np.eye(4))
+        self.state_map.track_frame(ref["frame"], self.st.segment, k0, np.eye(4))
         t = Tracks.empty()
         n = len(idx)
         raw = ref["raw"][idx]
@@ -128,17 +128,17 @@ class InitMixin:
             w.seed["sigma2"] = np.minimum(np.nan_to_num(tau_inv, nan=np.inf) ** 2, w.seed["sigma2"])
             w.kf_px, w.at_kf, w.obs = w.px.copy(), np.ones(len(jw), bool), [[(k1, px1[j])] for j in jw]
             t = t.extend(w)
-        self.tracks = t
-        self.mapper.run(k1, self.segment)
-        self.T_cw = m.T_cw(k1)
-        self.vel, self.vel_dt, self.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
-        self.last_kf = k1
+        self.st.tracks = t
+        self.mapper.run(k1, self.st.segment)
+        self.st.T_cw = m.T_cw(k1)
+        self.st.vel, self.st.vel_dt, self.st.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
+        self.st.last_kf = k1
         self._new_seeds(k1, gray)
-        self.kf_imgs = {k0: ref["gray"], k1: gray}
+        self.st.kf_imgs = {k0: ref["gray"], k1: gray}
         if self.reloc is not None:
             self.reloc.add_keyframe(k0, ref["gray"])
             self.reloc.add_keyframe(k1, gray)
         self._record(i)
-        self.state = "tracking"
-        self.ref = None
-        log.info("segment %d initialised at frame %d (%s, %d points)", self.segment, i, res.method, n)
+        self.st.mode = "tracking"
+        self.st.ref = None
+        log.info("segment %d initialised at frame %d (%s, %d points)", self.st.segment, i, res.method, n)

@@ -27,27 +27,30 @@ from mutualslam_cli.vo.local_ba import BAProblem
 from mutualslam_cli.vo.state import Tracks
 from mutualslam_cli.vo.tracking import build_pyramid
 
-_SCALARS = ("frame", "segment", "n_at_kf", "last_kf", "n_tracked", "n_reprojected", "ba_due", "lost_at", "vel_dt",
-            "t_prev", "wall_s")
+#: The scalar fields of :class:`~mutualslam_cli.vo.state.TrackerState` (the rest: arrays, tracks, images).
+_SCALARS = ("mode", "segment", "vel_dt", "t_prev", "n_at_kf", "last_kf", "n_tracked", "n_reprojected", "ba_due",
+            "lost_at", "frame", "wall_s")
 _TRACK_ARRAYS = ("raw", "px", "xn", "pid", "host", "f_h", "px_h", "kf_px", "at_kf")
 
 
 def resumable(fe: FrontEnd) -> bool:
     """Whether ``fe``'s state after its last frame can be captured (tracking, no initialisation under way)."""
-    return fe.state == "tracking" and fe.ref is None and fe.frame >= 0
+    st = fe.st
+    return st.mode == "tracking" and st.ref is None and st.frame >= 0
 
 
 def capture(fe: FrontEnd) -> dict[str, np.ndarray]:
-    """``fe``'s state besides its map, as arrays (``header``: uint8 JSON of the scalars)."""
+    """``fe``'s :class:`~mutualslam_cli.vo.state.TrackerState` and windowed BA in flight, as arrays (``header``:
+    uint8 JSON of the scalars; keyframe images by id, decoded again on restore)."""
     if not resumable(fe):
         raise ValueError("the front end is not at a resumable frame")
-    tr = fe.tracks
-    header: dict[str, Any] = {k: getattr(fe, k) for k in _SCALARS}
-    header.update(timing=fe.timing, ba_stats=fe.mapper.stats, kf_imgs=sorted(fe.kf_imgs),
+    st, tr = fe.st, fe.st.tracks
+    header: dict[str, Any] = {k: getattr(st, k) for k in _SCALARS}
+    header.update(timing=st.timing, ba_stats=fe.mapper.stats, kf_imgs=sorted(st.kf_imgs),
                   reloc=None if fe.reloc is None else {"keyframes": sorted(fe.reloc.images),
                                                         "rejected": fe.reloc.rejected})
     out = {"header": np.frombuffer(json.dumps(header, default=float).encode("utf-8"), np.uint8),
-           "T_cw": fe.T_cw.copy(), "vel": fe.vel.copy()}
+           "T_cw": st.T_cw.copy(), "vel": st.vel.copy()}
     for k in _TRACK_ARRAYS:
         out[f"tr.{k}"] = np.asarray(getattr(tr, k)).copy()
     for k, v in tr.seed.items():
@@ -74,15 +77,15 @@ def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: 
         fe.state_map.apply(e)
     fe.state_map.journal = fe.map.journal = journal
     h = json.loads(bytes(np.asarray(ckpt["header"], np.uint8)).decode("utf-8"))
+    st = fe.st
     for k in _SCALARS:
-        setattr(fe, k, type(getattr(fe, k))(h[k]))
-    fe.timing = {k: float(v) for k, v in h["timing"].items()}
+        setattr(st, k, type(getattr(st, k))(h[k]))
+    st.timing = {k: float(v) for k, v in h["timing"].items()}
+    st.T_cw, st.vel = np.array(ckpt["T_cw"]), np.array(ckpt["vel"])
     fe.mapper.stats = list(h["ba_stats"])
-    fe.T_cw, fe.vel = np.array(ckpt["T_cw"]), np.array(ckpt["vel"])
-    fe.state, fe.ref = "tracking", None
     gray_of = {k: seq.load_gray(fe.map.kf_frame[k]) for k in set(h["kf_imgs"]) | set((h["reloc"] or {}).get(
         "keyframes", []))}
-    fe.kf_imgs = {k: gray_of[k] for k in h["kf_imgs"]}
+    st.kf_imgs = {k: gray_of[k] for k in h["kf_imgs"]}
     if fe.reloc is not None and h["reloc"] is not None:
         for k in h["reloc"]["keyframes"]:
             fe.reloc.add_keyframe(k, gray_of[k])
@@ -91,17 +94,16 @@ def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: 
     for k in _TRACK_ARRAYS:
         setattr(tr, k, np.array(ckpt[f"tr.{k}"]))
     tr.seed = {k: np.array(ckpt[f"tr.seed.{k}"]) for k in tr.seed}
-    cut = np.cumsum(np.asarray(ckpt["tr.obs_n"]))[:-1] if len(ckpt["tr.obs_n"]) else []
-    kfs = np.split(np.asarray(ckpt["tr.obs_kf"]), cut) if len(ckpt["tr.obs_n"]) else []
-    pxs = np.split(np.asarray(ckpt["tr.obs_px"]), cut) if len(ckpt["tr.obs_n"]) else []
+    n = np.asarray(ckpt["tr.obs_n"])
+    cut = np.cumsum(n)[:-1]
+    kfs = np.split(np.asarray(ckpt["tr.obs_kf"]), cut) if len(n) else []
+    pxs = np.split(np.asarray(ckpt["tr.obs_px"]), cut) if len(n) else []
     tr.obs = [[(int(k), p) for k, p in zip(ks.tolist(), px)] for ks, px in zip(kfs, pxs)]
-    fe.tracks = tr
+    st.tracks = tr
     if "job.kf" in ckpt:
         prob = BAProblem(**{f.name: np.array(ckpt[f"job.prob.{f.name}"]) for f in fields(BAProblem)})
         fe.mapper.resume(int(ckpt["job.kf"][0]), [int(k) for k in ckpt["job.kfs"]], np.array(ckpt["job.free"]),
                          [int(p) for p in ckpt["job.pids"]], [tuple(map(int, o)) for o in ckpt["job.o_id"]], prob)
-    fe.prev_pyr = build_pyramid(seq.load_gray(fe.frame), cfg.klt_window, cfg.klt_levels)
-    fe.journal.frame = fe.frame
+    st.prev_pyr = build_pyramid(seq.load_gray(st.frame), cfg.klt_window, cfg.klt_levels)
+    fe.journal.frame = st.frame
     return fe
-
-

@@ -81,15 +81,15 @@ class FeedbackMixin:
         """Move ``segment`` by ``x ↦ s·R·x + t`` (a bridge) and go on tracking in that frame and unit."""
         self.settle()
         self.state_map.transform_segment(segment, R, t, s)
-        if segment != self.segment or self.state != "tracking":
+        if segment != self.st.segment or self.st.mode != "tracking":
             return
-        T = se3_inv(self.T_cw)
+        T = se3_inv(self.st.T_cw)
         T[:3, :3] = R @ T[:3, :3]
         T[:3, 3] = s * R @ T[:3, 3] + t
-        self.T_cw = se3_inv(T)
-        self.vel = self.vel.copy()
-        self.vel[:3, 3] *= s  # a motion between two camera frames: its translation in the new unit
-        tr = self.tracks
+        self.st.T_cw = se3_inv(T)
+        self.st.vel = self.st.vel.copy()
+        self.st.vel[:3, 3] *= s  # a motion between two camera frames: its translation in the new unit
+        tr = self.st.tracks
         in_seg = np.array([sg == segment for sg in self.map.kf_segment], bool)
         seeds = (tr.pid < 0) & in_seg[np.clip(tr.host, 0, len(in_seg) - 1)] if len(tr) else np.zeros(0, bool)
         tr.seed["mu"][seeds] /= s  # inverse distances along the host bearings
@@ -100,10 +100,10 @@ class FeedbackMixin:
         """Take a global BA's refinement and go on from it: the current pose follows its reference
         keyframe's correction; tracks of removed points end."""
         self.settle()
-        ref = self.last_kf
+        ref = self.st.last_kf
         old = self.map.kf_T_wc[ref].copy() if ref >= 0 else None
         apply_refinement(self.state_map, r)
-        if old is not None and self.state == "tracking":
-            self.T_cw = se3_inv(self.map.kf_T_wc[ref] @ se3_inv(old) @ se3_inv(self.T_cw))
-        if len(r.removed) and len(self.tracks):
-            self.tracks = self.tracks.select(~np.isin(self.tracks.pid, r.removed))
+        if old is not None and self.st.mode == "tracking":
+            self.st.T_cw = se3_inv(self.map.kf_T_wc[ref] @ se3_inv(old) @ se3_inv(self.st.T_cw))
+        if len(r.removed) and len(self.st.tracks):
+            self.st.tracks = self.st.tracks.select(~np.isin(self.st.tracks.pid, r.removed))

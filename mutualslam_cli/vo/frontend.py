@@ -39,7 +39,7 @@ from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
 from mutualslam_cli.vo.reproject import reproject_points
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.state import Tracks
+from mutualslam_cli.vo.state import Tracks, TrackerState
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,13 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
     """State machine ``init`` → ``tracking`` → (loss) → ``init`` … over one sequence, one frame per
     :meth:`process`. Every change to the map and the frame records is journaled in :attr:`journal`
     (:mod:`~mutualslam_cli.vo.journal`); between frames the adaptation loop may join a new segment to
-    the map (:meth:`transform_segment`) or hand it a global BA's refinement (:meth:`refine`)."""
+    the map (:meth:`transform_segment`) or hand it a global BA's refinement (:meth:`refine`).
+
+    What it carries from frame to frame is declared in two objects the mixins share: :attr:`state_map`
+    (keyframes, points, frame records: :class:`~mutualslam_cli.vo.map_state.MapState`) and :attr:`st`
+    (tracks, pose, motion model, counters: :class:`~mutualslam_cli.vo.state.TrackerState`); the rest are
+    the camera and settings (constant), the windowed-BA worker (:attr:`mapper`) and the relocalisation
+    index (:attr:`reloc`)."""
 
     def __init__(self, seq: Sequence, cfg: VOConfig, seed: int, journal: Journal | None = None) -> None:
         check_vo(cfg)
@@ -84,26 +90,8 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         self.state_map = MapState(pinhole(self.intr), len(seq), self.journal)
         self.map = self.state_map.map
         self.mapper = Mapper(self.map, self.K, cfg.core_kfs, self.thr)
-        self.tracks = Tracks.empty()
-        self.state = "init"
-        self.segment = -1
-        self.ref: dict | None = None
-        self.T_cw = np.eye(4)
-        self.vel = np.eye(4)
-        self.vel_dt = 0.0  # the time the motion ``vel`` took (s; 0: unknown)
-        self.t_prev = 0.0  # timestamp of the last tracked frame
-        self.n_at_kf = 0
-        self.last_kf = -1
-        self.timing = {k: 0.0 for k in STAGES}
-        self.n_tracked = 0
-        self.kf_imgs: dict[int, np.ndarray] = {}
-        self.n_reprojected = 0
-        self.ba_due = 0
         self.reloc = RelocIndex(self.intr) if cfg.relocalise else None
-        self.lost_at = -1  # frame of the last tracking loss
-        self.prev_pyr = None  # the previous frame's pyramid
-        self.frame = -1  # the last frame processed
-        self.wall_s = 0.0  # time spent in process()
+        self.st = TrackerState(timing={k: 0.0 for k in STAGES})
 
     # ---------------------------------------------------------------- helpers
     def _undist(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,33 +100,33 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
 
     def _record(self, i: int) -> None:
         """Store frame ``i``'s pose relative to the current reference keyframe."""
-        T_wc = se3_inv(self.T_cw)
-        self.state_map.track_frame(i, self.segment, self.last_kf, self.map.poses_cw()[self.last_kf] @ T_wc)
+        T_wc = se3_inv(self.st.T_cw)
+        self.state_map.track_frame(i, self.st.segment, self.st.last_kf, self.map.poses_cw()[self.st.last_kf] @ T_wc)
 
     # ---------------------------------------------------------------- tracking
     def _track_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
         cfg, m = self.cfg, self.map
-        if self.mapper.pending is not None and i >= self.ba_due:
+        if self.mapper.pending is not None and i >= self.st.ba_due:
             self._collect_ba()
         t0 = time.perf_counter()
-        T_prior = self._motion_prior(i) @ self.T_cw
-        pred = self._predict(self.tracks, T_prior)
-        raw, ok = klt_track(prev_pyr, pyr, self.tracks.raw, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px,
+        T_prior = self._motion_prior(i) @ self.st.T_cw
+        pred = self._predict(self.st.tracks, T_prior)
+        raw, ok = klt_track(prev_pyr, pyr, self.st.tracks.raw, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px,
                             pred=pred)
-        tr = self.tracks.select(ok)
+        tr = self.st.tracks.select(ok)
         tr.raw = raw[ok]
         tr.px, tr.xn = self._undist(tr.raw)
         t1 = time.perf_counter()
-        self.timing["track"] += t1 - t0
+        self.st.timing["track"] += t1 - t0
         pm = np.flatnonzero(tr.pid >= 0)
-        T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], [T_prior, self.T_cw], self.thr, seed=self.seed + i)
+        T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], [T_prior, self.st.T_cw], self.thr, seed=self.seed + i)
         if T is None or inl.sum() < WEAK_FACTOR * cfg.min_tracked:
             # weak tracking: look for the window's lost map points before giving up
             tr = self._reproject(tr, gray, T_prior if T is None else T)
             pm = np.flatnonzero(tr.pid >= 0)
-            T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], [T_prior, self.T_cw], self.thr, seed=self.seed + i)
+            T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], [T_prior, self.st.T_cw], self.thr, seed=self.seed + i)
         t2 = time.perf_counter()
-        self.timing["pose"] += t2 - t1
+        self.st.timing["pose"] += t2 - t1
         # tracks a few pixels off (rolling shutter, blur, a young map point) stay alive and
         # simply weigh less in the Huber refinement; only gross outliers are dropped, and
         # tracking is lost when too few tracks are within that looser bound
@@ -151,11 +139,11 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         keep = np.ones(len(tr), bool)
         keep[pm[~near]] = False
         tr = tr.select(keep)
-        self.vel = T @ se3_inv(self.T_cw)
+        self.st.vel = T @ se3_inv(self.st.T_cw)
         t_i = self.seq.frames[i].timestamp
-        self.vel_dt, self.t_prev = t_i - self.t_prev, t_i
-        self.T_cw = T
-        self.n_tracked = int(inl.sum())
+        self.st.vel_dt, self.st.t_prev = t_i - self.st.t_prev, t_i
+        self.st.T_cw = T
+        self.st.n_tracked = int(inl.sum())
         # depth filter on the seed tracks
         sm = np.flatnonzero(tr.pid < 0)
         if len(sm):
@@ -169,12 +157,12 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
             conv = sm[dfl.converged({k: v[sm] for k, v in tr.seed.items()})]
             if len(conv):
                 self._promote(tr, conv)
-        self.tracks = tr
+        self.st.tracks = tr
         t3 = time.perf_counter()
-        self.timing["filter"] += t3 - t2
+        self.st.timing["filter"] += t3 - t2
         # keyframe policy: parallax since the last keyframe or lost overlap
         at = tr.at_kf
-        ratio = at.sum() / max(self.n_at_kf, 1)
+        ratio = at.sum() / max(self.st.n_at_kf, 1)
         par = float(np.median(np.linalg.norm(tr.px[at] - tr.kf_px[at], axis=1))) if at.any() else 0.0
         if par > cfg.kf_min_parallax_px or ratio < cfg.kf_min_tracked_ratio:
             self._keyframe(i, gray)
@@ -185,10 +173,10 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         motion stretched to this frame's time step. A camera drops frames (TUM fr1: 64–68 ms gaps in a
         30 Hz stream, often during fast motion), and a prior that assumes equal steps then misses by
         the whole last motion."""
-        dt = self.seq.frames[i].timestamp - self.t_prev
-        if self.vel_dt <= 0 or dt <= 0:
-            return self.vel
-        return scale_motion(self.vel, float(np.clip(dt / self.vel_dt, 1.0 / MAX_STEP_RATIO, MAX_STEP_RATIO)))
+        dt = self.seq.frames[i].timestamp - self.st.t_prev
+        if self.st.vel_dt <= 0 or dt <= 0:
+            return self.st.vel
+        return scale_motion(self.st.vel, float(np.clip(dt / self.st.vel_dt, 1.0 / MAX_STEP_RATIO, MAX_STEP_RATIO)))
 
     def _predict(self, tr: Tracks, T_cw: np.ndarray) -> np.ndarray:
         """Raw pixels where the tracks should appear under the motion prior ``T_cw``.
@@ -238,11 +226,11 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
 
     def _new_seeds(self, kf: int, gray: np.ndarray) -> None:
         """Detect features in empty grid cells of keyframe ``kf`` and start seeds for them."""
-        m, tr = self.map, self.tracks
+        m, tr = self.map, self.st.tracks
         pts = detect_grid(gray, self.cfg.grid_size, self.cfg.max_fts, occupied_px=tr.raw)
         pm = tr.pid >= 0
         if pm.any():
-            Xc = m.Xw[tr.pid[pm]] @ self.T_cw[:3, :3].T + self.T_cw[:3, 3]
+            Xc = m.Xw[tr.pid[pm]] @ self.st.T_cw[:3, :3].T + self.st.T_cw[:3, 3]
             z = Xc[:, 2][Xc[:, 2] > 0]
         else:
             z = np.array([1.0])
@@ -262,21 +250,21 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
             tr = tr.extend(new)
         tr.kf_px = tr.px.copy()
         tr.at_kf = np.ones(len(tr), bool)
-        self.tracks = tr
-        self.n_at_kf = len(tr)
+        self.st.tracks = tr
+        self.st.n_at_kf = len(tr)
 
     def _store_image(self, kf: int, gray: np.ndarray) -> None:
         """Keep the grey images of the last ``core_kfs`` keyframes (reprojection sources)."""
-        self.kf_imgs[kf] = gray
-        for k in sorted(self.kf_imgs)[:-self.cfg.core_kfs]:
-            del self.kf_imgs[k]
+        self.st.kf_imgs[kf] = gray
+        for k in sorted(self.st.kf_imgs)[:-self.cfg.core_kfs]:
+            del self.st.kf_imgs[k]
 
     def _reproject(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray) -> Tracks:
         """Re-attach lost map points of the window to the current frame (see :mod:`reproject`)."""
         m = self.map
-        seg = [k for k in range(len(m.kf_frame)) if m.kf_segment[k] == self.segment]
+        seg = [k for k in range(len(m.kf_frame)) if m.kf_segment[k] == self.st.segment]
         window = seg[-self.cfg.core_kfs:]
-        pids, raw = reproject_points(m, self.kf_imgs, gray, T_cw, tr.pid[tr.pid >= 0], window, self.intr,
+        pids, raw = reproject_points(m, self.st.kf_imgs, gray, T_cw, tr.pid[tr.pid >= 0], window, self.intr,
                                      self.cfg.klt_window, self.cfg.klt_levels, self.cfg.fb_threshold_px, self.thr)
         if len(pids) == 0:
             return tr
@@ -295,23 +283,23 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         new.f_h, new.px_h = np.zeros((n, 3)), np.zeros((n, 2))
         new.seed = dfl.new_seeds(n, dfl.SeedInit(1.0, 0.5))
         new.kf_px, new.at_kf, new.obs = new.px.copy(), np.zeros(n, bool), [[] for _ in range(n)]
-        self.n_reprojected += n
+        self.st.n_reprojected += n
         return tr.extend(new)
 
     def _collect_ba(self) -> None:
         """Apply the pending windowed BA (waiting for the worker if needed)."""
         t0 = time.perf_counter()
         bad = self.mapper.collect()
-        if len(bad) and len(self.tracks):
-            self.tracks = self.tracks.select(~np.isin(self.tracks.pid, bad))
-        self.timing["local_ba"] += time.perf_counter() - t0
+        if len(bad) and len(self.st.tracks):
+            self.st.tracks = self.st.tracks.select(~np.isin(self.st.tracks.pid, bad))
+        self.st.timing["local_ba"] += time.perf_counter() - t0
 
     def _keyframe(self, i: int, gray: np.ndarray) -> None:
         self._collect_ba()
         t0 = time.perf_counter()
-        self.tracks = self._reproject(self.tracks, gray, self.T_cw)
-        m, tr = self.map, self.tracks
-        kf = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(self.T_cw), self.segment)
+        self.st.tracks = self._reproject(self.st.tracks, gray, self.st.T_cw)
+        m, tr = self.map, self.st.tracks
+        kf = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(self.st.T_cw), self.st.segment)
         seen = np.flatnonzero(tr.pid >= 0)
         m.observe(kf, tr.pid[seen], tr.px[seen])
         for j in np.flatnonzero(tr.pid < 0):
@@ -319,14 +307,14 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         if self.reloc is not None:
             self.reloc.add_keyframe(kf, gray)
         t1 = time.perf_counter()
-        self.mapper.submit(kf, self.segment)  # solved on the worker, applied BA_LAG frames later
-        self.ba_due = i + BA_LAG
+        self.mapper.submit(kf, self.st.segment)  # solved on the worker, applied BA_LAG frames later
+        self.st.ba_due = i + BA_LAG
         t2 = time.perf_counter()
-        self.last_kf = kf
+        self.st.last_kf = kf
         self._new_seeds(kf, gray)
         self._store_image(kf, gray)
-        self.timing["keyframe"] += (t1 - t0) + (time.perf_counter() - t2)
-        self.timing["local_ba"] += t2 - t1
+        self.st.timing["keyframe"] += (t1 - t0) + (time.perf_counter() - t2)
+        self.st.timing["local_ba"] += t2 - t1
 
     # ---------------------------------------------------------------- main loop
     def process(self, i: int, gray: np.ndarray) -> None:
@@ -334,32 +322,32 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         t0 = time.perf_counter()
         self.journal.frame = i
         pyr = build_pyramid(gray, self.cfg.klt_window, self.cfg.klt_levels)
-        self.timing["decode"] += time.perf_counter() - t0
-        if self.state == "init":
-            self._init_step(i, gray, pyr, self.prev_pyr)
+        self.st.timing["decode"] += time.perf_counter() - t0
+        if self.st.mode == "init":
+            self._init_step(i, gray, pyr, self.st.prev_pyr)
         else:
-            self._track_step(i, gray, pyr, self.prev_pyr)
-        self.prev_pyr = pyr
-        self.frame = i
-        self.wall_s += time.perf_counter() - t0
+            self._track_step(i, gray, pyr, self.st.prev_pyr)
+        self.st.prev_pyr = pyr
+        self.st.frame = i
+        self.st.wall_s += time.perf_counter() - t0
 
     def finish(self) -> None:
         """The end of the sequence: apply the pending windowed BA, stop the worker."""
-        self.journal.frame = self.frame
+        self.journal.frame = self.st.frame
         self._collect_ba()
         self.mapper.close()
 
     def progress_info(self) -> dict:
         """What a progress bar shows after a frame."""
-        i, n = self.frame, len(self.seq)
+        i, n = self.st.frame, len(self.seq)
         return {"frame": i, "n_frames": n, "keyframes": len(self.map.kf_frame),
-                "tracked": self.n_tracked if self.state == "tracking" else 0,
-                "fps": (i + 1) / self.wall_s if self.wall_s > 0 else 0.0, "state": self.state}
+                "tracked": self.st.n_tracked if self.st.mode == "tracking" else 0,
+                "fps": (i + 1) / self.st.wall_s if self.st.wall_s > 0 else 0.0, "state": self.st.mode}
 
     def stats(self) -> RunStats:
         """Counters and timings so far (the :class:`VOResult`'s ``meta``)."""
-        return RunStats(segment=self.segment, init_methods=list(self.state_map.init_methods), timing=self.timing,
-                        total_s=self.wall_s, reprojected=self.n_reprojected, ba_stats=self.mapper.stats,
+        return RunStats(segment=self.st.segment, init_methods=list(self.state_map.init_methods), timing=self.st.timing,
+                        total_s=self.st.wall_s, reprojected=self.st.n_reprojected, ba_stats=self.mapper.stats,
                         ba_threaded=self.mapper.pool is not None,
                         relocalisations=list(self.state_map.relocalisations),
                         reloc_rejected=self.reloc.rejected if self.reloc is not None else 0)

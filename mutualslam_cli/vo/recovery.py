@@ -23,9 +23,9 @@ class RecoveryMixin:
         log.info("tracking lost at frame %d (%s)", i, why)
         self.state_map.lose(i, why)
         self._collect_ba()
-        self.state = "init"
-        self.lost_at = i
-        self.tracks = Tracks.empty()
+        self.st.mode = "init"
+        self.st.lost_at = i
+        self.st.tracks = Tracks.empty()
         self._start_ref(i, gray)
 
     def _relocalise(self, i: int, gray: np.ndarray) -> bool:
@@ -38,7 +38,7 @@ class RecoveryMixin:
             return False
         self._collect_ba()
         m, n = self.map, len(r.pids)
-        self.segment = m.kf_segment[r.keyframe]
+        self.st.segment = m.kf_segment[r.keyframe]
         t = Tracks.empty()
         t.raw = r.raw
         t.px, t.xn = self._undist(r.raw)
@@ -47,12 +47,12 @@ class RecoveryMixin:
         t.f_h, t.px_h = np.zeros((n, 3)), np.zeros((n, 2))
         t.seed = dfl.new_seeds(n, dfl.SeedInit(1.0, 0.5))
         t.kf_px, t.at_kf, t.obs = t.px.copy(), np.ones(n, bool), [[] for _ in range(n)]
-        self.tracks, self.T_cw, self.n_tracked = t, r.T_cw, r.inliers
-        self.vel, self.vel_dt, self.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
-        self.state, self.ref = "tracking", None
+        self.st.tracks, self.st.T_cw, self.st.n_tracked = t, r.T_cw, r.inliers
+        self.st.vel, self.st.vel_dt, self.st.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
+        self.st.mode, self.st.ref = "tracking", None
         self.state_map.relocalise({"frame": i, "timestamp": float(self.seq.frames[i].timestamp),
                                    "keyframe": int(r.keyframe), "inliers": int(r.inliers),
-                                   "frames_lost": 0 if self.lost_at < 0 else i - self.lost_at,
+                                   "frames_lost": 0 if self.st.lost_at < 0 else i - self.st.lost_at,
                                    "candidates_tried": int(r.candidates_tried)})
         log.info("relocalised frame %d against keyframe %d (%d inliers)", i, r.keyframe, r.inliers)
         self._keyframe(i, gray)

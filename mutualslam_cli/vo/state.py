@@ -74,6 +74,50 @@ class Tracks:
 
 
 @dataclass
+class TrackerState:
+    """What the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) carries from one frame to the next
+    besides its map: one declared object its parts share (and :mod:`~mutualslam_cli.vo.checkpoint` saves).
+
+    Attributes:
+        mode: ``"init"`` (bringing up a segment) or ``"tracking"``.
+        segment: the current tracking segment (−1 before the first).
+        ref: the initialisation's reference frame (``init`` only): its grey image, its features and
+            their tracks so far; ``None`` otherwise.
+        T_cw: ``(4, 4)`` pose of the last tracked frame (world to camera, map units).
+        vel: ``(4, 4)`` the last frame-to-frame motion (camera frames); vel_dt: the time it took (s; 0:
+            unknown); t_prev: timestamp of the last tracked frame (s).
+        tracks: the KLT tracks, map points and depth-filter seeds (:class:`Tracks`).
+        n_at_kf: tracks alive at the last keyframe; last_kf: the keyframe frames are tracked against.
+        n_tracked: PnP inliers of the last tracked frame; n_reprojected: points re-attached so far.
+        ba_due: the frame at which the windowed BA in flight is applied.
+        lost_at: the frame of the last tracking loss (−1: none).
+        kf_imgs: grey images of the newest ``core_kfs`` keyframes (reprojection sources).
+        prev_pyr: the previous frame's KLT pyramid; frame: the last frame processed.
+        timing: seconds per stage so far; wall_s: seconds in ``process`` so far.
+    """
+
+    mode: str = "init"
+    segment: int = -1
+    ref: dict | None = None
+    T_cw: np.ndarray = field(default_factory=lambda: np.eye(4))
+    vel: np.ndarray = field(default_factory=lambda: np.eye(4))
+    vel_dt: float = 0.0
+    t_prev: float = 0.0
+    tracks: Tracks = field(default_factory=Tracks.empty)
+    n_at_kf: int = 0
+    last_kf: int = -1
+    n_tracked: int = 0
+    n_reprojected: int = 0
+    ba_due: int = 0
+    lost_at: int = -1
+    kf_imgs: dict[int, np.ndarray] = field(default_factory=dict)
+    prev_pyr: object = None
+    frame: int = -1
+    timing: dict[str, float] = field(default_factory=dict)
+    wall_s: float = 0.0
+
+
+@dataclass
 class Map:
     """Keyframes and map points of all segments.
 
