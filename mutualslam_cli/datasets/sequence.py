@@ -7,6 +7,7 @@ so memory stays flat in sequence length.
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -129,3 +130,19 @@ class Sequence:
         """Yield ``(frame, rgb, depth_or_None)`` in order, one decoded frame at a time."""
         for i, f in enumerate(self.frames):
             yield f, self.load_rgb(i), (self.load_depth(i) if with_depth else None)
+
+
+def grey_frames(seq: Sequence, start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
+    """``(i, grey image)`` for frames ``start…`` in order; frame i+1 is decoded on a second thread while
+    the caller works on frame i."""
+    n = len(seq)
+    pool = ThreadPoolExecutor(max_workers=1)
+    try:
+        nxt = pool.submit(seq.load_gray, start) if start < n else None
+        for i in range(start, n):
+            gray = nxt.result()
+            if i + 1 < n:
+                nxt = pool.submit(seq.load_gray, i + 1)
+            yield i, gray
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)

@@ -25,7 +25,7 @@ from typing import Iterator
 import numpy as np
 
 from mutualslam_cli.config import RunConfig
-from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.datasets.sequence import Sequence, grey_frames
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.stages.vo_cache import CHECKPOINT_EVERY, JournalEntry, cache_path, load_entry, save_entry
 from mutualslam_cli.types import Progress
@@ -33,7 +33,7 @@ from mutualslam_cli.vo import checkpoint
 from mutualslam_cli.vo.camera import pinhole
 from mutualslam_cli.vo.depth_oracle import run_oracle
 from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
-from mutualslam_cli.vo.frontend import FrontEnd, frames_from
+from mutualslam_cli.vo.frontend import FrontEnd
 from mutualslam_cli.vo.journal import Event
 from mutualslam_cli.vo.map_state import MapState, events_from_result
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
@@ -261,7 +261,7 @@ class FrontEndSource:
             fe = FrontEnd(self.seq, self.cfg.vo, self.cfg.seed)
             start = 0
         self.live = fe
-        self._frames = frames_from(self.seq, start)
+        self._frames = grey_frames(self.seq, start)
         for i in range(start, upto + 1):  # again, silently: the state has these events already
             self._step(fe, i)
             got = fe.journal.events[self._live_pos:]

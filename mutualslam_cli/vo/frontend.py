@@ -13,8 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -22,7 +21,7 @@ from threadpoolctl import threadpool_limits
 from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.config_parse import check_vo
-from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.datasets.sequence import Sequence, grey_frames
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import scale_motion, se3_inv
 from mutualslam_cli.pixels import in_image
@@ -72,11 +71,9 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
     (:mod:`~mutualslam_cli.vo.journal`); between frames the adaptation loop may join a new segment to
     the map (:meth:`transform_segment`) or hand it a global BA's refinement (:meth:`refine`).
 
-    What it carries from frame to frame is declared in two objects the mixins share: :attr:`state_map`
-    (keyframes, points, frame records: :class:`~mutualslam_cli.vo.map_state.MapState`) and :attr:`st`
-    (tracks, pose, motion model, counters: :class:`~mutualslam_cli.vo.state.TrackerState`); the rest are
-    the camera and settings (constant), the windowed-BA worker (:attr:`mapper`) and the relocalisation
-    index (:attr:`reloc`)."""
+    Its state from frame to frame is two declared objects its mixins share: :attr:`state_map` (the map and
+    frame records, :class:`~mutualslam_cli.vo.map_state.MapState`) and :attr:`st` (:class:`TrackerState`);
+    besides them: the camera and settings, the BA worker (:attr:`mapper`), the relocalisation index."""
 
     def __init__(self, seq: Sequence, cfg: VOConfig, seed: int, journal: Journal | None = None) -> None:
         check_vo(cfg)
@@ -357,22 +354,6 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         return self.state_map.snapshot(self.seq.frames, self.stats())
 
 
-def frames_from(seq: Sequence, start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
-    """``(i, grey image)`` for frames ``start…`` in order; frame i+1 is decoded on a second thread while
-    the caller works on frame i."""
-    n = len(seq)
-    pool = ThreadPoolExecutor(max_workers=1)
-    try:
-        nxt = pool.submit(seq.load_gray, start) if start < n else None
-        for i in range(start, n):
-            gray = nxt.result()
-            if i + 1 < n:
-                nxt = pool.submit(seq.load_gray, i + 1)
-            yield i, gray
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
 def run_vo(seq: Sequence, cfg: VOConfig, seed: int = 0,
            progress: Callable[[dict], None] | None = None) -> VOResult:
     """Run the monocular front end over a sequence, on its own (no network: nothing joins its segments).
@@ -396,7 +377,7 @@ def run_vo(seq: Sequence, cfg: VOConfig, seed: int = 0,
     with threadpool_limits(limits=1, user_api="blas"):
         fe = FrontEnd(seq, cfg, seed)
         try:
-            for i, gray in frames_from(seq):
+            for i, gray in grey_frames(seq):
                 fe.process(i, gray)
                 if progress is not None:
                     progress(fe.progress_info())
