@@ -16,11 +16,14 @@ For a query frame:
 3. **Matches**: the candidate's map points, predicted through that homography, refined by KLT from
    the candidate's image (forward–backward checked); PnP-RANSAC on them.
 4. **Verification**, since a wrong relocalisation is worse than none: ``min_inliers`` inliers that are
-   at least ``min_ratio`` of the matches; a pose from a random half of the matches must place at
-   least ``min_ratio`` of the other half within the threshold; and where at least ``min_verified``
-   of the neighbouring keyframes' other map points fall in view, at least ``min_ratio`` of them must
-   be found by KLT (from their own keyframe images) where the pose projects them
-   (:func:`~mutualslam_cli.vo.reproject.reproject_points`).
+   at least ``min_ratio`` of the matches; a pose from either random half of the *inliers* must place at
+   least ``min_ratio`` of the other half within the threshold; and, because every match so far came from
+   the candidate's own image (a look-alike place, or an image that does not belong to the points, fools
+   all of the above consistently), *other* keyframes must confirm it: the keyframes of the candidate's
+   segment whose points the pose puts most in view (at most ``neighbours``) must have ``min_verified``
+   of them in view, and their own images must find at least ``min_ratio`` of those where the pose
+   projects them (KLT, :func:`~mutualslam_cli.vo.reproject.reproject_points`). A pose no other keyframe
+   can witness is refused.
 """
 
 from __future__ import annotations
@@ -60,11 +63,12 @@ class RelocSettings:
     min_inliers: int = 40
     """Inliers needed to accept (ORB-SLAM asks 50 for its relocalisation)."""
     min_verified: int = 10
-    """Neighbours' points in view from which on they must be found where the pose projects them."""
+    """Points of other keyframes that must be in view under the pose (else it is not verifiable: refused)."""
     min_ratio: float = 0.5
-    """Share of all matches that must be inliers."""
+    """Share of the matches that must be inliers, of each half of the inliers the other half's pose must
+    place, and of the other keyframes' points in view that their images must find."""
     neighbours: int = 4
-    """Keyframes on either side of the candidate (same segment) whose points verify the pose."""
+    """Other keyframes (same segment, most points in view under the pose) whose images verify it."""
 
 
 @dataclass
@@ -163,30 +167,51 @@ class RelocIndex:
     def _verified(self, T: np.ndarray, kf: int, m: Map, gray: np.ndarray, pids: np.ndarray, xn: np.ndarray,
                   thr: float, seed: int) -> bool:
         """The tests a relocalised pose ``T`` must pass (module docstring): enough inliers among the
-        matches; a pose from a random half of them predicting the other half; and the neighbours'
-        points, where enough of them fall in view, found by KLT where ``T`` projects them."""
+        matches; a pose from either half of the inliers placing the other half; and other keyframes'
+        images finding their points where ``T`` projects them — evidence the candidate's own image cannot
+        give (every match came from it). Without such evidence the pose is refused."""
         s = self.settings
         Xw = m.Xw[pids]
         inl = reprojection_errors(T, Xw, xn) < thr
         if inl.sum() < s.min_inliers or inl.mean() < s.min_ratio:
             return False
-        half = np.random.default_rng(seed).permutation(len(pids)) < len(pids) // 2
-        Ta = estimate_pose(Xw[half], xn[half], [m.T_cw(kf)], thr, seed=seed + 1)[0]
-        if Ta is None or np.mean(reprojection_errors(Ta, Xw[~half], xn[~half]) < thr) < s.min_ratio:
+        idx = np.random.default_rng(seed).permutation(np.flatnonzero(inl))
+        halves = (idx[: len(idx) // 2], idx[len(idx) // 2:])
+        for a, b in (halves, halves[::-1]):
+            Ta = estimate_pose(Xw[a], xn[a], [m.T_cw(kf)], thr, seed=seed + 1)[0]
+            if Ta is None or np.mean(reprojection_errors(Ta, Xw[b], xn[b]) < thr) < s.min_ratio:
+                return False
+        others = self._witnesses(T, kf, m, gray.shape)
+        if not others:
             return False
-        window = [k for k in range(kf - s.neighbours, kf + s.neighbours + 1)
-                  if 0 <= k < len(m.kf_frame) and k != kf and m.kf_segment[k] == m.kf_segment[kf] and k in self.images]
-        others = np.array(sorted(set().union(*(m.kf_points[k] for k in window)) - set(pids.tolist())), np.int64)
-        h, w = gray.shape
-        if len(others):
-            Xc = m.Xw[others] @ T[:3, :3].T + T[:3, 3]
-            px = Xc[:, :2] / np.maximum(Xc[:, 2:3], 1e-9) @ self.K[:2, :2].T + self.K[:2, 2]
-            seen = (Xc[:, 2] > 0) & in_image(px, w, h, margin=KLT_WIN // 2)
-            if seen.sum() >= s.min_verified:
-                found, _ = reproject_points(m, {k: self.images[k] for k in window}, gray, T, pids, window,
-                                            self.intr, KLT_WIN, KLT_LEVELS, KLT_FB_PX, 2 * thr)
-                return len(found) >= s.min_ratio * seen.sum()
-        return True
+        cand = np.array(sorted(set().union(*(m.kf_points[k] for k in others))), np.int64)
+        seen = self._in_view(T, m.Xw[cand], gray.shape).sum() if len(cand) else 0
+        if seen < s.min_verified:
+            return False
+        found, _ = reproject_points(m, {k: self.images[k] for k in others}, gray, T, np.zeros(0, np.int64), others,
+                                    self.intr, KLT_WIN, KLT_LEVELS, KLT_FB_PX, 2 * thr)
+        return len(found) >= s.min_ratio * seen
+
+    def _in_view(self, T: np.ndarray, Xw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """``(N,)`` bool: world points ``Xw`` in front of ``T`` and inside the image, away from the border."""
+        Xc = Xw @ T[:3, :3].T + T[:3, 3]
+        px = Xc[:, :2] / np.maximum(Xc[:, 2:3], 1e-9) @ self.K[:2, :2].T + self.K[:2, 2]
+        h, w = shape
+        return (Xc[:, 2] > 0) & in_image(px, w, h, margin=KLT_WIN // 2)
+
+    def _witnesses(self, T: np.ndarray, kf: int, m: Map, shape: tuple[int, int]) -> list[int]:
+        """Keyframes of the candidate's segment other than it, with an image, whose points ``T`` puts most in
+        view: at most ``neighbours`` of them, each with ``min_verified`` points in view at least."""
+        s = self.settings
+        counts = []
+        for k in self.images:
+            if k == kf or m.kf_segment[k] != m.kf_segment[kf] or not m.kf_points[k]:
+                continue
+            pts = np.fromiter(m.kf_points[k], np.int64, len(m.kf_points[k]))
+            n = int(self._in_view(T, m.Xw[pts], shape).sum())
+            if n >= s.min_verified:
+                counts.append((-n, k))
+        return [k for _, k in sorted(counts)[: s.neighbours]]
 
     def _homography(self, a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
                     seed: int) -> np.ndarray | None:

@@ -76,3 +76,38 @@ def test_a_planted_wrong_candidate_is_rejected(room):
     m2, honest = _map(room, [0, 30])
     r = honest.query(_gray(room.rgb[31]), m2, THR, seed=0, keyframes=[1])  # the same query, honest candidate
     assert r is not None and _pose_error(r.T_cw, room.poses[31])[0] < 0.01
+
+
+def test_a_wrong_candidate_no_other_keyframe_can_witness_is_refused(room):
+    """A keyframe with no other keyframe in the map, carrying another frame's image under its points: its
+    matches are all consistent with one wrong pose (14 cm / 6.7° off before), which only another keyframe's
+    own image could refute — with none, the pose is refused, and counted."""
+    m, index = _map(room, [30])
+    index.add_keyframe(0, _gray(room.rgb[0]))  # its image and features now those of frame 0
+    assert index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[0]) is None
+    assert index.rejected == 1
+    m, index = _map(room, [30, 34])  # a witness (honest images) refutes the same planted pose
+    index.add_keyframe(0, _gray(room.rgb[0]))
+    assert index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[0]) is None
+    assert index.rejected == 1
+    r = _map(room, [30, 34])[1].query(_gray(room.rgb[31]), _map(room, [30, 34])[0], THR, seed=0, keyframes=[0])
+    assert r is not None and _pose_error(r.T_cw, room.poses[31])[0] < 0.01  # and confirms an honest one
+
+
+def test_the_halves_are_halves_of_the_inliers(room, monkeypatch):
+    """Outlying matches do not take part in the halves' test: each half's pose is fitted to inliers only."""
+    import mutualslam_cli.vo.relocalise as rl
+
+    m, index = _map(room, [20, 30, 40])
+    sizes = []
+    fit = rl.estimate_pose
+
+    def spy(X, xn, *a, **k):
+        sizes.append(len(X))
+        return fit(X, xn, *a, **k)
+
+    monkeypatch.setattr(rl, "estimate_pose", spy)
+    r = index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[1])
+    assert r is not None
+    first, halves = sizes[0], sizes[1:3]  # the PnP on every match, then one pose per half
+    assert sum(halves) == r.inliers <= first and abs(halves[0] - halves[1]) <= 1
