@@ -45,7 +45,6 @@ from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages import adaptation, dense, depth_export, evaluation, frontend
 from mutualslam_cli.stages.ba import BAStage
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.frontend import FRONTEND_FILE, load_frontend_file, save_frontend
 from mutualslam_cli.types import Progress
 
 log = logging.getLogger(__name__)
@@ -153,16 +152,12 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     net0 = load_network(cfg, fast)  # the pre-trained model
     ba = BAStage(run)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
     adapted = adaptation.run_stage(run, net0, fast, ba if cfg.ba.enabled else None)  # front end + Algorithm 1
-    src = adapted.source
-    fe = frontend.run_stage(run, adapted.frontend, src.replayed, adapted.injected,
-                            src.changed_at if src.live_feedback else None)  # the front end's map and trajectories
+    fe = frontend.run_stage(run, adapted.frontend, adapted.source.replayed, adapted.injected)  # its own map
     ba.finish(adapted, fe, fast)
     evaluation.run_stage(run, fe, net0, adapted, fast)  # both models' depth on every frame with GT
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:
         dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
-    if cfg.eval.save_weights and src.live_feedback:  # `mslam fuse` needs this run's front end, not the cache's
-        save_frontend(run.folder / FRONTEND_FILE, adapted.frontend)
     return _finish(run, fe, ba, adapted.bridges or [], command, t_start)
 
 
@@ -245,8 +240,7 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
     with hold_lock(folder, "mslam fuse"):
         cfg = use_threads(cfg)
         seq = open_sequence(seq if seq is not None else root, cfg, registry)
-        vo = (load_frontend_file(folder / FRONTEND_FILE) if (folder / FRONTEND_FILE).is_file() else
-              frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)[0])
+        vo, _, _ = frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)
         fast = use_fast_path(cfg)
         nets = {"pretrained": load_network(cfg, fast), "adapted": prepare(load_monodepth2(
             wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast) if adapted else None}

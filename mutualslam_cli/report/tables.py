@@ -7,7 +7,7 @@ plus PNG plots. Values that a run could not compute stay empty (``NaN`` → "—
 
 Runs whose resolved configs differ (other than seed, scheme and output; thread counts count) are
 never averaged together: every table gets a ``config`` column naming the settings that differ
-(e.g. ``ba.culling=False``). Paper Table 4 (``ate_ba``: ATE without / with global BA) and
+(e.g. ``ba.culling=False``). Paper Table 4 (``ate_ba``: ATE of the front end, bridged, after BA) and
 Table 5 (``map_ba``: map points and e_si with and without BA and culling, per ``vo.max_fts``)
 are built by :func:`table_ate_ba` and :func:`table_map_ba`.
 """
@@ -192,46 +192,56 @@ def _mean(v: pd.Series) -> float:
     return float(v.mean()) if v.notna().any() else float("nan")
 
 
-def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, str]]]:
-    """Paper Table 4: keyframe ATE (m) without BA (``trajectory.ate_rmse_m.vo``) and with the final
-    culling + global BA (``trajectory.ate_rmse_m.ba``) per sequence, then their Average.
+#: Table 4's columns: each part of the system credited on its own (``trajectory.credit.*``, the same frames).
+CREDIT = (("VO", "vo"), ("bridged", "bridged"), ("+ culling + BA", "ba"))
 
-    One block of rows per (scheme, config) (columns ``scheme`` / ``config`` only when there are
-    several). A cell is the mean over the block's runs (seeds) that have the value; ``n`` counts
-    the runs. The Average row averages the sequences that have both values (each column over
-    the sequences that have it when none has both), "Average (k of N)" when that is not all.
+
+def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, str]]]:
+    """Paper Table 4, crediting each part: the ATE (m, one Sim(3)) of the frames every column tracked, for
+    the front end on its own (``VO``), joined by the run's bridges and nothing else (``bridged``) and after
+    culling + global BA (``trajectory.credit.*``), per sequence, then their Average.
+
+    One block of rows per (scheme, config) (columns ``scheme`` / ``config`` only when there are several).
+    Cells are paired by seed: every column of a row is the mean over the same runs — those that have every
+    column; when none has an after-BA value (no BA requested), that cell is "—" and the others are over all
+    runs. ``n`` counts the runs averaged. The Average row averages the sequences that have every value.
 
     Returns:
-        ``(table, title, bold)``; ``bold``: ``(row, column)`` of the lower ATE of each row.
+        ``(table, title, bold)``; ``bold``: ``(row, column)`` of the lowest ATE of each row.
     """
     runs = runs.assign(config=runs["config"] if "config" in runs else "")
+    cols = [c for c, _ in CREDIT]
     rows: list[dict[str, Any]] = []
     for (scheme, config), b in runs.groupby(["scheme", "config"], sort=True):
         first = len(rows)
         for seq, r in b.groupby("sequence.name", sort=True):
-            rows.append({"Sequence": seq, "scheme": scheme, "config": config, "n": len(r),
-                         "Without BA": _mean(numeric(r, "trajectory.ate_rmse_m.vo")),
-                         "With BA": _mean(numeric(r, "trajectory.ate_rmse_m.ba"))})
+            vals = pd.DataFrame({c: numeric(r, f"trajectory.credit.{k}") for c, k in CREDIT})
+            paired = vals.dropna()
+            use = paired if len(paired) else vals.dropna(subset=[c for c in cols if c != "+ culling + BA"])
+            rows.append({"Sequence": seq, "scheme": scheme, "config": config, "n": len(use),
+                         **{c: _mean(use[c]) for c in cols}})
         seqs = rows[first:]
-        both = [x for x in seqs if np.isfinite(x["Without BA"]) and np.isfinite(x["With BA"])]
+        full = [x for x in seqs if all(np.isfinite(x[c]) for c in cols)]
         avg: dict[str, Any] = {"scheme": scheme, "config": config, "n": ""}
-        for c in ("Without BA", "With BA"):  # no sequence with both: each column over its own
-            have = both or [x for x in seqs if np.isfinite(x[c])]
+        for c in cols:  # no sequence with every value: each column over its own
+            have = full or [x for x in seqs if np.isfinite(x[c])]
             avg[c] = float(np.mean([x[c] for x in have])) if have else float("nan")
-        k = len(both) if both else max(sum(np.isfinite(x[c]) for x in seqs) for c in ("Without BA", "With BA"))
+        k = len(full) if full else max(sum(np.isfinite(x[c]) for x in seqs) for c in cols)
         rows.append({"Sequence": "Average" if k == len(seqs) else f"Average ({k} of {len(seqs)})", **avg})
-    t = pd.DataFrame(rows, columns=["Sequence", "scheme", "config", "Without BA", "With BA", "n"])
+    t = pd.DataFrame(rows, columns=["Sequence", "scheme", "config", *cols, "n"])
     bold = set()
     for i, x in t.iterrows():
-        if np.isfinite(x["Without BA"]) and np.isfinite(x["With BA"]):
-            best = min(x["Without BA"], x["With BA"])
-            bold |= {(int(i), c) for c in ("Without BA", "With BA") if cell_text(x[c]) == cell_text(best)}
+        have = [c for c in cols if np.isfinite(x[c])]
+        if len(have) > 1:
+            best = min(x[c] for c in have)
+            bold |= {(int(i), c) for c in have if cell_text(x[c]) == cell_text(best)}
     schemes = sorted(runs["scheme"].unique())
     t = t.drop(columns=[c for c, keep in (("scheme", len(schemes) > 1), ("config", (runs["config"] != "").any()))
                         if not keep])
-    title = ("Paper Table 4: keyframe ATE RMSE (m, Sim(3)-aligned to GT) without and with global BA"
+    title = ("Paper Table 4, each part credited: ATE RMSE (m, one Sim(3) each) of the frames every column "
+             "tracked — the front end alone, joined by its bridges, after culling + global BA"
              + (f", scheme {schemes[0]}" if len(schemes) == 1 else "")
-             + "; mean over n seeds; Average over the sequences with both values")
+             + "; mean over the n runs (seeds) that have every column; — : no BA requested")
     return t, title, bold
 
 

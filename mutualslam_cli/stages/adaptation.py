@@ -46,13 +46,13 @@ from mutualslam_cli.stages.adaptation_summary import (
 )
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.event_source import FrontEndSource
-from mutualslam_cli.stages.frontend import corrupt
+from mutualslam_cli.stages.frontend import corrupt, run_frontend
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import RealtimeClock
 from mutualslam_cli.vo.feedback import MapRefinement
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import plan_bridge, unbridged
+from mutualslam_cli.vo.segments import bridged, plan_bridge
 
 DepthOf = Callable[[int], np.ndarray]
 """``depth_of(kf_id)``: ``(h, w)`` depth of the current network at network resolution, map units."""
@@ -258,8 +258,9 @@ class Adapted:
         adapter: the keyframe adapter (its replay buffer and L_val per keyframe), ``None`` for
             schemes ``none`` and ``comoda``.
         map: the loop's map at the end (bridged segments; the BAs Algorithm 1 requested in it).
-        frontend: the front end's map with its segments apart, each in its own unit (causal: as the front
-            end held it at the end with the bridges it was given undone; hindsight: before the loop).
+        frontend: the front end on its own — no bridge, no BA: each segment in its own unit (the cache's;
+            causal runs ask it once more after the loop, since the network's side changed theirs).
+        bridged: ``frontend`` joined by the run's bridges, and nothing else (Table 4's "bridged" column).
         source: the front end's event source (cache use, replayed frames).
         injected: ids of map points corrupted by ``vo.inject_outliers``.
         requested: how many times Algorithm 1 requested global BA.
@@ -272,7 +273,8 @@ class Adapted:
     net: torch.nn.Module
     adapter: OnlineAdapter | None
     map: VOResult
-    frontend: VOResult
+    frontend: VOResult | None
+    bridged: VOResult | None
     source: FrontEndSource
     injected: np.ndarray
     requested: int
@@ -309,7 +311,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
         pure = source.result() if not causal else None
         if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
             net = comoda.run_stage(run, copy.deepcopy(net0), fast)
-            adapted, rows, online_s = Adapted(net, None, pure, pure, source, injected, 0), [], 0.0
+            adapted, rows, online_s = Adapted(net, None, pure, pure, pure, source, injected, 0), [], 0.0
             for k in L_VAL_KEYS:
                 summary.absent(f"adaptation.l_val.{k}", "scheme 'comoda' has no Algorithm 1")
             summarise_strength(summary, None)
@@ -321,9 +323,9 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
             final = source.result()
             rows, adapter = loop.rows, loop.adapter
             online = scorer.finish(loop.net, final.keyframes[-1].id if final.keyframes else -1) if scorer else None
-            adapted = Adapted(loop.net, adapter, final, pure if pure is not None else unbridged(
-                final, source.state.bridges), source, injected, sum(bool(r.get("run_global_ba")) for r in rows),
-                loop.bridges, l_val_stats(rows, cfg.adapt.tau_val, final), online)
+            adapted = Adapted(loop.net, adapter, final, pure, pure, source, injected,
+                              sum(bool(r.get("run_global_ba")) for r in rows), loop.bridges,
+                              l_val_stats(rows, cfg.adapt.tau_val, final), online)
             online_s = scorer.seconds if scorer is not None else 0.0
             for k, v in adapted.l_val.items():
                 summary.set(f"adaptation.l_val.{k}", v, "no validation keyframe had an L_val")
@@ -333,13 +335,18 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
                 summary.absent(key, f"scheme {cfg.adapt.scheme!r} has no pose network (only 'comoda')")
     finally:
         source.close()
+    t_fe = time.perf_counter()
+    if adapted.frontend is None:  # causal: the network's side changed the front end; the same one on its own
+        adapted.frontend, _ = run_frontend(seq, cfg, run.cache / "vo")  # (the journal cache: mostly replayed)
+    fe_s = source.seconds + time.perf_counter() - t_fe
+    adapted.bridged = bridged(adapted.frontend, adapted.bridges or [])
     ba_s = float(sum(r.get("ba_s", 0.0) for r in rows))  # Algorithm 1's BAs, inside the loop
-    run.add_time("frontend", source.seconds)
-    run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s - source.seconds)
+    run.add_time("frontend", fe_s)
+    run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s - fe_s)
     run.add_time("ba", ba_s)
     run.add_time("evaluation", online_s)  # the online scores are evaluation, done inside the loop
     if rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
-    summarise_bridges(run, adapted.map, adapted.bridges)
+    summarise_bridges(run, adapted.bridged, adapted.bridges)
     summary.set("adaptation.labels", cfg.adapt.labels if cfg.adapt.scheme != "comoda" else "hindsight")
     return adapted

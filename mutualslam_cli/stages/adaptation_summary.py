@@ -38,10 +38,10 @@ def l_val_stats(rows: list[dict[str, Any]], tau: float, vo: VOResult) -> dict[st
             "map_median_depth": depth}
 
 
-def summarise_bridges(run: RunContext, loop_map: VOResult, bridges: list[dict[str, Any]] | None) -> None:
+def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[dict[str, Any]] | None) -> None:
     """``vo.bridges`` and, when a segment was bridged, ``traj_{kf,all}_bridged.txt`` and
-    ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the adaptation loop's map (bridged
-    segments; Algorithm 1's BAs included) before the final BA, one Sim(3) as every headline ATE.
+    ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the front end on its own joined by the run's
+    bridges and nothing else (no BA: Table 4 credits each part), one Sim(3) as every headline ATE.
     ``bridges``: the bridges made, ``None`` when no keyframe loop ran (scheme ``comoda``)."""
     keys = [f"trajectory.{group}.{leaf}" for group in ("ate_rmse_m", "ate_rmse_m_per_segment")
             for leaf in ("bridged", "all_frames_bridged")]
@@ -52,13 +52,13 @@ def summarise_bridges(run: RunContext, loop_map: VOResult, bridges: list[dict[st
         return
     run.summary.set("vo.bridges", len(bridges))
     if not bridges:
-        why = ("no segment to bridge" if len({k.segment for k in loop_map.keyframes}) < 2 else
+        why = ("no segment to bridge" if len({k.segment for k in joined.keyframes}) < 2 else
                "no bridge could be made (vo.bridge_segments=false, or no depth ratio on a side of a gap)")
         for key in keys:
             run.summary.absent(key, why)
         return
-    write_trajectories(run.folder, loop_map.traj_kf, loop_map.traj_all, suffix="_bridged")
-    set_ate(run.summary, evaluate_trajectory(run.seq, loop_map, run.cfg.eval.ate_max_dt),
+    write_trajectories(run.folder, joined.traj_kf, joined.traj_all, suffix="_bridged")
+    set_ate(run.summary, evaluate_trajectory(run.seq, joined, run.cfg.eval.ate_max_dt),
             {"kf": "bridged", "all": "all_frames_bridged"})
 
 

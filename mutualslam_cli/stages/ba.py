@@ -27,10 +27,18 @@ from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted, depth_predictor
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
-from mutualslam_cli.stages.slam_metrics import esi_of_log_errors, evaluate_trajectory, map_log_depth_errors, set_ate
+from mutualslam_cli.stages.slam_metrics import (
+    common_frames_ate,
+    esi_of_log_errors,
+    evaluate_trajectory,
+    map_log_depth_errors,
+    point_units,
+    set_ate,
+)
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.vo.segments import units_of
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +107,8 @@ def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: O
 
 
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).
-BA_KEYS = ("trajectory.ate_rmse_m.ba", "trajectory.ate_rmse_m.all_frames_ba", "trajectory.ate_rmse_m_per_segment.ba",
+BA_KEYS = ("trajectory.ate_rmse_m.ba", "trajectory.credit.ba", "trajectory.ate_rmse_m.all_frames_ba",
+           "trajectory.ate_rmse_m_per_segment.ba",
            "trajectory.ate_rmse_m_per_segment.all_frames_ba", "map.points.culled", "map.points.ba", "map.esi.culled",
            "map.esi.ba", "timing.ba_s")
 
@@ -144,23 +153,44 @@ class BAStage:
         and, with injected outliers, ``map.outliers.*`` and ``map.inliers.kept``."""
         run, cfg = self.run, self.run.cfg
         run.summary.set("ba.requested", adapted.requested)
+        vo_ba, why = None, None
         if not cfg.ba.enabled:
-            self._absent("disabled (ba.enabled=false)")
+            why = "disabled (ba.enabled=false)"
         elif cfg.ba.final == "always":
             with run.timed("ba"):
                 vo_ba = final_ba(run.seq, adapted.map, adapted.net, adapted.adapter, cfg, fast, self)
-            self._write(vo_ba, fe)
         elif self.record.runs:
-            self._write(adapted.map, fe)
+            vo_ba = adapted.map
+            last = self.record.runs[-1]["kf_id"]
+            if last < len(vo_ba.keyframes) - 1:
+                run.summary.notes["trajectory.ate_rmse_m.ba"] = (
+                    f"ba.final=on_request: the map after the BAs Algorithm 1 requested; keyframes after {last} "
+                    f"(of {len(vo_ba.keyframes)}) were tracked after the last one and not refined by any")
         else:
-            self._absent("ba.final=on_request and " + (adapted.why_no_request(cfg.adapt.tau_val, cfg.adapt.patience)
-                                                       if adapted.adapter is not None else
-                                                       f"scheme {cfg.adapt.scheme!r} runs no Algorithm 1"))
+            why = "ba.final=on_request and " + (adapted.why_no_request(cfg.adapt.tau_val, cfg.adapt.patience)
+                                                if adapted.adapter is not None else
+                                                f"scheme {cfg.adapt.scheme!r} runs no Algorithm 1")
+        if vo_ba is None:
+            self._absent(why)
+        else:
+            self._write(vo_ba, fe, adapted)
+        self._credit(fe, adapted, vo_ba, why)
         if len(fe.injected):
             culled = self.record.culled_mask(fe.vo.points.ids) if self.record.runs and no_culling_reason(cfg) is None \
                 else None
             _summarise_outliers(run.summary, fe.vo.points.ids, fe.injected, culled,
                                 self.record.dropped_mask(fe.vo.points.ids) if self.record.runs else None)
+
+    def _credit(self, fe: FrontEnd, adapted: Adapted, vo_ba: VOResult | None, why: str | None) -> None:
+        """Table 4's columns on the same frames, one Sim(3) each (``trajectory.credit.*``): the front end on
+        its own (``vo``), joined by the run's bridges and nothing else (``bridged``), after culling + BA
+        (``ba``); ``frames``: how many frames every column tracked."""
+        ates, n, no = common_frames_ate(self.run.seq, {"vo": fe.vo, "bridged": adapted.bridged, "ba": vo_ba},
+                                        self.run.cfg.eval.ate_max_dt)
+        summary = self.run.summary
+        summary.set("trajectory.credit.frames", n)
+        for k, v in ates.items():
+            summary.set(f"trajectory.credit.{k}", v, no or (why if k == "ba" else "not computed"))
 
     def _absent(self, why: str) -> None:
         summary = self.run.summary
@@ -168,7 +198,7 @@ class BAStage:
             summary.absent(key, why)
         summary.set("ba.runs", 0)
 
-    def _write(self, vo_ba: VOResult, fe: FrontEnd) -> None:
+    def _write(self, vo_ba: VOResult, fe: FrontEnd, adapted: Adapted) -> None:
         run, summary = self.run, self.run.summary
         vo, err = fe.vo, fe.map_errors
         keep = ~self.record.culled_mask(vo.points.ids)
@@ -185,10 +215,12 @@ class BAStage:
             summary.absent("map.esi.culled", no_culling)
         else:
             summary.set("map.points.culled", int(keep.sum()))
-            summary.set("map.esi.culled", esi_of_log_errors(err[keep])[0],
+            summary.set("map.esi.culled", esi_of_log_errors(err[keep], point_units(vo)[keep])[0],
                         "no kept map point has GT depth at its host pixel")
+        units = units_of(sorted({k.segment for k in vo_ba.keyframes}), adapted.bridges or [])
         summary.set("map.points.ba", len(vo_ba.points))
-        summary.set("map.esi.ba", esi_of_log_errors(err_ba)[0], "no map point has GT depth at its host pixel after BA")
+        summary.set("map.esi.ba", esi_of_log_errors(err_ba, point_units(vo_ba, units))[0],
+                    "no map point has GT depth at its host pixel after BA")
         summary.set("timing.ba_s", run.timings.get("ba", 0.0))  # Algorithm 1's requests and the final one
         runs = self.record.runs
         summary.set("ba.runs", len(runs))

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.ba.culling import inject_outliers
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
@@ -24,10 +23,16 @@ from mutualslam_cli.results.map_ply import write_ply
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.event_source import FrontEndSource
-from mutualslam_cli.stages.slam_metrics import esi_of_log_errors, evaluate_trajectory, map_log_depth_errors, set_ate
+from mutualslam_cli.stages.slam_metrics import (
+    esi_of_log_errors,
+    evaluate_trajectory,
+    map_log_depth_errors,
+    point_units,
+    set_ate,
+)
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.map_state import MapState
-from mutualslam_cli.vo.result import VOResult, vo_from_arrays, vo_to_arrays
+from mutualslam_cli.vo.result import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -91,20 +96,20 @@ class FrontEnd:
     replayed: int = 0
 
 
-def run_stage(run: RunContext, vo: VOResult, replayed: int, injected: np.ndarray, changed_at: int | None) -> FrontEnd:
+def run_stage(run: RunContext, vo: VOResult, replayed: int, injected: np.ndarray) -> FrontEnd:
     """The front end's outputs: ``traj_kf.txt``, ``traj_all.txt``, ``map_vo.ply`` and the keys ``vo.*``,
-    ``timing.vo_fps``, ``map.points.vo``, ``map.esi.vo`` and ``trajectory.ate_rmse_m.{vo,all_frames}``.
+    ``timing.vo_fps``, ``map.points.vo``, ``map.esi.vo`` (each segment in its own unit) and
+    ``trajectory.ate_rmse_m.{vo,all_frames}``.
 
     Args:
-        vo: the front end's map, each segment in its own unit.
-        replayed: frames taken from the journal cache; changed_at: the frame of the first change the
-            network's side made to the live front end (``None``: none).
+        vo: the front end on its own (no bridge, no BA), each segment in its own unit.
+        replayed: frames the run's front end took from the journal cache.
     """
     seq, cfg, summary = run.seq, run.cfg, run.summary
     write_trajectories(run.folder, vo.traj_kf, vo.traj_all)
     err = map_log_depth_errors(seq, vo)  # per point log z − log z*: the map's colours and its e_si
     write_ply(run.folder / "map_vo.ply", vo.points_world(), err)
-    esi, n_gt = esi_of_log_errors(err)
+    esi, n_gt = esi_of_log_errors(err, point_units(vo))  # each segment's own unit
     mode = cfg.vo.mode
     summary.set("vo.keyframes", len(vo.keyframes))
     summary.set("vo.tracked_fraction", vo.tracked_fraction)
@@ -117,10 +122,6 @@ def run_stage(run: RunContext, vo: VOResult, replayed: int, injected: np.ndarray
     set_ate(summary, evaluate_trajectory(seq, vo, cfg.eval.ate_max_dt), {"kf": "vo", "all": "all_frames"})
     if mode != "svo":
         summary.notes["trajectory.ate_rmse_m.vo"] = "oracle front end: keyframe poses are GT poses"
-    elif changed_at is not None:
-        summary.notes["trajectory.ate_rmse_m.vo"] = (
-            f"causal labels: the front end took the network side's changes from frame {changed_at} on (the "
-            "global BAs Algorithm 1 requested; bridges, undone here: each segment in its own unit)")
     summary.set("map.esi.vo", esi, "no map point has GT depth at its host pixel")
     summary.set("vo.segments", len({k.segment for k in vo.keyframes}))
     if mode == "svo":
@@ -134,19 +135,3 @@ def run_stage(run: RunContext, vo: VOResult, replayed: int, injected: np.ndarray
     summary.set("vo.mode", mode)
     return FrontEnd(vo, replayed == len(seq), injected, err, n_gt, replayed)
 
-
-#: A causal run's front end (each segment in its own unit), kept with its adapted weights for ``mslam fuse``:
-#: with causal labels the network's side changed the front end, so the cache's front end is not this run's.
-FRONTEND_FILE = "frontend.npz"
-
-
-def save_frontend(path: Path, vo: VOResult) -> None:
-    """``vo`` as an ``.npz`` of :func:`~mutualslam_cli.vo.result.vo_to_arrays` (no pickle), atomically."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(f, **vo_to_arrays(vo))
-
-
-def load_frontend_file(path: Path) -> VOResult:
-    """The front end :func:`save_frontend` wrote."""
-    with np.load(path, allow_pickle=False) as z:
-        return vo_from_arrays(z)

@@ -16,6 +16,7 @@ from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.vo.camera import distort_points
+from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.result import VOResult
 
 
@@ -96,18 +97,59 @@ def map_log_depth_errors(seq: Sequence, vo: VOResult, keep: np.ndarray | None = 
     return out
 
 
-def esi_of_log_errors(d: np.ndarray) -> tuple[float, int]:
+def esi_of_log_errors(d: np.ndarray, units: np.ndarray | None = None) -> tuple[float, int]:
     """e_si of per-point log errors ``d`` ``(P,)`` (NaN = no GT): the population standard deviation
-    of the finite ones, :func:`~mutualslam_cli.metrics.depth.esi`'s formula.
+    of the finite ones, :func:`~mutualslam_cli.metrics.depth.esi`'s formula — with ``units`` ``(P,)``
+    (each point's map unit, :func:`point_units`) about each unit's own mean, since segments not joined
+    by a bridge each have their own scale, which e_si must not count as error.
 
     Returns:
         ``(e_si, n_finite)``; e_si is NaN when no value is finite.
     """
     d = np.asarray(d, dtype=float)
-    d = d[np.isfinite(d)]
-    if d.size == 0:
+    ok = np.isfinite(d)
+    if not ok.any():
         return float("nan"), 0
-    return float(np.sqrt(np.mean((d - d.mean()) ** 2))), int(d.size)
+    u = np.zeros(len(d), np.int64) if units is None else np.asarray(units)
+    _, inv = np.unique(u[ok], return_inverse=True)
+    means = np.bincount(inv, weights=d[ok]) / np.bincount(inv)
+    return float(np.sqrt(np.mean((d[ok] - means[inv]) ** 2))), int(ok.sum())
+
+
+def point_units(vo: VOResult, units: dict[int, int] | None = None) -> np.ndarray:
+    """``(P,)`` the map unit of each point: its host keyframe's segment, or ``units[segment]`` (segments a
+    bridge joined share one, :func:`~mutualslam_cli.vo.segments.units_of`)."""
+    seg = {k.id: k.segment for k in vo.keyframes}
+    out = np.array([seg.get(int(h), -1) for h in vo.points.host], np.int64)
+    return out if units is None else np.array([units.get(int(s), int(s)) for s in out], np.int64)
+
+
+def common_frames_ate(seq: Sequence, maps: dict[str, VOResult | None], max_dt: float = MAX_DT,
+                      ) -> tuple[dict[str, float | None], int, str | None]:
+    """ATE RMSE (one Sim(3) each) of the frames *every* given map tracked, so each column of a credit table
+    (front end, bridged, after BA, …) is scored on the same frames.
+
+    Returns:
+        ``({name: rmse or None for a None map}, n_frames, why)``: ``why`` says why nothing could be scored.
+    """
+    have = {k: v for k, v in maps.items() if v is not None}
+    out: dict[str, float | None] = {k: None for k in maps}
+    if seq.gt is None or len(seq.gt) == 0:
+        return out, 0, "sequence has no GT poses"
+    if not have:
+        return out, 0, "no trajectory"
+    common = set.intersection(*(set(np.round(v.traj_all.timestamps, 6).tolist()) for v in have.values()))
+    if len(common) < 3:
+        return out, len(common), f"only {len(common)} frames tracked in every column"
+    keep = np.array(sorted(common))
+    for k, v in have.items():
+        m = np.isin(np.round(v.traj_all.timestamps, 6), keep)
+        try:
+            out[k] = float(tm.ate(seq.gt, Trajectory(v.traj_all.timestamps[m], v.traj_all.poses[m]),
+                                  align="sim3", max_dt=max_dt).rmse)
+        except MslamError as e:
+            return {k: None for k in maps}, len(keep), str(e)
+    return out, len(keep), None
 
 
 def map_esi(seq: Sequence, vo: VOResult, keep: np.ndarray | None = None) -> tuple[float, int]:

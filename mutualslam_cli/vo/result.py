@@ -3,14 +3,12 @@
 Every front end returns a :class:`VOResult`: ``svo`` (our monocular VO), ``gt`` (the pose
 oracle: our VO's keyframes and tracks with GT poses, points re-triangulated in metres) and
 ``gt-depth`` (GT poses and points sampled from GT depth, an upper bound). Everything is
-numpy so it crosses process boundaries cheaply, and :func:`vo_to_arrays` / :func:`vo_from_arrays`
-turn it into plain arrays and back for the VO cache (an ``.npz`` read without pickle: a results
-folder shared on a cluster must not be able to run code when read).
+numpy so it crosses process boundaries cheaply. (The per-sequence cache keeps the front end's event
+journal, not this: :mod:`~mutualslam_cli.vo.journal`.)
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -166,120 +164,3 @@ class VOResult:
         w, h = self.intrinsics.width, self.intrinsics.height
         ok = (z > 1e-6) & in_image(pix, w, h)
         return pix[ok], z[ok]
-
-
-# ----------------------------------------------------------------------------- plain arrays (the VO cache)
-
-#: Version of the :func:`vo_to_arrays` layout; :func:`vo_from_arrays` refuses any other.
-VO_ARRAYS_VERSION = 1
-_FORMAT = "mslam-vo-result"
-
-
-def _json_default(x: Any) -> Any:
-    """numpy scalars and arrays in ``meta`` become Python numbers and lists."""
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(f"VOResult.meta value of type {type(x).__name__} is not JSON-like")
-
-
-def _ragged(parts: list[np.ndarray], dtype: type, tail: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Concatenate ``parts`` (each ``(n_i, *tail)``); returns ``(flat (sum n_i, *tail), offsets (P+1,))``."""
-    offsets = np.zeros(len(parts) + 1, np.int64)
-    offsets[1:] = np.cumsum([len(a) for a in parts])
-    if not parts:
-        return np.zeros((0, *tail), dtype), offsets
-    return np.concatenate([np.asarray(a, dtype).reshape(-1, *tail) for a in parts]), offsets
-
-
-def vo_to_arrays(vo: VOResult) -> dict[str, np.ndarray]:
-    """A :class:`VOResult` as a flat dict of numeric arrays (for ``np.savez``; no object arrays).
-
-    Layout (``K`` keyframes, ``P`` points, ``O`` observations in all, ``N`` tracked frames):
-    ``header`` uint8 UTF-8 JSON (format, version, intrinsics, ``meta``); ``kf_id``, ``kf_frame_index``,
-    ``kf_segment`` ``(K,)`` int64, ``kf_timestamp`` ``(K,)`` float64 s, ``kf_pose`` ``(K, 4, 4)``;
-    ``pt_ids``, ``pt_host`` ``(P,)`` int64, ``pt_pixel`` ``(P, 2)``, ``pt_inv_depth``, ``pt_sigma``
-    ``(P,)``; ``obs_offsets`` ``(P+1,)`` int64 with point ``i``'s observations at
-    ``obs_kf[o[i]:o[i+1]]`` (int64 keyframe ids) and ``obs_pixels[o[i]:o[i+1]]`` ``(O, 2)``;
-    ``traj_t`` ``(N,)``, ``traj_poses`` ``(N, 4, 4)``; ``frame_segment``; ``covis_keys`` ``(C,)`` and
-    ``covis_pairs`` ``(M, 3)`` int64 rows ``(kf, other_kf, shared_points)``, both in insertion order.
-
-    ``meta`` must be JSON-like: numpy scalars come back as Python numbers, tuples as lists.
-    """
-    intr = vo.intrinsics
-    header = {
-        "format": _FORMAT, "version": VO_ARRAYS_VERSION,
-        "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy, "width": intr.width,
-                       "height": intr.height, "dist": None if intr.dist is None else list(intr.dist)},
-        "meta": vo.meta,
-    }
-    text = json.dumps(header, default=_json_default)
-    kfs, pts = vo.keyframes, vo.points
-    obs_kf, offsets = _ragged(pts.observations, np.int64, ())
-    obs_px, offsets_px = _ragged(pts.obs_pixels, np.float64, (2,))
-    if not np.array_equal(offsets, offsets_px):
-        raise ValueError("MapPoints.observations and obs_pixels differ in length for some point")
-    pairs = [(a, b, n) for a, row in vo.covisibility.items() for b, n in row.items()]
-    return {
-        "header": np.frombuffer(text.encode("utf-8"), np.uint8),
-        "kf_id": np.array([k.id for k in kfs], np.int64),
-        "kf_frame_index": np.array([k.frame_index for k in kfs], np.int64),
-        "kf_timestamp": np.array([k.timestamp for k in kfs], np.float64),
-        "kf_pose": np.stack([k.pose for k in kfs]).astype(np.float64) if kfs else np.zeros((0, 4, 4)),
-        "kf_segment": np.array([k.segment for k in kfs], np.int64),
-        "pt_ids": pts.ids, "pt_host": pts.host, "pt_pixel": pts.pixel,
-        "pt_inv_depth": pts.inv_depth, "pt_sigma": pts.sigma,
-        "obs_offsets": offsets, "obs_kf": obs_kf, "obs_pixels": obs_px,
-        "traj_t": vo.traj_all.timestamps, "traj_poses": vo.traj_all.poses,
-        "frame_segment": np.asarray(vo.frame_segment),
-        "covis_keys": np.array(list(vo.covisibility), np.int64),
-        "covis_pairs": np.array(pairs, np.int64).reshape(-1, 3),
-    }
-
-
-def _expect(ok: bool, what: str) -> None:
-    if not ok:
-        raise ValueError(f"invalid VO arrays: {what}")
-
-
-def vo_from_arrays(a: Any) -> VOResult:
-    """Inverse of :func:`vo_to_arrays`; ``a`` is that dict or an open ``np.load`` archive.
-
-    Raises:
-        ValueError: another format or version, a header that is not JSON, or arrays whose sizes disagree.
-        KeyError: a missing array or header field.
-    """
-    header = json.loads(bytes(np.asarray(a["header"], np.uint8)).decode("utf-8"))
-    _expect(isinstance(header, dict) and header.get("format") == _FORMAT,
-            f"format {header.get('format') if isinstance(header, dict) else None!r}, expected {_FORMAT!r}")
-    _expect(header.get("version") == VO_ARRAYS_VERSION,
-            f"version {header.get('version')!r}, expected {VO_ARRAYS_VERSION}")
-    arr = {k: np.asarray(a[k]) for k in (
-        "kf_id", "kf_frame_index", "kf_timestamp", "kf_pose", "kf_segment", "pt_ids", "pt_host", "pt_pixel",
-        "pt_inv_depth", "pt_sigma", "obs_offsets", "obs_kf", "obs_pixels", "traj_t", "traj_poses",
-        "frame_segment", "covis_keys", "covis_pairs")}
-    n_kf, n_pt = len(arr["kf_id"]), len(arr["pt_ids"])
-    _expect(all(len(arr[k]) == n_kf for k in ("kf_frame_index", "kf_timestamp", "kf_pose", "kf_segment"))
-            and arr["kf_pose"].shape[1:] == (4, 4), "keyframe arrays disagree")
-    _expect(all(len(arr[k]) == n_pt for k in ("pt_host", "pt_pixel", "pt_inv_depth", "pt_sigma"))
-            and arr["pt_pixel"].shape[1:] == (2,), "point arrays disagree")
-    off = arr["obs_offsets"]
-    _expect(off.shape == (n_pt + 1,) and off[0] == 0 and np.all(np.diff(off) >= 0)
-            and off[-1] == len(arr["obs_kf"]) == len(arr["obs_pixels"]) and arr["obs_pixels"].shape[1:] == (2,),
-            "observation offsets do not match the observations")
-    _expect(arr["covis_pairs"].ndim == 2 and arr["covis_pairs"].shape[1] == 3, "covisibility is not (M, 3)")
-    ih = header["intrinsics"]
-    intr = Intrinsics(ih["fx"], ih["fy"], ih["cx"], ih["cy"], ih["width"], ih["height"],
-                      None if ih["dist"] is None else tuple(ih["dist"]))
-    keyframes = [Keyframe(int(i), int(f), float(t), p.copy(), int(s)) for i, f, t, p, s in zip(
-        arr["kf_id"], arr["kf_frame_index"], arr["kf_timestamp"], arr["kf_pose"], arr["kf_segment"])]
-    cut = off[1:-1]
-    points = MapPoints(arr["pt_ids"], arr["pt_host"], arr["pt_pixel"], arr["pt_inv_depth"], arr["pt_sigma"],
-                       np.split(arr["obs_kf"], cut) if n_pt else [],
-                       np.split(arr["obs_pixels"], cut) if n_pt else [])
-    covis: dict[int, dict[int, int]] = {int(k): {} for k in arr["covis_keys"]}
-    for k, other, n in arr["covis_pairs"].tolist():
-        covis.setdefault(k, {})[other] = n
-    return VOResult(keyframes, points, intr, Trajectory(arr["traj_t"], arr["traj_poses"]), arr["frame_segment"],
-                    covis, header["meta"])

@@ -182,12 +182,28 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
     return move_segment(vo, b.segment, R, t, s), b
 
 
-def unbridged(vo: VOResult, moves: dict[int, tuple[np.ndarray, np.ndarray, float]]) -> VOResult:
-    """``vo`` with each segment's similarity (``{segment: (R, t, s)}``, as applied) undone: every segment
-    in its own frame and unit again."""
-    for seg, (R, t, s) in moves.items():
-        vo = move_segment(vo, seg, R.T, -(R.T @ t) / s, 1.0 / s)
+def bridged(vo: VOResult, bridges: list[dict]) -> VOResult:
+    """``vo`` (each segment in its own unit) with the bridges a run made (:class:`Bridge` records, as in
+    ``manifest.json``) applied in order: the front end joined, and nothing else."""
+    for b in bridges:
+        vo = move_segment(vo, int(b["segment"]), np.array(b["R"], float), np.array(b["t"], float), float(b["scale"]))
     return vo
+
+
+def units_of(segments: list[int], bridges: list[dict]) -> dict[int, int]:
+    """``{segment: unit}``: segments joined by bridges (``segment`` onto ``onto``) share one unit (map frame
+    and scale), labelled by the first of them; every other segment is a unit of its own."""
+    unit = {s: s for s in segments}
+
+    def find(s: int) -> int:
+        while unit.setdefault(s, s) != s:
+            s = unit[s]
+        return s
+
+    for b in bridges:
+        a, c = find(int(b["segment"])), find(int(b["onto"]))
+        unit[max(a, c)] = min(a, c)
+    return {s: find(s) for s in segments}
 
 
 def move_segment(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float) -> VOResult:

@@ -36,9 +36,12 @@ def _run(root: Path, seq: str, seed: int, culling: bool, values: dict[str, float
     return folder
 
 
-def _vals(ate_vo, ate_ba, vo, culled, ba):
-    """Summary values: ATEs and (points, e_si) of the VO, culled and BA maps."""
-    out = {"trajectory.ate_rmse_m.vo": ate_vo, "trajectory.ate_rmse_m.ba": ate_ba}
+def _vals(ate_vo, ate_ba, vo, culled, ba, bridged=None):
+    """Summary values: ATEs (Table 4's credit columns: front end, bridged, after BA) and (points, e_si) of
+    the VO, culled and BA maps."""
+    out = {"trajectory.ate_rmse_m.vo": ate_vo, "trajectory.ate_rmse_m.ba": ate_ba,
+           "trajectory.credit.vo": ate_vo, "trajectory.credit.ba": ate_ba,
+           "trajectory.credit.bridged": ate_vo if bridged is None else bridged}
     for stage, pe in (("vo", vo), ("culled", culled), ("ba", ba)):
         if pe is not None:
             out[f"map.points.{stage}"], out[f"map.esi.{stage}"] = pe
@@ -56,22 +59,29 @@ def roots(tmp_path: Path) -> tuple[Path, Path]:
     return cull, nocull
 
 
-def test_table4_ate_with_and_without_ba(roots):
+def test_table4_credits_each_part_on_seeds_paired(roots):
+    cull, _ = roots
+    _run(cull, "seqA", 2, True, _vals(0.040, None, (900, 0.5), None, None, bridged=0.035))  # no BA requested
+    _run(cull, "seqC", 0, True, _vals(0.010, None, (900, 0.5), None, None))  # none of its seeds has BA
     rep = build_tables(collect(list(roots)))
     t = rep.tables["ate_ba"]
-    assert list(t.columns) == ["Sequence", "config", "Without BA", "With BA", "n"]
-    assert list(t["config"]) == ["ba.culling=False"] * 2 + ["ba.culling=True"] * 3  # never averaged together
+    assert list(t.columns) == ["Sequence", "config", "VO", "bridged", "+ culling + BA", "n"]
+    assert list(t["config"]) == ["ba.culling=False"] * 2 + ["ba.culling=True"] * 4  # never averaged together
     nc, c = t[t["config"] == "ba.culling=False"], t[t["config"] == "ba.culling=True"]
-    assert list(c["Sequence"]) == ["seqA", "seqB", "Average"]
-    a = c.iloc[0]
-    assert a["Without BA"] == pytest.approx(0.025) and a["With BA"] == pytest.approx(0.015) and a["n"] == 2
-    avg = c.iloc[2]
-    assert avg["Without BA"] == pytest.approx((0.025 + 0.05) / 2) and avg["With BA"] == pytest.approx(0.0375)
-    assert nc.iloc[0]["With BA"] == pytest.approx(0.015)
+    assert list(c["Sequence"]) == ["seqA", "seqB", "seqC", "Average (2 of 3)"]
+    a = c.iloc[0]  # seeds 0 and 1 have every column; seed 2 (no BA) is left out of every column alike
+    assert a["VO"] == pytest.approx(0.025) and a["+ culling + BA"] == pytest.approx(0.015) and a["n"] == 2
+    assert a["bridged"] == pytest.approx(0.025)
+    sc = c.iloc[2]  # no seed with a BA: its BA cell is missing, the others over every seed
+    assert sc["VO"] == pytest.approx(0.01) and np.isnan(sc["+ culling + BA"]) and sc["n"] == 1
+    avg = c.iloc[3]
+    assert avg["VO"] == pytest.approx((0.025 + 0.05) / 2) and avg["+ culling + BA"] == pytest.approx(0.0375)
+    assert nc.iloc[0]["+ culling + BA"] == pytest.approx(0.015)
     # best (lower) in bold in LaTeX: seqA with BA, seqB without
     rows = {r.split(" & ")[0]: r for r in _latex(rep, "ate_ba").splitlines() if " & " in r}
     assert r"\textbf{0.015}" in rows["seqA"] and r"\textbf{0.05}" in rows["seqB"]
     assert r"\textbf{0.025}" not in rows["seqA"]
+    assert "—" in to_markdown(t)  # missing shown as missing
 
 
 def _latex(rep, name: str) -> str:
@@ -140,14 +150,14 @@ def test_map_figure_is_written_and_listed(roots, tmp_path: Path):
 
 
 def test_table4_average_without_any_ba(tmp_path: Path):
-    """Runs from before BA (or with ba.enabled=false): "With BA" is missing, the Average still
+    """Runs without BA (none requested, or ba.enabled=false): "+ culling + BA" is missing, the Average still
     averages what there is."""
     _run(tmp_path, "seqA", 0, True, _vals(0.02, None, (10, 0.1), None, None))
     _run(tmp_path, "seqB", 0, True, _vals(0.04, None, (10, 0.1), None, None))
     t = build_tables(collect([tmp_path])).tables["ate_ba"]
     avg = t.iloc[-1]
-    assert avg["Sequence"] == "Average" and avg["Without BA"] == pytest.approx(0.03) and np.isnan(avg["With BA"])
-    assert "| Average | 0.03 | — |  |" in to_markdown(t)
+    assert avg["Sequence"] == "Average" and avg["VO"] == pytest.approx(0.03) and np.isnan(avg["+ culling + BA"])
+    assert "| Average | 0.03 | 0.03 | — |  |" in to_markdown(t)
 
 
 def test_runs_with_different_thread_counts_are_not_averaged():

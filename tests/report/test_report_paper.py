@@ -38,6 +38,8 @@ def _runs() -> pd.DataFrame:
                              "depth.pcd.lsq.pretrained": pre, "depth.pcd.lsq.adapted": ad + gain + seed,
                              "depth.esi.pretrained": 0.3, "depth.esi.adapted": 0.2 + 0.01 * seed,
                              "trajectory.ate_rmse_m.vo": 0.02, "trajectory.ate_rmse_m.ba": 0.01 if seed else None,
+                             "trajectory.credit.vo": 0.02 + 0.01 * (seed == 0), "trajectory.credit.bridged": 0.02,
+                             "trajectory.credit.ba": 0.01 if seed else None,
                              "map.points.vo": 100.0, "map.points.ba": 90.0, "map.esi.vo": 0.2, "map.esi.ba": 0.15})
     return pd.DataFrame(rows)
 
@@ -61,10 +63,13 @@ def test_missing_values_are_dashes_not_zeros_and_lower_is_better_for_ate():
     t = table4(_runs())
     d = t.display.set_index("Sequence")
     assert d.loc["tum_fr1_xyz", "With BA"] == "0.0100 ± 0.0000"  # seed 0 had no BA value: 2 of 3 seeds
-    assert t.numeric.set_index("sequence").loc["tum_fr1_xyz", "With BA n"] == 2
+    assert d.loc["tum_fr1_xyz", "VO"] == "0.0200 ± 0.0000"  # paired: seed 0 (VO 0.03) is left out of VO too
+    n = t.numeric.set_index("sequence")
+    assert n.loc["tum_fr1_xyz", "With BA n"] == n.loc["tum_fr1_xyz", "VO n"] == 2
     assert (1, "With BA") in t.bold  # lower ATE is better
-    r = _runs().drop(columns="trajectory.ate_rmse_m.ba")
-    assert set(table4(r).display["With BA"]) == {"—"}
+    r = _runs().drop(columns="trajectory.credit.ba")
+    d = table4(r).display.set_index("Sequence")
+    assert set(d["With BA"]) == {"—"} and d.loc["tum_fr1_xyz", "VO"] == "0.0233 ± 0.0058"  # every seed
 
 
 def test_table3_has_a_column_per_present_scheme_and_table6_methods_as_rows():
@@ -92,7 +97,7 @@ def test_table5_rows_from_culling_variants_and_max_fts():
 
 
 def test_paper_tables_skip_tables_without_values_and_split_config_groups():
-    r = _runs().drop(columns=["trajectory.ate_rmse_m.vo", "trajectory.ate_rmse_m.ba"])
+    r = _runs().drop(columns=[f"trajectory.credit.{k}" for k in ("vo", "bridged", "ba")])
     names = [t.name for t in paper_tables(r)]
     assert "table4_ate_ba" not in names and {"table1_pcd", "table3_schemes", "table6_esi"} <= set(names)
     r2 = pd.concat([r, r.assign(config="adapt.lr=0.0001")])
@@ -103,9 +108,9 @@ def test_paper_tables_skip_tables_without_values_and_split_config_groups():
 
 def test_average_over_the_sequences_that_have_a_value_says_so():
     r = _runs()
-    r.loc[r["sequence.name"] == "tum_fr1_xyz", "trajectory.ate_rmse_m.vo"] = None
+    r.loc[r["sequence.name"] == "tum_fr1_xyz", "trajectory.credit.vo"] = None
     d = table4(r).display
-    assert d.iloc[-1]["Sequence"] == "Average (1 of 2 sequences)" and d.iloc[-1]["Without BA"] == "0.0200"
+    assert d.iloc[-1]["Sequence"] == "Average (1 of 2 sequences)" and d.iloc[-1]["VO"] == "0.0200"
     assert table1(_runs()).display.iloc[-1]["Sequence"] == "Average"
 
 

@@ -1,5 +1,5 @@
-"""The front end's files: the journal cache and a run's ``frontend.npz`` — data-only .npz (never pickle),
-exact round trips; bad cache entries are recomputed."""
+"""The front end's journal and its cache: data-only .npz (never pickle), exact round trips, a replica that
+is the front end bit for bit; bad cache entries are recomputed."""
 
 from __future__ import annotations
 
@@ -14,11 +14,12 @@ from synth import make_tum_dir
 
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.stages.frontend import load_frontend_file, run_frontend, save_frontend
+from mutualslam_cli.stages.frontend import run_frontend
 from mutualslam_cli.stages.vo_cache import CHECKPOINT_EVERY, cache_path, load_entry, vo_cache_key
-from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.vo.journal import JOURNAL_VERSION
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.stages.event_source import FrontEndSource
+from mutualslam_cli.vo.journal import JOURNAL_VERSION, journal_from_arrays, journal_to_arrays
+from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.vo.result import VOResult
 
 
 def _cfg(mode: str):
@@ -64,52 +65,26 @@ def assert_same(a, b, where: str = "vo") -> None:
         assert isinstance(a, str) == isinstance(b, str), where
 
 
-def _empty() -> VOResult:
-    return VOResult([], MapPoints.empty(), Intrinsics(50.0, -50.0, 31.5, 23.5, 64, 48, (0.1, -0.2, 0.0, 0.0, 0.3)),
-                    Trajectory(np.zeros(0), np.zeros((0, 4, 4))), -np.ones(5, np.int64), {}, {"fps": float("nan")})
-
-
-def _varied(seed: int = 3) -> VOResult:
-    """Every field away from its default: segments, ragged observations, a keyframe seen with no other."""
-    rng = np.random.default_rng(seed)
-    kfs = [Keyframe(k, 3 * k + 1, 0.1 * k + 1e-9, rng.normal(size=(4, 4)), segment=k // 2) for k in range(4)]
-    obs = [np.array([0, 1], np.int64), np.array([1], np.int64), np.array([0, 1, 2], np.int64)]
-    pts = MapPoints(np.array([0, 4, 7], np.int64), np.array([0, 1, 2], np.int64), rng.normal(size=(3, 2)),
-                    rng.uniform(0.1, 2, 3), rng.uniform(0, 0.1, 3), obs, [rng.normal(size=(len(o), 2)) for o in obs])
-    covis = {0: {1: 2, 2: 1}, 1: {0: 2, 2: 1}, 2: {0: 1, 1: 1}, 3: {}}
-    meta = {"mode": "svo", "gaps": [[5, 6]], "init_methods": ["homography", "essential"], "fps": float("nan"),
-            "nested": {"flag": True, "none": None, "n": 3, "x": 0.25}}
-    traj = Trajectory(np.array([0.0, 0.1, 0.3]), rng.normal(size=(3, 4, 4)))
-    return VOResult(kfs, pts, Intrinsics(50.0, 51.0, 31.5, 23.5, 64, 48), traj, np.array([0, 0, -1, 1]), covis, meta)
-
-
-# ----------------------------------------------------------------------------- round trip
+# ----------------------------------------------------------------------------- the journal
 
 
 @pytest.mark.parametrize("mode", ["svo", "gt", "gt-depth"])
-def test_round_trip_of_real_results_gives_equal_fields(results, tmp_path, mode):
-    vo = results[mode]
-    path = tmp_path / "entry.npz"
-    save_frontend(path, vo)
-    back = load_frontend_file(path)
-    assert_same(vo, back)
-    assert len(back.points.observations) == len(vo.points) and back.covisibility == vo.covisibility
-
-
-@pytest.mark.parametrize("make", [_empty, _varied])
-def test_round_trip_of_made_results(tmp_path, make):
-    path = tmp_path / "made.npz"
-    save_frontend(path, make())
-    assert_same(make(), load_frontend_file(path))
-
-
-def test_round_trip_keeps_distortion_and_isolated_keyframes(tmp_path):
-    save_frontend(tmp_path / "a.npz", _empty())
-    save_frontend(tmp_path / "b.npz", _varied())
-    a, b = load_frontend_file(tmp_path / "a.npz"), load_frontend_file(tmp_path / "b.npz")
-    assert a.intrinsics.dist == (0.1, -0.2, 0.0, 0.0, 0.3) and b.intrinsics.dist is None
-    assert b.covisibility[3] == {} and [k.segment for k in b.keyframes] == [0, 0, 1, 1]
-    assert [o.tolist() for o in b.points.observations] == [[0, 1], [1], [0, 1, 2]]
+def test_journal_round_trip_and_replay_give_the_front_end_bit_for_bit(seq, results, mode):
+    """Every event survives the arrays (no pickle) exactly; a replica fed the events is the result."""
+    source = FrontEndSource(seq, _cfg(mode))
+    source.run_all()
+    events = source.pure
+    assert {e.kind for e in events} >= {"keyframe", "points", "frame"}
+    back = journal_from_arrays(journal_to_arrays(events))
+    assert len(back) == len(events) and all(a.same(b) for a, b in zip(events, back))
+    replica = MapState(source.state.intr, len(seq))
+    for e in back:
+        replica.apply(e)
+    no_meta = {"meta": {}}
+    assert_same(dataclasses.replace(source.result(), **no_meta), dataclasses.replace(replica.snapshot(seq.frames),
+                                                                                   **no_meta))
+    assert_same(dataclasses.replace(results[mode], **no_meta, covisibility=source.result().covisibility),
+                dataclasses.replace(source.result(), **no_meta))
 
 
 @pytest.mark.parametrize("mode", ["svo", "gt"])
@@ -124,15 +99,6 @@ def test_entry_is_data_only(seq, tmp_path, mode):
     assert not list(tmp_path.glob(".*.tmp"))  # the atomic writer left no temporary file
     entry = load_entry(path)
     assert entry is not None and entry.complete and entry.meta["mode"] == ("svo" if mode == "svo" else "gt")
-
-
-def test_serialiser_knows_every_field():
-    """A field added to these dataclasses must be added to vo_to_arrays / vo_from_arrays too."""
-    assert [f.name for f in dataclasses.fields(VOResult)] == [
-        "keyframes", "points", "intrinsics", "traj_all", "frame_segment", "covisibility", "meta"]
-    assert [f.name for f in dataclasses.fields(Keyframe)] == ["id", "frame_index", "timestamp", "pose", "segment"]
-    assert [f.name for f in dataclasses.fields(MapPoints)] == [
-        "ids", "host", "pixel", "inv_depth", "sigma", "observations", "obs_pixels"]
 
 
 def test_second_run_replays_the_journal(seq, results, tmp_path):
