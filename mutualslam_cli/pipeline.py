@@ -158,11 +158,11 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:
         dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
-    return _finish(run, fe, ba, adapted.bridges or [], command, t_start)
+    return _finish(run, fe, ba, adapted.bridges or [], command, t_start, adapted.refused)
 
 
 def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, bridges: list[dict[str, Any]],
-            command: list[str] | None, t_start: float) -> RunResult:
+            command: list[str] | None, t_start: float, refused: list[dict[str, Any]] | None = None) -> RunResult:
     """The run's identity and stage times, ``manifest.json``, then ``summary.json`` (last: the run is complete)."""
     seq, cfg, summary = run.seq, run.cfg, run.summary
     total = time.perf_counter() - t_start
@@ -179,6 +179,7 @@ def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, bridges: list[d
         "map_points_with_gt": fe.points_with_gt,
         "ba_runs": ba.record.runs,
         "bridges": bridges,
+        "bridges_refused": refused or [],
     }))
     s = summary.to_dict()
     write_json(run.folder / "summary.json", s)

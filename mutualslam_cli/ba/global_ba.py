@@ -18,11 +18,11 @@ Choices the paper leaves open (written down here):
   ``n_judged_elsewhere`` counts the points judged in another keyframe than their host.
 - **Targets** (≤ ``max_targets`` per point, paper §III-C: "re-projections to the nearby keyframes,
   including the existing 3D-2D constraints"): the point's existing observations first (nearest
-  keyframe index first, at most ``max_targets − nearby_slots``), then the keyframes of its segment
+  keyframe index first, at most ``max_targets − nearby_slots``), then the keyframes of its map unit
   nearest to its host *in space* (camera centres), where it projects inside the image in front of
-  the camera, not more than
-  :data:`MAX_DEPTH_RATIO` farther or nearer than in its host, and where its block passes the robust
-  test at the start (:func:`~mutualslam_cli.ba.residuals.classify`). Keyframes far apart in time
+  the camera, not more than :data:`~mutualslam_cli.ba.targets.MAX_DEPTH_RATIO` farther or nearer than
+  in its host, and where its block passes the robust test at the start
+  (:func:`~mutualslam_cli.ba.residuals.classify`) (:mod:`~mutualslam_cli.ba.targets`). Keyframes far apart in time
   that see the same place are what pulls drift out of a sequence that returns; an occluded or
   mismatched target is kept out by that test and again at every round of the solver. The slots
   kept for them matter: a tracked point has its five neighbours in time as observations, and with
@@ -38,9 +38,12 @@ Choices the paper leaves open (written down here):
   changed by more than :data:`MAX_CHANGE` (``n_diverged``): on ``tum_fr1_xyz`` two points seen by
   two close keyframes only went to ×0.49 and to infinity (the solver's ρ floor), which alone took
   the map's e_si from 0.11 to 0.62; the other 648 moved by 9 % (median).
-- **Segments**: a re-initialised front end has one map frame and scale per segment and no point
-  is shared between segments, so each segment is its own BA (its first keyframe fixed, the scale
-  held by the solver's prior on the extent of its keyframe trajectory). Keyframes without any residual stay fixed.
+- **Segments and units**: a re-initialised front end has one map frame and scale per segment; a bridge joins
+  a segment into the unit of the one before it (``units``). Each map unit is one BA — its first keyframe
+  fixed, the scale held by the solver's prior on the extent of its keyframe trajectory — so a bridge's
+  placement and scale are refined with the rest: no observation crosses a gap, but a point's nearby
+  targets may lie in another segment of its unit where it projects with a matching patch. Segments no
+  bridge joined are BAs of their own. Keyframes without any residual stay fixed.
 - **Partial BA** (``upto``): only keyframes ``≤ upto`` and the points they host exist yet
   (Algorithm 1 triggers mid-run). Everything else follows the correction of its nearest refined
   keyframe, ``T_new = T_ref_new · T_ref_old⁻¹ · T``: later keyframes that of the last refined
@@ -57,8 +60,8 @@ from typing import Callable, Mapping
 import numpy as np
 
 from mutualslam_cli.ba.culling import cull_map_points
-from mutualslam_cli.ba.photometric import PhotoBAProblem, PhotoBAResult, solve
-from mutualslam_cli.ba.residuals import DSO_PATTERN, SQUARE3, PatchData, classify, residuals
+from mutualslam_cli.ba.photometric import solve
+from mutualslam_cli.ba.targets import MARGIN, UnitScene, connected_parts, existing_targets, nearby_targets, pattern_of
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
@@ -66,13 +69,6 @@ from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.result import VOResult
 
-#: Pixels at the border of the BA image where a projection is invalid (the solver's margin).
-MARGIN = 2.0
-#: A nearby keyframe is a target only if the point's depth there is within this factor of its host depth
-#: (the pattern is compared fronto-parallel: a large change of scale makes it a different patch).
-MAX_DEPTH_RATIO = 1.5
-#: Nearby keyframes (by camera centre) tried per point beyond its existing observations.
-NEARBY = 8
 #: Largest factor by which the BA may change a point's inverse depth; beyond it the point keeps
 #: its value before BA (an under-constrained depth, e.g. one short-baseline target). The same
 #: factor as a gross outlier of Eq. 10 with γ = 0.5.
@@ -106,74 +102,6 @@ class GlobalBAResult:
         return replace(self.vo, points=self.vo.points.subset(self.keep & ~self.dropped))
 
 
-def _project(K: np.ndarray, T_cw: np.ndarray, host: np.ndarray, pix: np.ndarray, rho: np.ndarray,
-             pt: np.ndarray, kf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixels ``(N, 2)``, depths ``(N,)`` in keyframe ``kf`` and host depths ``(N,)`` of points ``pt``."""
-    h = host[pt]
-    ray = np.c_[(pix[pt] - K[:2, 2]) / np.diag(K)[:2], np.ones(len(pt))] / rho[pt, None]
-    T_th = T_cw[kf] @ np.linalg.inv(T_cw[h])
-    X = np.einsum("nij,nj->ni", T_th[:, :3, :3], ray) + T_th[:, :3, 3]
-    z = X[:, 2]
-    uv = (X[:, :2] / np.where(z > 1e-9, z, 1.0)[:, None]) * np.diag(K)[:2] + K[:2, 2]
-    return uv, z, 1.0 / rho[pt]
-
-
-def _existing_targets(K, T_cw, host, pix, rho, obs, max_targets, shape, border):
-    """``(obs_pt, obs_kf)`` of one segment (local keyframe indices): per point its observations
-    ``obs[i]`` where it projects inside, nearest keyframe index first, at most ``max_targets``."""
-    cand_p = np.repeat(np.arange(len(host)), [len(o) for o in obs]).astype(np.int64)
-    cand_k = np.concatenate(obs).astype(np.int64) if obs else np.zeros(0, np.int64)
-    uv, z, _ = _project(K, T_cw, host, pix, rho, cand_p, cand_k)
-    h = host[cand_p]
-    sel = np.flatnonzero((z > 1e-9) & (cand_k != h) & in_image(uv, shape[1], shape[0], border))
-    order = sel[np.lexsort((cand_k[sel], np.abs(cand_k[sel] - h[sel]), cand_p[sel]))]
-    return _first_per_point(cand_p[order], cand_k[order], max_targets)
-
-
-def _first_per_point(p: np.ndarray, k: np.ndarray, n: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
-    """The first ``n`` (per point, or one number) of the pairs ``(p, k)``, already grouped by point."""
-    if len(p) == 0:
-        return p, k
-    rank = np.arange(len(p)) - np.searchsorted(p, p)  # position within the point's run
-    take = rank < (n[p] if isinstance(n, np.ndarray) else n)
-    return p[take], k[take]
-
-
-def _nearby_targets(stack, K, T_cw, ab, rho, host, pix, op, ok, cfg, border):
-    """More targets for points with fewer than ``max_targets``: keyframes near the host in space where
-    the point projects inside, at a similar depth, and whose block passes the robust test now."""
-    nk, P = len(T_cw), len(host)
-    have = np.bincount(op, minlength=P)
-    want = np.maximum(cfg.max_targets - have, 0)
-    if nk < 3 or not want.any():
-        return op[:0], ok[:0]
-    c = -np.einsum("kji,kj->ki", T_cw[:, :3, :3], T_cw[:, :3, 3])
-    near = np.argsort(np.linalg.norm(c[:, None] - c[None], axis=2), axis=1, kind="stable")[:, 1:NEARBY + 1]
-    pts = np.flatnonzero(want > 0)
-    cand_p = np.repeat(pts, near.shape[1])
-    cand_k = near[host[pts]].ravel()
-    taken = set((op.astype(np.int64) * nk + ok).tolist())
-    fresh = ~np.isin(cand_p * nk + cand_k, list(taken)) & (cand_k != host[cand_p])
-    cand_p, cand_k = cand_p[fresh], cand_k[fresh]
-    uv, z, zh = _project(K, T_cw, host, pix, rho, cand_p, cand_k)
-    ratio = z / zh
-    sel = (z > 1e-9) & (ratio < MAX_DEPTH_RATIO) & (ratio > 1 / MAX_DEPTH_RATIO)
-    sel &= in_image(uv, stack.shape[2], stack.shape[1], border)
-    cand_p, cand_k = cand_p[sel], cand_k[sel]
-    if not len(cand_p):
-        return op[:0], ok[:0]
-    probe = PhotoBAProblem(stack, K, T_cw, ab, host, pix, rho, cand_p, cand_k)
-    d = PatchData(probe, _pattern(cfg), MARGIN)
-    passed = np.zeros(len(cand_p), bool)
-    passed[d.order] = classify(d, *residuals(d, T_cw, ab, rho), cfg.huber_grey / 255, cfg.outlier_grey / 255)
-    cand_p, cand_k = cand_p[passed], cand_k[passed]  # still in nearest-first order within each point
-    return _first_per_point(cand_p, cand_k, want)
-
-
-def _pattern(cfg: BAConfig) -> np.ndarray:
-    return DSO_PATTERN if cfg.pattern == "dso" else SQUARE3
-
-
 def _follow(poses: np.ndarray, times: np.ndarray, segs: np.ndarray, ref_times: np.ndarray,
             ref_segs: np.ndarray, ref_old: np.ndarray, ref_new: np.ndarray) -> np.ndarray:
     """``T_new = T_ref_new · T_ref_old⁻¹ · T`` with ref = latest reference of the same segment at or
@@ -191,7 +119,8 @@ def _follow(poses: np.ndarray, times: np.ndarray, segs: np.ndarray, ref_times: n
 
 def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
                   depth_of: Callable[[int], np.ndarray] | None, val_loss: Mapping[int, float] | None,
-                  cfg: BAConfig, *, cull: bool, upto: int | None = None) -> GlobalBAResult:
+                  cfg: BAConfig, *, cull: bool, upto: int | None = None,
+                  units: Mapping[int, int] | None = None) -> GlobalBAResult:
     """Cull the map with the CNN depth (Eq. 10), then photometric BA (Eq. 11–12) of every keyframe.
 
     Args:
@@ -204,6 +133,7 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
         cfg: γ, d_max, pattern, max_targets, iterations, levels, rounds, robust thresholds.
         cull: apply Eq. 10 (and re-host by L_val).
         upto: last keyframe that exists yet (default: the last one).
+        units: ``{segment: map unit}``: segments a bridge joined solve as one map (default: each its own).
 
     With ``cfg.window = W > 0`` only the newest ``W`` keyframes up to ``upto`` and the points they host
     are culled and refined; the window's first keyframe is held fixed (the gauge) and older keyframes
@@ -237,14 +167,15 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     s = np.array([W / vo.intrinsics.width, H / vo.intrinsics.height])
     pix_ba = np.rint((sub.points.pixel + 0.5) * s - 0.5)  # host pixels on the BA images' pixel grid
     T_wc = np.stack([k.pose for k in vo.keyframes])
-    solved = _solve_segments(sub, sub_obs, keep[sub_idx], stack_all, vo.intrinsics.scaled(W, H).K(), T_wc, pix_ba,
-                             first, cfg)
-    T_new, new_rho, refined, dropped_sub, tot, costs = solved
+    groups = np.array([(units or {}).get(k.segment, k.segment) for k in sub.keyframes])
+    sv = _solve_units(sub, sub_obs, keep[sub_idx], stack_all, vo.intrinsics.scaled(W, H).K(), T_wc, pix_ba,
+                      first, cfg, groups)
     dropped = np.zeros(len(pts), bool)
-    dropped[sub_idx] = dropped_sub
-    out = _assemble(vo, upto, T_wc, T_new, sub_idx, refined, new_rho, (pix_ba + 0.5) / s - 0.5)
-    stats.update(tot, n_refined=int(refined.sum()), n_unrefined=int((keep[sub_idx] & ~refined & ~dropped_sub).sum()),
-                 n_dropped=int(dropped.sum()), keyframes=upto + 1 - first, costs=costs,
+    dropped[sub_idx] = sv.dropped
+    out = _assemble(vo, upto, T_wc, sv, sub_idx, (pix_ba + 0.5) / s - 0.5)
+    stats.update(sv.totals, n_refined=int(sv.refined.sum()),
+                 n_unrefined=int((keep[sub_idx] & ~sv.refined & ~sv.dropped).sum()),
+                 n_dropped=int(dropped.sum()), keyframes=upto + 1 - first, costs=sv.costs,
                  seconds=time.perf_counter() - t0)
     return GlobalBAResult(out, keep, dropped, stats)
 
@@ -265,92 +196,105 @@ def _cull(sub: VOResult, vo: VOResult, depth_of: Callable[[int], np.ndarray], va
                      "n_judged_elsewhere": int(np.sum(cr.host != sub.points.host))}
 
 
-def _solve_segments(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, stack_all: dict[int, np.ndarray],
-                    K: np.ndarray, T_wc: np.ndarray, pix: np.ndarray, first: int, cfg: BAConfig) -> tuple:
-    """One photometric BA per segment (module docstring) of the points of ``sub`` that ``keep``, over the
-    keyframes from ``first`` on (each segment's first of them fixed).
+@dataclass
+class _Solved:
+    """What the BAs of the units did to the points of the sub-map (module docstring).
 
-    Returns:
-        ``(T_wc after, inverse depths, refined (P,), dropped (P,), summed counts, costs per segment)``.
+    Attributes:
+        T_wc: ``(K, 4, 4)`` every keyframe's pose after (the fixed and untouched ones bit for bit).
+        rho: ``(P,)`` inverse depths after; refined, dropped: ``(P,)`` bool.
+        totals: counts summed over the problems; costs: each problem's last round's cost sequence.
     """
+
+    T_wc: np.ndarray
+    rho: np.ndarray
+    refined: np.ndarray
+    dropped: np.ndarray
+    totals: dict[str, float] = field(default_factory=lambda: {
+        k: 0 for k in ("n_targets", "n_nearby_targets", "n_diverged", "n_blocks", "n_outlier_blocks", "iterations",
+                       "accepted", "cost0", "cost", "n_parts")})
+    costs: list = field(default_factory=list)
+
+
+def _solve_units(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, stack_all: dict[int, np.ndarray],
+                 K: np.ndarray, T_wc: np.ndarray, pix: np.ndarray, first: int, cfg: BAConfig,
+                 units: np.ndarray) -> _Solved:
+    """The photometric BAs of the points of ``sub`` that ``keep`` over the keyframes from ``first`` on: per map
+    unit (``units``: per keyframe, its segment or the unit bridges joined it into), per part of the unit its
+    blocks tie together (:func:`~mutualslam_cli.ba.targets.connected_parts`), each part's first keyframe fixed
+    and one scale prior on its extent (module docstring)."""
     host, rho = sub.points.host, sub.points.inv_depth
-    nk = len(T_wc)
+    out = _Solved(T_wc.copy(), rho.copy(), np.zeros(len(host), bool), np.zeros(len(host), bool))
     H, W = next(iter(stack_all.values())).shape if stack_all else (1, 1)
-    T_new, new_rho = T_wc.copy(), rho.copy()
-    refined, dropped = np.zeros(len(host), bool), np.zeros(len(host), bool)
-    border = MARGIN + 2  # the pattern reaches 2 px from its centre
-    segs = np.array([k.segment for k in sub.keyframes])
-    costs, tot = [], {k: 0 for k in ("n_targets", "n_nearby_targets", "n_diverged", "n_blocks", "n_outlier_blocks",
-                                     "iterations", "accepted")} | {"cost0": 0.0, "cost": 0.0}
-    for sg in np.unique(segs):
-        ks = np.flatnonzero((segs == sg) & (np.arange(len(segs)) >= first))
-        loc = np.full(nk, -1)
+    for u in np.unique(units):
+        ks = np.flatnonzero((units == u) & (np.arange(len(units)) >= first))
+        loc = np.full(len(T_wc), -1)
         loc[ks] = np.arange(len(ks))
-        cand = np.flatnonzero(keep & (loc[host] >= 0) & in_image(pix, W, H, border))
+        cand = np.flatnonzero(keep & (loc[host] >= 0) & in_image(pix, W, H, MARGIN + 2))
         if len(ks) < 2 or not len(cand):
             continue
-        stack = np.stack([stack_all[k] for k in ks])
-        T_cw = np.stack([se3_inv(T_wc[k]) for k in ks])
-        lh = loc[host[cand]]
-        obs = [loc[sub_obs[i]][loc[sub_obs[i]] >= 0] for i in cand]
-        n_own = cfg.max_targets - (cfg.nearby_slots if cfg.nearby_targets else 0)
-        op, ok = _existing_targets(K, T_cw, lh, pix[cand], rho[cand], obs, n_own, (H, W), border)
-        state = (T_cw, np.zeros((len(ks), 2)), rho[cand])
+        scene = UnitScene(np.stack([stack_all[k] for k in ks]), K, np.stack([se3_inv(T_wc[k]) for k in ks]),
+                          np.zeros((len(ks), 2)), loc[host[cand]], pix[cand], rho[cand],
+                          [loc[sub_obs[i]][loc[sub_obs[i]] >= 0] for i in cand],
+                          np.array([sub.keyframes[k].segment for k in ks]))
+        op, ok = existing_targets(scene, cfg.max_targets - (cfg.nearby_slots if cfg.nearby_targets else 0))
         n_near = 0
         if cfg.nearby_targets:
-            np_, nk_ = _nearby_targets(stack, K, *state, lh, pix[cand], op, ok, cfg, border)
+            np_, nk_ = nearby_targets(scene, op, ok, cfg)
             op, ok, n_near = np.r_[op, np_], np.r_[ok, nk_], len(np_)
-        r = _phase(stack, K, state, lh, pix[cand], op, ok, cfg, (H, W))
-        if r is None:
-            continue
-        used = np.unique(op)
-        pts_in, free = cand[used], r.stats["free"]
-        T_new[ks[free]] = np.stack([se3_inv(T) for T in r.T_cw[free]])  # fixed ones keep their bits
-        gone = r.stats["dropped"]
-        sane = ~gone & (np.abs(np.log(r.inv_depth / rho[pts_in])) < np.log(MAX_CHANGE))
-        new_rho[pts_in[sane]] = r.inv_depth[sane]
-        refined[pts_in[sane]] = True
-        dropped[pts_in[gone]] = True
-        costs.extend(x["costs"] for x in r.stats["rounds"])
-        for k, v in (("n_targets", len(op)), ("n_nearby_targets", n_near), ("n_diverged", int((~sane & ~gone).sum())),
-                     ("n_blocks", r.stats["n_blocks"]), ("n_outlier_blocks", r.stats["n_outlier_blocks"]),
-                     ("iterations", r.stats["iterations"]), ("accepted", r.stats["accepted"]),
-                     ("cost0", r.stats["cost0"]), ("cost", r.stats["cost"])):
-            tot[k] += v
-    return T_new, new_rho, refined, dropped, tot, costs
+        out.totals["n_targets"] += len(op)
+        out.totals["n_nearby_targets"] += n_near
+        for part in connected_parts(len(ks), scene.host[op], ok):  # one gauge per connected map
+            _solve_part(scene, op, ok, part, ks, cand, cfg, (H, W), out)
+    return out
 
 
-def _phase(stack: np.ndarray, K: np.ndarray, state: tuple, host: np.ndarray, pix: np.ndarray, op: np.ndarray,
-           ok: np.ndarray, cfg: BAConfig, hw: tuple[int, int]) -> PhotoBAResult | None:
-    """The solve of one segment over the blocks ``(op, ok)`` (segment-local point and keyframe indices)
-    from ``state`` ``(T_cw, affine, inverse depths of every candidate point)``; ``None`` without any
-    block. The result's inverse depths are those of ``np.unique(op)``; ``stats["free"]`` marks the
-    keyframes it could move (observed, not the segment's first)."""
+def _solve_part(scene: UnitScene, op: np.ndarray, ok: np.ndarray, part: np.ndarray, ks: np.ndarray,
+                cand: np.ndarray, cfg: BAConfig, hw: tuple[int, int], out: _Solved) -> None:
+    """The BA of the blocks ``(op, ok)`` whose keyframes lie in ``part`` (local indices of ``scene``, whose
+    keyframes are ``ks`` and points ``cand`` of the sub-map), written into ``out``; its first keyframe fixed,
+    and so is any keyframe no block of the part touches."""
+    if len(part) < 2:
+        return
+    in_part = np.isin(scene.host[op], part)
+    op, ok = op[in_part], ok[in_part]
     used = np.unique(op)
-    if not len(used):
-        return None
-    remap = np.full(len(host), -1)
+    remap = np.full(len(scene.host), -1)
     remap[used] = np.arange(len(used))
-    free = np.zeros(len(state[0]), bool)
-    free[np.unique(np.r_[ok, host[used]])] = True
-    free[0] = False
-    prob = PhotoBAProblem(stack, K, state[0], state[1], host[used], pix[used], state[2][used], remap[op], ok, free)
+    free = np.zeros(len(scene.T_cw), bool)
+    free[np.unique(np.r_[ok, scene.host[used]])] = True
+    free[part[0]] = False
+    # the scale: that of the part's first segment (the one the others were bridged onto), so a bridge's can move
+    joined = len(np.unique(scene.segment)) > 1
+    anchor = (scene.segment == scene.segment[part[0]]) & np.isin(np.arange(len(free)), part) if joined else None
     H, W = hw
-    r = solve(prob, iterations=cfg.iterations, huber_delta=cfg.huber_grey / 255, outlier_delta=cfg.outlier_grey / 255,
-              pattern=_pattern(cfg), max_targets=cfg.max_targets,
-              levels=max(1, min(cfg.levels, int(np.log2(min(H, W) / 32)) + 1)), rounds=cfg.rounds)
-    r.stats["free"] = free
-    return r
+    r = solve(scene.problem(remap[op], ok, used, free, anchor), iterations=cfg.iterations,
+              huber_delta=cfg.huber_grey / 255, outlier_delta=cfg.outlier_grey / 255, pattern=pattern_of(cfg),
+              max_targets=cfg.max_targets, levels=max(1, min(cfg.levels, int(np.log2(min(H, W) / 32)) + 1)),
+              rounds=cfg.rounds)
+    out.T_wc[ks[free]] = np.stack([se3_inv(T) for T in r.T_cw[free]])  # fixed ones keep their bits
+    pts, gone = cand[used], r.stats["dropped"]
+    sane = ~gone & (np.abs(np.log(r.inv_depth / scene.rho[used])) < np.log(MAX_CHANGE))
+    out.rho[pts[sane]] = r.inv_depth[sane]
+    out.refined[pts[sane]] = True
+    out.dropped[pts[gone]] = True
+    out.costs.extend(x["costs"] for x in r.stats["rounds"])
+    for k, v in (("n_diverged", int((~sane & ~gone).sum())), ("n_blocks", r.stats["n_blocks"]),
+                 ("n_outlier_blocks", r.stats["n_outlier_blocks"]), ("iterations", r.stats["iterations"]),
+                 ("accepted", r.stats["accepted"]), ("cost0", r.stats["cost0"]), ("cost", r.stats["cost"]),
+                 ("n_parts", 1)):
+        out.totals[k] += v
 
 
-def _assemble(vo: VOResult, upto: int, T_wc: np.ndarray, T_new: np.ndarray, sub_idx: np.ndarray,
-              refined: np.ndarray, new_rho: np.ndarray, new_pix: np.ndarray) -> VOResult:
+def _assemble(vo: VOResult, upto: int, T_wc: np.ndarray, sv: _Solved, sub_idx: np.ndarray,
+              new_pix: np.ndarray) -> VOResult:
     """The refined map: refined points get their new inverse depth and (integer) host pixel; keyframes
     and frames after ``upto`` follow the correction of their nearest refined keyframe (:func:`_follow`)."""
-    pts, nk = vo.points, len(vo.keyframes)
+    pts, nk, refined = vo.points, len(vo.keyframes), sv.refined
     inv, pixel = pts.inv_depth.copy(), pts.pixel.copy()
-    inv[sub_idx[refined]] = new_rho[refined]
+    inv[sub_idx[refined]] = sv.rho[refined]
     pixel[sub_idx[refined]] = new_pix[refined]
+    T_new = sv.T_wc
     times = np.array([k.timestamp for k in vo.keyframes])
     segs = np.array([k.segment for k in vo.keyframes])
     later = np.arange(nk) > upto

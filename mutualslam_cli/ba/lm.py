@@ -57,9 +57,9 @@ def centres(T: np.ndarray) -> np.ndarray:
     return -np.einsum("kji,kj->ki", T[:, :3, :3], T[:, :3, 3])
 
 
-def extent(T: np.ndarray) -> float:
-    """The scale anchor's ``s``: RMS distance of the camera centres from their mean."""
-    c = centres(T)
+def extent(T: np.ndarray, anchor: np.ndarray | None = None) -> float:
+    """The scale anchor's ``s``: RMS distance of the camera centres (of the ``anchor`` keyframes) from their mean."""
+    c = centres(T if anchor is None else T[anchor])
     return float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1))))
 
 
@@ -71,15 +71,18 @@ def apply_step(T, ab, rho, dc, dp, fidx):
     return T, ab, np.maximum(rho + dp, 1e-6)
 
 
-def _scale_prior(T: np.ndarray, fidx: np.ndarray, s0: float, ws: float) -> tuple[np.ndarray, float]:
-    """Gradient row ``J`` ``(8K,)`` and residual ``e = s − s0`` of the scale anchor. Under the left
-    increment ``∂c_k/∂ρ_k = −R_k``ᵀ, ``∂c_k/∂φ_k = 0``, and ``∂s/∂c_k = (c_k − c̄)/(K·s)``."""
+def _scale_prior(T: np.ndarray, fidx: np.ndarray, s0: float, ws: float,
+                 anchor: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Gradient row ``J`` ``(8K,)`` and residual ``e = s − s0`` of the scale anchor over the ``anchor`` keyframes
+    (default: all). Under the left increment ``∂c_k/∂ρ_k = −R_k``ᵀ, ``∂c_k/∂φ_k = 0``, and
+    ``∂s/∂c_k = (c_k − c̄)/(A·s)`` for the ``A`` anchor keyframes (0 for the others)."""
+    a = np.ones(len(T), bool) if anchor is None else np.asarray(anchor, bool)
     c = centres(T)
-    K = len(c)
-    s = float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1))))
-    J = np.zeros(K * NP)
+    s = extent(T, a)
+    J = np.zeros(len(T) * NP)
     if s > 1e-12:
-        g = (c - c.mean(0)) / (K * s)
+        g = np.zeros_like(c)
+        g[a] = (c[a] - c[a].mean(0)) / (a.sum() * s)
         for k in fidx:
             J[k * NP:k * NP + 3] = -T[k, :3, :3] @ g[k]
     return J, s - s0
@@ -105,15 +108,15 @@ def _trial(d: PatchData, T, ab, rho, res, dc, dp, fidx, act, huber_delta, total)
 
 
 def solve_level(d: PatchData, T, ab, rho, fidx, cols, s0, iterations, huber_delta, scale_weight,
-                lambda0, max_tries, callback, it_offset=0, active=None):
+                lambda0, max_tries, callback, it_offset=0, active=None, anchor=None):
     """LM iterations at one resolution over the ``active`` blocks (``None``: all); returns
     ``(T, ab, rho, costs, iterations, accepted)``. ``s0``: the scale anchor's target (from the
-    input state, shared by all levels and rounds)."""
+    input state, shared by all levels and rounds), the extent of the ``anchor`` keyframes (``None``: all)."""
     ws = scale_weight / s0 ** 2 if s0 > 1e-9 and len(fidx) else 0.0
     act = np.ones(len(d.p), bool) if active is None else active
 
     def total(T_, res_):
-        e = _scale_prior(T_, fidx, s0, ws)[1] if ws else 0.0
+        e = _scale_prior(T_, fidx, s0, ws, anchor)[1] if ws else 0.0
         return robust_cost(d, res_[0], res_[2], act, huber_delta) + ws * e * e
 
     res = residuals(d, T, ab, rho, jac=iterations > 0)  # trial states keep Jacobians for reuse
@@ -122,7 +125,7 @@ def solve_level(d: PatchData, T, ab, rho, fidx, cols, s0, iterations, huber_delt
     for it in range(1, iterations + 1):
         ne = normal_equations(d, T, ab, rho, huber_delta, act, res)
         if ws:
-            Js, es = _scale_prior(T, fidx, s0, ws)
+            Js, es = _scale_prior(T, fidx, s0, ws, anchor)
             ne.Hcc += 2 * ws * np.outer(Js, Js)
             ne.bc += 2 * ws * Js * es
         ok = False

@@ -112,7 +112,7 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
     stack = pyramid.build(np.asarray(prob.images), levels)
     state0 = tuple(np.asarray(x, float).copy() for x in (prob.T_cw, prob.affine, prob.inv_depth))
     state = state0
-    s0 = extent(state0[0])
+    s0 = extent(state0[0], prob.anchor)
     per_round, n_it, n_acc = [], 0, 0
 
     def round_(d: PatchData, st: tuple, n: int, level: int) -> tuple:
@@ -122,7 +122,7 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
         fidx = np.flatnonzero(free & (_blocks_per_keyframe(d, active) >= min_blocks))
         cols = (fidx[:, None] * NP + np.arange(NP if affine else 6)).ravel()
         T, ab, rho, costs, it, acc = solve_level(d, *st, fidx, cols, s0, n, huber_delta, scale_weight, lambda0,
-                                                 max_tries, callback, n_it, active)
+                                                 max_tries, callback, n_it, active, prob.anchor)
         per_round.append({"level": level, "shape": (d.H, d.W),
                           "costs": [float(c) for c in costs], "iterations": it, "accepted": acc,
                           "active": int(active.sum()), "held": int(free.sum() - len(fidx))})

@@ -30,6 +30,8 @@ class PhotoBAProblem:
         inv_depth: ``(P,)`` inverse z-depth in the host (> 0).
         obs_pt, obs_kf: ``(M,)`` point and target keyframe of each (point, target) pair.
         free: ``(K,)`` bool, keyframes whose pose and affine are optimised (``None``: all but 0).
+        anchor: ``(K,)`` bool, keyframes whose trajectory extent holds the scale (``None``: all); a map joined
+            from segments anchors on the one the others were bridged onto, so a bridge's scale can move.
     """
 
     images: np.ndarray
@@ -42,6 +44,7 @@ class PhotoBAProblem:
     obs_pt: np.ndarray
     obs_kf: np.ndarray
     free: np.ndarray | None = None
+    anchor: np.ndarray | None = None
 
 
 @dataclass

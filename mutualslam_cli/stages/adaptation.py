@@ -110,7 +110,8 @@ class OnlineLoop:
         scorer: scores evaluated frames with the model of their time (``None``: not scored).
 
     Attributes:
-        rows: one ``keyframes.csv`` row per keyframe; bridges: one record per bridge made.
+        rows: one ``keyframes.csv`` row per keyframe; bridges: one record per bridge made; refused: one per
+            bridge refused (its segment stays apart, and the network is not trained on it: one unit).
     """
 
     def __init__(self, run: RunContext, source: FrontEndSource, net: torch.nn.Module, fast: bool,
@@ -133,6 +134,9 @@ class OnlineLoop:
             self.clock = RealtimeClock(None if cost == "measured" else float(cost), cfg.adapt.max_steps)
         self.rows: list[dict[str, Any]] = []
         self.bridges: list[dict[str, Any]] = []
+        self.refused: list[dict[str, Any]] = []
+        self.net_unit: int | None = None  # the map unit the network is trained in (its first keyframe's)
+        self.other_unit: list[int] = []  # keyframes of segments kept apart: not trained on, not validated
         self._segments: set[int] = set()
         self._row_of: dict[int, dict[str, Any]] = {}
         self._extra: dict[int, dict[str, float]] = {}  # seconds spent on a keyframe before its row exists
@@ -159,6 +163,11 @@ class OnlineLoop:
 
     def _tick(self, kf: int) -> StepInfo | None:
         if self.adapter is None:
+            return None
+        unit = self.state.unit(self.state.segment(kf))
+        self.net_unit = unit if self.net_unit is None else self.net_unit
+        if unit != self.net_unit:  # a segment no bridge could join: never trained in two units
+            self.other_unit.append(kf)
             return None
         info = self.adapter.begin_keyframe(KeyframeSample(
             kf_id=kf, image=self.load(kf), K=self.adapter.K_net, pose=self.state.pose(kf),
@@ -206,9 +215,11 @@ class OnlineLoop:
         t = time.perf_counter()
         snap = self.state.snapshot(self.run.seq.frames, covisibility=False)
         b = plan_bridge(snap, kf, self._depth_of(), self.run.seq.load_gray, self.run.seq.intrinsics)
-        if b is not None:
-            self.source.transform_segment(b.segment, *b.similarity())
-            self.bridges.append({k: v for k, v in asdict(b).items()})
+        if b is not None and b.refused:
+            self.refused.append(asdict(b))
+        elif b is not None:
+            self.source.transform_segment(b.segment, *b.similarity(), b.onto)
+            self.bridges.append(asdict(b))
         self._busy("bridge_s", kf, time.perf_counter() - t)
 
     def _global_ba(self, kf: int) -> None:
@@ -220,7 +231,7 @@ class OnlineLoop:
         snap = self.state.snapshot(self.run.seq.frames, covisibility=False)
         first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
         ids = [k.id for k in snap.keyframes[first:kf + 1]]
-        r = self.ba.run_ba(snap, kf, self._depth_of(), self.adapter.per_keyframe_val_loss(ids))
+        r = self.ba.run_ba(snap, kf, self._depth_of(), self.adapter.per_keyframe_val_loss(ids), self.bridges)
         removed = snap.points.ids[~r.keep | r.dropped]
         self.source.refine(MapRefinement.between(snap, r.vo, removed))
         self._busy("ba_s", kf, time.perf_counter() - t)
@@ -264,7 +275,7 @@ class Adapted:
         source: the front end's event source (cache use, replayed frames).
         injected: ids of map points corrupted by ``vo.inject_outliers``.
         requested: how many times Algorithm 1 requested global BA.
-        bridges: one record per bridge made (:class:`~mutualslam_cli.vo.segments.Bridge`).
+        bridges: one record per bridge made (:class:`~mutualslam_cli.vo.segments.Bridge`); refused: per bridge refused.
         l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).
         online: the ``online_*`` per-frame scores of the model of each frame's time
             (:mod:`~mutualslam_cli.stages.online_eval`); ``None`` when not computed.
@@ -279,6 +290,7 @@ class Adapted:
     injected: np.ndarray
     requested: int
     bridges: list[dict[str, Any]] | None = None
+    refused: list[dict[str, Any]] = field(default_factory=list)
     l_val: dict[str, Any] = field(default_factory=dict)
     online: pd.DataFrame | None = None
 
@@ -324,9 +336,14 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
             rows, adapter = loop.rows, loop.adapter
             online = scorer.finish(loop.net, final.keyframes[-1].id if final.keyframes else -1) if scorer else None
             adapted = Adapted(loop.net, adapter, final, pure, pure, source, injected,
-                              sum(bool(r.get("run_global_ba")) for r in rows), loop.bridges,
-                              l_val_stats(rows, cfg.adapt.tau_val, final), online)
+                              requested=sum(bool(r.get("run_global_ba")) for r in rows), bridges=loop.bridges,
+                              refused=loop.refused, l_val=l_val_stats(rows, cfg.adapt.tau_val, final), online=online)
             online_s = scorer.seconds if scorer is not None else 0.0
+            summary.set("vo.bridges_refused", len(loop.refused))
+            summary.set("adaptation.keyframes_other_unit", len(loop.other_unit))
+            if loop.refused:
+                summary.notes["vo.bridges_refused"] = "; ".join(f"segment {b['segment']}: {b['refused']}"
+                                                                for b in loop.refused)
             for k, v in adapted.l_val.items():
                 summary.set(f"adaptation.l_val.{k}", v, "no validation keyframe had an L_val")
             summarise_finetuning(summary, cfg.adapt.scheme, adapter, rows)

@@ -94,7 +94,7 @@ class BALog:
 
 
 def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: OnlineAdapter | None,
-             cfg: RunConfig, fast: bool, stage: "BAStage") -> VOResult:
+             cfg: RunConfig, fast: bool, stage: "BAStage", bridges: list[dict[str, Any]] | None = None) -> VOResult:
     """The final culling + BA of the loop's map over every keyframe (the newest ``ba.window`` with a window)
     with the final network (L_val of those keyframes; none for scheme ``none``); the refined map without
     the culled and dropped points."""
@@ -103,7 +103,7 @@ def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: O
     last = len(loop_map.keyframes) - 1
     ids = list(range(max(0, last - cfg.ba.window + 1), last + 1)) if cfg.ba.window else None
     val_loss = adapter.per_keyframe_val_loss(ids) if adapter is not None else {}
-    return stage.run_ba(loop_map, last, depth_of, val_loss).kept()
+    return stage.run_ba(loop_map, last, depth_of, val_loss, bridges).kept()
 
 
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).
@@ -131,11 +131,13 @@ class BAStage:
         self.cull = no_culling_reason(cfg) is None
 
     def run_ba(self, vo: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
-               val_loss: Mapping[int, float]) -> GlobalBAResult:
-        """Culling (unless ``ba.culling=false`` or scheme ``none``) + global BA of ``vo``'s keyframes ≤ ``kf_id``,
-        recorded into :attr:`record`."""
+               val_loss: Mapping[int, float], bridges: list[dict[str, Any]] | None = None) -> GlobalBAResult:
+        """Culling (unless ``ba.culling=false`` or scheme ``none``) + global BA of ``vo``'s keyframes ≤ ``kf_id``
+        (segments the ``bridges`` joined as one map), recorded into :attr:`record`."""
         self._frame_of.update((k.id, k.frame_index) for k in vo.keyframes)
-        r = run_global_ba(vo, self.images, depth_of, val_loss, self.run.cfg.ba, cull=self.cull, upto=kf_id)
+        units = units_of(sorted({k.segment for k in vo.keyframes}), bridges or [])
+        r = run_global_ba(vo, self.images, depth_of, val_loss, self.run.cfg.ba, cull=self.cull, upto=kf_id,
+                          units=units)
         self.record.culled.update(vo.points.ids[~r.keep].tolist())
         self.record.dropped.update(vo.points.ids[r.dropped].tolist())
         self.record.runs.append({"kf_id": kf_id, **{k: x for k, x in r.stats.items() if k != "costs"}})
@@ -158,7 +160,7 @@ class BAStage:
             why = "disabled (ba.enabled=false)"
         elif cfg.ba.final == "always":
             with run.timed("ba"):
-                vo_ba = final_ba(run.seq, adapted.map, adapted.net, adapted.adapter, cfg, fast, self)
+                vo_ba = final_ba(run.seq, adapted.map, adapted.net, adapted.adapter, cfg, fast, self, adapted.bridges)
         elif self.record.runs:
             vo_ba = adapted.map
             last = self.record.runs[-1]["kf_id"]

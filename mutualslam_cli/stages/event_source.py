@@ -159,14 +159,14 @@ class FrontEndSource:
             self._change().settle()
             self._drain()
 
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float) -> None:
-        """Join ``segment`` to the map by ``x ↦ s·R·x + t`` (a bridge), now."""
+    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> None:
+        """Join ``segment`` to segment ``onto`` by ``x ↦ s·R·x + t`` (a bridge), now."""
         if self.live_feedback:
             fe = self._change()
-            fe.transform_segment(segment, R, t, s)
+            fe.transform_segment(segment, R, t, s, onto)
             self._drain()
         else:
-            self.state.transform_segment(segment, R, t, s)
+            self.state.transform_segment(segment, R, t, s, onto)
 
     def refine(self, r: MapRefinement) -> None:
         """A global BA's refinement of the map, now."""

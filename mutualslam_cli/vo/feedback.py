@@ -77,10 +77,11 @@ class FeedbackMixin:
         """Apply the pending windowed BA now, so the map is whole before it is read or changed."""
         self._collect_ba()
 
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float) -> None:
-        """Move ``segment`` by ``x ↦ s·R·x + t`` (a bridge) and go on tracking in that frame and unit."""
+    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> None:
+        """Move ``segment`` by ``x ↦ s·R·x + t`` into segment ``onto``'s frame and unit (a bridge) and go on
+        tracking in them."""
         self.settle()
-        self.state_map.transform_segment(segment, R, t, s)
+        self.state_map.transform_segment(segment, R, t, s, onto)
         if segment != self.st.segment or self.st.mode != "tracking":
             return
         T = se3_inv(self.st.T_cw)

@@ -39,8 +39,8 @@ SCHEMA: dict[str, dict[str, Any]] = {
     "refresh": {"pids": ()},
     "remove": {"pids": ()},
     "pixel": {"pids": (), "px_h": (2,), "xn_h": (2,)},
-    # a similarity x ↦ s·R·x + t applied to one segment (a bridge)
-    "similarity": {"segment": "i", "s": "f", "R": (3,), "t": ()},
+    # a similarity x ↦ s·R·x + t applied to one segment, joining it to segment ``onto`` (a bridge)
+    "similarity": {"segment": "i", "onto": "i", "s": "f", "R": (3,), "t": ()},
     # the frame records
     "frame": {"index": "i", "segment": "i", "ref": "i", "T_rel": (4, 4)},
     "segment": {"segment": "i", "index": "i", "method": "s"},
@@ -123,7 +123,7 @@ class Journal:
 # ----------------------------------------------------------------------------- plain arrays (the cache)
 
 #: Version of the :func:`journal_to_arrays` layout.
-JOURNAL_VERSION = 1
+JOURNAL_VERSION = 2
 _FORMAT = "mslam-vo-journal"
 
 

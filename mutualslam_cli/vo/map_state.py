@@ -40,7 +40,7 @@ class MapState:
         losses: ``(frame, why)`` of each tracking loss.
         created_at: the front end's frame when each keyframe was created (replicas only: the clock of
             its :class:`~mutualslam_cli.vo.journal.Event`).
-        bridges: ``{segment: (R, t, s)}`` similarities applied to a segment (a bridge), composed.
+        joined: ``{segment: onto}``: the segments a bridge joined to another (one map unit, :meth:`unit`).
     """
 
     def __init__(self, intr: Intrinsics, n_frames: int, journal: Journal | None = None) -> None:
@@ -53,7 +53,7 @@ class MapState:
         self.relocalisations: list[dict[str, Any]] = []
         self.losses: list[tuple[int, str]] = []
         self.created_at: list[int] = []
-        self.bridges: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+        self.joined: dict[int, int] = {}
 
     def _emit(self, kind: str, **data: Any) -> None:
         if self.journal is not None:
@@ -82,19 +82,27 @@ class MapState:
         self._emit("reloc", index=info["frame"], t=info["timestamp"], keyframe=info["keyframe"],
                    inliers=info["inliers"], frames_lost=info["frames_lost"], candidates_tried=info["candidates_tried"])
 
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
+    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> np.ndarray:
         """Move ``segment`` by ``x ↦ s·R·x + t`` (keyframes, hosted points, its frames' relative
-        translations ×s); returns the hosted points' ids. Composes into :attr:`bridges`."""
+        translations ×s) into the frame and unit of segment ``onto`` (a bridge); returns the hosted points' ids."""
         hosted = self.map.transform_segment(segment, R, t, s)
         for i, (ref, T) in self.frame_rel.items():
             if self.frame_seg[i] == segment:
                 T = T.copy()
                 T[:3, 3] *= s
                 self.frame_rel[i] = (ref, T)
-        R0, t0, s0 = self.bridges.get(segment, (np.eye(3), np.zeros(3), 1.0))
-        self.bridges[segment] = (R @ R0, s * R @ t0 + t, s * s0)
-        self._emit("similarity", segment=segment, s=s, R=R, t=t)
+        self.joined[segment] = onto
+        self._emit("similarity", segment=segment, onto=onto, s=s, R=R, t=t)
         return hosted
+
+    def unit(self, segment: int) -> int:
+        """The map unit (frame and scale) of ``segment``: the first segment of the chain of bridges it was
+        joined by; its own when no bridge joined it."""
+        seen = set()
+        while segment in self.joined and segment not in seen:
+            seen.add(segment)
+            segment = self.joined[segment]
+        return segment
 
     # ------------------------------------------------------------------ a replica
     def apply(self, e: Event) -> None:
@@ -126,7 +134,7 @@ class MapState:
         elif k == "pixel":
             m.set_host_pixels(e["pids"], e["px_h"], e["xn_h"])
         elif k == "similarity":
-            self.transform_segment(e["segment"], e["R"], e["t"], e["s"])
+            self.transform_segment(e["segment"], e["R"], e["t"], e["s"], e["onto"])
         elif k == "frame":
             self.track_frame(e["index"], e["segment"], e["ref"], e["T_rel"][0])
         elif k == "segment":

@@ -36,6 +36,8 @@ from mutualslam_cli.vo.result import MapPoints, VOResult
 MIN_RATIO_POINTS = 10
 #: Keyframes before a gap (newest first) tried for the old unit's ratio.
 MAX_BACK = 3
+#: Largest relative standard error of a bridge's scale (both sides' medians): beyond it the segment stays apart.
+MAX_SCALE_ERROR = 0.1
 #: Homography inliers (normalised coordinates, this many pixels at the focal length) for a rotation.
 ROTATION_PX, MIN_ROTATION_MATCHES = 3.0, 30
 #: Median angle between the rotated bearings of the inliers (degrees) above which the rotation is not used.
@@ -54,6 +56,8 @@ class Bridge:
             either side, from n_prev and n_new points.
         rotation_deg: the rotation applied across the gap; rotation_from: ``images`` or ``none``.
         R, t: the similarity ``x ↦ s·R·x + t`` that moves the segment (lists, so the record is JSON).
+        refused: why the segment was not joined ("" when it was): no ratio on a side, or ratios so spread
+            that the scale is uncertain by more than :data:`MAX_SCALE_ERROR`; it then stays apart.
     """
 
     segment: int
@@ -70,21 +74,33 @@ class Bridge:
     rotation_from: str
     R: list[list[float]] | None = None
     t: list[float] | None = None
+    refused: str = ""
 
     def similarity(self) -> tuple[np.ndarray, np.ndarray, float]:
         """``(R (3, 3), t (3,), s)`` of the move ``x ↦ s·R·x + t`` applied to the segment."""
         return np.array(self.R, float), np.array(self.t, float), self.scale
 
 
-def depth_ratio(vo: VOResult, kf_id: int, depth: np.ndarray, points_w: np.ndarray | None = None) -> tuple[float, int]:
+def depth_ratio(vo: VOResult, kf_id: int, depth: np.ndarray,
+                points_w: np.ndarray | None = None) -> tuple[float, int, float]:
     """``median(z_map / z_pred)`` over the map points keyframe ``kf_id`` observes, with ``depth``
-    ``(h, w)`` the predictor's map of that keyframe; ``(nan, n)`` with fewer than
-    :data:`MIN_RATIO_POINTS` points that have a positive prediction."""
+    ``(h, w)`` the predictor's map of that keyframe.
+
+    Returns:
+        ``(ratio, n, relative standard error of the ratio)``: the error of a median, ``1.253 · σ / √n``
+        with σ the ratios' spread (1.4826 × their median absolute deviation, relative to the median);
+        ratio and error NaN with fewer than :data:`MIN_RATIO_POINTS` points that have a positive prediction.
+    """
     uv, z = vo.sparse_depth(kf_id, points_w)
     d = lookup_nearest(np.asarray(depth, float), uv, (vo.intrinsics.width, vo.intrinsics.height))
     ok = np.isfinite(d) & (d > 0)
     n = int(ok.sum())
-    return (float(np.median(z[ok] / d[ok])) if n >= MIN_RATIO_POINTS else float("nan")), n
+    if n < MIN_RATIO_POINTS:
+        return float("nan"), n, float("nan")
+    r = z[ok] / d[ok]
+    med = float(np.median(r))
+    spread = 1.4826 * float(np.median(np.abs(r - med))) / med
+    return med, n, 1.2533 * spread / np.sqrt(n)
 
 
 def rotation_between(gray_a: np.ndarray, gray_b: np.ndarray, vo: VOResult, intr_raw) -> np.ndarray | None:
@@ -127,8 +143,8 @@ def plan_bridge(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarra
         points_w: ``vo.points_world()`` when already computed.
 
     Returns:
-        The :class:`Bridge` (its similarity moves the segment's keyframes, points and frames), or ``None``
-        when a scale ratio cannot be measured on either side (the segment stays apart).
+        The :class:`Bridge` (its similarity moves the segment's keyframes, points and frames; ``refused``
+        says why when the segment stays apart), ``None`` for the first segment.
     """
     kfs = vo.keyframes
     seg = kfs[first_kf].segment
@@ -140,15 +156,24 @@ def plan_bridge(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarra
     # one may have been made on the failing frames (a blurred or black image) with hardly any point
     onto = before[-1].segment
     cands = [k for k in before if k.segment == onto][-MAX_BACK:][::-1]
-    prev, r_prev, n_prev = cands[0], float("nan"), 0
+    prev, r_prev, n_prev, e_prev = cands[0], float("nan"), 0, float("nan")
     for k in cands:
         if len(vo.points.observed_in(k.id)) >= MIN_RATIO_POINTS:
             prev = k
-            r_prev, n_prev = depth_ratio(vo, k.id, depth_of(k.id), pw)
+            r_prev, n_prev, e_prev = depth_ratio(vo, k.id, depth_of(k.id), pw)
             break
-    r_new, n_new = depth_ratio(vo, first_kf, depth_of(first_kf), pw)
+    r_new, n_new, e_new = depth_ratio(vo, first_kf, depth_of(first_kf), pw)
+    first = kfs[first_kf]
+    refused = ""
     if not (np.isfinite(r_prev) and np.isfinite(r_new) and r_new > 0):
-        return None
+        refused = f"fewer than {MIN_RATIO_POINTS} map points with a predicted depth on a side of the gap"
+    elif np.hypot(e_prev, e_new) > MAX_SCALE_ERROR:
+        refused = (f"the depth ratios spread too wide: the scale {r_prev / r_new:.3g} is uncertain by "
+                   f"{100 * np.hypot(e_prev, e_new):.0f} % (> {100 * MAX_SCALE_ERROR:.0f} %; {n_prev} and "
+                   f"{n_new} points)")
+    if refused:
+        return Bridge(int(seg), int(prev.segment), int(first.frame_index), float(first.timestamp), -1, float("nan"),
+                      r_prev, r_new, n_prev, n_new, 0.0, "none", refused=refused)
     s = r_prev / r_new
     # the last tracked frame before the gap and its pose (in the old map's frame)
     tracked = np.flatnonzero(vo.frame_segment >= 0)
@@ -176,7 +201,7 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
     """:func:`plan_bridge` and the move it plans applied to ``vo`` (:func:`move_segment`): ``(vo', bridge)``,
     or ``None`` when the segment stays apart."""
     b = plan_bridge(vo, first_kf, depth_of, gray_of_frame, intr_raw, points_w)
-    if b is None:
+    if b is None or b.refused:
         return None
     R, t, s = b.similarity()
     return move_segment(vo, b.segment, R, t, s), b
@@ -184,8 +209,8 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
 
 def bridged(vo: VOResult, bridges: list[dict]) -> VOResult:
     """``vo`` (each segment in its own unit) with the bridges a run made (:class:`Bridge` records, as in
-    ``manifest.json``) applied in order: the front end joined, and nothing else."""
-    for b in bridges:
+    ``manifest.json``) applied in order: the front end joined, and nothing else (refused ones skipped)."""
+    for b in (b for b in bridges if not b.get("refused")):
         vo = move_segment(vo, int(b["segment"]), np.array(b["R"], float), np.array(b["t"], float), float(b["scale"]))
     return vo
 
@@ -200,7 +225,7 @@ def units_of(segments: list[int], bridges: list[dict]) -> dict[int, int]:
             s = unit[s]
         return s
 
-    for b in bridges:
+    for b in (b for b in bridges if not b.get("refused")):
         a, c = find(int(b["segment"])), find(int(b["onto"]))
         unit[max(a, c)] = min(a, c)
     return {s: find(s) for s in segments}

@@ -203,3 +203,23 @@ def test_ba_images_keep_only_the_newest_with_a_window(tmp_path):
     assert len(calls) == 3
     load(0)  # evicted: read again, same pixels
     assert len(calls) == 4 and np.array_equal(load(0), first[0])
+
+
+def test_a_bridge_links_two_segments_into_one_problem(scene):
+    """Keyframes 3–5 are a second segment, placed 2 cm off by its bridge. Alone, each segment is its own BA
+    and the second keeps its first keyframe's error (its gauge); joined into one unit (``units``), the
+    blocks across the gap tie them into one problem with one gauge, and the bridge's error is refined away."""
+    prob, deps = scene
+    start = perturb(prob, np.random.default_rng(7), trans=0.002, rot_deg=0.05, rho_rel=0.01)
+    T = start.T_cw.copy()
+    shift = np.eye(4)
+    shift[:3, 3] = [0.02, -0.01, 0.0]
+    T[3:] = np.stack([se3_inv(shift @ se3_inv(t)) for t in T[3:]])  # the second segment, misplaced together
+    start = dataclasses.replace(start, T_cw=T)
+    segs = np.array([0, 0, 0, 1, 1, 1])
+    apart = run(as_vo(start, segments=segs), prob, deps, cull=False)
+    joined = run(as_vo(start, segments=segs), prob, deps, cull=False, units={0: 0, 1: 0})
+    assert apart.stats["n_parts"] == 2 and joined.stats["n_parts"] == 1
+    assert centre_err(apart.vo, prob)[3] > 0.015  # the second segment's gauge kept the bridge's error
+    assert centre_err(joined.vo, prob)[1:].max() < 5e-3 < 0.25 * centre_err(apart.vo, prob)[3]
+    np.testing.assert_array_equal(joined.vo.keyframes[0].pose, se3_inv(start.T_cw[0]))  # one gauge: keyframe 0

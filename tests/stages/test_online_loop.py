@@ -62,8 +62,8 @@ class ScriptedSource:
     def settle(self) -> None:
         pass
 
-    def transform_segment(self, segment, R, t, s) -> None:
-        self.state.transform_segment(segment, R, t, s)
+    def transform_segment(self, segment, R, t, s, onto) -> None:
+        self.state.transform_segment(segment, R, t, s, onto)
 
     def refine(self, r: MapRefinement) -> None:
         self.refined.append((self.frame, r))
@@ -150,7 +150,7 @@ class FakeBA:
     def __init__(self) -> None:
         self.calls = []
 
-    def run_ba(self, v, kf_id, depth_of, val_loss):
+    def run_ba(self, v, kf_id, depth_of, val_loss, bridges=None):
         assert depth_of(kf_id).shape == (H, W) and set(val_loss) == set(range(kf_id + 1))
         self.calls.append(kf_id)
         pts = v.points
@@ -180,3 +180,34 @@ def test_a_global_ba_reaches_later_batches_and_not_earlier_ones(oracle, monkeypa
     assert not np.allclose(post[:len(pre)], pre)  # the BA changed keyframe 2's labels …
     np.testing.assert_allclose(got[(2, 2)], pre, rtol=1e-6)  # … after keyframe 2 trained on the old ones
     assert any(k[0] > 3 and k[1] <= 3 for k in got)  # a batch after the BA replayed a refined keyframe
+
+
+def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_path):
+    """Keyframes from frame 6 on start a second segment; its bridge is refused (ratios too spread): the
+    network goes on in its first unit only — the second segment's keyframes are neither trained on nor
+    replayed nor validated, and the run counts them."""
+    from mutualslam_cli.stages import adaptation
+    from mutualslam_cli.vo.segments import Bridge
+
+    seq, vo, events = oracle
+    script = []
+    for e in events:  # the same stream, with a new tracking segment from frame 6
+        if e.kind in ("keyframe", "frame") and e.frame >= 6:
+            e = Event(e.kind, e.frame, {**e.data, "segment": 1})
+        script.append(e)
+    refused = []
+
+    def refuse(snap, kf, depth_of, *a):
+        refused.append(kf)
+        return Bridge(1, 0, 6, 0.6, -1, float("nan"), 1.0, 1.0, 40, 40, 0.0, "none", refused="spread too wide")
+
+    monkeypatch.setattr(adaptation, "plan_bridge", refuse)
+    calls = _spy(monkeypatch)
+    loop = _run(seq, ScriptedSource(seq, script), _cfg(scheme="replay", validate_every=2), tmp_path)
+    second = [k for k in range(loop.state.n_keyframes) if loop.state.segment(k) == 1]
+    assert refused == [second[0]] and loop.refused and not loop.bridges
+    assert loop.other_unit == second and second
+    assert {r["kf_id"] for r in loop.rows}.isdisjoint(second)
+    got = _labels(calls, loop)
+    assert got and all(k not in second for _, k in got)  # no batch holds them
+    assert set(loop.adapter.buffer.all_ids).isdisjoint(second)  # nor are they stored for replay or L_val

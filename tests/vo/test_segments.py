@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 import numpy as np
 import pytest
 from synth import make_tum_dir, plant_tracking_failures
@@ -12,7 +14,7 @@ from mutualslam_cli.geometry import exp_so3, scale_motion
 from mutualslam_cli.metrics.trajectory import ate, ate_segments
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import run_vo
-from mutualslam_cli.vo.segments import bridge_segment
+from mutualslam_cli.vo.segments import bridge_segment, bridged, plan_bridge, units_of
 
 
 @pytest.fixture(scope="module")
@@ -74,3 +76,26 @@ def test_scale_motion_stretches_rotation_and_translation():
     np.testing.assert_allclose(scale_motion(T, 2.0)[:3, :3], T[:3, :3] @ T[:3, :3], atol=1e-12)
     np.testing.assert_allclose(scale_motion(T, 0.0), np.eye(4), atol=1e-12)
     np.testing.assert_allclose(scale_motion(T, 2.0)[:3, 3], 2 * T[:3, 3])
+
+
+def test_ratios_spread_too_wide_leave_the_segment_apart_and_say_why(two_segments):
+    """A network whose depth is off by a random factor per pixel (log-normal, σ = 1) gives ratios whose
+    median cannot be trusted to 10 %: the bridge is refused, with the spread in its reason."""
+    seq, vo = two_segments
+    und = Undistorter(seq.intrinsics)
+    rng = np.random.default_rng(0)
+
+    def noisy(kf_id: int) -> np.ndarray:
+        d = und.depth(seq.load_depth(vo.keyframes[kf_id].frame_index))
+        return d * np.exp(rng.normal(0.0, 1.0, d.shape))
+
+    first = next(k.id for k in vo.keyframes if k.segment == 1)
+    b = plan_bridge(vo, first, noisy, seq.load_gray, seq.intrinsics)
+    assert b is not None and "spread too wide" in b.refused and b.segment == 1 and b.onto == 0
+    assert bridge_segment(vo, first, noisy, seq.load_gray, seq.intrinsics) is None
+    assert bridged(vo, [asdict(b)]) is vo  # a refused bridge joins nothing
+
+
+def test_units_follow_the_bridges_that_were_made():
+    made = [{"segment": 1, "onto": 0}, {"segment": 3, "onto": 2}, {"segment": 4, "onto": 3, "refused": "spread"}]
+    assert units_of([0, 1, 2, 3, 4], made) == {0: 0, 1: 0, 2: 2, 3: 2, 4: 4}
