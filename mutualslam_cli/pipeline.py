@@ -158,11 +158,11 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:
         dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
-    return _finish(run, fe, ba, adapted.bridges or [], command, t_start, adapted.refused)
+    return _finish(run, fe, ba, adapted, command, t_start)
 
 
-def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, bridges: list[dict[str, Any]],
-            command: list[str] | None, t_start: float, refused: list[dict[str, Any]] | None = None) -> RunResult:
+def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, adapted: adaptation.Adapted,
+            command: list[str] | None, t_start: float) -> RunResult:
     """The run's identity and stage times, ``manifest.json``, then ``summary.json`` (last: the run is complete)."""
     seq, cfg, summary = run.seq, run.cfg, run.summary
     total = time.perf_counter() - t_start
@@ -178,8 +178,9 @@ def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, bridges: list[d
         "vo_meta": {k: v for k, v in fe.vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
         "map_points_with_gt": fe.points_with_gt,
         "ba_runs": ba.record.runs,
-        "bridges": bridges,
-        "bridges_refused": refused or [],
+        "bridges": adapted.bridges or [],
+        "bridges_refused": adapted.refused,
+        "loops": adapted.loops,
     }))
     s = summary.to_dict()
     write_json(run.folder / "summary.json", s)

@@ -194,30 +194,49 @@ def _mean(v: pd.Series) -> float:
 
 #: Table 4's columns: each part of the system credited on its own (``trajectory.credit.*``, the same frames).
 CREDIT = (("VO", "vo"), ("bridged", "bridged"), ("+ culling + BA", "ba"))
+#: ... and the column from the runs of the same config with ``loop.enabled``: their map after BA and loop closure.
+LOOP_COLUMN = "+ loop closure"
+
+
+def _seeded(r: pd.DataFrame, cols: dict[str, str]) -> pd.DataFrame:
+    """Per seed (the run's seed, else its folder), the ``{column: summary key}`` values, mean over duplicates."""
+    seed = r["seed"].fillna(r["folder"]) if "seed" in r else r["folder"]
+    return pd.DataFrame({c: numeric(r, k) for c, k in cols.items()}).assign(_seed=seed.values).groupby("_seed").mean()
 
 
 def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, str]]]:
     """Paper Table 4, crediting each part: the ATE (m, one Sim(3)) of the frames every column tracked, for
-    the front end on its own (``VO``), joined by the run's bridges and nothing else (``bridged``) and after
-    culling + global BA (``trajectory.credit.*``), per sequence, then their Average.
+    the front end on its own (``VO``), joined by the run's bridges and nothing else (``bridged``), after
+    culling + global BA (``trajectory.credit.*``) and, from the runs of the same config with
+    ``loop.enabled`` (paired by seed), after BA and loop closure; per sequence, then their Average.
 
-    One block of rows per (scheme, config) (columns ``scheme`` / ``config`` only when there are several).
-    Cells are paired by seed: every column of a row is the mean over the same runs — those that have every
-    column; when none has an after-BA value (no BA requested), that cell is "—" and the others are over all
-    runs. ``n`` counts the runs averaged. The Average row averages the sequences that have every value.
+    One block of rows per (scheme, config) (columns ``scheme`` / ``config`` only when there are several;
+    ``loop.enabled`` does not split blocks, it makes the last column). Cells are paired by seed: every
+    column of a row is the mean over the same seeds — those that have every column; when none has an
+    after-BA value (no BA requested), that cell is "—" and the others are over all seeds. ``n`` counts
+    the seeds averaged. The Average row averages the sequences that have every value.
 
     Returns:
         ``(table, title, bold)``; ``bold``: ``(row, column)`` of the lowest ATE of each row.
     """
-    runs = runs.assign(config=runs["config"] if "config" in runs else "")
-    cols = [c for c, _ in CREDIT]
+    looped = (runs["config.loop.enabled"].astype(str) == "True") if "config.loop.enabled" in runs else \
+        pd.Series(False, index=runs.index)
+    labels = config_labels(runs, exclude=("loop.enabled",)) if any(c.startswith("config.") for c in runs) else \
+        runs.get("config", pd.Series("", index=runs.index))
+    runs = runs.assign(config=labels.values)
+    cols = [c for c, _ in CREDIT] + ([LOOP_COLUMN] if looped.any() else [])
     rows: list[dict[str, Any]] = []
     for (scheme, config), b in runs.groupby(["scheme", "config"], sort=True):
         first = len(rows)
         for seq, r in b.groupby("sequence.name", sort=True):
-            vals = pd.DataFrame({c: numeric(r, f"trajectory.credit.{k}") for c, k in CREDIT})
+            on = looped.loc[r.index]
+            base = r[~on] if (~on).any() else r
+            vals = _seeded(base, {c: f"trajectory.credit.{k}" for c, k in CREDIT})
+            if LOOP_COLUMN in cols:
+                vals = vals.join(_seeded(r[on], {LOOP_COLUMN: "trajectory.credit.ba"}), how="left") if on.any() \
+                    else vals.assign(**{LOOP_COLUMN: np.nan})
             paired = vals.dropna()
-            use = paired if len(paired) else vals.dropna(subset=[c for c in cols if c != "+ culling + BA"])
+            use = paired if len(paired) else vals.dropna(subset=["VO", "bridged"])
             rows.append({"Sequence": seq, "scheme": scheme, "config": config, "n": len(use),
                          **{c: _mean(use[c]) for c in cols}})
         seqs = rows[first:]
@@ -240,8 +259,9 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
                         if not keep])
     title = ("Paper Table 4, each part credited: ATE RMSE (m, one Sim(3) each) of the frames every column "
              "tracked — the front end alone, joined by its bridges, after culling + global BA"
+             + (", after BA and loop closure (loop.enabled runs)" if LOOP_COLUMN in cols else "")
              + (f", scheme {schemes[0]}" if len(schemes) == 1 else "")
-             + "; mean over the n runs (seeds) that have every column; — : no BA requested")
+             + "; mean over the n seeds that have every column; — : no BA requested")
     return t, title, bold
 
 

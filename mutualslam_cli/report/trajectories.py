@@ -39,6 +39,8 @@ EVENT_STYLE = {"segment": ("new segment (re-initialised)", "#d62728", "x"),
                "bridge": ("new segment, bridged", "#9467bd", "s"),
                "relocalised": ("relocalised", "#2ca02c", "^")}
 AXES = "xyz"
+#: Colour of the loop edges (a closed loop's new and old keyframe joined).
+LOOP_COLOUR = "#9467bd"
 
 
 @dataclass
@@ -116,6 +118,7 @@ class TrackRow:
     ate_text: list[str] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)
     events: list[tuple[float, str]] = field(default_factory=list)
+    loops: list[tuple[float, float]] = field(default_factory=list)
 
 
 def run_events(folder: Path) -> list[tuple[float, str]]:
@@ -134,6 +137,17 @@ def run_events(folder: Path) -> list[tuple[float, str]]:
     return sorted(out)
 
 
+def run_loops(folder: Path) -> list[tuple[float, float]]:
+    """``(timestamp of the new keyframe, timestamp of the old one it saw again)`` of each loop a run closed
+    (``manifest.json``'s ``loops``); ``[]`` when there is none."""
+    try:
+        m = json.loads((Path(folder) / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return []
+    return [(float(x["timestamp"]), float(x["match_timestamp"])) for x in m.get("loops") or []
+            if "timestamp" in x and "match_timestamp" in x]
+
+
 def _read(folder: Path, name: str) -> Trajectory | None:
     f = folder / name
     return read_tum_trajectory(f) if f.is_file() and f.stat().st_size else None
@@ -147,7 +161,7 @@ def track_row(folder: Path, gt: Trajectory, max_dt: float = MAX_DT, title: str =
     RMSE of keyframes and of all frames; ``events`` the run's :func:`run_events`. A file that cannot
     be aligned (no overlap, degenerate) becomes a ``problems`` line.
     """
-    row = TrackRow(title, np.zeros(0), np.zeros((0, 3)), events=run_events(folder))
+    row = TrackRow(title, np.zeros(0), np.zeros((0, 3)), events=run_events(folder), loops=run_loops(folder))
     t_lo, t_hi = np.inf, -np.inf
     for stage, suffix, label in (("vo", "", "VO"), ("bridged", "_bridged", "bridged"), ("ba", "_ba", "after BA")):
         rmse = {}
@@ -175,7 +189,7 @@ def track_row(folder: Path, gt: Trajectory, max_dt: float = MAX_DT, title: str =
 def unaligned_row(folder: Path, title: str = "") -> TrackRow:
     """A run's trajectories as estimated, in the front end's frame and units (a sequence without GT poses):
     stages as in :func:`track_row`, no GT, no ATE."""
-    row = TrackRow(title, np.zeros(0), np.zeros((0, 3)), events=run_events(folder))
+    row = TrackRow(title, np.zeros(0), np.zeros((0, 3)), events=run_events(folder), loops=run_loops(folder))
     for stage, suffix in (("vo", ""), ("bridged", "_bridged"), ("ba", "_ba")):
         est = _read(folder, f"traj_all{suffix}.txt") or _read(folder, f"traj_kf{suffix}.txt")
         if est is not None:
@@ -195,7 +209,7 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
         time_label: x label of the height panels (times are shown from the first GT pose drawn).
     Returns:
         A matplotlib Figure with ``2 * len(rows)`` axes (top view, height per row); lines carry
-        ``gid`` ``gt``, ``vo``, ``bridged`` or ``ba``, event marks ``event-<kind>``.
+        ``gid`` ``gt``, ``vo``, ``bridged`` or ``ba``, event marks ``event-<kind>``, loop edges ``loop``.
     """
     plt = pyplot()
     k, sign = vertical
@@ -227,6 +241,12 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
             (mark,) = top.plot(p[h], p[v], marker, color=colour, ms=7, mew=1.6, zorder=4, gid=f"event-{kind}")
             height.axvline(t_event - t0, color=colour, lw=0.9, ls=":", zorder=1, gid=f"event-{kind}")
             handles.setdefault(label, mark)
+        closed = row.stages.get("ba") or est
+        for t_new, t_old in row.loops if closed is not None and len(closed[0]) else []:  # loop edges
+            a, b = (closed[1][int(np.argmin(np.abs(closed[0] - x)))] for x in (t_new, t_old))
+            (edge,) = top.plot([a[h], b[h]], [a[v], b[v]], "-", color=LOOP_COLOUR, lw=1.2, zorder=5, gid="loop")
+            height.axvline(t_new - t0, color=LOOP_COLOUR, lw=0.9, ls="-.", zorder=1, gid="loop")
+            handles.setdefault("loop closed (new ↔ old keyframe)", edge)
         top.set_aspect("equal", adjustable="datalim")
         unit = "m" if aligned else "VO units"
         top.set_xlabel(f"{AXES[h]} ({unit})")

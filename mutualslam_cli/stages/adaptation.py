@@ -46,6 +46,7 @@ from mutualslam_cli.stages.adaptation_summary import (
 )
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.event_source import FrontEndSource
+from mutualslam_cli.stages.loop import LoopCloser, summarise_off
 from mutualslam_cli.stages.frontend import corrupt, run_frontend
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import RealtimeClock
@@ -128,6 +129,7 @@ class OnlineLoop:
             self.adapter = OnlineAdapter(self.net, cfg.adapt, K_net, seed=cfg.seed, fast=fast,
                                          val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode,
                                          labels=MapLabels(self.state, w, h))
+        self.closer = LoopCloser(run.seq, cfg, source, ba) if cfg.loop.enabled else None
         self.clock = None
         if cfg.adapt.schedule == "realtime" and self.adapter is not None:
             cost = cfg.adapt.step_cost_ms
@@ -156,6 +158,9 @@ class OnlineLoop:
                 info = self._tick(kf)                           # validate, or assemble the batch (labels of now)
                 if info is not None and info.run_global_ba:
                     self._global_ba(kf)                         # cull + BA; the refined map goes back to the front end
+                if self.closer is not None:                     # a place seen before: close the loop (loop.enabled)
+                    self._busy("loop_s", kf, self.closer.after_keyframe(kf, self._depth_of(), self._val_loss,
+                                                                         self.bridges))
                 if self.clock is None and self.adapter is not None:
                     self._train(self.cfg.adapt.steps_per_keyframe)
                 self._report(kf, t0)
@@ -237,6 +242,9 @@ class OnlineLoop:
         self._busy("ba_s", kf, time.perf_counter() - t)
 
     # ------------------------------------------------------------------ helpers
+    def _val_loss(self, ids: list[int]) -> dict[int, float]:
+        return self.adapter.per_keyframe_val_loss(ids) if self.adapter is not None else {}
+
     def _depth_of(self) -> DepthOf:
         return depth_predictor(self.net, self.load, self.fast, self.adapter.buffer if self.adapter else None)
 
@@ -275,7 +283,8 @@ class Adapted:
         source: the front end's event source (cache use, replayed frames).
         injected: ids of map points corrupted by ``vo.inject_outliers``.
         requested: how many times Algorithm 1 requested global BA.
-        bridges: one record per bridge made (:class:`~mutualslam_cli.vo.segments.Bridge`); refused: per bridge refused.
+        bridges: one record per bridge made (:class:`~mutualslam_cli.vo.segments.Bridge`); refused: per bridge
+            refused; loops: per loop closed (:mod:`~mutualslam_cli.stages.loop`).
         l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).
         online: the ``online_*`` per-frame scores of the model of each frame's time
             (:mod:`~mutualslam_cli.stages.online_eval`); ``None`` when not computed.
@@ -291,6 +300,7 @@ class Adapted:
     requested: int
     bridges: list[dict[str, Any]] | None = None
     refused: list[dict[str, Any]] = field(default_factory=list)
+    loops: list[dict[str, Any]] = field(default_factory=list)
     l_val: dict[str, Any] = field(default_factory=dict)
     online: pd.DataFrame | None = None
 
@@ -346,6 +356,11 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
                                                                 for b in loop.refused)
             for k, v in adapted.l_val.items():
                 summary.set(f"adaptation.l_val.{k}", v, "no validation keyframe had an L_val")
+            if loop.closer is not None:
+                loop.closer.summarise(summary)
+                adapted.loops = loop.closer.loops
+            else:
+                summarise_off(summary, "loop.enabled=false (the paper: no loop closure)")
             summarise_finetuning(summary, cfg.adapt.scheme, adapter, rows)
             summarise_strength(summary, adapter)
             for key in (comoda.POSENET_ATE_KEY, comoda.POSE_NETWORK_KEY):

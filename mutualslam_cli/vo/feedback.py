@@ -30,6 +30,9 @@ class MapRefinement:
         pids: ``(m,)`` points whose inverse depth or host pixel changed; rho: ``(m,)`` new inverse
             depths (1/map units); px_h: ``(m, 2)`` new host pixels (undistorted pinhole).
         removed: ``(r,)`` points culled (Eq. 10) or dropped as outliers.
+        scale: ``(n,)`` the unit of each moved keyframe grew by (a pose graph's Sim(3)); ``None``: all 1 (a BA).
+            Frames tracked from it keep their place relative to it, in its new unit; the depths of the points
+            it hosts are in ``rho`` like any other change.
     """
 
     kfs: np.ndarray
@@ -38,6 +41,14 @@ class MapRefinement:
     rho: np.ndarray
     px_h: np.ndarray
     removed: np.ndarray
+    scale: np.ndarray | None = None
+
+    def scale_of(self, kf: int) -> float:
+        """The factor keyframe ``kf``'s unit grew by (1 when it did not move or no scale was given)."""
+        if self.scale is None:
+            return 1.0
+        hit = np.flatnonzero(self.kfs == kf)
+        return float(self.scale[hit[0]]) if len(hit) else 1.0
 
     @staticmethod
     def between(before: VOResult, after: VOResult, removed: np.ndarray) -> "MapRefinement":
@@ -59,6 +70,8 @@ def apply_refinement(state: MapState, r: MapRefinement) -> None:
     of every point whose host moved or which changed."""
     m = state.map
     m.set_poses(r.kfs, r.T_wc)
+    if r.scale is not None:
+        state.rescale_frames(r.kfs, r.scale)
     m.set_depths(r.pids, r.rho)
     m.set_host_pixels(r.pids, r.px_h, to_normalized(r.px_h, state.K))
     m.remove_points(r.removed)
@@ -98,13 +111,24 @@ class FeedbackMixin:
         tr.seed["z_range"][seeds] /= s
 
     def refine(self, r: MapRefinement) -> None:
-        """Take a global BA's refinement and go on from it: the current pose follows its reference
-        keyframe's correction; tracks of removed points end."""
+        """Take a global BA's (or a pose graph's) refinement and go on from it: the current pose follows its
+        reference keyframe's correction (in its new unit), as do the seeds of the keyframes whose unit
+        changed; tracks of removed points end."""
         self.settle()
-        ref = self.st.last_kf
+        st, ref = self.st, self.st.last_kf
         old = self.map.kf_T_wc[ref].copy() if ref >= 0 else None
         apply_refinement(self.state_map, r)
-        if old is not None and self.st.mode == "tracking":
-            self.st.T_cw = se3_inv(self.map.kf_T_wc[ref] @ se3_inv(old) @ se3_inv(self.st.T_cw))
-        if len(r.removed) and len(self.st.tracks):
-            self.st.tracks = self.st.tracks.select(~np.isin(self.st.tracks.pid, r.removed))
+        if old is not None and st.mode == "tracking":
+            rel = se3_inv(old) @ se3_inv(st.T_cw)
+            rel[:3, 3] *= r.scale_of(ref)
+            st.T_cw = se3_inv(self.map.kf_T_wc[ref] @ rel)
+            st.vel = st.vel.copy()
+            st.vel[:3, 3] *= r.scale_of(ref)
+        if r.scale is not None and len(st.tracks):
+            seeds = np.flatnonzero(st.tracks.pid < 0)
+            s = np.array([r.scale_of(int(h)) for h in st.tracks.host[seeds]])
+            st.tracks.seed["mu"][seeds] /= s  # inverse distances along the host bearings
+            st.tracks.seed["sigma2"][seeds] /= s * s
+            st.tracks.seed["z_range"][seeds] /= s
+        if len(r.removed) and len(st.tracks):
+            st.tracks = st.tracks.select(~np.isin(st.tracks.pid, r.removed))

@@ -41,6 +41,8 @@ SCHEMA: dict[str, dict[str, Any]] = {
     "pixel": {"pids": (), "px_h": (2,), "xn_h": (2,)},
     # a similarity x ↦ s·R·x + t applied to one segment, joining it to segment ``onto`` (a bridge)
     "similarity": {"segment": "i", "onto": "i", "s": "f", "R": (3,), "t": ()},
+    # the frames tracked from keyframes ``kfs``: their translation from it × ``scales`` (a Sim(3) correction)
+    "rescale": {"kfs": (), "scales": ()},
     # the frame records
     "frame": {"index": "i", "segment": "i", "ref": "i", "T_rel": (4, 4)},
     "segment": {"segment": "i", "index": "i", "method": "s"},
@@ -123,7 +125,7 @@ class Journal:
 # ----------------------------------------------------------------------------- plain arrays (the cache)
 
 #: Version of the :func:`journal_to_arrays` layout.
-JOURNAL_VERSION = 2
+JOURNAL_VERSION = 3
 _FORMAT = "mslam-vo-journal"
 
 

@@ -95,6 +95,17 @@ class MapState:
         self._emit("similarity", segment=segment, onto=onto, s=s, R=R, t=t)
         return hosted
 
+    def rescale_frames(self, kfs: np.ndarray, scales: np.ndarray) -> None:
+        """Frames tracked from keyframe ``kfs[j]`` keep their place relative to it in a unit ``scales[j]`` times
+        larger (a pose graph's Sim(3) correction of that keyframe)."""
+        by_kf = dict(zip(np.asarray(kfs).tolist(), np.asarray(scales, float).tolist()))
+        for i, (ref, T) in self.frame_rel.items():
+            if ref in by_kf:
+                T = T.copy()
+                T[:3, 3] *= by_kf[ref]
+                self.frame_rel[i] = (ref, T)
+        self._emit("rescale", kfs=kfs, scales=scales)
+
     def unit(self, segment: int) -> int:
         """The map unit (frame and scale) of ``segment``: the first segment of the chain of bridges it was
         joined by; its own when no bridge joined it."""
@@ -135,6 +146,8 @@ class MapState:
             m.set_host_pixels(e["pids"], e["px_h"], e["xn_h"])
         elif k == "similarity":
             self.transform_segment(e["segment"], e["R"], e["t"], e["s"], e["onto"])
+        elif k == "rescale":
+            self.rescale_frames(e["kfs"], e["scales"])
         elif k == "frame":
             self.track_frame(e["index"], e["segment"], e["ref"], e["T_rel"][0])
         elif k == "segment":

@@ -117,25 +117,27 @@ class RelocIndex:
         self.thumbs[kf] = _thumb(gray)
         self.features[kf] = orb_features(gray, ORB_FEATURES)
 
-    def candidates(self, gray: np.ndarray, keyframes: list[int]) -> list[int]:
-        """The newest two of ``keyframes``, then the others by thumbnail similarity to ``gray``."""
+    def candidates(self, gray: np.ndarray, keyframes: list[int], newest: int = 2) -> list[int]:
+        """The ``newest`` of ``keyframes`` (a lost frame is most likely near them), then the others by thumbnail
+        similarity to ``gray``; at most ``n_candidates``."""
         ks = [k for k in keyframes if k in self.thumbs]
-        newest = sorted(ks)[-2:][::-1]
+        newest = sorted(ks)[len(ks) - newest:][::-1] if newest else []
         t = _thumb(gray)
         rest = sorted((k for k in ks if k not in newest), key=lambda k: -float(self.thumbs[k] @ t))
         return (newest + rest)[: self.settings.n_candidates]
 
     def query(self, gray: np.ndarray, m: Map, thr: float, seed: int = 0,
-              keyframes: list[int] | None = None) -> Relocalisation | None:
+              keyframes: list[int] | None = None, newest: int = 2) -> Relocalisation | None:
         """The pose of the grey frame ``gray`` in map ``m`` (``None``: no candidate passed).
 
         Args:
             thr: inlier threshold in normalised units (the front end's RANSAC threshold / f).
             keyframes: keyframes that may serve (default: every keyframe of the index).
+            newest: candidates taken by recency before the thumbnail ranking (0: by appearance only).
         """
         feats = orb_features(gray, ORB_FEATURES)
         pool = sorted(self.images) if keyframes is None else keyframes
-        for tried, kf in enumerate(self.candidates(gray, pool), 1):
+        for tried, kf in enumerate(self.candidates(gray, pool, newest), 1):
             found = self._try(kf, m, gray, feats, thr, seed)
             if found is not None:
                 return dataclasses.replace(found, candidates_tried=tried)

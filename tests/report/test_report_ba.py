@@ -16,13 +16,13 @@ from mutualslam_cli.results.summary import Summary
 
 
 def _run(root: Path, seq: str, seed: int, culling: bool, values: dict[str, float | None],
-         max_fts: int = 500, scheme: str = "replay+ewc") -> Path:
+         max_fts: int = 500, scheme: str = "replay+ewc", loop: bool = False) -> Path:
     """A complete run folder: ``config.yaml`` (the keys the report reads) and ``summary.json``."""
     folder = run_dir(root, seq, scheme, seed)
     folder.mkdir(parents=True)
     write_yaml(folder / "config.yaml", {"seed": seed, "out": str(root), "vo": {"max_fts": max_fts},
                                             "adapt": {"scheme": scheme},
-                                            "ba": {"enabled": True, "culling": culling}})
+                                            "ba": {"enabled": True, "culling": culling}, "loop": {"enabled": loop}})
     s = Summary()
     for k, v in values.items():
         s.set(k, v, "hand-made: absent")
@@ -169,3 +169,16 @@ def test_runs_with_different_thread_counts_are_not_averaged():
     runs = pd.DataFrame({"config.threads": [1, 1, 2], "config.seed": [0, 1, 0], "config.adapt.lr": [1e-3] * 3})
     assert config_labels(runs).tolist() == ["threads=1", "threads=1", "threads=2"]
     assert config_labels(runs.iloc[:2]).tolist() == ["", ""]  # seeds alone are one experiment
+
+
+def test_table4_takes_loop_closure_from_the_loop_runs_of_the_same_config_paired_by_seed(tmp_path: Path):
+    off, on = tmp_path / "off", tmp_path / "on"
+    for seed, (vo, ba, lc) in enumerate([(0.03, 0.02, 0.008), (0.05, 0.04, 0.012), (0.04, 0.03, None)]):
+        _run(off, "seqA", seed, True, _vals(vo, ba, (100, 0.5), (90, 0.4), (90, 0.3)))
+        _run(on, "seqA", seed, True, _vals(vo, lc, (100, 0.5), (90, 0.4), (90, 0.3)), loop=True)
+    t = build_tables(collect([off, on])).tables["ate_ba"]
+    assert "config" not in t  # loop.enabled makes a column, not a block
+    assert list(t.columns) == ["Sequence", "VO", "bridged", "+ culling + BA", "+ loop closure", "n"]
+    a = t.iloc[0]  # seed 2 had no loop-closure value: every column over seeds 0 and 1
+    assert a["n"] == 2 and a["VO"] == pytest.approx(0.04) and a["+ culling + BA"] == pytest.approx(0.03)
+    assert a["+ loop closure"] == pytest.approx(0.01)

@@ -237,3 +237,28 @@ def test_segment_starts_bridges_and_relocalisations_are_marked(seq_dir: Path, tm
     assert {t.get_text() for t in fig.legends[0].get_texts()} >= {"relocalised", "new segment (re-initialised)",
                                                                    "new segment, bridged"}
     assert tp.run_events(tmp_path) == []  # no manifest: no marks
+
+
+def test_loops_closed_are_drawn_as_edges(seq_dir: Path, tmp_path: Path, rng):
+    """Each loop of the manifest joins its new and its old keyframe on the trajectory after BA."""
+    gt = load_sequence(seq_dir).gt
+    folder = _run(tmp_path / "runs", "synth", "replay+ewc", 0, seq_root=seq_dir)
+    write_tum_trajectory(folder / "traj_all.txt", _sim3(gt, 0.4, rng, noise=0.001))
+    write_tum_trajectory(folder / "traj_all_ba.txt", _sim3(gt, 0.4, rng, noise=0.001))
+    t = gt.timestamps
+    m = json.loads((folder / "manifest.json").read_text())
+    m["loops"] = [{"query": 9, "match": 1, "timestamp": t[9], "match_timestamp": t[1]}]
+    write_json(folder / "manifest.json", m)
+    assert tp.run_loops(folder) == [(t[9], t[1])]
+    row = tp.track_row(folder, gt, 0.02)
+    fig = tp.trajectory_figure([row], "synth", tp.vertical_axis(gt.poses[:, :3, :3]), "time (s)")
+    top, height = fig.axes
+    (edge,) = [ln for ln in top.get_lines() if ln.get_gid() == "loop"]
+    ts, ps = row.stages["ba"]
+    ends = np.c_[edge.get_xdata(), edge.get_ydata()]
+    h, v = [i for i in range(3) if i != tp.vertical_axis(gt.poses[:, :3, :3])[0]]
+    for x, ti in zip(ends, (t[9], t[1])):  # the edge ends where the trajectory was at the two times
+        np.testing.assert_allclose(x, ps[int(np.argmin(np.abs(ts - ti)))][[h, v]])
+    assert sum(ln.get_gid() == "loop" for ln in height.get_lines()) == 1
+    assert "loop closed (new ↔ old keyframe)" in {x.get_text() for x in fig.legends[0].get_texts()}
+    assert tp.run_loops(tmp_path) == []

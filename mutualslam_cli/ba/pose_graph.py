@@ -1,0 +1,92 @@
+"""Sim(3) pose graph over keyframes: a loop's correction spread over the keyframes it closes
+(:mod:`~mutualslam_cli.vo.loop_closure`).
+
+Each keyframe ``k`` of the loop's map unit from the loop's old end on is a node ``M_k = [s_k R_k | t_k]``
+(camera to world, ``s_k`` the unit of its own map: 1 before). Edges hold what the odometry measured:
+between consecutive keyframes and between keyframes that share ≥ ``min_shared`` map points (within
+``window`` keyframes), the relative Sim(3) ``M_i⁻¹ M_j`` of the current map — weak across a bridge, whose
+placement was an estimate (:data:`BRIDGE_SIGMA`); the loop edge holds what the
+loop measured, the new keyframe in the old keyframe's frame and unit (``[s R_loop | t_loop]``). The old end
+is fixed; Levenberg–Marquardt finds the poses that strain the edges least. The result is a
+:class:`~mutualslam_cli.vo.feedback.MapRefinement`: keyframe poses ``[R_k | t_k]``, each keyframe's unit grown
+by ``s_k`` (the points it hosts: inverse depth ÷ ``s_k``; its frames: translation × ``s_k``).
+
+Why GTSAM: a Sim(3) graph needs the group's Jacobians (7 degrees of freedom with the scale), a sparse
+solver and robust edges; GTSAM (BSD licence, maintained, wheels on PyPI) has them, tested
+(``Similarity3``, ``BetweenFactorSimilarity3``, sparse LM). Hand-written, it would be this module several
+times over, and tested far less.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from mutualslam_cli.vo.feedback import MapRefinement
+from mutualslam_cli.vo.loop_closure import LoopClosure
+from mutualslam_cli.vo.map_state import MapState
+
+#: Standard deviation of an odometry edge and of the loop edge (radians, map units, log scale alike).
+EDGE_SIGMA, LOOP_SIGMA = 0.01, 0.01
+#: ... and of the edge across a bridge: its placement and scale were an estimate from the network's depth, not a
+#: measurement of the odometry, so the loop's correction goes there first.
+BRIDGE_SIGMA = 1.0
+
+
+def _sim3(M: np.ndarray) -> gtsam.Similarity3:
+    """``[s R | t]`` (``p_w = s R p_c + t``) as a GTSAM ``Similarity3`` (``p ↦ s (R p + t)``)."""
+    s = float(np.cbrt(np.linalg.det(M[:3, :3])))
+    return gtsam.Similarity3(gtsam.Rot3(M[:3, :3] / s), M[:3, 3] / s, s)
+
+
+def _matrix(S: gtsam.Similarity3) -> np.ndarray:
+    """The inverse of :func:`_sim3`: ``[s R | t]``."""
+    s = float(S.scale())
+    M = np.eye(4)
+    M[:3, :3] = s * S.rotation().matrix()
+    M[:3, 3] = s * np.asarray(S.translation())
+    return M
+
+
+def close_loop(state: MapState, loop: LoopClosure, min_shared: int = 20, window: int = 10) -> MapRefinement:
+    """The refinement that closes ``loop`` in ``state``'s map (module docstring)."""
+    m = state.map
+    unit = state.unit(m.kf_segment[loop.query])
+    kfs = [k for k in range(loop.match, len(m.kf_frame)) if state.unit(m.kf_segment[k]) == unit]
+    M0 = {k: m.kf_T_wc[k].copy() for k in kfs}
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    edge = gtsam.noiseModel.Isotropic.Sigma(7, EDGE_SIGMA)
+    for k in kfs:
+        values.insert(k, _sim3(M0[k]))
+    graph.add(gtsam.NonlinearEqualitySimilarity3(loop.match, _sim3(M0[loop.match])))
+    pairs = set(zip(kfs, kfs[1:]))
+    for a_i, a in enumerate(kfs):
+        for b in kfs[a_i + 1:a_i + 1 + window]:
+            if len(m.kf_points[a] & m.kf_points[b]) >= min_shared:
+                pairs.add((a, b))
+    bridge = gtsam.noiseModel.Isotropic.Sigma(7, BRIDGE_SIGMA)
+    for a, b in sorted(pairs):
+        graph.add(gtsam.BetweenFactorSimilarity3(a, b, _sim3(np.linalg.inv(M0[a]) @ M0[b]),
+                                                 edge if m.kf_segment[a] == m.kf_segment[b] else bridge))
+    T_loop = np.linalg.inv(loop.T_cw)
+    M_loop = T_loop.copy()
+    M_loop[:3, :3] *= loop.scale
+    robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+                                            gtsam.noiseModel.Isotropic.Sigma(7, LOOP_SIGMA))
+    graph.add(gtsam.BetweenFactorSimilarity3(loop.match, loop.query, _sim3(np.linalg.inv(M0[loop.match]) @ M_loop),
+                                             robust))
+    out = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    poses, scales = [], []
+    for k in kfs:
+        M = _matrix(out.atSimilarity3(k))
+        s = float(np.cbrt(np.linalg.det(M[:3, :3])))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = M[:3, :3] / s, M[:3, 3]
+        poses.append(T)
+        scales.append(s)
+    scale_of = dict(zip(kfs, scales))
+    pids = np.array([p for p, h in enumerate(m.host) if h in scale_of and np.isfinite(m.rho[p])], np.int64)
+    rho = np.array([m.rho[p] / scale_of[m.host[p]] for p in pids.tolist()])
+    px = np.array([m.px_h[p] for p in pids.tolist()]).reshape(-1, 2)
+    return MapRefinement(np.array(kfs, np.int64), np.array(poses).reshape(-1, 4, 4), pids, rho, px,
+                         np.zeros(0, np.int64), np.array(scales))

@@ -1,0 +1,102 @@
+"""Loop closure inside the adaptation loop (``loop.enabled``; the paper's future work, §V).
+
+:class:`LoopCloser` keeps every keyframe's image for place recognition and, for each new keyframe, looks
+for it among the keyframes of its map unit at least ``loop.min_gap`` older
+(:class:`~mutualslam_cli.vo.loop_closure.LoopDetector`: appearance, geometry, and the adapted network's
+depth for the scale and as a check). A verified loop is closed on the map as it stands — like the
+global BA's feedback, in the live front end with causal labels: a Sim(3) pose graph spreads the
+correction over the keyframes it closes (:func:`~mutualslam_cli.ba.pose_graph.close_loop`), then culling +
+the robust global BA refine the unit, the loop's two ends now close enough for nearby-keyframe targets to
+tie them (the loop's correspondences). The refined poses and points feed training as the BA's do.
+
+Outputs: ``loop.{candidates,accepted,rejected}`` (rejections by reason in ``notes``), and the loops in
+``manifest.json`` (``loops``), drawn on the trajectory figure.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from mutualslam_cli.ba.pose_graph import close_loop
+from mutualslam_cli.config import RunConfig
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.vo.camera import focal_px
+from mutualslam_cli.vo.feedback import MapRefinement
+from mutualslam_cli.vo.loop_closure import LoopDetector, LoopSettings
+
+log = logging.getLogger(__name__)
+
+
+class LoopCloser:
+    """Place recognition and loop closure over one run's keyframes (module docstring).
+
+    Args:
+        seq: the sequence (keyframe images); cfg: the run's config (``loop``, ``vo``, ``seed``).
+        source: the front end's event source: its ``state`` is the map now; ``settle`` / ``refine`` change it.
+        ba: the run's culling + BA stage (``run_ba``), ``None`` without BA: the pose graph alone.
+
+    Attributes:
+        loops: one record per loop closed (``manifest.json``'s ``loops``).
+    """
+
+    def __init__(self, seq: Sequence, cfg: RunConfig, source: Any, ba: Any | None) -> None:
+        self.seq, self.cfg, self.source, self.ba = seq, cfg, source, ba
+        lc = cfg.loop
+        self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
+                                     LoopSettings(lc.min_gap, lc.n_candidates, lc.max_scale_error, lc.max_depth_spread))
+        self.loops: list[dict[str, Any]] = []
+        self._last = -(10 ** 9)  # the query keyframe of the last loop closed
+
+    def after_keyframe(self, kf: int, depth_of: Callable[[int], np.ndarray],
+                       val_loss: Callable[[list[int]], Mapping[int, float]],
+                       bridges: list[dict[str, Any]]) -> float:
+        """Keep keyframe ``kf`` and close a loop from it when there is one; returns the seconds spent.
+
+        Args:
+            depth_of: ``kf_id → (h, w)`` the adapted network's depth now; val_loss: L_val of keyframe ids now.
+            bridges: the run's bridges (the map units).
+        """
+        t = time.perf_counter()
+        state = self.source.state
+        gray = self.seq.load_gray(state.map.kf_frame[kf])
+        self.detector.add(kf, gray)
+        if kf - self._last < self.cfg.loop.min_gap:
+            return time.perf_counter() - t
+        loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf)
+        if loop is None:
+            return time.perf_counter() - t
+        self.source.settle()
+        self.source.refine(close_loop(state, loop))
+        rec = {**loop.record(), "frame": int(state.map.kf_frame[kf]), "timestamp": float(state.map.kf_time[kf]),
+               "match_timestamp": float(state.map.kf_time[loop.match])}
+        if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
+            snap = self.source.state.snapshot(self.seq.frames, covisibility=False)
+            first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
+            r = self.ba.run_ba(snap, kf, depth_of, val_loss([k.id for k in snap.keyframes[first:kf + 1]]), bridges)
+            self.source.refine(MapRefinement.between(snap, r.vo, snap.points.ids[~r.keep | r.dropped]))
+            rec["ba_nearby_targets"] = int(r.stats["n_nearby_targets"])
+        self.loops.append(rec)
+        self._last = kf
+        log.info("loop closed: keyframe %d sees keyframe %d again (scale %.3f, %d inliers)", kf, loop.match,
+                 loop.scale, loop.inliers)
+        return time.perf_counter() - t
+
+    def summarise(self, summary: Summary) -> None:
+        """``loop.{candidates,accepted,rejected}``; the rejections by reason in ``notes``."""
+        d = self.detector
+        summary.set("loop.candidates", d.tried)
+        summary.set("loop.accepted", len(self.loops))
+        summary.set("loop.rejected", int(sum(d.rejected.values())))
+        if d.rejected:
+            summary.notes["loop.rejected"] = "; ".join(f"{why}: {n}" for why, n in sorted(d.rejected.items()))
+
+
+def summarise_off(summary: Summary, why: str) -> None:
+    """The ``loop.*`` keys of a run without loop closure, null with ``why``."""
+    for k in ("candidates", "accepted", "rejected"):
+        summary.absent(f"loop.{k}", why)

@@ -1,0 +1,156 @@
+"""Loop closure: a keyframe that sees a place the map saw long before (the paper's future work, §V).
+
+A visual odometry drifts; when the camera returns, the map holds the place twice, apart by the drift.
+For each new keyframe (:class:`LoopDetector`):
+
+1. **Place recognition**: the keyframes at least ``min_gap`` keyframes older, ranked by the appearance of
+   their thumbnails (zero-mean NCC) — the global descriptor the relocalisation keeps — the best
+   ``n_candidates`` tried in that order.
+2. **Geometric verification**, the relocalisation's (:mod:`~mutualslam_cli.vo.relocalise`): a homography
+   from ORB matches brings the candidate's map points near the new keyframe's image, KLT from the
+   candidate's own image finds them, PnP-RANSAC places the keyframe in the candidate's map, enough
+   inliers of the matches, halves of the inliers agreeing, and other old keyframes' own images finding
+   their points where the pose projects them.
+3. **Scale** (a monocular map drifts in scale too): the adapted network's depth of the new keyframe, set
+   against the depths of its own map points (the drifted unit) and of the candidate's inlying points
+   under the loop pose (the old unit), gives ``s = r_old / r_new`` — the bridge's rule
+   (:func:`~mutualslam_cli.vo.segments.depth_ratio`), refused when either median is uncertain by more than
+   ``max_scale_error``. **The adapted depth must agree**: the old points' depths under the loop pose,
+   divided by the network's, must be nearly one number (relative spread ≤ ``max_depth_spread``); the
+   depths of a wrong pose do not follow the picture the network sees.
+
+The accepted loop is a Sim(3) measurement between the two keyframes; :mod:`~mutualslam_cli.ba.pose_graph`
+spreads it over the keyframes between them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mutualslam_cli.pixels import lookup_nearest
+from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.vo.camera import undistort_points
+from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
+from mutualslam_cli.vo.segments import MIN_RATIO_POINTS
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """Thresholds of loop closure (module docstring)."""
+
+    min_gap: int = 30
+    """Keyframes between a loop's two ends at least (nearer ones are the odometry's own business)."""
+    n_candidates: int = 3
+    """Keyframes verified per new keyframe, best appearance first."""
+    max_scale_error: float = 0.1
+    """Largest relative standard error of the loop's scale (both medians)."""
+    max_depth_spread: float = 0.25
+    """Largest relative spread (1.4826 × MAD / median) of old-point depth / network depth under the loop pose."""
+
+
+@dataclass
+class LoopClosure:
+    """An accepted loop.
+
+    Attributes:
+        query: the new keyframe; match: the old keyframe it sees again.
+        T_cw: ``(4, 4)`` the new keyframe's pose in the old map's frame (the loop pose).
+        scale: ``s``, old units per unit of the new keyframe's (drifted) map.
+        inliers: PnP inliers of the match; spread: the depth agreement's relative spread.
+        n_new, n_old: points behind each scale ratio.
+    """
+
+    query: int
+    match: int
+    T_cw: np.ndarray
+    scale: float
+    inliers: int
+    spread: float
+    n_new: int
+    n_old: int
+
+    def record(self) -> dict:
+        """A JSON-ready record (``manifest.json``'s ``loops``)."""
+        return {"query": self.query, "match": self.match, "scale": self.scale, "inliers": self.inliers,
+                "spread": self.spread, "n_new": self.n_new, "n_old": self.n_old}
+
+
+def _ratios(z: np.ndarray, d: np.ndarray) -> tuple[float, float, float, int]:
+    """``(median(z / d), relative spread, relative standard error of the median, n)`` over positive pairs."""
+    ok = np.isfinite(d) & (d > 0) & np.isfinite(z) & (z > 0)
+    n = int(ok.sum())
+    if n < MIN_RATIO_POINTS:
+        return float("nan"), float("nan"), float("nan"), n
+    r = z[ok] / d[ok]
+    med = float(np.median(r))
+    spread = 1.4826 * float(np.median(np.abs(r - med))) / med
+    return med, spread, 1.2533 * spread / np.sqrt(n), n
+
+
+class LoopDetector:
+    """Finds and verifies loops over a growing map (module docstring).
+
+    Args:
+        intr: the camera of the raw images (distortion included).
+        thr: PnP inlier threshold in normalised units (the front end's RANSAC threshold / focal length).
+        settings: thresholds.
+
+    Attributes:
+        index: per keyframe its grey image, thumbnail and ORB features (:class:`RelocIndex`).
+        tried, rejected: candidates verified, and refuted with their reason counts (``{reason: n}``).
+    """
+
+    def __init__(self, intr: Intrinsics, thr: float, settings: LoopSettings | None = None) -> None:
+        self.intr, self.K, self.thr = intr, intr.K(), thr
+        self.settings = settings or LoopSettings()
+        self.index = RelocIndex(intr, RelocSettings(n_candidates=self.settings.n_candidates))
+        self.tried = 0
+        self.rejected: dict[str, int] = {}
+
+    def add(self, kf: int, gray: np.ndarray) -> None:
+        """Keep keyframe ``kf``'s ``(H, W)`` uint8 grey image for later queries."""
+        self.index.add_keyframe(kf, gray)
+
+    def _reject(self, why: str) -> None:
+        self.rejected[why] = self.rejected.get(why, 0) + 1
+
+    def query(self, state: MapState, kf: int, gray: np.ndarray, depth: np.ndarray, seed: int = 0) -> LoopClosure | None:
+        """A loop from keyframe ``kf`` to an old keyframe of its map unit, verified (module docstring).
+
+        Args:
+            state: the map now; gray: ``(H, W)`` uint8 raw grey image of ``kf``; depth: ``(h, w)`` the adapted
+                network's depth of ``kf`` (any unit; looked up at the nearest pixel).
+        """
+        m, s = state.map, self.settings
+        unit = state.unit(m.kf_segment[kf])
+        pool = [k for k in sorted(self.index.images) if k <= kf - s.min_gap and state.unit(m.kf_segment[k]) == unit]
+        if not pool:
+            return None
+        rejected0 = self.index.rejected
+        r = self.index.query(gray, m, self.thr, seed=seed, keyframes=pool, newest=0)
+        self.tried += min(len(pool), s.n_candidates) if r is None else r.candidates_tried
+        if self.index.rejected > rejected0:
+            self._reject("geometry (inliers, halves or witnesses)")
+        if r is None:
+            return None
+        size = (self.intr.width, self.intr.height)
+        # the new keyframe's own points, in its (drifted) unit
+        uv_new, z_new = state.sparse_depth(kf)
+        r_new, _, e_new, n_new = _ratios(z_new, lookup_nearest(np.asarray(depth, float), uv_new, size))
+        # the old points it matched, under the loop pose (the old unit)
+        Xc = m.Xw[r.pids] @ r.T_cw[:3, :3].T + r.T_cw[:3, 3]
+        px = undistort_points(r.raw, self.intr)
+        r_old, spread, e_old, n_old = _ratios(Xc[:, 2], lookup_nearest(np.asarray(depth, float), px, size))
+        if not (np.isfinite(r_new) and np.isfinite(r_old)):
+            self._reject("too few points with a predicted depth")
+            return None
+        if np.hypot(e_new, e_old) > s.max_scale_error:
+            self._reject("scale uncertain")
+            return None
+        if spread > s.max_depth_spread:
+            self._reject("depth disagrees with the network")
+            return None
+        return LoopClosure(kf, r.keyframe, r.T_cw, r_old / r_new, r.inliers, spread, n_new, n_old)
