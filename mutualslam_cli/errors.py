@@ -26,6 +26,9 @@ Two families, told apart by what the CLI does with them:
     shape (:func:`~mutualslam_cli.types.check_shape`).
   - :class:`TransitionError` (a ``RuntimeError``): an event that Algorithm 1 does not allow in
     the current state (:mod:`~mutualslam_cli.adapt.state`).
+  - :class:`CacheMismatch` (a ``RuntimeError``): a cached front-end journal disagrees with the front end
+    run again from a checkpoint (:mod:`~mutualslam_cli.stages.event_source`): the code changed under the
+    cache key, or the front end is not deterministic.
 """
 
 from __future__ import annotations
@@ -111,3 +114,7 @@ class ShapeError(ValueError):
 
 class TransitionError(RuntimeError):
     """An event that Algorithm 1 does not allow in the current state (a caller bug)."""
+
+
+class CacheMismatch(RuntimeError):
+    """The cached journal disagrees with the front end run again from a resumption point."""

@@ -26,7 +26,7 @@ import numpy as np
 
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence, grey_frames
-from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.errors import CacheMismatch, DatasetError
 from mutualslam_cli.stages.vo_cache import CHECKPOINT_EVERY, JournalEntry, cache_path, load_entry, save_entry
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo import checkpoint
@@ -40,10 +40,6 @@ from mutualslam_cli.vo.pose_oracle import run_pose_oracle
 from mutualslam_cli.vo.result import VOResult
 
 log = logging.getLogger(__name__)
-
-
-class CacheMismatch(RuntimeError):
-    """The cached journal disagrees with the front end run again from a resumption point."""
 
 
 class FrontEndSource:

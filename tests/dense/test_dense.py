@@ -332,7 +332,7 @@ def _gt_predictors(monkeypatch, seq_dir: Path, cfg_factors: dict[str, np.ndarray
     import cv2
 
     from mutualslam_cli.datasets.registry import load_sequence
-    from mutualslam_cli.stages import dense as dense_stage
+    from mutualslam_cli.stages import evaluation
     from mutualslam_cli.vo.camera import Undistorter
 
     seq = load_sequence(seq_dir)
@@ -350,7 +350,7 @@ def _gt_predictors(monkeypatch, seq_dir: Path, cfg_factors: dict[str, np.ndarray
             return np.stack([depth[i] * c[i] for i in idx]).astype(np.float32)
         return predict
 
-    monkeypatch.setattr(dense_stage, "make_predictor", make_predictor)
+    monkeypatch.setattr(evaluation, "make_predictor", make_predictor)  # predictors_for builds them
 
 
 def test_per_frame_scalings_tell_scale_jitter_from_shape(dense_run, tmp_path, monkeypatch):
