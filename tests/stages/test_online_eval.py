@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from synth import make_tum_dir
@@ -48,3 +49,34 @@ def test_each_frame_scored_by_the_model_after_the_last_keyframe_before_it(tmp_pa
         assert table.loc[i, "online_esi"] == pytest.approx(ref.esi)
     # one scale for the sequence: models 1, 2, 3 disagree by 3×, so it fits the frames worse than per-frame scales
     assert table["online_pcd_seq_lsq"].mean() < table["online_pcd_lsq"].mean()
+
+
+def test_the_frames_of_one_model_share_forward_passes_and_batches_change_only_rounding(tmp_path, monkeypatch):
+    """Frames between two keyframes are predicted together (at most BATCH per pass) when the model is about to
+    change; the scores equal one-frame-at-a-time scoring up to float rounding (fp32 kernels sum in another order)."""
+    from mutualslam_cli.adapt.depthnet import DepthNet
+    from mutualslam_cli.stages import online_eval
+
+    seq = load_sequence(make_tum_dir(tmp_path, scene="room", n=11, width=128, height=96))
+    cfg = with_overrides(RunConfig(), net={"width": 96, "height": 64})
+    torch.manual_seed(0)
+    net = DepthNet().eval()
+    sizes: list[int] = []
+    predict = net.predict
+    monkeypatch.setattr(net, "predict", lambda x: (sizes.append(x.shape[0]), predict(x))[1])
+
+    def scores(batch: int) -> pd.DataFrame:
+        monkeypatch.setattr(online_eval, "BATCH", batch)
+        sizes.clear()
+        sc = OnlineScorer(seq, eval_frames(seq, 1), cfg, fast=False)
+        sc.score_until(net, 2, -1)
+        return sc.finish(net, 0)
+
+    batched = scores(8)
+    assert sizes == [2, 8, 1]  # frames 0-1 by one model; 2-10 by the next, in passes of at most 8
+    single = scores(1)
+    assert sizes == [1] * 11
+    for col in ("online_pcd_lsq", "online_pcd_median", "online_pcd_seq_lsq"):
+        assert (batched[col] - single[col]).abs().max() < 0.1, col  # a pixel at the threshold may flip: 1/3072
+    assert (batched["online_esi"] - single["online_esi"]).abs().max() < 1e-4
+    assert batched["online_kf"].tolist() == single["online_kf"].tolist()
