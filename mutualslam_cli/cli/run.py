@@ -70,7 +70,8 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
 #: The stage table's columns: label → summary key (seconds); the fine-tuning's steps are part of adaptation.
 STAGE_COLUMNS = (("front end", "timing.stage_s.frontend"), ("adaptation", "timing.stage_s.adaptation"),
                  ("of it steps", "timing.finetune_steps_s"), ("of it Fisher etc.", "timing.finetune_consolidate_s"),
-                 ("BA", "timing.stage_s.ba"), ("evaluation", "timing.stage_s.evaluation"),
+                 ("of it L_val", "timing.l_val_s"), ("BA", "timing.stage_s.ba"),
+                 ("evaluation", "timing.stage_s.evaluation"), ("of it online", "timing.online_scoring_s"),
                  ("dense", "timing.stage_s.dense"), ("other", "timing.stage_s.other"), ("total", "timing.total_s"))
 
 

@@ -341,6 +341,8 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
     run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s - source.seconds)
     run.add_time("ba", ba_s)
     run.add_time("evaluation", online_s)  # the online scores are evaluation, done inside the loop
+    summary.set("timing.online_scoring_s", online_s or None,
+                "no online scores (eval.online false, scheme none or comoda, or no GT depth)")
     if rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
     summarise_bridges(run, adapted.map, adapted.bridges)

@@ -93,7 +93,7 @@ def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter |
     included) and of it ``timing.finetune_batch_ms`` (assembling the batch) and ``timing.finetune_consolidate_ms``
     (the regulariser's end of batch: EWC's per-keyframe Fisher, MAS's importance), their sums over the run
     ``timing.finetune_steps_s`` and ``timing.finetune_consolidate_s`` and ``timing.consolidate_vs_step`` (median
-    consolidation per median step), ``adaptation.keyframes_trained``,
+    consolidation per median step), ``timing.l_val_s`` (Algorithm 1's validations), ``adaptation.keyframes_trained``,
     ``adaptation.steps`` and, for scheme ``luo``, ``adaptation.luo_keyframes_with_partner`` (training keyframes
     that found a simulated stereo partner)."""
     why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
@@ -106,6 +106,8 @@ def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter |
     for key, ms in (("finetune_steps_s", "step_ms"), ("finetune_consolidate_s", "consolidate_ms")):
         values = getattr(adapter, ms) if adapter is not None else []
         summary.set(f"timing.{key}", float(np.sum(values)) / 1000.0 if values else None, why)
+    val = [float(r.get("ms") or 0.0) for r in kf_rows if r.get("is_validation")]  # a validation tick is its L_val
+    summary.set("timing.l_val_s", sum(val) / 1000.0 if val else None, "no validation keyframe")
     steps, cons = (getattr(adapter, k) if adapter is not None else [] for k in ("step_ms", "consolidate_ms"))
     summary.set("timing.consolidate_vs_step", float(np.median(cons) / np.median(steps)) if steps and cons else None,
                 why)
