@@ -53,6 +53,7 @@ from mutualslam_cli.adapt import losses
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample, LabelSource
 from mutualslam_cli.adapt.depthnet import fast_context, freeze_encoder_stages, make_adam
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
+from mutualslam_cli.adapt.sample_grads import per_sample_grads, plan
 from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.adapt.state import (
     Action,
@@ -163,6 +164,7 @@ class OnlineAdapter:
         self.params = trainable(net)
         self.optimizer = make_adam(self.params, lr=cfg.lr) if self.scheme.trains else None
         self.scaler = grad_scaler(self.device, self.fast)  # fp16 autocast only (a GPU without bf16)
+        self._layers: list[nn.Module] | None = None  # EWC's per-keyframe gradients in one pass (sample_grads.plan)
         self.regularizer: Regularizer | None = self.scheme.make_regularizer(net, cfg, self._predict, reg_mode)
         self.fsm_params = FsmParams(cfg.validate_every, cfg.patience, cfg.tau_val)
         self.fsm = FsmState()
@@ -324,21 +326,35 @@ class OnlineAdapter:
                  "mask": mask.to(dev)}
         return resample_batch(batch, self.cfg.train_width, self.cfg.train_height)
 
+    def _one_loss(self, batch: dict[str, object], depth: torch.Tensor, b: int) -> torch.Tensor:
+        """Keyframe ``b``'s own L_train from its depth ``(1, 1, H, W)`` and its slice of ``batch``."""
+        cfg, one = self.cfg, slice(b, b + 1)
+        loss, _ = self.loss_fn(depth, batch["target"][one], [s[one] for s in batch["sources"]], batch["K"][one],
+                               [t[one] for t in batch["T_t2s"]], batch["uv"][one], batch["d"][one],
+                               batch["mask"][one], cfg.lambda_sparse, cfg.lambda_smooth, cfg.alpha)
+        return loss
+
     def _sample_grads(self, batch: dict[str, object]) -> list[list[torch.Tensor]]:
         """Per batch keyframe, the gradients of its own L_train at the current parameters (EWC's Fisher, Eq. 2).
 
-        One forward/backward pass per keyframe, each of batch 1: together they cost what one optimiser
-        step's batched pass does (``timing.finetune_consolidate_ms`` against ``timing.finetune_ms``). Under
-        fp16 the loss is scaled as the step's is (the scaler's current scale) and the gradients unscaled."""
-        cfg, out = self.cfg, []
+        One batched forward and backward pass split by keyframe (:mod:`~mutualslam_cli.adapt.sample_grads`:
+        at most one optimiser step's work); a network that module does not cover takes one pass of batch 1
+        per keyframe. Under fp16 the loss is scaled as the step's is and the gradients unscaled."""
         scale = None if self.scaler is None else float(self.scaler.get_scale())
+        if self._layers is None:
+            self._layers = plan(self.net, self.params) or []
+        if self._layers:
+            def losses() -> list[torch.Tensor]:
+                depth = self._predict(batch["target"])
+                return [self._one_loss(batch, depth[b:b + 1], b) for b in range(len(batch["ids"]))]
+
+            grads = per_sample_grads(self._layers, self.params, losses, scale)
+            if grads is not None:
+                return grads
+            self._layers = []  # a layer it cannot split: one keyframe at a time from now on
+        out = []
         for b in range(len(batch["ids"])):
-            one = slice(b, b + 1)
-            target = batch["target"][one]
-            loss, _ = self.loss_fn(self._predict(target), target, [s[one] for s in batch["sources"]],
-                                   batch["K"][one], [t[one] for t in batch["T_t2s"]], batch["uv"][one],
-                                   batch["d"][one], batch["mask"][one], cfg.lambda_sparse, cfg.lambda_smooth,
-                                   cfg.alpha)
+            loss = self._one_loss(batch, self._predict(batch["target"][b:b + 1]), b)
             grads = torch.autograd.grad(loss if scale is None else loss * scale, self.params, allow_unused=True)
             out.append([torch.zeros_like(p) if g is None else g.detach() if scale is None else g.detach() / scale
                         for p, g in zip(self.params, grads)])
