@@ -50,6 +50,7 @@ import torch
 from torch import nn
 
 from mutualslam_cli.adapt import losses
+from mutualslam_cli.adapt.batch import make_batch, resample_batch
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample, LabelSource
 from mutualslam_cli.adapt.depthnet import fast_context, freeze_encoder_stages, make_adam
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
@@ -68,7 +69,6 @@ from mutualslam_cli.adapt.state import (
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.device import grad_scaler, module_device, synchronize
 from mutualslam_cli.errors import ConfigError, TransitionError
-from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.types import check_shape
 
 log = logging.getLogger(__name__)
@@ -296,35 +296,10 @@ class OnlineAdapter:
         return float(np.mean(vals)) if vals else float("nan")
 
     def _make_batch(self, ids: list[int]) -> dict[str, object] | None:
-        """Stack targets, their sources (the scheme's), relative poses and padded sparse points of ``ids``."""
-        items = [(k, self.scheme.sources(self.buffer, k)) for k in ids]
-        items = [(k, n) for k, n in items if n]  # no photometric source → not trainable
-        if not items:
-            return None
-        dev = self.device
-        samples = [self.buffer.get(k, dev) for k, _ in items]
-        n_src = max(len(n) for _, n in items)
-        sources, T_t2s = [], []
-        for s in range(n_src):
-            imgs, poses = [], []
-            for tgt, (_, nb) in zip(samples, items):
-                src = self.buffer.get(nb[min(s, len(nb) - 1)], dev)  # repeat a source when fewer
-                imgs.append(src.image)
-                poses.append(se3_inv(src.pose) @ tgt.pose)  # T_t2s = T_cw(src) · T_wc(tgt)
-            sources.append(torch.stack(imgs))
-            T_t2s.append(torch.as_tensor(np.stack(poses), dtype=torch.float32, device="cpu"))
-        m = max(s.uv.shape[0] for s in samples)
-        uv = torch.zeros(len(samples), m, 2, device="cpu")  # labels gathered on the CPU, sent once below
-        d = torch.zeros(len(samples), m, device="cpu")
-        mask = torch.zeros(len(samples), m, dtype=torch.bool, device="cpu")
-        for b, s in enumerate(samples):
-            n = s.uv.shape[0]
-            uv[b, :n], d[b, :n], mask[b, :n] = s.uv, s.depth, True
-        K = torch.stack([s.K.to(torch.float32) for s in samples])
-        batch = {"ids": [k for k, _ in items], "target": torch.stack([s.image for s in samples]), "sources": sources,
-                 "T_t2s": [t.to(dev) for t in T_t2s], "K": K.to(dev), "uv": uv.to(dev), "d": d.to(dev),
-                 "mask": mask.to(dev)}
-        return resample_batch(batch, self.cfg.train_width, self.cfg.train_height)
+        """The batch of ``ids`` on :attr:`device` (:func:`~mutualslam_cli.adapt.batch.make_batch`), at training size."""
+        batch = make_batch(self.buffer, self.scheme, ids, self.device)
+        cfg = self.cfg
+        return None if batch is None else resample_batch(batch, cfg.train_width, cfg.train_height)
 
     def _one_loss(self, batch: dict[str, object], depth: torch.Tensor, b: int) -> torch.Tensor:
         """Keyframe ``b``'s own L_train from its depth ``(1, 1, H, W)`` and its slice of ``batch``."""
@@ -428,22 +403,3 @@ class OnlineAdapter:
         info.steps = steps
         info.batch = list(batch["ids"])
         self.finetune_ms.append(1000.0 * (time.perf_counter() - t0) + batch_ms)
-
-
-def resample_batch(batch: dict[str, object], width: int, height: int) -> dict[str, object]:
-    """A training batch at ``width × height`` (0: unchanged): images area-resampled, ``K`` and the sparse
-    pixels ``uv`` scaled with pixel centres kept (``c' = (c + 0.5)·s − 0.5``, as ``Intrinsics.scaled``)."""
-    h0, w0 = batch["target"].shape[-2:]
-    width, height = width or w0, height or h0
-    if (width, height) == (w0, h0):
-        return batch
-
-    def small(x: torch.Tensor) -> torch.Tensor:
-        return torch.nn.functional.interpolate(x, size=(height, width), mode="area")
-
-    s = torch.tensor([width / w0, height / h0], device=batch["uv"].device)
-    K = batch["K"].clone()
-    K[:, :2, :] *= s[None, :, None]
-    K[:, :2, 2] += 0.5 * s - 0.5
-    return {**batch, "target": small(batch["target"]), "sources": [small(x) for x in batch["sources"]], "K": K,
-            "uv": (batch["uv"] + 0.5) * s - 0.5}
