@@ -80,7 +80,10 @@ def _stage_table(f: dict[str, Any]) -> Table:
     cols = [(label, key) for label, key in STAGE_COLUMNS if f.get(key) is not None]
     t = Table(*(label for label, _ in cols), title="time (s)")
     t.add_row(*(fmt_value(float(f[key]), 1) for _, key in cols))
-    device = " · ".join(str(f[k]) for k in ("run.device", "run.device_name") if f.get(k))
+    device = " · ".join(fmt for k, fmt in (("run.device", "{}"), ("run.device_name", "{}"),
+                                            ("run.device_memory_gb", "{} GiB"), ("run.cuda_version", "CUDA {}"),
+                                            ("run.cudnn_version", "cuDNN {}")) if f.get(k) is not None
+                        for fmt in [fmt.format(f[k])])
     extra = f"; beyond the steps: +{100 * f['timing.beyond_steps']:.0f} %" if f.get("timing.beyond_steps") else ""
     t.caption = escape(f"device: {device or '?'}{extra}")
     return t
