@@ -51,9 +51,15 @@ Predictor = Callable[[list[np.ndarray]], np.ndarray]
 """``B`` frames ``(H, W, 3)`` uint8 RGB (pinhole geometry) → ``(B, h, w)`` float32 depth at network resolution."""
 
 
+def eval_batch(cfg: RunConfig, device: torch.device) -> int:
+    """``eval.batch``, 0 resolved: 8 frames per forward pass on a GPU, 1 on the CPU (:class:`EvalConfig`)."""
+    return cfg.eval.batch or (8 if device.type == "cuda" else 1)
+
+
 def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConfig,
                    keyframe_frames: set[int] | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
+                   progress: Callable[[int, int], None] | None = None,
+                   batch: int | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
     """Evaluate each model on every ``eval.stride``-th frame that has GT depth.
 
     Frames and their GT depth are first brought to the pinhole camera the network is trained in
@@ -66,6 +72,7 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
         cfg: run config (``eval.pcd_threshold``, ``eval.max_depth``, ``eval.stride``).
         keyframe_frames: frame indices that are keyframes (flagged in the table).
         progress: called with ``(done, total)``.
+        batch: frames per forward pass (default: ``eval.batch``, 0 meaning 1).
 
     Returns:
         ``per_frame`` table (one row per evaluated frame: ``frame``, ``timestamp``, ``is_keyframe``,
@@ -80,7 +87,7 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
     times: dict[str, list[float]] = {k: [] for k in predictors}
     sketches: dict[str, list[np.ndarray | None]] = {k: [] for k in predictors}
     und = Undistorter(seq.intrinsics)
-    bs = max(1, cfg.eval.batch)
+    bs = max(1, batch if batch is not None else cfg.eval.batch)
     group = bs * max(1, _GROUP // bs)
     for start in range(0, len(frames), group):
         # decode a group of frames once, then run one model over all of them before the next:
@@ -193,7 +200,7 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
     if not predictors:  # scheme none with a cached pre-trained evaluation
         table, ms = cached.copy(), {}
     else:
-        table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, progress)
+        table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, progress, eval_batch(cfg, device))
     if cached is None and path is not None and len(table):
         cols = ["frame", "timestamp", "n_valid"] + [c for c in table.columns if c.startswith("pretrained_")]
         atomic_write_text(path, table[cols].to_csv(index=False))
