@@ -21,10 +21,13 @@ kernels are slower; NVIDIA's notes and PyTorch's reproducibility page put it at 
 depending on the layer shapes — not measured here, no GPU was at hand) and ``cudnn.benchmark = False``
 (no autotuning: autotuning times the candidate algorithms on the first call of each shape and may pick
 another one in the next process, so two runs of one seed could differ). ``deterministic: false`` turns
-autotuning on for speed. Seeds are set by the run (``torch.manual_seed`` seeds CUDA too). Within one
-process and GPU kind a seed then gives the same results; across GPU kinds, driver or cuDNN versions
-they differ at float rounding, as CPU kinds do — which is why results name their device
-(:func:`describe_device`) and reports never average runs of different devices.
+autotuning on for speed. Seeds are set by the run (``torch.manual_seed`` seeds CUDA too). One op is
+left that cuDNN's flag does not cover: L_sparse samples the depth map with ``grid_sample``, whose CUDA
+backward adds into the depth's gradient with atomics, so two runs of one seed on one GPU may differ at
+float rounding (``torch.use_deterministic_algorithms`` would refuse that op rather than fix it). Across
+GPU kinds, driver or cuDNN versions results differ at float rounding too, as CPU kinds do — which is
+why results name their device (:func:`describe_device`) and reports never average runs of different
+devices.
 
 **Grids** (:func:`gpu_slots`, :func:`claim_gpu`): ``mslam ablate -j N`` on a machine with several GPUs
 gives each worker process one GPU of its own through ``CUDA_VISIBLE_DEVICES``; the Dask executor asks
