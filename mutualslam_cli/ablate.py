@@ -14,6 +14,12 @@ runs OpenMP threads), ask the kernel to kill them when the grid's process dies (
 which the grid's process handles: it stops the workers and re-raises ``KeyboardInterrupt``.
 While a grid runs it holds the lock of its results folder (:mod:`mutualslam_cli.results.lock`), so a
 second grid on the same folder stops at once with a clear message.
+
+GPUs (DESIGN §9): with the network on CUDA (``device`` ``auto`` or ``cuda``) and several local workers,
+each worker sees one GPU of its own (``CUDA_VISIBLE_DEVICES``, :func:`~mutualslam_cli.device.gpu_slots`),
+so ``-j N`` on N GPUs runs one job per GPU. On Dask a job asks for one ``GPU`` resource when ``device`` is
+``cuda``/``cuda:N`` (workers declare theirs: ``dask worker --resources GPU=1``, one worker per GPU, as
+dask-jobqueue's GPU clusters do); a ``LocalCluster`` gets one worker per GPU, each with its own.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from typing import Any, Callable, Iterator
 from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.config import RunConfig, with_overrides, with_settings
 from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.device import claim_gpu, gpu_slots
 from mutualslam_cli.errors import ConfigError, MslamError
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.lock import hold_lock
@@ -175,6 +182,24 @@ def _die_with_parent() -> None:
         os._exit(1)
 
 
+def _init_worker(slots: Any = None) -> None:
+    """Pool worker initialiser: :func:`_die_with_parent`, then a GPU of its own when the grid places them."""
+    _die_with_parent()
+    if slots is not None:
+        claim_gpu(slots)
+
+
+def make_pool(workers: int, slots: list[str]) -> ProcessPoolExecutor:
+    """A spawned pool of ``workers`` processes; worker k takes ``CUDA_VISIBLE_DEVICES = slots[k]`` (none: as is)."""
+    ctx = multiprocessing.get_context("spawn")
+    queue = None
+    if slots:
+        queue = ctx.Queue()
+        for s in slots:
+            queue.put(s)
+    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(queue,))
+
+
 def _local_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str] | None, reg: str | None,
                     workers: int, threads: int) -> Iterator[JobOutcome]:
     """Outcomes of ``todo`` run in this process (1 worker) or a spawned process pool, as they finish."""
@@ -184,8 +209,10 @@ def _local_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str
         for j in todo:
             yield _run_job(cfg, j, out, command, reg, threads)
         return
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_die_with_parent)
+    slots = gpu_slots(cfg.device, workers)
+    if slots:
+        log.info("one GPU per worker: CUDA_VISIBLE_DEVICES %s", ", ".join(slots))
+    pool = make_pool(workers, slots)
     try:
         # the workers start (and import torch, seconds each) while this process runs the front ends
         warm = [pool.submit(_warm_up) for _ in range(workers)]
@@ -251,18 +278,26 @@ def _dask_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str]
     except ImportError:
         raise ConfigError("--executor dask needs dask.distributed: pip install 'dask[distributed]'") from None
     cluster = None
+    gpu = cfg.device.startswith("cuda")  # each job asks for one GPU (only where the config says so: a cluster
+    # without GPU resources would hold the jobs forever; ``auto`` runs where it lands)
+    resources = {"GPU": 1} if gpu else None
+    slots = gpu_slots(cfg.device, workers) if scheduler is None else []  # ``cuda``, several workers
     if scheduler is None:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                               resources=resources)
         threads = cfg.threads if cfg.threads > 0 else max(1, (os.cpu_count() or 1) // max(1, workers))
     else:
         threads = cfg.threads  # 0: every core of the worker's machine
     client = Client(cluster if cluster is not None else scheduler)
+    if slots:  # a LocalCluster on a multi-GPU machine: worker k sees GPU k (before any job initialises CUDA)
+        for addr, slot in zip(sorted(client.scheduler_info()["workers"]), slots):
+            client.run(_set_visible, slot, workers=[addr])
     try:
         fronts = {(q, k): client.submit(_prepare_one, cfg, q, k, out, reg, threads, pure=False,
                                         key=f"vo-{Path(q).name}-seed{k}-{os.getpid()}")
                   for q, k in sorted({(j.sequence, j.seed) for j in todo})}
         futs = {client.submit(_run_job, cfg, j, out, command, reg, threads, fronts[(j.sequence, j.seed)],
-                              pure=False): j for j in todo}
+                              pure=False, resources=resources): j for j in todo}
         for f in dask_completed(list(futs)):
             try:
                 yield f.result()
@@ -272,6 +307,11 @@ def _dask_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str]
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _set_visible(slot: str) -> None:
+    """On a Dask worker: the GPU it may use (:func:`_dask_outcomes`)."""
+    os.environ["CUDA_VISIBLE_DEVICES"] = slot
 
 
 def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,

@@ -213,6 +213,12 @@ class RunConfig:
     """Seed of every random choice (replay sampling, RANSAC, init)."""
     threads: int = 0
     """torch/OpenCV threads (0 = all cores)."""
+    device: str = "auto"
+    """Where the depth network runs: ``auto`` (CUDA when ``torch.cuda.is_available()``, else the CPU), ``cpu``,
+    ``cuda`` or ``cuda:N``; VO, BA and metrics always run on the CPU (:mod:`~mutualslam_cli.device`)."""
+    deterministic: bool = True
+    """CUDA: deterministic cuDNN algorithms, no autotuning (one seed, one result; slower convolution backward
+    kernels); ``false``: ``cudnn.benchmark`` autotuning (:mod:`~mutualslam_cli.device`). No effect on the CPU."""
     out: str = "results"
     """Folder that receives ``<sequence>/<scheme>/seed<k>/``."""
     data: DataConfig = field(default_factory=DataConfig)

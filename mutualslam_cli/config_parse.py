@@ -9,6 +9,7 @@ dotted key, what was expected and what was found.
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from typing import Any, Literal
@@ -16,6 +17,15 @@ from typing import Any, Literal
 import yaml
 
 from mutualslam_cli.errors import ConfigError
+
+#: The values of ``device`` (:mod:`~mutualslam_cli.device`).
+DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+
+
+def check_device_spec(spec: Any) -> None:
+    """Raise :class:`ConfigError` unless ``spec`` is ``auto``, ``cpu``, ``cuda`` or ``cuda:N``."""
+    if not isinstance(spec, str) or not DEVICE_PATTERN.match(spec):
+        raise ConfigError(f"device: {spec!r} is not one of auto, cpu, cuda, cuda:N")
 
 
 def coerce(value: Any, tp: Any, where: str) -> Any:
@@ -157,6 +167,7 @@ def check_vo(cfg: Any) -> None:
 def check_run(cfg: Any) -> None:
     """Raise :class:`ConfigError` naming the first value of a ``RunConfig`` the tool cannot work with."""
     check_vo(cfg.vo)
+    check_device_spec(cfg.device)
     checks = [
         (cfg.adapt.lr > 0, "adapt.lr must be > 0"),
         (cfg.adapt.validate_every >= 1, "adapt.validate_every (m) must be ≥ 1"),
@@ -177,7 +188,8 @@ def check_run(cfg: Any) -> None:
         (cfg.data.stride >= 1, "data.stride must be ≥ 1"),
         (cfg.data.max_frames >= 0, "data.max_frames must be ≥ 0"),
         (cfg.eval.pcd_threshold > 0, "eval.pcd_threshold must be > 0"),
-        (cfg.eval.batch >= 1 and cfg.eval.export_frames >= 0, "eval.batch must be ≥ 1, eval.export_frames ≥ 0"),
+        (cfg.eval.batch >= 0 and cfg.eval.export_frames >= 0,
+         "eval.batch (0 = auto) and eval.export_frames must be ≥ 0"),
         (cfg.ba.max_targets >= 1 and cfg.ba.rounds >= 1 and cfg.ba.levels >= 1,
          "ba.max_targets, ba.rounds and ba.levels must be ≥ 1"),
         (0 <= cfg.ba.nearby_slots < cfg.ba.max_targets, "ba.nearby_slots must be in [0, ba.max_targets)"),

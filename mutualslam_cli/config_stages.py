@@ -70,9 +70,10 @@ class EvalConfig:
     """Write the adapted weights into the result folder."""
     ate_max_dt: float = 0.02
     """Trajectory association threshold in seconds (TUM benchmark)."""
-    batch: int = 1
-    """Frames per forward pass in the depth evaluation (results do not depend on it beyond rounding).
-    Per frame, 640×192 bf16, 2 threads, AVX512-BF16: batch 1 60 ms, 2 58, 4 59, 8 72 — it does not pay."""
+    batch: int = 0
+    """Frames per forward pass in the depth evaluation (results do not depend on it beyond rounding); 0 = 8 on
+    a GPU, 1 on the CPU. Per frame, 640×192 bf16, 2 threads, AVX512-BF16: batch 1 60 ms, 2 58, 4 59, 8 72 — on
+    the CPU it does not pay (OpenVINO runs one frame per call anyway)."""
     export_frames: int = 4
     """Frames, evenly spread over the sequence, whose depth both models save (``depth/``: 16-bit PNG at
     5000 per unit, TUM's convention, and ``.npy``) and show in ``depth.png``, GT or not. 0 = none."""

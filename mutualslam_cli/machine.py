@@ -41,3 +41,13 @@ def cpu_kind(flags: list[str] | None) -> str:
     if flags is None:
         return "unknown"
     return next((name for name, need in KINDS if set(need) <= set(flags)), "other")
+
+
+def memory_gb() -> float | None:
+    """The machine's physical memory in GiB (``None`` where it cannot be read)."""
+    try:
+        import psutil
+
+        return round(psutil.virtual_memory().total / 1024**3, 2)
+    except Exception:  # noqa: BLE001 - a missing figure is recorded as such
+        return None

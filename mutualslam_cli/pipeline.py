@@ -28,6 +28,7 @@ from mutualslam_cli.config import RunConfig, load_config, to_dict, with_override
 from mutualslam_cli.datasets.recording import RecordingOptions
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.device import configure, describe_device, device_label, resolve_device
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import (
@@ -122,9 +123,11 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
 
     Raises:
         ResultsLocked: another process works in the same run folder (:mod:`~mutualslam_cli.results.lock`).
+        ConfigError: ``device`` names a CUDA device this process cannot use.
     """
     t_start = time.perf_counter()
-    torch.manual_seed(cfg.seed)
+    device = resolve_device(cfg.device)  # once per run; everything that holds network tensors gets it
+    torch.manual_seed(cfg.seed)  # seeds CUDA's generators too
     retain_freed_memory()  # image-sized buffers reuse pages (VO, warps, evaluation)
     cfg = use_threads(cfg)
     out_root = Path(out if out is not None else cfg.out)
@@ -133,7 +136,8 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         recording = replace(recording, cache=out_root / "_cache" / "recordings")
     seq = open_sequence(sequence, cfg, registry, recording, progress)
     folder = run_dir(out_root, seq.name, cfg.adapt.scheme, cfg.seed)
-    run = RunContext(seq, cfg, folder, out_root, progress=progress, timings={"load": time.perf_counter() - t_start})
+    run = RunContext(seq, cfg, folder, out_root, progress=progress, timings={"load": time.perf_counter() - t_start},
+                     device=device)
     if is_complete(folder) and not force:
         log.info("%s is complete; skipping (use --force to recompute)", folder)
         return RunResult(folder, read_summary(folder), skipped=True)
@@ -148,8 +152,10 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     """Algorithm 1 around a sequence, in its run folder, under the folder's lock."""
     cfg = run.cfg
     write_yaml(run.folder / "config.yaml", to_dict(cfg))
-    fast = use_fast_path(cfg)
-    net0 = load_network(cfg, fast)  # the pre-trained model
+    run.device_info = {**describe_device(run.device), **configure(run.device, cfg.deterministic)}
+    log.info("depth network on %s (%s)", run.device, run.device_info["device_name"])
+    fast = use_fast_path(cfg, run.device)
+    net0 = load_network(cfg, fast, run.device)  # the pre-trained model
     ba = BAStage(run)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
     adapted = adaptation.run_stage(run, net0, fast, ba if cfg.ba.enabled else None)  # front end + Algorithm 1
     fe = frontend.run_stage(run, adapted.frontend, adapted.source.replayed, adapted.injected)  # its own map
@@ -171,8 +177,13 @@ def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, adapted: adapta
     summary.set("sequence.frames", len(seq))
     summary.set("scheme", cfg.adapt.scheme)
     summary.set("seed", cfg.seed)
+    dev = run.device_info
+    for key in ("device", "device_name", "device_memory_gb", "cuda_version", "cudnn_version"):
+        summary.set(f"run.{key}", dev.get(key), "not a CUDA device" if key.startswith("cud") else "unknown")
+    summary.set("run.device_label", device_label(dev))  # what reports group by: never averaged across devices
     timings = {**{f"{k}_s": v for k, v in run.timings.items()}, "total_s": total}
     write_json(run.folder / "manifest.json", manifest(command, cfg.seed, timings, {
+        "device": dev,
         "sequence": {"name": seq.name, "root": str(seq.root), "frames": len(seq), "meta": seq.meta,
                      "intrinsics": seq.intrinsics.as_list()},
         "vo_meta": {k: v for k, v in fe.vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
@@ -194,13 +205,17 @@ def _summarise_times(summary: Summary, timings: dict[str, float], total_s: float
     fine-tuning without the BA it triggered), ``ba`` (every culling + global BA: Algorithm 1's
     requests and the final one), ``evaluation`` (depth of every frame with GT by both models),
     ``dense`` (when it ran), ``other`` (the rest: loading the sequence and the network, trajectory
-    and map metrics, writing files). They add up to ``total_s``.
+    and map metrics, writing files). They add up to ``total_s``. ``timing.beyond_steps``: what the run cost
+    beyond its optimiser steps, as a share of them (``total_s / timing.finetune_steps_s − 1``; DESIGN §10: ≤ 0.25).
     """
     parts = {k: timings.get(k, 0.0) for k in STAGES if k != "dense" or "dense" in timings}
     parts["other"] = total_s - sum(parts.values())
     summary.set("timing.total_s", total_s)
     for k, v in parts.items():
         summary.set(f"timing.stage_s.{k}", float(v))
+    steps_s = summary.values.get("timing.finetune_steps_s")
+    summary.set("timing.beyond_steps", total_s / steps_s - 1.0 if steps_s else None,
+                "no optimiser step")  # DESIGN §10: a run costs its steps + at most 25 % (≤ 0.25)
     if vo_cached:
         summary.notes["timing.stage_s.frontend"] = "front end loaded from the cache"
 
@@ -241,17 +256,20 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
     t0 = time.perf_counter()
     with hold_lock(folder, "mslam fuse"):
         cfg = use_threads(cfg)
+        device = resolve_device(cfg.device)
+        configure(device, cfg.deterministic)
         seq = open_sequence(seq if seq is not None else root, cfg, registry)
         vo, _, _ = frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)
-        fast = use_fast_path(cfg)
-        nets = {"pretrained": load_network(cfg, fast), "adapted": prepare(load_monodepth2(
-            wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast) if adapted else None}
+        fast = use_fast_path(cfg, device)
+        nets = {"pretrained": load_network(cfg, fast, device), "adapted": prepare(load_monodepth2(
+            wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast, device=device) if adapted else None}
         summary = Summary.from_dict(old, drop_prefix="dense.")
         dense.run_dense(folder, seq, vo, nets, cfg, fast, summary, progress)
         data = to_dict(cfg)
         data["dense"]["enabled"] = True  # the folder now holds the dense results of these settings
         write_yaml(folder / "config.yaml", data)
         record["fuse"] = {"command": command, "time_s": time.perf_counter() - t0, "versions": versions(),
+                          "device": describe_device(device),
                           "git_revision": git_revision(),
                           "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         write_json(folder / "manifest.json", record)

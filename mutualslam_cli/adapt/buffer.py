@@ -8,9 +8,10 @@ What is stored (DESIGN §5, paper §III-A/B):
   BA, grown by later observations (paper §III-A: "the keyframe graph … is beneficial for improving
   the training loss") — and never on a later one (DESIGN §5). Without one, the values given at
   arrival are used, replaced by :meth:`KeyframeBuffer.update_poses` / :meth:`KeyframeBuffer.update_sparse`.
-- Images are kept at network resolution, as uint8 when that is lossless (images decoded from
-  8-bit files, the pipeline's case: 4× less memory), else as given. With ``capacity == 0`` every
-  image is kept. With ``capacity = C > 0``:
+- Images are kept on the CPU at network resolution, as uint8 when that is lossless (images decoded
+  from 8-bit files, the pipeline's case: 4× less memory), else as given; :meth:`KeyframeBuffer.get`
+  sends one to the device that asks for it (as uint8: 4× less to transfer), where it becomes float.
+  With ``capacity == 0`` every image is kept. With ``capacity = C > 0``:
 
   * training keyframes: the two most recent are always kept (the recent batch and the newest's
     photometric neighbour); older ones enter a *reservoir* of ``C − 2`` slots (Vitter's
@@ -145,8 +146,9 @@ class KeyframeBuffer:
         if self._meta and sample.kf_id <= max(self._meta):
             raise KeyframeError(f"keyframe ids must increase: got {sample.kf_id} after {max(self._meta)}")
         # the image lives only in ``_images`` (compacted): the sample's float32 copy is 4x its size
-        self._meta[sample.kf_id] = replace(sample, image=torch.empty(0), pose=np.asarray(sample.pose, dtype=np.float64))
-        self._images[sample.kf_id] = _compact(sample.image)
+        self._meta[sample.kf_id] = replace(sample, image=torch.empty(0, device="cpu"), K=sample.K.cpu(),
+                                           pose=np.asarray(sample.pose, dtype=np.float64))
+        self._images[sample.kf_id] = _compact(sample.image.cpu())
         if training:
             self._train.append(sample.kf_id)
             if self._train_res is not None and len(self._train) > 2:
@@ -187,8 +189,9 @@ class KeyframeBuffer:
     def __contains__(self, kf_id: int) -> bool:
         return kf_id in self._images
 
-    def get(self, kf_id: int) -> KeyframeSample:
-        """The stored sample (with the latest pose and sparse points).
+    def get(self, kf_id: int, device: torch.device | str | None = None) -> KeyframeSample:
+        """The stored sample (with the latest pose and sparse points); its image on ``device`` (default the CPU),
+        ``K``, ``uv`` and ``depth`` on the CPU.
 
         Raises:
             KeyframeError: unknown id or image evicted.
@@ -196,6 +199,8 @@ class KeyframeBuffer:
         if kf_id not in self._images:
             raise KeyframeError(f"keyframe {kf_id} is not stored (unknown or evicted)")
         img = self._images[kf_id]
+        if device is not None:
+            img = img.to(device, non_blocking=True)
         meta = self._meta[kf_id]
         if self.labels is not None:  # the map as it stands now (DESIGN §5), not as it stood at arrival
             uv, d = self.labels.sparse(kf_id)
@@ -315,8 +320,8 @@ class KeyframeBuffer:
         n = 0
         for k, (uv, d) in points.items():
             if k in self._meta:
-                uv = torch.as_tensor(uv, dtype=torch.float32)
-                d = torch.as_tensor(d, dtype=torch.float32)
+                uv = torch.as_tensor(uv, dtype=torch.float32, device="cpu")
+                d = torch.as_tensor(d, dtype=torch.float32, device="cpu")
                 check_shape(uv, ["M", 2], f"update_sparse: uv of keyframe {k}")
                 check_shape(d, [uv.shape[0]], f"update_sparse: depth of keyframe {k}")
                 self._meta[k] = replace(self._meta[k], uv=uv, depth=d)

@@ -45,7 +45,10 @@ and attributes part of the gap to the pose network, which was never trained indo
   Its scale is the depth network's (monocular), so its ATE is Sim(3)-aligned.
 - Determinism: ``torch.manual_seed(seed)`` at construction; replay draws and reservoir choices
   come from numpy Generators seeded with ``seed`` and ``seed + 1``; the tie-breaking noise from a
-  torch Generator seeded with ``seed + 2``.
+  torch Generator seeded with ``seed + 2`` (drawn on the CPU whatever the device, so it is the same
+  noise everywhere).
+- Device: both networks and the optimiser live on ``device``; frames, triplets and the replay set stay
+  on the CPU as uint8 and each update's batch is sent over; poses come back to the CPU.
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.adapt.warp import warp
 from mutualslam_cli.adapt.weights import default_weights_dir, has_pose_files, load_pose
 from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.device import grad_scaler, module_device, synchronize
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.types import check_shape
 
@@ -152,7 +156,7 @@ def automasked_min_reprojection(target: torch.Tensor, sources: list[torch.Tensor
     reproj = torch.cat(reproj.split(b, 0), 1)                                       # (B, n, H, W)
     with torch.no_grad():
         ident = torch.cat(photometric_error(target, src, alpha).split(b, 0), 1)     # (B, n, H, W), no gradient
-        noise = torch.randn(ident.shape, generator=generator, dtype=ident.dtype) * IDENTITY_NOISE
+        noise = torch.randn(ident.shape, generator=generator, dtype=ident.dtype, device="cpu") * IDENTITY_NOISE
         ident = ident + noise.to(ident.device)
     combined = torch.cat([ident, reproj], 1)                                        # Monodepth2 Eq. 5
     best, idx = combined.min(1, keepdim=True)
@@ -196,6 +200,7 @@ class ComodaAdapter:
         replay_bank: ``(triplets (N, 3, 3, H, W) uint8, K (3, 3))``: replay only these (CoMoDa's
             replay of the training domain) and store nothing of the sequence; ``None``: replay a
             reservoir of the sequence's own past triplets.
+        device: where both networks run (they are moved there); default: the depth network's device.
 
     Raises:
         ConfigError: a ``comoda_*`` setting out of range.
@@ -203,9 +208,13 @@ class ComodaAdapter:
 
     def __init__(self, depth_net: nn.Module, pose_net: PoseNet, cfg: AdaptConfig,
                  K_net: torch.Tensor | np.ndarray, seed: int = 0, fast: bool = False,
-                 replay_bank: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+                 replay_bank: tuple[torch.Tensor, torch.Tensor] | None = None,
+                 device: torch.device | str | None = None) -> None:
         check_comoda_config(cfg)
-        self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32)
+        self.device = torch.device(device) if device is not None else module_device(depth_net)
+        depth_net.to(self.device)
+        pose_net.to(self.device)
+        self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32, device="cpu")
         check_shape(self.K_net, [3, 3], "ComodaAdapter: K_net")
         torch.manual_seed(seed)
         self.n_bn_frozen = freeze_batchnorm(depth_net, pose_net)  # eval mode + BN affine frozen (CoMoDa)
@@ -213,16 +222,17 @@ class ComodaAdapter:
         self.cfg, self.fast = cfg, bool(fast)
         params = [p for m in (depth_net, pose_net) for p in m.parameters() if p.requires_grad]
         self.optimizer = torch.optim.Adam(params, lr=cfg.comoda_lr, betas=(0.9, 0.999))
+        self.scaler = grad_scaler(self.device, self.fast)
         self.rng = np.random.default_rng(seed)
         self.reservoir_rng = np.random.default_rng(seed + 1)
-        self.noise = torch.Generator().manual_seed(seed + 2)
+        self.noise = torch.Generator(device="cpu").manual_seed(seed + 2)
         self.window: list[tuple[int, torch.Tensor]] = []   # the last three frames, uint8 (3, H, W)
         self.replay: list[tuple[int, torch.Tensor, torch.Tensor]] = []  # (target, (3, 3, H, W) uint8, K (3, 3))
         self.fixed_bank = replay_bank is not None
         if replay_bank is not None:
             triplets, K_src = replay_bank
             check_shape(triplets, ["N", 3, 3, "H", "W"], "ComodaAdapter: replay_bank triplets")
-            K_src = torch.as_tensor(K_src, dtype=torch.float32)
+            K_src = torch.as_tensor(K_src, dtype=torch.float32, device="cpu")
             self.replay = [(-1 - k, triplets[k], K_src) for k in range(triplets.shape[0])]
         self.n_seen_triplets = 0
         self.poses: list[np.ndarray] = []                   # T_wc of every frame so far
@@ -239,7 +249,7 @@ class ComodaAdapter:
         check_shape(image, [3, "H", "W"], "ComodaAdapter.add_frame")
         self._eval_mode()
         idx = len(self.poses)
-        self.window = (self.window + [(idx, to_uint8(image))])[-3:]
+        self.window = (self.window + [(idx, to_uint8(image).cpu())])[-3:]
         info = FrameStep(frame=idx)
         if len(self.window) == 3:
             triplet = torch.stack([img for _, img in self.window])
@@ -273,7 +283,7 @@ class ComodaAdapter:
         sequence's camera, without training."""
         self._eval_mode()
         with torch.no_grad():
-            _, parts = self._loss(triplets, self.K_net.expand(triplets.shape[0], 3, 3))
+            _, parts = self._loss(triplets.to(self.device), self.K_net.expand(triplets.shape[0], 3, 3).to(self.device))
         return parts
 
     # ------------------------------------------------------------------ internals
@@ -291,10 +301,10 @@ class ComodaAdapter:
 
     def _loss(self, triplets: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
         """Eq. 4–5 of Monodepth2 + λ_s·L_smooth on ``(B, 3, 3, H, W)`` uint8 triplets (t−1, t, t+1)
-        with their ``(B, 3, 3)`` intrinsics."""
+        with their ``(B, 3, 3)`` intrinsics, both on the adapter's device."""
         f = triplets.float() / 255.0
         prev, tgt, nxt = f[:, 0], f[:, 1], f[:, 2]
-        with fast_context(self.fast):
+        with fast_context(self.fast, self.device):
             depth = self.net.predict(tgt)
             T_prev2t = self.pose_net(prev, tgt)        # T_{t−1→t}
             T_t2next = self.pose_net(tgt, nxt)         # T_{t→t+1}
@@ -303,24 +313,30 @@ class ComodaAdapter:
                                                   self.cfg.alpha, self.noise)
         smooth = smoothness_loss(depth, tgt)
         total = photo + self.cfg.comoda_smoothness * smooth
-        parts = {"photo": float(photo.detach()), "smooth": float(smooth.detach()), "total": float(total.detach()),
-                 "automask": float(mask.float().mean())}
+        values = torch.stack([photo, smooth, total, mask.float().mean()]).detach().tolist()  # one copy to the host
+        parts = dict(zip(("photo", "smooth", "total", "automask"), values))
         return total, parts
 
     def _update(self, target: int, triplet: torch.Tensor, info: FrameStep) -> None:
         k = min(self.cfg.comoda_replay_per_step, len(self.replay))
         picks = sorted(self.rng.choice(len(self.replay), size=k, replace=False).tolist()) if k else []
-        batch = torch.stack([triplet] + [self.replay[i][1] for i in picks])
-        K = torch.stack([self.K_net] + [self.replay[i][2] for i in picks])
+        batch = torch.stack([triplet] + [self.replay[i][1] for i in picks]).to(self.device)  # uint8 over
+        K = torch.stack([self.K_net] + [self.replay[i][2] for i in picks]).to(self.device)
         info.batch = [target] + [self.replay[i][0] for i in picks]
         t0 = time.perf_counter()
         for s in range(self.cfg.comoda_steps_per_frame):
             self.optimizer.zero_grad(set_to_none=True)
             loss, parts = self._loss(batch, K)
-            loss.backward()
-            self.optimizer.step()
+            if self.scaler is None:
+                loss.backward()
+                self.optimizer.step()
+            else:  # fp16: scaled loss, a step with an inf/NaN gradient skipped
+                self.scaler.scale(loss).backward()
+                self.scaler.step(self.optimizer)
+                self.scaler.update()
             if s == 0:
                 info.loss = parts
+        synchronize(self.device)
         info.step_ms = 1000.0 * (time.perf_counter() - t0)
         self.step_ms.append(info.step_ms)
         info.trained = True
@@ -332,19 +348,19 @@ class ComodaAdapter:
             return
         self.n_seen_triplets += 1
         if len(self.replay) < self.cfg.comoda_replay_capacity:
-            self.replay.append((target, triplet, self.K_net))
+            self.replay.append((target, triplet.cpu(), self.K_net))
             return
         j = int(self.reservoir_rng.integers(self.n_seen_triplets))
         if j < self.cfg.comoda_replay_capacity:
-            self.replay[j] = (target, triplet, self.K_net)
+            self.replay[j] = (target, triplet.cpu(), self.K_net)
 
     def _extend_trajectory(self) -> None:
         if not self.poses:
             self.poses.append(np.eye(4))
             return
-        a, b = (img.float()[None] / 255.0 for _, img in self.window[-2:])
-        with torch.no_grad(), fast_context(self.fast):
-            T = self.pose_net(a, b)[0].double().numpy()  # T_{t→t+1}
+        a, b = (img.to(self.device).float()[None] / 255.0 for _, img in self.window[-2:])
+        with torch.no_grad(), fast_context(self.fast, self.device):
+            T = self.pose_net(a, b)[0].double().cpu().numpy()  # T_{t→t+1}
         self.poses.append(self.poses[-1] @ np.linalg.inv(T))
 
 

@@ -52,7 +52,7 @@ def source_triplets(n: int, width: int, height: int, scenes: Sequence[str] = SOU
     """
     if n < 1:
         raise ConfigError(f"comoda source replay: need at least 1 triplet, got {n}")
-    K = torch.as_tensor(synthetic_intrinsics(width, height).K(), dtype=torch.float32)
+    K = torch.as_tensor(synthetic_intrinsics(width, height).K(), dtype=torch.float32, device="cpu")
     path = (Path(cache_dir) / f"bank-{n}x{width}x{height}-{'-'.join(scenes)}-{seed_base}.npy"
             if cache_dir is not None else None)
     if path is not None and path.is_file():
@@ -62,7 +62,7 @@ def source_triplets(n: int, width: int, height: int, scenes: Sequence[str] = SOU
                 return torch.from_numpy(bank), K
         except (OSError, ValueError) as e:
             log.warning("%s: unreadable (%s); rendering the bank again", path, e)
-    out = torch.empty((n, 3, 3, height, width), dtype=torch.uint8)
+    out = torch.empty((n, 3, 3, height, width), dtype=torch.uint8, device="cpu")  # the bank stays on the CPU
     for k in range(n):
         frames = [f[1] for f in iter_render(scenes[k % len(scenes)], 3, width, height, seed_base + k, "source")]
         out[k] = torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2)

@@ -13,14 +13,16 @@ fake-quantised after calibration on a few frames (:mod:`mutualslam_cli.adapt.qua
 OpenVINO runs those convolutions on int8 kernels. Here (AVX512, VNNI): 31.8 ms against 103 ms
 for PyTorch fp32; DESIGN §10's AVX2-only probe measured OpenVINO int8 at 2.66× PyTorch fp32.
 
-``net.runtime``: ``auto`` (OpenVINO when it is installed and ``net.fast`` is not ``off``: bf16 where
-the CPU has it, else int8), ``torch``, ``openvino`` (bf16 where the CPU has it, else fp32) or
-``openvino-int8`` (an error when OpenVINO is not installed). ``net.fast: off`` with ``auto`` keeps
+``net.runtime``: ``auto`` (OpenVINO when it is installed, the network runs on the CPU and ``net.fast``
+is not ``off``: bf16 where the CPU has it, else int8; on a CUDA device the torch path on the GPU),
+``torch``, ``openvino`` (bf16 where the CPU has it, else fp32) or ``openvino-int8`` (an error when
+OpenVINO is not installed). ``net.fast: off`` with ``auto`` keeps
 the exact fp32 eager PyTorch path.
 """
 
 from __future__ import annotations
 
+import copy
 import functools
 import logging
 import os
@@ -32,6 +34,7 @@ import torch
 
 from mutualslam_cli.adapt.depthnet import fast_path_supported
 from mutualslam_cli.adapt.quantize import calibrate, fake_quantized
+from mutualslam_cli.device import module_device
 from mutualslam_cli.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -50,10 +53,13 @@ def openvino_available() -> bool:
 RUNTIMES = ("auto", "torch", "openvino", "openvino-int8")
 
 
-def resolve_runtime(runtime: str, fast_mode: str) -> str:
-    """``net.runtime`` and ``net.fast`` (``auto|on|off``) → ``"torch"``, ``"openvino"`` or ``"openvino-int8"``."""
+def resolve_runtime(runtime: str, fast_mode: str, device: torch.device | str = "cpu") -> str:
+    """``net.runtime``, ``net.fast`` (``auto|on|off``) and the network's device → ``"torch"``, ``"openvino"`` or
+    ``"openvino-int8"`` (OpenVINO is the CPU's fast path: ``auto`` on a CUDA device is ``torch``)."""
     if runtime not in RUNTIMES:
         raise ConfigError(f"net.runtime: expected one of {', '.join(RUNTIMES)}, got {runtime!r}")
+    if runtime == "auto" and torch.device(device).type != "cpu":
+        return "torch"
     if runtime == "torch" or (runtime == "auto" and (fast_mode == "off" or not openvino_available())):
         return "torch"
     if not openvino_available():
@@ -96,7 +102,7 @@ def openvino_predictor(net: torch.nn.Module, width: int, height: int, threads: i
 
     Args:
         net: a :class:`~mutualslam_cli.adapt.depthnet.DepthNet` (weights are copied at conversion:
-            later changes to ``net`` are not seen).
+            later changes to ``net`` are not seen; a network on another device is copied to the CPU first).
         width, height: network input size in pixels.
         threads: inference threads (default: torch's setting).
         calibration: ``(N, 3, height, width)`` frames in [0, 1]: quantise to int8 with activation
@@ -109,7 +115,10 @@ def openvino_predictor(net: torch.nn.Module, width: int, height: int, threads: i
     """
     import openvino as ov
 
+    if module_device(net).type != "cpu":  # OpenVINO runs on the CPU: convert a CPU copy
+        net = copy.deepcopy(net).cpu()
     if calibration is not None:
+        calibration = calibration.cpu()
         net = fake_quantized(net, calibrate(net, calibration))
     was_training = net.training
     net.eval()
@@ -117,7 +126,7 @@ def openvino_predictor(net: torch.nn.Module, width: int, height: int, threads: i
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks are constant at a fixed size
             _without_telemetry()
-            model = ov.convert_model(_Predict(net), example_input=torch.rand(1, 3, height, width))
+            model = ov.convert_model(_Predict(net), example_input=torch.rand(1, 3, height, width, device="cpu"))
     finally:
         net.train(was_training)
     # int8: the fake-quantised convolutions run int8 whatever the hint; the rest stays fp32

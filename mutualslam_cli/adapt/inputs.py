@@ -19,16 +19,21 @@ from mutualslam_cli.adapt.depthnet import fast_path_supported, predict_depth, pr
 from mutualslam_cli.adapt.inference import openvino_predictor, resolve_runtime
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.device import amp_supported, module_device
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.result import VOResult
 
 
+def resample(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``(H, W, 3)`` uint8 → ``(height, width, 3)`` uint8 (area resampling, as :func:`to_net_image`)."""
+    return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+
+
 def to_net_image(rgb: np.ndarray, width: int, height: int) -> torch.Tensor:
-    """``(H, W, 3)`` uint8 → ``(3, height, width)`` float32 in [0, 1] (area resampling)."""
-    small = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
-    return torch.from_numpy(small).permute(2, 0, 1).float().div_(255.0)
+    """``(H, W, 3)`` uint8 → ``(3, height, width)`` float32 in [0, 1] on the CPU (area resampling)."""
+    return torch.from_numpy(resample(rgb, width, height)).permute(2, 0, 1).float().div_(255.0)
 
 
 def scale_pixels(uv: np.ndarray, src: Intrinsics, width: int, height: int) -> np.ndarray:
@@ -64,35 +69,42 @@ def keyframe_images(seq: Sequence, keyframes: VOResult | Callable[[int], int], w
 def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool,
                    calibration: list[np.ndarray] | None = None) -> Callable[[list[np.ndarray]], np.ndarray]:
     """Batched predictor for evaluation: ``B`` frames ``(H, W, 3)`` uint8 (pinhole geometry) → ``(B, h, w)``
-    float32 depth at network resolution (map units), in the runtime ``net.runtime`` resolves to
-    (:func:`~mutualslam_cli.adapt.inference.resolve_runtime`; OpenVINO copies the weights now).
+    float32 depth at network resolution (map units), in the runtime ``net.runtime`` resolves to for the
+    network's device (:func:`~mutualslam_cli.adapt.inference.resolve_runtime`; OpenVINO copies the weights
+    now; the torch path runs on the network's device, resampled frames sent there as uint8).
     ``calibration``: frames of the same kind for the int8 runtime's activation ranges (required there)."""
-    runtime = resolve_runtime(cfg.net.runtime, cfg.net.fast)
+    runtime = resolve_runtime(cfg.net.runtime, cfg.net.fast, module_device(net))
     if runtime == "openvino-int8" and not calibration:
         raise ConfigError("net.runtime=openvino-int8 needs calibration frames")
     if runtime.startswith("openvino"):
         calib = (torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in calibration])
                  if runtime == "openvino-int8" else None)
         run = openvino_predictor(net, cfg.net.width, cfg.net.height, calibration=calib)
-    else:
-        def run(x: torch.Tensor) -> np.ndarray:
-            return predict_depth(net, x, fast=fast)
 
-    def predict(frames: list[np.ndarray]) -> np.ndarray:
-        return run(torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in frames]))
+        def predict(frames: list[np.ndarray]) -> np.ndarray:
+            return run(torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in frames]))
+    else:
+        def predict(frames: list[np.ndarray]) -> np.ndarray:
+            small = np.stack([resample(rgb, cfg.net.width, cfg.net.height) for rgb in frames])  # (B, h, w, 3) uint8
+            return predict_depth(net, small, fast=fast)
 
     return predict
 
 
-def load_network(cfg: RunConfig, fast: bool = False) -> torch.nn.Module:
-    """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default,
-    in the memory layout of the chosen path (:func:`~mutualslam_cli.adapt.depthnet.prepare`: channels-last
-    with ``fast``, as the adapted model is; an unprepared model under bf16 autocast was 1.27× slower)."""
+def load_network(cfg: RunConfig, fast: bool = False, device: torch.device | str = "cpu") -> torch.nn.Module:
+    """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default, on
+    ``device``, in the memory layout of the chosen path (:func:`~mutualslam_cli.adapt.depthnet.prepare`:
+    channels-last with ``fast``, as the adapted model is; an unprepared model under bf16 autocast was 1.27×
+    slower)."""
     kw = {"min_depth": cfg.net.min_depth, "max_depth": cfg.net.max_depth}
     net = weights.load_monodepth2(Path(cfg.net.weights), **kw) if cfg.net.weights else weights.load_default(**kw)
-    return prepare(net, fast)
+    return prepare(net, fast, device=device)
 
 
-def use_fast_path(cfg: RunConfig) -> bool:
-    """Resolve ``net.fast`` (auto → bf16 where the CPU supports it)."""
+def use_fast_path(cfg: RunConfig, device: torch.device | str = "cpu") -> bool:
+    """Resolve ``net.fast``: ``auto`` → bf16 where the CPU supports it; on a CUDA device mixed precision
+    (bf16 or fp16) where the GPU has tensor cores (:func:`~mutualslam_cli.device.amp_supported`)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return cfg.net.fast == "on" or (cfg.net.fast == "auto" and amp_supported(device))
     return cfg.net.fast == "on" or (cfg.net.fast == "auto" and fast_path_supported())

@@ -16,6 +16,7 @@ keyframe): every term is a mean per image, then the mean over the images of the 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from typing import Callable
 
@@ -30,11 +31,15 @@ _C1, _C2 = 0.01 ** 2, 0.03 ** 2  # SSIM constants for images in [0, 1] (Wang et 
 
 
 def _fp32(fn: Callable) -> Callable:
-    """Run ``fn`` with autocast off (the fast path keeps losses in full precision)."""
+    """Run ``fn`` with autocast off on the CPU and, where it is on, on CUDA (the fast path keeps losses in
+    full precision on every device)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        with torch.autocast("cpu", enabled=False):
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(torch.autocast("cpu", enabled=False))
+            if torch.is_autocast_enabled("cuda"):
+                stack.enter_context(torch.autocast("cuda", enabled=False))
             return fn(*args, **kwargs)
 
     return wrapper
@@ -261,6 +266,6 @@ def train_loss(depth: torch.Tensor, target: torch.Tensor, sources: list[torch.Te
     l_sparse = sparse_depth_loss(depth, uv, d, mask)
     l_smooth = smoothness_loss(depth, target)
     total = l_photo + lambda_sparse * l_sparse + lambda_smooth * l_smooth  # Eq. 8
-    parts = {"photo": float(l_photo.detach()), "sparse": float(l_sparse.detach()),
-             "smooth": float(l_smooth.detach()), "total": float(total.detach())}
+    values = torch.stack([l_photo, l_sparse, l_smooth, total]).detach().tolist()  # one device → host copy
+    parts = dict(zip(("photo", "sparse", "smooth", "total"), values))
     return total, parts

@@ -30,6 +30,11 @@ Choices the paper leaves open (documented here, DESIGN §5):
   paper's literal form); see :mod:`mutualslam_cli.adapt.regularizers` for why.
 - Determinism: ``torch.manual_seed(seed)`` at construction, replay draws from a numpy Generator
   seeded with ``seed`` and buffer eviction from one seeded with ``seed + 1``.
+- Device (:mod:`~mutualslam_cli.device`): the network, the optimiser state and the regulariser's
+  tensors live on the adapter's ``device``; the buffer keeps images on the CPU and each batch (images
+  as uint8, poses, intrinsics, sparse points) is sent there when it is assembled. fp16 mixed precision
+  (CUDA GPUs without bf16) scales the loss (a ``GradScaler``); the importance's gradients (EWC's Fisher)
+  are taken at the same scale and unscaled.
 """
 
 from __future__ import annotations
@@ -45,9 +50,11 @@ import torch
 from torch import nn
 
 from mutualslam_cli.adapt import losses
+from mutualslam_cli.adapt.batch import make_batch, resample_batch
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample, LabelSource
 from mutualslam_cli.adapt.depthnet import fast_context, freeze_encoder_stages, make_adam
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
+from mutualslam_cli.adapt.sample_grads import per_sample_grads, plan
 from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.adapt.state import (
     Action,
@@ -60,8 +67,8 @@ from mutualslam_cli.adapt.state import (
     step,
 )
 from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.device import grad_scaler, module_device, synchronize
 from mutualslam_cli.errors import ConfigError, TransitionError
-from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.types import check_shape
 
 log = logging.getLogger(__name__)
@@ -123,6 +130,7 @@ class OnlineAdapter:
         reg_mode: ``"prox"`` (default) or ``"penalty"``, how the regulariser enters the update.
         labels: where stored keyframes' poses and sparse depths are read when used (the map as it stands
             then, DESIGN §5); ``None``: the values each sample arrived with.
+        device: where the network is trained (it is moved there); default: where its parameters are.
 
     Raises:
         ConfigError: unknown scheme, bad capacity, anchor, ``val_scope`` or FSM constants.
@@ -132,16 +140,17 @@ class OnlineAdapter:
                  fast: bool = False, on_global_ba: Callable[[StepInfo], None] | None = None, *,
                  loss_fn: LossFn | None = None, val_fn: ValFn | None = None,
                  val_scope: Literal["all", "current"] = "all", reg_mode: Literal["prox", "penalty"] = "prox",
-                 labels: LabelSource | None = None) -> None:
+                 labels: LabelSource | None = None, device: torch.device | str | None = None) -> None:
         if loss_fn is None or val_fn is None:
             loss_fn = loss_fn or losses.train_loss
             val_fn = val_fn or losses.sparse_depth_loss
         if val_scope not in ("all", "current"):
             raise ConfigError(f"adapt.val_scope = {val_scope!r}: expected 'all' or 'current'")
-        self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32)
+        self.device = torch.device(device) if device is not None else module_device(net)
+        self.K_net = torch.as_tensor(np.asarray(K_net), dtype=torch.float32, device="cpu")
         check_shape(self.K_net, [3, 3], "OnlineAdapter: K_net")
         torch.manual_seed(seed)
-        self.net = net.eval()
+        self.net = net.to(self.device).eval()
         self.cfg = cfg
         self.fast = bool(fast)
         self.on_global_ba = on_global_ba
@@ -154,6 +163,8 @@ class OnlineAdapter:
             freeze_encoder_stages(net, cfg.freeze_stages)
         self.params = trainable(net)
         self.optimizer = make_adam(self.params, lr=cfg.lr) if self.scheme.trains else None
+        self.scaler = grad_scaler(self.device, self.fast)  # fp16 autocast only (a GPU without bf16)
+        self._layers: list[nn.Module] | None = None  # EWC's per-keyframe gradients in one pass (sample_grads.plan)
         self.regularizer: Regularizer | None = self.scheme.make_regularizer(net, cfg, self._predict, reg_mode)
         self.fsm_params = FsmParams(cfg.validate_every, cfg.patience, cfg.tau_val)
         self.fsm = FsmState()
@@ -256,21 +267,24 @@ class OnlineAdapter:
         """
         ids = [k for k in (self.buffer.all_ids if ids is None else ids) if k in self.buffer]
         out: dict[int, float] = {}
+        dev = self.device
         for i in range(0, len(ids), chunk):
-            samples = [self.buffer.get(k) for k in ids[i:i + chunk]]
+            samples = [self.buffer.get(k, dev) for k in ids[i:i + chunk]]
             depth = self._predict(torch.stack([s.image for s in samples]))
+            vals = []
             for b, s in enumerate(samples):
                 if s.uv.shape[0] == 0:
-                    out[s.kf_id] = float("nan")
+                    vals.append(torch.full((), float("nan"), dtype=torch.float64, device=dev))
                     continue
-                mask = torch.ones(1, s.uv.shape[0], dtype=torch.bool)
-                out[s.kf_id] = float(self.val_fn(depth[b:b + 1], s.uv[None], s.depth[None], mask))
+                mask = torch.ones(1, s.uv.shape[0], dtype=torch.bool, device=dev)
+                vals.append(self.val_fn(depth[b:b + 1], s.uv[None].to(dev), s.depth[None].to(dev), mask).double())
+            out.update(zip((s.kf_id for s in samples), torch.stack(vals).tolist()))  # one copy back per chunk
         return out
 
     # ------------------------------------------------------------------ internals
     def _predict(self, x: torch.Tensor) -> torch.Tensor:
-        """Forward pass under the bf16 context; returns float32 depth ``(B, 1, H, W)``."""
-        with fast_context(self.fast):
+        """Forward pass of ``x`` (on :attr:`device`), mixed precision when ``fast``; float32 depth ``(B, 1, H, W)``."""
+        with fast_context(self.fast, self.device):
             return self.net.predict(x).float()
 
     def _l_val(self, kf_id: int) -> float:
@@ -282,46 +296,43 @@ class OnlineAdapter:
         return float(np.mean(vals)) if vals else float("nan")
 
     def _make_batch(self, ids: list[int]) -> dict[str, object] | None:
-        """Stack targets, their sources (the scheme's), relative poses and padded sparse points of ``ids``."""
-        items = [(k, self.scheme.sources(self.buffer, k)) for k in ids]
-        items = [(k, n) for k, n in items if n]  # no photometric source → not trainable
-        if not items:
-            return None
-        samples = [self.buffer.get(k) for k, _ in items]
-        n_src = max(len(n) for _, n in items)
-        sources, T_t2s = [], []
-        for s in range(n_src):
-            imgs, poses = [], []
-            for tgt, (_, nb) in zip(samples, items):
-                src = self.buffer.get(nb[min(s, len(nb) - 1)])  # repeat a source when fewer
-                imgs.append(src.image)
-                poses.append(se3_inv(src.pose) @ tgt.pose)  # T_t2s = T_cw(src) · T_wc(tgt)
-            sources.append(torch.stack(imgs))
-            T_t2s.append(torch.as_tensor(np.stack(poses), dtype=torch.float32))
-        m = max(s.uv.shape[0] for s in samples)
-        uv = torch.zeros(len(samples), m, 2)
-        d = torch.zeros(len(samples), m)
-        mask = torch.zeros(len(samples), m, dtype=torch.bool)
-        for b, s in enumerate(samples):
-            n = s.uv.shape[0]
-            uv[b, :n], d[b, :n], mask[b, :n] = s.uv, s.depth, True
-        K = torch.stack([s.K.to(torch.float32) for s in samples])
-        batch = {"ids": [k for k, _ in items], "target": torch.stack([s.image for s in samples]), "sources": sources,
-                 "T_t2s": T_t2s, "K": K, "uv": uv, "d": d, "mask": mask}
-        return resample_batch(batch, self.cfg.train_width, self.cfg.train_height)
+        """The batch of ``ids`` on :attr:`device` (:func:`~mutualslam_cli.adapt.batch.make_batch`), at training size."""
+        batch = make_batch(self.buffer, self.scheme, ids, self.device)
+        cfg = self.cfg
+        return None if batch is None else resample_batch(batch, cfg.train_width, cfg.train_height)
+
+    def _one_loss(self, batch: dict[str, object], depth: torch.Tensor, b: int) -> torch.Tensor:
+        """Keyframe ``b``'s own L_train from its depth ``(1, 1, H, W)`` and its slice of ``batch``."""
+        cfg, one = self.cfg, slice(b, b + 1)
+        loss, _ = self.loss_fn(depth, batch["target"][one], [s[one] for s in batch["sources"]], batch["K"][one],
+                               [t[one] for t in batch["T_t2s"]], batch["uv"][one], batch["d"][one],
+                               batch["mask"][one], cfg.lambda_sparse, cfg.lambda_smooth, cfg.alpha)
+        return loss
 
     def _sample_grads(self, batch: dict[str, object]) -> list[list[torch.Tensor]]:
-        """Per batch keyframe, the gradients of its own L_train at the current parameters (EWC's Fisher, Eq. 2)."""
-        cfg, out = self.cfg, []
+        """Per batch keyframe, the gradients of its own L_train at the current parameters (EWC's Fisher, Eq. 2).
+
+        One batched forward and backward pass split by keyframe (:mod:`~mutualslam_cli.adapt.sample_grads`:
+        at most one optimiser step's work); a network that module does not cover takes one pass of batch 1
+        per keyframe. Under fp16 the loss is scaled as the step's is and the gradients unscaled."""
+        scale = None if self.scaler is None else float(self.scaler.get_scale())
+        if self._layers is None:
+            self._layers = plan(self.net, self.params) or []
+        if self._layers:
+            def losses() -> list[torch.Tensor]:
+                depth = self._predict(batch["target"])
+                return [self._one_loss(batch, depth[b:b + 1], b) for b in range(len(batch["ids"]))]
+
+            grads = per_sample_grads(self._layers, self.params, losses, scale)
+            if grads is not None:
+                return grads
+            self._layers = []  # a layer it cannot split: one keyframe at a time from now on
+        out = []
         for b in range(len(batch["ids"])):
-            one = slice(b, b + 1)
-            target = batch["target"][one]
-            loss, _ = self.loss_fn(self._predict(target), target, [s[one] for s in batch["sources"]],
-                                   batch["K"][one], [t[one] for t in batch["T_t2s"]], batch["uv"][one],
-                                   batch["d"][one], batch["mask"][one], cfg.lambda_sparse, cfg.lambda_smooth,
-                                   cfg.alpha)
-            grads = torch.autograd.grad(loss, self.params, allow_unused=True)
-            out.append([torch.zeros_like(p) if g is None else g.detach() for p, g in zip(self.params, grads)])
+            loss = self._one_loss(batch, self._predict(batch["target"][b:b + 1]), b)
+            grads = torch.autograd.grad(loss if scale is None else loss * scale, self.params, allow_unused=True)
+            out.append([torch.zeros_like(p) if g is None else g.detach() if scale is None else g.detach() / scale
+                        for p, g in zip(self.params, grads)])
         return out
 
     def _begin_fine_tune(self, kf_id: int, info: StepInfo) -> dict[str, object] | None:
@@ -342,6 +353,7 @@ class OnlineAdapter:
         if reg is not None:
             reg.before_batch(self.net)  # θ* (Alg. 2 line 4: θ_cpy = θ)
         pen_val = 0.0
+        scaler = self.scaler
         for s in range(steps):
             ts = time.perf_counter()
             self.optimizer.zero_grad(set_to_none=True)
@@ -349,7 +361,11 @@ class OnlineAdapter:
             loss, parts = self.loss_fn(depth, batch["target"], batch["sources"], batch["K"], batch["T_t2s"],
                                        batch["uv"], batch["d"], batch["mask"], cfg.lambda_sparse,
                                        cfg.lambda_smooth, cfg.alpha)
-            loss.backward()
+            if scaler is None:
+                loss.backward()
+            else:  # fp16: scaled backward, then the true gradients in .grad for the regulariser and Adam
+                scaler.scale(loss).backward()
+                scaler.unscale_(self.optimizer)
             penalty = reg is not None and reg.mode == "penalty"
             # ∇L_train for the regulariser's importance; a copy only when the penalty's backward adds to .grad
             grads = [] if reg is None else [(p.grad.detach().clone() if penalty else p.grad.detach())
@@ -358,13 +374,21 @@ class OnlineAdapter:
                 pen = reg.penalty(self.net)  # Eq. 1 / Eq. 19 regulariser at the current θ
                 if pen.requires_grad:
                     pen.backward()  # coupled: ∇(L_train + penalty) through Adam
-            self.optimizer.step()
-            if reg is not None:
+            stepped = True
+            if scaler is None:
+                self.optimizer.step()
+            else:  # a step with an inf/NaN gradient is skipped (and the scale lowered): so is its prox
+                scale = scaler.get_scale()
+                scaler.step(self.optimizer)
+                scaler.update()
+                stepped = scaler.get_scale() >= scale
+            if reg is not None and stepped:
                 if reg.mode == "prox":
                     reg.prox(self.net, self.optimizer)  # decoupled: proximal step of the penalty in Adam's metric
                 reg.after_step(self.net, grads)
             if s == 0:
                 info.loss = {k: float(v) for k, v in parts.items()}
+            synchronize(self.device)  # CUDA runs ahead of the host: the step is over when the device is done
             self.step_ms.append(1000.0 * (time.perf_counter() - ts))
         tc = time.perf_counter()
         if reg is not None:
@@ -372,28 +396,10 @@ class OnlineAdapter:
                 pen_val = float(reg.penalty(self.net))  # distance from θ* left at the end of the batch
             per_kf = self._sample_grads(batch) if reg.needs_sample_grads else None
             reg.after_batch(self.net, batch["target"][:1], per_kf)  # consolidate (Alg. 2 line 7)
+        synchronize(self.device)
         self.consolidate_ms.append(1000.0 * (time.perf_counter() - tc))
         info.loss["penalty"] = pen_val
         info.trained = True
         info.steps = steps
         info.batch = list(batch["ids"])
         self.finetune_ms.append(1000.0 * (time.perf_counter() - t0) + batch_ms)
-
-
-def resample_batch(batch: dict[str, object], width: int, height: int) -> dict[str, object]:
-    """A training batch at ``width × height`` (0: unchanged): images area-resampled, ``K`` and the sparse
-    pixels ``uv`` scaled with pixel centres kept (``c' = (c + 0.5)·s − 0.5``, as ``Intrinsics.scaled``)."""
-    h0, w0 = batch["target"].shape[-2:]
-    width, height = width or w0, height or h0
-    if (width, height) == (w0, h0):
-        return batch
-
-    def small(x: torch.Tensor) -> torch.Tensor:
-        return torch.nn.functional.interpolate(x, size=(height, width), mode="area")
-
-    s = torch.tensor([width / w0, height / h0])
-    K = batch["K"].clone()
-    K[:, :2, :] *= s[None, :, None]
-    K[:, :2, 2] += 0.5 * s - 0.5
-    return {**batch, "target": small(batch["target"]), "sources": [small(x) for x in batch["sources"]], "K": K,
-            "uv": (batch["uv"] + 0.5) * s - 0.5}

@@ -86,7 +86,7 @@ class _QuantConv(nn.Module):
         self.zero_point = int(round(-lo / self.scale))
         w = conv.weight.detach()
         self.register_buffer("w_scale", (w.abs().amax((1, 2, 3)) / 127.0).clamp_min(1e-12))
-        self.register_buffer("w_zero", torch.zeros(w.shape[0], dtype=torch.int32))
+        self.register_buffer("w_zero", torch.zeros(w.shape[0], dtype=torch.int32, device=w.device))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         c = self.conv

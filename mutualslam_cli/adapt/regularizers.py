@@ -140,7 +140,7 @@ class Regularizer:
     def penalty(self, model: nn.Module) -> torch.Tensor:
         """``c Σ_i w_i (θ_i − θ*_i)²`` (Eq. 1 for EWC with c = β/2, Eq. 19 for MAS/SI); scalar, differentiable."""
         params = trainable(model)
-        total = params[0].new_zeros(()) if params else torch.zeros(())
+        total = params[0].new_zeros(()) if params else torch.zeros((), device="cpu")
         for p, w, s in zip(params, self.weights, self.star):
             total = total + (w * (p - s) ** 2).sum()
         return self.coef * total

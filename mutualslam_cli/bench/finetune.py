@@ -1,7 +1,9 @@
 """Micro-benchmarks of the depth network: prediction and one fine-tuning step (DESIGN §10).
 
 Timings are medians of wall-clock milliseconds after warm-up; they depend on the load of
-the machine, so treat them as indicative.
+the machine, so treat them as indicative. ``device`` (default the CPU) says where the network runs:
+the inputs are drawn on the CPU with a seeded generator and sent there, and a CUDA device is waited for
+before each time is read (``make gpu-check`` runs these on the GPU).
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ from mutualslam_cli.adapt.losses import train_loss
 from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.device import grad_scaler, module_device, synchronize
+
+CPU = torch.device("cpu")
 
 
 def _setup(threads: int | None, seed: int) -> None:
@@ -31,34 +36,42 @@ def _setup(threads: int | None, seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def _median_ms(fn, repeats: int, warmup: int) -> tuple[float, list[float]]:
+def _median_ms(fn, repeats: int, warmup: int, device: torch.device = CPU) -> tuple[float, list[float]]:
     for _ in range(warmup):
         fn()
+    synchronize(device)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
+        synchronize(device)  # CUDA runs ahead of the host
         times.append((time.perf_counter() - t0) * 1000.0)
     return statistics.median(times), times
 
 
+def _rand(*shape: int, generator: torch.Generator | None = None, device: torch.device = CPU) -> torch.Tensor:
+    """Uniform [0, 1) drawn on the CPU (the same numbers on every device), then sent to ``device``."""
+    return torch.rand(*shape, generator=generator, device=CPU).to(device)
+
+
 def bench_inference(width: int = 640, height: int = 192, repeats: int = 10, fast: bool = False,
                     threads: int | None = None, batch: int = 1, warmup: int = 2, seed: int = 0,
-                    channels_last: bool | None = None) -> dict[str, Any]:
-    """Median time of one depth prediction (eval mode, no grad).
+                    channels_last: bool | None = None, device: torch.device | str = CPU) -> dict[str, Any]:
+    """Median time of one depth prediction (eval mode, no grad) on ``device``.
 
     Returns:
         ``{"ms": median, "times_ms": [...], "fast": bool, "width", "height", "threads"}``.
     """
     _setup(threads, seed)
-    net = prepare(DepthNet().eval(), fast, channels_last)
-    x = torch.rand(batch, 3, height, width)
+    device = torch.device(device)
+    net = prepare(DepthNet().eval(), fast, channels_last, device=device)
+    x = _rand(batch, 3, height, width, device=device)
 
     def step() -> None:
-        with torch.no_grad(), fast_context(fast):
+        with torch.no_grad(), fast_context(fast, device):
             net.predict(x)
 
-    ms, times = _median_ms(step, repeats, warmup)
+    ms, times = _median_ms(step, repeats, warmup, device)
     return {"ms": ms, "times_ms": times, "fast": fast, "width": width, "height": height,
             "threads": torch.get_num_threads(), "bf16_supported": fast_path_supported()}
 
@@ -74,50 +87,60 @@ def bench_inference_openvino(width: int = 640, height: int = 192, repeats: int =
     """
     _setup(threads, seed)
     t0 = time.perf_counter()
-    calib = torch.rand(4, 3, height, width) if int8 else None
+    calib = _rand(4, 3, height, width) if int8 else None
     predict = openvino_predictor(DepthNet().eval(), width, height, threads, calibration=calib)
     convert_s = time.perf_counter() - t0
-    x = torch.rand(1, 3, height, width)
+    x = _rand(1, 3, height, width)
     ms, times = _median_ms(lambda: predict(x), repeats, warmup)
     return {"ms": ms, "times_ms": times, "convert_s": convert_s, "threads": torch.get_num_threads()}
 
 
-def make_step_batch(width: int, height: int, n_points: int = 500, seed: int = 0) -> dict[str, Any]:
-    """A realistic fine-tuning batch: 2 targets (recent + replayed), 2 neighbours each, sparse points."""
-    g = torch.Generator().manual_seed(seed)
-    b = 2
-    K = torch.tensor([[0.58 * width, 0, width / 2 - 0.5], [0, 1.92 * height, height / 2 - 0.5], [0, 0, 1]])
-    T1, T2 = torch.eye(4), torch.eye(4)
-    T1[:3, 3] = torch.tensor([0.05, 0.0, 0.01])
-    T2[:3, 3] = torch.tensor([-0.05, 0.01, -0.01])
-    uv = torch.rand(b, n_points, 2, generator=g) * torch.tensor([width - 1.0, height - 1.0])
+def make_step_batch(width: int, height: int, n_points: int = 500, seed: int = 0,
+                    device: torch.device | str = CPU) -> dict[str, Any]:
+    """A realistic fine-tuning batch on ``device``: 2 targets (recent + replayed), 2 neighbours each, sparse points."""
+    g = torch.Generator(device=CPU).manual_seed(seed)
+    b, dev = 2, torch.device(device)
+    K = torch.tensor([[0.58 * width, 0, width / 2 - 0.5], [0, 1.92 * height, height / 2 - 0.5], [0, 0, 1]],
+                     device=dev)
+    T1, T2 = torch.eye(4, device=dev), torch.eye(4, device=dev)
+    T1[:3, 3] = torch.tensor([0.05, 0.0, 0.01], device=dev)
+    T2[:3, 3] = torch.tensor([-0.05, 0.01, -0.01], device=dev)
+    uv = _rand(b, n_points, 2, generator=g, device=dev) * torch.tensor([width - 1.0, height - 1.0], device=dev)
     return {
-        "target": torch.rand(b, 3, height, width, generator=g),
-        "sources": [torch.rand(b, 3, height, width, generator=g) for _ in range(2)],
+        "target": _rand(b, 3, height, width, generator=g, device=dev),
+        "sources": [_rand(b, 3, height, width, generator=g, device=dev) for _ in range(2)],
         "K": K.expand(b, 3, 3).clone(),
         "T_t2s": [T1.expand(b, 4, 4).clone(), T2.expand(b, 4, 4).clone()],
         "uv": uv,
-        "d": 0.5 + 2.0 * torch.rand(b, n_points, generator=g),
-        "mask": torch.ones(b, n_points, dtype=torch.bool),
+        "d": 0.5 + 2.0 * _rand(b, n_points, generator=g, device=dev),
+        "mask": torch.ones(b, n_points, dtype=torch.bool, device=dev),
     }
 
 
 def finetune_step(net: DepthNet, opt: torch.optim.Optimizer, batch: dict[str, Any], fast: bool,
-                  lambda_sparse: float = 0.1, lambda_smooth: float = 0.1) -> dict[str, float]:
-    """One Adam step of Eq. 8: network forward under :func:`fast_context`, loss in fp32."""
+                  lambda_sparse: float = 0.1, lambda_smooth: float = 0.1,
+                  scaler: torch.amp.GradScaler | None = None) -> dict[str, float]:
+    """One Adam step of Eq. 8: network forward under :func:`fast_context` (on the network's device), loss in
+    fp32; ``scaler``: fp16 loss scaling (a GPU without bf16)."""
     opt.zero_grad(set_to_none=True)
-    with fast_context(fast):
+    with fast_context(fast, module_device(net)):
         depth = net.predict(batch["target"])
     loss, parts = train_loss(depth, batch["target"], batch["sources"], batch["K"], batch["T_t2s"],
                              batch["uv"], batch["d"], batch["mask"], lambda_sparse, lambda_smooth)
-    loss.backward()
-    opt.step()
+    if scaler is None:
+        loss.backward()
+        opt.step()
+    else:
+        scaler.scale(loss).backward()
+        scaler.step(opt)
+        scaler.update()
     return parts
 
 
 def bench_finetune_step(width: int = 640, height: int = 192, repeats: int = 5, fast: bool = False,
                         threads: int | None = None, warmup: int = 2, seed: int = 0,
-                        train_mode: bool = True, channels_last: bool | None = None) -> dict[str, Any]:
+                        train_mode: bool = True, channels_last: bool | None = None,
+                        device: torch.device | str = CPU) -> dict[str, Any]:
     """Median time of one fine-tuning step on 2 keyframes (recent + replayed) × 2 neighbours.
 
     The work is that of the online loop: one batched forward of the 2 targets, 4 warps
@@ -127,17 +150,19 @@ def bench_finetune_step(width: int = 640, height: int = 192, repeats: int = 5, f
         ``{"ms": median, "times_ms": [...], "fast": bool, ...}``.
     """
     _setup(threads, seed)
-    net = prepare(DepthNet(), fast, channels_last).train(train_mode)
+    device = torch.device(device)
+    net = prepare(DepthNet(), fast, channels_last, device=device).train(train_mode)
     opt = make_adam(net.parameters(), lr=1e-4)
-    batch = make_step_batch(width, height, seed=seed)
-    ms, times = _median_ms(lambda: finetune_step(net, opt, batch, fast), repeats, warmup)
+    batch = make_step_batch(width, height, seed=seed, device=device)
+    scaler = grad_scaler(device, fast)
+    ms, times = _median_ms(lambda: finetune_step(net, opt, batch, fast, scaler=scaler), repeats, warmup, device)
     return {"ms": ms, "times_ms": times, "fast": fast, "width": width, "height": height,
             "threads": torch.get_num_threads(), "bf16_supported": fast_path_supported()}
 
 
 def bench_comoda_step(width: int = 640, height: int = 192, repeats: int = 5, fast: bool = False,
                       threads: int | None = None, warmup: int = 2, seed: int = 0,
-                      replay: int | None = None) -> dict[str, Any]:
+                      replay: int | None = None, device: torch.device | str = CPU) -> dict[str, Any]:
     """Median time of one CoMoDa-style update step (scheme ``comoda``, :mod:`mutualslam_cli.adapt.comoda`).
 
     The work of one frame's update: the current triplet + ``replay`` replayed triplets (default
@@ -153,18 +178,19 @@ def bench_comoda_step(width: int = 640, height: int = 192, repeats: int = 5, fas
     cfg = AdaptConfig(scheme="comoda")
     if replay is not None:
         cfg = replace(cfg, comoda_replay_per_step=int(replay))
-    net = prepare(DepthNet(), fast)
-    K = torch.tensor([[0.58 * width, 0, width / 2], [0, 1.92 * height, height / 2], [0, 0, 1]])
-    g = torch.Generator().manual_seed(seed)
+    device = torch.device(device)
+    net = prepare(DepthNet(), fast, device=device)
+    K = torch.tensor([[0.58 * width, 0, width / 2], [0, 1.92 * height, height / 2], [0, 0, 1]], device=CPU)
+    g = torch.Generator(device=CPU).manual_seed(seed)
 
-    def triplet() -> torch.Tensor:
-        return torch.randint(0, 256, (3, 3, height, width), generator=g, dtype=torch.uint8)
+    def triplet() -> torch.Tensor:  # frames stay on the CPU as the adapter keeps them
+        return torch.randint(0, 256, (3, 3, height, width), generator=g, dtype=torch.uint8, device=CPU)
 
     # a replay bank (the default, source-domain replay) full from the first step on
     bank = torch.stack([triplet() for _ in range(max(1, cfg.comoda_replay_per_step))])
-    adapter = ComodaAdapter(net, PoseNet(), cfg, K, seed=seed, fast=fast, replay_bank=(bank, K))
+    adapter = ComodaAdapter(net, PoseNet(), cfg, K, seed=seed, fast=fast, replay_bank=(bank, K), device=device)
     current = triplet()
-    ms, times = _median_ms(lambda: adapter.train_triplet(100, current), repeats, warmup)
+    ms, times = _median_ms(lambda: adapter.train_triplet(100, current), repeats, warmup, device)
     return {"ms": ms, "times_ms": times, "fast": fast, "width": width, "height": height,
             "batch": 1 + cfg.comoda_replay_per_step, "threads": torch.get_num_threads(),
             "bf16_supported": fast_path_supported()}
@@ -196,7 +222,7 @@ def bf16_depth_difference(width: int = 640, height: int = 192, net: DepthNet | N
         return None
     torch.manual_seed(0)
     net = (net or DepthNet()).eval()
-    x = images if images is not None else torch.rand(1, 3, height, width)
+    x = images if images is not None else _rand(1, 3, height, width)
     with torch.no_grad():
         ref = prepare(net, False).predict(x)
         with fast_context(True):

@@ -124,9 +124,10 @@ def _ba_share(out: Path) -> dict[str, Any]:
             "finetune_ms": timing.get("finetune_ms")}
 
 
-def _memory(frames: int) -> dict[str, Any]:
+def _memory(frames: int, threads: int) -> dict[str, Any]:
     """Peak RSS of ``mslam run`` (oracle front end, replay+ewc) on a synthetic sequence of N and 2N frames,
-    and the global BA's share of each run's wall time."""
+    and the global BA's share of each run's wall time. The runs use the bench's ``threads`` (their median
+    step is compared with the bench's step, which is only meaningful at one thread count)."""
     out: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for n in (frames, 2 * frames):
@@ -138,7 +139,8 @@ def _memory(frames: int) -> dict[str, Any]:
                     "print('PEAK', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
             t0 = time.perf_counter()
             r = subprocess.run([sys.executable, "-c", code, "run", str(seq), "--vo", "gt-depth", "--out",
-                                str(Path(tmp) / f"res{n}"), "--force"], capture_output=True, text=True)
+                                str(Path(tmp) / f"res{n}"), "--force", "--set", f"threads={threads}"],
+                               capture_output=True, text=True)
             peak_kb = int(r.stdout.rsplit("PEAK", 1)[1].split()[0]) if "PEAK" in r.stdout else None
             out[f"peak_rss_gb_{n}_frames"] = peak_kb / 1024**2 if peak_kb else None
             out[f"run_s_{n}_frames"] = time.perf_counter() - t0
@@ -309,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
         res.update(part())
         print(_table(res).splitlines()[-1], file=sys.stderr, flush=True)
     if a.memory:
-        res.update(_memory(60))
+        res.update(_memory(60, a.threads))
         res.update(step_in_run(res))
     res["self_peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
     res["reference_ms_end"] = reference_ms()

@@ -43,6 +43,8 @@ ConfigOpt = typer.Option(None, "--config", "-c", help="YAML config (default conf
 SetOpt = typer.Option(None, "--set", "-s", help="Override one field: section.key=value (repeatable).")
 DataRootOpt = typer.Option(None, "--data-root", help="Root of relative datasets.yaml paths (default $MSLAM_DATA).")
 RegistryOpt = typer.Option(None, "--registry", help="Another datasets.yaml.")
+DeviceOpt = typer.Option(None, "--device", help="Where the depth network runs: auto (CUDA when available), cpu, "
+                                                "cuda or cuda:N (default from config: auto).")
 ResultsOutOpt = typer.Option(None, "--out", help="Results root (default results/).")
 
 
@@ -68,11 +70,15 @@ def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progr
                         handlers=[RichHandler(console=err_console, show_path=False, show_time=False)])
 
 
-def config_from(config: Optional[Path], sets: Optional[list[str]], data_root: Optional[str] = None) -> RunConfig:
-    """The run config of a command: ``--config`` (default the paper's), ``--set`` overrides, ``--data-root``."""
+def config_from(config: Optional[Path], sets: Optional[list[str]], data_root: Optional[str] = None,
+                device: Optional[str] = None) -> RunConfig:
+    """The run config of a command: ``--config`` (default the paper's), ``--set`` overrides, ``--data-root``,
+    ``--device``."""
     cfg = load_config(config, sets or [])
     if data_root:
         cfg = with_overrides(cfg, data={"data_root": data_root})
+    if device:
+        cfg = with_overrides(cfg, device=device)  # type: ignore[arg-type]
     return cfg
 
 

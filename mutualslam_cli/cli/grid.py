@@ -14,6 +14,7 @@ from mutualslam_cli.cli import common
 from mutualslam_cli.cli.common import (
     ConfigOpt,
     DataRootOpt,
+    DeviceOpt,
     RegistryOpt,
     ResultsOutOpt,
     SetOpt,
@@ -45,6 +46,7 @@ def ablate(
     sets: Optional[list[str]] = SetOpt,
     data_root: Optional[str] = DataRootOpt,
     registry: Optional[Path] = RegistryOpt,
+    device: Optional[str] = DeviceOpt,
 ) -> None:
     """The grid sequences × schemes × seeds (× the config's experiment.variants); complete runs are
     skipped, so a killed grid resumes.
@@ -53,7 +55,7 @@ def ablate(
     folder (with its _cache/) and the weights must then be on a filesystem every worker sees."""
     from mutualslam_cli.ablate import plan_grid, run_grid
 
-    cfg = config_from(config, sets, data_root)
+    cfg = config_from(config, sets, data_root, device)
     root = Path(out or cfg.out)
     parts = plan_grid(cfg, list(seqs), schemes, seeds, root)
     total = sum(len(p.jobs) for p in parts)

@@ -16,6 +16,7 @@ from mutualslam_cli.cli import common
 from mutualslam_cli.cli.common import (
     ConfigOpt,
     DataRootOpt,
+    DeviceOpt,
     RegistryOpt,
     ResultsOutOpt,
     SetOpt,
@@ -62,7 +63,30 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
              ("timing.finetune_ms", 0)]
     t3.add_row(*(fmt_value(f.get(key), nd) for key, nd in cells))
     common.console.print(t3)
+    common.console.print(_stage_table(f))
     common.console.print(f"results: {escape(str(folder))}")
+
+
+#: The stage table's columns: label → summary key (seconds); the fine-tuning's steps are part of adaptation.
+STAGE_COLUMNS = (("front end", "timing.stage_s.frontend"), ("adaptation", "timing.stage_s.adaptation"),
+                 ("of it steps", "timing.finetune_steps_s"), ("of it Fisher etc.", "timing.finetune_consolidate_s"),
+                 ("of it L_val", "timing.l_val_s"), ("BA", "timing.stage_s.ba"),
+                 ("evaluation", "timing.stage_s.evaluation"), ("of it online", "timing.online_scoring_s"),
+                 ("dense", "timing.stage_s.dense"), ("other", "timing.stage_s.other"), ("total", "timing.total_s"))
+
+
+def _stage_table(f: dict[str, Any]) -> Table:
+    """Where a run's time went (seconds), on which device, and its cost beyond its optimiser steps."""
+    cols = [(label, key) for label, key in STAGE_COLUMNS if f.get(key) is not None]
+    t = Table(*(label for label, _ in cols), title="time (s)")
+    t.add_row(*(fmt_value(float(f[key]), 1) for _, key in cols))
+    device = " · ".join(fmt for k, fmt in (("run.device", "{}"), ("run.device_name", "{}"),
+                                            ("run.device_memory_gb", "{} GiB"), ("run.cuda_version", "CUDA {}"),
+                                            ("run.cudnn_version", "cuDNN {}")) if f.get(k) is not None
+                        for fmt in [fmt.format(f[k])])
+    extra = f"; beyond the steps: +{100 * f['timing.beyond_steps']:.0f} %" if f.get("timing.beyond_steps") else ""
+    t.caption = escape(f"device: {device or '?'}{extra}")
+    return t
 
 
 @app.command()
@@ -80,6 +104,7 @@ def run(
     sets: Optional[list[str]] = SetOpt,
     data_root: Optional[str] = DataRootOpt,
     registry: Optional[Path] = RegistryOpt,
+    device: Optional[str] = DeviceOpt,
     rgb_topic: Optional[str] = typer.Option(None, "--rgb-topic", help="Bag: colour image topic (Image or "
                                             "CompressedImage; default the only non-depth image topic)."),
     depth_topic: Optional[str] = typer.Option(None, "--depth-topic", help="Bag: depth topic (16UC1 mm or 32FC1 m; "
@@ -102,7 +127,7 @@ def run(
     from mutualslam_cli.adapt.schemes import get_scheme
     from mutualslam_cli.pipeline import run_sequence
 
-    cfg = config_from(config, sets, data_root)
+    cfg = config_from(config, sets, data_root, device)
     over = {"adapt": {"scheme": scheme} if scheme else None, "vo": {"mode": vo} if vo else None,
             "net": {"weights": str(weights)} if weights else None, "seed": seed}
     cfg = with_overrides(cfg, **{k: v for k, v in over.items() if v is not None})  # type: ignore[arg-type]

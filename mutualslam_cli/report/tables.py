@@ -7,7 +7,10 @@ plus PNG plots. Values that a run could not compute stay empty (``NaN`` → "—
 
 Runs whose resolved configs differ (other than seed, scheme and output; thread counts count) are
 never averaged together: every table gets a ``config`` column naming the settings that differ
-(e.g. ``ba.culling=False``). Paper Table 4 (``ate_ba``: ATE of the front end, bridged, after BA) and
+(e.g. ``ba.culling=False``). Nor are runs from different devices (``run.device_label`` of their
+summary, e.g. ``cuda · NVIDIA H100`` or ``cpu · AVX2``: the ``run_device`` column of the config label),
+whatever their ``device`` setting said (``auto`` resolves per machine).
+Paper Table 4 (``ate_ba``: ATE of the front end, bridged, after BA) and
 Table 5 (``map_ba``: map points and e_si with and without BA and culling, per ``vo.max_fts``)
 are built by :func:`table_ate_ba` and :func:`table_map_ba`.
 """
@@ -86,7 +89,8 @@ class Report:
 #: Config keys that do not make runs different experiments (``adapt.scheme`` has its own column).
 #: ``threads`` is not among them: the numbers follow the thread count (torch's reductions sum in
 #: another order), so runs with different counts are told apart like any other setting.
-IGNORED_CONFIG = ("seed", "out", "adapt.scheme", "data.data_root", "eval.save_weights")
+#: ``device`` is the setting (``auto`` resolves per machine): the device a run used is ``run_device``.
+IGNORED_CONFIG = ("seed", "out", "adapt.scheme", "data.data_root", "eval.save_weights", "device")
 
 
 def _read_config(folder: Path) -> dict[str, Any]:
@@ -135,6 +139,7 @@ def collect(paths: list[str | Path]) -> pd.DataFrame:
             d.setdefault("sequence.name", parts[-3] if len(parts) >= 3 else "?")
             d.setdefault("scheme", parts[-2] if len(parts) >= 2 else "?")
             d.update(_read_config(s.parent))
+            d["config.run_device"] = d.get("run.device_label")  # a grouping key like any setting (module docstring)
             rows.append(d)
     if not rows:
         raise DatasetError(f"{', '.join(map(str, paths))}: no complete run (no summary.json found)")

@@ -36,6 +36,7 @@ from mutualslam_cli.adapt.depthnet import predict_depth, prepare
 from mutualslam_cli.adapt.inputs import keyframe_images, scale_pixels
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.device import module_device
 from mutualslam_cli.stages import comoda
 from mutualslam_cli.stages.adaptation_summary import (
     L_VAL_KEYS,
@@ -61,10 +62,12 @@ DepthOf = Callable[[int], np.ndarray]
 
 def depth_predictor(net: torch.nn.Module, load: Callable[[int], torch.Tensor], fast: bool,
                     buffer: KeyframeBuffer | None = None) -> DepthOf:
-    """:data:`DepthOf` of ``net`` for keyframe images from ``buffer`` when stored, else ``load(kf_id)``."""
+    """:data:`DepthOf` of ``net`` (on its device) for keyframe images from ``buffer`` when stored, else
+    ``load(kf_id)``; the depth comes back to the CPU (culling, bridges)."""
+    device = module_device(net)
 
     def depth_of(kf_id: int) -> np.ndarray:
-        img = buffer.get(kf_id).image if buffer is not None and kf_id in buffer else load(kf_id)
+        img = buffer.get(kf_id, device).image if buffer is not None and kf_id in buffer else load(kf_id)
         return predict_depth(net, img[None], fast)[0]
 
     return depth_of
@@ -121,14 +124,14 @@ class OnlineLoop:
         self.run, self.source, self.state, self.cfg, self.fast = run, source, source.state, cfg, fast
         self.ba, self.scorer = ba, scorer
         w, h = cfg.net.width, cfg.net.height
-        self.net = prepare(net, fast)
+        self.net = prepare(net, fast, device=run.device)
         self.load = keyframe_images(run.seq, lambda k: self.state.map.kf_frame[k], w, h)
         self.adapter: OnlineAdapter | None = None
         if cfg.adapt.scheme != "none":
             K_net = torch.from_numpy(self.state.intr.scaled(w, h).K()).float()
             self.adapter = OnlineAdapter(self.net, cfg.adapt, K_net, seed=cfg.seed, fast=fast,
                                          val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode,
-                                         labels=MapLabels(self.state, w, h))
+                                         labels=MapLabels(self.state, w, h), device=run.device)
         self.closer = LoopCloser(run.seq, cfg, source, ba) if cfg.loop.enabled else None
         self.clock = None
         if cfg.adapt.schedule == "realtime" and self.adapter is not None:
@@ -176,7 +179,7 @@ class OnlineLoop:
             return None
         info = self.adapter.begin_keyframe(KeyframeSample(
             kf_id=kf, image=self.load(kf), K=self.adapter.K_net, pose=self.state.pose(kf),
-            uv=torch.zeros(0, 2), depth=torch.zeros(0), segment=self.state.segment(kf)))
+            uv=torch.zeros(0, 2, device="cpu"), depth=torch.zeros(0, device="cpu"), segment=self.state.segment(kf)))
         if self.clock is not None:
             self.clock.charge(info.ms)
         row = step_row(info)
@@ -377,6 +380,8 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
     run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s - fe_s)
     run.add_time("ba", ba_s)
     run.add_time("evaluation", online_s)  # the online scores are evaluation, done inside the loop
+    summary.set("timing.online_scoring_s", online_s or None,
+                "no online scores (eval.online false, scheme none or comoda, or no GT depth)")
     if rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
     summarise_bridges(run, adapted.bridged, adapted.bridges)

@@ -91,7 +91,9 @@ def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter |
                          kf_rows: list[dict[str, Any]]) -> None:
     """``timing.finetune_ms`` (median per optimiser step), ``timing.finetune_kf_ms`` (per keyframe, the steps
     included) and of it ``timing.finetune_batch_ms`` (assembling the batch) and ``timing.finetune_consolidate_ms``
-    (the regulariser's end of batch: EWC's per-keyframe Fisher, MAS's importance), ``adaptation.keyframes_trained``,
+    (the regulariser's end of batch: EWC's per-keyframe Fisher, MAS's importance), their sums over the run
+    ``timing.finetune_steps_s`` and ``timing.finetune_consolidate_s`` and ``timing.consolidate_vs_step`` (median
+    consolidation per median step), ``timing.l_val_s`` (Algorithm 1's validations), ``adaptation.keyframes_trained``,
     ``adaptation.steps`` and, for scheme ``luo``, ``adaptation.luo_keyframes_with_partner`` (training keyframes
     that found a simulated stereo partner)."""
     why = "scheme 'none': no fine-tuning" if scheme == "none" else "no keyframe was trained on"
@@ -99,6 +101,16 @@ def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter |
                     ("finetune_consolidate_ms", "consolidate_ms")):
         values = getattr(adapter, ms) if adapter is not None else []
         summary.set(f"timing.{key}", float(np.median(values)) if values else None, why)
+    # the run's cost in optimiser steps and what the regulariser's consolidation adds (DESIGN §10: a run costs
+    # its steps + at most 25 %); consolidate_vs_step: median consolidation (EWC's Fisher) per median step
+    for key, ms in (("finetune_steps_s", "step_ms"), ("finetune_consolidate_s", "consolidate_ms")):
+        values = getattr(adapter, ms) if adapter is not None else []
+        summary.set(f"timing.{key}", float(np.sum(values)) / 1000.0 if values else None, why)
+    val = [float(r.get("ms") or 0.0) for r in kf_rows if r.get("is_validation")]  # a validation tick is its L_val
+    summary.set("timing.l_val_s", sum(val) / 1000.0 if val else None, "no validation keyframe")
+    steps, cons = (getattr(adapter, k) if adapter is not None else [] for k in ("step_ms", "consolidate_ms"))
+    summary.set("timing.consolidate_vs_step", float(np.median(cons) / np.median(steps)) if steps and cons else None,
+                why)
     summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
     summary.set("adaptation.steps", int(sum(int(r.get("steps") or 0) for r in kf_rows)))
     if scheme == "luo":

@@ -82,14 +82,15 @@ def run_stage(run: RunContext, net: torch.nn.Module, fast: bool) -> torch.nn.Mod
     seq, cfg, folder, summary = run.seq, run.cfg, run.folder, run.summary
     cache_dir = run.cache / "comoda"
     w, h = cfg.net.width, cfg.net.height
-    net = prepare(net, fast)
+    net = prepare(net, fast, device=run.device)
     bank = (source_triplets(cfg.adapt.comoda_replay_capacity, w, h, cache_dir=cache_dir)
             if cfg.adapt.comoda_replay_from == "source" and cfg.adapt.comoda_replay_per_step > 0 else None)
     pose_net, pose_source = make_pose_net(net, cfg.adapt, weights_dir=cfg.net.weights)
     log.info("comoda: pose network: %s", pose_source)
     summary.set(POSE_NETWORK_KEY, pose_source)
     adapter = ComodaAdapter(net, pose_net, cfg.adapt,
-                            seq.intrinsics.scaled(w, h).K(), seed=cfg.seed, fast=fast, replay_bank=bank)
+                            seq.intrinsics.scaled(w, h).K(), seed=cfg.seed, fast=fast, replay_bank=bank,
+                            device=run.device)
     und = Undistorter(seq.intrinsics)
     rows, t0 = [], time.perf_counter()
     for i in range(len(seq)):

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.summary import Summary
@@ -28,6 +30,10 @@ class RunContext:
         summary: the run's ``summary.json`` under construction.
         progress: ``progress(stage, info)`` or ``None``.
         timings: seconds per stage (``frontend``, ``adaptation``, ``ba``, ``evaluation``, ``dense``).
+        device: where the depth network runs (:mod:`~mutualslam_cli.device`), resolved once per run.
+        predictors: the evaluation runtimes' predictors built so far, by ``(model name, id(model))``
+            (:func:`~mutualslam_cli.stages.evaluation.predictors_for`): built once, reused by later stages.
+        device_info: what ``manifest.json`` records of the device (:func:`~mutualslam_cli.device.describe_device`).
     """
 
     seq: Sequence
@@ -37,6 +43,9 @@ class RunContext:
     summary: Summary = field(default_factory=Summary)
     progress: Progress | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    predictors: dict[tuple[str, int], Any] = field(default_factory=dict)
+    device_info: dict[str, Any] = field(default_factory=dict)
 
     @property
     def cache(self) -> Path:

@@ -58,13 +58,14 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.dense import scaling, tsdf
 from mutualslam_cli.dense.picture import dense_picture
 from mutualslam_cli.dense.scaling import PREFIX, SCALINGS
+from mutualslam_cli.device import module_device
 from mutualslam_cli.errors import GeometryError
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.dense_frames import FusedFrame, front_end_scales, select_frames
-from mutualslam_cli.stages.evaluation import predictors_for
+from mutualslam_cli.stages.evaluation import eval_batch, predictors_for
 from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.camera import Undistorter, pinhole
@@ -283,7 +284,8 @@ def _predict(tmp: Path, seq: Sequence, vo: VOResult, fused: list[FusedFrame], ne
     pw = vo.points_world()
     ratios: dict[str, list[tuple[float, float]]] = {m: [] for m in nets}
     own = {m: np.full(len(fused), np.nan) for m in nets}
-    und, bs = Undistorter(seq.intrinsics), max(1, cfg.eval.batch)
+    und = Undistorter(seq.intrinsics)
+    bs = eval_batch(cfg, module_device(next(iter(nets.values()))))
     for start in range(0, len(need), _GROUP):
         chunk = need[start:start + _GROUP]
         frames = [und.image(seq.load_rgb(i)) for i in chunk]

@@ -63,7 +63,7 @@ def predict_frames(seq: Sequence, frames: list[int], nets: dict[str, torch.nn.Mo
     rgbs = [und.image(seq.load_rgb(i)) for i in frames]
     gts = [None if seq.frames[i].depth_path is None else und.depth(seq.load_depth(i)) for i in frames]
     out: dict[str, list[np.ndarray]] = {}
-    for name, predict in predictors_for(seq, nets, run.cfg, fast).items():
+    for name, predict in predictors_for(seq, nets, run.cfg, fast, run.predictors).items():
         out[name] = [cv2.resize(np.asarray(d, np.float32), (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_LINEAR)
                      for rgb, d in zip(rgbs, (predict([rgb])[0] for rgb in rgbs))]
     return rgbs, out, gts

@@ -1,8 +1,10 @@
 """The depth evaluation stage (DESIGN §7, :func:`run_stage`): the pre-trained and the adapted model
 on every frame with GT depth, ``per_frame.csv`` and the ``depth.*`` keys.
 
-The pre-trained model's rows do not depend on the scheme: they are cached per sequence, weights
-and evaluation settings (``<results>/_cache/pretrained``) and reused by every scheme's run.
+The pre-trained model's rows do not depend on the scheme: they are cached per sequence, weights,
+evaluation settings and (off the CPU) device (``<results>/_cache/pretrained``) and reused by every
+scheme's run. A run builds each model's predictor once (:func:`predictors_for` with the run's memo):
+the evaluation's serve the depth export after it.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.device import describe_device, module_device
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted
@@ -48,9 +51,15 @@ Predictor = Callable[[list[np.ndarray]], np.ndarray]
 """``B`` frames ``(H, W, 3)`` uint8 RGB (pinhole geometry) → ``(B, h, w)`` float32 depth at network resolution."""
 
 
+def eval_batch(cfg: RunConfig, device: torch.device) -> int:
+    """``eval.batch``, 0 resolved: 8 frames per forward pass on a GPU, 1 on the CPU (:class:`EvalConfig`)."""
+    return cfg.eval.batch or (8 if device.type == "cuda" else 1)
+
+
 def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConfig,
                    keyframe_frames: set[int] | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
+                   progress: Callable[[int, int], None] | None = None,
+                   batch: int | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
     """Evaluate each model on every ``eval.stride``-th frame that has GT depth.
 
     Frames and their GT depth are first brought to the pinhole camera the network is trained in
@@ -63,6 +72,7 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
         cfg: run config (``eval.pcd_threshold``, ``eval.max_depth``, ``eval.stride``).
         keyframe_frames: frame indices that are keyframes (flagged in the table).
         progress: called with ``(done, total)``.
+        batch: frames per forward pass (default: ``eval.batch``, 0 meaning 1).
 
     Returns:
         ``per_frame`` table (one row per evaluated frame: ``frame``, ``timestamp``, ``is_keyframe``,
@@ -77,7 +87,7 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
     times: dict[str, list[float]] = {k: [] for k in predictors}
     sketches: dict[str, list[np.ndarray | None]] = {k: [] for k in predictors}
     und = Undistorter(seq.intrinsics)
-    bs = max(1, cfg.eval.batch)
+    bs = max(1, batch if batch is not None else cfg.eval.batch)
     group = bs * max(1, _GROUP // bs)
     for start in range(0, len(frames), group):
         # decode a group of frames once, then run one model over all of them before the next:
@@ -130,18 +140,30 @@ def calibration_frames(seq: Sequence, n: int = CALIBRATION_FRAMES) -> list[np.nd
     return [und.image(seq.load_rgb(int(i))) for i in idx]
 
 
-def predictors_for(seq: Sequence, nets: dict[str, torch.nn.Module], cfg: RunConfig,
-                   fast: bool) -> dict[str, Callable[[list[np.ndarray]], np.ndarray]]:
+def predictors_for(seq: Sequence, nets: dict[str, torch.nn.Module], cfg: RunConfig, fast: bool,
+                   memo: dict[tuple[str, int], Predictor] | None = None) -> dict[str, Predictor]:
     """One batched predictor per model (:func:`~mutualslam_cli.adapt.inputs.make_predictor`), in the runtime the
-    config resolves to; the int8 runtime is calibrated on :func:`calibration_frames` of ``seq`` (read once)."""
-    calib = calibration_frames(seq) if resolve_runtime(cfg.net.runtime, cfg.net.fast) == "openvino-int8" else None
-    return {name: make_predictor(net, cfg, fast, calib) for name, net in nets.items()}
+    config resolves to on the model's device; the int8 runtime is calibrated on :func:`calibration_frames` of
+    ``seq`` (read once).
+
+    Args:
+        memo: predictors built before, by ``(name, id(model))``; new ones are added (a run's memo lets the
+            stages after the evaluation reuse its OpenVINO conversions; the models must not change meanwhile).
+    """
+    memo = {} if memo is None else memo
+    todo = {name: net for name, net in nets.items() if (name, id(net)) not in memo}
+    if todo:
+        int8 = any(resolve_runtime(cfg.net.runtime, cfg.net.fast, module_device(net)) == "openvino-int8"
+                   for net in todo.values())
+        calib = calibration_frames(seq) if int8 else None
+        memo.update({(name, id(net)): make_predictor(net, cfg, fast, calib) for name, net in todo.items()})
+    return {name: memo[(name, id(net))] for name, net in nets.items()}
 
 
 def model_digest(net: torch.nn.Module) -> str:
     """Short SHA-1 of a model's state dict (names and values): the identity of its weights."""
     h = hashlib.sha1()
-    for k, v in net.state_dict().items():
+    for k, v in net.state_dict().items():  # on the CPU: the same digest whatever the device
         h.update(k.encode())
         h.update(v.detach().cpu().contiguous().numpy().tobytes())
     return h.hexdigest()[:16]
@@ -149,29 +171,36 @@ def model_digest(net: torch.nn.Module) -> str:
 
 def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module | None, cfg: RunConfig, fast: bool,
                     kf_frames: set[int], cache_dir: Path | None = None,
-                    progress: Callable[[int, int], None] | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
+                    progress: Callable[[int, int], None] | None = None,
+                    memo: dict[tuple[str, int], Predictor] | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
     """Depth evaluation of the pre-trained model and (unless ``None``) the adapted one.
 
     The pre-trained model's rows do not depend on the scheme, so they are cached per sequence,
-    model weights and evaluation settings and reused by every scheme's run.
+    model weights, evaluation settings and device (a CUDA device's name is in the key; CPU keys are
+    those of before devices existed) and reused by every scheme's run.
+
+    Args:
+        memo: the run's predictors (:func:`predictors_for`).
 
     Returns:
         ``(per_frame_table, median_ms_per_prediction)``; the table has an ``is_keyframe`` column.
     """
+    device = module_device(net0)
     key = hashlib.sha1(json.dumps({
         "model": model_digest(net0), "net": to_dict(cfg.net), "eval": to_dict(cfg.eval), "fast": fast,
-        "runtime": resolve_runtime(cfg.net.runtime, cfg.net.fast),
+        "runtime": resolve_runtime(cfg.net.runtime, cfg.net.fast, device),
         "version": EVAL_VERSION,
         "root": str(Path(seq.root).resolve()), "frames": [f.timestamp for f in seq.frames],
+        **({} if device.type == "cpu" else {"device": describe_device(device)["device_name"]}),
     }, sort_keys=True, default=str).encode()).hexdigest()[:16]
     path = Path(cache_dir) / f"{seq.name}-{key}.csv" if cache_dir is not None else None
     cached = pd.read_csv(path) if path is not None and path.is_file() else None
     predictors = predictors_for(seq, {k: m for k, m in (("pretrained", net0 if cached is None else None),
-                                                          ("adapted", net)) if m is not None}, cfg, fast)
+                                                          ("adapted", net)) if m is not None}, cfg, fast, memo)
     if not predictors:  # scheme none with a cached pre-trained evaluation
         table, ms = cached.copy(), {}
     else:
-        table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, progress)
+        table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, progress, eval_batch(cfg, device))
     if cached is None and path is not None and len(table):
         cols = ["frame", "timestamp", "n_valid"] + [c for c in table.columns if c.startswith("pretrained_")]
         atomic_write_text(path, table[cols].to_csv(index=False))
@@ -195,7 +224,7 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, adapted: Ada
     with run.timed("evaluation"):
         table, ms = evaluate_models(run.seq, net0, net, cfg, fast, {k.frame_index for k in fe.vo.keyframes},
                                     run.cache / "pretrained",
-                                    lambda d, n: run.report("eval", {"done": d, "total": n}))
+                                    lambda d, n: run.report("eval", {"done": d, "total": n}), run.predictors)
     if adapted.online is not None and len(table):
         table = table.merge(adapted.online, on="frame", how="left")
         table["online_pcd_lsq_running"] = dm.running_mean(table["online_pcd_lsq"].to_numpy(dtype=float))

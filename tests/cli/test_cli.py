@@ -85,6 +85,17 @@ def test_run_unknown_scheme(tum_dir: Path, tmp_path: Path):
     _one_line_error(r, "replay+ewc")
 
 
+def test_device_option_is_checked_before_any_work(tum_dir: Path, tmp_path: Path, monkeypatch):
+    import torch
+
+    r = runner.invoke(app, ["run", str(tum_dir), "--device", "gpu", "--out", str(tmp_path / "res")])
+    _one_line_error(r, "cuda:N")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    r = runner.invoke(app, ["run", str(tum_dir), "--device", "cuda", "--out", str(tmp_path / "res")])
+    _one_line_error(r, "CUDA is not available")
+    assert not (tmp_path / "res").exists() or not any((tmp_path / "res").rglob("summary.json"))
+
+
 def test_bad_set_override(tum_dir: Path):
     r = runner.invoke(app, ["run", str(tum_dir), "--set", "adapt.lr=abc"])
     _one_line_error(r, "adapt.lr")

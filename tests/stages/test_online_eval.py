@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from synth import make_tum_dir
@@ -48,3 +49,51 @@ def test_each_frame_scored_by_the_model_after_the_last_keyframe_before_it(tmp_pa
         assert table.loc[i, "online_esi"] == pytest.approx(ref.esi)
     # one scale for the sequence: models 1, 2, 3 disagree by 3×, so it fits the frames worse than per-frame scales
     assert table["online_pcd_seq_lsq"].mean() < table["online_pcd_lsq"].mean()
+
+
+def test_the_frames_of_one_model_share_forward_passes_and_batches_change_only_rounding(tmp_path, monkeypatch):
+    """Frames between two keyframes are predicted together (passes of batch_size frames) when the model is about
+    to change, on the CPU through a channels-last twin of the NCHW network; the scores equal one frame at a time
+    with the network itself up to float rounding (the kernels sum in another order)."""
+    from mutualslam_cli.adapt.depthnet import DepthNet
+    from mutualslam_cli.stages import online_eval
+
+    seq = load_sequence(make_tum_dir(tmp_path, scene="room", n=11, width=128, height=96))
+    cfg = with_overrides(RunConfig(), net={"width": 96, "height": 64})
+    torch.manual_seed(0)
+    net = DepthNet().eval()
+    calls: list[tuple[int, bool]] = []
+    real = online_eval.predict_depth
+    monkeypatch.setattr(online_eval, "predict_depth",
+                        lambda n, x, fast: (calls.append((len(x), n.channels_last)), real(n, x, fast))[1])
+
+    def scores(batch: int, twin: bool) -> pd.DataFrame:
+        monkeypatch.setattr(online_eval, "batch_size", lambda device, threads: batch)
+        if not twin:
+            monkeypatch.setattr(OnlineScorer, "_scoring_net", lambda self, n: n)
+        calls.clear()
+        sc = OnlineScorer(seq, eval_frames(seq, 1), cfg, fast=False)
+        sc.score_until(net, 2, -1)
+        with torch.no_grad():
+            for p in net.parameters():  # the next model: its scores must come from its own weights
+                p.mul_(1.01)
+        return sc.finish(net, 0)
+
+    batched = scores(8, twin=True)
+    assert calls == [(2, True), (8, True), (1, True)]  # frames 0-1 by one model; 2-10 by the next, ≤ 8 per pass
+    torch.manual_seed(0)
+    net = DepthNet().eval()
+    single = scores(1, twin=False)
+    assert calls == [(1, False)] * 11
+    for col in ("online_pcd_lsq", "online_pcd_median", "online_pcd_seq_lsq"):
+        assert (batched[col] - single[col]).abs().max() < 0.1, col  # a pixel at the threshold may flip: 1/3072
+    assert (batched["online_esi"] - single["online_esi"]).abs().max() < 1e-4
+    assert batched["online_kf"].tolist() == single["online_kf"].tolist()
+    assert not net.channels_last  # the network adapted in the loop keeps its own layout
+
+
+def test_batch_size_follows_device_and_threads():
+    from mutualslam_cli.stages.online_eval import BATCH, batch_size
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda", 0)
+    assert (batch_size(cpu, 1), batch_size(cpu, 2), batch_size(cpu, 16), batch_size(cuda, 1)) == (2, 4, 4, BATCH)

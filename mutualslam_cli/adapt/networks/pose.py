@@ -114,8 +114,9 @@ class PoseNet(nn.Module):
 
     def __init__(self, num_layers: int = 18, num_frames_to_predict_for: int = 2):
         super().__init__()
-        self.encoder = PoseEncoder(num_layers, num_input_images=2)
-        self.decoder = PoseDecoder(self.encoder.num_ch_enc[-1], num_frames_to_predict_for)
+        with torch.device("cpu"):  # built on the CPU (where weights are loaded), then moved to the run's device
+            self.encoder = PoseEncoder(num_layers, num_input_images=2)
+            self.decoder = PoseDecoder(self.encoder.num_ch_enc[-1], num_frames_to_predict_for)
 
     def forward(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
         """``first``, ``second``: ``(B, 3, H, W)`` in [0, 1] → ``(B, 4, 4)`` float32 ``T_{first→second}``."""

@@ -1,0 +1,135 @@
+"""``make gpu-check``: the CUDA path on a machine with an NVIDIA GPU, checked against the CPU (DESIGN §10).
+
+Usage: ``python -m mutualslam_cli.bench.gpu_check [--sequence tum_fr1_xyz] [--out DIR] [--skip-cpu]``.
+
+Without CUDA it says why and exits 0 (CI and CPU-only machines). With it, in about five minutes:
+
+1. the fine-tuning step and the depth prediction at 640×192 on the GPU (the bench's, medians), against
+   DESIGN §10's targets (step ≤ 25 ms, prediction ≤ 5 ms on one H100-class GPU);
+2. one shared 100-frame window end to end (``configs/paper.yaml``, replay+ewc, our VO) with ``device=cuda``
+   and with ``device=cpu`` (each its own front end, no shared cache); it checks that the two agree — the
+   keyframes (their timestamps) and PCD (lsq, final model) within 1 point — and prints each run's total
+   time, in-run step and prediction times. Exit status 1 when a check fails.
+
+A whole 900-frame sequence in ≤ 90 s (the third target) needs a longer sequence than the shared windows:
+``mslam run SEQ --device cuda`` on one prints its stage table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mutualslam_cli.adapt.inputs import use_fast_path
+from mutualslam_cli.bench.finetune import bench_finetune_step, bench_inference
+from mutualslam_cli.config import CONFIG_DIR, load_config
+from mutualslam_cli.device import describe_device, resolve_device
+from mutualslam_cli.errors import MslamError
+from mutualslam_cli.pipeline import run_sequence
+from mutualslam_cli.results.summary import flatten
+
+#: DESIGN §10 on one H100-class GPU: bench key → (limit in ms, what).
+GPU_TARGETS = {"step_ms": (25.0, "fine-tuning step"), "predict_ms": (5.0, "depth prediction")}
+#: The CUDA run may differ from the CPU run by this much PCD (points, lsq, final model).
+PCD_TOLERANCE = 1.0
+
+
+def no_cuda_reason() -> str | None:
+    """Why this machine cannot run the check (``None``: it can)."""
+    if torch.cuda.is_available():
+        return None
+    if torch.version.cuda is None:
+        return (f"torch {torch.__version__} is the CPU build (README: install the CUDA build of the same version "
+                "to use a GPU)")
+    return f"torch {torch.__version__} (CUDA {torch.version.cuda}) sees no usable GPU or driver"
+
+
+def bench_gpu(device: torch.device, repeats: int = 20) -> dict[str, Any]:
+    """Median fine-tuning step and prediction on ``device`` in the precision a run would use there."""
+    fast = use_fast_path(load_config(), device)
+    step = bench_finetune_step(640, 192, repeats, fast, warmup=5, device=device)["ms"]
+    predict = bench_inference(640, 192, 2 * repeats, fast, warmup=5, device=device)["ms"]
+    return {"step_ms": step, "predict_ms": predict, "mixed_precision": fast}
+
+
+def run_window(sequence: str, spec: str, out: Path, config: Path = CONFIG_DIR / "paper.yaml",
+               sets: list[str] | None = None) -> dict[str, Any]:
+    """One window end to end on ``spec``; its flat summary, its keyframes (timestamps) and wall time."""
+    cfg = load_config(config, [*(sets or []), f"device={spec}"])
+    t0 = time.perf_counter()
+    r = run_sequence(sequence, cfg, out=out, force=True, command=["gpu-check", spec])
+    wall = time.perf_counter() - t0
+    lines = (r.folder / "traj_kf.txt").read_text().splitlines()
+    kf = [line.split()[0] for line in lines if line.strip() and not line.startswith("#")]  # their timestamps
+    return {"summary": flatten(r.summary), "keyframes": kf, "wall_s": wall}
+
+
+def compare(gpu: dict[str, Any], cpu: dict[str, Any]) -> list[tuple[str, bool, str]]:
+    """The checks of the CUDA run against the CPU run: ``(what, passed, detail)``."""
+    pg, pc = gpu["summary"].get("depth.pcd.lsq.adapted"), cpu["summary"].get("depth.pcd.lsq.adapted")
+    same_pcd = pg is not None and pc is not None and abs(pg - pc) <= PCD_TOLERANCE
+    return [("same keyframes", gpu["keyframes"] == cpu["keyframes"],
+             f"{len(gpu['keyframes'])} on cuda, {len(cpu['keyframes'])} on cpu"),
+            (f"PCD lsq within {PCD_TOLERANCE:g} point", same_pcd, f"cuda {pg}, cpu {pc}")]
+
+
+def _fmt(v: Any, nd: int = 1) -> str:
+    return "—" if v is None else f"{v:.{nd}f}" if isinstance(v, float) else str(v)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sequence", default="tum_fr1_xyz", help="a shared window of 100 frames (datasets.yaml name)")
+    ap.add_argument("--out", default=None, help="results folder (default: a temporary one)")
+    ap.add_argument("--skip-cpu", action="store_true", help="only the GPU side (no comparison)")
+    ap.add_argument("--device", default="cuda", help="the GPU side's device (tests run the script with cpu)")
+    ap.add_argument("--config", type=Path, default=CONFIG_DIR / "paper.yaml")
+    ap.add_argument("--set", dest="sets", action="append", default=[], help="key=value (repeatable)")
+    a = ap.parse_args(argv)
+    reason = no_cuda_reason()
+    if reason is not None:
+        print(f"gpu-check: skipped, no CUDA device: {reason}")
+        return 0
+    device = resolve_device(a.device)
+    info = describe_device(device)
+    print(f"gpu-check on {info['device_name']} ({info['device_memory_gb']} GiB, CUDA {info['cuda_version']}, "
+          f"cuDNN {info['cudnn_version']}, compute capability {info.get('compute_capability')})")
+    bench = bench_gpu(device)
+    ok = True
+    for key, (limit, what) in GPU_TARGETS.items():
+        passed = bench[key] <= limit
+        print(f"  {what}: {bench[key]:.1f} ms (target ≤ {limit:g} ms, mixed precision {bench['mixed_precision']})"
+              f" {'ok' if passed else 'ABOVE TARGET'}")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(a.out or tmp)
+        try:
+            runs = {"cuda": run_window(a.sequence, a.device, out / "cuda", a.config, a.sets)}
+            if not a.skip_cpu:
+                runs["cpu"] = run_window(a.sequence, "cpu", out / "cpu", a.config, a.sets)
+        except MslamError as e:
+            print(f"gpu-check: the {a.sequence} window could not run: {e}")
+            return 1
+    print(f"\n{a.sequence}, configs/paper.yaml, replay+ewc:")
+    print(f"  {'device':<6} {'total s':>8} {'step ms':>8} {'predict ms':>10} {'PCD lsq':>8} {'keyframes':>9}")
+    for name, r in runs.items():
+        f = r["summary"]
+        print(f"  {name:<6} {_fmt(f.get('timing.total_s')):>8} {_fmt(f.get('timing.finetune_ms')):>8} "
+              f"{_fmt(f.get('timing.depth_ms')):>10} {_fmt(f.get('depth.pcd.lsq.adapted'), 2):>8} "
+              f"{len(r['keyframes']):>9}")
+    if "cpu" in runs:
+        for what, passed, detail in compare(runs["cuda"], runs["cpu"]):
+            ok &= passed
+            print(f"  {what}: {'ok' if passed else 'FAILED'} ({detail})")
+    print(json.dumps({"bench": bench, **{f"{k}_total_s": r["summary"].get("timing.total_s") for k, r in runs.items()}}))
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
