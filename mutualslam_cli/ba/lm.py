@@ -5,7 +5,7 @@ Each iteration builds the Gauss–Newton normal equations of the active blocks w
 2016), adds the scale anchor, and tries damped steps through the Schur complement
 (:mod:`mutualslam_cli.ba.schur`) until the robust cost decreases: within one call the cost never
 increases across accepted steps. Given the cameras the cost is a sum over points, so a trial step
-keeps the inverse depth of each point whose own cost it raised (:func:`_trial`): one point in a
+keeps the inverse depth of each point whose own cost it raised (:meth:`_Level.trial`): one point in a
 narrow basin no longer forces up the damping of every unknown (on the unit tests' scene LM stalled
 at the first iteration of its second round without this). Pose increments are left increments on ``T_cw``
 (:func:`mutualslam_cli.geometry.left_update`), as in :mod:`mutualslam_cli.vo.local_ba`.
@@ -21,6 +21,8 @@ whole map follow that pair.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -30,6 +32,51 @@ from mutualslam_cli.ba.schur import NormalEquations
 from mutualslam_cli.geometry import left_update
 
 log = logging.getLogger(__name__)
+
+
+class BAState(NamedTuple):
+    """The unknowns of one BA: ``T`` ``(K, 4, 4)`` world-to-camera poses, ``ab`` ``(K, 2)`` affine brightness
+    ``(a, b)``, ``rho`` ``(P,)`` inverse depths (1 / map units) in the host keyframes."""
+
+    T: np.ndarray
+    ab: np.ndarray
+    rho: np.ndarray
+
+
+@dataclass(frozen=True)
+class LMSettings:
+    """How LM runs: ``huber_delta`` (intensity in [0, 1]), ``scale_weight`` (the scale anchor's cost of a relative
+    error of 1), the initial damping ``lambda0``, ``max_tries`` damping increases per iteration, and ``callback``
+    ``(iteration, cost)`` after each iteration."""
+
+    huber_delta: float
+    scale_weight: float
+    lambda0: float
+    max_tries: int
+    callback: Callable[[int, float], None] | None = None
+
+
+@dataclass(frozen=True)
+class Gauge:
+    """What moves in one round: ``fidx`` the free keyframes, ``cols`` their unknowns' columns (8 per keyframe,
+    or the 6 of the pose without the affine brightness), ``s0`` the scale anchor's target extent over the
+    ``anchor`` keyframes (``None``: all)."""
+
+    fidx: np.ndarray
+    cols: np.ndarray
+    s0: float
+    anchor: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class LevelResult:
+    """One call of :func:`solve_level`: the final ``state``, the cost after each iteration (``costs[0]``: at the
+    start), the ``iterations`` run and the steps ``accepted``."""
+
+    state: BAState
+    costs: list[float]
+    iterations: int
+    accepted: int
 
 
 def normal_equations(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, huber_delta: float,
@@ -88,64 +135,72 @@ def _scale_prior(T: np.ndarray, fidx: np.ndarray, s0: float, ws: float,
     return J, s - s0
 
 
-def _trial(d: PatchData, T, ab, rho, res, dc, dp, fidx, act, huber_delta, total):
-    """The state after the step ``(dc, dp)`` and its residuals and cost. Given the cameras, the cost is a
-    sum over points, each depending on its own inverse depth only: a point whose share of the cost
-    rose with its step keeps its inverse depth instead (and its residuals at the new cameras). One
-    point in a narrow basin (a sharp edge, a sub-pixel shift away) then no longer forces the damping
-    of every unknown up; the cost returned is still the exact cost of the state returned."""
-    T2, ab2, rho2 = apply_step(T, ab, rho, dc, dp, fidx)
-    res2 = residuals(d, T2, ab2, rho2, jac=True)
-    P = len(rho)
-    worse = point_costs(d, res2[0], res2[2], act, huber_delta, P) > point_costs(d, res[0], res[2], act, huber_delta, P)
-    if worse.any():
-        rho3 = np.where(worse, rho, rho2)
-        res3 = residuals(d, T2, ab2, rho3, jac=True)
-        pick = worse[d.p]
-        res2 = tuple(np.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), b, a) for a, b in zip(res2, res3))
-        rho2 = rho3
-    return T2, ab2, rho2, res2, total(T2, res2)
+class _Level:
+    """The cost of one call of :func:`solve_level` (active blocks, free keyframes, scale anchor) and its trial steps."""
+
+    def __init__(self, d: PatchData, active: np.ndarray, gauge: Gauge, lm: LMSettings):
+        self.d, self.act, self.gauge, self.lm = d, active, gauge, lm
+        s0 = gauge.s0
+        self.ws = lm.scale_weight / s0 ** 2 if s0 > 1e-9 and len(gauge.fidx) else 0.0
+
+    def prior(self, T: np.ndarray) -> tuple[np.ndarray, float]:
+        return _scale_prior(T, self.gauge.fidx, self.gauge.s0, self.ws, self.gauge.anchor)
+
+    def total(self, T: np.ndarray, res: tuple) -> float:
+        e = self.prior(T)[1] if self.ws else 0.0
+        return robust_cost(self.d, res[0], res[2], self.act, self.lm.huber_delta) + self.ws * e * e
+
+    def trial(self, st: BAState, res: tuple, dc: np.ndarray, dp: np.ndarray) -> tuple[BAState, tuple, float]:
+        """The state after the step ``(dc, dp)``, its residuals and cost. Given the cameras, the cost is a
+        sum over points, each depending on its own inverse depth only: a point whose share of the cost
+        rose with its step keeps its inverse depth instead (and its residuals at the new cameras). One
+        point in a narrow basin (a sharp edge, a sub-pixel shift away) then no longer forces the damping
+        of every unknown up; the cost returned is still the exact cost of the state returned."""
+        d, hd = self.d, self.lm.huber_delta
+        new = BAState(*apply_step(*st, dc, dp, self.gauge.fidx))
+        res2 = residuals(d, *new, jac=True)
+        P = len(st.rho)
+        worse = point_costs(d, res2[0], res2[2], self.act, hd, P) > point_costs(d, res[0], res[2], self.act, hd, P)
+        if worse.any():
+            new = new._replace(rho=np.where(worse, st.rho, new.rho))
+            res3 = residuals(d, *new, jac=True)
+            pick = worse[d.p]
+            res2 = tuple(np.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), b, a) for a, b in zip(res2, res3))
+        return new, res2, self.total(new.T, res2)
 
 
-def solve_level(d: PatchData, T, ab, rho, fidx, cols, s0, iterations, huber_delta, scale_weight,
-                lambda0, max_tries, callback, it_offset=0, active=None, anchor=None):
-    """LM iterations at one resolution over the ``active`` blocks (``None``: all); returns
-    ``(T, ab, rho, costs, iterations, accepted)``. ``s0``: the scale anchor's target (from the
-    input state, shared by all levels and rounds), the extent of the ``anchor`` keyframes (``None``: all)."""
-    ws = scale_weight / s0 ** 2 if s0 > 1e-9 and len(fidx) else 0.0
-    act = np.ones(len(d.p), bool) if active is None else active
-
-    def total(T_, res_):
-        e = _scale_prior(T_, fidx, s0, ws, anchor)[1] if ws else 0.0
-        return robust_cost(d, res_[0], res_[2], act, huber_delta) + ws * e * e
-
-    res = residuals(d, T, ab, rho, jac=iterations > 0)  # trial states keep Jacobians for reuse
-    cost = total(T, res)
-    costs, accepted, lam, it = [cost], 0, lambda0, 0
+def solve_level(d: PatchData, state: BAState, gauge: Gauge, iterations: int, lm: LMSettings,
+                active: np.ndarray | None = None, it_offset: int = 0) -> LevelResult:
+    """LM iterations at one resolution over the ``active`` blocks (``None``: all), the keyframes of ``gauge``
+    free; ``it_offset``: iterations already run (for ``lm.callback``)."""
+    level = _Level(d, np.ones(len(d.p), bool) if active is None else active, gauge, lm)
+    res = residuals(d, *state, jac=iterations > 0)  # trial states keep Jacobians for reuse
+    cost = level.total(state.T, res)
+    costs, accepted, lam, it = [cost], 0, lm.lambda0, 0
     for it in range(1, iterations + 1):
-        ne = normal_equations(d, T, ab, rho, huber_delta, act, res)
-        if ws:
-            Js, es = _scale_prior(T, fidx, s0, ws, anchor)
-            ne.Hcc += 2 * ws * np.outer(Js, Js)
-            ne.bc += 2 * ws * Js * es
+        ne = normal_equations(d, *state, lm.huber_delta, level.act, res)
+        if level.ws:
+            Js, es = level.prior(state.T)
+            ne.Hcc += 2 * level.ws * np.outer(Js, Js)
+            ne.bc += 2 * level.ws * Js * es
         ok = False
-        for _ in range(max_tries):
+        for _ in range(lm.max_tries):
             try:
-                dc, dp = ne.step(lam, cols)
+                dc, dp = ne.step(lam, gauge.cols)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            T2, ab2, rho2, res2, c_new = _trial(d, T, ab, rho, res, dc, dp, fidx, act, huber_delta, total)
+            new, res_new, c_new = level.trial(state, res, dc, dp)
             if c_new < cost:
-                T, ab, rho, cost, res = T2, ab2, rho2, c_new, res2
+                state, cost, res = new, c_new, res_new
                 lam, ok = max(lam / 10, 1e-7), True
                 accepted += 1
                 break
             lam *= 10
         costs.append(cost)
         log.debug("photometric BA it %d cost %.6g lambda %.1e accepted %s", it, cost, lam, ok)
-        if callback is not None:
-            callback(it_offset + it, cost)
+        if lm.callback is not None:
+            lm.callback(it_offset + it, cost)
         if not ok:
             break
-    return T, ab, rho, costs, it, accepted
+    return LevelResult(state, costs, it, accepted)

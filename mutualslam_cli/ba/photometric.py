@@ -39,7 +39,7 @@ from typing import Callable
 import numpy as np
 
 from mutualslam_cli.ba import pyramid
-from mutualslam_cli.ba.lm import apply_step, extent, normal_equations, solve_level
+from mutualslam_cli.ba.lm import BAState, Gauge, LMSettings, apply_step, extent, normal_equations, solve_level
 from mutualslam_cli.ba.problem import NP, PhotoBAProblem, PhotoBAResult, validate
 from mutualslam_cli.ba.residuals import GRADIENT_C, SQUARE3, PatchData, classify, residuals, robust_cost
 from mutualslam_cli.errors import ConfigError
@@ -66,6 +66,34 @@ def _mostly_outliers(d: PatchData, inlier: np.ndarray, n_points: int, drop_ratio
 def _blocks_per_keyframe(d: PatchData, active: np.ndarray) -> np.ndarray:
     """``(K,)`` active blocks per keyframe, as host or as target."""
     return np.bincount(d.h[active], minlength=d.nk) + np.bincount(d.t[active], minlength=d.nk)
+
+
+class _Rounds:
+    """The rounds of one :func:`solve`, in order: each decides its active blocks and held keyframes, runs LM
+    (:func:`~mutualslam_cli.ba.lm.solve_level`) and keeps its record in :attr:`records`."""
+
+    def __init__(self, free: np.ndarray, affine: bool, min_blocks: int, drop_ratio: float, outlier_delta: float,
+                 s0: float, anchor: np.ndarray | None, lm: LMSettings):
+        self.free, self.affine, self.min_blocks, self.drop_ratio = free, affine, min_blocks, drop_ratio
+        self.outlier_delta, self.s0, self.anchor, self.lm = outlier_delta, s0, anchor, lm
+        self.records: list[dict] = []
+
+    @property
+    def iterations(self) -> int:
+        """LM iterations run so far, over every round."""
+        return sum(r["iterations"] for r in self.records)
+
+    def run(self, d: PatchData, st: BAState, n: int, level: int) -> BAState:
+        """One round of ``n`` LM iterations on ``d`` (at pyramid ``level``) from ``st``; returns the state after."""
+        active = classify(d, *residuals(d, *st), self.lm.huber_delta, self.outlier_delta)
+        active &= ~_mostly_outliers(d, active, len(st.rho), self.drop_ratio)[d.p]  # the rest of a dropped point too
+        fidx = np.flatnonzero(self.free & (_blocks_per_keyframe(d, active) >= self.min_blocks))
+        cols = (fidx[:, None] * NP + np.arange(NP if self.affine else 6)).ravel()
+        r = solve_level(d, st, Gauge(fidx, cols, self.s0, self.anchor), n, self.lm, active, self.iterations)
+        self.records.append({"level": level, "shape": (d.H, d.W), "costs": [float(c) for c in r.costs],
+                             "iterations": r.iterations, "accepted": r.accepted, "active": int(active.sum()),
+                             "held": int(self.free.sum() - len(fidx))})
+        return r.state
 
 
 def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER_DELTA,
@@ -110,28 +138,13 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
         raise ConfigError(f"solve: expected rounds >= 1, coarse_iterations >= 0, drop_ratio in [0, 1]; got {rounds}, "
                           f"{coarse_iterations}, {drop_ratio}")
     stack = pyramid.build(np.asarray(prob.images), levels)
-    state0 = tuple(np.asarray(x, float).copy() for x in (prob.T_cw, prob.affine, prob.inv_depth))
+    state0 = BAState(*(np.asarray(x, float).copy() for x in (prob.T_cw, prob.affine, prob.inv_depth)))
     state = state0
-    s0 = extent(state0[0], prob.anchor)
-    per_round, n_it, n_acc = [], 0, 0
-
-    def round_(d: PatchData, st: tuple, n: int, level: int) -> tuple:
-        nonlocal n_it, n_acc
-        active = classify(d, *residuals(d, *st), huber_delta, outlier_delta)
-        active &= ~_mostly_outliers(d, active, len(st[2]), drop_ratio)[d.p]  # the rest of a dropped point too
-        fidx = np.flatnonzero(free & (_blocks_per_keyframe(d, active) >= min_blocks))
-        cols = (fidx[:, None] * NP + np.arange(NP if affine else 6)).ravel()
-        T, ab, rho, costs, it, acc = solve_level(d, *st, fidx, cols, s0, n, huber_delta, scale_weight, lambda0,
-                                                 max_tries, callback, n_it, active, prob.anchor)
-        per_round.append({"level": level, "shape": (d.H, d.W),
-                          "costs": [float(c) for c in costs], "iterations": it, "accepted": acc,
-                          "active": int(active.sum()), "held": int(free.sum() - len(fidx))})
-        n_it, n_acc = n_it + it, n_acc + acc
-        return T, ab, rho
-
+    rounds_ = _Rounds(free, affine, min_blocks, drop_ratio, outlier_delta, extent(state0.T, prob.anchor), prob.anchor,
+                      LMSettings(huber_delta, scale_weight, lambda0, max_tries, callback))
     for lv in range(len(stack) - 1, 0, -1):  # coarse levels, coarsest first
         d = PatchData(pyramid.level_problem(prob, stack[lv], lv, *state), pattern, margin, grad_c)
-        state = round_(d, state, coarse_iterations, lv)
+        state = rounds_.run(d, state, coarse_iterations, lv)
     d0 = PatchData(prob, pattern, margin, grad_c)
     if levels > 1:  # the coarse levels are other cost functions: keep their result only if full resolution agrees
         act0 = classify(d0, *residuals(d0, *state0), huber_delta, outlier_delta)
@@ -141,7 +154,8 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
             state = state0
     share = [iterations // rounds + (1 if k < iterations % rounds else 0) for k in range(rounds)]
     for n in share:
-        state = round_(d0, state, n, 0)
+        state = rounds_.run(d0, state, n, 0)
+    per_round = rounds_.records
     T, ab, rho = state
     final = classify(d0, *residuals(d0, *state), huber_delta, outlier_delta)
     dropped = _mostly_outliers(d0, final, len(rho), drop_ratio)
@@ -150,7 +164,8 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
     r1 = residuals(d0, *state)
     stats = {"cost0": robust_cost(d0, r0[0], r0[2], final, huber_delta),
              "cost": robust_cost(d0, r1[0], r1[2], final, huber_delta),
-             "costs": per_round[-1]["costs"], "rounds": per_round, "iterations": n_it, "accepted": n_acc,
+             "costs": per_round[-1]["costs"], "rounds": per_round, "iterations": rounds_.iterations,
+             "accepted": sum(r["accepted"] for r in per_round),
              "n_blocks": int(len(final)), "n_outlier_blocks": int((~final).sum()), "n_dropped": int(dropped.sum()),
              "dropped": dropped, "seconds": time.perf_counter() - t0}
     return PhotoBAResult(T, ab, rho, stats)
