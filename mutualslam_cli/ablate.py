@@ -38,12 +38,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from threadpoolctl import threadpool_limits
+
 from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.config import RunConfig, with_overrides, with_settings
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.device import claim_gpu, gpu_slots
 from mutualslam_cli.errors import ConfigError, MslamError
-from mutualslam_cli.pipeline import run_sequence
+from mutualslam_cli.pipeline import run_sequence, use_threads
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, run_dir
 from mutualslam_cli.stages.frontend import run_frontend
@@ -146,11 +148,13 @@ def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, regi
 def _prepare_one(cfg: RunConfig, sequence: str, seed: int, out: str, registry: str | None, threads: int) -> str | None:
     """Run one (sequence, seed) front end into ``<out>/_cache/vo``; the error message if it failed
     (the sequence's jobs then fail with it themselves, and the other sequences go on)."""
-    c = with_overrides(cfg, seed=seed, threads=threads)  # type: ignore[arg-type]
+    # the jobs' thread count, set for OpenCV, torch and BLAS as a job sets it: the front end's output follows it
+    c = use_threads(with_overrides(cfg, seed=seed, threads=threads))  # type: ignore[arg-type]
     try:
         seq = load_sequence(sequence, data_root=c.data.data_root, registry_path=registry,
                             max_frames=c.data.max_frames, stride=c.data.stride)
-        run_frontend(seq, c, cache_dir=Path(out) / "_cache" / "vo")
+        with threadpool_limits(limits=c.threads, user_api="blas"):
+            run_frontend(seq, c, cache_dir=Path(out) / "_cache" / "vo")
     except MslamError as e:
         log.warning("front end for %s (seed %d) failed: %s", sequence, seed, e)
         return str(e)
@@ -158,10 +162,11 @@ def _prepare_one(cfg: RunConfig, sequence: str, seed: int, out: str, registry: s
 
 
 def prepare_frontends(cfg: RunConfig, sequences: list[str], seeds: list[int], out: str,
-                      registry: str | None = None) -> None:
-    """Run every (sequence, seed) front end once, in this process, so scheme jobs find it in the VO cache."""
+                      registry: str | None = None, threads: int | None = None) -> None:
+    """Run every (sequence, seed) front end once, in this process, with the jobs' ``threads`` (default
+    ``cfg.threads``), so scheme jobs find it in the VO cache."""
     for q, k in itertools.product(sequences, seeds):
-        _prepare_one(cfg, q, k, out, registry, cfg.threads)
+        _prepare_one(cfg, q, k, out, registry, cfg.threads if threads is None else threads)
 
 
 def _warm_up() -> None:
@@ -205,7 +210,7 @@ def _local_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str
     """Outcomes of ``todo`` run in this process (1 worker) or a spawned process pool, as they finish."""
     seqs, seeds = sorted({j.sequence for j in todo}), sorted({j.seed for j in todo})
     if workers <= 1:
-        prepare_frontends(cfg, seqs, seeds, out, reg)
+        prepare_frontends(cfg, seqs, seeds, out, reg, threads)
         for j in todo:
             yield _run_job(cfg, j, out, command, reg, threads)
         return
@@ -216,7 +221,7 @@ def _local_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str
     try:
         # the workers start (and import torch, seconds each) while this process runs the front ends
         warm = [pool.submit(_warm_up) for _ in range(workers)]
-        prepare_frontends(cfg, seqs, seeds, out, reg)
+        prepare_frontends(cfg, seqs, seeds, out, reg, threads)
         with _ctrl_c_as_flag() as stop:
             _wait_all(warm, stop)
             futs = [pool.submit(_run_job, cfg, j, out, command, reg, threads) for j in todo]

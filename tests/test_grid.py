@@ -67,6 +67,8 @@ def test_a_second_grid_on_the_same_folder_stops_at_once(setup, tmp_path):
     assert not list(tmp_path.rglob("summary.json"))
 
 
+# slow (~45 s in CI: a local Dask cluster starts); the Dask jobs' resources are checked in CI by tests/test_device.py
+@pytest.mark.slow
 def test_dask_local_cluster_gives_the_summaries_of_the_local_pool(setup, tmp_path):
     pytest.importorskip("dask.distributed")
     tmp, seq = setup

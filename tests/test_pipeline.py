@@ -197,6 +197,7 @@ def test_ablate_grid_resumes(setup):
     assert bad[0].status == "failed" and "missing" in bad[0].error
 
 
+@pytest.mark.slow  # ~20 s in CI: a hindsight-only diagnostic (vo.inject_outliers)
 def test_injected_outliers_are_counted(setup, default_run):
     tmp, seq = setup
     on = flatten(default_run.summary)

@@ -41,14 +41,16 @@ _FORMAT = "mslam-vo-cache"
 
 
 def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
-    """Cache key of a front-end journal: sequence identity + front-end and data config + seed."""
+    """Cache key of a front-end journal: sequence identity + front-end and data config + seed + thread count
+    (OpenCV's output follows it: a journal of 2 threads is not the front end of 1)."""
     ident = {
         "root": str(Path(seq.root).resolve()), "n": len(seq),
         "first": seq.frames[0].timestamp if len(seq) else None,
         "last": seq.frames[-1].timestamp if len(seq) else None,
         "vo": {k: v for k, v in to_dict(cfg.vo).items() if k not in ("inject_outliers", "bridge_segments")},
         "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
-        "seed": cfg.seed, "intr": seq.intrinsics.as_list(), "version": FRONTEND_VERSION, "journal": JOURNAL_VERSION,
+        "seed": cfg.seed, "threads": cfg.threads, "intr": seq.intrinsics.as_list(), "version": FRONTEND_VERSION,
+        "journal": JOURNAL_VERSION,
     }
     if cfg.vo.mode != "svo":  # an oracle's result also depends on the oracles' version
         ident["oracle_version"] = ORACLE_VERSION

@@ -182,6 +182,8 @@ def test_pose_net_default_and_files(tmp_path, caplog):
         make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "none")))
 
 
+# slow (~60 s in CI): a whole run; tests/stages/test_comoda_stage.py covers the stage in CI
+@pytest.mark.slow
 def test_run_sequence_reports_a_posenet_ate(tmp_path):
     from synth import make_tum_dir
 

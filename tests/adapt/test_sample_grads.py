@@ -106,4 +106,8 @@ def test_ewc_fisher_is_the_same_either_way(monkeypatch):
 
     one_pass, loop = fisher(True), fisher(False)
     for a, b in zip(loop, one_pass):
-        torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-6 * float(a.abs().max()) + 1e-20)
+        # the same sums through other kernels (a batch of N, not N batches of 1): on an AVX2 CPU the tensors
+        # differed by up to 1.2e-4 of their norm (1.7e-4 of their largest entry), rounding amplified through
+        # the photometric loss; a Fisher from the wrong keyframes or the wrong samples is off by O(1)
+        assert float((b - a).norm()) <= 1e-3 * float(a.norm()) + 1e-20
+        torch.testing.assert_close(b, a, rtol=0, atol=1e-3 * float(a.abs().max()) + 1e-20)

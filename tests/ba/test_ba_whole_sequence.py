@@ -37,5 +37,7 @@ def test_ba_of_2000_frames_fits_in_time_and_memory(tmp_path: Path):
     print(f"2000 frames: {len(vo.keyframes)} keyframes, {len(vo.points)} points; BA {seconds:.1f} s, peak RSS "
           f"+{grew:.0f} MB; keyframe ATE {1000 * before:.2f} -> {1000 * after:.2f} mm; "
           f"{r.stats['n_nearby_targets']} nearby targets, {r.stats['n_dropped']} dropped")
-    assert seconds < 120 and grew < 4096
+    # the README's figures (4.5 s, +744 MB, AMD EPYC, 1 thread) within 1.5x: time depends on the machine's load,
+    # so run it on an idle machine
+    assert seconds < 1.5 * 4.5 and grew < 1.5 * 744
     assert after <= before

@@ -3,6 +3,8 @@ run path exercised on the CPU (the 'GPU side' told device=cpu, the bench stubbed
 
 from __future__ import annotations
 
+import pytest
+
 import torch
 
 from mutualslam_cli.bench import gpu_check
@@ -26,6 +28,7 @@ def test_the_comparison_wants_the_same_keyframes_and_pcd_within_a_point():
     assert not gpu_check.compare(run(None, []), run(None, []))[1][1]  # no PCD is no agreement
 
 
+@pytest.mark.slow  # ~25 s in CI: two whole runs; compare()'s checks are tested above
 def test_the_script_runs_a_window_on_both_sides_and_checks_them(tiny_run, monkeypatch, capsys):
     tmp, seq = tiny_run
     monkeypatch.setattr(gpu_check, "no_cuda_reason", lambda: None)

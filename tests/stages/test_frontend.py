@@ -201,3 +201,19 @@ def test_old_pkl_entry_is_never_unpickled(seq, results, tmp_path, monkeypatch):
     assert cache_path(tmp_path, seq, cfg).is_file() and old.is_file()
     _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # then the journal is used
     assert cached and not marker.exists()
+
+
+def test_a_grid_prepares_the_journal_its_jobs_read(seq, tmp_path):
+    # the front end's output follows OpenCV's thread count (a journal of 2 threads, resumed by a job of 1, failed
+    # its check at the first frame run again): the key names the count, and a grid's prepared front end is
+    # run with its jobs' count, so they find it
+    from mutualslam_cli.ablate import prepare_frontends
+    from mutualslam_cli.config import with_overrides
+    from mutualslam_cli.pipeline import use_threads
+
+    cfg = _cfg("svo")
+    assert vo_cache_key(seq, with_overrides(cfg, threads=1)) != vo_cache_key(seq, with_overrides(cfg, threads=2))
+    prepare_frontends(with_overrides(cfg, threads=0), [str(seq.root)], [0], str(tmp_path), threads=1)
+    job_cfg = use_threads(with_overrides(cfg, threads=1))
+    entry = load_entry(cache_path(tmp_path / "_cache" / "vo", seq, job_cfg))
+    assert entry is not None and entry.complete

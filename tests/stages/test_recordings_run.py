@@ -102,6 +102,8 @@ def test_video_run_agrees_with_folder_run_within_compression(frames, tmp_path):
         assert np.mean(np.abs(a / b - 1)) < 0.01
 
 
+# slow (~45 s in CI): a whole shared window; test_bag_run_equals_folder_run covers bags in CI
+@pytest.mark.slow
 @pytest.mark.data
 def test_shared_window_as_bag_gives_the_folder_summary(shared_data, tiny_run, tmp_path):
     """tum_fr1_xyz (fr1: lens distortion in CameraInfo.D, 16-bit depth at 5000/m as 32FC1 metres, GT as
