@@ -136,6 +136,7 @@ def _gone(workers: list[psutil.Process], limit_s: float = 60.0) -> list[int]:
     return [p.pid for p in workers if _alive(p)]
 
 
+@pytest.mark.slow  # ~45 s: CI keeps the budget with test_ctrl_c_stops_the_workers... and test_ablate_grid_resumes
 def test_sigkill_mid_grid_leaves_no_process_and_a_rerun_completes(setup, tmp_path):
     tmp, seq = setup
     out, gate = tmp_path / "out", tmp_path / "gate"
