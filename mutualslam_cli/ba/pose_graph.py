@@ -5,8 +5,9 @@ Each keyframe ``k`` of the loop's map unit from the loop's old end on is a node 
 (camera to world, ``s_k`` the unit of its own map: 1 before). Edges hold what the odometry measured:
 between consecutive keyframes and between keyframes that share ≥ ``min_shared`` map points (within
 ``window`` keyframes), the relative Sim(3) ``M_i⁻¹ M_j`` of the current map — weak across a bridge, whose
-placement was an estimate (:data:`BRIDGE_SIGMA`); the loop edge holds what the
-loop measured, the new keyframe in the old keyframe's frame and unit (``[s R_loop | t_loop]``). The old end
+placement was an estimate (:data:`BRIDGE_SIGMAS`: above all its scale); the loop edge holds what the
+loop measured, the new keyframe in the old keyframe's frame and unit (``[s R_loop | t_loop]``), its scale as
+sure as the loop's own standard error says. The old end
 is fixed; Levenberg–Marquardt finds the poses that strain the edges least. The result is a
 :class:`~mutualslam_cli.vo.feedback.MapRefinement`: keyframe poses ``[R_k | t_k]``, each keyframe's unit grown
 by ``s_k`` (the points it hosts: inverse depth ÷ ``s_k``; its frames: translation × ``s_k``).
@@ -26,11 +27,16 @@ from mutualslam_cli.vo.feedback import MapRefinement
 from mutualslam_cli.vo.loop_closure import LoopClosure
 from mutualslam_cli.vo.map_state import MapState
 
-#: Standard deviation of an odometry edge and of the loop edge (radians, map units, log scale alike).
-EDGE_SIGMA, LOOP_SIGMA = 0.01, 0.01
-#: ... and of the edge across a bridge: its placement and scale were an estimate from the network's depth, not a
-#: measurement of the odometry, so the loop's correction goes there first.
-BRIDGE_SIGMA = 1.0
+#: Standard deviations of an odometry edge, per tangent coordinate (rotation ×3 rad, translation ×3 map units, log
+#: scale): a monocular odometry drifts in scale more than in rotation and place.
+EDGE_SIGMAS = (0.01,) * 6 + (0.03,)
+#: ... of the loop edge's rotation and translation; its log scale's is the loop's own standard error (at least this).
+LOOP_SIGMA = 0.01
+#: ... and of the edge across a bridge, per tangent coordinate (rotation ×3 rad, translation ×3 map units, log
+#: scale): its rotation came from the images and its translation spans a gap of a few frames, but its scale is an
+#: estimate from the network's depth (:mod:`~mutualslam_cli.vo.segments`), so the loop's correction goes to the
+#: bridges' scales first — and only there, not into rotations and places the bridge did measure.
+BRIDGE_SIGMAS = (0.05,) * 3 + (0.1,) * 3 + (0.3,)
 
 
 def _sim3(M: np.ndarray) -> gtsam.Similarity3:
@@ -55,7 +61,7 @@ def close_loop(state: MapState, loop: LoopClosure, min_shared: int = 20, window:
     kfs = [k for k in range(loop.match, len(m.kf_frame)) if state.unit(m.kf_segment[k]) == unit]
     M0 = {k: m.kf_T_wc[k].copy() for k in kfs}
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    edge = gtsam.noiseModel.Isotropic.Sigma(7, EDGE_SIGMA)
+    edge = gtsam.noiseModel.Diagonal.Sigmas(np.array(EDGE_SIGMAS))
     for k in kfs:
         values.insert(k, _sim3(M0[k]))
     graph.add(gtsam.NonlinearEqualitySimilarity3(loop.match, _sim3(M0[loop.match])))
@@ -64,15 +70,16 @@ def close_loop(state: MapState, loop: LoopClosure, min_shared: int = 20, window:
         for b in kfs[a_i + 1:a_i + 1 + window]:
             if len(m.kf_points[a] & m.kf_points[b]) >= min_shared:
                 pairs.add((a, b))
-    bridge = gtsam.noiseModel.Isotropic.Sigma(7, BRIDGE_SIGMA)
+    bridge = gtsam.noiseModel.Diagonal.Sigmas(np.array(BRIDGE_SIGMAS))
     for a, b in sorted(pairs):
         graph.add(gtsam.BetweenFactorSimilarity3(a, b, _sim3(np.linalg.inv(M0[a]) @ M0[b]),
                                                  edge if m.kf_segment[a] == m.kf_segment[b] else bridge))
     T_loop = np.linalg.inv(loop.T_cw)
     M_loop = T_loop.copy()
     M_loop[:3, :3] *= loop.scale
+    ls = max(LOOP_SIGMA, loop.scale_error)  # the scale from the network's depth ratios: as sure as they are
     robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
-                                            gtsam.noiseModel.Isotropic.Sigma(7, LOOP_SIGMA))
+                                            gtsam.noiseModel.Diagonal.Sigmas(np.array([LOOP_SIGMA] * 6 + [ls])))
     graph.add(gtsam.BetweenFactorSimilarity3(loop.match, loop.query, _sim3(np.linalg.inv(M0[loop.match]) @ M_loop),
                                              robust))
     out = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()

@@ -70,6 +70,8 @@ class LoopCloser:
         loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf)
         if loop is None:
             return time.perf_counter() - t
+        if self.detector.already_closed(state, loop):  # e.g. the front end relocalised there: nothing to correct
+            return time.perf_counter() - t
         self.source.settle()
         self.source.refine(close_loop(state, loop))
         rec = {**loop.record(), "frame": int(state.map.kf_frame[kf]), "timestamp": float(state.map.kf_time[kf]),

@@ -37,6 +37,11 @@ from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
 from mutualslam_cli.vo.segments import MIN_RATIO_POINTS
 
 
+#: A loop that moves its query keyframe less than this (degrees; relative to its median point depth, and in log
+#: scale) closes nothing new (:meth:`LoopDetector.already_closed`).
+CLOSED_DEG, CLOSED_REL = 1.0, 0.02
+
+
 @dataclass(frozen=True)
 class LoopSettings:
     """Thresholds of loop closure (module docstring)."""
@@ -60,7 +65,7 @@ class LoopClosure:
         T_cw: ``(4, 4)`` the new keyframe's pose in the old map's frame (the loop pose).
         scale: ``s``, old units per unit of the new keyframe's (drifted) map.
         inliers: PnP inliers of the match; spread: the depth agreement's relative spread.
-        n_new, n_old: points behind each scale ratio.
+        n_new, n_old: points behind each scale ratio; scale_error: the scale's relative standard error.
     """
 
     query: int
@@ -71,11 +76,13 @@ class LoopClosure:
     spread: float
     n_new: int
     n_old: int
+    scale_error: float = 0.0
 
     def record(self) -> dict:
         """A JSON-ready record (``manifest.json``'s ``loops``)."""
         return {"query": self.query, "match": self.match, "scale": self.scale, "inliers": self.inliers,
-                "spread": self.spread, "n_new": self.n_new, "n_old": self.n_old}
+                "spread": self.spread, "n_new": self.n_new, "n_old": self.n_old,
+                "scale_error": self.scale_error}
 
 
 def _ratios(z: np.ndarray, d: np.ndarray) -> tuple[float, float, float, int]:
@@ -117,6 +124,22 @@ class LoopDetector:
     def _reject(self, why: str) -> None:
         self.rejected[why] = self.rejected.get(why, 0) + 1
 
+    def already_closed(self, state: MapState, loop: LoopClosure) -> bool:
+        """Whether ``loop`` agrees with the map as it stands — the place is closed already (the front end
+        relocalised there, or an earlier loop closed it): nothing to correct, no pose graph or BA. Counted among
+        the rejections as ``already closed``. Agreement: the query keyframe's pose now and the loop pose within
+        :data:`CLOSED_DEG` and :data:`CLOSED_REL` of the keyframe's median point depth, the scale within
+        :data:`CLOSED_REL` of one."""
+        T_now, T_loop = state.map.kf_T_wc[loop.query], np.linalg.inv(loop.T_cw)
+        cos = (np.trace(T_now[:3, :3].T @ T_loop[:3, :3]) - 1.0) / 2.0
+        _, z = state.sparse_depth(loop.query)
+        shift = float(np.linalg.norm(T_now[:3, 3] - T_loop[:3, 3])) / (float(np.median(z)) if len(z) else 1.0)
+        closed = (np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) < CLOSED_DEG and shift < CLOSED_REL
+                  and abs(np.log(loop.scale)) < CLOSED_REL)
+        if closed:
+            self._reject("already closed")
+        return closed
+
     def query(self, state: MapState, kf: int, gray: np.ndarray, depth: np.ndarray, seed: int = 0) -> LoopClosure | None:
         """A loop from keyframe ``kf`` to an old keyframe of its map unit, verified (module docstring).
 
@@ -147,10 +170,11 @@ class LoopDetector:
         if not (np.isfinite(r_new) and np.isfinite(r_old)):
             self._reject("too few points with a predicted depth")
             return None
-        if np.hypot(e_new, e_old) > s.max_scale_error:
+        scale_error = float(np.hypot(e_new, e_old))
+        if scale_error > s.max_scale_error:
             self._reject("scale uncertain")
             return None
         if spread > s.max_depth_spread:
             self._reject("depth disagrees with the network")
             return None
-        return LoopClosure(kf, r.keyframe, r.T_cw, r_old / r_new, r.inliers, spread, n_new, n_old)
+        return LoopClosure(kf, r.keyframe, r.T_cw, r_old / r_new, r.inliers, spread, n_new, n_old, scale_error)

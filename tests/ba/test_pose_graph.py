@@ -67,3 +67,53 @@ def test_a_loop_spreads_its_correction_over_the_keyframes_it_closes():
     np.testing.assert_allclose(st.map.rho[39], 0.5 / r.scale[-1])
     np.testing.assert_allclose(st.pose(20), r.T_wc[20])
     np.testing.assert_allclose(st.frame_rel[5 * 39 + 1][1][:3, 3], [0.1 * r.scale[-1], 0.0, 0.0])
+
+
+def _state(poses: list[np.ndarray], segment_of=lambda k: 0) -> MapState:
+    st = MapState(INTR, 400)
+    for k, T in enumerate(poses):
+        st.map.add_keyframe(5 * k, 0.1 * k, T, segment_of(k))
+        st.map.add_points(np.array([k]), np.array([[160.0, 120.0]]), np.zeros((1, 2)), np.array([0.5]),
+                          np.array([0.01]), [{k: np.array([160.0, 120.0])}])
+    return st
+
+
+def test_a_loop_scale_is_trusted_only_as_far_as_its_standard_error():
+    gt = _circle(40)  # exact odometry: the map is right, and a loop claims the unit shrank by 20 %
+    wrong = dict(query=39, match=0, T_cw=np.linalg.inv(gt[39]), scale=0.8, inliers=100, spread=0.1, n_new=50,
+                 n_old=50)
+    sure = close_loop(_state(gt), LoopClosure(**wrong, scale_error=0.01))
+    unsure = close_loop(_state(gt), LoopClosure(**wrong, scale_error=0.5))
+    assert abs(np.log(sure.scale[-1] / 0.8)) < 0.05  # a sure loop's scale is followed
+    assert abs(np.log(unsure.scale[-1])) < 0.05  # an unsure one leaves the odometry's unit as it was
+
+
+def test_a_wrong_bridge_scale_is_corrected_at_the_bridge():
+    gt = _circle(40)
+    poses = [T.copy() for T in gt]
+    for k in range(20, 40):  # keyframes 20+ are a second segment, joined by a bridge that got the scale 1.5x wrong
+        poses[k][:3, 3] = gt[20][:3, 3] + 1.5 * (gt[k][:3, 3] - gt[20][:3, 3])
+    st = _state(poses, segment_of=lambda k: int(k >= 20))
+    st.joined[1] = 0  # the bridge: one map unit
+    loop = LoopClosure(query=39, match=0, T_cw=np.linalg.inv(gt[39]), scale=1 / 1.5, inliers=100, spread=0.1,
+                       n_new=50, n_old=50, scale_error=0.02)
+    r = close_loop(st, loop)
+    assert np.all(np.abs(np.log(r.scale[:20])) < 0.05)  # the first segment's unit unchanged
+    assert np.all(np.abs(np.log(r.scale[20:] * 1.5)) < 0.05)  # the second one's restored, at the bridge
+    err = np.array([np.linalg.norm(p[:3, 3] - g[:3, 3]) for p, g in zip(r.T_wc, gt)])
+    assert err.max() < 0.1
+
+
+def test_a_loop_the_map_already_agrees_with_is_not_closed_again():
+    from mutualslam_cli.vo.loop_closure import LoopDetector
+
+    gt = _circle(40)
+    st = _state(gt)
+    det = LoopDetector(INTR, 0.01)
+    same = LoopClosure(query=39, match=0, T_cw=np.linalg.inv(gt[39]), scale=1.0, inliers=100, spread=0.1,
+                       n_new=50, n_old=50)
+    assert det.already_closed(st, same) and det.rejected == {"already closed": 1}
+    turned = gt[39].copy()
+    turned[:3, :3] = turned[:3, :3] @ exp_so3(np.array([[0.0, 0.05, 0.0]]))[0]  # 2.9 degrees off
+    assert not det.already_closed(st, LoopClosure(**{**same.__dict__, "T_cw": np.linalg.inv(turned)}))
+    assert not det.already_closed(st, LoopClosure(**{**same.__dict__, "scale": 1.1}))
