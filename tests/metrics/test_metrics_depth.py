@@ -384,3 +384,21 @@ def test_pooled_mean_weights_frames_by_pixels() -> None:
     assert pooled_mean([100.0, 0.0], [3, 1]) == pytest.approx(75.0)
     assert pooled_mean([100.0, np.nan, 0.0], [3, 5, 1]) == pytest.approx(75.0)
     assert np.isnan(pooled_mean([np.nan], [4]))
+
+
+def test_the_fast_median_and_the_sorted_count_are_numpys_to_the_bit():
+    from mutualslam_cli.metrics.depth import count_within, median
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 11, 12, 10001):
+        for dtype in (np.float32, np.float64):
+            x = rng.random(n).astype(dtype) + 0.5
+            assert median(x) == float(np.median(x))
+    t = 0.25
+    for s in (1.0, 0.8, 1.37, 2.0):
+        # ratios packed around both ends of |s·r − 1| < t, the ends themselves included
+        ends = np.array([(1 - t) / s, (1 + t) / s])
+        r = np.sort(np.concatenate([rng.random(5000) * 3, ends, np.nextafter(ends, 0), np.nextafter(ends, 9),
+                                    np.repeat(ends, 3)]))
+        assert count_within(r, s, t) == np.count_nonzero(np.abs(s * r - 1.0) < t)
+    assert count_within(np.sort(rng.random(100)), float("nan"), t) == 0
