@@ -13,6 +13,7 @@ from mutualslam_cli.ba.global_ba import run_global_ba
 from mutualslam_cli.config import BAConfig, RunConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.synthetic import iter_render, write_tum
+from mutualslam_cli.machine import cpu_info
 from mutualslam_cli.metrics.trajectory import ate
 from mutualslam_cli.stages.ba import ba_images
 from mutualslam_cli.stages.frontend import run_frontend
@@ -37,7 +38,9 @@ def test_ba_of_2000_frames_fits_in_time_and_memory(tmp_path: Path):
     print(f"2000 frames: {len(vo.keyframes)} keyframes, {len(vo.points)} points; BA {seconds:.1f} s, peak RSS "
           f"+{grew:.0f} MB; keyframe ATE {1000 * before:.2f} -> {1000 * after:.2f} mm; "
           f"{r.stats['n_nearby_targets']} nearby targets, {r.stats['n_dropped']} dropped")
-    # the README's figures (4.5 s, +744 MB, AMD EPYC, 1 thread) within 1.5x: time depends on the machine's load,
-    # so run it on an idle machine
-    assert seconds < 1.5 * 4.5 and grew < 1.5 * 744
+    # the README's figures within 1.5x, for the kind of CPU it runs on (the BA is numpy: the CPU matters, 2.3x
+    # between these two; an AVX2-only CPU has no figure yet and gets the slower one); time depends on the
+    # machine's load, so run it on an idle machine
+    seconds_readme = {"AVX512-BF16": 4.5, "AMX": 10.0}.get(cpu_info()["cpu_kind"], 10.0)
+    assert seconds < 1.5 * seconds_readme and grew < 1.5 * 744
     assert after <= before
