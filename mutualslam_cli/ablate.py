@@ -235,13 +235,21 @@ def _local_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str
     except BaseException:  # Ctrl-C (or the consumer stopping): stop the workers now, not after their jobs
         for p in list(getattr(pool, "_processes", {}).values()):
             p.kill()
+        manager = getattr(pool, "_executor_manager_thread", None)
         pool.shutdown(wait=False, cancel_futures=True)
+        # let the pool's manager thread see its workers gone and close its wake-up pipe now: still running at
+        # interpreter exit, it races concurrent.futures' exit hook, which then writes to the closed pipe and
+        # prints an OSError traceback after our message (Python 3.11; seen on a loaded machine)
+        if manager is not None:
+            manager.join(timeout=_JOIN_S)
         raise
     pool.shutdown()
 
 
 #: Seconds between checks for Ctrl-C while the pool works.
 _POLL_S = 0.2
+#: Seconds an interrupted grid waits for the pool's manager thread to finish after killing the workers.
+_JOIN_S = 10.0
 
 
 @contextmanager
