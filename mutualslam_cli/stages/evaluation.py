@@ -29,6 +29,7 @@ from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.device import describe_device, module_device
 from mutualslam_cli.metrics import depth as dm
+from mutualslam_cli.metrics.ratios import pcd_from_sketch
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.context import RunContext
@@ -126,7 +127,7 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
         if col in table:
             # one least-squares scale for the whole sequence, then every frame scored under it
             s = dm.sequence_lsq_scale(table[f"{name}_sum_pg"], table[f"{name}_sum_pp"])
-            table[f"{name}_pcd_seq_lsq"] = [dm.pcd_from_sketch(k, s, cfg.eval.pcd_threshold) for k in sketches[name]]
+            table[f"{name}_pcd_seq_lsq"] = [pcd_from_sketch(k, s, cfg.eval.pcd_threshold) for k in sketches[name]]
             table[f"{name}_scale_seq_lsq"] = s
             table[f"{col}_running"] = dm.running_mean(table[col].to_numpy(dtype=float))
     ms = {k: float(np.median(v)) if v else float("nan") for k, v in times.items()}

@@ -48,6 +48,7 @@ from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.device import module_device
 from mutualslam_cli.metrics import depth as dm
+from mutualslam_cli.metrics.ratios import pcd_from_sketch
 from mutualslam_cli.vo.camera import Undistorter
 
 #: Frames per forward pass of the online scores on a GPU (at most; the frames one model scores).
@@ -130,5 +131,5 @@ class OnlineScorer:
         self.score_until(net, np.iinfo(np.int64).max, kf_id)
         table = pd.DataFrame(self._rows, columns=["frame", "online_kf", *(f"online_{k}" for k in COLUMNS)])
         s = dm.sequence_lsq_scale(table["online_sum_pg"], table["online_sum_pp"])
-        table["online_pcd_seq_lsq"] = [dm.pcd_from_sketch(k, s, self.cfg.eval.pcd_threshold) for k in self._sketches]
+        table["online_pcd_seq_lsq"] = [pcd_from_sketch(k, s, self.cfg.eval.pcd_threshold) for k in self._sketches]
         return table.drop(columns=["online_sum_pg", "online_sum_pp"])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mutualslam_cli.metrics.depth import SKETCH_POINTS, ratio_sketch
+from mutualslam_cli.metrics.ratios import SKETCH_POINTS, ratio_sketch
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

@@ -8,11 +8,11 @@ import torch
 
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.metrics.depth import (
+    PCD_THRESHOLD,
     DepthStats,
     abs_rel,
     align_inverse_depth,
     depth_frame_metrics,
-    pcd_from_sketch,
     pooled_mean,
     sequence_lsq_scale,
     depth_stats,
@@ -23,6 +23,7 @@ from mutualslam_cli.metrics.depth import (
     scale_factor,
     valid_mask,
 )
+from mutualslam_cli.metrics.ratios import pcd_from_sketch
 
 
 @pytest.fixture
@@ -372,11 +373,11 @@ def test_sequence_scale_and_sketch_match_the_exact_pooled_fit() -> None:
     assert s == pytest.approx(float(np.dot(P, G) / np.dot(P, P)), rel=1e-12)
     for st, (p, g) in zip(stats, frames):
         exact = _exact_pcd(p.ravel(), g.ravel(), s)
-        assert pcd_from_sketch(st.sketch, s) == pytest.approx(exact, abs=0.1)
-        assert pcd_from_sketch(st.sketch, st.scale_lsq) == pytest.approx(st.pcd_lsq, abs=0.1)
+        assert pcd_from_sketch(st.sketch, s, PCD_THRESHOLD) == pytest.approx(exact, abs=0.1)
+        assert pcd_from_sketch(st.sketch, st.scale_lsq, PCD_THRESHOLD) == pytest.approx(st.pcd_lsq, abs=0.1)
     # frames at 0.8 and 1.3 are far from one common scale: their seq_lsq PCD drops, per-frame lsq does not
-    assert pcd_from_sketch(stats[2].sketch, s) < stats[2].pcd_lsq - 20
-    assert np.isnan(pcd_from_sketch(None, s)) and np.isnan(sequence_lsq_scale([np.nan], [np.nan]))
+    assert pcd_from_sketch(stats[2].sketch, s, PCD_THRESHOLD) < stats[2].pcd_lsq - 20
+    assert np.isnan(pcd_from_sketch(None, s, PCD_THRESHOLD)) and np.isnan(sequence_lsq_scale([np.nan], [np.nan]))
     assert depth_stats(frames[0][0], frames[0][1]).sketch is None
 
 
@@ -387,7 +388,7 @@ def test_pooled_mean_weights_frames_by_pixels() -> None:
 
 
 def test_the_fast_median_and_the_sorted_count_are_numpys_to_the_bit():
-    from mutualslam_cli.metrics.depth import count_within, median
+    from mutualslam_cli.metrics.ratios import count_within, median
 
     rng = np.random.default_rng(3)
     for n in (1, 2, 11, 12, 10001):
