@@ -11,13 +11,17 @@ For each new keyframe (:class:`LoopDetector`):
    candidate's own image finds them, PnP-RANSAC places the keyframe in the candidate's map, enough
    inliers of the matches, halves of the inliers agreeing, and other old keyframes' own images finding
    their points where the pose projects them.
-3. **Scale** (a monocular map drifts in scale too): the adapted network's depth of the new keyframe, set
-   against the depths of its own map points (the drifted unit) and of the candidate's inlying points
-   under the loop pose (the old unit), gives ``s = r_old / r_new`` — the bridge's rule
-   (:func:`~mutualslam_cli.vo.segments.depth_ratio`), refused when either median is uncertain by more than
-   ``max_scale_error``. **The adapted depth must agree**: the old points' depths under the loop pose,
-   divided by the network's, must be nearly one number (relative spread ≤ ``max_depth_spread``); the
-   depths of a wrong pose do not follow the picture the network sees.
+3. **Scale** (a monocular map drifts in scale too): the adapted network's depth of the new keyframe relates
+   the depths of its own map points (the drifted unit) to those of the candidate's inlying points under the
+   loop pose (the old unit). Each old point is paired with the new points within :data:`PAIR_RADIUS` of the
+   image width, ``s = (z_old / d_old) / (z_new / d_new)`` per pair — the network only bridges a few pixels,
+   so its error across the image (a wall nearer or farther than it thinks) cancels — and ``s`` is the median
+   over the old points (each its pairs' median), refused when uncertain by more than ``max_scale_error``
+   and when too few old points have a new one near: the medians over each whole set (the bridge's rule,
+   :func:`~mutualslam_cli.vo.segments.depth_ratio`) were off by 20 % on a rendered room, where the old and
+   the new points lay in different parts of the image. **The adapted depth must agree**: the old points' depths
+   under the loop pose, divided by the network's, must be nearly one number (relative spread ≤
+   ``max_depth_spread``); the depths of a wrong pose do not follow the picture the network sees.
 
 The accepted loop is a Sim(3) measurement between the two keyframes; :mod:`~mutualslam_cli.ba.pose_graph`
 spreads it over the keyframes between them.
@@ -97,6 +101,37 @@ def _ratios(z: np.ndarray, d: np.ndarray) -> tuple[float, float, float, int]:
     return med, spread, 1.2533 * spread / np.sqrt(n), n
 
 
+#: Pairs of an old and a new point nearer than this share of the image width measure the loop's scale locally.
+PAIR_RADIUS = 0.05
+
+
+def _local_scale(px_old: np.ndarray, z_old: np.ndarray, uv_new: np.ndarray, z_new: np.ndarray, depth: np.ndarray,
+                 size: tuple[int, int]) -> tuple[float, float] | None:
+    """The loop's scale and its relative standard error from nearby pairs (module docstring, 3), ``None`` with
+    fewer than ``MIN_RATIO_POINTS`` old points paired.
+
+    Args:
+        px_old, z_old: ``(n, 2)`` pixels and depths (old unit, under the loop pose) of the matched old points.
+        uv_new, z_new: ``(m, 2)`` pixels and depths (the drifted unit) of the new keyframe's own points.
+        depth: ``(h, w)`` the adapted network's depth of the new keyframe; size: the image's ``(width, height)``.
+    """
+    d_old, d_new = lookup_nearest(depth, px_old, size), lookup_nearest(depth, uv_new, size)
+    q_old, q_new = z_old / d_old, z_new / d_new
+    ok_o = np.isfinite(q_old) & (q_old > 0)
+    ok_n = np.isfinite(q_new) & (q_new > 0)
+    if ok_o.sum() < MIN_RATIO_POINTS or ok_n.sum() < MIN_RATIO_POINTS:
+        return None
+    a, qa, b, qb = px_old[ok_o], q_old[ok_o], uv_new[ok_n], q_new[ok_n]
+    near = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2) < PAIR_RADIUS * size[0]
+    per = [np.median(qa[i] / qb[near[i]]) for i in range(len(a)) if near[i].any()]
+    if len(per) < MIN_RATIO_POINTS:
+        return None
+    lr = np.log(per)
+    med = float(np.median(lr))
+    spread = 1.4826 * float(np.median(np.abs(lr - med)))
+    return float(np.exp(med)), 1.2533 * spread / np.sqrt(len(per))
+
+
 class LoopDetector:
     """Finds and verifies loops over a growing map (module docstring).
 
@@ -162,19 +197,24 @@ class LoopDetector:
         size = (self.intr.width, self.intr.height)
         # the new keyframe's own points, in its (drifted) unit
         uv_new, z_new = state.sparse_depth(kf)
-        r_new, _, e_new, n_new = _ratios(z_new, lookup_nearest(np.asarray(depth, float), uv_new, size))
+        r_new, _, _, n_new = _ratios(z_new, lookup_nearest(np.asarray(depth, float), uv_new, size))
         # the old points it matched, under the loop pose (the old unit)
         Xc = m.Xw[r.pids] @ r.T_cw[:3, :3].T + r.T_cw[:3, 3]
         px = undistort_points(r.raw, self.intr)
-        r_old, spread, e_old, n_old = _ratios(Xc[:, 2], lookup_nearest(np.asarray(depth, float), px, size))
+        r_old, spread, _, n_old = _ratios(Xc[:, 2], lookup_nearest(np.asarray(depth, float), px, size))
         if not (np.isfinite(r_new) and np.isfinite(r_old)):
             self._reject("too few points with a predicted depth")
             return None
-        scale_error = float(np.hypot(e_new, e_old))
+        # pairs of nearby old and new points: the network's bias across the image cancels
+        local = _local_scale(px, Xc[:, 2], uv_new, z_new, np.asarray(depth, float), size)
+        if local is None:
+            self._reject("scale not measurable (too few nearby old and new points)")
+            return None
+        scale, scale_error = local
         if scale_error > s.max_scale_error:
             self._reject("scale uncertain")
             return None
         if spread > s.max_depth_spread:
             self._reject("depth disagrees with the network")
             return None
-        return LoopClosure(kf, r.keyframe, r.T_cw, r_old / r_new, r.inliers, spread, n_new, n_old, scale_error)
+        return LoopClosure(kf, r.keyframe, r.T_cw, scale, r.inliers, spread, n_new, n_old, scale_error)

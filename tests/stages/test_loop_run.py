@@ -32,6 +32,7 @@ def test_a_loop_closed_over_2000_frames_lowers_the_ate(tmp_path: Path):
           f"closure {c_on['ba']:.4f} m ({on['loop']}); {t_off:.0f} / {t_on:.0f} s; peak RSS "
           f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     assert on["loop"]["accepted"] >= 1 and off["loop"]["accepted"] is None
-    assert c_on["vo"] == pytest.approx(c_off["vo"])  # the same front end alone
+    # the same front end alone until the first loop: its correction reaches the live front end (causal feedback)
+    assert c_on["vo"] == pytest.approx(c_off["vo"], rel=0.01)
     assert c_on["ba"] < 0.8 * c_off["ba"]
-    assert c_on["ba"] < 0.14  # README: 0.095 m (2026-11-28), bounded within 1.5x
+    assert c_on["ba"] < 0.135  # README: 0.091 m (2026-11-29), bounded within 1.5x

@@ -78,3 +78,33 @@ def test_a_look_alike_place_is_rejected(frames):
     assert d.index.candidates(frames[1273][0], [0, 1, 2], newest=0)[0] == 0
     assert d.query(st, q, frames[1273][0], frames[1273][1]) is None
     assert sum(d.rejected.values()) >= 1 and d.tried >= 1
+
+
+def test_the_loop_scale_pairs_nearby_points_so_a_biased_network_cancels():
+    from mutualslam_cli.vo.loop_closure import _local_scale
+
+    rng = np.random.default_rng(0)
+    size = (320, 240)
+    truth = rng.uniform(1.0, 4.0, (240, 320))  # metres at each pixel
+    # the network's depth is off by up to 60 % across the image (a wall it puts too far on the right)
+    depth = truth * (1.0 + 0.6 * np.arange(320)[None, :] / 320)
+    # old points (old unit = metres) mostly on the left, the new keyframe's own points (unit 2x) mostly on the right,
+    # some of each everywhere
+    def points(n, left):
+        x = np.concatenate([rng.uniform(0, 160, int(0.8 * n)), rng.uniform(0, 320, n - int(0.8 * n))])
+        x = x if left else 319 - x
+        uv = np.stack([x, rng.uniform(0, 239, n)], 1)
+        return uv, truth[np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)]
+    px_old, z_old = points(150, True)
+    uv_new, z_m = points(150, False)
+    z_new = 2.0 * z_m  # the drifted unit: old units per new unit = 0.5
+    s, err = _local_scale(px_old, z_old, uv_new, z_new, depth, size)
+    assert abs(s / 0.5 - 1) < 0.03 and err < 0.02
+    # no old point with a new one near: not measurable
+    assert _local_scale(px_old[px_old[:, 0] < 100], z_old[px_old[:, 0] < 100], uv_new[uv_new[:, 0] > 250],
+                        z_new[uv_new[:, 0] > 250], depth, size) is None
+    # the medians over each set, the rule before: the network's bias does not cancel
+    from mutualslam_cli.pixels import lookup_nearest
+    glob = (np.median(z_old / lookup_nearest(depth, px_old, size))
+            / np.median(z_new / lookup_nearest(depth, uv_new, size)))
+    assert abs(glob / 0.5 - 1) > 0.1
