@@ -57,6 +57,11 @@ class VOConfig:
     """Fraction of last keyframe's features still tracked below which a keyframe is made."""
     min_tracked: int = 30
     """Fewer map-point tracks than this within 2 × ``ransac_threshold_px`` of the pose is a tracking loss."""
+    reuse_map: bool = True
+    """Map reuse: at a keyframe (and when tracking is weak) the points of the whole map unit that project into
+    the frame are matched again from the keyframe that saw them from the closest viewpoint, however old
+    (SVO 2.0's overlapping keyframes, :mod:`~mutualslam_cli.vo.local_map`); ``false``: only the points of the
+    newest ``core_kfs`` keyframes (the front end before issue 39)."""
     relocalise: bool = True
     """After a tracking loss, look for the frame among the existing keyframes (ORB descriptors of
     their map points, PnP-RANSAC, verified on the local map: :mod:`~mutualslam_cli.vo.relocalise`)

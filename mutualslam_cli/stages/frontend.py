@@ -127,8 +127,9 @@ def run_stage(run: RunContext, vo: VOResult, replayed: int, injected: np.ndarray
     if mode == "svo":
         summary.set("vo.relocalisations", len(vo.meta.get("relocalisations", [])))
         summary.set("vo.relocalisations_rejected", int(vo.meta.get("reloc_rejected", 0)))
+        summary.set("vo.points_reused", int(vo.meta.get("reused", 0)))
     else:
-        for key in ("vo.relocalisations", "vo.relocalisations_rejected"):
+        for key in ("vo.relocalisations", "vo.relocalisations_rejected", "vo.points_reused"):
             summary.absent(key, f"oracle front end (--vo {mode}): GT poses, nothing to relocalise")
     summary.set("vo.from_cache", replayed == len(seq))
     summary.set("vo.frames_from_cache", replayed)

@@ -28,7 +28,8 @@ class RunStats:
         init_methods: how each segment was initialised, in order.
         timing: seconds per stage, summed over all frames.
         total_s: wall time of the whole run.
-        reprojected: map points re-attached by re-projection.
+        reprojected: map points re-attached by re-projection (reused: of them, points from outside the newest
+            keyframes, ``vo.reuse_map``).
         ba_stats: one dict per windowed BA (``points``, ``solve_ms``, …).
         ba_threaded: whether the windowed BA ran on a worker thread.
         relocalisations: one dict per accepted relocalisation (``frame``, ``keyframe``, ``inliers``,
@@ -45,6 +46,7 @@ class RunStats:
     ba_threaded: bool
     relocalisations: Seq[dict[str, Any]] = ()
     reloc_rejected: int = 0
+    reused: int = 0
 
 
 def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
@@ -115,6 +117,7 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         "fps": n_frames / total_s if total_s > 0 else float("nan"),
         "time_s": total_s,
         "reprojected": stats.reprojected,
+        "reused": stats.reused,
         "local_ba": {"runs": len(st),
                      "mean_points": float(np.mean([s["points"] for s in st])) if st else 0.0,
                      "mean_solve_ms": float(np.mean([s["solve_ms"] for s in st])) if st else 0.0,

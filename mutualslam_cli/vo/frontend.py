@@ -36,14 +36,15 @@ from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
-from mutualslam_cli.vo.reproject import reproject_points
+from mutualslam_cli.vo.local_map import KeyframeImages, local_map
+from mutualslam_cli.vo.reproject import match_points, reproject_points
 from mutualslam_cli.vo.result import VOResult
 from mutualslam_cli.vo.state import Tracks, TrackerState
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 
 log = logging.getLogger(__name__)
 
-FRONTEND_VERSION = 3
+FRONTEND_VERSION = 4
 """Bumped whenever the front end's output changes for the same config (invalidates VO caches)."""
 
 BA_LAG = 4
@@ -89,6 +90,7 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         self.mapper = Mapper(self.map, self.K, cfg.core_kfs, self.thr)
         self.reloc = RelocIndex(self.intr) if cfg.relocalise else None
         self.st = TrackerState(timing={k: 0.0 for k in STAGES})
+        self.old_images = KeyframeImages(seq.load_gray)
 
     # ---------------------------------------------------------------- helpers
     def _undist(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -256,13 +258,30 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         for k in sorted(self.st.kf_imgs)[:-self.cfg.core_kfs]:
             del self.st.kf_imgs[k]
 
+    def _image_of(self, kf: int) -> np.ndarray:
+        """The grey image of keyframe ``kf``: held when among the newest, else decoded again (an LRU)."""
+        img = self.st.kf_imgs.get(kf)
+        return img if img is not None else self.old_images.get(self.map.kf_frame[kf])
+
     def _reproject(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray) -> Tracks:
-        """Re-attach lost map points of the window to the current frame (see :mod:`reproject`)."""
+        """Re-attach lost map points to the current frame: the newest keyframes' (see :mod:`reproject`), and with
+        ``vo.reuse_map`` every point of the map unit the frame sees (:mod:`~mutualslam_cli.vo.local_map`)."""
         m = self.map
         seg = [k for k in range(len(m.kf_frame)) if m.kf_segment[k] == self.st.segment]
         window = seg[-self.cfg.core_kfs:]
-        pids, raw = reproject_points(m, self.st.kf_imgs, gray, T_cw, tr.pid[tr.pid >= 0], window, self.intr,
-                                     self.cfg.klt_window, self.cfg.klt_levels, self.cfg.fb_threshold_px, self.thr)
+        cfg = self.cfg
+        if cfg.reuse_map:
+            unit = self.state_map.unit(self.st.segment)
+            kfs = np.array([k for k in range(len(m.kf_frame)) if self.state_map.unit(m.kf_segment[k]) == unit],
+                           np.int64)
+            lm = local_map(m, T_cw, self.K, (self.intr.width, self.intr.height), kfs, window, set(self.st.kf_imgs),
+                           tr.pid[tr.pid >= 0], tr.raw, lambda px: distort_points(px, self.intr), cfg.grid_size)
+            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids, lm.source, self.intr, cfg.klt_window,
+                                     cfg.klt_levels, cfg.fb_threshold_px, self.thr)
+            self.st.n_reused += int(np.isin(pids, lm.pids[lm.old]).sum())
+        else:
+            pids, raw = reproject_points(m, self.st.kf_imgs, gray, T_cw, tr.pid[tr.pid >= 0], window, self.intr,
+                                         cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px, self.thr)
         if len(pids) == 0:
             return tr
         # do not double-book grid cells: drop seeds sharing a cell with a recovered point
@@ -347,7 +366,8 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
                         total_s=self.st.wall_s, reprojected=self.st.n_reprojected, ba_stats=self.mapper.stats,
                         ba_threaded=self.mapper.pool is not None,
                         relocalisations=list(self.state_map.relocalisations),
-                        reloc_rejected=self.reloc.rejected if self.reloc is not None else 0)
+                        reloc_rejected=self.reloc.rejected if self.reloc is not None else 0,
+                        reused=self.st.n_reused)
 
     def result(self) -> VOResult:
         """The map and trajectories now (see :func:`~mutualslam_cli.vo.assemble.build_result`)."""

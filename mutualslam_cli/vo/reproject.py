@@ -10,6 +10,8 @@ ties keyframes further apart together in the windowed BA.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from mutualslam_cli.pixels import in_image
@@ -56,15 +58,48 @@ def reproject_points(
     px = pc[:, :2] / pc[:, 2:3] @ K[:2, :2].T + K[:2, 2]
     h, w = gray.shape
     inside = in_image(px, w, h, border)
-    pids, px = pids[inside], px[inside]
+    pids = pids[inside]
+    src_of = np.array([max((k for k in m.obs[p] if k in kf_imgs), default=-1) for p in pids], np.int64)
+    has = src_of >= 0
+    return match_points(m, kf_imgs.__getitem__, gray, T_cw, pids[has], src_of[has], intr, win, levels, fb_px, thr)
+
+
+def match_points(
+    m: Map,
+    image_of: Callable[[int], np.ndarray],
+    gray: np.ndarray,
+    T_cw: np.ndarray,
+    pids: np.ndarray,
+    source: np.ndarray,
+    intr: Intrinsics,
+    win: int,
+    levels: int,
+    fb_px: float,
+    thr: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Match map points ``pids`` into the current frame by KLT from keyframe ``source[j]``'s image and observation.
+
+    Args:
+        m: the map; image_of: ``image_of(kf)`` → that keyframe's ``(H, W)`` grey image (raw pixels).
+        gray: ``(H, W)`` current image; T_cw: its pose (the points are predicted there).
+        pids, source: ``(R,)`` point ids and the keyframe each is matched from (it observes the point).
+        intr: camera (with distortion); win, levels, fb_px: KLT options.
+        thr: acceptance radius around the prediction in normalised units.
+
+    Returns:
+        point ids ``(R',)`` and their raw pixels ``(R', 2)`` float32 in the current frame.
+    """
+    K = intr.K()
     out_ids, out_raw = [], []
-    src_of = np.array([max((k for k in m.obs[p] if k in kf_imgs), default=-1) for p in pids])
-    for k in sorted(set(src_of.tolist()) - {-1}):
-        sel = np.flatnonzero(src_of == k)
+    if len(pids):
+        pc = m.Xw[pids] @ T_cw[:3, :3].T + T_cw[:3, 3]
+        px = pc[:, :2] / pc[:, 2:3] @ K[:2, :2].T + K[:2, 2]
+    for k in sorted(set(source.tolist())):
+        sel = np.flatnonzero(source == k)
         src_raw = distort_points(np.array([m.obs[pids[j]][k] for j in sel]), intr).astype(np.float32)
         pred = distort_points(px[sel], intr).astype(np.float32)
         # a match must land within ``thr`` of its prediction: no full-pyramid retry
-        raw, good = klt_track(kf_imgs[k], gray, src_raw, win, levels, fb_px, pred=pred, retry=False)
+        raw, good = klt_track(image_of(k), gray, src_raw, win, levels, fb_px, pred=pred, retry=False)
         if not good.any():
             continue
         xn = to_normalized(undistort_points(raw[good], intr), K)

@@ -88,7 +88,8 @@ class TrackerState:
             unknown); t_prev: timestamp of the last tracked frame (s).
         tracks: the KLT tracks, map points and depth-filter seeds (:class:`Tracks`).
         n_at_kf: tracks alive at the last keyframe; last_kf: the keyframe frames are tracked against.
-        n_tracked: PnP inliers of the last tracked frame; n_reprojected: points re-attached so far.
+        n_tracked: PnP inliers of the last tracked frame; n_reprojected: points re-attached so far (n_reused:
+            of them, points from outside the newest keyframes, ``vo.reuse_map``).
         ba_due: the frame at which the windowed BA in flight is applied.
         lost_at: the frame of the last tracking loss (−1: none).
         kf_imgs: grey images of the newest ``core_kfs`` keyframes (reprojection sources).
@@ -108,6 +109,7 @@ class TrackerState:
     last_kf: int = -1
     n_tracked: int = 0
     n_reprojected: int = 0
+    n_reused: int = 0
     ba_due: int = 0
     lost_at: int = -1
     kf_imgs: dict[int, np.ndarray] = field(default_factory=dict)

@@ -1,0 +1,181 @@
+"""The current frame's local map: the map points it should see, however old (map reuse, ``vo.reuse_map``).
+
+A front end that re-attaches only the points of its last few keyframes forgets what it mapped beyond them:
+a camera that comes back to a place mapped hundreds of frames ago makes new points there at today's drifted
+scale instead of observing the old ones. SVO 2.0 (Forster et al., T-RO 2017, §V-A) projects the points of the
+keyframes that overlap the new frame; ORB-SLAM's local map is the covisible keyframes' points. Here:
+
+* every live point of the current map unit that projects into the frame (in front of it, inside the image)
+  and is not tracked already is a candidate;
+* it is matched (KLT, :func:`~mutualslam_cli.vo.reproject.match_points`) from the image of the observing
+  keyframe whose viewpoint is closest: the angle at the point between the two rays at most
+  :data:`MAX_VIEW_ANGLE_DEG`, the distance ratio within :data:`MAX_SCALE_CHANGE` (a patch still looks alike);
+  points of the newest keyframes are matched from the newest image holding them, as before;
+* one old candidate per grid cell that no track and no newest keyframe's point holds (the best observed point
+  of the cell), so the recovered points take the cells where new seeds would otherwise start, and at most
+  :data:`MAX_SOURCES` old keyframe images are decoded per call (:class:`KeyframeImages`: an LRU over the
+  sequence's files, memory flat in the sequence's length).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from mutualslam_cli.pixels import in_image
+from mutualslam_cli.vo.state import Map
+
+MAX_VIEW_ANGLE_DEG = 30.0
+"""Largest angle at a point between an old keyframe's ray and the current one for KLT to match its patch."""
+
+MAX_SCALE_CHANGE = 1.4
+"""Largest ratio of the point's distances from the two cameras (KLT has no scale invariance)."""
+
+MAX_SOURCES = 4
+"""Old keyframes (outside the held images) matched from per call: bounds the decoding per keyframe."""
+
+IMAGE_CACHE = 8
+"""Decoded old keyframe images kept (least recently used dropped)."""
+
+BORDER_PX = 8
+"""Candidates this close to the image border are not matched (KLT's window would leave the image)."""
+
+
+class KeyframeImages:
+    """Grey images of old keyframes, decoded from the sequence on demand and kept in a small LRU.
+
+    Args:
+        load: ``load(frame)`` → ``(H, W)`` uint8 grey image of a frame (the sequence's ``load_gray``).
+        size: images kept.
+    """
+
+    def __init__(self, load: Callable[[int], np.ndarray], size: int = IMAGE_CACHE) -> None:
+        self.load, self.size = load, size
+        self._lru: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.decoded = 0
+
+    def get(self, frame: int) -> np.ndarray:
+        """The grey image of ``frame``."""
+        if frame in self._lru:
+            self._lru.move_to_end(frame)
+            return self._lru[frame]
+        img = self.load(frame)
+        self.decoded += 1
+        self._lru[frame] = img
+        while len(self._lru) > self.size:
+            self._lru.popitem(last=False)
+        return img
+
+
+@dataclass
+class LocalMap:
+    """Points to look for in the current frame and the keyframe each is matched from.
+
+    Attributes:
+        pids: ``(R,)`` point ids; source: ``(R,)`` keyframe id whose image and observation KLT starts from.
+        old: ``(R,)`` bool, the point is outside the newest keyframes' points (map reuse proper).
+    """
+
+    pids: np.ndarray
+    source: np.ndarray
+    old: np.ndarray
+
+
+def _closest_view(m: Map, pids: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """For each point the observing keyframe whose viewpoint is closest to a camera at ``C`` ``(3,)``, or −1
+    when none is within :data:`MAX_VIEW_ANGLE_DEG` and :data:`MAX_SCALE_CHANGE`."""
+    pt, kf = [], []
+    for j, p in enumerate(pids.tolist()):
+        for k in m.obs[p]:
+            pt.append(j)
+            kf.append(k)
+    out = -np.ones(len(pids), np.int64)
+    if not pt:
+        return out
+    pt_a, kf_a = np.array(pt), np.array(kf)
+    X = m.Xw[pids[pt_a]]
+    v_k = X - m.poses_wc()[kf_a, :3, 3]
+    v_c = X - C
+    n_k, n_c = np.linalg.norm(v_k, axis=1), np.linalg.norm(v_c, axis=1)
+    cos = np.sum(v_k * v_c, 1) / np.maximum(n_k * n_c, 1e-12)
+    ratio = n_c / np.maximum(n_k, 1e-12)
+    ok = (cos >= np.cos(np.radians(MAX_VIEW_ANGLE_DEG))) & (ratio <= MAX_SCALE_CHANGE) & (ratio >= 1 / MAX_SCALE_CHANGE)
+    score = np.where(ok, cos, -np.inf)
+    order = np.lexsort((-kf_a, -score, pt_a))  # per point: best cosine first, then the newest keyframe
+    first = np.r_[True, pt_a[order][1:] != pt_a[order][:-1]]
+    best = order[first]
+    good = np.isfinite(score[best])
+    out[pt_a[best][good]] = kf_a[best][good]
+    return out
+
+
+def local_map(m: Map, T_cw: np.ndarray, K: np.ndarray, size: tuple[int, int], kfs: np.ndarray,
+              recent: list[int], held: set[int], tracked: np.ndarray, occupied_px: np.ndarray,
+              to_raw: Callable[[np.ndarray], np.ndarray], grid: int) -> LocalMap:
+    """The points the frame at ``T_cw`` should see (module docstring).
+
+    Args:
+        m: the map; T_cw: ``(4, 4)`` the frame's pose; K: ``(3, 3)`` pinhole (undistorted pixels);
+        size: ``(W, H)`` image size.
+        kfs: keyframe ids of the map unit the frame tracks in.
+        recent: the newest keyframes (their points are matched as the window's always were).
+        held: keyframes whose grey images are held (the newest ones).
+        tracked: ids of points tracked already; occupied_px: ``(T, 2)`` raw pixels of the frame's tracks.
+        to_raw: undistorted → raw (distorted) pixels; grid: grid cell size in pixels.
+
+    Returns:
+        :class:`LocalMap` (possibly empty).
+    """
+    empty = LocalMap(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool))
+    recent_pts = set().union(*(m.kf_points[k] for k in recent)) if recent else set()
+    host = np.asarray(m.host, np.int64)
+    if not len(host):
+        return empty
+    in_unit = np.zeros(len(m.kf_frame), bool)
+    in_unit[kfs] = True
+    live = np.isfinite(m.Xw[:, 0]) & in_unit[host]
+    live[tracked] = False
+    pids = np.flatnonzero(live)
+    if not len(pids):
+        return empty
+    Xc = m.Xw[pids] @ T_cw[:3, :3].T + T_cw[:3, 3]
+    front = Xc[:, 2] > 1e-6
+    pids, Xc = pids[front], Xc[front]
+    px = Xc[:, :2] / Xc[:, 2:3] @ K[:2, :2].T + K[:2, 2]
+    w, h = size
+    inside = in_image(px, w, h, BORDER_PX)
+    pids, px = pids[inside], px[inside]
+    if not len(pids):
+        return empty
+    raw = to_raw(px)
+    inside = in_image(raw, w, h, BORDER_PX)
+    pids, raw = pids[inside], raw[inside]
+    is_recent = np.array([p in recent_pts for p in pids.tolist()], bool)
+    # the cell rule for old points: a cell a track or a newest keyframe's point holds gets none; else its
+    # best-observed old point (the newest keyframes' points are all tried, as the window's always were)
+    cell = lambda r: (r[:, 1] // grid).astype(np.int64) * 100000 + (r[:, 0] // grid).astype(np.int64)  # noqa: E731
+    c = cell(raw)
+    taken = np.r_[cell(occupied_px) if len(occupied_px) else np.zeros(0, np.int64), c[is_recent]]
+    free = is_recent | ~np.isin(c, taken)
+    pids, c, is_recent = pids[free], c[free], is_recent[free]
+    n_obs = np.array([len(m.obs[p]) for p in pids.tolist()], np.int64)
+    order = np.lexsort((pids, -n_obs, c))
+    first = np.r_[True, c[order][1:] != c[order][:-1]] if len(order) else np.zeros(0, bool)
+    keep = np.sort(np.r_[order[first & ~is_recent[order]], np.flatnonzero(is_recent)])
+    pids, is_recent = pids[keep], is_recent[keep]
+    source = -np.ones(len(pids), np.int64)
+    if is_recent.any():
+        source[is_recent] = [max((k for k in m.obs[p] if k in held), default=-1) for p in pids[is_recent].tolist()]
+    old = ~is_recent
+    if old.any():
+        source[old] = _closest_view(m, pids[old], -T_cw[:3, :3].T @ T_cw[:3, 3])
+        srcs, counts = np.unique(source[old & (source >= 0) & ~np.isin(source, list(held))], return_counts=True)
+        if len(srcs) > MAX_SOURCES:  # the old keyframes with the most points, newest first on ties
+            top = srcs[np.lexsort((-srcs, -counts))[:MAX_SOURCES]]
+            drop = old & ~np.isin(source, top) & ~np.isin(source, list(held))
+            source[drop] = -1
+    ok = source >= 0
+    return LocalMap(pids[ok], source[ok], old[ok])
