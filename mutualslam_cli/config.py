@@ -62,6 +62,14 @@ class VOConfig:
     the frame are matched again from the keyframe that saw them from the closest viewpoint, however old
     (SVO 2.0's overlapping keyframes, :mod:`~mutualslam_cli.vo.local_map`); ``false``: only the points of the
     newest ``core_kfs`` keyframes (the front end before issue 39)."""
+    depth_seeds: bool = False
+    """New depth-filter seeds start at the adapted network's depth in the map's unit, with the network's measured
+    relative error as their deviation (CNN-SVO; :mod:`~mutualslam_cli.vo.depth_prior`). Needs the network: used in
+    causal runs (``mslam run``), not by the front end on its own. ``false``: SVO's start (the paper)."""
+    scale_prior: bool = False
+    """A weak log-depth prior from the adapted network, at the map unit's reference scale, on the points the
+    windowed BA's free keyframes host (:mod:`~mutualslam_cli.vo.depth_prior`). Causal runs only, as
+    ``depth_seeds``. ``false``: the paper."""
     relocalise: bool = True
     """After a tracking loss, look for the frame among the existing keyframes (ORB descriptors of
     their map points, PnP-RANSAC, verified on the local map: :mod:`~mutualslam_cli.vo.relocalise`)

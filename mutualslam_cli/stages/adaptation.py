@@ -133,6 +133,9 @@ class OnlineLoop:
                                          val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode,
                                          labels=MapLabels(self.state, w, h), device=run.device)
         self.closer = LoopCloser(run.seq, cfg, source, ba) if cfg.loop.enabled else None
+        if cfg.vo.depth_seeds or cfg.vo.scale_prior:  # the front end asks the network of now at its keyframes
+            frame_image = keyframe_images(run.seq, lambda f: f, w, h)  # by frame: not in the map yet when asked
+            source.use_network(lambda f: predict_depth(self.net, frame_image(f)[None], fast)[0])
         self.clock = None
         if cfg.adapt.schedule == "realtime" and self.adapter is not None:
             cost = cfg.adapt.step_cost_ms
@@ -385,5 +388,9 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
     if rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
     summarise_bridges(run, adapted.bridged, adapted.bridges)
+    check = adapted.map.meta.get("scale_check") if adapted.map is not None else None
+    for k in ("checks", "drift_max", "drift_min"):  # the network's view of the map's scale, keyframe by keyframe
+        summary.set(f"vo.scale_check.{k}", check.get(k) if check else None,
+                    "the front end did not ask the network (vo.depth_seeds and vo.scale_prior off, or not causal)")
     summary.set("adaptation.labels", cfg.adapt.labels if cfg.adapt.scheme != "comoda" else "hindsight")
     return adapted

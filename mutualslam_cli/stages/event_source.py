@@ -32,6 +32,7 @@ from mutualslam_cli.types import Progress
 from mutualslam_cli.vo import checkpoint
 from mutualslam_cli.vo.camera import pinhole
 from mutualslam_cli.vo.depth_oracle import run_oracle
+from mutualslam_cli.vo.depth_prior import DepthHint
 from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
 from mutualslam_cli.vo.frontend import FrontEnd
 from mutualslam_cli.vo.journal import Event
@@ -90,6 +91,27 @@ class FrontEndSource:
         self.seconds = 0.0
         self._kf_seen = 0
         self._meta: dict | None = None
+        self._hint: DepthHint | None = None
+
+    def use_network(self, hint: DepthHint) -> None:
+        """The live front end asks the network at each keyframe from now on (``vo.depth_seeds`` /
+        ``vo.scale_prior``, live feedback only: :mod:`~mutualslam_cli.vo.depth_prior`). Its output then depends
+        on the network from the first keyframe that asked: no frame is replayed from the journal (it holds the
+        front end without the network) and the journal is stored up to the frame before that keyframe."""
+        vo = self.cfg.vo
+        if not (self.live_feedback and (vo.depth_seeds or vo.scale_prior)):
+            return
+        if self.frame >= 0:
+            raise RuntimeError("use_network() of a source advanced part of the way")
+        self.entry, self._bounds = None, np.zeros(0, np.int64)
+
+        def asked(frame: int) -> np.ndarray:
+            if self.changed_at is None:  # this frame's events are the network's doing: not the cache's
+                self.changed_at = frame - 1
+                log.info("front end: the network's depth first asked at frame %d", frame)
+            return hint(frame)
+
+        self._hint = asked
 
     # ------------------------------------------------------------------ advancing
     def advance(self) -> int:
@@ -256,6 +278,8 @@ class FrontEndSource:
         else:
             fe = FrontEnd(self.seq, self.cfg.vo, self.cfg.seed)
             start = 0
+        if self._hint is not None:
+            fe.use_network(self._hint)
         self.live = fe
         self._frames = grey_frames(self.seq, start)
         for i in range(start, upto + 1):  # again, silently: the state has these events already

@@ -30,6 +30,8 @@ class RunStats:
         total_s: wall time of the whole run.
         reprojected: map points re-attached by re-projection (reused: of them, points from outside the newest
             keyframes, ``vo.reuse_map``).
+        scale_check: the network's scale check (:meth:`~mutualslam_cli.vo.depth_prior.ScaleCheck.summary`), ``None``
+            when the front end ran without the network.
         ba_stats: one dict per windowed BA (``points``, ``solve_ms``, …).
         ba_threaded: whether the windowed BA ran on a worker thread.
         relocalisations: one dict per accepted relocalisation (``frame``, ``keyframe``, ``inliers``,
@@ -47,6 +49,7 @@ class RunStats:
     relocalisations: Seq[dict[str, Any]] = ()
     reloc_rejected: int = 0
     reused: int = 0
+    scale_check: dict[str, Any] | None = None
 
 
 def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
@@ -118,6 +121,7 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         "time_s": total_s,
         "reprojected": stats.reprojected,
         "reused": stats.reused,
+        "scale_check": stats.scale_check,
         "local_ba": {"runs": len(st),
                      "mean_points": float(np.mean([s["points"] for s in st])) if st else 0.0,
                      "mean_solve_ms": float(np.mean([s["solve_ms"] for s in st])) if st else 0.0,

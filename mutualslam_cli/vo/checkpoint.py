@@ -60,7 +60,8 @@ def capture(fe: FrontEnd) -> dict[str, np.ndarray]:
         out.update({"job.kf": np.array([job.kf], np.int64), "job.kfs": np.array(job.kfs, np.int64),
                     "job.free": job.free, "job.pids": np.array(job.pids, np.int64),
                     "job.o_id": np.array(job.o_id, np.int64).reshape(-1, 2)})
-        out.update({f"job.prob.{f.name}": np.asarray(getattr(job.prob, f.name)) for f in fields(BAProblem)})
+        out.update({f"job.prob.{f.name}": np.asarray(getattr(job.prob, f.name)) for f in fields(BAProblem)
+                    if getattr(job.prob, f.name) is not None})  # no scale prior: the field's default
     out["tr.obs_n"] = np.array([len(o) for o in tr.obs], np.int64)
     out["tr.obs_kf"] = np.array([k for o in tr.obs for k, _ in o], np.int64)
     out["tr.obs_px"] = np.array([p for o in tr.obs for _, p in o], np.float64).reshape(-1, 2)
@@ -101,7 +102,9 @@ def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: 
     tr.obs = [[(int(k), p) for k, p in zip(ks.tolist(), px)] for ks, px in zip(kfs, pxs)]
     st.tracks = tr
     if "job.kf" in ckpt:
-        prob = BAProblem(**{f.name: np.array(ckpt[f"job.prob.{f.name}"]) for f in fields(BAProblem)})
+        prob = BAProblem(**{f.name: np.array(ckpt[f"job.prob.{f.name}"]) for f in fields(BAProblem)
+                            if f"job.prob.{f.name}" in ckpt})
+        prob.prior_w = float(prob.prior_w)
         fe.mapper.resume(int(ckpt["job.kf"][0]), [int(k) for k in ckpt["job.kfs"]], np.array(ckpt["job.free"]),
                          [int(p) for p in ckpt["job.pids"]], [tuple(map(int, o)) for o in ckpt["job.o_id"]], prob)
     st.prev_pyr = build_pyramid(seq.load_gray(st.frame), cfg.klt_window, cfg.klt_levels)

@@ -28,6 +28,7 @@ from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.assemble import RunStats
 from mutualslam_cli.vo.bootstrap import InitMixin
+from mutualslam_cli.vo.depth_prior import PRIOR_SIGMA_LOG, DepthHint, KeyframeRatio, ScaleCheck
 from mutualslam_cli.vo.camera import distort_points, focal_px, pinhole, to_normalized, undistort_points
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.feedback import FeedbackMixin
@@ -91,6 +92,25 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         self.reloc = RelocIndex(self.intr) if cfg.relocalise else None
         self.st = TrackerState(timing={k: 0.0 for k in STAGES})
         self.old_images = KeyframeImages(seq.load_gray)
+        self.scale: ScaleCheck | None = None
+
+    def use_network(self, hint: DepthHint) -> None:
+        """From now on ask the network (``hint``: its depth of a frame, as adapted up to then) at each keyframe:
+        the scale check, and with ``vo.depth_seeds`` / ``vo.scale_prior`` the seeds' start and the windowed BA's
+        prior (:mod:`~mutualslam_cli.vo.depth_prior`)."""
+        self.scale = ScaleCheck(hint, (self.intr.width, self.intr.height))
+        if self.cfg.scale_prior:
+            self.mapper.prior_of, self.mapper.prior_w = self._prior_rho, (1.0 / self.f) / PRIOR_SIGMA_LOG
+
+    def _prior_rho(self, pids: np.ndarray) -> np.ndarray:
+        """Prior inverse depths ``(P,)`` of points ``pids`` from their hosts' network depth (NaN: none)."""
+        m, out = self.map, np.full(len(pids), np.nan)
+        host = np.array([m.host[p] for p in pids.tolist()], np.int64)
+        unit = self.state_map.unit(self.st.segment)
+        for h in set(host.tolist()) & set(self.scale.depths):
+            sel = np.flatnonzero(host == h)
+            out[sel] = self.scale.prior_rho(h, np.array([m.px_h[p] for p in pids[sel].tolist()]), unit)
+        return out
 
     # ---------------------------------------------------------------- helpers
     def _undist(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -223,8 +243,18 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         pids = m.add_points(tr.host[conv], tr.px_h[conv], f_h[:, :2] / f_h[:, 2:3], rho_z, sig_z, obs)
         tr.pid[conv] = pids
 
-    def _new_seeds(self, kf: int, gray: np.ndarray) -> None:
-        """Detect features in empty grid cells of keyframe ``kf`` and start seeds for them."""
+    def _check_scale(self, kf: int, i: int) -> KeyframeRatio | None:
+        """The network's scale check of keyframe ``kf`` (frame ``i``) on its tracked points (a network given)."""
+        if self.scale is None:
+            return None
+        tr = self.st.tracks
+        pm = np.flatnonzero(tr.pid >= 0)
+        Xc = self.map.Xw[tr.pid[pm]] @ self.st.T_cw[:3, :3].T + self.st.T_cw[:3, 3]
+        return self.scale.keyframe(kf, i, self.state_map.unit(self.st.segment), tr.px[pm], Xc[:, 2])
+
+    def _new_seeds(self, kf: int, gray: np.ndarray, ratio: KeyframeRatio | None = None) -> None:
+        """Detect features in empty grid cells of keyframe ``kf`` and start seeds for them (with
+        ``vo.depth_seeds`` and the keyframe's scale check ``ratio``: at the network's depth)."""
         m, tr = self.map, self.st.tracks
         pts = detect_grid(gray, self.cfg.grid_size, self.cfg.max_fts, occupied_px=tr.raw)
         pm = tr.pid >= 0
@@ -245,6 +275,10 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
             new.f_h = fh / np.linalg.norm(fh, axis=1, keepdims=True)
             new.px_h = new.px.copy()
             new.seed = dfl.new_seeds(n, prior)
+            if self.cfg.depth_seeds and ratio is not None:
+                mu, sigma2 = self.scale.seeds(ratio, new.px, new.f_h[:, 2])
+                ok = np.isfinite(mu) & (mu > 0)
+                new.seed["mu"][ok], new.seed["sigma2"][ok] = mu[ok], sigma2[ok]
             new.kf_px, new.at_kf, new.obs = new.px.copy(), np.ones(n, bool), [[] for _ in range(n)]
             tr = tr.extend(new)
         tr.kf_px = tr.px.copy()
@@ -322,12 +356,13 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
             tr.obs[j] = tr.obs[j] + [(kf, tr.px[j])]
         if self.reloc is not None:
             self.reloc.add_keyframe(kf, gray)
+        ratio = self._check_scale(kf, i)
         t1 = time.perf_counter()
         self.mapper.submit(kf, self.st.segment)  # solved on the worker, applied BA_LAG frames later
         self.st.ba_due = i + BA_LAG
         t2 = time.perf_counter()
         self.st.last_kf = kf
-        self._new_seeds(kf, gray)
+        self._new_seeds(kf, gray, ratio)
         self._store_image(kf, gray)
         self.st.timing["keyframe"] += (t1 - t0) + (time.perf_counter() - t2)
         self.st.timing["local_ba"] += t2 - t1
@@ -367,7 +402,8 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
                         ba_threaded=self.mapper.pool is not None,
                         relocalisations=list(self.state_map.relocalisations),
                         reloc_rejected=self.reloc.rejected if self.reloc is not None else 0,
-                        reused=self.st.n_reused)
+                        reused=self.st.n_reused,
+                        scale_check=self.scale.summary() if self.scale is not None else None)
 
     def result(self) -> VOResult:
         """The map and trajectories now (see :func:`~mutualslam_cli.vo.assemble.build_result`)."""

@@ -30,6 +30,9 @@ class BAProblem:
         rho: ``(P,)`` inverse depth (``z``) in the host.
         obs_pt, obs_kf: ``(M,)`` point and keyframe index of each non-host observation.
         obs_xn: ``(M, 2)`` observed normalised coordinates.
+        prior_rho: ``(P,)`` prior inverse depth of each point (NaN: none), or ``None`` (``vo.scale_prior``).
+        prior_w: weight of a prior's log-depth residual: ``(log ρ − log ρ₀) · prior_w`` is added as a residual in
+            normalised units (a log-depth error of ``1 / prior_w`` normalised units' worth of reprojection error).
     """
 
     T_cw: np.ndarray
@@ -40,6 +43,19 @@ class BAProblem:
     obs_pt: np.ndarray
     obs_kf: np.ndarray
     obs_xn: np.ndarray
+    prior_rho: np.ndarray | None = None
+    prior_w: float = 0.0
+
+
+def _prior(prob: BAProblem, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scale prior's residuals ``(P,)`` (0 without a prior), their derivatives by ρ and the mask of points
+    that have one: ``r = prior_w · (log ρ − log ρ₀)``, ``dr/dρ = prior_w / ρ``."""
+    if prob.prior_rho is None or prob.prior_w <= 0:
+        z = np.zeros(len(rho))
+        return z, z, np.zeros(len(rho), bool)
+    has = np.isfinite(prob.prior_rho) & (prob.prior_rho > 0)
+    r = np.where(has, prob.prior_w * (np.log(rho) - np.log(np.where(has, prob.prior_rho, 1.0))), 0.0)
+    return r, np.where(has, prob.prior_w / rho, 0.0), has
 
 
 def residuals(prob: BAProblem, T: np.ndarray, rho: np.ndarray, jac: bool = False):
@@ -84,10 +100,11 @@ def residuals(prob: BAProblem, T: np.ndarray, rho: np.ndarray, jac: bool = False
     return r, J_t, J_h, J_p, front
 
 
-def _robust_cost(r: np.ndarray, front: np.ndarray, huber: float) -> float:
+def _robust_cost(r: np.ndarray, front: np.ndarray, huber: float, r_prior: np.ndarray | None = None) -> float:
     e = np.linalg.norm(r, axis=1)
     c = np.where(e < huber, 0.5 * e * e, huber * (e - 0.5 * huber))
-    return float(np.sum(np.where(front, c, 0.5 * huber * huber)))
+    prior = 0.0 if r_prior is None else 0.5 * float(np.sum(r_prior * r_prior))
+    return float(np.sum(np.where(front, c, 0.5 * huber * huber))) + prior
 
 
 def _apply(T: np.ndarray, fi: np.ndarray, dc: np.ndarray) -> np.ndarray:
@@ -115,7 +132,7 @@ def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np
     ct, ch = col[prob.obs_kf], col[prob.host[prob.obs_pt]]
     p = prob.obs_pt
     r, front = residuals(prob, T, rho)
-    cost = cost0 = _robust_cost(r, front, huber)
+    cost = cost0 = _robust_cost(r, front, huber, _prior(prob, rho)[0])
     lam = 1e-4
     for _ in range(iters):
         r, Jt, Jh, Jp, front = residuals(prob, T, rho, jac=True)
@@ -137,6 +154,8 @@ def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np
             if F else np.zeros((0, P))
         Hpp = np.bincount(p, weights=w * np.sum(Jp * Jp, 1), minlength=P)
         bp = np.bincount(p, weights=w * np.sum(Jp * r, 1), minlength=P)
+        r_pr, J_pr, _ = _prior(prob, rho)  # the scale prior: one more residual per point, on its depth alone
+        Hpp, bp = Hpp + J_pr * J_pr, bp + J_pr * r_pr
         accepted = False
         for _try in range(4):
             Hd = Hpp * (1 + lam) + 1e-12
@@ -152,7 +171,7 @@ def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np
             T_new = _apply(T, fi, dc)
             rho_new = np.maximum(rho + dp, 1e-4)
             r_new, f_new = residuals(prob, T_new, rho_new)
-            c_new = _robust_cost(r_new, f_new, huber)
+            c_new = _robust_cost(r_new, f_new, huber, _prior(prob, rho_new)[0])
             if c_new < cost:
                 T, rho, cost = T_new, rho_new, c_new
                 lam = max(lam / 10, 1e-7)

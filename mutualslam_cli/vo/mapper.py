@@ -15,6 +15,7 @@ import logging
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -49,6 +50,8 @@ class Mapper:
         self.pool = ThreadPoolExecutor(max_workers=1) if threaded else None
         self.job: _Job | None = None
         self.stats: list[dict] = []
+        self.prior_of: Callable[[np.ndarray], np.ndarray] | None = None  # vo.scale_prior: points' prior ρ (NaN: none)
+        self.prior_w = 0.0
 
     @property
     def pending(self) -> int | None:
@@ -90,6 +93,9 @@ class Mapper:
                     o_id.append((p, k))
         prob = BAProblem(m.poses_cw()[kfs].copy(), free, host, ray, rho, np.array(o_pt), np.array(o_kf),
                          to_normalized(np.array(o_px), self.K))
+        if self.prior_of is not None:  # the scale prior on the points the window's free keyframes host
+            prob.prior_rho = np.where(free[host], self.prior_of(np.array(pids, np.int64)), np.nan)
+            prob.prior_w = self.prior_w
         job = _Job(kf, kfs, free, pids, o_id, prob)
         if threaded and self.pool is not None:
             job.result = self.pool.submit(self._solve, prob)
