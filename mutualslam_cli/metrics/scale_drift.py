@@ -15,11 +15,16 @@ the scale drift):
 2. for each window of ``N`` consecutive associated keyframes (stride 1: every window, so that the extremes
    do not depend on where the first window starts) fit a Sim(3) on that window alone: scale ``s_loc`` and
    the window's RMSE after its own fit (the *local ATE*);
-3. report ``s_loc / s_glob`` per window: 1 where the map's unit there equals its average unit.
+3. report ``s_loc / s_ref`` per window, ``s_ref = s_glob`` (one segment) or its segment's scale (several): 1
+   where the map's unit there equals its average unit.
 
-A window must lie within one tracking segment (a front end that re-initialised starts each segment in a
-unit of its own: a window across the restart mixes two scales and is skipped). Windows whose positions are
-degenerate (collinear: a pure straight line fixes no rotation) are skipped and counted.
+A window must lie within one tracking segment (a front end that re-initialised starts each segment at an
+origin and in a unit of its own: a window across the restart mixes two scales and is skipped). With several
+segments the one Sim(3) over all of them has no meaningful scale (segments at unrelated origins: on a
+two-segment test the whole fit's scale came out 1/40 of either segment's), so each window is then relative to
+its own segment's Sim(3) (the per-segment ATE's alignment, :func:`~mutualslam_cli.metrics.trajectory.ate_segments`);
+the global ATE stays the one Sim(3) over the whole (the headline). Windows whose positions are degenerate
+(collinear: a pure straight line fixes no rotation) are skipped and counted.
 
 Summary figures: ``max``, ``min`` of ``s_loc / s_glob``, ``max_over_min`` (how much the unit changed along
 the run; 1 for a map that holds its scale), and the median local ATE over windows.
@@ -51,14 +56,16 @@ class ScaleDrift:
     Attributes:
         window, stride: keyframes per window and between window starts.
         global_scale: ``s_glob`` of the one Sim(3) over all pairs (GT metres per map unit).
-        global_rmse: the ATE RMSE (m) of that alignment.
+        global_rmse: the ATE RMSE (m) of that alignment (the headline ATE).
         n_pairs: associated keyframes.
         start, end: ``(W,)`` int, index (into the estimate) of each window's first and last keyframe.
         start_time: ``(W,)`` float, timestamp (s) of each window's first keyframe.
         segment: ``(W,)`` int, the segment of each window.
-        rel_scale: ``(W,)`` ``s_loc / s_glob`` per window.
+        rel_scale: ``(W,)`` ``s_loc / s_ref`` per window.
+        ref_scale: ``(W,)`` ``s_ref``: ``s_glob``, or with several segments the window's segment's own Sim(3) scale.
         local_rmse: ``(W,)`` RMSE (m) of each window after its own Sim(3).
         n_crossing, n_degenerate: windows skipped for crossing a segment boundary / degenerate positions.
+        per_segment: several segments: each window relative to its own segment's scale.
     """
 
     window: int
@@ -72,8 +79,10 @@ class ScaleDrift:
     segment: np.ndarray
     rel_scale: np.ndarray
     local_rmse: np.ndarray
+    ref_scale: np.ndarray
     n_crossing: int = 0
     n_degenerate: int = 0
+    per_segment: bool = False
 
     @property
     def max(self) -> float:
@@ -98,7 +107,8 @@ class ScaleDrift:
         return {"max": self.max, "min": self.min, "max_over_min": self.max_over_min, "local_ate_m": self.local_ate,
                 "global_scale": self.global_scale, "global_ate_m": self.global_rmse, "windows": len(self.rel_scale),
                 "window": self.window, "stride": self.stride, "n_crossing": self.n_crossing,
-                "n_degenerate": self.n_degenerate}
+                "n_degenerate": self.n_degenerate,
+                "per_segment": self.per_segment}
 
 
 def _rmse(p_ref: np.ndarray, aligned: np.ndarray) -> float:
@@ -120,7 +130,7 @@ def scale_drift(
 
     Args:
         ref: GT trajectory (metres); est: the estimated keyframes (map units).
-        segments: ``(M,)`` segment id of each pose of ``est`` (``None``: one segment).
+        segments: ``(M,)`` segment (map unit) of each pose of ``est`` (``None``: one segment).
         window: keyframes per window (≥ 3: a Sim(3) needs three non-collinear positions).
         stride: associated keyframes between the starts of two windows.
 
@@ -143,24 +153,36 @@ def scale_drift(
     p_ref, p_est = ref.positions[i_ref], est.positions[i_est]
     aligned, _, _, s_glob = align_positions(p_ref, p_est, "sim3")
     seg_pair = seg[i_est]
-    rows: list[tuple[int, int, float, int, float, float]] = []
+    ref_scale = {int(sid): s_glob for sid in np.unique(seg_pair)}
+    if len(ref_scale) > 1:  # each segment's own unit (module docstring)
+        for sid in ref_scale:
+            m = seg_pair == sid
+            try:
+                ref_scale[sid] = align_positions(p_ref[m], p_est[m], "sim3")[3] if m.sum() >= window else np.nan
+            except GeometryError:
+                ref_scale[sid] = np.nan
+    rows: list[tuple[int, int, float, int, float, float, float]] = []
     n_cross = n_degen = 0
     for k in range(0, len(i_est) - window + 1, stride):
         sl = slice(k, k + window)
         if np.any(seg_pair[sl] != seg_pair[k]):
             n_cross += 1
             continue
+        s_ref = ref_scale[int(seg_pair[k])]
         try:
+            if not np.isfinite(s_ref):
+                raise GeometryError("segment not aligned")
             al, _, _, s_loc = align_positions(p_ref[sl], p_est[sl], "sim3")  # Umeyama 1991 on the window alone
         except GeometryError:
             n_degen += 1
             continue
         rows.append((int(i_est[k]), int(i_est[k + window - 1]), float(est.timestamps[i_est[k]]), int(seg_pair[k]),
-                     s_loc / s_glob, _rmse(p_ref[sl], al)))
+                     s_loc / s_ref, _rmse(p_ref[sl], al), s_ref))
     if not rows:
         raise GeometryError(f"no window of {window} keyframes within one segment could be aligned "
                             f"({n_cross} cross a segment boundary, {n_degen} degenerate)")
-    start, end, t0, sid, rel, loc = (np.array(c) for c in zip(*rows))
+    start, end, t0, sid, rel, loc, ref = (np.array(c) for c in zip(*rows))
     return ScaleDrift(window, stride, float(s_glob), _rmse(p_ref, aligned), len(i_ref), start.astype(np.int64),
                       end.astype(np.int64), t0.astype(np.float64), sid.astype(np.int64), rel.astype(np.float64),
-                      loc.astype(np.float64), n_cross, n_degen)
+                      loc.astype(np.float64), ref.astype(np.float64), n_cross, n_degen,
+                      len(ref_scale) > 1)
