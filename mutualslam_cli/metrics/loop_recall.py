@@ -61,9 +61,9 @@ def true_revisits(poses: np.ndarray, ids: np.ndarray, min_gap: int, max_dist: fl
     Returns:
         ``{j: [Partner, …]}`` for each keyframe id with at least one partner, nearest first.
     """
-    poses = np.asarray(poses, np.float64)
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     ids = np.asarray(ids, np.int64)
-    ok = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
+    ok = np.all(np.isfinite(poses), axis=(1, 2))
     p, R = poses[:, :3, 3], poses[:, :3, :3]
     out: dict[int, list[Partner]] = {}
     for j in np.flatnonzero(ok):

@@ -146,6 +146,8 @@ def scale_drift(
     seg = np.zeros(len(est), np.int64) if segments is None else np.asarray(segments).reshape(-1)
     check_shape(seg, [len(est)], "segments (one id per est pose)")
     i_ref, i_est = associate_indices(ref.timestamps, est.timestamps, max_dt, association)
+    if len(est) == 0:
+        raise GeometryError("no keyframe")
     if len(i_ref) == 0:
         raise DatasetError(f"no keyframe within {max_dt:g} s of a GT pose")
     if len(i_ref) < window:

@@ -99,3 +99,8 @@ def test_each_query_reaches_its_stage_with_the_reason_it_stopped():
     assert (c["revisits"], c["found"], c["verified"], c["closed"], c["refused"]) == (9, 6, 4, 1, 8)
     assert sum(c["reasons"].values()) == 8 and c["reasons"]["scale uncertain"] == 1
     assert rows[41].record()["candidates"] == "3 4 5"
+
+
+def test_no_keyframe_no_revisit():
+    assert true_revisits(np.zeros((0, 4, 4)), np.zeros(0, np.int64), min_gap=30) == {}
+    assert counts([]) == {"revisits": 0, "found": 0, "verified": 0, "closed": 0, "refused": 0, "reasons": {}}

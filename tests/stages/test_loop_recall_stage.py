@@ -99,3 +99,31 @@ def test_absent_without_gt_or_without_loop_closure(seq, tmp_path):
     d = off.to_dict(required=())
     for k in loop_recall.RECALL_KEYS:
         assert flatten(d)[k] is None and d["notes"][k].startswith("loop.enabled=false")
+
+
+def test_a_run_with_loop_closure_and_gt_writes_its_recall(tiny_run, tmp_path):
+    """End to end on a 24-frame room: the recall keys are counts (0 revisits is a count, not an absence), the
+    table is written; the scale drift of its few keyframes is null with the reason."""
+    import json
+
+    from mutualslam_cli.config import CONFIG_DIR
+    from mutualslam_cli.pipeline import run_sequence
+
+    from synth import make_tum_dir
+
+    tmp, _ = tiny_run
+    seq_dir = make_tum_dir(tmp_path / "seq", scene="room", n=24, width=320, height=240)
+    cfg = load_config(CONFIG_DIR / "smoke.yaml", [f"net.weights={tmp / 'weights'}", "vo.mode=svo", "loop.enabled=true",
+                                                  "loop.min_gap=2"])
+    r = run_sequence(seq_dir, cfg, out=tmp_path / "out")
+    assert r.summary["vo"]["keyframes"] >= 2
+    s = json.loads((r.folder / "summary.json").read_text())
+    flat = flatten(s)
+    for k in loop_recall.RECALL_KEYS:
+        assert isinstance(flat[k], int), k
+    assert flat["loop.recall.closed"] <= flat["loop.recall.verified"] <= flat["loop.recall.found"] \
+        <= flat["loop.recall.revisits"]
+    table = pd.read_csv(r.folder / "loop_recall.csv")
+    assert len(table) == flat["loop.recall.revisits"]
+    assert flat["trajectory.local_scale.vo.max_over_min"] is None
+    assert "keyframes with GT < 15" in s["notes"]["trajectory.local_scale.vo.max_over_min"]
