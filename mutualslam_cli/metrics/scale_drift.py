@@ -26,7 +26,7 @@ its own segment's Sim(3) (the per-segment ATE's alignment, :func:`~mutualslam_cl
 the global ATE stays the one Sim(3) over the whole (the headline). Windows whose positions are degenerate
 (collinear: a pure straight line fixes no rotation) are skipped and counted.
 
-Summary figures: ``max``, ``min`` of ``s_loc / s_glob``, ``max_over_min`` (how much the unit changed along
+Summary figures: ``max``, ``min`` of ``s_loc / s_ref``, ``max_over_min`` (how much the unit changed along
 the run; 1 for a map that holds its scale), and the median local ATE over windows.
 """
 

@@ -10,7 +10,8 @@ the robust global BA refine the unit, the loop's two ends now close enough for n
 tie them (the loop's correspondences). The refined poses and points feed training as the BA's do.
 
 Outputs: ``loop.{candidates,accepted,rejected}`` (rejections by reason in ``notes``), and the loops in
-``manifest.json`` (``loops``), drawn on the trajectory figure.
+``manifest.json`` (``loops``), drawn on the trajectory figure. With GT, after the run, the recall of true revisits
+(``loop.recall.*``, ``loop_recall.csv``: :mod:`~mutualslam_cli.stages.loop_recall`) from what the closer recorded.
 """
 
 from __future__ import annotations
