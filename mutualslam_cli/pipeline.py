@@ -43,7 +43,7 @@ from mutualslam_cli.results.run_folder import (
     write_yaml,
 )
 from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages import adaptation, dense, depth_export, evaluation, frontend
+from mutualslam_cli.stages import adaptation, dense, depth_export, evaluation, frontend, scale_drift
 from mutualslam_cli.stages.ba import BAStage
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Progress
@@ -160,6 +160,8 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     adapted = adaptation.run_stage(run, net0, fast, ba if cfg.ba.enabled else None)  # front end + Algorithm 1
     fe = frontend.run_stage(run, adapted.frontend, adapted.source.replayed, adapted.injected)  # its own map
     ba.finish(adapted, fe, fast)
+    scale_drift.run_stage(run, {"vo": fe.vo, "ba": ba.final}, {"ba": ba.why_no_final},  # local vs global Sim(3)
+                          {"ba": adapted.bridges or []})
     evaluation.run_stage(run, fe, net0, adapted, fast)  # both models' depth on every frame with GT
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:

@@ -36,6 +36,7 @@ from mutualslam_cli.report.maps import map_figures
 from mutualslam_cli.report.pictures import run_pictures
 from mutualslam_cli.report.paper import paper_tables
 from mutualslam_cli.report.plots import plot_accuracy
+from mutualslam_cli.report.slam_tables import SLAM_TABLES, shown
 from mutualslam_cli.report.trajectories import trajectory_figures
 from mutualslam_cli.results.run_folder import read_summary
 from mutualslam_cli.results.summary import flatten
@@ -61,8 +62,9 @@ TABLES: dict[str, tuple[str, list[tuple[str, str]]]] = {
         ("KF, after BA", "trajectory.ate_rmse_m.ba"), ("all frames", "trajectory.ate_rmse_m.all_frames"),
         ("KF, VO per segment", "trajectory.ate_rmse_m_per_segment.vo"), ("tracked", "vo.tracked_fraction"),
         ("segments", "vo.segments"), ("relocalised", "vo.relocalisations"), ("bridged", "vo.bridges"),
-        ("keyframes", "vo.keyframes"),
+        ("keyframes", "vo.keyframes"), ("scale max/min VO", "trajectory.local_scale.vo.max_over_min"),
     ]),
+    **SLAM_TABLES,  # scale drift, loop recall
     "map": ("Map points and their e_si", [
         ("points VO", "map.points.vo"), ("points culled", "map.points.culled"), ("points BA", "map.points.ba"),
         ("e_si VO", "map.esi.vo"), ("e_si culled", "map.esi.culled"), ("e_si BA", "map.esi.ba"),
@@ -155,7 +157,7 @@ def build_tables(runs: pd.DataFrame) -> Report:
     runs = runs.assign(config=runs["config"] if "config" in runs else "")
     varied = bool((runs["config"] != "").any())
     g = runs.groupby(["sequence.name", "scheme", "config"], sort=True)
-    for name, (title, cols) in TABLES.items():
+    for name, (title, cols) in ((n, tc) for n, tc in TABLES.items() if shown(n, runs)):
         data = {}
         for label, key in cols:
             if key in runs:
@@ -387,6 +389,7 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
     traj, notes = trajectory_figures(rep.runs, out_dir)
     figures += traj + map_figures(rep.runs, out_dir)
     figures += dense_figures(rep.runs, out_dir) + run_pictures(rep.runs, out_dir, "depth")
+    figures += run_pictures(rep.runs, out_dir, "scale_drift")
     if frontier_figure(rep.tables.get("budget"), out_dir / "frontier.png"):
         figures.append(out_dir / "frontier.png")
     md.append("## Figures\n\n" + "".join(f"{n}\n\n" for n in notes)

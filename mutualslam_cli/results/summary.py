@@ -25,6 +25,8 @@ SUMMARY_KEYS: tuple[str, ...] = (
     "depth.pcd_online.lsq", "depth.pcd_online.median", "depth.pcd_online.seq_lsq",
     "adaptation.reg.shrink.mean",
     "trajectory.ate_rmse_m.vo", "trajectory.ate_rmse_m.ba", "trajectory.ate_rmse_m.all_frames",
+    "trajectory.local_scale.vo.max_over_min", "trajectory.local_scale.ba.max_over_min",
+    "trajectory.local_ate_m.vo", "trajectory.local_ate_m.ba",
     "vo.keyframes", "vo.tracked_fraction",
     "map.points.vo", "map.points.culled", "map.points.ba",
     "map.esi.vo", "map.esi.culled", "map.esi.ba",

@@ -37,7 +37,7 @@ from mutualslam_cli.adapt.inputs import keyframe_images, scale_pixels
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.device import module_device
-from mutualslam_cli.stages import comoda
+from mutualslam_cli.stages import comoda, loop_recall
 from mutualslam_cli.stages.adaptation_summary import (
     L_VAL_KEYS,
     l_val_stats,
@@ -365,6 +365,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
             if loop.closer is not None:
                 loop.closer.summarise(summary)
                 adapted.loops = loop.closer.loops
+                loop_recall.run_stage(run, loop.closer, final)  # against GT, after the run
             else:
                 summarise_off(summary, "loop.enabled=false (the paper: no loop closure)")
             summarise_finetuning(summary, cfg.adapt.scheme, adapter, rows)

@@ -119,6 +119,7 @@ class BAStage:
 
     Attributes:
         record: what each culling + BA did (:class:`BALog`).
+        final: the map after culling + BA once :meth:`finish` ran (``None``: no such map, ``why_no_final`` says why).
     """
 
     def __init__(self, run: RunContext) -> None:
@@ -129,6 +130,8 @@ class BAStage:
         self.images = ba_images(run.seq, self._frame_of.__getitem__, cfg.ba.image_scale, keep=cfg.ba.window,
                                 camera=run.seq.intrinsics)
         self.cull = no_culling_reason(cfg) is None
+        self.final: VOResult | None = None
+        self.why_no_final = "culling + global BA not finished"
 
     def run_ba(self, vo: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
                val_loss: Mapping[int, float], bridges: list[dict[str, Any]] | None = None) -> GlobalBAResult:
@@ -172,6 +175,7 @@ class BAStage:
             why = "ba.final=on_request and " + (adapted.why_no_request(cfg.adapt.tau_val, cfg.adapt.patience)
                                                 if adapted.adapter is not None else
                                                 f"scheme {cfg.adapt.scheme!r} runs no Algorithm 1")
+        self.final, self.why_no_final = vo_ba, why or ""
         if vo_ba is None:
             self._absent(why)
         else:

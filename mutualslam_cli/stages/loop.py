@@ -10,7 +10,8 @@ the robust global BA refine the unit, the loop's two ends now close enough for n
 tie them (the loop's correspondences). The refined poses and points feed training as the BA's do.
 
 Outputs: ``loop.{candidates,accepted,rejected}`` (rejections by reason in ``notes``), and the loops in
-``manifest.json`` (``loops``), drawn on the trajectory figure.
+``manifest.json`` (``loops``), drawn on the trajectory figure. With GT, after the run, the recall of true revisits
+(``loop.recall.*``, ``loop_recall.csv``: :mod:`~mutualslam_cli.stages.loop_recall`) from what the closer recorded.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ from mutualslam_cli.vo.loop_closure import LoopDetector, LoopSettings
 
 log = logging.getLogger(__name__)
 
+#: The ``loop.recall.*`` keys (:mod:`~mutualslam_cli.stages.loop_recall`).
+RECALL = ("revisits", "found", "verified", "closed", "refused")
+
 
 class LoopCloser:
     """Place recognition and loop closure over one run's keyframes (module docstring).
@@ -42,6 +46,7 @@ class LoopCloser:
 
     Attributes:
         loops: one record per loop closed (``manifest.json``'s ``loops``).
+        skipped: ``{kf: why}`` of the keyframes kept but not queried (loop recall's reasons).
     """
 
     def __init__(self, seq: Sequence, cfg: RunConfig, source: Any, ba: Any | None) -> None:
@@ -50,6 +55,7 @@ class LoopCloser:
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
                                      LoopSettings(lc.min_gap, lc.n_candidates, lc.max_scale_error, lc.max_depth_spread))
         self.loops: list[dict[str, Any]] = []
+        self.skipped: dict[int, str] = {}
         self._last = -(10 ** 9)  # the query keyframe of the last loop closed
 
     def after_keyframe(self, kf: int, depth_of: Callable[[int], np.ndarray],
@@ -66,6 +72,8 @@ class LoopCloser:
         gray = self.seq.load_gray(state.map.kf_frame[kf])
         self.detector.add(kf, gray)
         if kf - self._last < self.cfg.loop.min_gap:
+            self.skipped[kf] = (f"not queried: within loop.min_gap ({self.cfg.loop.min_gap}) keyframes of the loop "
+                                f"closed at keyframe {self._last}")
             return time.perf_counter() - t
         loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf)
         if loop is None:
@@ -99,6 +107,6 @@ class LoopCloser:
 
 
 def summarise_off(summary: Summary, why: str) -> None:
-    """The ``loop.*`` keys of a run without loop closure, null with ``why``."""
-    for k in ("candidates", "accepted", "rejected"):
+    """The ``loop.*`` keys of a run without loop closure (``loop.recall.*`` too), null with ``why``."""
+    for k in ("candidates", "accepted", "rejected", *(f"recall.{r}" for r in RECALL)):
         summary.absent(f"loop.{k}", why)

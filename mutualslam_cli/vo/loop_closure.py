@@ -143,6 +143,11 @@ class LoopDetector:
     Attributes:
         index: per keyframe its grey image, thumbnail and ORB features (:class:`RelocIndex`).
         tried, rejected: candidates verified, and refuted with their reason counts (``{reason: n}``).
+        queries: one record per :meth:`query`, what it saw and decided (read by the evaluation only, e.g. loop recall
+            against GT): ``kf``; ``pool`` ``(P,)`` the old keyframes of its map unit it could match; ``candidates`` the
+            best ``n_candidates`` of them by appearance; ``geometry`` ``{candidate: outcome}`` of those verified, in
+            order (:data:`~mutualslam_cli.vo.relocalise.PASSED` …); ``verified`` the candidate that passed, or
+            ``None``; ``outcome`` ``"loop"`` or why not.
     """
 
     def __init__(self, intr: Intrinsics, thr: float, settings: LoopSettings | None = None) -> None:
@@ -151,6 +156,7 @@ class LoopDetector:
         self.index = RelocIndex(intr, RelocSettings(n_candidates=self.settings.n_candidates))
         self.tried = 0
         self.rejected: dict[str, int] = {}
+        self.queries: list[dict] = []
 
     def add(self, kf: int, gray: np.ndarray) -> None:
         """Keep keyframe ``kf``'s ``(H, W)`` uint8 grey image for later queries."""
@@ -158,6 +164,8 @@ class LoopDetector:
 
     def _reject(self, why: str) -> None:
         self.rejected[why] = self.rejected.get(why, 0) + 1
+        if self.queries:  # the last query's record (already_closed follows its query)
+            self.queries[-1]["outcome"] = why
 
     def already_closed(self, state: MapState, loop: LoopClosure) -> bool:
         """Whether ``loop`` agrees with the map as it stands — the place is closed already (the front end
@@ -185,15 +193,21 @@ class LoopDetector:
         m, s = state.map, self.settings
         unit = state.unit(m.kf_segment[kf])
         pool = [k for k in sorted(self.index.images) if k <= kf - s.min_gap and state.unit(m.kf_segment[k]) == unit]
+        rec = {"kf": kf, "pool": np.array(pool, np.int64), "candidates": [], "geometry": {}, "verified": None,
+               "outcome": "no old keyframe in its map unit"}
+        self.queries.append(rec)
         if not pool:
             return None
+        rec["candidates"] = self.index.candidates(gray, pool, 0)
         rejected0 = self.index.rejected
         r = self.index.query(gray, m, self.thr, seed=seed, keyframes=pool, newest=0)
         self.tried += min(len(pool), s.n_candidates) if r is None else r.candidates_tried
+        rec["geometry"], rec["outcome"] = dict(self.index.outcomes), "geometry: no candidate passed"
         if self.index.rejected > rejected0:
             self._reject("geometry (inliers, halves or witnesses)")
         if r is None:
             return None
+        rec["verified"] = r.keyframe
         size = (self.intr.width, self.intr.height)
         # the new keyframe's own points, in its (drifted) unit
         uv_new, z_new = state.sparse_depth(kf)
@@ -217,4 +231,5 @@ class LoopDetector:
         if spread > s.max_depth_spread:
             self._reject("depth disagrees with the network")
             return None
+        rec["outcome"] = "loop"
         return LoopClosure(kf, r.keyframe, r.T_cw, scale, r.inliers, spread, n_new, n_old, scale_error)

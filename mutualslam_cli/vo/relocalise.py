@@ -91,6 +91,10 @@ class Relocalisation:
     candidates_tried: int
 
 
+#: What became of a candidate keyframe of a query (:attr:`RelocIndex.outcomes`; a record, no decision reads it).
+PASSED, REFUTED, NO_MATCH = "passed", "refuted by verification", "no geometric match (ORB homography, KLT or PnP)"
+
+
 def _thumb(gray: np.ndarray) -> np.ndarray:
     """Zero-mean, unit-norm thumbnail of a grey image (appearance vector)."""
     t = cv2.resize(gray, THUMB, interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
@@ -110,6 +114,7 @@ class RelocIndex:
         self.thumbs: dict[int, np.ndarray] = {}
         self.features: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # kf → (raw keypoints (N, 2), descriptors)
         self.rejected = 0  # candidate poses the verification refuted
+        self.outcomes: dict[int, str] = {}  # the last query's candidates, in the order tried → PASSED | REFUTED …
 
     def add_keyframe(self, kf: int, gray: np.ndarray) -> None:
         """Record keyframe ``kf``'s grey image ``(H, W)`` uint8."""
@@ -137,8 +142,11 @@ class RelocIndex:
         """
         feats = orb_features(gray, ORB_FEATURES)
         pool = sorted(self.images) if keyframes is None else keyframes
+        self.outcomes = {}
         for tried, kf in enumerate(self.candidates(gray, pool, newest), 1):
+            rejected0 = self.rejected
             found = self._try(kf, m, gray, feats, thr, seed)
+            self.outcomes[kf] = PASSED if found is not None else REFUTED if self.rejected > rejected0 else NO_MATCH
             if found is not None:
                 return dataclasses.replace(found, candidates_tried=tried)
         return None

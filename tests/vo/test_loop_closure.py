@@ -108,3 +108,33 @@ def test_the_loop_scale_pairs_nearby_points_so_a_biased_network_cancels():
     glob = (np.median(z_old / lookup_nearest(depth, px_old, size))
             / np.median(z_new / lookup_nearest(depth, uv_new, size)))
     assert abs(glob / 0.5 - 1) > 0.1
+
+
+def test_each_query_records_its_candidates_and_what_became_of_them(frames):
+    """What loop recall reads (LoopDetector.queries): the pool, the candidates by appearance, each verified one's
+    outcome and the query's; recording changes no decision."""
+    from mutualslam_cli.vo.relocalise import NO_MATCH, PASSED, REFUTED
+
+    drift = np.eye(4)
+    drift[:3, 3] = [0.2, -0.05, 0.1]
+    st = _map(frames, [30, 45, 60, 75, 90], 1273, unit=1.25, offset=drift)
+    q = st.n_keyframes - 1
+    d = _detector(st, frames, LoopSettings(min_gap=1, n_candidates=3))
+    loop = d.query(st, q, frames[1273][0], frames[1273][1])
+    rec = d.queries[-1]
+    assert rec["kf"] == q and rec["pool"].tolist() == [0, 1, 2, 3, 4]
+    assert len(rec["candidates"]) == 3 and set(rec["candidates"]) <= set(range(5))
+    tried = list(rec["geometry"])
+    assert tried == rec["candidates"][: len(tried)]  # verified in the order proposed, until one passed
+    assert rec["geometry"][tried[-1]] == PASSED and all(rec["geometry"][k] in (REFUTED, NO_MATCH) for k in tried[:-1])
+    assert rec["verified"] == loop.match == tried[-1] and rec["outcome"] == "loop"
+    assert d.already_closed(st, loop) is False and d.queries[-1]["outcome"] == "loop"
+    # the look-alike: refused by geometry, recorded so
+    st2 = _map(frames, [300, 315, 330], 1273, unit=1.0, offset=np.eye(4))
+    d2 = _detector(st2, frames, LoopSettings(min_gap=1))
+    d2.index.add_keyframe(0, frames[1270][0])
+    assert d2.query(st2, st2.n_keyframes - 1, frames[1273][0], frames[1273][1]) is None
+    rec2 = d2.queries[-1]
+    assert rec2["candidates"][0] == 0 and rec2["verified"] is None
+    assert rec2["geometry"][0] in (REFUTED, NO_MATCH) and PASSED not in rec2["geometry"].values()
+    assert rec2["outcome"].startswith("geometry")

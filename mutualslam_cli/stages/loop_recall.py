@@ -1,0 +1,83 @@
+"""Loop recall of a run with ``loop.enabled`` and GT poses (:mod:`~mutualslam_cli.metrics.loop_recall`): the keys
+``loop.recall.{revisits,found,verified,closed,refused}`` (the refusals' reasons in ``notes``) and
+``loop_recall.csv``, one row per keyframe with a true revisit partner.
+
+Evaluated after the run from what the loop closer recorded (:attr:`LoopDetector.queries`, the loops closed, the
+keyframes it did not query): GT never reaches a decision of the run.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.metrics.loop_recall import MAX_ANGLE_DEG, MAX_DIST_M, RecallRow, classify, counts, true_revisits
+from mutualslam_cli.metrics.trajectory import associate_indices
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.loop import RECALL
+from mutualslam_cli.vo.result import VOResult
+
+log = logging.getLogger(__name__)
+
+#: The summary keys of loop recall.
+RECALL_KEYS = tuple(f"loop.recall.{k}" for k in RECALL)
+#: ``loop_recall.csv``'s columns.
+COLUMNS = ("kf", "frame", "timestamp", "partner", "partner_frame", "dist_m", "angle_deg", "n_partners", "found",
+           "verified", "closed", "reason", "candidates", "verified_kf", "closed_kf")
+
+
+def keyframe_gt(seq: Sequence, vo: VOResult, max_dt: float) -> np.ndarray:
+    """``(K, 4, 4)`` GT ``T_wc`` of ``vo``'s keyframes, associated by timestamp as the ATE does
+    (:func:`~mutualslam_cli.metrics.trajectory.associate_indices`); NaN rows for keyframes without GT."""
+    out = np.full((len(vo.keyframes), 4, 4), np.nan)
+    if seq.gt is None or not vo.keyframes:
+        return out
+    i_ref, i_kf = associate_indices(seq.gt.timestamps, np.array([k.timestamp for k in vo.keyframes]), max_dt)
+    out[i_kf] = seq.gt.poses[i_ref]
+    return out
+
+
+def run_stage(run: RunContext, closer: Any, vo: VOResult) -> list[RecallRow] | None:
+    """Loop recall of ``closer`` (:class:`~mutualslam_cli.stages.loop.LoopCloser`) over the keyframes of ``vo``
+    (the run's live map, whose keyframe ids the closer used): keys and ``loop_recall.csv``.
+
+    Returns:
+        The rows, or ``None`` without GT poses (the keys null with the reason).
+    """
+    seq, cfg, summary = run.seq, run.cfg, run.summary
+    if seq.gt is None or len(seq.gt) == 0:
+        for k in RECALL_KEYS:
+            summary.absent(k, "sequence has no GT poses")
+        return None
+    poses = keyframe_gt(seq, vo, cfg.eval.ate_max_dt)
+    ids = np.array([k.id for k in vo.keyframes], np.int64)
+    revisits = true_revisits(poses, ids, cfg.loop.min_gap)
+    queries = {int(q["kf"]): q for q in closer.detector.queries}
+    closed = {int(lp["query"]): int(lp["match"]) for lp in closer.loops}
+    rows = classify(revisits, queries, closed, closer.skipped, cfg.loop.n_candidates)
+    c = counts(rows)
+    for k in RECALL_KEYS:
+        summary.set(k, c[k.rsplit(".", 1)[1]])
+    summary.notes["loop.recall.revisits"] = (
+        f"keyframes with an older one ≥ {cfg.loop.min_gap} keyframes before within {MAX_DIST_M * 100:.0f} cm and "
+        f"{MAX_ANGLE_DEG:.0f}° (GT), of {int(np.isfinite(poses[:, 0, 0]).sum())} keyframes with GT")
+    if c["reasons"]:
+        summary.notes["loop.recall.refused"] = "; ".join(f"{why}: {n}" for why, n in c["reasons"].items())
+    elsewhere = [q for q, m in closed.items() if m not in {p.kf for p in revisits.get(q, [])}]
+    if elsewhere:
+        summary.notes["loop.recall.closed"] = (f"{len(elsewhere)} of {len(closed)} loops closed onto a keyframe that "
+                                               f"is no true partner (GT beyond {MAX_DIST_M * 100:.0f} cm or "
+                                               f"{MAX_ANGLE_DEG:.0f}°): query keyframes {elsewhere}")
+    frame = {k.id: k.frame_index for k in vo.keyframes}
+    stamp = {k.id: k.timestamp for k in vo.keyframes}
+    table = pd.DataFrame([{**r.record(), "frame": frame[r.kf], "timestamp": stamp[r.kf],
+                           "partner_frame": frame[r.partner]} for r in rows], columns=list(COLUMNS))
+    atomic_write_text(run.folder / "loop_recall.csv", table.to_csv(index=False))
+    log.info("loop recall: %d true revisits, %d found, %d verified, %d closed", c["revisits"], c["found"],
+             c["verified"], c["closed"])
+    return rows
