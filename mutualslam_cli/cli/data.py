@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
-from rich.markup import escape
 from rich.table import Table
 
 from mutualslam_cli.cli import common
@@ -19,6 +18,7 @@ from mutualslam_cli.cli.common import (
     config_from,
     fmt_value,
     progress_bar,
+    shown,
 )
 from mutualslam_cli.errors import ConfigError, MslamError
 
@@ -93,7 +93,7 @@ def _check_and_print(target: Any, sample: int, data_root: Optional[str], registr
             r = check_sequence(target, sample=sample, data_root=data_root, registry_path=registry, progress=cb)
         finally:
             p.remove_task(task)  # the table replaces the bar; an error is one line, not a bar and a line
-    t = Table("check", "value", title=escape(f"{r.name} ({r.format})"), title_justify="left")
+    t = Table("check", "value", title=shown(f"{r.name} ({r.format})"), title_justify="left")
     intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
     rows = [
         ("root", r.root), ("frames", str(r.frames)), ("time span", f"{r.time_span_s:.2f}"),
@@ -110,7 +110,7 @@ def _check_and_print(target: Any, sample: int, data_root: Optional[str], registr
         rows.append(("fy sign", f"{r.fy_sign:+d}" + (f" (photometric error {errs})" if errs else "")))
     rows.append(("warnings", "; ".join(r.warnings) or "none"))
     for k, v in rows:
-        t.add_row(k, v)
+        t.add_row(k, shown(v))  # paths and warnings may quote names from a downloaded archive
     common.console.print(t)
 
 
@@ -141,11 +141,11 @@ def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool,
         def cb(stage: str, info: dict[str, Any]) -> None:
             key = (stage, info["file"])
             if key not in tasks:
-                tasks[key] = p.add_task(escape(f"{stage} {info['file']}"), total=info["total"])
+                tasks[key] = p.add_task(shown(f"{stage} {info['file']}"), total=info["total"])
             p.update(tasks[key], completed=info["done"], total=info["total"])
 
         def say(msg: str) -> None:
-            p.console.print(escape(msg), highlight=False, soft_wrap=True)
+            p.console.print(shown(msg), highlight=False, soft_wrap=True)
 
         download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say, limits=limits)
 
