@@ -35,6 +35,7 @@ import zipfile
 from pathlib import Path
 from typing import IO, Callable
 
+from mutualslam_cli.datasets.archive_scan import scan_tar
 from mutualslam_cli.datasets.limits import MAX_HEADER_BYTES, Budget, UnpackLimits
 from mutualslam_cli.datasets.members import (
     MAX_MEMBER_CHARS,
@@ -98,6 +99,8 @@ def _decompressed(raw: IO[bytes]) -> IO[bytes]:
 
 def _extract_tar(archive: Path, dest: Path, budget: Budget, progress: UnpackProgress | None) -> None:
     size = archive.stat().st_size
+    with open(archive, "rb") as raw, _decompressed(raw) as stream:  # the headers first: limits before writing
+        scan_tar(stream, budget.declared)
     with open(archive, "rb") as raw, _decompressed(raw) as stream, \
             tarfile.open(fileobj=_TarStream(stream), mode="r:") as tf:  # type: ignore[call-overload]
         for m in tf:
