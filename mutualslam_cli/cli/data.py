@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Iterator, Optional
 
 import typer
 from rich.table import Table
@@ -83,16 +84,29 @@ def _check_and_print(target: Any, sample: int, data_root: Optional[str], registr
     from mutualslam_cli.datasets.check import check_sequence
 
     label = getattr(target, "name", None) or Path(str(target)).name
-    with progress_bar() as p:
-        task = p.add_task(f"decode {label}", total=None, info="")
+    with _decode_bar(label) as cb:
+        r = check_sequence(target, sample=sample, data_root=data_root, registry_path=registry, progress=cb)
+    _print_report(r)
 
-        def cb(stage: str, info: dict[str, Any], task: Any = task) -> None:
-            p.update(task, completed=info["done"], total=info["total"], info=Path(info["file"]).name)
+
+@contextmanager
+def _decode_bar(label: str) -> Iterator[Callable[[str, dict[str, Any]], None]]:
+    """A progress bar for the images a sequence check decodes; yields its callback, removed at the end (the
+    table replaces the bar; an error is one line, not a bar and a line)."""
+    with progress_bar() as p:
+        task = p.add_task(shown(f"decode {label}"), total=None, info="")
+
+        def cb(stage: str, info: dict[str, Any]) -> None:
+            p.update(task, completed=info["done"], total=info["total"], info=shown(Path(info["file"]).name))
 
         try:
-            r = check_sequence(target, sample=sample, data_root=data_root, registry_path=registry, progress=cb)
+            yield cb
         finally:
-            p.remove_task(task)  # the table replaces the bar; an error is one line, not a bar and a line
+            p.remove_task(task)
+
+
+def _print_report(r: Any) -> None:
+    """The table of a :class:`~mutualslam_cli.datasets.check.CheckReport`."""
     t = Table("check", "value", title=shown(f"{r.name} ({r.format})"), title_justify="left")
     intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
     rows = [
@@ -124,12 +138,16 @@ def _download(names: list[str], sample: int, base_url: Optional[str], force: boo
     folder = data_root_of(registry, data_root) / DOWNLOAD_DIR
     limits = UnpackLimits(max_bytes=None if max_unpack_gb is None else int(max_unpack_gb * 1e9))
     for spec in specs:
-        _download_one(spec, folder, base_url, force, limits)
-        _check_and_print(spec, sample, data_root, registry)
+        report = _download_one(spec, folder, base_url, force, limits, sample)
+        if report is None:  # skipped: the folder there is checked as it is
+            _check_and_print(spec, sample, data_root, registry)
+        else:  # checked before it took the folder's place
+            _print_report(report)
 
 
-def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool, limits: Any) -> None:
-    """One entry's download and unpacking, with a bar (size, speed) per file; the bars go when it is done."""
+def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool, limits: Any, sample: int) -> Any:
+    """One entry's download, unpacking and check, with a bar (size, speed) per file; the bars go when it is done.
+    Returns the check's report (``None``: skipped)."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
 
     from mutualslam_cli.datasets.download import download_sequence
@@ -147,7 +165,9 @@ def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool,
         def say(msg: str) -> None:
             p.console.print(shown(msg), highlight=False, soft_wrap=True)
 
-        download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say, limits=limits)
+        with _decode_bar(spec.name) as check_cb:
+            return download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say,
+                                     limits=limits, sample=sample, check_progress=check_cb).report
 
 
 # --------------------------------------------------------------------------- synth
