@@ -36,8 +36,10 @@ def datasets(
                                "frames spread over each sequence (a quick check); 0 = every frame."),
     base_url: Optional[str] = typer.Option(None, "--base-url", help="download: a mirror; each URL becomes "
                                            "BASE_URL/<file name> (default $MSLAM_DOWNLOAD_BASE_URL)."),
-    force: bool = typer.Option(False, "--force", help="download: unpack again and replace an existing sequence "
-                               "folder (downloaded archives are reused; the old folder stays if that fails)."),
+    force: bool = typer.Option(False, "--force", help="download: unpack again and replace a sequence folder that "
+                               "mslam unpacked, once the new one passes the check (downloaded archives are reused; "
+                               "the old folder stays if anything fails; a folder mslam did not unpack is never "
+                               "replaced)."),
     max_unpack_gb: Optional[float] = typer.Option(None, "--max-unpack-gb", min=0, help="download: most GB an "
                                                   "archive may unpack to (default 10× its size; never more than "
                                                   "the free disk)."),
@@ -94,15 +96,18 @@ def _decode_bar(label: str) -> Iterator[Callable[[str, dict[str, Any]], None]]:
     """A progress bar for the images a sequence check decodes; yields its callback, removed at the end (the
     table replaces the bar; an error is one line, not a bar and a line)."""
     with progress_bar() as p:
-        task = p.add_task(shown(f"decode {label}"), total=None, info="")
+        tasks: list[Any] = []  # added at the first image
 
         def cb(stage: str, info: dict[str, Any]) -> None:
-            p.update(task, completed=info["done"], total=info["total"], info=shown(Path(info["file"]).name))
+            if not tasks:
+                tasks.append(p.add_task(shown(f"decode {label}"), total=None, info=""))
+            p.update(tasks[0], completed=info["done"], total=info["total"], info=shown(Path(info["file"]).name))
 
         try:
             yield cb
         finally:
-            p.remove_task(task)
+            for task in tasks:
+                p.remove_task(task)
 
 
 def _print_report(r: Any) -> None:
@@ -165,9 +170,11 @@ def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool,
         def say(msg: str) -> None:
             p.console.print(shown(msg), highlight=False, soft_wrap=True)
 
-        with _decode_bar(spec.name) as check_cb:
-            return download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say,
-                                     limits=limits, sample=sample, check_progress=check_cb).report
+        def check_cb(stage: str, info: dict[str, Any]) -> None:  # the staged folder's check, in the same display
+            cb("check", {"done": info["done"], "total": info["total"], "file": f"{spec.name} (images)"})
+
+        return download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say,
+                                 limits=limits, sample=sample, check_progress=check_cb).report
 
 
 # --------------------------------------------------------------------------- synth
