@@ -189,12 +189,13 @@ def root_inside(spec: SequenceSpec, data_root: Path) -> Path:
     base = Path(os.path.realpath(data_root))
     root = Path(os.path.realpath(spec.root))
     if root == base or not root.is_relative_to(base) or root.is_relative_to(base / DOWNLOAD_DIR):
+        via = f" (through {spec.root})" if Path(spec.root) != root else ""
         where = "is the data root itself" if root == base else (
-            f"resolves to {root}, inside {base / DOWNLOAD_DIR}" if root.is_relative_to(base) else
-            f"resolves to {root}, outside the data root {base}")
-        raise DatasetError(f"datasets.yaml entry '{spec.name}': root {spec.root} {where}; a download writes only "
-                           f"into a folder inside the data root {base} (give a root relative to it, or another "
-                           "--data-root); nothing was touched")
+            f"resolves to {root}{via}, inside {base / DOWNLOAD_DIR}" if root.is_relative_to(base) else
+            f"resolves to {root}{via}, outside the data root {base}")
+        raise DatasetError(f"datasets.yaml entry '{spec.name}': root {where}; a download writes only into a folder "
+                           f"inside the data root {base} (give a root relative to it, or another --data-root); "
+                           "nothing was touched")
     return root
 
 
