@@ -7,6 +7,8 @@ options, the progress bar and value formatting."""
 from __future__ import annotations
 
 import logging
+import re
+import unicodedata
 from pathlib import Path
 from typing import Any, Optional
 
@@ -14,6 +16,7 @@ import click
 import typer
 from rich.console import Console, ConsoleDimensions
 from rich.logging import RichHandler
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from typer.core import TyperGroup
 
@@ -48,6 +51,25 @@ DeviceOpt = typer.Option(None, "--device", help="Where the depth network runs: a
 ResultsOutOpt = typer.Option(None, "--out", help="Results root (default results/).")
 
 
+_LINE_BREAKS = re.compile(r"\s*[\r\n\x0b\x0c\x85\u2028\u2029]+\s*")
+
+
+def one_line(text: str) -> str:
+    """``text`` as one line with every character visible: line breaks (an upstream library's multi-line
+    message) folded into `` | ``, other control and format characters (escape sequences, tabs, bidi
+    overrides, NUL) written as ``\\xNN`` / ``\\uNNNN``."""
+    text = _LINE_BREAKS.sub(" | ", text.strip())
+    return "".join(c if unicodedata.category(c) not in ("Cc", "Cf") else
+                   (f"\\x{ord(c):02x}" if ord(c) < 0x100 else f"\\u{ord(c):04x}") for c in text)
+
+
+def shown(text: object) -> str:
+    """The one rule for printing text that may come from outside (URLs, server reasons, ETags, archive member
+    names, file contents quoted in a message): :func:`one_line`, then rich markup escaped, so that ``[/x]``
+    prints as itself instead of raising ``MarkupError`` or styling the line."""
+    return escape(one_line(str(text)))
+
+
 class _Commands(TyperGroup):
     """The command group with the one error boundary: a user error (:class:`MslamError`) raised by any
     command becomes one red line and exit code 1; anything else (a bug) keeps its traceback."""
@@ -56,7 +78,7 @@ class _Commands(TyperGroup):
         try:
             return super().invoke(ctx)
         except MslamError as e:
-            err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+            err_console.print(f"[bold red]error:[/] {shown(e)}", highlight=False, soft_wrap=True)
             raise typer.Exit(1) from None
 
 

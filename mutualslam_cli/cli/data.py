@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Iterator, Optional
 
 import typer
-from rich.markup import escape
 from rich.table import Table
 
 from mutualslam_cli.cli import common
@@ -19,6 +19,7 @@ from mutualslam_cli.cli.common import (
     config_from,
     fmt_value,
     progress_bar,
+    shown,
 )
 from mutualslam_cli.errors import ConfigError, MslamError
 
@@ -35,8 +36,10 @@ def datasets(
                                "frames spread over each sequence (a quick check); 0 = every frame."),
     base_url: Optional[str] = typer.Option(None, "--base-url", help="download: a mirror; each URL becomes "
                                            "BASE_URL/<file name> (default $MSLAM_DOWNLOAD_BASE_URL)."),
-    force: bool = typer.Option(False, "--force", help="download: unpack again and replace an existing sequence "
-                               "folder (downloaded archives are reused; the old folder stays if that fails)."),
+    force: bool = typer.Option(False, "--force", help="download: unpack again and replace a sequence folder that "
+                               "mslam unpacked, once the new one passes the check (downloaded archives are reused; "
+                               "the old folder stays if anything fails; a folder mslam did not unpack is never "
+                               "replaced)."),
     max_unpack_gb: Optional[float] = typer.Option(None, "--max-unpack-gb", min=0, help="download: most GB an "
                                                   "archive may unpack to (default 10× its size; never more than "
                                                   "the free disk)."),
@@ -83,17 +86,33 @@ def _check_and_print(target: Any, sample: int, data_root: Optional[str], registr
     from mutualslam_cli.datasets.check import check_sequence
 
     label = getattr(target, "name", None) or Path(str(target)).name
-    with progress_bar() as p:
-        task = p.add_task(f"decode {label}", total=None, info="")
+    with _decode_bar(label) as cb:
+        r = check_sequence(target, sample=sample, data_root=data_root, registry_path=registry, progress=cb)
+    _print_report(r)
 
-        def cb(stage: str, info: dict[str, Any], task: Any = task) -> None:
-            p.update(task, completed=info["done"], total=info["total"], info=Path(info["file"]).name)
+
+@contextmanager
+def _decode_bar(label: str) -> Iterator[Callable[[str, dict[str, Any]], None]]:
+    """A progress bar for the images a sequence check decodes; yields its callback, removed at the end (the
+    table replaces the bar; an error is one line, not a bar and a line)."""
+    with progress_bar() as p:
+        tasks: list[Any] = []  # added at the first image
+
+        def cb(stage: str, info: dict[str, Any]) -> None:
+            if not tasks:
+                tasks.append(p.add_task(shown(f"decode {label}"), total=None, info=""))
+            p.update(tasks[0], completed=info["done"], total=info["total"], info=shown(Path(info["file"]).name))
 
         try:
-            r = check_sequence(target, sample=sample, data_root=data_root, registry_path=registry, progress=cb)
+            yield cb
         finally:
-            p.remove_task(task)  # the table replaces the bar; an error is one line, not a bar and a line
-    t = Table("check", "value", title=escape(f"{r.name} ({r.format})"), title_justify="left")
+            for task in tasks:
+                p.remove_task(task)
+
+
+def _print_report(r: Any) -> None:
+    """The table of a :class:`~mutualslam_cli.datasets.check.CheckReport`."""
+    t = Table("check", "value", title=shown(f"{r.name} ({r.format})"), title_justify="left")
     intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
     rows = [
         ("root", r.root), ("frames", str(r.frames)), ("time span", f"{r.time_span_s:.2f}"),
@@ -110,7 +129,7 @@ def _check_and_print(target: Any, sample: int, data_root: Optional[str], registr
         rows.append(("fy sign", f"{r.fy_sign:+d}" + (f" (photometric error {errs})" if errs else "")))
     rows.append(("warnings", "; ".join(r.warnings) or "none"))
     for k, v in rows:
-        t.add_row(k, v)
+        t.add_row(k, shown(v))  # paths and warnings may quote names from a downloaded archive
     common.console.print(t)
 
 
@@ -124,12 +143,16 @@ def _download(names: list[str], sample: int, base_url: Optional[str], force: boo
     folder = data_root_of(registry, data_root) / DOWNLOAD_DIR
     limits = UnpackLimits(max_bytes=None if max_unpack_gb is None else int(max_unpack_gb * 1e9))
     for spec in specs:
-        _download_one(spec, folder, base_url, force, limits)
-        _check_and_print(spec, sample, data_root, registry)
+        report = _download_one(spec, folder, base_url, force, limits, sample)
+        if report is None:  # skipped: the folder there is checked as it is
+            _check_and_print(spec, sample, data_root, registry)
+        else:  # checked before it took the folder's place
+            _print_report(report)
 
 
-def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool, limits: Any) -> None:
-    """One entry's download and unpacking, with a bar (size, speed) per file; the bars go when it is done."""
+def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool, limits: Any, sample: int) -> Any:
+    """One entry's download, unpacking and check, with a bar (size, speed) per file; the bars go when it is done.
+    Returns the check's report (``None``: skipped)."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
 
     from mutualslam_cli.datasets.download import download_sequence
@@ -141,13 +164,17 @@ def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool,
         def cb(stage: str, info: dict[str, Any]) -> None:
             key = (stage, info["file"])
             if key not in tasks:
-                tasks[key] = p.add_task(escape(f"{stage} {info['file']}"), total=info["total"])
+                tasks[key] = p.add_task(shown(f"{stage} {info['file']}"), total=info["total"])
             p.update(tasks[key], completed=info["done"], total=info["total"])
 
         def say(msg: str) -> None:
-            p.console.print(escape(msg), highlight=False, soft_wrap=True)
+            p.console.print(shown(msg), highlight=False, soft_wrap=True)
 
-        download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say, limits=limits)
+        def check_cb(stage: str, info: dict[str, Any]) -> None:  # the staged folder's check, in the same display
+            cb("check", {"done": info["done"], "total": info["total"], "file": f"{spec.name} (images)"})
+
+        return download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say,
+                                 limits=limits, sample=sample, check_progress=check_cb).report
 
 
 # --------------------------------------------------------------------------- synth

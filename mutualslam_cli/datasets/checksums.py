@@ -10,24 +10,42 @@ checksum published in ``datasets.yaml`` (``checksums:``) wins over the record.
 Several processes may record files at once (different entries, one data root): each update re-reads
 the file under a short lock (:func:`~mutualslam_cli.datasets.download_lock.locked_update`) and
 replaces it atomically, so no record is lost.
+
+Each entry is read through its schema (:data:`CHECKSUM_SCHEMA`, :mod:`~mutualslam_cli.datasets.download_files`):
+an entry of another shape is never trusted; the line names the entry and field and says to delete it.
+The file itself and the files it checks are opened without following symbolic links.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 from datetime import date
 from pathlib import Path
 from typing import Any
 
 from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.datasets.download_files import (
+    COUNT,
+    OPTIONAL_TEXT,
+    SHA256,
+    TEXT,
+    Schema,
+    check_record,
+    open_no_follow,
+    read_text_no_follow,
+)
 from mutualslam_cli.datasets.download_lock import locked_update
 from mutualslam_cli.datasets.fetch import Entity
-from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.errors import DamagedRecord, DatasetError
 
 CHECKSUMS_FILE = "checksums.json"
 ALGORITHMS = ("sha256", "md5")
 _CHUNK = 1 << 20
+CHECKSUM_SCHEMA: Schema = {"sha256": SHA256, "bytes": COUNT, "url": TEXT, "etag": OPTIONAL_TEXT,
+                           "last_modified": OPTIONAL_TEXT, "recorded": OPTIONAL_TEXT}
+"""The fields of one entry of ``checksums.json``."""
 
 
 class ChecksumStore:
@@ -38,10 +56,11 @@ class ChecksumStore:
         self.data: dict[str, dict[str, Any]] = self._load()
 
     def _load(self) -> dict[str, dict[str, Any]]:
-        if not self.path.is_file():
+        text = read_text_no_follow(self.path, limit=64 << 20)
+        if text is None:
             return {}
         try:
-            data = json.loads(self.path.read_text(encoding="utf-8"))
+            data = json.loads(text)
             if not isinstance(data, dict):
                 raise ValueError
         except ValueError:
@@ -50,8 +69,19 @@ class ChecksumStore:
         return data
 
     def get(self, name: str) -> dict[str, Any] | None:
-        """The record of file ``name``, if any."""
-        return self.data.get(name)
+        """The record of file ``name``, if any.
+
+        Raises:
+            DamagedRecord: the entry is not of the shape mslam writes (:data:`CHECKSUM_SCHEMA`).
+        """
+        rec = self.data.get(name)
+        if rec is None:
+            return None
+        try:
+            return check_record(rec, CHECKSUM_SCHEMA, f"{self.path}: entry {name!r}")
+        except DamagedRecord as e:
+            raise DamagedRecord(f"{e}; the record is not trusted: delete the entry {name!r} (or the whole "
+                                f"{self.path.name}) and run the command again to record the checksum anew") from None
 
     def put(self, name: str, sha256: str, size: int, entity: Entity) -> dict[str, Any]:
         """Record file ``name`` (merged into the file as it is now on disk, saved atomically); returns the record."""
@@ -74,7 +104,7 @@ class ChecksumStore:
 def digests(path: Path, algos: set[str]) -> dict[str, str]:
     """Hex digests of the file ``path`` (algorithm name → hex)."""
     hs = {a: hashlib.new(a) for a in algos}
-    with open(path, "rb") as f:
+    with os.fdopen(open_no_follow(path, os.O_RDONLY), "rb") as f:
         while buf := f.read(_CHUNK):
             for h in hs.values():
                 h.update(buf)

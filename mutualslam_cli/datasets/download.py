@@ -12,6 +12,10 @@ An entry that can be downloaded has a ``download:`` block (see the header of ``d
 
 What comes from outside is checked before it touches the disk, in this order:
 
+- **where**: the entry's ``root``, resolved (``..`` and symbolic links), must lie inside the data root
+  (and not in ``_downloads/``); a root elsewhere can still be read, but not downloaded into. ``force``
+  replaces only a folder that mslam unpacked (it holds :data:`~mutualslam_cli.datasets.unpack.MARKER`),
+  never a folder of the user's;
 - **names**: each URL's file name, the entry's ``gt:`` and ``sequence:`` must be safe single file
   names (:mod:`~mutualslam_cli.datasets.safe_names`), so nothing lands outside ``<data root>/_downloads/``
   or the sequence folder;
@@ -24,28 +28,38 @@ What comes from outside is checked before it touches the disk, in this order:
   (:mod:`~mutualslam_cli.datasets.checksums`: SHA-256, size, URL, ETag; recorded once its archive has
   unpacked); a mismatching file is removed, and the message says whether the publisher changed it;
 - **the archive**: unpacked within limits (:mod:`~mutualslam_cli.datasets.limits`) into a temporary
-  folder beside the sequence folder and renamed into place only when complete
-  (:mod:`~mutualslam_cli.datasets.unpack`), so the sequence folder either does not exist or is whole, and
-  ``force`` keeps the old folder until the new one takes its place.
+  folder beside the sequence folder, checked there with the sequence check
+  (:func:`~mutualslam_cli.datasets.check.check_sequence`), and renamed into place only when it passes
+  (:mod:`~mutualslam_cli.datasets.unpack`), so the sequence folder either does not exist or is whole and
+  checked; ``force`` keeps the old folder (and the old checksum record) until the new one takes its
+  place. Only then is the archive's SHA-256 recorded.
 
 Sizes in messages are in MB (10⁶ bytes); timeouts in seconds.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from mutualslam_cli.datasets.check import CheckProgress, CheckReport, check_sequence
 from mutualslam_cli.datasets.checksums import ALGORITHMS, CHECKSUMS_FILE, ChecksumStore, verify
 from mutualslam_cli.datasets.download_lock import download_lock
 from mutualslam_cli.datasets.fetch import TIMEOUT_S, DownloadProgress, Entity, fetch
 from mutualslam_cli.datasets.limits import UnpackLimits
 from mutualslam_cli.datasets.registry import DEFAULT_REGISTRY, list_datasets
 from mutualslam_cli.datasets.safe_names import check_name, path_inside, url_file_name
-from mutualslam_cli.datasets.unpack import install_archive, is_complete, recover_leftovers
+from mutualslam_cli.datasets.unpack import (
+    install_archive,
+    is_complete,
+    is_unpacked_by_mslam,
+    not_unpacked_by_mslam,
+    recover_leftovers,
+)
 from mutualslam_cli.errors import CorruptArchive, DatasetError
 from mutualslam_cli.types import SequenceSpec
 
@@ -98,6 +112,7 @@ class DownloadResult:
     root: Path
     skipped: bool
     files: list[FetchedFile] = field(default_factory=list)
+    report: CheckReport | None = None  # the sequence check of the new folder (None: skipped)
 
 
 def _mb(n: int | None) -> str:
@@ -164,6 +179,26 @@ def downloadable_specs(names: list[str], registry_path: str | os.PathLike | None
     return [specs[n] for n in names]
 
 
+def root_inside(spec: SequenceSpec, data_root: Path) -> Path:
+    """The entry's sequence folder, resolved (``..``, symbolic links), checked to lie inside ``data_root`` and
+    outside its ``_downloads`` folder: the only place a download may write.
+
+    Raises:
+        DatasetError: one line naming the entry's ``root`` field, where it resolves and the data root.
+    """
+    base = Path(os.path.realpath(data_root))
+    root = Path(os.path.realpath(spec.root))
+    if root == base or not root.is_relative_to(base) or root.is_relative_to(base / DOWNLOAD_DIR):
+        via = f" (through {spec.root})" if Path(spec.root) != root else ""
+        where = "is the data root itself" if root == base else (
+            f"resolves to {root}{via}, inside {base / DOWNLOAD_DIR}" if root.is_relative_to(base) else
+            f"resolves to {root}{via}, outside the data root {base}")
+        raise DatasetError(f"datasets.yaml entry '{spec.name}': root {where}; a download writes only into a folder "
+                           f"inside the data root {base} (give a root relative to it, or another --data-root); "
+                           "nothing was touched")
+    return root
+
+
 def file_url(url: str, base_url: str | None = None) -> str:
     """``url``, or ``base_url/<its file name>`` when a mirror is given."""
     return url if not base_url else base_url.rstrip("/") + "/" + url_file_name(url)
@@ -192,18 +227,23 @@ def get_file(url: str, folder: Path, block: DownloadBlock, store: ChecksumStore,
 
 def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | None = None, force: bool = False,
                       progress: DownloadProgress | None = None, on_message: Callable[[str], None] | None = None,
-                      timeout: float = TIMEOUT_S, limits: UnpackLimits | None = None) -> DownloadResult:
-    """Download, verify and unpack the registry entry ``spec`` into ``spec.root`` (see the module docstring).
+                      timeout: float = TIMEOUT_S, limits: UnpackLimits | None = None, sample: int = 0,
+                      check_progress: CheckProgress | None = None) -> DownloadResult:
+    """Download, verify, unpack and check the registry entry ``spec`` into ``spec.root`` (see the module
+    docstring).
 
     Args:
         spec: a registry entry with a ``download:`` block.
-        download_dir: where the files go (``<data root>/_downloads``), with ``checksums.json``.
+        download_dir: where the files go (``<data root>/_downloads``), with ``checksums.json``; its parent is
+            the data root, inside which ``spec.root`` must lie.
         base_url: a mirror replacing everything before each file name (default ``$MSLAM_DOWNLOAD_BASE_URL``).
         force: unpack again and replace an existing sequence folder (the downloaded files are reused).
         progress: see :data:`~mutualslam_cli.datasets.fetch.DownloadProgress`.
         on_message: one-line notes (skipped, reused, resumed, restarted, checksum recorded).
         timeout: seconds for a connection or the next bytes.
         limits: unpacking limits (default :class:`~mutualslam_cli.datasets.limits.UnpackLimits`).
+        sample: the sequence check of the unpacked folder decodes the images of this many frames (0: all).
+        check_progress: see :data:`~mutualslam_cli.datasets.check.CheckProgress`.
 
     Raises:
         DatasetError: every failure, as one line naming the URL or file and what was expected.
@@ -212,7 +252,8 @@ def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | No
     block = download_block(spec)
     if block is None:
         raise DatasetError(f"datasets.yaml entry '{spec.name}' has no 'download:' block")
-    root = Path(spec.root)
+    root = root_inside(spec, download_dir.parent)
+    spec = dataclasses.replace(spec, root=root)
     base = base_url if base_url is not None else os.environ.get(BASE_URL_ENV) or None
     urls = [file_url(url, base) for url in block.urls]
     download_dir.mkdir(parents=True, exist_ok=True)
@@ -222,12 +263,24 @@ def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | No
         if is_complete(root) and not force:
             say(f"{spec.name}: {root} already exists; download skipped (--force unpacks it again)")
             return DownloadResult(spec.name, root, skipped=True)
-        return _fetch_and_install(spec, block, root, urls, download_dir, force, progress, say, timeout, limits)
+        if force and root.exists() and (is_complete(root) or not root.is_dir()) and not is_unpacked_by_mslam(root):
+            raise not_unpacked_by_mslam(root)
+        checked: list[CheckReport] = []
+
+        def check(folder: Path) -> None:
+            report = check_sequence(dataclasses.replace(spec, root=folder), sample=sample, progress=check_progress)
+            checked.append(dataclasses.replace(report, root=str(root),
+                                               warnings=[w.replace(str(folder), str(root)) for w in report.warnings]))
+
+        result = _fetch_and_install(spec, block, root, urls, download_dir, force, progress, say, timeout, limits,
+                                    check)
+        result.report = checked[0] if checked else None
+        return result
 
 
 def _fetch_and_install(spec: SequenceSpec, block: DownloadBlock, root: Path, urls: list[str], download_dir: Path,
                        force: bool, progress: DownloadProgress | None, say: Callable[[str], None], timeout: float,
-                       limits: UnpackLimits | None) -> DownloadResult:
+                       limits: UnpackLimits | None, check: Callable[[Path], None]) -> DownloadResult:
     store = ChecksumStore(download_dir / CHECKSUMS_FILE)
     files = []
     for url in urls:
@@ -248,7 +301,7 @@ def _fetch_and_install(spec: SequenceSpec, block: DownloadBlock, root: Path, url
 
     try:
         install_archive(archive, root, layout=block.layout, sequence=block.sequence, extra=extra, force=force,
-                        progress=cb, limits=limits)
+                        progress=cb, limits=limits, check=check)
     except CorruptArchive as e:
         archive.unlink(missing_ok=True)
         store.drop(archive.name)

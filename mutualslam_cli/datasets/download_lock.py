@@ -12,6 +12,10 @@ exits, however it exits, so a ``.lock`` file never blocks by itself and stays be
 holds the last holder's pid, host and start time for the message. On a file system without locks the
 download goes on unlocked, with a warning. :func:`locked_update` is the short, *blocking* variant for
 read-modify-write of a small shared file (``checksums.json``), held for milliseconds.
+
+A ``.lock`` file is opened without following a symbolic link, and the holder's record is read through
+its schema (:data:`LOCK_SCHEMA`): one of another shape is named as damaged in the message, never shown as
+a holder (:mod:`~mutualslam_cli.datasets.download_files`).
 """
 
 from __future__ import annotations
@@ -27,26 +31,44 @@ from datetime import datetime
 from pathlib import Path
 from typing import Iterator
 
-from mutualslam_cli.errors import DownloadLocked
+from mutualslam_cli.datasets.download_files import (
+    COUNT,
+    TEXT,
+    Schema,
+    check_record,
+    open_no_follow,
+    read_text_no_follow,
+)
+from mutualslam_cli.errors import DamagedRecord, DownloadLocked
 
 log = logging.getLogger(__name__)
 
 LOCK_SUFFIX = ".lock"
 _UNSUPPORTED = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL}
+LOCK_SCHEMA: Schema = {"pid": COUNT, "host": TEXT, "since": TEXT}
+"""The fields of a ``.lock`` file's holder record."""
 
 
 def _holder(path: Path) -> str:
+    """Who holds the lock ``path``, from its record (read through :data:`LOCK_SCHEMA`)."""
     try:
-        info = json.loads(path.read_text(encoding="utf-8"))
-        return f"pid {info['pid']} on {info['host']}, since {info['since']}"
-    except (OSError, ValueError, KeyError, TypeError):
-        return "a process that is just starting"
+        text = read_text_no_follow(path)
+        if not (text or "").strip():  # the holder has not written its record yet
+            return "a process that is just starting"
+        info = check_record(json.loads(text), LOCK_SCHEMA, str(path))  # type: ignore[arg-type]
+    except ValueError as e:
+        return f"holder unknown: {path}: damaged record (not valid JSON: {e})"
+    except DamagedRecord as e:
+        return f"holder unknown: {e} (damaged record)"
+    except OSError as e:
+        return f"holder unknown: {path}: cannot read it ({e.strerror or e})"
+    return f"pid {info['pid']} on {info['host']}, since {info['since']}"
 
 
 def _open_locked(path: Path, blocking: bool) -> int:
     """An open descriptor of ``path`` holding its flock (not locked, with a warning, where the file system
     has no locks); ``BlockingIOError`` when not ``blocking`` and another open file holds it."""
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+    fd = open_no_follow(path, os.O_RDWR | os.O_CREAT)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
     except BlockingIOError:

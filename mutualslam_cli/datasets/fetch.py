@@ -10,6 +10,11 @@
 - Answers to a resume: 206 starting at byte N, with the recorded size and (when it sends one) the
   recorded ETag → appended; 200 → the whole file anew (another entity, or a server without ranges);
   416 with size N → the ``.part`` is already complete; anything else → started over without ``Range``.
+- A fresh request accepts only ``200``, or ``206`` starting at byte 0 (a server that answers a plain GET
+  with another range would have those bytes kept as the start of the file); a resume accepts only the
+  exact range it asked for (``N`` to the end of the recorded size), else it starts over.
+- ``NAME.part`` is opened with ``O_NOFOLLOW`` and ``NAME.partinfo`` is read through its schema
+  (:mod:`~mutualslam_cli.datasets.download_files`): a link is refused, a damaged record means starting over.
 - Redirects from ``https`` to ``http`` are refused (a downgrade would drop the server's authentication).
 
 Timeouts in seconds, sizes in bytes (MB = 10⁶ bytes in messages).
@@ -20,6 +25,7 @@ from __future__ import annotations
 import errno
 import http.client
 import json
+import os
 import re
 import urllib.error
 import urllib.parse
@@ -29,7 +35,16 @@ from pathlib import Path
 from typing import Any, Callable
 
 from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.datasets.download_files import (
+    OPTIONAL_COUNT,
+    OPTIONAL_TEXT,
+    TEXT,
+    Schema,
+    open_no_follow,
+    read_record,
+    refuse_link,
+)
+from mutualslam_cli.errors import DamagedRecord, DatasetError
 
 TIMEOUT_S = 60.0
 """Seconds to wait for a connection or for the next bytes of a response."""
@@ -42,6 +57,8 @@ DownloadProgress = Callable[[str, dict[str, Any]], None]
 _CHUNK = 1 << 20
 _CONTENT_RANGE = re.compile(r"bytes\s+(\d+)-(\d+)/(\d+|\*)")
 _RANGE_TOTAL = re.compile(r"bytes\s+\*/(\d+)")
+PARTINFO_SCHEMA: Schema = {"url": TEXT, "etag": OPTIONAL_TEXT, "last_modified": OPTIONAL_TEXT, "total": OPTIONAL_COUNT}
+"""The fields of ``NAME.partinfo`` (an :class:`Entity`)."""
 
 
 @dataclass(frozen=True)
@@ -97,6 +114,7 @@ class _NoDowngrade(urllib.request.HTTPRedirectHandler):
 
 
 _OPENER = urllib.request.build_opener(_NoDowngrade)
+_OPENER_MAX_REDIRECTS = _NoDowngrade.max_redirections
 
 
 def _open(url: str, timeout: float, start: int = 0, if_range: str | None = None) -> Any:
@@ -112,6 +130,10 @@ def _open(url: str, timeout: float, start: int = 0, if_range: str | None = None)
     except urllib.error.HTTPError as e:
         if e.code == 416 and start:
             return e
+        if 300 <= e.code < 400:
+            raise DatasetError(f"{url}: the server redirects in a loop or more than {_OPENER_MAX_REDIRECTS} times "
+                               f"(last answer HTTP {e.code}); expected the file (check the URL in datasets.yaml or "
+                               "--base-url)") from None
         raise DatasetError(f"{url}: HTTP {e.code} {e.reason}; expected the file (check the URL in datasets.yaml "
                            "or --base-url)") from None
     except (urllib.error.URLError, OSError, http.client.HTTPException) as e:
@@ -131,20 +153,47 @@ def _entity(url: str, resp: Any) -> Entity:
 
 
 def read_partinfo(path: Path) -> Entity | None:
-    """The entity recorded in a ``.partinfo`` file, or ``None`` (absent or unreadable)."""
-    try:
-        return Entity(**json.loads(path.read_text(encoding="utf-8")))
-    except (OSError, ValueError, TypeError):
-        return None
+    """The entity recorded in a ``.partinfo`` file, or ``None`` when there is none.
+
+    Raises:
+        DamagedRecord: a link, or a record of another shape than :data:`PARTINFO_SCHEMA`.
+    """
+    rec = read_record(path, PARTINFO_SCHEMA)
+    return None if rec is None else Entity(*(rec.get(k) for k in PARTINFO_SCHEMA))  # type: ignore[arg-type]
+
+
+def _fresh_range_ok(url: str, resp: Any) -> None:
+    """Refuse an answer to a request without ``Range`` that is not the file from byte 0."""
+    code = resp.getcode()
+    m = _CONTENT_RANGE.match(resp.headers.get("Content-Range", ""))
+    if code == 200 or (code == 206 and m and int(m.group(1)) == 0):
+        return
+    resp.close()
+    what = f"HTTP {code}" + (f" with Content-Range {resp.headers.get('Content-Range')}" if code == 206 else "")
+    raise DatasetError(f"{url}: the server answered a request for the whole file with {what}; expected 200, or "
+                       "206 starting at byte 0; nothing was kept")
+
+
+def _exact_range(m: re.Match[str] | None, have: int, rec: Entity) -> bool:
+    """True when ``Content-Range`` match ``m`` is the range a resume asked for: ``have`` to the recorded end."""
+    if m is None or m.group(3) == "*" or int(m.group(1)) != have:
+        return False
+    total = int(m.group(3))
+    return int(m.group(2)) == total - 1 and rec.total in (None, total)
 
 
 def _begin(url: str, part: Path, info: Path, timeout: float) -> tuple[Any, int, Entity, str | None]:
     """Open ``url`` for the rest of ``part``: ``(response or None, start byte, entity, note)``; ``None`` as the
     response: ``part`` is already complete. A fresh start records its entity in ``info`` first."""
+    refuse_link(part)
     have = part.stat().st_size if part.is_file() else 0
-    rec = read_partinfo(info) if have else None
-    note = None
-    if have and (rec is None or rec.url != url or rec.validator is None):
+    rec, note = None, None
+    if have:
+        try:
+            rec = read_partinfo(info)
+        except DamagedRecord as e:  # never trusted: the .part is downloaded anew
+            note = f"{e}: damaged record, starting over"
+    if have and note is None and (rec is None or rec.url != url or rec.validator is None):
         note = (f"{part.name}: {_mb(have)} MB with no record of which version of the file they belong to; "
                 "downloading the file anew")
     elif have and rec is not None:
@@ -159,11 +208,14 @@ def _begin(url: str, part: Path, info: Path, timeout: float) -> tuple[Any, int, 
             note = f"{part.name}: the server's file is not the {_mb(have)} MB already here; downloading it anew"
         elif code == 206:
             m = _CONTENT_RANGE.match(resp.headers.get("Content-Range", ""))
-            if m and int(m.group(1)) == have and not rec.changes(got):
+            if _exact_range(m, have, rec) and not rec.changes(got):
                 return resp, have, rec, None
             resp.close()
             note = (f"{part.name}: the server's file changed since it was partly downloaded "
                     f"({'; '.join(rec.changes(got)) or 'another byte range'}); downloading it anew")
+        elif code != 200:
+            resp.close()
+            note = f"{part.name}: the server answered the resume with HTTP {code}; downloading the file anew"
         else:  # 200: the whole file — another version (If-Range did not match) or a server without ranges
             changed = rec.changes(got)
             note = (f"{part.name}: the server's file changed since it was partly downloaded ({'; '.join(changed)}); "
@@ -172,6 +224,7 @@ def _begin(url: str, part: Path, info: Path, timeout: float) -> tuple[Any, int, 
             atomic_write_text(info, json.dumps(asdict(got)) + "\n")
             return resp, 0, got, note
     resp = _open(url, timeout)
+    _fresh_range_ok(url, resp)
     got = _entity(url, resp)
     atomic_write_text(info, json.dumps(asdict(got)) + "\n")
     return resp, 0, got, note
@@ -193,7 +246,8 @@ def fetch(url: str, dest: Path, progress: DownloadProgress | None = None, timeou
     if resp is None:
         return Fetched(start, start, ent, note)
     done, total, buf = start, ent.total, b""
-    with resp, open(part, "ab" if start else "wb") as f:
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if start else os.O_TRUNC)
+    with resp, os.fdopen(open_no_follow(part, flags), "ab" if start else "wb") as f:
         while True:
             try:
                 buf = resp.read(_CHUNK)

@@ -9,7 +9,9 @@ unpacking writes goes through :meth:`Budget.copy` (members are streamed in chunk
   ``max_bytes`` given instead (``mslam datasets download --max-unpack-gb GB``);
 - **free disk**: the total also stays :data:`MIN_FREE_BYTES` below what was free on the target's
   file system when unpacking began;
-- **member count** ≤ :data:`MAX_MEMBERS` (the longest TUM sequences hold ~40 000 files);
+- **member count** ≤ :data:`MAX_MEMBERS` (the longest TUM sequences hold ~40 000 files); the count and the
+  declared total are checked from the headers before anything is written (:meth:`Budget.declared`,
+  :mod:`~mutualslam_cli.datasets.archive_scan`), and again member by member while unpacking;
 - **compression ratio of a member**: a member larger than :data:`RATIO_FLOOR_BYTES` may not unpack to
   more than :data:`MAX_RATIO` × its compressed bytes (deflate reaches ~1000× on zeros, a zip bomb's
   filling; images reach ~1×, text ~5×). For a zip the declared sizes are checked before anything is
@@ -85,10 +87,20 @@ class Budget:
         self.written = 0
         self.members = 0
 
+    def declared(self, members: int, nbytes: int, name: str = "") -> None:
+        """Check what the archive's headers declare — ``members`` members of ``nbytes`` bytes in all, up to
+        member ``name`` (``""``: the whole archive) — against the limits, before anything is written (nothing
+        is counted)."""
+        self._too_many(members)
+        self.room(name, nbytes)
+
     def add_members(self, n: int = 1) -> None:
         """Count ``n`` more members (files, folders, links)."""
         self.members += n
-        if self.members > self.limits.max_members:
+        self._too_many(self.members)
+
+    def _too_many(self, members: int) -> None:
+        if members > self.limits.max_members:
             raise ArchiveTooLarge(f"it holds more than {self.limits.max_members} members (the limit; a dataset "
                                   "archive holds a few thousand)")
 

@@ -23,6 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
 from typing import Iterator
 
+from mutualslam_cli.datasets.archive_scan import zip_declared_members
 from mutualslam_cli.datasets.limits import Budget
 from mutualslam_cli.errors import ArchiveTooLarge, CorruptArchive, UnsafeMember
 
@@ -86,7 +87,11 @@ def check_zip_member(info: zipfile.ZipInfo, budget: Budget) -> PurePosixPath:
 
 
 def open_zip(archive: Path, budget: Budget) -> zipfile.ZipFile:
-    """``archive`` opened, its member count and declared total checked against ``budget`` (nothing written)."""
+    """``archive`` opened, its member count and declared total checked against ``budget`` (nothing written);
+    the count its end-of-central-directory record declares is checked before the directory is read."""
+    declared = zip_declared_members(archive)
+    if declared is not None:
+        budget.declared(declared, 0)
     zf = zipfile.ZipFile(archive)
     infos = zf.infolist()
     try:

@@ -11,9 +11,11 @@ failure), and every byte it writes is counted against the :mod:`~mutualslam_cli.
   archive raises :class:`CorruptArchive`.
 - :func:`content_root`: the sequence folder inside an extracted archive (TUM archives hold one
   top folder, ICL-NUIM ``*_frei_png`` archives hold the files at their top level).
-- :func:`install_archive`: all of it into a temporary folder beside the sequence folder, then one
-  rename into place (so the sequence folder is absent or whole). ``force`` replaces an existing
-  folder by moving it aside first and moving it back if the new one cannot take its place;
+- :func:`install_archive`: all of it into a temporary folder beside the sequence folder, checked there
+  (the caller's ``check``, e.g. the sequence check), marked as mslam's own (:data:`MARKER`), then one
+  rename into place (so the sequence folder is absent or whole and checked). ``force`` replaces an
+  existing folder only when it carries the marker — one mslam unpacked, never a folder of the user's —
+  by moving it aside first and moving it back if the new one cannot take its place;
   :func:`recover_leftovers` finishes or undoes such a swap that a killed process left half done.
 - 7-Scenes scene zips: :mod:`~mutualslam_cli.datasets.seven_scenes`.
 
@@ -35,6 +37,7 @@ import zipfile
 from pathlib import Path
 from typing import IO, Callable
 
+from mutualslam_cli.datasets.archive_scan import scan_tar
 from mutualslam_cli.datasets.limits import MAX_HEADER_BYTES, Budget, UnpackLimits
 from mutualslam_cli.datasets.members import (
     MAX_MEMBER_CHARS,
@@ -50,13 +53,17 @@ from mutualslam_cli.datasets.safe_names import path_inside
 from mutualslam_cli.datasets.seven_scenes import convert_7scenes
 from mutualslam_cli.errors import ArchiveTooLarge, CorruptArchive, DatasetError, UnsafeMember
 
-__all__ = ["MAX_MEMBER_CHARS", "MAX_MEMBER_DEPTH", "UnpackProgress", "UnsafeMember", "content_root", "extract_archive",
-           "install_archive", "is_complete", "recover_leftovers", "safe_relpath"]
+__all__ = ["MARKER", "MAX_MEMBER_CHARS", "MAX_MEMBER_DEPTH", "UnpackProgress", "UnsafeMember", "content_root",
+           "extract_archive", "install_archive", "is_complete", "is_unpacked_by_mslam", "not_unpacked_by_mslam",
+           "recover_leftovers", "safe_relpath"]
 
 log = logging.getLogger(__name__)
 
 #: ``progress(done, total)``: bytes of the archive consumed so far, and its size.
 UnpackProgress = Callable[[int, int], None]
+MARKER = ".mslam-unpacked"
+"""File that :func:`install_archive` writes into each sequence folder it installs: ``force`` replaces only a
+folder that has it."""
 
 class _TarStream:
     """The decompressed tar stream for ``tarfile`` (mode ``r:``): a read larger than
@@ -98,6 +105,8 @@ def _decompressed(raw: IO[bytes]) -> IO[bytes]:
 
 def _extract_tar(archive: Path, dest: Path, budget: Budget, progress: UnpackProgress | None) -> None:
     size = archive.stat().st_size
+    with open(archive, "rb") as raw, _decompressed(raw) as stream:  # the headers first: limits before writing
+        scan_tar(stream, budget.declared)
     with open(archive, "rb") as raw, _decompressed(raw) as stream, \
             tarfile.open(fileobj=_TarStream(stream), mode="r:") as tf:  # type: ignore[call-overload]
         for m in tf:
@@ -171,6 +180,19 @@ def is_complete(root: Path) -> bool:
     return root.is_dir() and any(root.iterdir())
 
 
+def is_unpacked_by_mslam(root: Path) -> bool:
+    """True when ``root`` is a folder that :func:`install_archive` installed (it holds :data:`MARKER` as a file)."""
+    marker = root / MARKER
+    return root.is_dir() and not root.is_symlink() and marker.is_file() and not marker.is_symlink()
+
+
+def not_unpacked_by_mslam(root: Path) -> DatasetError:
+    """The one-line refusal to replace ``root`` with ``force``: it is not a folder mslam unpacked."""
+    return DatasetError(f"{root}: exists and was not unpacked by mslam (no {MARKER} file in it); --force replaces "
+                        "only a sequence folder mslam unpacked, so nothing was touched — move the folder away (or "
+                        "give the entry another root) to download it there")
+
+
 def recover_leftovers(root: Path) -> list[str]:
     """Finish what a killed unpacking of ``root`` left beside it; returns one note per thing done.
 
@@ -205,6 +227,8 @@ def _rename_into(content: Path, root: Path, force: bool) -> None:
         return
     if not force:
         raise DatasetError(f"{root}: appeared while unpacking; not replaced (--force replaces it)")
+    if not is_unpacked_by_mslam(root):
+        raise not_unpacked_by_mslam(root)
     old = root.parent / f".{root.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
     old.mkdir()
     os.rename(root, old / root.name)
@@ -219,9 +243,21 @@ def _rename_into(content: Path, root: Path, force: bool) -> None:
         log.warning("%s: could not remove the replaced folder %s; the next download removes it", root, old)
 
 
+def _checked(check: Callable[[Path], None], content: Path, archive: Path, root: Path, force: bool) -> None:
+    """``check(content)``; its error as one line that names the archive instead of the hidden folder."""
+    try:
+        check(content)
+    except DatasetError as e:
+        why = str(e).replace(str(content), f"<{archive.name}>")
+        kept = f"{root} is unchanged" if force and root.exists() else f"{root} was not created"
+        raise DatasetError(f"{archive}: the unpacked sequence fails the check ({why}); not installed, {kept}, no "
+                           "checksum recorded (the archive stays in place; delete it to download it anew)") from None
+
+
 def install_archive(archive: Path, root: Path, *, layout: str = "archive", sequence: str | None = None,
                     extra: dict[str, Path] | None = None, force: bool = False,
-                    progress: UnpackProgress | None = None, limits: UnpackLimits | None = None) -> None:
+                    progress: UnpackProgress | None = None, limits: UnpackLimits | None = None,
+                    check: Callable[[Path], None] | None = None, marker: str = "") -> None:
     """Unpack ``archive`` into a temporary folder beside ``root`` (same file system), copy the ``extra``
     files (safe file name in the sequence folder → source path) into it, then rename it to ``root``.
 
@@ -229,6 +265,10 @@ def install_archive(archive: Path, root: Path, *, layout: str = "archive", seque
     ``"7scenes"`` (:func:`~mutualslam_cli.datasets.seven_scenes.convert_7scenes` of ``sequence``). The
     temporary folder is removed in every case; ``root`` is only ever absent or complete, and with
     ``force`` an existing ``root`` survives any failure.
+
+    ``check(folder)``, when given, is called on the unpacked sequence folder while it is still hidden;
+    a :class:`DatasetError` from it leaves ``root`` as it was. ``marker`` is written into :data:`MARKER`
+    (e.g. where the folder came from) just before the rename.
 
     Raises:
         CorruptArchive: the archive is truncated or corrupt (the caller decides what to do with it).
@@ -240,15 +280,24 @@ def install_archive(archive: Path, root: Path, *, layout: str = "archive", seque
     tmp.mkdir()  # not mkdtemp: the folder may become the sequence folder, so it gets the usual permissions
     try:
         budget = Budget(archive, root.parent, limits)
+        work = tmp / ".archive"
         if layout == "7scenes":
-            convert_7scenes(archive, str(sequence), tmp, progress, budget)
-            content = tmp
+            convert_7scenes(archive, str(sequence), work, progress, budget)
+            content = work
         else:
-            extract_archive(archive, tmp, progress, budget)
-            content = content_root(tmp)
+            extract_archive(archive, work, progress, budget)
+            content = content_root(work)
+        if root.name != work.name:  # checked under its own name: a loader may read it (the TUM family)
+            os.rename(content, tmp / root.name)
+            content = tmp / root.name
         for name, src in (extra or {}).items():
             with open(src, "rb") as s, open(path_inside(content, name, f"{archive.name}: extra file"), "wb") as d:
                 budget.copy(s, d, name)
+        if check is not None:
+            _checked(check, content, archive, root, force)
+        (content / MARKER).unlink(missing_ok=True)  # an archive's own marker does not count: ours is written anew
+        with open(content / MARKER, "x", encoding="utf-8") as f:
+            f.write(marker or f"unpacked from {archive.name} by mslam datasets download\n")
         _rename_into(content, root, force)
     except UnsafeMember as e:
         raise DatasetError(f"{archive}: {e}; refused to unpack the archive (removed the temporary folder "

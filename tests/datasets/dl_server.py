@@ -5,7 +5,9 @@ The server (127.0.0.1, port 0) honours ``Range`` and ``If-Range`` and sends an `
 bytes) and a ``Last-Modified``, like the publishers' servers; switches make it misbehave: ``cut_after``
 (one-shot: send only that many body bytes and close), ``ignore_range`` (always 200 with the whole file),
 ``ignore_if_range`` (resume even when the validator does not match: the splice a client must catch
-itself), ``validators`` (False: no ETag / Last-Modified), ``redirects`` (path → Location, a 302).
+itself), ``validators`` (False: no ETag / Last-Modified), ``redirects`` (path → Location, a 302), ``custom`` (path →
+``(status, reason, headers, body)``: that answer to every request), ``resume_range`` (one-shot: answer the
+next ``Range`` request with 206 and this ``(first, last)`` byte range instead).
 """
 
 from __future__ import annotations
@@ -42,6 +44,8 @@ class Server:
         self.ignore_if_range = False
         self.validators = True
         self.redirects: dict[str, str] = {}
+        self.custom: dict[str, tuple[int, str, dict[str, str], bytes]] = {}
+        self.resume_range: tuple[int, int] | None = None
         self.requests: list[tuple[str, str | None]] = []
         self.if_ranges: list[str | None] = []
         srv = self
@@ -57,6 +61,14 @@ class Server:
                     self.send_header("Location", srv.redirects[path])
                     self.send_header("Content-Length", "0")
                     self.end_headers()
+                    return
+                if path in srv.custom:
+                    code, reason, headers, body = srv.custom[path]
+                    self.send_response(code, reason)
+                    for k, v in {"Content-Length": str(len(body)), **headers}.items():
+                        self.send_header(k, v)
+                    self.end_headers()
+                    self.wfile.write(body)
                     return
                 data = srv.files.get(path)
                 if data is None:
@@ -74,14 +86,17 @@ class Server:
                         self.send_header("Content-Length", "0")
                         self.end_headers()
                         return
+                    end = len(data) - 1
+                    if srv.resume_range is not None:
+                        (start, end), srv.resume_range = srv.resume_range, None
                     self.send_response(206)
-                    self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
+                    self.send_header("Content-Range", f"bytes {start}-{end}/{len(data)}")
                 else:
                     self.send_response(200)
                 if srv.validators:
                     self.send_header("ETag", etag)
                     self.send_header("Last-Modified", modified)
-                body = data[start:]
+                body = data[start:end + 1] if rng and not srv.ignore_range else data
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 if srv.cut_after is not None:
