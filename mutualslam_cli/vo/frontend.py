@@ -28,7 +28,7 @@ from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.assemble import RunStats
 from mutualslam_cli.vo.bootstrap import InitMixin
-from mutualslam_cli.vo.depth_prior import PRIOR_SIGMA_LOG, DepthHint, KeyframeRatio, ScaleCheck
+from mutualslam_cli.vo.depth_prior import KeyframeRatio, NetworkMixin, ScaleCheck
 from mutualslam_cli.vo.camera import distort_points, focal_px, pinhole, to_normalized, undistort_points
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.feedback import FeedbackMixin
@@ -37,8 +37,7 @@ from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
-from mutualslam_cli.vo.local_map import KeyframeImages, local_map
-from mutualslam_cli.vo.reproject import match_points, reproject_points
+from mutualslam_cli.vo.local_map import KeyframeImages, LocalMapMixin
 from mutualslam_cli.vo.result import VOResult
 from mutualslam_cli.vo.state import Tracks, TrackerState
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
@@ -67,7 +66,7 @@ SEED_PREDICT_SIGMA = 0.05
 STAGES = ("decode", "track", "pose", "filter", "keyframe", "local_ba")
 
 
-class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
+class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMixin):
     """State machine ``init`` → ``tracking`` → (loss) → ``init`` … over one sequence, one frame per
     :meth:`process`. Every change to the map and the frame records is journaled in :attr:`journal`
     (:mod:`~mutualslam_cli.vo.journal`); between frames the adaptation loop may join a new segment to
@@ -93,24 +92,6 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         self.st = TrackerState(timing={k: 0.0 for k in STAGES})
         self.old_images = KeyframeImages(seq.load_gray)
         self.scale: ScaleCheck | None = None
-
-    def use_network(self, hint: DepthHint) -> None:
-        """From now on ask the network (``hint``: its depth of a frame, as adapted up to then) at each keyframe:
-        the scale check, and with ``vo.depth_seeds`` / ``vo.scale_prior`` the seeds' start and the windowed BA's
-        prior (:mod:`~mutualslam_cli.vo.depth_prior`)."""
-        self.scale = ScaleCheck(hint, (self.intr.width, self.intr.height))
-        if self.cfg.scale_prior:
-            self.mapper.prior_of, self.mapper.prior_w = self._prior_rho, (1.0 / self.f) / PRIOR_SIGMA_LOG
-
-    def _prior_rho(self, pids: np.ndarray) -> np.ndarray:
-        """Prior inverse depths ``(P,)`` of points ``pids`` from their hosts' network depth (NaN: none)."""
-        m, out = self.map, np.full(len(pids), np.nan)
-        host = np.array([m.host[p] for p in pids.tolist()], np.int64)
-        unit = self.state_map.unit(self.st.segment)
-        for h in set(host.tolist()) & set(self.scale.depths):
-            sel = np.flatnonzero(host == h)
-            out[sel] = self.scale.prior_rho(h, np.array([m.px_h[p] for p in pids[sel].tolist()]), unit)
-        return out
 
     # ---------------------------------------------------------------- helpers
     def _undist(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -243,15 +224,6 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         pids = m.add_points(tr.host[conv], tr.px_h[conv], f_h[:, :2] / f_h[:, 2:3], rho_z, sig_z, obs)
         tr.pid[conv] = pids
 
-    def _check_scale(self, kf: int, i: int) -> KeyframeRatio | None:
-        """The network's scale check of keyframe ``kf`` (frame ``i``) on its tracked points (a network given)."""
-        if self.scale is None:
-            return None
-        tr = self.st.tracks
-        pm = np.flatnonzero(tr.pid >= 0)
-        Xc = self.map.Xw[tr.pid[pm]] @ self.st.T_cw[:3, :3].T + self.st.T_cw[:3, 3]
-        return self.scale.keyframe(kf, i, self.state_map.unit(self.st.segment), tr.px[pm], Xc[:, 2])
-
     def _new_seeds(self, kf: int, gray: np.ndarray, ratio: KeyframeRatio | None = None) -> None:
         """Detect features in empty grid cells of keyframe ``kf`` and start seeds for them (with
         ``vo.depth_seeds`` and the keyframe's scale check ``ratio``: at the network's depth)."""
@@ -291,50 +263,6 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin):
         self.st.kf_imgs[kf] = gray
         for k in sorted(self.st.kf_imgs)[:-self.cfg.core_kfs]:
             del self.st.kf_imgs[k]
-
-    def _image_of(self, kf: int) -> np.ndarray:
-        """The grey image of keyframe ``kf``: held when among the newest, else decoded again (an LRU)."""
-        img = self.st.kf_imgs.get(kf)
-        return img if img is not None else self.old_images.get(self.map.kf_frame[kf])
-
-    def _reproject(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray) -> Tracks:
-        """Re-attach lost map points to the current frame: the newest keyframes' (see :mod:`reproject`), and with
-        ``vo.reuse_map`` every point of the map unit the frame sees (:mod:`~mutualslam_cli.vo.local_map`)."""
-        m = self.map
-        seg = [k for k in range(len(m.kf_frame)) if m.kf_segment[k] == self.st.segment]
-        window = seg[-self.cfg.core_kfs:]
-        cfg = self.cfg
-        if cfg.reuse_map:
-            unit = self.state_map.unit(self.st.segment)
-            kfs = np.array([k for k in range(len(m.kf_frame)) if self.state_map.unit(m.kf_segment[k]) == unit],
-                           np.int64)
-            lm = local_map(m, T_cw, self.K, (self.intr.width, self.intr.height), kfs, window, set(self.st.kf_imgs),
-                           tr.pid[tr.pid >= 0], tr.raw, lambda px: distort_points(px, self.intr), cfg.grid_size)
-            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids, lm.source, self.intr, cfg.klt_window,
-                                     cfg.klt_levels, cfg.fb_threshold_px, self.thr)
-            self.st.n_reused += int(np.isin(pids, lm.pids[lm.old]).sum())
-        else:
-            pids, raw = reproject_points(m, self.st.kf_imgs, gray, T_cw, tr.pid[tr.pid >= 0], window, self.intr,
-                                         cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px, self.thr)
-        if len(pids) == 0:
-            return tr
-        # do not double-book grid cells: drop seeds sharing a cell with a recovered point
-        g = self.cfg.grid_size
-        cell = lambda r: (r[:, 1] // g).astype(int) * 10000 + (r[:, 0] // g).astype(int)  # noqa: E731
-        rc = set(cell(raw).tolist())
-        keep = (tr.pid >= 0) | ~np.isin(cell(tr.raw), list(rc))
-        tr = tr.select(keep)
-        n = len(pids)
-        new = Tracks.empty()
-        new.raw = raw
-        new.px, new.xn = self._undist(raw)
-        new.pid = pids
-        new.host = np.array([m.host[p] for p in pids], np.int64)
-        new.f_h, new.px_h = np.zeros((n, 3)), np.zeros((n, 2))
-        new.seed = dfl.new_seeds(n, dfl.SeedInit(1.0, 0.5))
-        new.kf_px, new.at_kf, new.obs = new.px.copy(), np.zeros(n, bool), [[] for _ in range(n)]
-        self.st.n_reprojected += n
-        return tr.extend(new)
 
     def _collect_ba(self) -> None:
         """Apply the pending windowed BA (waiting for the worker if needed)."""

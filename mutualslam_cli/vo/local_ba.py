@@ -50,7 +50,7 @@ class BAProblem:
 def _prior(prob: BAProblem, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The scale prior's residuals ``(P,)`` (0 without a prior), their derivatives by ρ and the mask of points
     that have one: ``r = prior_w · (log ρ − log ρ₀)``, ``dr/dρ = prior_w / ρ``."""
-    if prob.prior_rho is None or prob.prior_w <= 0:
+    if prob.prior_rho is None or not np.any(np.asarray(prob.prior_w) > 0):
         z = np.zeros(len(rho))
         return z, z, np.zeros(len(rho), bool)
     has = np.isfinite(prob.prior_rho) & (prob.prior_rho > 0)

@@ -26,7 +26,10 @@ from typing import Callable
 import numpy as np
 
 from mutualslam_cli.pixels import in_image
-from mutualslam_cli.vo.state import Map
+from mutualslam_cli.vo import depth_filter as dfl
+from mutualslam_cli.vo.camera import distort_points
+from mutualslam_cli.vo.reproject import match_points, reproject_points
+from mutualslam_cli.vo.state import Map, Tracks
 
 MAX_VIEW_ANGLE_DEG = 30.0
 """Largest angle at a point between an old keyframe's ray and the current one for KLT to match its patch."""
@@ -179,3 +182,52 @@ def local_map(m: Map, T_cw: np.ndarray, K: np.ndarray, size: tuple[int, int], kf
             source[drop] = -1
     ok = source >= 0
     return LocalMap(pids[ok], source[ok], old[ok])
+
+
+class LocalMapMixin:
+    """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that re-attach lost map points:
+    the newest keyframes' always, with ``vo.reuse_map`` the whole map unit's in view (:func:`local_map`)."""
+
+    def _image_of(self, kf: int) -> np.ndarray:
+        """The grey image of keyframe ``kf``: held when among the newest, else decoded again (an LRU)."""
+        img = self.st.kf_imgs.get(kf)
+        return img if img is not None else self.old_images.get(self.map.kf_frame[kf])
+
+    def _reproject(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray) -> Tracks:
+        """Re-attach lost map points to the current frame: the newest keyframes' (see :mod:`reproject`), and with
+        ``vo.reuse_map`` every point of the map unit the frame sees (:mod:`~mutualslam_cli.vo.local_map`)."""
+        m = self.map
+        seg = [k for k in range(len(m.kf_frame)) if m.kf_segment[k] == self.st.segment]
+        window = seg[-self.cfg.core_kfs:]
+        cfg = self.cfg
+        if cfg.reuse_map:
+            unit = self.state_map.unit(self.st.segment)
+            kfs = np.array([k for k in range(len(m.kf_frame)) if self.state_map.unit(m.kf_segment[k]) == unit],
+                           np.int64)
+            lm = local_map(m, T_cw, self.K, (self.intr.width, self.intr.height), kfs, window, set(self.st.kf_imgs),
+                           tr.pid[tr.pid >= 0], tr.raw, lambda px: distort_points(px, self.intr), cfg.grid_size)
+            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids, lm.source, self.intr, cfg.klt_window,
+                                     cfg.klt_levels, cfg.fb_threshold_px, self.thr)
+            self.st.n_reused += int(np.isin(pids, lm.pids[lm.old]).sum())
+        else:
+            pids, raw = reproject_points(m, self.st.kf_imgs, gray, T_cw, tr.pid[tr.pid >= 0], window, self.intr,
+                                         cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px, self.thr)
+        if len(pids) == 0:
+            return tr
+        # do not double-book grid cells: drop seeds sharing a cell with a recovered point
+        g = self.cfg.grid_size
+        cell = lambda r: (r[:, 1] // g).astype(int) * 10000 + (r[:, 0] // g).astype(int)  # noqa: E731
+        rc = set(cell(raw).tolist())
+        keep = (tr.pid >= 0) | ~np.isin(cell(tr.raw), list(rc))
+        tr = tr.select(keep)
+        n = len(pids)
+        new = Tracks.empty()
+        new.raw = raw
+        new.px, new.xn = self._undist(raw)
+        new.pid = pids
+        new.host = np.array([m.host[p] for p in pids], np.int64)
+        new.f_h, new.px_h = np.zeros((n, 3)), np.zeros((n, 2))
+        new.seed = dfl.new_seeds(n, dfl.SeedInit(1.0, 0.5))
+        new.kf_px, new.at_kf, new.obs = new.px.copy(), np.zeros(n, bool), [[] for _ in range(n)]
+        self.st.n_reprojected += n
+        return tr.extend(new)

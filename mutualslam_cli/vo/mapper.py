@@ -95,7 +95,9 @@ class Mapper:
                          to_normalized(np.array(o_px), self.K))
         if self.prior_of is not None:  # the scale prior on the points the window's free keyframes host
             prob.prior_rho = np.where(free[host], self.prior_of(np.array(pids, np.int64)), np.nan)
-            prob.prior_w = self.prior_w
+            # a keyframe's n priors weigh as one measurement of its scale: each 1/√n of the keyframe's weight
+            n_h = np.bincount(host[np.isfinite(prob.prior_rho)], minlength=len(kfs))
+            prob.prior_w = self.prior_w / np.sqrt(np.maximum(n_h[host], 1))
         job = _Job(kf, kfs, free, pids, o_id, prob)
         if threaded and self.pool is not None:
             job.result = self.pool.submit(self._solve, prob)
