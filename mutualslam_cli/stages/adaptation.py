@@ -41,6 +41,7 @@ from mutualslam_cli.stages import comoda, loop_recall
 from mutualslam_cli.stages.adaptation_summary import (
     L_VAL_KEYS,
     l_val_stats,
+    step_row,
     summarise_bridges,
     summarise_finetuning,
     summarise_strength,
@@ -48,6 +49,7 @@ from mutualslam_cli.stages.adaptation_summary import (
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.event_source import FrontEndSource
 from mutualslam_cli.stages.loop import LoopCloser, summarise_off
+from mutualslam_cli.stages.merge import SegmentMerger
 from mutualslam_cli.stages.frontend import corrupt, run_frontend
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import RealtimeClock
@@ -89,19 +91,6 @@ class MapLabels:
         return torch.from_numpy(uv).float(), torch.from_numpy(d).float()
 
 
-def step_row(info: StepInfo) -> dict[str, Any]:
-    """A flat CSV row from the adapter's step info (loss parts as ``loss_<part>`` columns)."""
-    row: dict[str, Any] = {}
-    for k, v in dict(vars(info)).items():
-        if isinstance(v, dict):
-            row.update({f"{k}_{p}": x for p, x in v.items()})
-        elif isinstance(v, (list, tuple)):
-            row[k] = " ".join(map(str, v))
-        else:
-            row[k] = v.value if hasattr(v, "value") else v
-    return row
-
-
 class OnlineLoop:
     """Algorithm 1 over the front end's events, for one run (module docstring).
 
@@ -133,6 +122,8 @@ class OnlineLoop:
                                          val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode,
                                          labels=MapLabels(self.state, w, h), device=run.device)
         self.closer = LoopCloser(run.seq, cfg, source, ba) if cfg.loop.enabled else None
+        self.merger = (SegmentMerger(run.seq, cfg, source, self.closer)
+                       if cfg.vo.merge_segments and cfg.vo.mode == "svo" else None)
         if cfg.vo.depth_seeds or cfg.vo.scale_prior:  # the front end asks the network of now at its keyframes
             frame_image = keyframe_images(run.seq, lambda f: f, w, h)  # by frame: not in the map yet when asked
             source.use_network(lambda f: predict_depth(self.net, frame_image(f)[None], fast)[0])
@@ -161,6 +152,9 @@ class OnlineLoop:
                 if self.clock is not None:
                     self.clock.arrive(arrival)
                 self._join_segment(kf)                          # a new segment: the network of now bridges it
+                if self.merger is not None:                     # a segment found in the map before it: merged
+                    self._busy("merge_s", kf, self.merger.after_keyframe(kf, self._depth_of(), self._val_loss,
+                                                                         self.bridges))
                 info = self._tick(kf)                           # validate, or assemble the batch (labels of now)
                 if info is not None and info.run_global_ba:
                     self._global_ba(kf)                         # cull + BA; the refined map goes back to the front end
@@ -307,6 +301,7 @@ class Adapted:
     bridges: list[dict[str, Any]] | None = None
     refused: list[dict[str, Any]] = field(default_factory=list)
     loops: list[dict[str, Any]] = field(default_factory=list)
+    merges: list[dict[str, Any]] = field(default_factory=list)
     l_val: dict[str, Any] = field(default_factory=dict)
     online: pd.DataFrame | None = None
 
@@ -362,6 +357,12 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
                                                                 for b in loop.refused)
             for k, v in adapted.l_val.items():
                 summary.set(f"adaptation.l_val.{k}", v, "no validation keyframe had an L_val")
+            if loop.merger is not None:
+                loop.merger.summarise(summary)
+                adapted.merges = loop.merger.merges
+            else:
+                for key in ("vo.merges", "vo.merge_queries"):
+                    summary.absent(key, "vo.merge_segments=false or an oracle front end")
             if loop.closer is not None:
                 loop.closer.summarise(summary)
                 adapted.loops = loop.closer.loops

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.adapt.online import OnlineAdapter
+from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
@@ -118,3 +118,16 @@ def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter |
         summary.set("adaptation.luo_keyframes_with_partner", sum(bool(str(r.get("sources") or "").strip())
                                                                  for r in training))
         summary.set("adaptation.training_keyframes", len(training))
+
+
+def step_row(info: StepInfo) -> dict[str, Any]:
+    """A flat CSV row from the adapter's step info (loss parts as ``loss_<part>`` columns)."""
+    row: dict[str, Any] = {}
+    for k, v in dict(vars(info)).items():
+        if isinstance(v, dict):
+            row.update({f"{k}_{p}": x for p, x in v.items()})
+        elif isinstance(v, (list, tuple)):
+            row[k] = " ".join(map(str, v))
+        else:
+            row[k] = v.value if hasattr(v, "value") else v
+    return row

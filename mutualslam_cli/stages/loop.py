@@ -28,7 +28,7 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.vo.camera import focal_px
 from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.loop_closure import LoopDetector, LoopSettings
+from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector, LoopSettings
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,17 @@ class LoopCloser:
             return time.perf_counter() - t
         if self.detector.already_closed(state, loop):  # e.g. the front end relocalised there: nothing to correct
             return time.perf_counter() - t
+        self.loops.append(self.close(loop, depth_of, val_loss, bridges))
+        self._last = kf
+        log.info("loop closed: keyframe %d sees keyframe %d again (scale %.3f, %d inliers)", kf, loop.match,
+                 loop.scale, loop.inliers)
+        return time.perf_counter() - t
+
+    def close(self, loop: LoopClosure, depth_of: Callable[[int], np.ndarray],
+              val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[dict[str, Any]]) -> dict[str, Any]:
+        """Close a verified ``loop`` on the map as it stands: the pose graph, then (with a BA stage) culling + the
+        robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.stages.merge`)."""
+        kf, state = loop.query, self.source.state
         self.source.settle()
         self.source.refine(close_loop(state, loop))
         rec = {**loop.record(), "frame": int(state.map.kf_frame[kf]), "timestamp": float(state.map.kf_time[kf]),
@@ -90,11 +101,7 @@ class LoopCloser:
             r = self.ba.run_ba(snap, kf, depth_of, val_loss([k.id for k in snap.keyframes[first:kf + 1]]), bridges)
             self.source.refine(MapRefinement.between(snap, r.vo, snap.points.ids[~r.keep | r.dropped]))
             rec["ba_nearby_targets"] = int(r.stats["n_nearby_targets"])
-        self.loops.append(rec)
-        self._last = kf
-        log.info("loop closed: keyframe %d sees keyframe %d again (scale %.3f, %d inliers)", kf, loop.match,
-                 loop.scale, loop.inliers)
-        return time.perf_counter() - t
+        return rec
 
     def summarise(self, summary: Summary) -> None:
         """``loop.{candidates,accepted,rejected}``; the rejections by reason in ``notes``."""

@@ -47,7 +47,8 @@ def vo_cache_key(seq: Sequence, cfg: RunConfig) -> str:
         "root": str(Path(seq.root).resolve()), "n": len(seq),
         "first": seq.frames[0].timestamp if len(seq) else None,
         "last": seq.frames[-1].timestamp if len(seq) else None,
-        "vo": {k: v for k, v in to_dict(cfg.vo).items() if k not in ("inject_outliers", "bridge_segments")},
+        "vo": {k: v for k, v in to_dict(cfg.vo).items()
+               if k not in ("inject_outliers", "bridge_segments", "merge_segments")},
         "data": {"max_frames": cfg.data.max_frames, "stride": cfg.data.stride},
         "seed": cfg.seed, "threads": cfg.threads, "intr": seq.intrinsics.as_list(), "version": FRONTEND_VERSION,
         "journal": JOURNAL_VERSION,

@@ -159,8 +159,9 @@ class LoopDetector:
         self.queries: list[dict] = []
 
     def add(self, kf: int, gray: np.ndarray) -> None:
-        """Keep keyframe ``kf``'s ``(H, W)`` uint8 grey image for later queries."""
-        self.index.add_keyframe(kf, gray)
+        """Keep keyframe ``kf``'s ``(H, W)`` uint8 grey image for later queries (once: the index may be shared)."""
+        if kf not in self.index.images:
+            self.index.add_keyframe(kf, gray)
 
     def _reject(self, why: str) -> None:
         self.rejected[why] = self.rejected.get(why, 0) + 1
@@ -183,16 +184,21 @@ class LoopDetector:
             self._reject("already closed")
         return closed
 
-    def query(self, state: MapState, kf: int, gray: np.ndarray, depth: np.ndarray, seed: int = 0) -> LoopClosure | None:
+    def query(self, state: MapState, kf: int, gray: np.ndarray, depth: np.ndarray, seed: int = 0,
+              pool: list[int] | None = None) -> LoopClosure | None:
         """A loop from keyframe ``kf`` to an old keyframe of its map unit, verified (module docstring).
 
         Args:
             state: the map now; gray: ``(H, W)`` uint8 raw grey image of ``kf``; depth: ``(h, w)`` the adapted
                 network's depth of ``kf`` (any unit; looked up at the nearest pixel).
+            pool: the old keyframes that may match (default: those of its map unit ``min_gap`` or more keyframes
+                older; a merge, :mod:`~mutualslam_cli.stages.merge`, gives the other segments').
         """
         m, s = state.map, self.settings
         unit = state.unit(m.kf_segment[kf])
-        pool = [k for k in sorted(self.index.images) if k <= kf - s.min_gap and state.unit(m.kf_segment[k]) == unit]
+        if pool is None:
+            pool = [k for k in sorted(self.index.images)
+                    if k <= kf - s.min_gap and state.unit(m.kf_segment[k]) == unit]
         rec = {"kf": kf, "pool": np.array(pool, np.int64), "candidates": [], "geometry": {}, "verified": None,
                "outcome": "no old keyframe in its map unit"}
         self.queries.append(rec)
