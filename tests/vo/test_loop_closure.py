@@ -11,7 +11,7 @@ from mutualslam_cli.datasets.synthetic import FPS, _setup, synthetic_intrinsics
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.vo.camera import to_normalized
 from mutualslam_cli.vo.features import detect_grid
-from mutualslam_cli.vo.loop_closure import LoopDetector, LoopSettings
+from mutualslam_cli.vo.loop_closure import DEPTH_SPREAD_FACTOR, LoopDetector, LoopSettings, depth_agrees
 from mutualslam_cli.vo.map_state import MapState
 
 W, H = 320, 240
@@ -138,3 +138,23 @@ def test_each_query_records_its_candidates_and_what_became_of_them(frames):
     assert rec2["candidates"][0] == 0 and rec2["verified"] is None
     assert rec2["geometry"][0] in (REFUTED, NO_MATCH) and PASSED not in rec2["geometry"].values()
     assert rec2["outcome"].startswith("geometry")
+
+
+def test_a_noisy_network_does_not_refuse_a_true_loop(frames):
+    """A network 35 % off per pixel (a pre-trained one on real images) spreads the old points' depth ratios past
+    ``max_depth_spread``; the keyframe's own points spread as much, so the loop is not refused for it."""
+    drift = np.eye(4)
+    drift[:3, 3] = [0.2, -0.05, 0.1]
+    st = _map(frames, [30, 45, 60, 75, 90], 1273, unit=1.25, offset=drift)
+    q = st.n_keyframes - 1
+    noisy = frames[1273][1] * np.exp(np.random.default_rng(0).normal(0, 0.35, frames[1273][1].shape))
+    d = _detector(st, frames, LoopSettings(min_gap=1))
+    loop = d.query(st, q, frames[1273][0], noisy)
+    assert loop is not None and loop.spread > LoopSettings().max_depth_spread
+    assert d.queries[-1]["spread_new"] * DEPTH_SPREAD_FACTOR >= loop.spread
+
+
+def test_depth_agreement_is_against_the_networks_own_noise():
+    assert depth_agrees(0.2, 0.0, 0.25) and depth_agrees(0.4, 0.3, 0.25)
+    assert not depth_agrees(0.5, 0.3, 0.25)  # 1.67 × the network's own spread: the pose's depths do not follow
+    assert not depth_agrees(0.3, 0.1, 0.25)
