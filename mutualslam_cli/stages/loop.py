@@ -81,7 +81,6 @@ class LoopCloser:
         if self.detector.already_closed(state, loop):  # e.g. the front end relocalised there: nothing to correct
             return time.perf_counter() - t
         self.loops.append(self.close(loop, depth_of, val_loss, bridges))
-        self._last = kf
         log.info("loop closed: keyframe %d sees keyframe %d again (scale %.3f, %d inliers)", kf, loop.match,
                  loop.scale, loop.inliers)
         return time.perf_counter() - t
@@ -91,6 +90,7 @@ class LoopCloser:
         """Close a verified ``loop`` on the map as it stands: the pose graph, then (with a BA stage) culling + the
         robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.stages.merge`)."""
         kf, state = loop.query, self.source.state
+        self._last = kf  # whoever asked (a loop, a merge): no other loop within loop.min_gap keyframes of it
         self.source.settle()
         self.source.refine(close_loop(state, loop))
         rec = {**loop.record(), "frame": int(state.map.kf_frame[kf]), "timestamp": float(state.map.kf_time[kf]),
