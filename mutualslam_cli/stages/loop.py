@@ -53,7 +53,8 @@ class LoopCloser:
         self.seq, self.cfg, self.source, self.ba = seq, cfg, source, ba
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
-                                     LoopSettings(lc.min_gap, lc.n_candidates, lc.max_scale_error, lc.max_depth_spread))
+                                     LoopSettings(lc.min_gap, lc.n_candidates, lc.max_scale_error, lc.max_depth_spread),
+                                     load=lambda kf: seq.load_gray(source.state.map.kf_frame[kf]))
         self.loops: list[dict[str, Any]] = []
         self.skipped: dict[int, str] = {}
         self._last = -(10 ** 9)  # the query keyframe of the last loop closed

@@ -66,7 +66,8 @@ class SegmentMerger:
         self.seq, self.cfg, self.source, self.closer = seq, cfg, source, closer
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
-                                     LoopSettings(lc.min_gap, lc.n_candidates, lc.max_scale_error, lc.max_depth_spread))
+                                     LoopSettings(lc.min_gap, lc.n_candidates, lc.max_scale_error, lc.max_depth_spread),
+                                     load=lambda kf: seq.load_gray(source.state.map.kf_frame[kf]))
         if closer is not None:  # one keyframe index for both: one ORB extraction per keyframe
             self.detector.index = closer.detector.index
         self.merges: list[dict[str, Any]] = []

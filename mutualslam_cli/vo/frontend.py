@@ -88,7 +88,8 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
         self.state_map = MapState(pinhole(self.intr), len(seq), self.journal)
         self.map = self.state_map.map
         self.mapper = Mapper(self.map, self.K, cfg.core_kfs, self.thr)
-        self.reloc = RelocIndex(self.intr) if cfg.relocalise else None
+        self.reloc = (RelocIndex(self.intr, load=lambda kf: seq.load_gray(self.map.kf_frame[kf]))
+                      if cfg.relocalise else None)  # keyframe images decoded again when needed: memory flat
         self.st = TrackerState(timing={k: 0.0 for k in STAGES})
         self.old_images = KeyframeImages(seq.load_gray)
         self.scale: ScaleCheck | None = None

@@ -30,6 +30,7 @@ spreads it over the keyframes between them.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -152,6 +153,8 @@ class LoopDetector:
         intr: the camera of the raw images (distortion included).
         thr: PnP inlier threshold in normalised units (the front end's RANSAC threshold / focal length).
         settings: thresholds.
+        load: keyframe id → its grey image decoded again (the index then holds no image:
+            :class:`~mutualslam_cli.vo.relocalise.HeldImages`).
 
     Attributes:
         index: per keyframe its grey image, thumbnail and ORB features (:class:`RelocIndex`).
@@ -163,10 +166,11 @@ class LoopDetector:
             ``None``; ``outcome`` ``"loop"`` or why not.
     """
 
-    def __init__(self, intr: Intrinsics, thr: float, settings: LoopSettings | None = None) -> None:
+    def __init__(self, intr: Intrinsics, thr: float, settings: LoopSettings | None = None,
+                 load: Callable[[int], np.ndarray] | None = None) -> None:
         self.intr, self.K, self.thr = intr, intr.K(), thr
         self.settings = settings or LoopSettings()
-        self.index = RelocIndex(intr, RelocSettings(n_candidates=self.settings.n_candidates))
+        self.index = RelocIndex(intr, RelocSettings(n_candidates=self.settings.n_candidates), load)
         self.tried = 0
         self.rejected: dict[str, int] = {}
         self.queries: list[dict] = []

@@ -29,6 +29,7 @@ For a query frame:
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -38,6 +39,7 @@ from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import distort_points, to_normalized, undistort_points
 from mutualslam_cli.vo.features import orb_features, orb_matches
+from mutualslam_cli.vo.local_map import KeyframeImages
 from mutualslam_cli.vo.reproject import reproject_points
 from mutualslam_cli.vo.state import Map
 from mutualslam_cli.vo.tracking import estimate_pose, klt_track, reprojection_errors
@@ -103,14 +105,50 @@ def _thumb(gray: np.ndarray) -> np.ndarray:
     return t / n if n > 0 else t
 
 
-class RelocIndex:
-    """What relocalisation keeps per keyframe: the grey image (the source of KLT), a thumbnail and
-    ORB features (~0.35 MB per 640×480 keyframe), and counters of its decisions."""
+class HeldImages(Mapping[int, np.ndarray]):
+    """Keyframe grey images by keyframe id, in the order added: held in memory, or — given ``load`` (keyframe id →
+    its ``(H, W)`` uint8 grey image, decoded again from the sequence: the same pixels) — only their ids, each
+    image decoded when asked through a small LRU (:class:`~mutualslam_cli.vo.local_map.KeyframeImages`), so a
+    long sequence costs no memory per keyframe for them."""
 
-    def __init__(self, intr: Intrinsics, settings: RelocSettings | None = None) -> None:
+    def __init__(self, load: Callable[[int], np.ndarray] | None = None) -> None:
+        self._held: dict[int, np.ndarray | None] = {}
+        self._lru = KeyframeImages(load) if load is not None else None
+
+    def add(self, kf: int, gray: np.ndarray) -> None:
+        self._held[kf] = gray if self._lru is None else None
+
+    def __setitem__(self, kf: int, gray: np.ndarray) -> None:
+        """Put another image under ``kf`` (held images only: a decoded one is the sequence's)."""
+        if self._lru is not None:
+            raise TypeError("keyframe images decoded from the sequence cannot be replaced")
+        self._held[kf] = gray
+
+    def __getitem__(self, kf: int) -> np.ndarray:
+        if kf not in self._held:
+            raise KeyError(kf)
+        return self._held[kf] if self._lru is None else self._lru.get(kf)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._held)
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+    def __contains__(self, kf: object) -> bool:
+        return kf in self._held
+
+
+class RelocIndex:
+    """What relocalisation keeps per keyframe: the grey image (the source of KLT; with ``load``, decoded again when
+    needed instead, :class:`HeldImages`), a thumbnail and ORB features (~0.35 MB per 640×480 keyframe with its
+    image, ~0.03 MB without), and counters of its decisions."""
+
+    def __init__(self, intr: Intrinsics, settings: RelocSettings | None = None,
+                 load: Callable[[int], np.ndarray] | None = None) -> None:
         self.intr, self.K = intr, intr.K()
         self.settings = settings or RelocSettings()
-        self.images: dict[int, np.ndarray] = {}
+        self.images = HeldImages(load)
         self.thumbs: dict[int, np.ndarray] = {}
         self.features: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # kf → (raw keypoints (N, 2), descriptors)
         self.rejected = 0  # candidate poses the verification refuted
@@ -118,7 +156,7 @@ class RelocIndex:
 
     def add_keyframe(self, kf: int, gray: np.ndarray) -> None:
         """Record keyframe ``kf``'s grey image ``(H, W)`` uint8."""
-        self.images[kf] = gray
+        self.images.add(kf, gray)
         self.thumbs[kf] = _thumb(gray)
         self.features[kf] = orb_features(gray, ORB_FEATURES)
 

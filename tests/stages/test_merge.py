@@ -14,6 +14,7 @@ from mutualslam_cli.stages.merge import SegmentMerger, merge_similarity
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.loop_closure import LoopClosure
 from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.vo.relocalise import HeldImages
 
 INTR = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
 
@@ -56,7 +57,7 @@ class Source:
 def _merger(state: MapState, loop: LoopClosure | None, closer=None) -> SegmentMerger:
     seq = SimpleNamespace(intrinsics=INTR, load_gray=lambda f: np.zeros((240, 320), np.uint8))
     mg = SegmentMerger(seq, RunConfig(), Source(state), closer)
-    mg.detector.add = lambda kf, gray: mg.detector.index.images.__setitem__(kf, gray)
+    mg.detector.add = lambda kf, gray: mg.detector.index.images.add(kf, gray)
     asked = []
 
     def query(state, kf, gray, depth, seed=0, pool=None):
@@ -102,7 +103,7 @@ def test_a_bridged_segment_is_corrected_as_a_loop():
     state.transform_segment(1, np.eye(3), np.array([0.3, 0, 0]), 1.0, 0)  # a bridge joined it to segment 0
     loop = LoopClosure(4, 1, se3_inv(_T_wc(0.7, [0.3, 0.2, 0.1])), 1.2, 100, 0.1, 50, 50)
     calls = []
-    closer = SimpleNamespace(detector=SimpleNamespace(index=SimpleNamespace(images={})),
+    closer = SimpleNamespace(detector=SimpleNamespace(index=SimpleNamespace(images=HeldImages())),
                              close=lambda lp, d, v, b: calls.append(lp.query) or {"ba_nearby_targets": 3})
     mg = _merger(state, loop, closer)
     before = state.pose(3).copy()

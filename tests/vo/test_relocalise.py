@@ -111,3 +111,22 @@ def test_the_halves_are_halves_of_the_inliers(room, monkeypatch):
     assert r is not None
     first, halves = sizes[0], sizes[1:3]  # the PnP on every match, then one pose per half
     assert sum(halves) == r.inliers <= first and abs(halves[0] - halves[1]) <= 1
+
+
+def test_images_decoded_again_relocalise_as_held_ones_and_are_not_kept(room):
+    """A long sequence keeps no keyframe image in the index: each is decoded again when a query needs it (the
+    same pixels), and the relocalisation is the one the held images give."""
+    m, held = _map(room, [0, 30])
+    frames = {k: fi for k, fi in enumerate([0, 30])}
+    decoded = []
+    lazy = RelocIndex(room.intrinsics, load=lambda k: decoded.append(k) or _gray(room.rgb[frames[k]]))
+    for k in (0, 1):
+        lazy.add_keyframe(k, _gray(room.rgb[frames[k]]))
+    assert all(v is None for v in lazy.images._held.values())  # ids only
+    a = held.query(_gray(room.rgb[31]), m, THR, seed=0)
+    b = lazy.query(_gray(room.rgb[31]), m, THR, seed=0)
+    assert a is not None and b is not None and decoded
+    np.testing.assert_array_equal(a.T_cw, b.T_cw)
+    np.testing.assert_array_equal(a.pids, b.pids)
+    with pytest.raises(TypeError):
+        lazy.images[0] = _gray(room.rgb[1])
