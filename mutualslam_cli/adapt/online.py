@@ -158,6 +158,7 @@ class OnlineAdapter:
         self.scheme = get_scheme(cfg.scheme, cfg)
         self.buffer = KeyframeBuffer(cfg.replay_capacity, seed=seed + 1, labels=labels)
         self._pending: tuple[StepInfo, dict[str, object], float] | None = None  # a batch waiting for its steps
+        self._opened: tuple[float, int] | None = None  # step_pending: the pending batch's start and steps so far
         self.rng = np.random.default_rng(seed)
         if cfg.freeze_stages:
             freeze_encoder_stages(net, cfg.freeze_stages)
@@ -243,6 +244,34 @@ class OnlineAdapter:
         t0 = time.perf_counter()
         self._fine_tune(batch, info, steps, batch_ms)
         info.ms += 1000.0 * (time.perf_counter() - t0)
+        return info
+
+    def step_pending(self) -> bool:
+        """One optimiser step on the pending batch (the realtime clock takes them one at a time, as its time
+        allows; :meth:`end_pending` consolidates); ``False`` when no batch waits."""
+        if self._pending is None:
+            return False
+        info, batch, batch_ms = self._pending
+        t = time.perf_counter()
+        if self._opened is None:
+            self._opened = (self._open_batch(batch_ms), 0)
+        self._step(batch, info, first=self._opened[1] == 0)
+        self._opened = (self._opened[0], self._opened[1] + 1)
+        info.ms += 1000.0 * (time.perf_counter() - t)
+        return True
+
+    def end_pending(self) -> StepInfo | None:
+        """The pending batch's end after :meth:`step_pending`: consolidation when it took a step; ``None`` when
+        no batch waits."""
+        if self._pending is None:
+            return None
+        info, batch, batch_ms = self._pending
+        self._pending = None
+        if self._opened is not None:
+            t = time.perf_counter()
+            self._close_batch(batch, info, self._opened[1], self._opened[0], batch_ms)
+            info.ms += 1000.0 * (time.perf_counter() - t)
+        self._opened = None
         return info
 
     def update_poses(self, poses: Mapping[int, np.ndarray]) -> int:
@@ -347,49 +376,61 @@ class OnlineAdapter:
         (``batch_ms``: what assembling the batch took)."""
         if steps <= 0:
             return
+        t0 = self._open_batch(batch_ms)
+        for s in range(steps):
+            self._step(batch, info, first=s == 0)
+        self._close_batch(batch, info, steps, t0, batch_ms)
+
+    def _open_batch(self, batch_ms: float) -> float:
+        """Before a batch's first step: θ* for the regulariser (Alg. 2 line 4: θ_cpy = θ); returns its start."""
         self.batch_ms.append(batch_ms)
         t0 = time.perf_counter()
-        reg, cfg = self.regularizer, self.cfg
-        if reg is not None:
-            reg.before_batch(self.net)  # θ* (Alg. 2 line 4: θ_cpy = θ)
-        pen_val = 0.0
-        scaler = self.scaler
-        for s in range(steps):
-            ts = time.perf_counter()
-            self.optimizer.zero_grad(set_to_none=True)
-            depth = self._predict(batch["target"])
-            loss, parts = self.loss_fn(depth, batch["target"], batch["sources"], batch["K"], batch["T_t2s"],
-                                       batch["uv"], batch["d"], batch["mask"], cfg.lambda_sparse,
-                                       cfg.lambda_smooth, cfg.alpha)
-            if scaler is None:
-                loss.backward()
-            else:  # fp16: scaled backward, then the true gradients in .grad for the regulariser and Adam
-                scaler.scale(loss).backward()
-                scaler.unscale_(self.optimizer)
-            penalty = reg is not None and reg.mode == "penalty"
-            # ∇L_train for the regulariser's importance; a copy only when the penalty's backward adds to .grad
-            grads = [] if reg is None else [(p.grad.detach().clone() if penalty else p.grad.detach())
-                                            if p.grad is not None else torch.zeros_like(p) for p in self.params]
-            if penalty:
-                pen = reg.penalty(self.net)  # Eq. 1 / Eq. 19 regulariser at the current θ
-                if pen.requires_grad:
-                    pen.backward()  # coupled: ∇(L_train + penalty) through Adam
-            stepped = True
-            if scaler is None:
-                self.optimizer.step()
-            else:  # a step with an inf/NaN gradient is skipped (and the scale lowered): so is its prox
-                scale = scaler.get_scale()
-                scaler.step(self.optimizer)
-                scaler.update()
-                stepped = scaler.get_scale() >= scale
-            if reg is not None and stepped:
-                if reg.mode == "prox":
-                    reg.prox(self.net, self.optimizer)  # decoupled: proximal step of the penalty in Adam's metric
-                reg.after_step(self.net, grads)
-            if s == 0:
-                info.loss = {k: float(v) for k, v in parts.items()}
-            synchronize(self.device)  # CUDA runs ahead of the host: the step is over when the device is done
-            self.step_ms.append(1000.0 * (time.perf_counter() - ts))
+        if self.regularizer is not None:
+            self.regularizer.before_batch(self.net)
+        return t0
+
+    def _step(self, batch: dict[str, object], info: StepInfo, first: bool) -> None:
+        """One Adam step on the batch's L_train, the regulariser's proximal step or penalty with it."""
+        reg, cfg, scaler = self.regularizer, self.cfg, self.scaler
+        ts = time.perf_counter()
+        self.optimizer.zero_grad(set_to_none=True)
+        depth = self._predict(batch["target"])
+        loss, parts = self.loss_fn(depth, batch["target"], batch["sources"], batch["K"], batch["T_t2s"],
+                                   batch["uv"], batch["d"], batch["mask"], cfg.lambda_sparse,
+                                   cfg.lambda_smooth, cfg.alpha)
+        if scaler is None:
+            loss.backward()
+        else:  # fp16: scaled backward, then the true gradients in .grad for the regulariser and Adam
+            scaler.scale(loss).backward()
+            scaler.unscale_(self.optimizer)
+        penalty = reg is not None and reg.mode == "penalty"
+        # ∇L_train for the regulariser's importance; a copy only when the penalty's backward adds to .grad
+        grads = [] if reg is None else [(p.grad.detach().clone() if penalty else p.grad.detach())
+                                        if p.grad is not None else torch.zeros_like(p) for p in self.params]
+        if penalty:
+            pen = reg.penalty(self.net)  # Eq. 1 / Eq. 19 regulariser at the current θ
+            if pen.requires_grad:
+                pen.backward()  # coupled: ∇(L_train + penalty) through Adam
+        stepped = True
+        if scaler is None:
+            self.optimizer.step()
+        else:  # a step with an inf/NaN gradient is skipped (and the scale lowered): so is its prox
+            scale = scaler.get_scale()
+            scaler.step(self.optimizer)
+            scaler.update()
+            stepped = scaler.get_scale() >= scale
+        if reg is not None and stepped:
+            if reg.mode == "prox":
+                reg.prox(self.net, self.optimizer)  # decoupled: proximal step of the penalty in Adam's metric
+            reg.after_step(self.net, grads)
+        if first:
+            info.loss = {k: float(v) for k, v in parts.items()}
+        synchronize(self.device)  # CUDA runs ahead of the host: the step is over when the device is done
+        self.step_ms.append(1000.0 * (time.perf_counter() - ts))
+
+    def _close_batch(self, batch: dict[str, object], info: StepInfo, steps: int, t0: float, batch_ms: float) -> None:
+        """After a batch's last step: the regulariser's consolidation (Alg. 2 line 7) and the keyframe's record."""
+        reg, pen_val = self.regularizer, 0.0
         tc = time.perf_counter()
         if reg is not None:
             with torch.no_grad():

@@ -52,7 +52,7 @@ from mutualslam_cli.stages.loop import LoopCloser, summarise_off
 from mutualslam_cli.stages.merge import SegmentMerger
 from mutualslam_cli.stages.frontend import corrupt, run_frontend
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
-from mutualslam_cli.stages.realtime import RealtimeClock
+from mutualslam_cli.stages.realtime import DeferredMap, RealtimeClock, run_realtime
 from mutualslam_cli.vo.feedback import MapRefinement
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.result import VOResult
@@ -121,50 +121,59 @@ class OnlineLoop:
             self.adapter = OnlineAdapter(self.net, cfg.adapt, K_net, seed=cfg.seed, fast=fast,
                                          val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode,
                                          labels=MapLabels(self.state, w, h), device=run.device)
-        self.closer = LoopCloser(run.seq, cfg, source, ba) if cfg.loop.enabled else None
-        self.merger = (SegmentMerger(run.seq, cfg, source, self.closer)
+        self.clock: RealtimeClock | None = None
+        self.writer: Any = source  # where the loop's map changes go: the source now, or when their work ends
+        if cfg.adapt.schedule == "realtime" and self.adapter is not None:
+            cost = cfg.adapt.step_cost_ms
+            self.clock = RealtimeClock(None if cost == "measured" else float(cost), cfg.adapt.max_steps)
+            self.writer = DeferredMap(source)
+        self.closer = LoopCloser(run.seq, cfg, self.writer, ba) if cfg.loop.enabled else None
+        self.merger = (SegmentMerger(run.seq, cfg, self.writer, self.closer)
                        if cfg.vo.merge_segments and cfg.vo.mode == "svo" else None)
         if cfg.vo.depth_seeds or cfg.vo.scale_prior:  # the front end asks the network of now at its keyframes
             frame_image = keyframe_images(run.seq, lambda f: f, w, h)  # by frame: not in the map yet when asked
             source.use_network(lambda f: predict_depth(self.net, frame_image(f)[None], fast)[0])
-        self.clock = None
-        if cfg.adapt.schedule == "realtime" and self.adapter is not None:
-            cost = cfg.adapt.step_cost_ms
-            self.clock = RealtimeClock(None if cost == "measured" else float(cost), cfg.adapt.max_steps)
         self.rows: list[dict[str, Any]] = []
         self.bridges: list[dict[str, Any]] = []
         self.refused: list[dict[str, Any]] = []
         self.net_unit: int | None = None  # the map unit the network is trained in (its first keyframe's)
         self.other_unit: list[int] = []  # keyframes of segments kept apart: not trained on, not validated
+        self.trained_kf = -1  # the keyframe whose steps made the weights now (-1: pre-trained)
+        self.row_of: dict[int, dict[str, Any]] = {}
         self._segments: set[int] = set()
-        self._row_of: dict[int, dict[str, Any]] = {}
         self._extra: dict[int, dict[str, float]] = {}  # seconds spent on a keyframe before its row exists
 
     # ------------------------------------------------------------------ Algorithm 1
     def run_loop(self) -> None:
-        """Every frame in order; each keyframe it created through Algorithm 1 (module docstring)."""
+        """Every frame in order; each keyframe it created through Algorithm 1 (module docstring); realtime: on
+        the sequence's clock (:func:`~mutualslam_cli.stages.realtime.run_realtime`)."""
+        if self.clock is not None:
+            run_realtime(self)
+            return
         t0 = time.perf_counter()
         for _frame, keyframes in self.source.timeline():
             for kf in keyframes:
-                arrival = self.run.seq.seconds(self.state.created_at[kf]) * 1000.0
-                self._train_pending(until_ms=arrival)           # realtime: the last keyframe's steps, now
-                self._score_until(self.state.created_at[kf], kf - 1)  # frames before it: the model of their time
-                if self.clock is not None:
-                    self.clock.arrive(arrival)
-                self._join_segment(kf)                          # a new segment: the network of now bridges it
-                if self.merger is not None:                     # a segment found in the map before it: merged
-                    self._busy("merge_s", kf, self.merger.after_keyframe(kf, self._depth_of(), self._val_loss,
-                                                                         self.bridges))
-                info = self._tick(kf)                           # validate, or assemble the batch (labels of now)
-                if info is not None and info.run_global_ba:
-                    self._global_ba(kf)                         # cull + BA; the refined map goes back to the front end
-                if self.closer is not None:                     # a place seen before: close the loop (loop.enabled)
-                    self._busy("loop_s", kf, self.closer.after_keyframe(kf, self._depth_of(), self._val_loss,
-                                                                         self.bridges))
-                if self.clock is None and self.adapter is not None:
+                self.score_before(self.state.created_at[kf], kf - 1)  # frames before it: the model of their time
+                self.keyframe_work(kf)
+                if self.adapter is not None:
                     self._train(self.cfg.adapt.steps_per_keyframe)
+                    self.trained_kf = kf
                 self._report(kf, t0)
-        self._train_pending(until_ms=self.run.seq.seconds(len(self.run.seq) - 1) * 1000.0)
+
+    def keyframe_work(self, kf: int) -> None:
+        """Keyframe ``kf``'s work before its optimiser steps, with the map and the network of now."""
+        if self.clock is not None:
+            self._extra.setdefault(kf, {})["rt_start_ms"] = self.clock.now_ms
+        self._join_segment(kf)                          # a new segment: the network of now bridges it
+        if self.merger is not None:                     # a segment found in the map before it: merged
+            self._backend("merge_s", kf, lambda: self.merger.after_keyframe(kf, self._depth_of(), self._val_loss,
+                                                                            self.bridges))
+        info = self._tick(kf)                           # validate, or assemble the batch (labels of now)
+        if info is not None and info.run_global_ba:
+            self._global_ba(kf)                         # cull + BA; the refined map goes back to the front end
+        if self.closer is not None:                     # a place seen before: close the loop (loop.enabled)
+            self._backend("loop_s", kf, lambda: self.closer.after_keyframe(kf, self._depth_of(), self._val_loss,
+                                                                           self.bridges))
 
     def _tick(self, kf: int) -> StepInfo | None:
         if self.adapter is None:
@@ -174,39 +183,27 @@ class OnlineLoop:
         if unit != self.net_unit:  # a segment no bridge could join: never trained in two units
             self.other_unit.append(kf)
             return None
+        t = time.perf_counter()
         info = self.adapter.begin_keyframe(KeyframeSample(
             kf_id=kf, image=self.load(kf), K=self.adapter.K_net, pose=self.state.pose(kf),
             uv=torch.zeros(0, 2, device="cpu"), depth=torch.zeros(0, device="cpu"), segment=self.state.segment(kf)))
-        if self.clock is not None:
-            self.clock.charge(info.ms)
+        if self.clock is not None:  # the keyframe image's decode included
+            self.clock.charge(1000.0 * (time.perf_counter() - t), "tick")
         row = step_row(info)
         row["n_sparse"] = len(self.state.sparse_depth(kf)[1])
         row.update(self._extra.pop(kf, {}))
         self.rows.append(row)
-        self._row_of[kf] = row
+        self.row_of[kf] = row
         return info
+
+    step_row = staticmethod(step_row)
 
     def _train(self, steps: int) -> None:
         """The pending batch's ``steps`` optimiser steps and its consolidation; its row updated."""
         if self.adapter is None or self.adapter.pending is None:
             return
-        n_steps, n_cons = len(self.adapter.step_ms), len(self.adapter.consolidate_ms)
         info = self.adapter.train_pending(steps)
-        if self.clock is not None:
-            self.clock.stepped(self.adapter.step_ms[n_steps:])
-            self.clock.charge(sum(self.adapter.consolidate_ms[n_cons:]))
-        self._row_of[info.kf_id].update(step_row(info))
-
-    def _train_pending(self, until_ms: float) -> None:
-        """Realtime: the waiting keyframe trains until ``until_ms`` (the next arrival); then its work is done."""
-        if self.clock is None:
-            return
-        if self.adapter.pending is not None:
-            kf = self.adapter.pending.kf_id
-            start = self.clock.now_ms
-            self._train(self.clock.steps_until(until_ms))
-            self._row_of[kf].update(rt_start_ms=start, rt_end_ms=self.clock.now_ms)
-        self.clock.done()
+        self.row_of[info.kf_id].update(step_row(info))
 
     def _join_segment(self, kf: int) -> None:
         """The first keyframe of a new segment: join it to the map before it (``vo.bridge_segments``)."""
@@ -223,7 +220,7 @@ class OnlineLoop:
         if b is not None and b.refused:
             self.refused.append(asdict(b))
         elif b is not None:
-            self.source.transform_segment(b.segment, *b.similarity(), b.onto)
+            self.writer.transform_segment(b.segment, *b.similarity(), b.onto)
             self.bridges.append(asdict(b))
         self._busy("bridge_s", kf, time.perf_counter() - t)
 
@@ -232,14 +229,23 @@ class OnlineLoop:
         if self.ba is None:
             return
         t = time.perf_counter()
-        self.source.settle()
-        snap = self.state.snapshot(self.run.seq.frames, covisibility=False)
+        self.writer.settle()
+        snap = self.writer.state.snapshot(self.run.seq.frames, covisibility=False)
         first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
         ids = [k.id for k in snap.keyframes[first:kf + 1]]
         r = self.ba.run_ba(snap, kf, self._depth_of(), self.adapter.per_keyframe_val_loss(ids), self.bridges)
         removed = snap.points.ids[~r.keep | r.dropped]
-        self.source.refine(MapRefinement.between(snap, r.vo, removed))
+        self.writer.refine(MapRefinement.between(snap, r.vo, removed))
         self._busy("ba_s", kf, time.perf_counter() - t)
+
+    def keyframe_rows(self) -> list[dict[str, Any]]:
+        """``keyframes.csv``: a row per keyframe — Algorithm 1's, and for keyframes it did not tick (scheme
+        ``none``, a segment kept apart) the work done on them (bridge, merge, loop seconds)."""
+        why = "a segment no bridge joined" if self.adapter is not None else "scheme none"
+        rows = {**{k: {"kf_id": k, "not_ticked": why, **v} for k, v in self._extra.items()}, **self.row_of}
+        for k in range(self.state.n_keyframes):
+            rows.setdefault(k, {"kf_id": k, "not_ticked": why})
+        return [rows[k] for k in sorted(rows)]
 
     # ------------------------------------------------------------------ helpers
     def _val_loss(self, ids: list[int]) -> dict[int, float]:
@@ -249,19 +255,31 @@ class OnlineLoop:
         return depth_predictor(self.net, self.load, self.fast, self.adapter.buffer if self.adapter else None)
 
     def _busy(self, key: str, kf: int, seconds: float) -> None:
-        """``seconds`` of work on keyframe ``kf`` (a bridge, a BA): into its row and onto the clock."""
-        row = self._row_of.get(kf, self._extra.setdefault(kf, {}))
+        """``seconds`` of work on keyframe ``kf`` (a bridge, a BA): into its row and onto the clock, where the
+        map changes it made take hold when it ends."""
+        row = self.row_of[kf] if kf in self.row_of else self._extra.setdefault(kf, {})
         row[key] = row.get(key, 0.0) + seconds
         if self.clock is not None:
-            self.clock.charge(1000.0 * seconds)
+            self.clock.charge(1000.0 * seconds, key[:-2])
+            self.writer.finish(self.clock.now_ms)
 
-    def _score_until(self, frame: int, kf: int) -> None:
+    def _backend(self, key: str, kf: int, work: Callable[[], float]) -> None:
+        """A merge's or loop closure's work on keyframe ``kf``: its BA's seconds booked as BA, the rest as ``key``."""
+        ba0 = self.closer.ba_seconds if self.closer is not None else 0.0
+        seconds = work()
+        ba = (self.closer.ba_seconds if self.closer is not None else 0.0) - ba0
+        self._busy(key, kf, seconds - ba)
+        if ba:
+            self._busy("ba_s", kf, ba)
+
+    def score_before(self, frame: int, kf: int) -> None:
+        """Online scores of the frames before ``frame`` not scored yet, with the weights now (``kf``'s)."""
         if self.scorer is not None:
             self.scorer.score_until(self.net, frame, kf)
 
     def _report(self, kf: int, t0: float) -> None:
         if self.run.progress is not None:
-            row = self._row_of.get(kf, {"kf_id": kf})
+            row = self.row_of.get(kf, {"kf_id": kf})
             self.run.progress("adapt", {"done": kf + 1, "total": None, **row, "elapsed_s": time.perf_counter() - t0})
 
 
@@ -334,7 +352,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
         pure = source.result() if not causal else None
         if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
             net = comoda.run_stage(run, copy.deepcopy(net0), fast)
-            adapted, rows, online_s = Adapted(net, None, pure, pure, pure, source, injected, 0), [], 0.0
+            adapted, rows, kf_rows, online_s = Adapted(net, None, pure, pure, pure, source, injected, 0), [], [], 0.0
             for k in L_VAL_KEYS:
                 summary.absent(f"adaptation.l_val.{k}", "scheme 'comoda' has no Algorithm 1")
             summarise_strength(summary, None)
@@ -344,8 +362,9 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
             loop = OnlineLoop(run, source, copy.deepcopy(net0), fast, ba, scorer)
             loop.run_loop()
             final = source.result()
-            rows, adapter = loop.rows, loop.adapter
-            online = scorer.finish(loop.net, final.keyframes[-1].id if final.keyframes else -1) if scorer else None
+            rows, adapter, kf_rows = loop.rows, loop.adapter, loop.keyframe_rows()
+            last = loop.trained_kf if loop.clock is not None else final.keyframes[-1].id if final.keyframes else -1
+            online = scorer.finish(loop.net, last) if scorer else None
             adapted = Adapted(loop.net, adapter, final, pure, pure, source, injected,
                               requested=sum(bool(r.get("run_global_ba")) for r in rows), bridges=loop.bridges,
                               refused=loop.refused, l_val=l_val_stats(rows, cfg.adapt.tau_val, final), online=online)
@@ -387,12 +406,14 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
     run.add_time("evaluation", online_s)  # the online scores are evaluation, done inside the loop
     summary.set("timing.online_scoring_s", online_s or None,
                 "no online scores (eval.online false, scheme none or comoda, or no GT depth)")
-    if rows:
-        atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(rows).to_csv(index=False))
+    if kf_rows:
+        atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(kf_rows).to_csv(index=False))
     summarise_bridges(run, adapted.bridged, adapted.bridges)
     check = adapted.map.meta.get("scale_check") if adapted.map is not None else None
     for k in ("checks", "drift_max", "drift_min"):  # the network's view of the map's scale, keyframe by keyframe
         summary.set(f"vo.scale_check.{k}", check.get(k) if check else None,
                     "the front end did not ask the network (vo.depth_seeds and vo.scale_prior off, or not causal)")
-    summary.set("adaptation.labels", cfg.adapt.labels if cfg.adapt.scheme != "comoda" else "hindsight")
+    # what the labels could know: an oracle front end re-triangulates with later observations, whatever the mode
+    labels = "oracle" if cfg.vo.mode != "svo" else cfg.adapt.labels if cfg.adapt.scheme != "comoda" else "hindsight"
+    summary.set("adaptation.labels", labels)
     return adapted

@@ -58,6 +58,7 @@ class LoopCloser:
         self.loops: list[dict[str, Any]] = []
         self.skipped: dict[int, str] = {}
         self._last = -(10 ** 9)  # the query keyframe of the last loop closed
+        self.ba_seconds = 0.0  # of the closing BAs (booked to BA, not to the loop)
 
     def after_keyframe(self, kf: int, depth_of: Callable[[int], np.ndarray],
                        val_loss: Callable[[list[int]], Mapping[int, float]],
@@ -97,11 +98,13 @@ class LoopCloser:
         rec = {**loop.record(), "frame": int(state.map.kf_frame[kf]), "timestamp": float(state.map.kf_time[kf]),
                "match_timestamp": float(state.map.kf_time[loop.match])}
         if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
+            t_ba = time.perf_counter()
             snap = self.source.state.snapshot(self.seq.frames, covisibility=False)
             first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
             r = self.ba.run_ba(snap, kf, depth_of, val_loss([k.id for k in snap.keyframes[first:kf + 1]]), bridges)
             self.source.refine(MapRefinement.between(snap, r.vo, snap.points.ids[~r.keep | r.dropped]))
             rec["ba_nearby_targets"] = int(r.stats["n_nearby_targets"])
+            self.ba_seconds += time.perf_counter() - t_ba
         return rec
 
     def summarise(self, summary: Summary) -> None:

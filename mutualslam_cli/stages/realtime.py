@@ -1,9 +1,10 @@
 """``adapt.schedule: realtime``: Algorithm 1's loop on the sequence's clock (DESIGN §10).
 
 The paper's loop runs beside the SLAM thread: a keyframe arrives at its frame's time, and the loop
-works on it — its tick (L_val on a validation keyframe, the batch of a training one), the bridge or
-the global BA it triggers, the optimiser steps, the regulariser's consolidation (EWC's Fisher, MAS's
-importance) — then takes the next keyframe. :class:`RealtimeClock` keeps that loop's time:
+works on it — its tick (the keyframe image's decode, L_val on a validation keyframe, the batch of a
+training one), the bridge, merge, global BA or loop closure it triggers, the optimiser steps, the
+regulariser's consolidation (EWC's Fisher, MAS's importance) — then takes the next keyframe.
+:class:`RealtimeClock` keeps that loop's time:
 
 - keyframe k's work starts at ``max(its arrival, when the loop became free)``;
 - every piece of work is charged: steps at ``step_cost_ms`` each, everything else at its wall time
@@ -14,17 +15,33 @@ importance) — then takes the next keyframe. :class:`RealtimeClock` keeps that 
   stale keyframe is only stored, as the paper's "get latest keyframe" loop would skip it); the last
   keyframe until the sequence's last frame.
 
-The steps of k are therefore known only when k+1 arrives: the loop assembles k's batch at k's
-arrival (labels as they stand then) and runs its steps when k+1 arrives (the adapter's
-``begin_keyframe`` / ``train_pending``). Wall times make a realtime run follow the machine's load:
-it is not bit-reproducible; ``keyframes.csv`` records each keyframe's steps and charged time.
+**Every effect takes hold when its charged work ends** (:func:`run_realtime`): a step's weights from
+the frame at or after its end — for the front end's asks (``vo.depth_seeds``), the online scores and
+the loop's own later work alike (a frame is scored by the weights of the last step that ended before
+it); a bridge's, merge's, BA's or loop's change of the map reaches the live front end and every later
+label at the first frame at or after the end of the work that made it (the work runs on a copy of the
+map as it stood when it started, :class:`DeferredMap`; keyframes the front end made meanwhile follow
+their predecessor's correction). A keyframe's labels are the map as it stood when its work started.
+The front end itself runs on its own thread (the paper's SLAM thread) and is not charged: it keeps up
+on this CPU (README "Realtime": frames/s against the sequence's rate). Wall times make a realtime run
+follow the machine's load: it is not bit-reproducible; ``keyframes.csv`` records each keyframe's
+steps and ``rt_start_ms`` / ``rt_end_ms``.
 """
 
 from __future__ import annotations
 
+import bisect
+import copy
 import math
+from collections import deque
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
+
+from mutualslam_cli.vo.feedback import MapRefinement
+
+if TYPE_CHECKING:  # the loop that drives the clock (stages/adaptation.py imports this module)
+    from mutualslam_cli.stages.adaptation import OnlineLoop
 
 
 class RealtimeClock:
@@ -33,14 +50,17 @@ class RealtimeClock:
     Args:
         step_cost_ms: cost of one optimiser step on the modelled machine; ``None``: measured here.
         max_steps: cap on one keyframe's steps.
+        fixed_ms: a cost per kind of work (``tick``, ``bridge``, ``merge``, ``ba``, ``loop``, ``consolidate``)
+            charged instead of its wall time (tests: a clock that does not follow the machine).
 
     Attributes:
         now_ms: where the loop's work on the current keyframe has got to.
         free_ms: when the loop finished the previous keyframe's work.
     """
 
-    def __init__(self, step_cost_ms: float | None, max_steps: int) -> None:
+    def __init__(self, step_cost_ms: float | None, max_steps: int, fixed_ms: Mapping[str, float] | None = None) -> None:
         self.step_cost_ms, self.max_steps = step_cost_ms, max_steps
+        self.fixed_ms = dict(fixed_ms or {})
         self.now_ms = self.free_ms = -math.inf
         self.measured_steps: list[float] = []
 
@@ -65,9 +85,9 @@ class RealtimeClock:
         self.now_ms = max(self.free_ms, t_ms)
         return self.now_ms
 
-    def charge(self, wall_ms: float) -> None:
-        """Work that took ``wall_ms`` here (a tick, a bridge, a BA, a consolidation)."""
-        self.now_ms += self.scale() * wall_ms
+    def charge(self, wall_ms: float, kind: str = "") -> None:
+        """Work of ``kind`` that took ``wall_ms`` here (a tick, a bridge, a BA, a consolidation)."""
+        self.now_ms += self.fixed_ms[kind] if kind in self.fixed_ms else self.scale() * wall_ms
 
     def steps_until(self, t_next_ms: float) -> int:
         """Steps that start before ``t_next_ms`` (the next keyframe's arrival), at most ``max_steps``."""
@@ -86,3 +106,129 @@ class RealtimeClock:
     def done(self) -> None:
         """The current keyframe's work is over."""
         self.free_ms = self.now_ms
+
+
+class DeferredMap:
+    """The map changes of the loop's work, held until the work ends on the clock (module docstring).
+
+    Stands where the loop's work expects the front end's source (``state``, ``settle``, ``transform_segment``,
+    ``refine``): a change is made on a copy of the map as it stood when the work started — so the rest of the
+    same work (a loop's BA after its pose graph) sees it — and recorded; :meth:`finish` dates the work's changes
+    at its end and :meth:`apply_due` hands them to the live source once the sequence's time reaches it.
+    """
+
+    def __init__(self, source: Any) -> None:
+        self.source = source
+        self._copy: Any | None = None
+        self._last_kf = -1  # the newest keyframe when the copy was made
+        self._ops: list[tuple[str, tuple]] = []
+        self.due: list[tuple[float, int, list[tuple[str, tuple]]]] = []  # (time, newest keyframe, changes)
+        self.applied: list[tuple[int, float, str]] = []  # (source frame when applied, due time, kind)
+
+    @property
+    def state(self) -> Any:
+        return self._copy if self._copy is not None else self.source.state
+
+    def settle(self) -> None:
+        if self._copy is None:  # the front end's own windowed BA, in the live map
+            self.source.settle()
+
+    def _shadow(self) -> Any:
+        if self._copy is None:
+            self._copy = copy.deepcopy(self.source.state)
+            self._last_kf = self._copy.n_keyframes - 1
+        return self._copy
+
+    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> None:
+        self._shadow().transform_segment(segment, R, t, s, onto)
+        self._ops.append(("transform_segment", (segment, R, t, s, onto)))
+
+    def refine(self, r: MapRefinement) -> None:
+        from mutualslam_cli.vo.feedback import apply_refinement
+
+        apply_refinement(self._shadow(), r)
+        self._ops.append(("refine", (r,)))
+
+    def finish(self, end_ms: float) -> None:
+        """The work that made the recorded changes ends at ``end_ms``; the copy is dropped."""
+        if self._ops:
+            self.due.append((end_ms, self._last_kf, self._ops))
+        self._copy, self._ops = None, []
+
+    def apply_due(self, t_ms: float) -> None:
+        """Every change whose work ended by ``t_ms``, to the live source, in the order made."""
+        while self.due and self.due[0][0] <= t_ms:
+            end_ms, last_kf, ops = self.due.pop(0)
+            for kind, args in ops:
+                if kind == "refine":
+                    self.source.refine(args[0].carried(self.source.state, last_kf))
+                else:
+                    self.source.transform_segment(*args)
+                self.applied.append((int(getattr(self.source, "frame", -1)), end_ms, kind))
+
+
+def run_realtime(loop: "OnlineLoop") -> None:
+    """Algorithm 1's loop on the sequence's clock over ``loop``'s front end (module docstring).
+
+    Between two frames the loop does the work that fits before the next one: the current keyframe's steps that
+    end by then (each frame before a step's end is scored with the weights before it), the end of its training
+    (consolidation) once the next keyframe arrived or ``max_steps`` were taken, and the next keyframes' work
+    when it starts before then; the changes that work made reach the front end when it ends."""
+    clock, seq, adapter = loop.clock, loop.run.seq, loop.adapter
+    assert clock is not None and adapter is not None
+    times = [seq.seconds(i) * 1000.0 for i in range(len(seq))]
+    end_ms = times[-1]
+    queue: deque[int] = deque()
+    writer: DeferredMap = loop.writer
+    taken = 0  # steps the pending keyframe took
+
+    def arrival(kf: int) -> float:
+        return times[loop.state.created_at[kf]]
+
+    def work(until: float) -> None:
+        nonlocal taken
+        while True:
+            if adapter.pending is not None:
+                kf = adapter.pending.kf_id
+                next_arrival = arrival(queue[0]) if queue else math.inf
+                if taken < clock.max_steps and clock.now_ms < min(next_arrival, end_ms):
+                    cost = clock.step_ms()
+                    if clock.now_ms + cost > until:  # it ends after the next frame: its weights are not seen there
+                        return
+                    loop.score_before(bisect.bisect_left(times, clock.now_ms + cost), kf_of_weights())
+                    n = len(adapter.step_ms)
+                    adapter.step_pending()
+                    clock.stepped(adapter.step_ms[n:])
+                    loop.trained_kf = kf
+                    taken += 1
+                    continue
+                if taken < clock.max_steps and not queue and clock.now_ms < end_ms:
+                    return  # the next keyframe may still come: the training goes on
+                n = len(adapter.consolidate_ms)
+                info = adapter.end_pending()
+                clock.charge(sum(adapter.consolidate_ms[n:]), "consolidate")
+                loop.row_of[kf].update(loop.step_row(info), steps=taken, rt_end_ms=clock.now_ms)
+                clock.done()
+                taken = 0
+                continue
+            if not queue:
+                return
+            start = max(clock.free_ms, arrival(queue[0]))
+            if start >= until:  # its work starts after the next frame: the map of then
+                return
+            kf = queue.popleft()
+            clock.arrive(arrival(kf))
+            writer.apply_due(clock.now_ms)  # what ended before this work starts is in the map it reads
+            loop.keyframe_work(kf)
+            if adapter.pending is None:  # a validation keyframe, or nothing to train: its work is over
+                loop.row_of.get(kf, {}).update(rt_end_ms=clock.now_ms)
+                clock.done()
+
+    def kf_of_weights() -> int:
+        return loop.trained_kf
+
+    for frame, keyframes in loop.source.timeline():
+        queue.extend(keyframes)
+        until = times[frame + 1] if frame + 1 < len(times) else math.inf
+        work(min(until, end_ms) if until != math.inf else math.inf)
+        writer.apply_due(until)  # the front end takes the next frame with every change that ended by then

@@ -64,6 +64,39 @@ class MapRefinement:
                              pa.ids[changed], pa.inv_depth[changed], pa.pixel[changed],
                              np.asarray(removed, np.int64).reshape(-1))
 
+    def carried(self, state: MapState, last_kf: int) -> "MapRefinement":
+        """This refinement, made on the map as it stood when keyframe ``last_kf`` was the newest, for ``state``
+        now: every later keyframe follows the correction of its map unit's newest keyframe at or before
+        ``last_kf`` (its pose relative to that one kept, in its new unit), and the points it hosts take
+        that unit (a delayed BA or loop closure: the realtime clock's). Returns ``self`` when nothing came later."""
+        m, later = state.map, range(last_kf + 1, state.n_keyframes)
+        moved = dict(zip(self.kfs.tolist(), range(len(self.kfs))))
+        kfs, poses, scales, pids, rho = [], [], [], [], []
+        for k in later:
+            unit = state.unit(m.kf_segment[k])
+            ref = next((j for j in range(min(last_kf, k - 1), -1, -1) if state.unit(m.kf_segment[j]) == unit), None)
+            if ref is None or ref not in moved:  # its unit's newest keyframe then did not move: nor does it
+                continue
+            s = self.scale_of(ref)
+            rel = np.linalg.inv(m.kf_T_wc[ref]) @ m.kf_T_wc[k]
+            rel[:3, 3] *= s
+            kfs.append(k)
+            poses.append(self.T_wc[moved[ref]] @ rel)
+            scales.append(s)
+            if s != 1.0:
+                own = [p for p in m.kf_points[k] if m.host[p] == k and np.isfinite(m.rho[p])]
+                pids += own
+                rho += [m.rho[p] / s for p in own]
+        if not kfs:
+            return self
+        own_px = np.array([m.px_h[p] for p in pids], float).reshape(-1, 2)
+        return MapRefinement(np.concatenate([self.kfs, np.array(kfs, np.int64)]),
+                             np.concatenate([self.T_wc.reshape(-1, 4, 4), np.array(poses)]),
+                             np.concatenate([self.pids, np.array(pids, np.int64)]),
+                             np.concatenate([self.rho, np.array(rho, float)]),
+                             np.concatenate([self.px_h.reshape(-1, 2), own_px]), self.removed,
+                             None if self.scale is None else np.concatenate([self.scale, np.array(scales, float)]))
+
 
 def apply_refinement(state: MapState, r: MapRefinement) -> None:
     """Write ``r`` into ``state``'s map: poses, depths, host pixels, removals, then the world positions
