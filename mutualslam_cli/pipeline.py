@@ -192,6 +192,7 @@ def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, adapted: adapta
         "map_points_with_gt": fe.points_with_gt,
         "ba_runs": ba.record.runs,
         "bridges": adapted.bridges or [],
+        "bridges_credit": adapted.credit,
         "bridges_refused": adapted.refused,
         "loops": adapted.loops,
     }))

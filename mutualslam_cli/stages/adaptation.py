@@ -31,12 +31,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample
+from mutualslam_cli.adapt.buffer import KeyframeSample
 from mutualslam_cli.adapt.depthnet import predict_depth, prepare
-from mutualslam_cli.adapt.inputs import keyframe_images, scale_pixels
+from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.device import module_device
 from mutualslam_cli.stages import comoda, loop_recall
 from mutualslam_cli.stages.adaptation_summary import (
     L_VAL_KEYS,
@@ -47,49 +46,17 @@ from mutualslam_cli.stages.adaptation_summary import (
     summarise_strength,
 )
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.loop_inputs import DepthOf, MapLabels, depth_predictor
+from mutualslam_cli.stages.credit import WeightsAt, credit_bridges, front_end_alone, segment_starts
 from mutualslam_cli.stages.event_source import FrontEndSource
 from mutualslam_cli.stages.loop import LoopCloser, summarise_off
 from mutualslam_cli.stages.merge import SegmentMerger
-from mutualslam_cli.stages.frontend import corrupt, run_frontend
+from mutualslam_cli.stages.frontend import corrupt
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import DeferredMap, RealtimeClock, run_realtime
 from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import bridged, plan_bridge
-
-DepthOf = Callable[[int], np.ndarray]
-"""``depth_of(kf_id)``: ``(h, w)`` depth of the current network at network resolution, map units."""
-
-
-def depth_predictor(net: torch.nn.Module, load: Callable[[int], torch.Tensor], fast: bool,
-                    buffer: KeyframeBuffer | None = None) -> DepthOf:
-    """:data:`DepthOf` of ``net`` (on its device) for keyframe images from ``buffer`` when stored, else
-    ``load(kf_id)``; the depth comes back to the CPU (culling, bridges)."""
-    device = module_device(net)
-
-    def depth_of(kf_id: int) -> np.ndarray:
-        img = buffer.get(kf_id, device).image if buffer is not None and kf_id in buffer else load(kf_id)
-        return predict_depth(net, img[None], fast)[0]
-
-    return depth_of
-
-
-class MapLabels:
-    """A keyframe's labels read from the map when they are used (DESIGN §5): pose ``T_wc`` and the sparse
-    depths of the points it observes, at network resolution ``width × height``."""
-
-    def __init__(self, state: MapState, width: int, height: int) -> None:
-        self.state, self.width, self.height = state, width, height
-
-    def pose(self, kf_id: int) -> np.ndarray:
-        return self.state.pose(kf_id)
-
-    def sparse(self, kf_id: int) -> tuple[torch.Tensor, torch.Tensor]:
-        uv, d = self.state.sparse_depth(kf_id)
-        uv = scale_pixels(uv, self.state.intr, self.width, self.height)
-        return torch.from_numpy(uv).float(), torch.from_numpy(d).float()
-
+from mutualslam_cli.vo.segments import plan_bridge
 
 class OnlineLoop:
     """Algorithm 1 over the front end's events, for one run (module docstring).
@@ -139,6 +106,7 @@ class OnlineLoop:
         self.net_unit: int | None = None  # the map unit the network is trained in (its first keyframe's)
         self.other_unit: list[int] = []  # keyframes of segments kept apart: not trained on, not validated
         self.trained_kf = -1  # the keyframe whose steps made the weights now (-1: pre-trained)
+        self.weights_at = WeightsAt(set())  # the weights at the frames where the credit bridges are planned
         self.row_of: dict[int, dict[str, Any]] = {}
         self._segments: set[int] = set()
         self._extra: dict[int, dict[str, float]] = {}  # seconds spent on a keyframe before its row exists
@@ -151,7 +119,8 @@ class OnlineLoop:
             run_realtime(self)
             return
         t0 = time.perf_counter()
-        for _frame, keyframes in self.source.timeline():
+        for frame, keyframes in self.source.timeline():
+            self.weights_at.at_frame(frame, self.net)
             for kf in keyframes:
                 self.score_before(self.state.created_at[kf], kf - 1)  # frames before it: the model of their time
                 self.keyframe_work(kf)
@@ -296,13 +265,15 @@ class Adapted:
             schemes ``none`` and ``comoda``.
         map: the loop's map at the end (bridged segments; the BAs Algorithm 1 requested in it).
         frontend: the front end on its own — no bridge, no BA: each segment in its own unit (the cache's;
-            causal runs ask it once more after the loop, since the network's side changed theirs).
-        bridged: ``frontend`` joined by the run's bridges, and nothing else (Table 4's "bridged" column).
+            causal runs ask it before the loop, since the network's side changes theirs).
+        bridged: ``frontend`` joined by bridges planned on its own map, and nothing else (Table 4's "bridged"
+            column: :mod:`~mutualslam_cli.stages.credit`).
         source: the front end's event source (cache use, replayed frames).
         injected: ids of map points corrupted by ``vo.inject_outliers``.
         requested: how many times Algorithm 1 requested global BA.
         bridges: one record per bridge made (:class:`~mutualslam_cli.vo.segments.Bridge`); refused: per bridge
-            refused; loops: per loop closed (:mod:`~mutualslam_cli.stages.loop`).
+            refused; loops: per loop closed (:mod:`~mutualslam_cli.stages.loop`); credit: the bridges of
+            ``bridged``, planned on ``frontend``'s own map.
         l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).
         online: the ``online_*`` per-frame scores of the model of each frame's time
             (:mod:`~mutualslam_cli.stages.online_eval`); ``None`` when not computed.
@@ -320,6 +291,7 @@ class Adapted:
     refused: list[dict[str, Any]] = field(default_factory=list)
     loops: list[dict[str, Any]] = field(default_factory=list)
     merges: list[dict[str, Any]] = field(default_factory=list)
+    credit: list[dict[str, Any]] = field(default_factory=list)
     l_val: dict[str, Any] = field(default_factory=dict)
     online: pd.DataFrame | None = None
 
@@ -349,7 +321,11 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
             source.run_all()
             if cfg.vo.inject_outliers:  # the test knob corrupts the finished map (hindsight only)
                 injected = corrupt(source.state, source.result(), cfg)
-        pure = source.result() if not causal else None
+        # the front end on its own (causal: from the journal cache, which it fills): Table 4's "vo" column, and
+        # the frames where its own segments start, whose weights the "bridged" credit needs (stages/credit.py)
+        pure, starts = (source.result(), segment_starts(source.state)) if not causal else \
+            front_end_alone(seq, cfg, run.cache / "vo")
+        fe_alone_s = time.perf_counter() - t if causal else 0.0
         if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
             net = comoda.run_stage(run, copy.deepcopy(net0), fast)
             adapted, rows, kf_rows, online_s = Adapted(net, None, pure, pure, pure, source, injected, 0), [], [], 0.0
@@ -360,12 +336,13 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
             scorer = (OnlineScorer(seq, eval_frames(seq, cfg.eval.stride), cfg, fast)
                       if cfg.eval.online and seq.has_depth and cfg.adapt.scheme != "none" else None)
             loop = OnlineLoop(run, source, copy.deepcopy(net0), fast, ba, scorer)
+            loop.weights_at = WeightsAt(starts if cfg.vo.bridge_segments else set())
             loop.run_loop()
             final = source.result()
             rows, adapter, kf_rows = loop.rows, loop.adapter, loop.keyframe_rows()
             last = loop.trained_kf if loop.clock is not None else final.keyframes[-1].id if final.keyframes else -1
             online = scorer.finish(loop.net, last) if scorer else None
-            adapted = Adapted(loop.net, adapter, final, pure, pure, source, injected,
+            adapted = Adapted(loop.net, adapter, final, pure, None, source, injected,
                               requested=sum(bool(r.get("run_global_ba")) for r in rows), bridges=loop.bridges,
                               refused=loop.refused, l_val=l_val_stats(rows, cfg.adapt.tau_val, final), online=online)
             online_s = scorer.seconds if scorer is not None else 0.0
@@ -395,10 +372,10 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
     finally:
         source.close()
     t_fe = time.perf_counter()
-    if adapted.frontend is None:  # causal: the network's side changed the front end; the same one on its own
-        adapted.frontend, _ = run_frontend(seq, cfg, run.cache / "vo")  # (the journal cache: mostly replayed)
-    fe_s = source.seconds + time.perf_counter() - t_fe
-    adapted.bridged = bridged(adapted.frontend, adapted.bridges or [])
+    if cfg.adapt.scheme != "comoda":  # the front end alone joined by bridges planned on its own map (Table 4)
+        adapted.bridged, adapted.credit = credit_bridges(seq, cfg, run.cache / "vo", loop.net, fast,
+                                                         loop.weights_at)
+    fe_s = source.seconds + fe_alone_s + time.perf_counter() - t_fe
     ba_s = float(sum(r.get("ba_s", 0.0) for r in rows))  # Algorithm 1's BAs, inside the loop
     run.add_time("frontend", fe_s)
     run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s - fe_s)
@@ -408,7 +385,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
                 "no online scores (eval.online false, scheme none or comoda, or no GT depth)")
     if kf_rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(kf_rows).to_csv(index=False))
-    summarise_bridges(run, adapted.bridged, adapted.bridges)
+    summarise_bridges(run, adapted.bridged, adapted.bridges, adapted.credit)
     check = adapted.map.meta.get("scale_check") if adapted.map is not None else None
     for k in ("checks", "drift_max", "drift_min"):  # the network's view of the map's scale, keyframe by keyframe
         summary.set(f"vo.scale_check.{k}", check.get(k) if check else None,

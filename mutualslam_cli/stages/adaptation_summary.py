@@ -38,20 +38,23 @@ def l_val_stats(rows: list[dict[str, Any]], tau: float, vo: VOResult) -> dict[st
             "map_median_depth": depth}
 
 
-def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[dict[str, Any]] | None) -> None:
+def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[dict[str, Any]] | None,
+                      credit: list[dict[str, Any]] | None = None) -> None:
     """``vo.bridges`` and, when a segment was bridged, ``traj_{kf,all}_bridged.txt`` and
-    ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the front end on its own joined by the run's
-    bridges and nothing else (no BA: Table 4 credits each part), one Sim(3) as every headline ATE.
-    ``bridges``: the bridges made, ``None`` when no keyframe loop ran (scheme ``comoda``)."""
+    ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the front end on its own joined by bridges
+    planned on its own map and nothing else (no BA: Table 4 credits each part; :mod:`~mutualslam_cli.stages.credit`),
+    one Sim(3) as every headline ATE. ``bridges``: the bridges the run made, ``None`` when no keyframe loop ran
+    (scheme ``comoda``); ``credit``: the front end's own (``vo.bridges_credit`` counts those joined)."""
     keys = [f"trajectory.{group}.{leaf}" for group in ("ate_rmse_m", "ate_rmse_m_per_segment")
             for leaf in ("bridged", "all_frames_bridged")]
     if bridges is None:
         why = "scheme 'comoda' does not run the keyframe loop that bridges segments"
-        for key in ("vo.bridges", *keys):
+        for key in ("vo.bridges", "vo.bridges_credit", *keys):
             run.summary.absent(key, why)
         return
     run.summary.set("vo.bridges", len(bridges))
-    if not bridges:
+    run.summary.set("vo.bridges_credit", sum(not b.get("refused") for b in credit or []))
+    if not any(not b.get("refused") for b in credit or []):
         why = ("no segment to bridge" if len({k.segment for k in joined.keyframes}) < 2 else
                "no bridge could be made (vo.bridge_segments=false, or no depth ratio on a side of a gap)")
         for key in keys:

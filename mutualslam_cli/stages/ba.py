@@ -24,7 +24,8 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.map_ply import write_ply
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.adaptation import Adapted, depth_predictor
+from mutualslam_cli.stages.adaptation import Adapted
+from mutualslam_cli.stages.loop_inputs import depth_predictor
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.stages.slam_metrics import (

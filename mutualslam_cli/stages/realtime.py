@@ -34,14 +34,16 @@ import bisect
 import copy
 import math
 from collections import deque
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Mapping, Protocol
 
 import numpy as np
+import torch
 
-from mutualslam_cli.vo.feedback import MapRefinement
-
-if TYPE_CHECKING:  # the loop that drives the clock (stages/adaptation.py imports this module)
-    from mutualslam_cli.stages.adaptation import OnlineLoop
+from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.credit import WeightsAt
+from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
+from mutualslam_cli.vo.map_state import MapState
 
 
 class RealtimeClock:
@@ -144,8 +146,6 @@ class DeferredMap:
         self._ops.append(("transform_segment", (segment, R, t, s, onto)))
 
     def refine(self, r: MapRefinement) -> None:
-        from mutualslam_cli.vo.feedback import apply_refinement
-
         apply_refinement(self._shadow(), r)
         self._ops.append(("refine", (r,)))
 
@@ -167,7 +167,28 @@ class DeferredMap:
                 self.applied.append((int(getattr(self.source, "frame", -1)), end_ms, kind))
 
 
-def run_realtime(loop: "OnlineLoop") -> None:
+class Loop(Protocol):
+    """What :func:`run_realtime` drives: :class:`~mutualslam_cli.stages.adaptation.OnlineLoop`."""
+
+    run: RunContext
+    source: Any  # FrontEndSource, or a scripted one in tests
+    state: MapState
+    net: torch.nn.Module
+    adapter: OnlineAdapter | None
+    clock: RealtimeClock | None
+    writer: DeferredMap
+    row_of: dict[int, dict[str, Any]]
+    trained_kf: int
+    weights_at: WeightsAt
+
+    def keyframe_work(self, kf: int) -> None: ...
+
+    def score_before(self, frame: int, kf: int) -> None: ...
+
+    def step_row(self, info: StepInfo) -> dict[str, Any]: ...
+
+
+def run_realtime(loop: Loop) -> None:
     """Algorithm 1's loop on the sequence's clock over ``loop``'s front end (module docstring).
 
     Between two frames the loop does the work that fits before the next one: the current keyframe's steps that
@@ -228,6 +249,7 @@ def run_realtime(loop: "OnlineLoop") -> None:
         return loop.trained_kf
 
     for frame, keyframes in loop.source.timeline():
+        loop.weights_at.at_frame(frame, loop.net)  # the weights the front end has at this frame
         queue.extend(keyframes)
         until = times[frame + 1] if frame + 1 < len(times) else math.inf
         work(min(until, end_ms) if until != math.inf else math.inf)

@@ -45,11 +45,12 @@ def _cfg(tmp: Path, *extra: str):
 
 @pytest.fixture(scope="module")
 def causal(lost):
-    """The causal run, uncached (a fresh results root), watched: the bridge's network and the loop's steps."""
+    """The causal run, uncached (a fresh results root, and the front end alone run without the cache, which it
+    would fill), watched: the bridge's network and the loop's steps."""
     tmp, root = lost
     seen, loops = [], []
     mp = pytest.MonkeyPatch()
-    plan, run_loop = adaptation.plan_bridge, adaptation.OnlineLoop.run_loop
+    plan, run_loop, alone = adaptation.plan_bridge, adaptation.OnlineLoop.run_loop, adaptation.front_end_alone
 
     def spy_loop(self):
         loops.append(self)
@@ -64,6 +65,7 @@ def causal(lost):
 
     mp.setattr(adaptation.OnlineLoop, "run_loop", spy_loop)
     mp.setattr(adaptation, "plan_bridge", spy_plan)
+    mp.setattr(adaptation, "front_end_alone", lambda seq, cfg, cache_dir=None: alone(seq, cfg, None))
     try:
         r = run_sequence(root, _cfg(tmp), out=tmp / "a", command=["test"])
     finally:
@@ -138,3 +140,42 @@ def test_a_cached_run_is_the_uncached_run(lost, causal):
     ka, kb = pd.read_csv(first / "keyframes.csv"), pd.read_csv(again.folder / "keyframes.csv")
     timing = [c for c in ka.columns if c in ("ms",) or c.endswith("_s") or c.startswith("rt_")]
     pd.testing.assert_frame_equal(ka.drop(columns=timing), kb.drop(columns=timing))
+
+
+def test_the_bridged_credit_is_the_front_end_alone_and_its_own_bridges(lost, causal):
+    """Algorithm 1's global BA moved poses of the first segment before the bridge; Table 4's "bridged" column is
+    the front end alone, joined by a bridge planned on its own map of then with the weights of then: its first
+    segment is the front end's, untouched by the BA, and its bridge is the one planned there."""
+    from mutualslam_cli.stages.loop_inputs import depth_predictor
+    from mutualslam_cli.stages.event_source import FrontEndSource
+    from mutualslam_cli.adapt.inputs import keyframe_images
+    from mutualslam_cli.vo.segments import plan_bridge
+
+    tmp, root = lost
+    r, _, loop = causal
+    state, cfg, seq = loop.state, _cfg(tmp), load_sequence(root)
+    first = next(k for k in range(state.n_keyframes) if state.segment(k) == 1)
+    rows = pd.read_csv(r.folder / "keyframes.csv").set_index("kf_id")
+    assert rows.loc[:first - 1, "ba_s"].notna().any()  # a BA before the bridge …
+    alone, _ = run_frontend(seq, cfg)
+    seg0 = [k for k in alone.keyframes if k.segment == 0]
+    moved = [np.abs(state.pose(k.id) - k.pose).max() for k in seg0 if k.id < state.n_keyframes]
+    assert max(moved) > 1e-4  # … moved the live map's first segment
+    kf_alone = np.loadtxt(r.folder / "traj_kf.txt")
+    kf_bridged = np.loadtxt(r.folder / "traj_kf_bridged.txt")
+    n0 = len(seg0)
+    np.testing.assert_array_equal(kf_bridged[:n0], kf_alone[:n0])  # the bridged column does not see it
+    assert not np.allclose(kf_bridged[n0:, 1:4], kf_alone[n0:, 1:4])  # its second segment was moved
+    (credit,) = json.loads((r.folder / "manifest.json").read_text())["bridges_credit"]
+    # the same bridge planned again: the front end alone at the segment's first keyframe, the weights of then
+    src = FrontEndSource(seq, cfg)
+    kf, at = next((kfs[0], f) for f, kfs in ((f, [k for k in ks if src.state.segment(k) == 1])
+                                             for f, ks in src.timeline()) if kfs)
+    assert src.state.map.kf_frame[kf] == credit["frame"]
+    net = loop.net
+    net.load_state_dict(loop.weights_at.kept[at])
+    load = keyframe_images(seq, lambda k: src.state.map.kf_frame[k], cfg.net.width, cfg.net.height)
+    b = plan_bridge(src.state.snapshot(seq.frames, covisibility=False), kf, depth_predictor(net, load, False),
+                    seq.load_gray, seq.intrinsics)
+    src.close()
+    assert b.scale == pytest.approx(credit["scale"], rel=1e-9) and b.R == credit["R"] and b.t == credit["t"]
