@@ -11,11 +11,11 @@ from typing import Any, Literal
 
 import yaml
 
-from mutualslam_cli.config_parse import apply_overrides, build, check_run
-from mutualslam_cli.config_stages import BAConfig, DenseConfig, EvalConfig, ExperimentConfig, LoopConfig
+from mutualslam_cli.config.parse import apply_overrides, build, check_run
+from mutualslam_cli.config.backend import BAConfig, DenseConfig, EvalConfig, ExperimentConfig, LoopConfig
 from mutualslam_cli.errors import ConfigError
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
 
 
 @dataclass(frozen=True)
