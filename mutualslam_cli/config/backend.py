@@ -60,15 +60,17 @@ class BAConfig:
 @dataclass(frozen=True)
 class LoopConfig:
     """Loop closure (:mod:`~mutualslam_cli.vo.loop_closure`, :mod:`~mutualslam_cli.ba.pose_graph`): the paper's
-    future work, off by default (the paper)."""
+    future work, off by default (the paper). The loop detector takes this record as its thresholds."""
 
     enabled: bool = False
     """Look for each new keyframe among the old ones; a verified loop is closed by a Sim(3) pose graph and a BA."""
     min_gap: int = 30
-    """Keyframes between a loop's two ends at least; also between two loops closed."""
+    """Keyframes between a loop's two ends at least (nearer ones are the odometry's own business); also between
+    two loops closed."""
     n_candidates: int = 3
     """Old keyframes verified per new keyframe, best appearance first."""
     max_scale_error: float = 0.1
     """Largest relative standard error of a loop's scale (the network's depth ratios on both ends)."""
     max_depth_spread: float = 0.25
-    """Largest relative spread of the old points' depths under the loop pose against the network's depth."""
+    """Largest relative spread (1.4826 × MAD / median) of the old points' depths under the loop pose against the
+    network's depth."""
