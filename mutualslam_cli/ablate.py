@@ -45,9 +45,10 @@ from mutualslam_cli.config import RunConfig, with_overrides, with_settings
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.device import claim_gpu, gpu_slots
 from mutualslam_cli.errors import ConfigError, MslamError
-from mutualslam_cli.pipeline import run_sequence, use_threads
+from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, run_dir
+from mutualslam_cli.stages.context import use_threads
 from mutualslam_cli.stages.frontend import run_frontend
 
 log = logging.getLogger(__name__)

@@ -44,7 +44,7 @@ from typing import Any, Iterator
 
 import torch
 
-from mutualslam_cli.config_parse import check_device_spec
+from mutualslam_cli.config.checks import check_device_spec
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.machine import cpu_info, memory_gb
 

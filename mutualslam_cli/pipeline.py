@@ -16,42 +16,35 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import torch
 from threadpoolctl import threadpool_limits
 
-from mutualslam_cli.adapt.depthnet import prepare
-from mutualslam_cli.adapt.inputs import load_network, use_fast_path
-from mutualslam_cli.adapt.weights import DECODER_FILE, ENCODER_FILE, load_monodepth2
+from mutualslam_cli.adapt.inputs import load_network, load_saved_network, use_fast_path
+from mutualslam_cli.adapt.weights import ENCODER_FILE, has_depth_files
 from mutualslam_cli.allocator import retain_freed_memory
-from mutualslam_cli.config import RunConfig, load_config, to_dict, with_overrides
+from mutualslam_cli.config import RunConfig, load_config, to_dict
 from mutualslam_cli.datasets.recording import RecordingOptions
-from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.device import configure, describe_device, device_label, resolve_device
+from mutualslam_cli.device import configure, describe_device, resolve_device
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import (
-    git_revision,
+    fuse_record,
     is_complete,
-    manifest,
     read_manifest,
     read_summary,
     run_dir,
-    versions,
     write_json,
     write_yaml,
 )
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages import adaptation, dense, depth_export, evaluation, frontend, scale_drift
 from mutualslam_cli.stages.ba import BAStage
-from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.context import RunContext, open_sequence, use_threads
+from mutualslam_cli.stages.run_record import write_record
 from mutualslam_cli.types import Progress
 
 log = logging.getLogger(__name__)
-
-#: The stages whose wall time ``timing.stage_s`` splits a run into (``other``: everything else).
-STAGES = ("frontend", "adaptation", "ba", "evaluation", "dense")
 
 
 @dataclass
@@ -69,31 +62,6 @@ class RunResult:
     summary: dict[str, Any]
     skipped: bool = False
     timings: dict[str, float] = field(default_factory=dict)
-
-
-def use_threads(cfg: RunConfig) -> RunConfig:
-    """``cfg`` with ``threads`` resolved (0 → what torch would use), set for torch and OpenCV.
-
-    Results follow the thread count (reductions sum in another order), so the count is resolved
-    once, used alike by torch, OpenCV and BLAS (:func:`run_sequence`), and recorded in
-    ``config.yaml`` like any setting.
-    """
-    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())
-    torch.set_num_threads(cfg.threads)
-    cv2.setNumThreads(cfg.threads)
-    return cfg
-
-
-def open_sequence(sequence: str | Path | Sequence, cfg: RunConfig, registry: Path | None = None,
-                  recording: RecordingOptions | None = None, progress: Progress | None = None) -> Sequence:
-    """The sequence a run reads: a loaded one as is, else a ``datasets.yaml`` name, a folder or a recording
-    (converted once into ``recording.cache``, reported as ``progress("convert", {"done": frames})``)."""
-    if isinstance(sequence, Sequence):
-        return sequence
-    report = None if progress is None else (lambda n: progress("convert", {"done": n, "total": None}))
-    return load_sequence(sequence, data_root=cfg.data.data_root, registry_path=registry,
-                         max_frames=cfg.data.max_frames, stride=cfg.data.stride, recording=recording,
-                         progress=report)
 
 
 # ----------------------------------------------------------------------------- mslam run
@@ -166,61 +134,8 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:
         dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
-    return _finish(run, fe, ba, adapted, command, t_start)
-
-
-def _finish(run: RunContext, fe: frontend.FrontEnd, ba: BAStage, adapted: adaptation.Adapted,
-            command: list[str] | None, t_start: float) -> RunResult:
-    """The run's identity and stage times, ``manifest.json``, then ``summary.json`` (last: the run is complete)."""
-    seq, cfg, summary = run.seq, run.cfg, run.summary
-    total = time.perf_counter() - t_start
-    _summarise_times(summary, run.timings, total, fe.cached)
-    summary.set("sequence.name", seq.name)
-    summary.set("sequence.frames", len(seq))
-    summary.set("scheme", cfg.adapt.scheme)
-    summary.set("seed", cfg.seed)
-    dev = run.device_info
-    for key in ("device", "device_name", "device_memory_gb", "cuda_version", "cudnn_version"):
-        summary.set(f"run.{key}", dev.get(key), "not a CUDA device" if key.startswith("cud") else "unknown")
-    summary.set("run.device_label", device_label(dev))  # what reports group by: never averaged across devices
-    timings = {**{f"{k}_s": v for k, v in run.timings.items()}, "total_s": total}
-    write_json(run.folder / "manifest.json", manifest(command, cfg.seed, timings, {
-        "device": dev,
-        "sequence": {"name": seq.name, "root": str(seq.root), "frames": len(seq), "meta": seq.meta,
-                     "intrinsics": seq.intrinsics.as_list()},
-        "vo_meta": {k: v for k, v in fe.vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
-        "map_points_with_gt": fe.points_with_gt,
-        "ba_runs": ba.record.runs,
-        "bridges": adapted.bridges or [],
-        "bridges_credit": adapted.credit,
-        "bridges_refused": adapted.refused,
-        "loops": adapted.loops,
-    }))
-    s = summary.to_dict()
-    write_json(run.folder / "summary.json", s)
-    return RunResult(run.folder, s, timings=timings)
-
-
-def _summarise_times(summary: Summary, timings: dict[str, float], total_s: float, vo_cached: bool) -> None:
-    """``timing.total_s`` and the run's wall time split by stage, ``timing.stage_s.*`` (seconds).
-
-    ``frontend`` (VO or oracle; a cached front end costs only its loading), ``adaptation`` (online
-    fine-tuning without the BA it triggered), ``ba`` (every culling + global BA: Algorithm 1's
-    requests and the final one), ``evaluation`` (depth of every frame with GT by both models),
-    ``dense`` (when it ran), ``other`` (the rest: loading the sequence and the network, trajectory
-    and map metrics, writing files). They add up to ``total_s``. ``timing.beyond_steps``: what the run cost
-    beyond its optimiser steps, as a share of them (``total_s / timing.finetune_steps_s − 1``; DESIGN §10: ≤ 0.25).
-    """
-    parts = {k: timings.get(k, 0.0) for k in STAGES if k != "dense" or "dense" in timings}
-    parts["other"] = total_s - sum(parts.values())
-    summary.set("timing.total_s", total_s)
-    for k, v in parts.items():
-        summary.set(f"timing.stage_s.{k}", float(v))
-    steps_s = summary.values.get("timing.finetune_steps_s")
-    summary.set("timing.beyond_steps", total_s / steps_s - 1.0 if steps_s else None,
-                "no optimiser step")  # DESIGN §10: a run costs its steps + at most 25 % (≤ 0.25)
-    if vo_cached:
-        summary.notes["timing.stage_s.frontend"] = "front end loaded from the cache"
+    summary, timings = write_record(run, fe, ba, adapted, command, t_start)  # summary.json last: the run is complete
+    return RunResult(run.folder, summary, timings=timings)
 
 
 # ----------------------------------------------------------------------------- mslam fuse
@@ -249,7 +164,7 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
     cfg = load_config(folder / "config.yaml", overrides)
     wdir = folder / "weights"
     adapted = cfg.adapt.scheme != "none"
-    if adapted and not ((wdir / ENCODER_FILE).is_file() and (wdir / DECODER_FILE).is_file()):
+    if adapted and not has_depth_files(wdir):
         raise DatasetError(f"{folder}: the run kept no adapted weights (no weights/{ENCODER_FILE}); rerun it with "
                            "--set eval.save_weights=true (and --force) to fuse it later")
     record = read_manifest(folder)
@@ -264,17 +179,14 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         seq = open_sequence(seq if seq is not None else root, cfg, registry)
         vo, _, _ = frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)
         fast = use_fast_path(cfg, device)
-        nets = {"pretrained": load_network(cfg, fast, device), "adapted": prepare(load_monodepth2(
-            wdir, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth), fast, device=device) if adapted else None}
+        nets = {"pretrained": load_network(cfg, fast, device),
+                "adapted": load_saved_network(wdir, cfg, fast, device) if adapted else None}
         summary = Summary.from_dict(old, drop_prefix="dense.")
         dense.run_dense(folder, seq, vo, nets, cfg, fast, summary, progress)
         data = to_dict(cfg)
         data["dense"]["enabled"] = True  # the folder now holds the dense results of these settings
         write_yaml(folder / "config.yaml", data)
-        record["fuse"] = {"command": command, "time_s": time.perf_counter() - t0, "versions": versions(),
-                          "device": describe_device(device),
-                          "git_revision": git_revision(),
-                          "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        record["fuse"] = fuse_record(command, time.perf_counter() - t0, describe_device(device))
         write_json(folder / "manifest.json", record)
         out = summary.to_dict()
         write_json(folder / "summary.json", out)

@@ -32,10 +32,10 @@ and attributes part of the gap to the pose network, which was never trained indo
   layers; convolutions and decoder biases are trained. CoMoDa selects the frozen parameters by name
   (``"bn"`` in it), which misses the BatchNorm of the ResNet shortcuts (``layerN.0.downsample.1``);
   here every BatchNorm layer is frozen, found by type. Eval mode is re-asserted at each call.
-- **Pose network source** (:func:`make_pose_net`): ``adapt.comoda_pose_weights``, else the depth
-  weights folder ``net.weights`` when it holds pose files, else the default weights folder's, else
-  an encoder copied from the depth encoder with a random decoder; ``summary.json`` names it
-  (``adaptation.pose_network``).
+- **Pose network source** (:func:`~mutualslam_cli.adapt.comoda_pose.make_pose_net`):
+  ``adapt.comoda_pose_weights``, else the depth weights folder ``net.weights`` when it holds pose files,
+  else the default weights folder's, else an encoder copied from the depth encoder with a random
+  decoder; ``summary.json`` names it (``adaptation.pose_network``).
 - **Not transferred indoors**: CoMoDa's velocity loss (GPS speed gives metric scale; TUM / ICL-NUIM
   have no speed) and its static-frame rule (a translation below 0.2 m by GPS speed; here an
   optional photometric gate, ``comoda_min_motion``, off by default).
@@ -53,10 +53,8 @@ and attributes part of the gap to the pose network, which was never trained indo
 
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -66,20 +64,15 @@ from mutualslam_cli.adapt.depthnet import fast_context
 from mutualslam_cli.adapt.losses import photometric_error, smoothness_loss
 from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.adapt.warp import warp
-from mutualslam_cli.adapt.weights import default_weights_dir, has_pose_files, load_pose
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.device import grad_scaler, module_device, synchronize
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.types import check_shape
 
-log = logging.getLogger(__name__)
-
 #: Std of the noise added to the identity reprojection error to break ties (Monodepth2: 1e-5).
 IDENTITY_NOISE = 1e-5
 #: A reprojection outside the source image gets this error, so it never wins the minimum.
 INVALID_PE = 1e4
-#: ``adaptation.pose_network`` when no pose files were found (:func:`make_pose_net`).
-RANDOM_POSE = "random (encoder from the depth encoder, decoder random)"
 #: The BatchNorm layers :func:`freeze_batchnorm` freezes.
 BATCHNORM_TYPES = (nn.BatchNorm1d, nn.BatchNorm2d, nn.BatchNorm3d, nn.SyncBatchNorm)
 
@@ -362,52 +355,3 @@ class ComodaAdapter:
         with torch.no_grad(), fast_context(self.fast, self.device):
             T = self.pose_net(a, b)[0].double().cpu().numpy()  # T_{t→t+1}
         self.poses.append(self.poses[-1] @ np.linalg.inv(T))
-
-
-def _pose_folder(cfg: AdaptConfig, weights_dir: str | Path | None,
-                default_dir: str | Path | None) -> tuple[Path | None, str]:
-    """``(folder, origin)`` of the pose files :func:`make_pose_net` loads, ``(None, "")`` when none."""
-    if cfg.comoda_pose_weights:
-        return Path(cfg.comoda_pose_weights).expanduser(), "adapt.comoda_pose_weights"
-    if weights_dir and has_pose_files(Path(weights_dir).expanduser()):
-        return Path(weights_dir).expanduser(), "net.weights"
-    folder = Path(default_dir if default_dir is not None else default_weights_dir()).expanduser()
-    if has_pose_files(folder):
-        if weights_dir:
-            log.warning("comoda: net.weights %s has no pose_encoder.pth/pose.pth; using the default weights "
-                        "folder's pose network %s, trained beside another depth network", weights_dir, folder)
-        return folder, "the default weights folder"
-    return None, ""
-
-
-def make_pose_net(depth_net: nn.Module, cfg: AdaptConfig, default_dir: str | Path | None = None,
-                  weights_dir: str | Path | None = None) -> tuple[PoseNet, str]:
-    """The pose network of scheme ``comoda`` and where it came from.
-
-    Order of preference: ``cfg.comoda_pose_weights`` if set (must hold the files); else
-    ``weights_dir`` (the run's ``net.weights``, the depth network's folder) when it holds
-    ``pose_encoder.pth`` + ``pose.pth``; else ``default_dir``'s (default: :func:`default_weights_dir`)
-    pose files; else the pose encoder initialised from ``depth_net.encoder`` (``conv1`` repeated over
-    the two frames and halved, as Monodepth2 does from ImageNet) and a random decoder (its 0.01 output
-    scale starts it near the identity), with a warning.
-
-    Returns:
-        ``(net, source)``: the network in eval mode; ``source`` is the resolved path of the pose
-        files' folder, or :data:`RANDOM_POSE` (the ``adaptation.pose_network`` of ``summary.json``).
-
-    Raises:
-        ConfigError: ``comoda_pose_weights`` names a folder without valid pose files, or a folder's
-            pose files are not Monodepth2's.
-    """
-    folder, origin = _pose_folder(cfg, weights_dir, default_dir)
-    if folder is not None:
-        net = load_pose(folder)
-        source = str(folder.resolve())
-        log.info("comoda: pose network from %s (%s)", source, origin)
-        return net, source
-    where = ", ".join(str(f) for f in (weights_dir, default_dir or default_weights_dir()) if f)
-    log.warning("comoda: no pose_encoder.pth/pose.pth in %s; pose encoder initialised from the depth "
-                "encoder, decoder random (set adapt.comoda_pose_weights to load Monodepth2's)", where)
-    net = PoseNet()
-    net.encoder.init_from_single_image(depth_net.encoder)
-    return net.eval(), RANDOM_POSE

@@ -101,6 +101,14 @@ def load_network(cfg: RunConfig, fast: bool = False, device: torch.device | str 
     return prepare(net, fast, device=device)
 
 
+def load_saved_network(folder: Path, cfg: RunConfig, fast: bool = False,
+                       device: torch.device | str = "cpu") -> torch.nn.Module:
+    """A model saved in ``folder`` (Monodepth2 files, e.g. a run's adapted ``weights/``), prepared as
+    :func:`load_network` prepares the pre-trained one."""
+    net = weights.load_monodepth2(folder, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth)
+    return prepare(net, fast, device=device)
+
+
 def use_fast_path(cfg: RunConfig, device: torch.device | str = "cpu") -> bool:
     """Resolve ``net.fast``: ``auto`` → bf16 where the CPU supports it; on a CUDA device mixed precision
     (bf16 or fp16) where the GPU has tensor cores (:func:`~mutualslam_cli.device.amp_supported`)."""

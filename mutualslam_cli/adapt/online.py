@@ -42,7 +42,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
 from typing import Callable, Literal, Mapping
 
 import numpy as np
@@ -66,6 +65,7 @@ from mutualslam_cli.adapt.state import (
     is_validation_index,
     step,
 )
+from mutualslam_cli.adapt.step_info import StepInfo  # what add_keyframe returns; still importable from here
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.device import grad_scaler, module_device, synchronize
 from mutualslam_cli.errors import ConfigError, TransitionError
@@ -75,41 +75,6 @@ log = logging.getLogger(__name__)
 
 LossFn = Callable[..., tuple[torch.Tensor, dict[str, float]]]
 ValFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
-
-
-@dataclass
-class StepInfo:
-    """What one keyframe did to the adaptation.
-
-    Attributes:
-        kf_id: keyframe id. t: its arrival index (Alg. 1's t).
-        state: FSM mode after the tick (always ``"IDLE"`` in this synchronous loop).
-        is_validation: validation keyframe (not trained on).
-        trained: an optimiser step was taken.
-        batch: keyframe ids of the training batch (newest first).
-        sources: photometric sources of the arriving keyframe as its scheme chose them (``luo``:
-            its stereo partners, empty when none qualified); empty for validation keyframes.
-        loss: ``{"photo", "sparse", "smooth", "total", "penalty"}`` floats (empty if not trained).
-        l_val: L_val on validation keyframes (None otherwise; NaN if no sparse points).
-        steps: optimiser steps taken on this keyframe's batch.
-        n_converged: Alg. 1's counter after the tick.
-        run_global_ba: Alg. 1 requested global BA on this tick.
-        ms: wall time of the tick, milliseconds.
-    """
-
-    kf_id: int
-    t: int
-    state: str
-    is_validation: bool
-    trained: bool
-    batch: list[int] = field(default_factory=list)
-    sources: list[int] = field(default_factory=list)
-    loss: dict[str, float] = field(default_factory=dict)
-    l_val: float | None = None
-    steps: int = 0
-    n_converged: int = 0
-    run_global_ba: bool = False
-    ms: float = 0.0
 
 
 class OnlineAdapter:

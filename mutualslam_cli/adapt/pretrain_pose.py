@@ -7,7 +7,7 @@ same supervision-by-rendering as the default depth network (:mod:`.pretrain`), s
 in metres like its depth — and saved as Monodepth2's ``pose_encoder.pth`` + ``pose.pth``
 (:func:`~mutualslam_cli.adapt.weights.save_pose`) with a ``pretrain_pose.json`` record. Written into
 the default weights folder, it becomes scheme ``comoda``'s default pose network
-(:func:`~mutualslam_cli.adapt.comoda.make_pose_net`).
+(:func:`~mutualslam_cli.adapt.comoda_pose.make_pose_net`).
 
 Loss per pair: ``‖t̂ − t‖₁ + ‖R̂ − R‖₁`` (entries of the rotation matrix; both ~1e-2 per frame at
 30 Hz, so neither dominates), mean over the batch, ``T = T_{i→i+1} = T_wc(i+1)⁻¹ · T_wc(i)``.

@@ -88,6 +88,11 @@ def _check_and_load(module: torch.nn.Module, loaded: dict[str, Any], path: Path)
             own[k].copy_(v.to(own[k].dtype))
 
 
+def has_depth_files(folder: Path) -> bool:
+    """Whether ``folder`` holds both ``encoder.pth`` and ``depth.pth`` (what :func:`load_monodepth2` reads)."""
+    return (Path(folder) / ENCODER_FILE).is_file() and (Path(folder) / DECODER_FILE).is_file()
+
+
 def load_monodepth2(folder: Path, **net_kwargs: Any) -> DepthNet:
     """Build a :class:`DepthNet` from ``folder/encoder.pth`` and ``folder/depth.pth``.
 

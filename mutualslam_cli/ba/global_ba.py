@@ -237,38 +237,38 @@ def _solve_units(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, sta
                           np.zeros((len(ks), 2)), loc[host[cand]], pix[cand], rho[cand],
                           [loc[sub_obs[i]][loc[sub_obs[i]] >= 0] for i in cand],
                           np.array([sub.keyframes[k].segment for k in ks]))
-        op, ok = existing_targets(scene, cfg.max_targets - (cfg.nearby_slots if cfg.nearby_targets else 0))
+        obs_pt, obs_kf = existing_targets(scene, cfg.max_targets - (cfg.nearby_slots if cfg.nearby_targets else 0))
         n_near = 0
         if cfg.nearby_targets:
-            np_, nk_ = nearby_targets(scene, op, ok, cfg)
-            op, ok, n_near = np.r_[op, np_], np.r_[ok, nk_], len(np_)
-        out.totals["n_targets"] += len(op)
+            near_pt, near_kf = nearby_targets(scene, obs_pt, obs_kf, cfg)
+            obs_pt, obs_kf, n_near = np.r_[obs_pt, near_pt], np.r_[obs_kf, near_kf], len(near_pt)
+        out.totals["n_targets"] += len(obs_pt)
         out.totals["n_nearby_targets"] += n_near
-        for part in connected_parts(len(ks), scene.host[op], ok):  # one gauge per connected map
-            _solve_part(scene, op, ok, part, ks, cand, cfg, (H, W), out)
+        for part in connected_parts(len(ks), scene.host[obs_pt], obs_kf):  # one gauge per connected map
+            _solve_part(scene, obs_pt, obs_kf, part, ks, cand, cfg, (H, W), out)
     return out
 
 
-def _solve_part(scene: UnitScene, op: np.ndarray, ok: np.ndarray, part: np.ndarray, ks: np.ndarray,
+def _solve_part(scene: UnitScene, obs_pt: np.ndarray, obs_kf: np.ndarray, part: np.ndarray, ks: np.ndarray,
                 cand: np.ndarray, cfg: BAConfig, hw: tuple[int, int], out: _Solved) -> None:
-    """The BA of the blocks ``(op, ok)`` whose keyframes lie in ``part`` (local indices of ``scene``, whose
-    keyframes are ``ks`` and points ``cand`` of the sub-map), written into ``out``; its first keyframe fixed,
-    and so is any keyframe no block of the part touches."""
+    """The BA of the blocks ``(obs_pt, obs_kf)`` (each block's point and target keyframe) whose keyframes lie in
+    ``part`` (local indices of ``scene``, whose keyframes are ``ks`` and points ``cand`` of the sub-map), written
+    into ``out``; its first keyframe fixed, and so is any keyframe no block of the part touches."""
     if len(part) < 2:
         return
-    in_part = np.isin(scene.host[op], part)
-    op, ok = op[in_part], ok[in_part]
-    used = np.unique(op)
+    in_part = np.isin(scene.host[obs_pt], part)
+    obs_pt, obs_kf = obs_pt[in_part], obs_kf[in_part]
+    used = np.unique(obs_pt)
     remap = np.full(len(scene.host), -1)
     remap[used] = np.arange(len(used))
     free = np.zeros(len(scene.T_cw), bool)
-    free[np.unique(np.r_[ok, scene.host[used]])] = True
+    free[np.unique(np.r_[obs_kf, scene.host[used]])] = True
     free[part[0]] = False
     # the scale: that of the part's first segment (the one the others were bridged onto), so a bridge's can move
     joined = len(np.unique(scene.segment)) > 1
     anchor = (scene.segment == scene.segment[part[0]]) & np.isin(np.arange(len(free)), part) if joined else None
     H, W = hw
-    r = solve(scene.problem(remap[op], ok, used, free, anchor), iterations=cfg.iterations,
+    r = solve(scene.problem(remap[obs_pt], obs_kf, used, free, anchor), iterations=cfg.iterations,
               huber_delta=cfg.huber_grey / 255, outlier_delta=cfg.outlier_grey / 255, pattern=pattern_of(cfg),
               max_targets=cfg.max_targets, levels=max(1, min(cfg.levels, int(np.log2(min(H, W) / 32)) + 1)),
               rounds=cfg.rounds)

@@ -27,7 +27,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from mutualslam_cli.ba.problem import NP
-from mutualslam_cli.ba.residuals import PatchData, point_costs, residuals, robust_cost
+from mutualslam_cli.ba.residuals import PatchData, Residuals, point_costs, residuals, robust_cost
 from mutualslam_cli.ba.schur import NormalEquations
 from mutualslam_cli.geometry import left_update
 
@@ -80,11 +80,12 @@ class LevelResult:
 
 
 def normal_equations(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, huber_delta: float,
-                     active: np.ndarray | None = None, res: tuple | None = None) -> NormalEquations:
+                     active: np.ndarray | None = None, res: Residuals | None = None) -> NormalEquations:
     """IRLS-weighted normal equations of the active blocks (``None``: all) at the current state;
     ``res`` may pass the output of ``residuals(..., jac=True)`` at this state."""
     P = len(rho)
-    r, valid, _, Jc, Jp = residuals(d, T, ab, rho, jac=True) if res is None else res
+    res = residuals(d, T, ab, rho, jac=True) if res is None else res
+    r, valid, Jc, Jp = res.values, res.valid, res.d_cameras, res.d_inv_depth
     a = np.abs(r)
     w = np.where(a < huber_delta, 1.0, huber_delta / np.maximum(a, 1e-12)) * valid * d.wg[d.p]  # IRLS
     if active is not None:
@@ -146,11 +147,12 @@ class _Level:
     def prior(self, T: np.ndarray) -> tuple[np.ndarray, float]:
         return _scale_prior(T, self.gauge.fidx, self.gauge.s0, self.ws, self.gauge.anchor)
 
-    def total(self, T: np.ndarray, res: tuple) -> float:
+    def total(self, T: np.ndarray, res: Residuals) -> float:
         e = self.prior(T)[1] if self.ws else 0.0
-        return robust_cost(self.d, res[0], res[2], self.act, self.lm.huber_delta) + self.ws * e * e
+        return robust_cost(self.d, res.values, res.counted, self.act, self.lm.huber_delta) + self.ws * e * e
 
-    def trial(self, st: BAState, res: tuple, dc: np.ndarray, dp: np.ndarray) -> tuple[BAState, tuple, float]:
+    def trial(self, st: BAState, res: Residuals, dc: np.ndarray,
+              dp: np.ndarray) -> tuple[BAState, Residuals, float]:
         """The state after the step ``(dc, dp)``, its residuals and cost. Given the cameras, the cost is a
         sum over points, each depending on its own inverse depth only: a point whose share of the cost
         rose with its step keeps its inverse depth instead (and its residuals at the new cameras). One
@@ -160,12 +162,12 @@ class _Level:
         new = BAState(*apply_step(*st, dc, dp, self.gauge.fidx))
         res2 = residuals(d, *new, jac=True)
         P = len(st.rho)
-        worse = point_costs(d, res2[0], res2[2], self.act, hd, P) > point_costs(d, res[0], res[2], self.act, hd, P)
+        worse = (point_costs(d, res2.values, res2.counted, self.act, hd, P)
+                 > point_costs(d, res.values, res.counted, self.act, hd, P))
         if worse.any():
             new = new._replace(rho=np.where(worse, st.rho, new.rho))
             res3 = residuals(d, *new, jac=True)
-            pick = worse[d.p]
-            res2 = tuple(np.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), b, a) for a, b in zip(res2, res3))
+            res2 = res2.where(worse[d.p], res3)  # the blocks of the points kept: their residuals at the new cameras
         return new, res2, self.total(new.T, res2)
 
 

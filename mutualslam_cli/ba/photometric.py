@@ -85,7 +85,8 @@ class _Rounds:
 
     def run(self, d: PatchData, st: BAState, n: int, level: int) -> BAState:
         """One round of ``n`` LM iterations on ``d`` (at pyramid ``level``) from ``st``; returns the state after."""
-        active = classify(d, *residuals(d, *st), self.lm.huber_delta, self.outlier_delta)
+        res = residuals(d, *st)
+        active = classify(d, res.values, res.valid, res.counted, self.lm.huber_delta, self.outlier_delta)
         active &= ~_mostly_outliers(d, active, len(st.rho), self.drop_ratio)[d.p]  # the rest of a dropped point too
         fidx = np.flatnonzero(self.free & (_blocks_per_keyframe(d, active) >= self.min_blocks))
         cols = (fidx[:, None] * NP + np.arange(NP if self.affine else 6)).ravel()
@@ -147,9 +148,10 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
         state = rounds_.run(d, state, coarse_iterations, lv)
     d0 = PatchData(prob, pattern, margin, grad_c)
     if levels > 1:  # the coarse levels are other cost functions: keep their result only if full resolution agrees
-        act0 = classify(d0, *residuals(d0, *state0), huber_delta, outlier_delta)
-        before = robust_cost(d0, *residuals(d0, *state0)[::2], act0, huber_delta)
-        if robust_cost(d0, *residuals(d0, *state)[::2], act0, huber_delta) > before:
+        res_in, res_coarse = residuals(d0, *state0), residuals(d0, *state)
+        act0 = classify(d0, res_in.values, res_in.valid, res_in.counted, huber_delta, outlier_delta)
+        before = robust_cost(d0, res_in.values, res_in.counted, act0, huber_delta)
+        if robust_cost(d0, res_coarse.values, res_coarse.counted, act0, huber_delta) > before:
             log.warning("photometric BA: the coarse levels raised the full-resolution cost; restarting from the input")
             state = state0
     share = [iterations // rounds + (1 if k < iterations % rounds else 0) for k in range(rounds)]
@@ -157,13 +159,12 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
         state = rounds_.run(d0, state, n, 0)
     per_round = rounds_.records
     T, ab, rho = state
-    final = classify(d0, *residuals(d0, *state), huber_delta, outlier_delta)
+    res_in, res_out = residuals(d0, *state0), residuals(d0, *state)
+    final = classify(d0, res_out.values, res_out.valid, res_out.counted, huber_delta, outlier_delta)
     dropped = _mostly_outliers(d0, final, len(rho), drop_ratio)
     final &= ~dropped[d0.p]
-    r0 = residuals(d0, *state0)
-    r1 = residuals(d0, *state)
-    stats = {"cost0": robust_cost(d0, r0[0], r0[2], final, huber_delta),
-             "cost": robust_cost(d0, r1[0], r1[2], final, huber_delta),
+    stats = {"cost0": robust_cost(d0, res_in.values, res_in.counted, final, huber_delta),
+             "cost": robust_cost(d0, res_out.values, res_out.counted, final, huber_delta),
              "costs": per_round[-1]["costs"], "rounds": per_round, "iterations": rounds_.iterations,
              "accepted": sum(r["accepted"] for r in per_round),
              "n_blocks": int(len(final)), "n_outlier_blocks": int((~final).sum()), "n_dropped": int(dropped.sum()),

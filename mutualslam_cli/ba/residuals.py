@@ -28,6 +28,9 @@ within a round of fixed active blocks.
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+
 import numpy as np
 
 from mutualslam_cli.ba.problem import PhotoBAProblem
@@ -103,16 +106,36 @@ class PatchData:
         return top + ay * (bot - top), bot - top, (1 - ay) * (i01 - i00) + ay * (i11 - i10)
 
 
-def residuals(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, jac: bool = False):
-    """Photometric residuals ``(M, S)`` (DSO eq. 4), validity mask and optional Jacobians.
+@dataclass(frozen=True)
+class Residuals:
+    """The photometric residuals of every block at one state (:func:`residuals`), ``M`` blocks of ``S`` pixels.
 
-    Returns:
-        ``(r, valid, counted)`` or, with ``jac``, ``(r, valid, counted, Jc, Jp)``: ``valid``
-        ``(M, S)`` marks residuals inside the image margin and in front (Jacobian weight > 0),
-        ``counted`` those entering the cost (in front, host pixel inside); ``Jc`` ``(M, S, 16)`` holds
-        the derivatives w.r.t. ``[host (ρ, φ, a, b), target (ρ, φ, a, b)]`` and ``Jp`` ``(M, S)``
-        the derivative w.r.t. the point's inverse depth.
+    Attributes:
+        values: ``(M, S)`` residuals (DSO eq. 4); 0 where not ``counted``.
+        valid: ``(M, S)`` inside the image margin and in front: the Jacobians' weight is > 0 there.
+        counted: ``(M, S)`` entering the cost: in front, host pixel inside.
+        d_cameras: ``(M, S, 16)`` derivatives w.r.t. ``[host (ρ, φ, a, b), target (ρ, φ, a, b)]``;
+            ``None`` when not asked for.
+        d_inv_depth: ``(M, S)`` derivative w.r.t. the point's inverse depth; ``None`` when not asked for.
     """
+
+    values: np.ndarray
+    valid: np.ndarray
+    counted: np.ndarray
+    d_cameras: np.ndarray | None = None
+    d_inv_depth: np.ndarray | None = None
+
+    def where(self, blocks: np.ndarray, other: Residuals) -> Residuals:
+        """Per block, ``other``'s entries where ``blocks`` ``(M,)`` is true, this one's elsewhere."""
+        def pick(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else np.where(blocks.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+
+        return Residuals(*(pick(getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self)))
+
+
+def residuals(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, jac: bool = False) -> Residuals:
+    """Photometric residuals ``(M, S)`` (DSO eq. 4), which of them count and are valid, and, with ``jac``,
+    their Jacobians (:class:`Residuals`)."""
     h, t, p = d.h, d.t, d.p
     Rh, Rt = T[h, :3, :3], T[t, :3, :3]
     R = np.einsum("mij,mkj->mik", Rt, Rh)  # R_t R_hᵀ
@@ -132,7 +155,7 @@ def residuals(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, jac:
     counted = front & d.host_ok
     r = np.where(counted, It - ab[t, 1][:, None] - e * Ihb, 0.0)  # DSO eq. 4
     if not jac:
-        return r, valid, counted
+        return Residuals(r, valid, counted)
     gx, gy = Iu * d.fx * valid, Iv * d.fy * valid  # ∂I/∂(un, vn)
     dX = [gx * iz, gy * iz, -(gx * un + gy * vn) * iz]  # ∂r/∂X_t
     G = [dX[0] * R[:, 0, i, None] + dX[1] * R[:, 1, i, None] + dX[2] * R[:, 2, i, None]
@@ -153,7 +176,7 @@ def residuals(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarray, jac:
     Jc[..., 14] = -Jc[..., 6]
     Jc[..., 15] = -1.0 * valid
     Jp = -(G[0] * x + G[1] * y + G[2]) * ir**2  # ∂X_h/∂ρ = −(x, y, 1)/ρ²
-    return r, valid, counted, Jc, Jp
+    return Residuals(r, valid, counted, Jc, Jp)
 
 
 def huber(r: np.ndarray, delta: float) -> np.ndarray:

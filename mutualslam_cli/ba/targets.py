@@ -78,13 +78,13 @@ class UnitScene:
         H, W = self.shape
         return in_image(uv, W, H, self.border)
 
-    def problem(self, op: np.ndarray, ok: np.ndarray, points: np.ndarray | None = None,
+    def problem(self, obs_pt: np.ndarray, obs_kf: np.ndarray, points: np.ndarray | None = None,
                 free: np.ndarray | None = None, anchor: np.ndarray | None = None) -> PhotoBAProblem:
-        """The photometric BA problem of the blocks ``(op, ok)`` over ``points`` (default: every point;
-        ``op`` then indexes into ``points``)."""
+        """The photometric BA problem of the blocks ``(obs_pt, obs_kf)`` (each block's point and target keyframe)
+        over ``points`` (default: every point; ``obs_pt`` then indexes into ``points``)."""
         p = np.arange(len(self.host)) if points is None else points
-        return PhotoBAProblem(self.stack, self.K, self.T_cw, self.ab, self.host[p], self.pix[p], self.rho[p], op, ok,
-                              free, anchor)
+        return PhotoBAProblem(self.stack, self.K, self.T_cw, self.ab, self.host[p], self.pix[p], self.rho[p], obs_pt,
+                              obs_kf, free, anchor)
 
 
 def first_per_point(p: np.ndarray, k: np.ndarray, n: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
@@ -97,8 +97,8 @@ def first_per_point(p: np.ndarray, k: np.ndarray, n: np.ndarray | int) -> tuple[
 
 
 def existing_targets(scene: UnitScene, max_targets: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(op, ok)``: per point its observing keyframes where it projects inside, nearest keyframe index
-    first, at most ``max_targets``."""
+    """``(obs_pt, obs_kf)``, one entry per block (point, target keyframe): per point its observing keyframes where
+    it projects inside, nearest keyframe index first, at most ``max_targets``."""
     obs = scene.obs
     cand_p = np.repeat(np.arange(len(scene.host)), [len(o) for o in obs]).astype(np.int64)
     cand_k = np.concatenate(obs).astype(np.int64) if obs else np.zeros(0, np.int64)
@@ -109,21 +109,23 @@ def existing_targets(scene: UnitScene, max_targets: int) -> tuple[np.ndarray, np
     return first_per_point(cand_p[order], cand_k[order], max_targets)
 
 
-def nearby_targets(scene: UnitScene, op: np.ndarray, ok: np.ndarray, cfg: BAConfig) -> tuple[np.ndarray, np.ndarray]:
-    """More targets for points with fewer than ``max_targets``: keyframes near the host in space where
-    the point projects inside, at a similar depth, and whose block passes the robust test now."""
+def nearby_targets(scene: UnitScene, obs_pt: np.ndarray, obs_kf: np.ndarray,
+                   cfg: BAConfig) -> tuple[np.ndarray, np.ndarray]:
+    """More targets for points with fewer than ``max_targets`` than the blocks ``(obs_pt, obs_kf)`` give them:
+    keyframes near the host in space where the point projects inside, at a similar depth, and whose block passes
+    the robust test now; ``(near_pt, near_kf)`` like :func:`existing_targets`."""
     nk, P = len(scene.T_cw), len(scene.host)
-    have = np.bincount(op, minlength=P)
+    have = np.bincount(obs_pt, minlength=P)
     want = np.maximum(cfg.max_targets - have, 0)
     if nk < 3 or not want.any():
-        return op[:0], ok[:0]
+        return obs_pt[:0], obs_kf[:0]
     T_cw = scene.T_cw
     c = -np.einsum("kji,kj->ki", T_cw[:, :3, :3], T_cw[:, :3, 3])
     near = np.argsort(np.linalg.norm(c[:, None] - c[None], axis=2), axis=1, kind="stable")[:, 1:NEARBY + 1]
     pts = np.flatnonzero(want > 0)
     cand_p = np.repeat(pts, near.shape[1])
     cand_k = near[scene.host[pts]].ravel()
-    taken = set((op.astype(np.int64) * nk + ok).tolist())
+    taken = set((obs_pt.astype(np.int64) * nk + obs_kf).tolist())
     fresh = ~np.isin(cand_p * nk + cand_k, list(taken)) & (cand_k != scene.host[cand_p])
     cand_p, cand_k = cand_p[fresh], cand_k[fresh]
     uv, z, zh = scene.project(cand_p, cand_k)
@@ -131,11 +133,11 @@ def nearby_targets(scene: UnitScene, op: np.ndarray, ok: np.ndarray, cfg: BAConf
     sel = (z > 1e-9) & (ratio < MAX_DEPTH_RATIO) & (ratio > 1 / MAX_DEPTH_RATIO) & scene.inside(uv)
     cand_p, cand_k = cand_p[sel], cand_k[sel]
     if not len(cand_p):
-        return op[:0], ok[:0]
+        return obs_pt[:0], obs_kf[:0]
     d = PatchData(scene.problem(cand_p, cand_k), pattern_of(cfg), MARGIN)
     passed = np.zeros(len(cand_p), bool)
-    passed[d.order] = classify(d, *residuals(d, scene.T_cw, scene.ab, scene.rho), cfg.huber_grey / 255,
-                               cfg.outlier_grey / 255)
+    res = residuals(d, scene.T_cw, scene.ab, scene.rho)
+    passed[d.order] = classify(d, res.values, res.valid, res.counted, cfg.huber_grey / 255, cfg.outlier_grey / 255)
     cand_p, cand_k = cand_p[passed], cand_k[passed]  # still in nearest-first order within each point
     return first_per_point(cand_p, cand_k, want)
 

@@ -87,6 +87,13 @@ def manifest(command: list[str] | None, seed: int, timings: dict[str, float], ex
     }
 
 
+def fuse_record(command: list[str] | None, time_s: float, device: dict[str, Any]) -> dict[str, Any]:
+    """The ``fuse`` entry of a run's ``manifest.json`` (``mslam fuse`` on the finished run): its command, seconds,
+    versions, device (:func:`~mutualslam_cli.device.describe_device`), git revision and time."""
+    return {"command": command, "time_s": time_s, "versions": versions(), "device": device,
+            "git_revision": git_revision(), "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
 def read_summary(folder: Path) -> dict[str, Any]:
     """Load ``summary.json`` of a result folder."""
     path = Path(folder) / "summary.json"

@@ -8,7 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
+from mutualslam_cli.adapt.online import OnlineAdapter
+from mutualslam_cli.adapt.step_info import StepInfo
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext

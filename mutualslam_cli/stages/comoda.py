@@ -11,7 +11,7 @@ per Adam step), ``timing.finetune_kf_ms`` (median per *frame* update),
 ``trajectory.ate_rmse_m.posenet`` (Sim(3)-aligned ATE of the chained poses against GT, null with a
 reason when not computable) and ``adaptation.pose_network`` (the resolved folder of the pose files the
 pose network started from, or ``"random (encoder from the depth encoder, decoder random)"``;
-:func:`~mutualslam_cli.adapt.comoda.make_pose_net`).
+:func:`~mutualslam_cli.adapt.comoda_pose.make_pose_net`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from mutualslam_cli.adapt.comoda import ComodaAdapter, FrameStep, make_pose_net
+from mutualslam_cli.adapt.comoda import ComodaAdapter, FrameStep
+from mutualslam_cli.adapt.comoda_pose import make_pose_net
 from mutualslam_cli.adapt.comoda_source import source_triplets
 from mutualslam_cli.adapt.depthnet import prepare
 from mutualslam_cli.adapt.inputs import to_net_image

@@ -1,5 +1,6 @@
 """What every stage of a run works in (:class:`RunContext`): the sequence, the config, the run
-folder and its summary, the time each stage took and the progress callback."""
+folder and its summary, the time each stage took and the progress callback; and how a run gets its
+sequence (:func:`open_sequence`) and its thread count (:func:`use_threads`)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import torch
 
-from mutualslam_cli.config import RunConfig
+from mutualslam_cli.config import RunConfig, with_overrides
+from mutualslam_cli.datasets.recording import RecordingOptions
+from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.types import Progress
@@ -69,3 +73,28 @@ class RunContext:
         """Pass ``info`` to the progress callback, if any."""
         if self.progress is not None:
             self.progress(stage, info)
+
+
+def use_threads(cfg: RunConfig) -> RunConfig:
+    """``cfg`` with ``threads`` resolved (0 → what torch would use), set for torch and OpenCV.
+
+    Results follow the thread count (reductions sum in another order), so the count is resolved
+    once, used alike by torch, OpenCV and BLAS (:func:`~mutualslam_cli.pipeline.run_sequence`), and
+    recorded in ``config.yaml`` like any setting.
+    """
+    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())
+    torch.set_num_threads(cfg.threads)
+    cv2.setNumThreads(cfg.threads)
+    return cfg
+
+
+def open_sequence(sequence: str | Path | Sequence, cfg: RunConfig, registry: Path | None = None,
+                  recording: RecordingOptions | None = None, progress: Progress | None = None) -> Sequence:
+    """The sequence a run reads: a loaded one as is, else a ``datasets.yaml`` name, a folder or a recording
+    (converted once into ``recording.cache``, reported as ``progress("convert", {"done": frames})``)."""
+    if isinstance(sequence, Sequence):
+        return sequence
+    report = None if progress is None else (lambda n: progress("convert", {"done": n, "total": None}))
+    return load_sequence(sequence, data_root=cfg.data.data_root, registry_path=registry,
+                         max_frames=cfg.data.max_frames, stride=cfg.data.stride, recording=recording,
+                         progress=report)

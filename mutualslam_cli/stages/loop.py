@@ -28,7 +28,7 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.vo.camera import focal_px
 from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector, LoopSettings
+from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ class LoopCloser:
         self.seq, self.cfg, self.source, self.ba = seq, cfg, source, ba
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
-                                     LoopSettings(lc.min_gap, lc.n_candidates, lc.max_scale_error, lc.max_depth_spread),
+                                     lc,
                                      load=lambda kf: seq.load_gray(source.state.map.kf_frame[kf]))
         self.loops: list[dict[str, Any]] = []
         self.skipped: dict[int, str] = {}

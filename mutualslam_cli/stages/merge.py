@@ -36,7 +36,7 @@ from mutualslam_cli.ba.pose_graph import close_loop
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.loop import LoopCloser
 from mutualslam_cli.vo.camera import focal_px
-from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector, LoopSettings
+from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector
 
 
 def merge_similarity(T_new: np.ndarray, loop: LoopClosure) -> tuple[np.ndarray, np.ndarray, float]:
@@ -66,7 +66,7 @@ class SegmentMerger:
         self.seq, self.cfg, self.source, self.closer = seq, cfg, source, closer
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
-                                     LoopSettings(lc.min_gap, lc.n_candidates, lc.max_scale_error, lc.max_depth_spread),
+                                     lc,
                                      load=lambda kf: seq.load_gray(source.state.map.kf_frame[kf]))
         if closer is not None:  # one keyframe index for both: one ORB extraction per keyframe
             self.detector.index = closer.detector.index

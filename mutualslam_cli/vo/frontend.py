@@ -20,7 +20,7 @@ from threadpoolctl import threadpool_limits
 
 from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import VOConfig
-from mutualslam_cli.config_parse import check_vo
+from mutualslam_cli.config.checks import check_vo
 from mutualslam_cli.datasets.sequence import Sequence, grey_frames
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import scale_motion, se3_inv

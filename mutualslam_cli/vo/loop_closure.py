@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mutualslam_cli.config import LoopConfig
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import undistort_points
@@ -46,20 +47,6 @@ from mutualslam_cli.vo.segments import MIN_RATIO_POINTS
 #: A loop that moves its query keyframe less than this (degrees; relative to its median point depth, and in log
 #: scale) closes nothing new (:meth:`LoopDetector.already_closed`).
 CLOSED_DEG, CLOSED_REL = 1.0, 0.02
-
-
-@dataclass(frozen=True)
-class LoopSettings:
-    """Thresholds of loop closure (module docstring)."""
-
-    min_gap: int = 30
-    """Keyframes between a loop's two ends at least (nearer ones are the odometry's own business)."""
-    n_candidates: int = 3
-    """Keyframes verified per new keyframe, best appearance first."""
-    max_scale_error: float = 0.1
-    """Largest relative standard error of the loop's scale (both medians)."""
-    max_depth_spread: float = 0.25
-    """Largest relative spread (1.4826 × MAD / median) of old-point depth / network depth under the loop pose."""
 
 
 @dataclass
@@ -152,7 +139,8 @@ class LoopDetector:
     Args:
         intr: the camera of the raw images (distortion included).
         thr: PnP inlier threshold in normalised units (the front end's RANSAC threshold / focal length).
-        settings: thresholds.
+        settings: the thresholds, the run's ``loop`` section (:class:`~mutualslam_cli.config.LoopConfig`, whose
+            ``enabled`` is the caller's business); default: its defaults.
         load: keyframe id → its grey image decoded again (the index then holds no image:
             :class:`~mutualslam_cli.vo.relocalise.HeldImages`).
 
@@ -166,10 +154,10 @@ class LoopDetector:
             ``None``; ``outcome`` ``"loop"`` or why not.
     """
 
-    def __init__(self, intr: Intrinsics, thr: float, settings: LoopSettings | None = None,
+    def __init__(self, intr: Intrinsics, thr: float, settings: LoopConfig | None = None,
                  load: Callable[[int], np.ndarray] | None = None) -> None:
         self.intr, self.K, self.thr = intr, intr.K(), thr
-        self.settings = settings or LoopSettings()
+        self.settings = settings or LoopConfig()
         self.index = RelocIndex(intr, RelocSettings(n_candidates=self.settings.n_candidates), load)
         self.tried = 0
         self.rejected: dict[str, int] = {}

@@ -10,7 +10,8 @@ import pytest
 import torch
 from synth import make_sequence
 
-from mutualslam_cli.adapt.comoda import ComodaAdapter, automasked_min_reprojection, make_pose_net, se3_inv_torch
+from mutualslam_cli.adapt.comoda import ComodaAdapter, automasked_min_reprojection, se3_inv_torch
+from mutualslam_cli.adapt.comoda_pose import make_pose_net
 from mutualslam_cli.adapt.depthnet import DepthNet
 from mutualslam_cli.adapt.networks import PoseNet
 from mutualslam_cli.adapt.weights import save_pose

@@ -10,7 +10,8 @@ from pathlib import Path
 import torch
 from synth import make_sequence
 
-from mutualslam_cli.adapt.comoda import RANDOM_POSE, ComodaAdapter, make_pose_net
+from mutualslam_cli.adapt.comoda import ComodaAdapter
+from mutualslam_cli.adapt.comoda_pose import RANDOM_POSE, make_pose_net
 from mutualslam_cli.adapt.depthnet import DepthNet
 from mutualslam_cli.adapt.networks import PoseNet
 from mutualslam_cli.adapt.weights import POSE_DECODER_FILE, POSE_ENCODER_FILE, save_monodepth2, save_pose

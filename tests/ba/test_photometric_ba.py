@@ -30,8 +30,9 @@ def test_jacobians_match_central_differences():
     prob.affine[:] = np.random.default_rng(2).normal(scale=0.1, size=prob.affine.shape)
     d = ph.PatchData(prob, DSO_PATTERN, 2.0)
     T, ab, rho = prob.T_cw, prob.affine, prob.inv_depth
-    r, valid, _, Jc, Jp = ph.residuals(d, T, ab, rho, jac=True)
-    obs = np.flatnonzero(valid.all(1))[:15]
+    res = ph.residuals(d, T, ab, rho, jac=True)
+    Jc, Jp = res.d_cameras, res.d_inv_depth
+    obs = np.flatnonzero(res.valid.all(1))[:15]
     assert len(obs) == 15
     eps = 1e-6
     for c in range(16):  # host (ρ, φ, a, b) then target (ρ, φ, a, b)
@@ -42,7 +43,7 @@ def test_jacobians_match_central_differences():
                 dc = np.zeros(len(T) * 8)
                 dc[kfs[j] * 8 + c % 8] = s * eps
                 T2, ab2, _ = ph.apply_step(T, ab, rho, dc, 0.0, np.array([kfs[j]]))
-                out.append(ph.residuals(d, T2, ab2, rho)[0][j])
+                out.append(ph.residuals(d, T2, ab2, rho).values[j])
             # the bilinear interpolant is piecewise smooth: where a step crosses a pixel's edge the
             # analytic derivative (of the cell the sample is in) is the one-sided one on that side
             fd = [(out[0] - out[2]) / (2 * eps), (out[0] - out[1]) / eps, (out[1] - out[2]) / eps]
@@ -50,15 +51,16 @@ def test_jacobians_match_central_differences():
             ok = np.any([np.abs(Jc[j, :, c] - f) <= t for f, t in zip(fd, tol)], axis=0)
             assert ok.all(), (c, j, Jc[j, :, c], fd[0])
     h = 1e-6 * rho
-    rp = ph.residuals(d, T, ab, rho + h)[0]
-    rm = ph.residuals(d, T, ab, rho - h)[0]
+    rp = ph.residuals(d, T, ab, rho + h).values
+    rm = ph.residuals(d, T, ab, rho - h).values
     num = (rp - rm) / (2 * h[d.p])[:, None]
     np.testing.assert_allclose(Jp[obs], num[obs], rtol=1e-4, atol=1e-6 * np.abs(num[obs]).max())
 
 
 def test_zero_residual_at_truth(scene):
     d = ph.PatchData(scene, DSO_PATTERN, 2.0)
-    r, valid, counted = ph.residuals(d, scene.T_cw, scene.affine, scene.inv_depth)
+    res = ph.residuals(d, scene.T_cw, scene.affine, scene.inv_depth)
+    r, valid = res.values, res.valid
     assert valid.mean() > 0.99
     # only the bilinear interpolation error of the rendered images remains, but for the few
     # pattern pixels that reach across a depth edge (the pattern spans 5×5 pixels)
@@ -78,7 +80,8 @@ def test_schur_step_equals_dense_solve(scene):
     ne = ph.normal_equations(d, T, ab, rho, 0.1)
     cols, lam = np.arange(8, nk * 8), 1e-3
     dc, dp = ne.step(lam, cols)
-    r, valid, _, Jc, Jp = ph.residuals(d, T, ab, rho, jac=True)
+    res = ph.residuals(d, T, ab, rho, jac=True)
+    r, valid, Jc, Jp = res.values, res.valid, res.d_cameras, res.d_inv_depth
     M, S = r.shape
     J = np.zeros((M, S, nk * 8 + P))
     for m in range(M):
@@ -169,7 +172,8 @@ def test_pyramid_downsampling_and_intrinsics_agree(scene):
     for name, K, pix in (("half-pixel", lp.K, lp.pixel),
                          ("c/2", np.diag([0.5, 0.5, 1.0]) @ scene.K, scene.pixel / 2)):
         p2 = dataclasses.replace(lp, K=K, pixel=pix)
-        r, valid, _ = ph.residuals(ph.PatchData(p2, DSO_PATTERN, 2.0), p2.T_cw, p2.affine, p2.inv_depth)
+        res = ph.residuals(ph.PatchData(p2, DSO_PATTERN, 2.0), p2.T_cw, p2.affine, p2.inv_depth)
+        r, valid = res.values, res.valid
         assert valid.mean() > 0.95
         med[name] = np.median(np.abs(r[valid]))  # median: patches over depth edges dominate RMS
     assert med["half-pixel"] < 3e-4  # box-filtered images are not exact renders at half size

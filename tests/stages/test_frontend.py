@@ -209,7 +209,7 @@ def test_a_grid_prepares_the_journal_its_jobs_read(seq, tmp_path):
     # run with its jobs' count, so they find it
     from mutualslam_cli.ablate import prepare_frontends
     from mutualslam_cli.config import with_overrides
-    from mutualslam_cli.pipeline import use_threads
+    from mutualslam_cli.stages.context import use_threads
 
     cfg = _cfg("svo")
     assert vo_cache_key(seq, with_overrides(cfg, threads=1)) != vo_cache_key(seq, with_overrides(cfg, threads=2))

@@ -6,12 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mutualslam_cli.config import LoopConfig
 from mutualslam_cli.datasets.scenes import camera_pose
 from mutualslam_cli.datasets.synthetic import FPS, _setup, synthetic_intrinsics
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.vo.camera import to_normalized
 from mutualslam_cli.vo.features import detect_grid
-from mutualslam_cli.vo.loop_closure import DEPTH_SPREAD_FACTOR, LoopDetector, LoopSettings, depth_agrees
+from mutualslam_cli.vo.loop_closure import DEPTH_SPREAD_FACTOR, LoopDetector, depth_agrees
 from mutualslam_cli.vo.map_state import MapState
 
 W, H = 320, 240
@@ -47,7 +48,7 @@ def _map(frames, old: list[int], query: int, unit: float, offset: np.ndarray) ->
     return st
 
 
-def _detector(st: MapState, frames, settings: LoopSettings) -> LoopDetector:
+def _detector(st: MapState, frames, settings: LoopConfig) -> LoopDetector:
     d = LoopDetector(synthetic_intrinsics(W, H), THR, settings)
     for k, f in enumerate(st.map.kf_frame):
         d.add(k, frames[f][0])
@@ -59,7 +60,7 @@ def test_a_place_seen_before_is_found_with_its_pose_and_scale(frames):
     drift[:3, 3] = [0.2, -0.05, 0.1]  # where the odometry put the new keyframe: 23 cm off
     st = _map(frames, [30, 45, 60, 75, 90], 1273, unit=1.25, offset=drift)
     q = st.n_keyframes - 1
-    d = _detector(st, frames, LoopSettings(min_gap=1))
+    d = _detector(st, frames, LoopConfig(min_gap=1))
     loop = d.query(st, q, frames[1273][0], frames[1273][1])  # an exact "network": GT depth
     assert loop is not None and st.map.kf_frame[loop.match] in (45, 60, 75)
     pos_err = np.linalg.norm(se3_inv(loop.T_cw)[:3, 3] - frames[1273][2][:3, 3])
@@ -73,7 +74,7 @@ def test_a_look_alike_place_is_rejected(frames):
     of another part of the room: appearance picks it first, geometry and the witnesses refuse it."""
     st = _map(frames, [300, 315, 330], 1273, unit=1.0, offset=np.eye(4))
     q = st.n_keyframes - 1
-    d = _detector(st, frames, LoopSettings(min_gap=1))
+    d = _detector(st, frames, LoopConfig(min_gap=1))
     d.index.add_keyframe(0, frames[1270][0])  # the look-alike: another place's points, this place's image
     assert d.index.candidates(frames[1273][0], [0, 1, 2], newest=0)[0] == 0
     assert d.query(st, q, frames[1273][0], frames[1273][1]) is None
@@ -119,7 +120,7 @@ def test_each_query_records_its_candidates_and_what_became_of_them(frames):
     drift[:3, 3] = [0.2, -0.05, 0.1]
     st = _map(frames, [30, 45, 60, 75, 90], 1273, unit=1.25, offset=drift)
     q = st.n_keyframes - 1
-    d = _detector(st, frames, LoopSettings(min_gap=1, n_candidates=3))
+    d = _detector(st, frames, LoopConfig(min_gap=1, n_candidates=3))
     loop = d.query(st, q, frames[1273][0], frames[1273][1])
     rec = d.queries[-1]
     assert rec["kf"] == q and rec["pool"].tolist() == [0, 1, 2, 3, 4]
@@ -131,7 +132,7 @@ def test_each_query_records_its_candidates_and_what_became_of_them(frames):
     assert d.already_closed(st, loop) is False and d.queries[-1]["outcome"] == "loop"
     # the look-alike: refused by geometry, recorded so
     st2 = _map(frames, [300, 315, 330], 1273, unit=1.0, offset=np.eye(4))
-    d2 = _detector(st2, frames, LoopSettings(min_gap=1))
+    d2 = _detector(st2, frames, LoopConfig(min_gap=1))
     d2.index.add_keyframe(0, frames[1270][0])
     assert d2.query(st2, st2.n_keyframes - 1, frames[1273][0], frames[1273][1]) is None
     rec2 = d2.queries[-1]
@@ -148,9 +149,9 @@ def test_a_noisy_network_does_not_refuse_a_true_loop(frames):
     st = _map(frames, [30, 45, 60, 75, 90], 1273, unit=1.25, offset=drift)
     q = st.n_keyframes - 1
     noisy = frames[1273][1] * np.exp(np.random.default_rng(0).normal(0, 0.35, frames[1273][1].shape))
-    d = _detector(st, frames, LoopSettings(min_gap=1))
+    d = _detector(st, frames, LoopConfig(min_gap=1))
     loop = d.query(st, q, frames[1273][0], noisy)
-    assert loop is not None and loop.spread > LoopSettings().max_depth_spread
+    assert loop is not None and loop.spread > LoopConfig().max_depth_spread
     assert d.queries[-1]["spread_new"] * DEPTH_SPREAD_FACTOR >= loop.spread
 
 

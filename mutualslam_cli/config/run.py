@@ -1,0 +1,107 @@
+"""The top level of the run configuration: :class:`RunConfig` (seed, threads, device, results folder and
+one section per part of the tool) with its input section :class:`DataConfig`, and the ways to make one:
+:func:`load_config` (a YAML file + ``--set`` overrides), :func:`with_settings`, :func:`with_overrides`;
+:func:`to_dict` writes one out (each run's ``config.yaml``)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from mutualslam_cli.config.adaptation import AdaptConfig, NetConfig
+from mutualslam_cli.config.backend import BAConfig, LoopConfig
+from mutualslam_cli.config.checks import check_run
+from mutualslam_cli.config.evaluation import DenseConfig, EvalConfig
+from mutualslam_cli.config.experiment import ExperimentConfig
+from mutualslam_cli.config.frontend import VOConfig
+from mutualslam_cli.config.parse import apply_overrides, build
+from mutualslam_cli.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    data_root: str | None = None
+    """Root for relative ``datasets.yaml`` paths; ``None`` → ``$MSLAM_DATA`` or the yaml's folder."""
+    max_frames: int = 0
+    """Use only the first N associated frames (0 = all)."""
+    stride: int = 1
+    """Use every k-th frame."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    seed: int = 0
+    """Seed of every random choice (replay sampling, RANSAC, init)."""
+    threads: int = 0
+    """torch/OpenCV threads (0 = all cores)."""
+    device: str = "auto"
+    """Where the depth network runs: ``auto`` (CUDA when ``torch.cuda.is_available()``, else the CPU), ``cpu``,
+    ``cuda`` or ``cuda:N``; VO, BA and metrics always run on the CPU (:mod:`~mutualslam_cli.device`)."""
+    deterministic: bool = True
+    """CUDA: deterministic cuDNN algorithms, no autotuning (one seed, one result; slower convolution backward
+    kernels); ``false``: ``cudnn.benchmark`` autotuning (:mod:`~mutualslam_cli.device`). No effect on the CPU."""
+    out: str = "results"
+    """Folder that receives ``<sequence>/<scheme>/seed<k>/``."""
+    data: DataConfig = field(default_factory=DataConfig)
+    vo: VOConfig = field(default_factory=VOConfig)
+    net: NetConfig = field(default_factory=NetConfig)
+    adapt: AdaptConfig = field(default_factory=AdaptConfig)
+    ba: BAConfig = field(default_factory=BAConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain nested dict of a config (safe for ``yaml.safe_dump`` and JSON)."""
+    return dataclasses.asdict(cfg)
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
+    """Load a YAML config (default ``configs/paper.yaml``), apply ``--set`` overrides, validate.
+
+    Raises:
+        ConfigError: missing file, invalid YAML, unknown key, wrong type, invalid value.
+    """
+    path = Path(path) if path is not None else CONFIG_DIR / "paper.yaml"
+    data: dict[str, Any] = {}
+    if path.exists():
+        try:
+            loaded = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: expected a mapping of sections (seed, vo, net, adapt, ...)")
+        data = loaded or {}
+    elif path != CONFIG_DIR / "paper.yaml":
+        raise ConfigError(f"{path}: config file not found")
+    cfg = build(RunConfig, apply_overrides(data, overrides or [], create=True), "")
+    check_run(cfg)
+    return cfg
+
+
+def with_settings(cfg: RunConfig, overrides: list[str]) -> RunConfig:
+    """Return ``cfg`` with ``--set``-style ``key=value`` overrides applied (validated like a file)."""
+    out = build(RunConfig, apply_overrides(to_dict(cfg), overrides, create=False), "")
+    check_run(out)
+    return out
+
+
+def with_overrides(cfg: RunConfig, **sections: dict[str, Any]) -> RunConfig:
+    """Return ``cfg`` with some fields replaced: ``with_overrides(cfg, adapt={"scheme": "none"})``."""
+    data = to_dict(cfg)
+    for sec, vals in sections.items():
+        if isinstance(vals, dict):
+            data[sec].update(vals)
+        else:
+            data[sec] = vals
+    out = build(RunConfig, data, "")
+    check_run(out)
+    return out
