@@ -202,14 +202,9 @@ class OnlineAdapter:
         """Alg. 2 on the batch :meth:`begin_keyframe` assembled: ``steps`` Adam steps (+ regulariser), then
         the regulariser's consolidation; returns the keyframe's (updated) :class:`StepInfo`, ``None`` when
         no batch waits."""
-        if self._pending is None:
-            return None
-        info, batch, batch_ms = self._pending
-        self._pending = None
-        t0 = time.perf_counter()
-        self._fine_tune(batch, info, steps, batch_ms)
-        info.ms += 1000.0 * (time.perf_counter() - t0)
-        return info
+        for _ in range(steps):
+            self.step_pending()
+        return self.end_pending()
 
     def step_pending(self) -> bool:
         """One optimiser step on the pending batch (the realtime clock takes them one at a time, as its time
@@ -335,16 +330,6 @@ class OnlineAdapter:
             return None
         info.sources = self.scheme.sources(self.buffer, kf_id)
         return self._make_batch(self.scheme.select(self.buffer, kf_id, self.rng))
-
-    def _fine_tune(self, batch: dict[str, object], info: StepInfo, steps: int, batch_ms: float) -> None:
-        """Alg. 2 for one keyframe: ``steps`` Adam steps on L_train (+ regulariser), then consolidation
-        (``batch_ms``: what assembling the batch took)."""
-        if steps <= 0:
-            return
-        t0 = self._open_batch(batch_ms)
-        for s in range(steps):
-            self._step(batch, info, first=s == 0)
-        self._close_batch(batch, info, steps, t0, batch_ms)
 
     def _open_batch(self, batch_ms: float) -> float:
         """Before a batch's first step: θ* for the regulariser (Alg. 2 line 4: θ_cpy = θ); returns its start."""
