@@ -25,7 +25,7 @@ from mutualslam_cli.adapt.inputs import load_network, use_fast_path
 from mutualslam_cli.adapt.weights import DECODER_FILE, ENCODER_FILE, load_monodepth2
 from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import RunConfig, load_config, to_dict, with_overrides
-from mutualslam_cli.datasets.recording import RecordingOptions
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.device import configure, describe_device, device_label, resolve_device

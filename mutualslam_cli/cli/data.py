@@ -136,8 +136,8 @@ def _print_report(r: Any) -> None:
 def _download(names: list[str], sample: int, base_url: Optional[str], force: bool, registry: Optional[Path],
               data_root: Optional[str], max_unpack_gb: Optional[float]) -> None:
     """``mslam datasets download NAME…``: each sequence fetched, verified, unpacked, then checked."""
-    from mutualslam_cli.datasets.download import DOWNLOAD_DIR, data_root_of, downloadable_specs
-    from mutualslam_cli.datasets.limits import UnpackLimits
+    from mutualslam_cli.datasets.download.entry import DOWNLOAD_DIR, data_root_of, downloadable_specs
+    from mutualslam_cli.datasets.download.limits import UnpackLimits
 
     specs = downloadable_specs(names, registry, data_root)
     folder = data_root_of(registry, data_root) / DOWNLOAD_DIR
@@ -155,7 +155,7 @@ def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool,
     Returns the check's report (``None``: skipped)."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
 
-    from mutualslam_cli.datasets.download import download_sequence
+    from mutualslam_cli.datasets.download.entry import download_sequence
 
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
                   TimeRemainingColumn(), console=common.console, transient=True) as p:

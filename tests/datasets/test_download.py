@@ -38,10 +38,10 @@ from dl_server import (
 )
 
 from mutualslam_cli.cli import app
-from mutualslam_cli.datasets import download as dl
+from mutualslam_cli.datasets.download import entry as dl
 from mutualslam_cli.datasets import load_sequence
-from mutualslam_cli.datasets import unpack as up
-from mutualslam_cli.datasets.limits import Budget
+from mutualslam_cli.datasets.download import unpack as up
+from mutualslam_cli.datasets.download.limits import Budget
 from mutualslam_cli.geometry import pose_from_tq
 
 

@@ -16,9 +16,9 @@ from typer.testing import CliRunner
 
 from mutualslam_cli.cli import app
 from mutualslam_cli.config import CONFIG_DIR
-from mutualslam_cli.datasets import video as video_mod
-from mutualslam_cli.datasets.conversion import TumWriter
-from mutualslam_cli.datasets.recording import RecordingOptions, open_recording
+from mutualslam_cli.datasets.recordings import video as video_mod
+from mutualslam_cli.datasets.recordings.conversion import TumWriter
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions, open_recording
 from mutualslam_cli.datasets.tum import read_intrinsics_txt
 from mutualslam_cli.errors import DatasetError
 
