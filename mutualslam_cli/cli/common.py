@@ -70,7 +70,7 @@ def shown(text: object) -> str:
     return escape(one_line(str(text)))
 
 
-class _Commands(TyperGroup):
+class Commands(TyperGroup):
     """The command group with the one error boundary: a user error (:class:`MslamError`) raised by any
     command becomes one red line and exit code 1; anything else (a bug) keeps its traceback."""
 
@@ -82,7 +82,7 @@ class _Commands(TyperGroup):
             raise typer.Exit(1) from None
 
 
-app = typer.Typer(cls=_Commands, add_completion=False, no_args_is_help=True,
+app = typer.Typer(cls=Commands, add_completion=False, no_args_is_help=True,
                   help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
 
 

@@ -102,7 +102,7 @@ def test_force_replaces_only_a_folder_mslam_unpacked(tmp_path, server, tum_src):
 
 def test_an_existing_sequence_at_an_absolute_root_can_still_be_read(tmp_path, server, tum_src):
     reg, _ = registry(tmp_path, server, tum_src, fr3_test={"root": str(tum_src)})
-    r = runner.invoke(app, ["datasets", "--check", "fr3_test", "--registry", str(reg), "--sample", "2"])
+    r = runner.invoke(app, ["datasets", "check", "fr3_test", "--registry", str(reg), "--sample", "2"])
     assert r.exit_code == 0 and "GT coverage" in r.output, r.output
 
 
