@@ -46,12 +46,12 @@ class DatasetError(MslamError):
 
 
 class CameraFileError(DatasetError):
-    """What is wrong inside a camera file (:mod:`~mutualslam_cli.datasets.camera_file`); the reader turns it
+    """What is wrong inside a camera file (:mod:`~mutualslam_cli.datasets.recordings.camera_file`); the reader turns it
     into one :class:`DatasetError` line naming the file and the formats it accepts."""
 
 
 class ArchiveError(DatasetError):
-    """A downloaded archive cannot be unpacked (:mod:`~mutualslam_cli.datasets.unpack`); the download removes
+    """A downloaded archive cannot be unpacked (:mod:`~mutualslam_cli.datasets.download.unpack`); the download removes
     what it unpacked and reports one line."""
 
 
@@ -62,27 +62,27 @@ class CorruptArchive(ArchiveError):
 class UnsafeMember(ArchiveError):
     """An archive member that is not a plain file or folder inside the target folder: an absolute path, ``..``,
     a path too deep or too long, a link or special file, an unsupported zip compression
-    (:mod:`~mutualslam_cli.datasets.members`)."""
+    (:mod:`~mutualslam_cli.datasets.download.members`)."""
 
 
 class ArchiveTooLarge(ArchiveError):
-    """Unpacking the archive would pass a limit (:mod:`~mutualslam_cli.datasets.limits`): total bytes, free
+    """Unpacking the archive would pass a limit (:mod:`~mutualslam_cli.datasets.download.limits`): total bytes, free
     disk, member count or a member's compression ratio; the message names the limit and how to change it."""
 
 
 class UnsafeName(DatasetError):
     """A name from outside (a URL's last segment, a registry field) is not a safe single file name
-    (:mod:`~mutualslam_cli.datasets.safe_names`)."""
+    (:mod:`~mutualslam_cli.datasets.download.safe_names`)."""
 
 
 class DownloadLocked(DatasetError):
-    """Another live process downloads or unpacks the same file (:mod:`~mutualslam_cli.datasets.download_lock`);
+    """Another live process downloads or unpacks the same file (:mod:`~mutualslam_cli.datasets.download.lock`);
     the message names the file and the holder."""
 
 
 class DamagedRecord(DatasetError):
     """A record mslam keeps beside its downloads (``checksums.json``, ``NAME.partinfo``, ``NAME.lock``) is not of
-    the shape mslam writes, or is a symbolic link (:mod:`~mutualslam_cli.datasets.download_files`); the reader
+    the shape mslam writes, or is a symbolic link (:mod:`~mutualslam_cli.datasets.download.files`); the reader
     names the field and either starts over or says how to fix it, and never trusts it."""
 
 

@@ -23,7 +23,7 @@ from mutualslam_cli.adapt.inputs import load_network, load_saved_network, use_fa
 from mutualslam_cli.adapt.weights import ENCODER_FILE, has_depth_files
 from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import RunConfig, load_config, to_dict
-from mutualslam_cli.datasets.recording import RecordingOptions
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.device import configure, describe_device, resolve_device
 from mutualslam_cli.errors import DatasetError

@@ -256,6 +256,78 @@ def test_layers_hold():
     assert not bad, "imports against the layers:\n" + "\n".join(bad)
 
 
+#: The floors inside ``datasets`` (its top-level modules and sub-packages → floor): the file formats every
+#: run reads at the bottom; the user's recordings and the rendered rooms above them, each on its own; the
+#: registry and the check (a name, folder or recording → a Sequence) above those; the download on top.
+DATASETS_FLOOR_OF = {
+    "sequence": "formats", "associate": "formats", "layout": "formats", "image_files": "formats",
+    "fy_sign": "formats", "tum": "formats", "icl_nuim": "formats", "predictions": "formats",
+    "recordings": "recordings", "synthetic": "synthetic",
+    "": "registry", "registry": "registry", "check": "registry",
+    "download": "download",
+}
+#: What each floor inside ``datasets`` may import (besides its own floor): a recording is written with the
+#: TUM writers and read back like any folder; the registry opens recordings; a download reads the registry
+#: and runs the check; nothing imports the download or the rendered rooms from inside ``datasets``.
+DATASETS_ALLOWED = {
+    "formats": set(),
+    "recordings": {"formats"},
+    "synthetic": {"formats"},
+    "registry": {"formats", "recordings"},
+    "download": {"formats", "registry"},
+}
+
+
+def _datasets_part(module: str) -> str:
+    parts = module.split(".")
+    return parts[2] if len(parts) > 2 else ""
+
+
+def datasets_floor_violations(graph: dict[str, set[str]]) -> list[str]:
+    """Every import arrow between two modules of ``datasets`` that :data:`DATASETS_ALLOWED` forbids; a
+    module or sub-package of ``datasets`` missing from :data:`DATASETS_FLOOR_OF` is a violation too."""
+    out = []
+    inside = {m: deps for m, deps in graph.items() if _part(m) == "datasets"}
+    for m, deps in sorted(inside.items()):
+        src = DATASETS_FLOOR_OF.get(_datasets_part(m))
+        if src is None:
+            out.append(f"{m}: {_datasets_part(m)!r} has no floor in DATASETS_FLOOR_OF")
+            continue
+        for d in sorted(x for x in deps if _part(x) == "datasets"):
+            dst = DATASETS_FLOOR_OF.get(_datasets_part(d))
+            if not (dst == src or dst in DATASETS_ALLOWED[src]):
+                out.append(f"{m} → {d} ({src} → {dst})")
+    return out
+
+
+def test_datasets_floors_hold():
+    """Inside ``datasets`` the arrows point one way: formats ← recordings, synthetic ← registry ← download."""
+    bad = datasets_floor_violations(import_graph())
+    assert not bad, "imports against the floors of datasets:\n" + "\n".join(bad)
+
+
+def test_a_planted_import_against_the_datasets_floors_is_caught(tmp_path: Path):
+    pkg = tmp_path / PACKAGE
+    for rel, text in {
+        "__init__.py": "", "datasets/__init__.py": "from mutualslam_cli.datasets.registry import load\n",
+        "datasets/associate.py": "", "datasets/registry.py": "from mutualslam_cli.datasets.download import entry\n",
+        "datasets/download/__init__.py": "",
+        "datasets/download/entry.py": "from mutualslam_cli.datasets import registry\n",
+        "datasets/recordings/__init__.py": "",
+        "datasets/recordings/video.py": "from mutualslam_cli.datasets.synthetic.scenes import x\n",
+        "datasets/synthetic/__init__.py": "", "datasets/synthetic/scenes.py": "from ..associate import y\n",
+        "datasets/newfile.py": "",
+    }.items():
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    D = f"{PACKAGE}.datasets"
+    assert datasets_floor_violations(import_graph(pkg)) == [
+        f"{D}.newfile: 'newfile' has no floor in DATASETS_FLOOR_OF",
+        f"{D}.recordings.video → {D}.synthetic.scenes (recordings → synthetic)",
+        f"{D}.registry → {D}.download.entry (registry → download)",
+    ]
+
+
 def test_a_planted_forbidden_import_is_caught(tmp_path: Path):
     """A domain module importing a stage, a report module importing the VO, the ground floor importing
     the domain, and anything importing the CLI: each is named."""

@@ -6,6 +6,7 @@ options, the progress bar and value formatting."""
 
 from __future__ import annotations
 
+import inspect
 import logging
 import re
 import unicodedata
@@ -70,9 +71,31 @@ def shown(text: object) -> str:
     return escape(one_line(str(text)))
 
 
-class _Commands(TyperGroup):
+def reflowed(text: Optional[str]) -> Optional[str]:
+    """A command's help as typer should get it: each paragraph (blank-line separated) on one line.
+
+    Docstrings wrap at the source's line length, but typer in rich markup mode keeps a single line break
+    everywhere except in the first paragraph of a command's own ``--help``, so a later paragraph, and the
+    first one in a group's command list, would break mid-sentence wherever the source did. A paragraph that
+    starts with ``\\b`` (click's "do not rewrap" mark) keeps its lines; text after ``\\f`` is left as it is."""
+    if not text:
+        return text
+    body, cut, rest = inspect.cleandoc(text).partition("\f")
+    paragraphs = [p if p.startswith("\b") else " ".join(line.strip() for line in p.splitlines())
+                  for p in re.split(r"\n\s*\n", body.strip())]
+    return "\n\n".join(paragraphs) + (("\n" + cut + rest) if cut else "")
+
+
+class Commands(TyperGroup):
     """The command group with the one error boundary: a user error (:class:`MslamError`) raised by any
-    command becomes one red line and exit code 1; anything else (a bug) keeps its traceback."""
+    command becomes one red line and exit code 1; anything else (a bug) keeps its traceback. Its own help and
+    its commands' are :func:`reflowed`, so the terminal, not the source, decides where a line breaks."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.help = reflowed(self.help)
+        for command in self.commands.values():
+            command.help = reflowed(command.help)
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
@@ -82,7 +105,7 @@ class _Commands(TyperGroup):
             raise typer.Exit(1) from None
 
 
-app = typer.Typer(cls=_Commands, add_completion=False, no_args_is_help=True,
+app = typer.Typer(cls=Commands, add_completion=False, no_args_is_help=True,
                   help="Monocular SLAM with an online-adapted depth network: runs, ablations, paper tables.")
 
 

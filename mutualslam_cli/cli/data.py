@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional
 
@@ -25,60 +26,137 @@ from mutualslam_cli.errors import ConfigError, MslamError
 
 # --------------------------------------------------------------------------- datasets
 
+datasets_app = typer.Typer(cls=common.Commands, invoke_without_command=True, no_args_is_help=False)
+app.add_typer(datasets_app, name="datasets")
 
-@app.command()
+SampleOpt = typer.Option(0, "--sample", min=0, help="Decode only the images of N frames spread over each sequence "
+                         "(a quick check); 0 = every frame.")
+
+
+@dataclass(frozen=True)
+class _Shared:
+    """The options every ``mslam datasets`` sub-command takes, given before the sub-command
+    (``mslam datasets --registry R check``) or after it (``mslam datasets check --registry R``): after wins."""
+
+    registry: Optional[Path] = None
+    data_root: Optional[str] = None
+    config: Optional[Path] = None
+    sets: tuple[str, ...] = ()
+
+    def over(self, registry: Optional[Path], data_root: Optional[str], config: Optional[Path],
+             sets: Optional[list[str]]) -> _Shared:
+        """These options with a sub-command's own on top (``--set`` adds to the list)."""
+        return _Shared(registry or self.registry, data_root or self.data_root, config or self.config,
+                       self.sets + tuple(sets or ()))
+
+    def data_root_of(self) -> Optional[str]:
+        """The data root of the run config (``--config``, ``--set``, ``--data-root``)."""
+        return config_from(self.config, list(self.sets), self.data_root).data.data_root
+
+
+def _shared(ctx: typer.Context, registry: Optional[Path], data_root: Optional[str], config: Optional[Path],
+            sets: Optional[list[str]]) -> _Shared:
+    """The shared options of ``ctx``'s sub-command, over those given to ``mslam datasets`` itself."""
+    given = ctx.obj if isinstance(ctx.obj, _Shared) else _Shared()  # a sub-context inherits its parent's obj
+    return given.over(registry, data_root, config, sets)
+
+
+@datasets_app.callback()
 def datasets(
-    name: Optional[list[str]] = typer.Argument(None, help="With --check: a datasets.yaml name or a sequence folder. "
-                                               "`download NAME…`: fetch, verify and unpack those sequences."),
-    check: bool = typer.Option(False, "--check", help="Verify files, intrinsics, GT coverage, fy sign, and decode "
-                               "every RGB and depth image (truncated, corrupt or odd-sized files fail)."),
-    sample: int = typer.Option(0, "--sample", min=0, help="With --check or download: decode only the images of N "
-                               "frames spread over each sequence (a quick check); 0 = every frame."),
-    base_url: Optional[str] = typer.Option(None, "--base-url", help="download: a mirror; each URL becomes "
-                                           "BASE_URL/<file name> (default $MSLAM_DOWNLOAD_BASE_URL)."),
-    force: bool = typer.Option(False, "--force", help="download: unpack again and replace a sequence folder that "
-                               "mslam unpacked, once the new one passes the check (downloaded archives are reused; "
-                               "the old folder stays if anything fails; a folder mslam did not unpack is never "
-                               "replaced)."),
-    max_unpack_gb: Optional[float] = typer.Option(None, "--max-unpack-gb", min=0, help="download: most GB an "
-                                                  "archive may unpack to (default 10× its size; never more than "
-                                                  "the free disk)."),
+    ctx: typer.Context,
     registry: Optional[Path] = RegistryOpt,
     data_root: Optional[str] = DataRootOpt,
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
-    """List datasets.yaml entries, check one sequence (or all) with --check, or `download NAME…`.
+    """The sequences of datasets.yaml: list them, check them, download the public ones.
 
-    --check decodes every image, so a bad file fails now (exit code 1, naming it) rather than in
-    the middle of a long run; --sample N makes it quick. `download` fetches the public archives of
-    entries with a `download:` block into <data root>/_downloads (resuming a cut download), checks
-    their size and checksum, unpacks them into the entry's folder and runs the same check."""
+    `mslam datasets` alone lists them, as `mslam datasets list` does. Options given here, before the
+    sub-command, apply to it; the sub-command's own options win."""
+    ctx.obj = _Shared(registry, data_root, config, tuple(sets or ()))
+    if ctx.invoked_subcommand is None:
+        _list(ctx.obj)
+
+
+@datasets_app.command("list")
+def list_(
+    ctx: typer.Context,
+    registry: Optional[Path] = RegistryOpt,
+    data_root: Optional[str] = DataRootOpt,
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """List the entries of datasets.yaml: format, whether the folder exists, intrinsics and depth scale."""
+    _list(_shared(ctx, registry, data_root, config, sets))
+
+
+def _list(opts: _Shared) -> None:
+    """The table of the registry's entries."""
     from mutualslam_cli.datasets.registry import list_datasets
 
-    cfg = config_from(config, sets, data_root)
-    words = list(name or [])
-    if words and words[0] == "download":
-        _download(words[1:], sample, base_url, force, registry, cfg.data.data_root, max_unpack_gb)
-        return
-    if len(words) > 1:
-        raise MslamError(f"datasets: expected one NAME or PATH, got {len(words)} ({' '.join(words)}); "
-                         "to fetch sequences: mslam datasets download NAME…")
-    specs = list_datasets(registry, data_root=cfg.data.data_root)
-    if not check:
-        t = Table("name", "format", "found", "fx fy cx cy", "depth/m", title="datasets.yaml")
-        for s in specs:
-            intr = " ".join(f"{v:g}" for v in s.intrinsics.as_list()) if s.intrinsics else "family/data"
-            t.add_row(s.name, s.format, "yes" if Path(s.root).is_dir() else "[dim]no[/]", intr, f"{s.depth_scale:g}")
-        common.console.print(t)
-        common.console.print("roots: relative to --data-root / $MSLAM_DATA (see datasets.yaml); "
-                             "`--check NAME` verifies one, `download NAME…` fetches one")
-        return
-    targets = words or [s.name for s in specs if Path(s.root).is_dir()]
+    specs = list_datasets(opts.registry, data_root=opts.data_root_of())
+    t = Table("name", "format", "found", "fx fy cx cy", "depth/m", title="datasets.yaml")
+    for s in specs:
+        intr = " ".join(f"{v:g}" for v in s.intrinsics.as_list()) if s.intrinsics else "family/data"
+        t.add_row(s.name, s.format, "yes" if Path(s.root).is_dir() else "[dim]no[/]", intr, f"{s.depth_scale:g}")
+    common.console.print(t)
+    common.console.print("roots: relative to --data-root / $MSLAM_DATA (see datasets.yaml); "
+                         "`mslam datasets check NAME` verifies one, `mslam datasets download NAME…` fetches one")
+
+
+@datasets_app.command()
+def check(
+    ctx: typer.Context,
+    name: Optional[list[str]] = typer.Argument(None, help="datasets.yaml names or sequence folders (default: every "
+                                               "entry whose folder exists)."),
+    sample: int = SampleOpt,
+    registry: Optional[Path] = RegistryOpt,
+    data_root: Optional[str] = DataRootOpt,
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """Verify sequences: files, intrinsics, GT coverage, fy sign, and every RGB and depth image decoded.
+
+    A truncated, corrupt or odd-sized image fails now (exit code 1, naming it) rather than in the middle of a
+    long run; --sample N makes the check quick."""
+    from mutualslam_cli.datasets.registry import list_datasets
+
+    opts = _shared(ctx, registry, data_root, config, sets)
+    root = opts.data_root_of()
+    targets = list(name or []) or [s.name for s in list_datasets(opts.registry, data_root=root)
+                                   if Path(s.root).is_dir()]
     if not targets:
         raise MslamError("no dataset folder exists under the data root; set MSLAM_DATA or --data-root")
     for n in targets:
-        _check_and_print(n, sample, cfg.data.data_root, registry)
+        _check_and_print(n, sample, root, opts.registry)
+
+
+@datasets_app.command()
+def download(
+    ctx: typer.Context,
+    name: Optional[list[str]] = typer.Argument(None, help="datasets.yaml names of entries with a `download:` block "
+                                               "(none: the error lists them)."),
+    base_url: Optional[str] = typer.Option(None, "--base-url", help="A mirror; each URL becomes "
+                                           "BASE_URL/<file name> (default $MSLAM_DOWNLOAD_BASE_URL)."),
+    force: bool = typer.Option(False, "--force", help="Unpack again and replace a sequence folder that mslam "
+                               "unpacked, once the new one passes the check (downloaded archives are reused; the "
+                               "old folder stays if anything fails; a folder mslam did not unpack is never "
+                               "replaced)."),
+    max_unpack_gb: Optional[float] = typer.Option(None, "--max-unpack-gb", min=0, help="Most GB an archive may "
+                                                  "unpack to (default 10× its size; never more than the free "
+                                                  "disk)."),
+    sample: int = SampleOpt,
+    registry: Optional[Path] = RegistryOpt,
+    data_root: Optional[str] = DataRootOpt,
+    config: Optional[Path] = ConfigOpt,
+    sets: Optional[list[str]] = SetOpt,
+) -> None:
+    """Fetch, verify and unpack the public archives of datasets.yaml entries, then check each sequence.
+
+    Archives go to <data root>/_downloads (a cut download resumes), their size and checksum are verified,
+    and each is unpacked into its entry's folder within limits and checked as `mslam datasets check` does."""
+    opts = _shared(ctx, registry, data_root, config, sets)
+    _download(list(name or []), sample, base_url, force, opts.registry, opts.data_root_of(), max_unpack_gb)
 
 
 def _check_and_print(target: Any, sample: int, data_root: Optional[str], registry: Optional[Path]) -> None:
@@ -136,8 +214,8 @@ def _print_report(r: Any) -> None:
 def _download(names: list[str], sample: int, base_url: Optional[str], force: bool, registry: Optional[Path],
               data_root: Optional[str], max_unpack_gb: Optional[float]) -> None:
     """``mslam datasets download NAME…``: each sequence fetched, verified, unpacked, then checked."""
-    from mutualslam_cli.datasets.download import DOWNLOAD_DIR, data_root_of, downloadable_specs
-    from mutualslam_cli.datasets.limits import UnpackLimits
+    from mutualslam_cli.datasets.download.entry import DOWNLOAD_DIR, data_root_of, downloadable_specs
+    from mutualslam_cli.datasets.download.limits import UnpackLimits
 
     specs = downloadable_specs(names, registry, data_root)
     folder = data_root_of(registry, data_root) / DOWNLOAD_DIR
@@ -155,7 +233,7 @@ def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool,
     Returns the check's report (``None``: skipped)."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
 
-    from mutualslam_cli.datasets.download import download_sequence
+    from mutualslam_cli.datasets.download.entry import download_sequence
 
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
                   TimeRemainingColumn(), console=common.console, transient=True) as p:

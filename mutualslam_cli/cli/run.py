@@ -123,7 +123,7 @@ def run(
 
     SEQ may also be a ROS 1/2 bag, a video, or an image folder with --camera: converted once into a
     TUM-layout folder under <out>/_cache/recordings. Without GT, every GT metric is null with its reason."""
-    from mutualslam_cli.datasets.recording import RecordingOptions
+    from mutualslam_cli.datasets.recordings.recording import RecordingOptions
     from mutualslam_cli.adapt.schemes import get_scheme
     from mutualslam_cli.pipeline import run_sequence
 

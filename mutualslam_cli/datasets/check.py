@@ -1,4 +1,4 @@
-"""Dataset checks (``mslam datasets --check``) and the loader benchmark.
+"""Dataset checks (``mslam datasets check``) and the loader benchmark.
 
 :func:`check_sequence` loads a sequence (which already validates list files, GT files,
 referenced images, GT overlap and emptiness, raising :class:`DatasetError`), then decodes every

@@ -2,8 +2,8 @@
 with only a warning on stderr, so a frame cut short would pass as an image.
 
 A PNG must be a chain of chunks with matching CRC-32s ending in ``IEND``; a JPEG must start with SOI
-and end with EOI. Used by ``mslam datasets --check`` (:mod:`~mutualslam_cli.datasets.check`) and by the
-recording converters (:class:`~mutualslam_cli.datasets.conversion.TumWriter`), which check every frame.
+and end with EOI. Used by ``mslam datasets check`` (:mod:`~mutualslam_cli.datasets.check`) and by the
+recording converters (:class:`~mutualslam_cli.datasets.recordings.conversion.TumWriter`), which check every frame.
 """
 
 from __future__ import annotations

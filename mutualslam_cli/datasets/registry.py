@@ -17,8 +17,8 @@ import yaml
 
 from mutualslam_cli.datasets.associate import read_list_file
 from mutualslam_cli.datasets.icl_nuim import NATIVE_RE, load_icl, load_icl_loop
-from mutualslam_cli.datasets.conversion import BAG_SUFFIXES, VIDEO_SUFFIXES
-from mutualslam_cli.datasets.recording import RecordingOptions, open_recording, recording_kind
+from mutualslam_cli.datasets.recordings.conversion import BAG_SUFFIXES, VIDEO_SUFFIXES
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions, open_recording, recording_kind
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.datasets.tum import load_tum, tum_family
 from mutualslam_cli.errors import DatasetError
@@ -193,7 +193,7 @@ def load_sequence(name_or_path: str | os.PathLike, data_root: str | os.PathLike 
     Args:
         name_or_path: a ``datasets.yaml`` name, a folder (format autodetected), or a recording (a ROS
             bag, a video, an image folder with ``recording.camera``: converted once,
-            :mod:`~mutualslam_cli.datasets.recording`).
+            :mod:`~mutualslam_cli.datasets.recordings.recording`).
         data_root: base of relative registry roots (else ``$MSLAM_DATA``, else the yaml's folder).
         registry_path: the registry file (default: the repository's ``datasets.yaml``).
         max_frames: keep at most this many frames after striding (0 = all).
@@ -219,7 +219,7 @@ def load_sequence(name_or_path: str | os.PathLike, data_root: str | os.PathLike 
         is_path = s not in _read_registry(path) and Path(s).is_dir()
     spec = _registered_folder(s, registry_path, data_root) if is_path else get_spec(s, registry_path, data_root)
     if opts.camera is not None:
-        from mutualslam_cli.datasets.camera_file import read_camera_file
+        from mutualslam_cli.datasets.recordings.camera_file import read_camera_file
 
         spec = replace(spec, intrinsics=read_camera_file(Path(opts.camera)))
     if opts.gt is not None:

@@ -88,7 +88,7 @@ class Sequence:
             raise DatasetError(f"{path}: cannot read image ({e.strerror})") from None
         problem = image_file_problem(Path(path), data)
         if problem:
-            raise DatasetError(f"{path}: {problem}; expected a complete colour image file (mslam datasets --check "
+            raise DatasetError(f"{path}: {problem}; expected a complete colour image file (mslam datasets check "
                                "finds every such file)")
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
         if img is None:
@@ -96,7 +96,7 @@ class Sequence:
         w, h = self.intrinsics.width, self.intrinsics.height
         if w and h and img.shape[:2] != (h, w):  # else the front end fails deep inside OpenCV
             raise DatasetError(f"{path}: frame {i} is {img.shape[1]}×{img.shape[0]}, expected {w}×{h} like the "
-                               "sequence's first frame; every frame must have one size (mslam datasets --check "
+                               "sequence's first frame; every frame must have one size (mslam datasets check "
                                "finds them all)")
         return img
 

@@ -88,9 +88,11 @@ def frontier_figure(table: pd.DataFrame | None, path: Path) -> bool:
         pts = ax.scatter(g["adaptation s"], g["PCD lsq"], label=scheme, zorder=3)
         front = g[g["frontier"]].sort_values("adaptation s")
         ax.plot(front["adaptation s"], front["PCD lsq"], color=pts.get_facecolor()[0], lw=1, zorder=2)
-        for _, r in g.iterrows():
-            ax.annotate(r["config"], (r["adaptation s"], r["PCD lsq"]), fontsize=6, xytext=(3, 3),
-                        textcoords="offset points")
+    middle = table["adaptation s"].max() / 2  # the x axis starts at 0
+    for _, r in table.iterrows():  # a label reads away from the nearer side edge, so it stays in the figure
+        right = r["adaptation s"] <= middle
+        ax.annotate(r["config"], (r["adaptation s"], r["PCD lsq"]), fontsize=6, xytext=(3 if right else -3, 3),
+                    textcoords="offset points", ha="left" if right else "right")
     ax.set_xlabel(f"adaptation stage, seconds (sum over {int(table['sequences'].max())} sequences)")
     ax.set_ylabel("PCD % (lsq scaling, final model)")
     ax.set_title("Fine-tuning budget: speed/accuracy frontier")

@@ -20,6 +20,7 @@ import pandas as pd
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.report.columns import slug
+from mutualslam_cli.report.plots import fit_width
 from mutualslam_cli.results import map_ply
 
 #: (file, summary stage, panel title) of the panels, left to right.
@@ -181,7 +182,8 @@ def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> b
                            removed if fname == "map_culled.ply" else None)
             if row == 0:
                 ax.set_title(title, fontsize=10)
-    fig.tight_layout(rect=(0, bottom / fig_h, 1, 1 - 0.5 / fig_h))
+    heading = fit_width(fig, heading, 12)  # on as many lines as it needs, with room above the panels for each
+    fig.tight_layout(rect=(0, bottom / fig_h, 1, 1 - (0.5 + 0.2 * heading.count("\n")) / fig_h))
     # the colour scale of the PLYs, the no-GT colour, and what is not drawn
     ramp = map_ply.error_colours(np.linspace(-1, 1, 256) * map_ply.ERROR_SATURATION)
     sm = plt.cm.ScalarMappable(cmap=ListedColormap(ramp),

@@ -66,6 +66,46 @@ def save_png(fig: Any, path: Path) -> None:
     pyplot().close(fig)
 
 
+#: Share of a figure's width that a caption line or a legend row may take (the rest: margins).
+TEXT_WIDTH_SHARE = 0.96
+
+
+def text_width(fig: Any, text: str, fontsize: float) -> float:
+    """Width of ``text``'s widest line at ``fontsize`` points, in pixels of ``fig`` at its dpi (as its
+    ``bbox``), measured by the figure's renderer."""
+    from matplotlib.font_manager import FontProperties
+
+    renderer, font = fig.canvas.get_renderer(), FontProperties(size=fontsize)
+    return max(renderer.get_text_width_height_descent(line, font, ismath=False)[0] for line in text.split("\n"))
+
+
+def fit_width(fig: Any, text: str, fontsize: float, share: float = TEXT_WIDTH_SHARE) -> str:
+    """``text`` re-wrapped at its spaces so that every line fits in ``share`` of ``fig``'s width at ``fontsize``
+    (a word longer than that stays whole on its own line). The ratio of text to figure width does not change
+    with the dpi, so a caption fitted here fits in the PNG saved at any dpi."""
+    room = share * fig.bbox.width
+    lines: list[str] = []
+    for word in text.split():
+        if lines and text_width(fig, f"{lines[-1]} {word}", fontsize) <= room:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    return "\n".join(lines)
+
+
+def legend_columns(fig: Any, labels: list[str], fontsize: float, most: int,
+                   share: float = TEXT_WIDTH_SHARE) -> int:
+    """How many columns (at most ``most``) a figure legend of ``labels`` at ``fontsize`` may have so that a
+    row fits in ``share`` of ``fig``'s width: every column as wide as the widest entry, with matplotlib's
+    default handle (2 em), handle-text pad (0.8 em), column spacing (2 em) and border (2 × 0.4 em)."""
+    if not labels:
+        return 1
+    em = fontsize * fig.dpi / 72.0
+    column = 2.8 * em + max(text_width(fig, label, fontsize) for label in labels)
+    fits = int((share * fig.bbox.width - 0.8 * em + 2.0 * em) // (column + 2.0 * em))
+    return max(1, min(most, len(labels), fits))
+
+
 def with_config(runs: pd.DataFrame) -> pd.DataFrame:
     seed = pd.to_numeric(runs["seed"], errors="coerce") if "seed" in runs else pd.Series(np.nan, index=runs.index)
     return runs.assign(config=runs["config"].fillna("") if "config" in runs else "", _seed=seed)
@@ -148,10 +188,10 @@ def accuracy_figure(runs: pd.DataFrame) -> Any | None:
     what = ("line: mean over seeds, band: min–max over seeds (up to %d)" % max_seeds if max_seeds > 1
             else "one seed per line")
     widest = max(len(line) for label in handles for line in label.splitlines())
-    ncol = min(len(handles), 4 if widest < 30 else 2 if widest < 60 else 1)
+    ncol = legend_columns(fig, list(handles), 9, most=4 if widest < 30 else 2 if widest < 60 else 1)
+    caption = f"{_drawn(drawn)}, PCD δ<0.1 (per-frame lsq scaling) averaged over frames 0..t; {what}"
     fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=ncol,
-               fontsize=9, frameon=False, title=f"{_drawn(drawn)}, PCD δ<0.1 (per-frame lsq scaling) averaged over "
-                                                f"frames 0..t; {what}", title_fontsize=9)
+               fontsize=9, frameon=False, title=fit_width(fig, caption, 9), title_fontsize=9)
     fig.suptitle("Depth accuracy over frames per adaptation scheme", fontsize=12)
     return fig
 

@@ -25,7 +25,7 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.errors import DatasetError, MslamError
 from mutualslam_cli.metrics.trajectory import ate
 from mutualslam_cli.report.columns import slug
-from mutualslam_cli.report.plots import by_scheme, pyplot, save_png, with_config
+from mutualslam_cli.report.plots import by_scheme, legend_columns, pyplot, save_png, with_config
 from mutualslam_cli.types import Trajectory
 
 #: Rows (runs) of one trajectory figure; further runs of the sequence go on more pages.
@@ -258,8 +258,8 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
             ax.tick_params(labelsize=8)
     if aligned:
         handles["start (GT)"] = plt.Line2D([], [], color=TRAJ_STYLE["gt"][1], marker="o", lw=0, ms=4)
-    fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=len(handles), fontsize=9,
-               frameon=False)
+    fig.legend(list(handles.values()), list(handles), loc="outside lower center", fontsize=9, frameon=False,
+               ncol=legend_columns(fig, list(handles), 9, most=len(handles)))
     fig.suptitle(heading, fontsize=12)
     return fig
 

@@ -15,7 +15,7 @@ import cv2
 import torch
 
 from mutualslam_cli.config import RunConfig, with_overrides
-from mutualslam_cli.datasets.recording import RecordingOptions
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.summary import Summary

@@ -33,14 +33,14 @@ def tum_dir(tmp_path: Path) -> Path:
 
 
 def test_check_good_folder(tum_dir: Path):
-    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    r = runner.invoke(app, ["datasets", "check", str(tum_dir)])
     assert r.exit_code == 0, r.output
     assert "6" in r.output and "100.0 %" in r.output
 
 
 def test_missing_rgb_txt(tum_dir: Path):
     (tum_dir / "rgb.txt").unlink()
-    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    r = runner.invoke(app, ["datasets", "check", str(tum_dir)])
     _one_line_error(r, "rgb.txt")
 
 
@@ -50,14 +50,14 @@ def test_malformed_gt_line(tum_dir: Path):
     idx = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
     lines[idx + 1] = "0.1 1.0 2.0 oops"
     gt.write_text("\n".join(lines) + "\n")
-    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    r = runner.invoke(app, ["datasets", "check", str(tum_dir)])
     _one_line_error(r, "groundtruth.txt", f":{idx + 2}")
 
 
 def test_8bit_depth_png(tum_dir: Path):
     first = sorted((tum_dir / "depth").iterdir())[0]
     cv2.imwrite(str(first), np.full((48, 64), 100, np.uint8))
-    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    r = runner.invoke(app, ["datasets", "check", str(tum_dir)])
     _one_line_error(r, first.name, "16-bit")
 
 
@@ -71,8 +71,27 @@ def test_no_gt_overlap(tum_dir: Path):
         f = ln.split()
         out.append(" ".join([f"{float(f[0]) + 1000:.6f}", *f[1:]]))
     gt.write_text("\n".join(out) + "\n")
-    r = runner.invoke(app, ["datasets", "--check", str(tum_dir)])
+    r = runner.invoke(app, ["datasets", "check", str(tum_dir)])
     _one_line_error(r, "no GT overlap")
+
+
+def test_datasets_sub_commands_have_their_own_help():
+    """``mslam datasets download --help`` is download's, not the group's; ``check`` has no download options."""
+    def shown(*words: str) -> str:
+        r = runner.invoke(app, [*words, "--help"], env={"COLUMNS": "100"})
+        assert r.exit_code == 0, r.output
+        return r.output
+
+    out = shown("datasets", "download")
+    assert "datasets download" in out and "Fetch, verify and unpack" in out
+    for opt in ("--base-url", "--force", "--max-unpack-gb", "--sample", "--registry", "--data-root", "--config",
+                "--set"):
+        assert opt in out, opt
+    out = shown("datasets", "check")
+    assert "--sample" in out and "--registry" in out and "--base-url" not in out
+    out = shown("datasets")
+    for sub in ("list", "check", "download"):
+        assert f"│ {sub} " in out, (sub, out)
 
 
 def test_run_missing_folder(tmp_path: Path):

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mutualslam_cli.datasets.camera_file import read_camera_file
+from mutualslam_cli.datasets.recordings.camera_file import read_camera_file
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import Intrinsics
 

@@ -38,10 +38,10 @@ from dl_server import (
 )
 
 from mutualslam_cli.cli import app
-from mutualslam_cli.datasets import download as dl
+from mutualslam_cli.datasets.download import entry as dl
 from mutualslam_cli.datasets import load_sequence
-from mutualslam_cli.datasets import unpack as up
-from mutualslam_cli.datasets.limits import Budget
+from mutualslam_cli.datasets.download import unpack as up
+from mutualslam_cli.datasets.download.limits import Budget
 from mutualslam_cli.geometry import pose_from_tq
 
 
@@ -269,11 +269,16 @@ def test_http_404_and_base_url(tmp_path, server, tum_src, monkeypatch):
 
 def test_listing_and_check_unchanged(tmp_path, server, tum_src):
     reg, data = registry(tmp_path, server, tum_src)
-    r = runner.invoke(app, ["datasets", "--registry", str(reg), "--data-root", str(data)])
-    assert r.exit_code == 0 and "fr3_test" in r.output, r.output
-    r = runner.invoke(app, ["datasets", "--check", str(tum_src), "--sample", "2"])
-    assert r.exit_code == 0 and "GT coverage" in r.output, r.output
-    one_line_error(runner.invoke(app, ["datasets", "a", "b"]), "expected one NAME or PATH")
+    for words in (["datasets"], ["datasets", "list"]):  # `mslam datasets` alone still lists
+        r = runner.invoke(app, [*words, "--registry", str(reg), "--data-root", str(data)])
+        assert r.exit_code == 0 and "fr3_test" in r.output, r.output
+    r = runner.invoke(app, ["datasets", "--registry", str(reg), "--data-root", str(data), "list"])
+    assert r.exit_code == 0 and "fr3_test" in r.output, r.output  # options before the sub-command apply to it
+    r = runner.invoke(app, ["datasets", "check", str(tum_src), str(tum_src), "--sample", "2"])
+    assert r.exit_code == 0 and r.output.count("GT coverage") == 2, r.output
+    one_line_error(runner.invoke(app, ["datasets", "check", str(tmp_path / "nope")]), "nope")
+    r = runner.invoke(app, ["datasets", "a", "b"])
+    assert r.exit_code == 2 and "No such command 'a'" in r.output, r.output
 
 
 def test_safe_relpath():

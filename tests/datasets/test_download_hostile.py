@@ -37,8 +37,8 @@ from dl_server import (
 
 from mutualslam_cli.cli import app
 from mutualslam_cli.cli.common import one_line, shown
-from mutualslam_cli.datasets import unpack as up
-from mutualslam_cli.datasets.unpack import MARKER
+from mutualslam_cli.datasets.download import unpack as up
+from mutualslam_cli.datasets.download.unpack import MARKER
 
 TOP = "rgbd_dataset_freiburg3_test/"
 
@@ -102,7 +102,7 @@ def test_force_replaces_only_a_folder_mslam_unpacked(tmp_path, server, tum_src):
 
 def test_an_existing_sequence_at_an_absolute_root_can_still_be_read(tmp_path, server, tum_src):
     reg, _ = registry(tmp_path, server, tum_src, fr3_test={"root": str(tum_src)})
-    r = runner.invoke(app, ["datasets", "--check", "fr3_test", "--registry", str(reg), "--sample", "2"])
+    r = runner.invoke(app, ["datasets", "check", "fr3_test", "--registry", str(reg), "--sample", "2"])
     assert r.exit_code == 0 and "GT coverage" in r.output, r.output
 
 
@@ -264,7 +264,7 @@ def test_archive_of_250000_members_refused(tmp_path, server, tum_src):
 
 
 def test_member_limit_refused_before_anything_is_written(tmp_path, server, tum_src, monkeypatch):
-    from mutualslam_cli.datasets import limits
+    from mutualslam_cli.datasets.download import limits
 
     monkeypatch.setattr(limits, "MAX_MEMBERS", 500)
     written: list[str] = []
@@ -278,7 +278,7 @@ def test_member_limit_refused_before_anything_is_written(tmp_path, server, tum_s
 
 
 def test_zip_member_count_read_before_the_directory(tmp_path, server, tum_src, monkeypatch):
-    from mutualslam_cli.datasets import limits, members
+    from mutualslam_cli.datasets.download import limits, members
 
     monkeypatch.setattr(limits, "MAX_MEMBERS", 20)
     buf = io.BytesIO()

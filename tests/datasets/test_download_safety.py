@@ -34,7 +34,7 @@ from dl_server import (
     tree,
 )
 
-from mutualslam_cli.datasets.download import downloadable_specs
+from mutualslam_cli.datasets.download.entry import downloadable_specs
 from mutualslam_cli.datasets.registry import DEFAULT_REGISTRY
 from mutualslam_cli.errors import DatasetError
 
@@ -97,7 +97,8 @@ def test_repository_registry_urls_are_https_with_safe_names():
 
 
 def test_https_to_http_redirect_refused_and_http_redirect_followed(tmp_path, server, tum_src):
-    from mutualslam_cli.datasets.fetch import _NoDowngrade  # (imported here: the other tests run on any version)
+    # (imported here: the other tests run on any version)
+    from mutualslam_cli.datasets.download.fetch import _NoDowngrade
 
     req = urllib.request.Request("https://example.org/data/x.tgz")
     with pytest.raises(DatasetError, match="not https; refused"):
@@ -202,8 +203,8 @@ def test_second_process_on_the_same_file_refused(tmp_path, server, tum_src):
 
 
 def test_checksum_records_of_two_processes_are_merged(tmp_path):
-    from mutualslam_cli.datasets.checksums import ChecksumStore
-    from mutualslam_cli.datasets.fetch import Entity
+    from mutualslam_cli.datasets.download.checksums import ChecksumStore
+    from mutualslam_cli.datasets.download.fetch import Entity
 
     path = tmp_path / "checksums.json"
     one, two = ChecksumStore(path), ChecksumStore(path)  # both loaded before either records

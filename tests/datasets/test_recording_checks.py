@@ -16,9 +16,9 @@ from typer.testing import CliRunner
 
 from mutualslam_cli.cli import app
 from mutualslam_cli.config import CONFIG_DIR
-from mutualslam_cli.datasets import video as video_mod
-from mutualslam_cli.datasets.conversion import TumWriter
-from mutualslam_cli.datasets.recording import RecordingOptions, open_recording
+from mutualslam_cli.datasets.recordings import video as video_mod
+from mutualslam_cli.datasets.recordings.conversion import TumWriter
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions, open_recording
 from mutualslam_cli.datasets.tum import read_intrinsics_txt
 from mutualslam_cli.errors import DatasetError
 
@@ -171,10 +171,10 @@ def test_sequence_folder_with_an_odd_frame_fails_in_one_line(tmp_path, tum, bad)
     victim = _frames(root)[3]
     if bad == "smaller":  # today's front end: a 140-line trace ending in OpenCV's lkpyramid.cpp assertion
         cv2.imwrite(str(victim), np.zeros((H // 2, W // 2, 3), np.uint8))
-        needles = (f"is {W // 2}×{H // 2}, expected {W}×{H}", "datasets --check")
+        needles = (f"is {W // 2}×{H // 2}, expected {W}×{H}", "datasets check")
     else:  # libpng's "Read Error" on stderr, or a partly decoded frame
         victim.write_bytes(victim.read_bytes()[:-300])
-        needles = ("truncated PNG", "datasets --check")
+        needles = ("truncated PNG", "datasets check")
     r = _run(root, tmp_path / "res")
     _one_line_error(r, str(victim), *needles)
     assert not list((tmp_path / "res").rglob("summary.json"))

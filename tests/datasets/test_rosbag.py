@@ -1,4 +1,5 @@
-"""ROS bags → TUM-layout folders (:mod:`mutualslam_cli.datasets.rosbag`), on bags written from rendered sequences."""
+"""ROS bags → TUM-layout folders (:mod:`mutualslam_cli.datasets.recordings.rosbag`), on bags written from rendered
+sequences."""
 
 from __future__ import annotations
 
@@ -14,9 +15,9 @@ from bagtools import CAMERA_INFO, RGB_RAW, encode_jpeg, write_bag_from_tum
 from synth import make_tum_dir
 
 from mutualslam_cli.datasets.associate import read_list_file, read_tum_trajectory
-from mutualslam_cli.datasets.recording import RecordingOptions, open_recording
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions, open_recording
 from mutualslam_cli.datasets.registry import load_spec
-from mutualslam_cli.datasets.rosbag import decode_depth, quantise_metres, select_topics
+from mutualslam_cli.datasets.recordings.rosbag import decode_depth, quantise_metres, select_topics
 from mutualslam_cli.datasets.tum import read_intrinsics_txt
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import Intrinsics

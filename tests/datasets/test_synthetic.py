@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from synth import make_sequence, make_tum_dir
 
-from mutualslam_cli.datasets import synthetic
-from mutualslam_cli.datasets.scenes import build_scene, camera_pose
+from mutualslam_cli.datasets.synthetic import sequences as synthetic
+from mutualslam_cli.datasets.synthetic.scenes import build_scene, camera_pose
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.geometry import quat_to_rot, se3_inv
 

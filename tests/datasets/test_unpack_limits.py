@@ -97,7 +97,7 @@ def test_pax_header_bomb_refused(tmp_path, server, tum_src):
 
 
 def test_total_limit_and_free_disk(tmp_path, server, tum_src, monkeypatch):
-    from mutualslam_cli.datasets import limits
+    from mutualslam_cli.datasets.download import limits
 
     reg, data = registry(tmp_path, server, tum_src)
     serve_tum(server, tum_src)
@@ -112,7 +112,7 @@ def test_total_limit_and_free_disk(tmp_path, server, tum_src, monkeypatch):
 
 
 def test_too_many_members(tmp_path, server, tum_src, monkeypatch):
-    from mutualslam_cli.datasets import limits
+    from mutualslam_cli.datasets.download import limits
 
     monkeypatch.setattr(limits, "MAX_MEMBERS", 40)
     extra = [(f"rgbd_dataset_freiburg3_test/empty/{k}.txt", b"") for k in range(40)]

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from synth import make_tum_dir
 
-from mutualslam_cli.datasets import video as video_mod
-from mutualslam_cli.datasets.recording import RecordingOptions, open_recording
+from mutualslam_cli.datasets.recordings import video as video_mod
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions, open_recording
 from mutualslam_cli.datasets.registry import load_spec
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.datasets.tum import read_intrinsics_txt
-from mutualslam_cli.datasets.video import natural_key
+from mutualslam_cli.datasets.recordings.video import natural_key
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import Intrinsics
 

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 
 from mutualslam_cli.cli import app
 from mutualslam_cli.config import CONFIG_DIR, load_config
-from mutualslam_cli.datasets.recording import RecordingOptions
+from mutualslam_cli.datasets.recordings.recording import RecordingOptions
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.tum import read_intrinsics_txt
 from mutualslam_cli.pipeline import run_sequence

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from mutualslam_cli.config import LoopConfig
-from mutualslam_cli.datasets.scenes import camera_pose
-from mutualslam_cli.datasets.synthetic import FPS, _setup, synthetic_intrinsics
+from mutualslam_cli.datasets.synthetic.scenes import camera_pose
+from mutualslam_cli.datasets.synthetic.sequences import FPS, _setup, synthetic_intrinsics
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.vo.camera import to_normalized
 from mutualslam_cli.vo.features import detect_grid

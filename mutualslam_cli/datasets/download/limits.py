@@ -1,4 +1,4 @@
-"""Limits on what unpacking one downloaded archive may write (:mod:`~mutualslam_cli.datasets.unpack`).
+"""Limits on what unpacking one downloaded archive may write (:mod:`~mutualslam_cli.datasets.download.unpack`).
 
 A crafted or broken archive must not fill the disk, the memory or the inode table. Every byte an
 unpacking writes goes through :meth:`Budget.copy` (members are streamed in chunks of
@@ -11,7 +11,7 @@ unpacking writes goes through :meth:`Budget.copy` (members are streamed in chunk
   file system when unpacking began;
 - **member count** ≤ :data:`MAX_MEMBERS` (the longest TUM sequences hold ~40 000 files); the count and the
   declared total are checked from the headers before anything is written (:meth:`Budget.declared`,
-  :mod:`~mutualslam_cli.datasets.archive_scan`), and again member by member while unpacking;
+  :mod:`~mutualslam_cli.datasets.download.archive_scan`), and again member by member while unpacking;
 - **compression ratio of a member**: a member larger than :data:`RATIO_FLOOR_BYTES` may not unpack to
   more than :data:`MAX_RATIO` × its compressed bytes (deflate reaches ~1000× on zeros, a zip bomb's
   filling; images reach ~1×, text ~5×). For a zip the declared sizes are checked before anything is

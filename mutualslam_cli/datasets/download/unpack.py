@@ -1,11 +1,11 @@
-"""Unpacking downloaded dataset archives safely (used by :mod:`~mutualslam_cli.datasets.download`).
+"""Unpacking downloaded dataset archives safely (used by :mod:`~mutualslam_cli.datasets.download.entry`).
 
 Every function writes only inside the folder it is given (a temporary folder the caller removes on
-failure), and every byte it writes is counted against the :mod:`~mutualslam_cli.datasets.limits`
+failure), and every byte it writes is counted against the :mod:`~mutualslam_cli.datasets.download.limits`
 (total bytes, free disk, member count, per-member compression ratio):
 
 - :func:`extract_archive`: a ``.tar`` (plain, gzip, bzip2 or xz) or ``.zip`` archive, member by member,
-  each streamed to disk. What a member may be is :mod:`~mutualslam_cli.datasets.members`' rule
+  each streamed to disk. What a member may be is :mod:`~mutualslam_cli.datasets.download.members`' rule
   (:func:`safe_relpath`: relative, no ``..``, at most :data:`MAX_MEMBER_DEPTH` components; no links,
   no special files, zip members stored or deflated), else :class:`UnsafeMember`. A truncated or corrupt
   archive raises :class:`CorruptArchive`.
@@ -17,7 +17,7 @@ failure), and every byte it writes is counted against the :mod:`~mutualslam_cli.
   existing folder only when it carries the marker — one mslam unpacked, never a folder of the user's —
   by moving it aside first and moving it back if the new one cannot take its place;
   :func:`recover_leftovers` finishes or undoes such a swap that a killed process left half done.
-- 7-Scenes scene zips: :mod:`~mutualslam_cli.datasets.seven_scenes`.
+- 7-Scenes scene zips: :mod:`~mutualslam_cli.datasets.download.seven_scenes`.
 
 Progress: ``progress(done, total)`` in bytes of the archive (of the sequence's members for 7-Scenes).
 """
@@ -37,9 +37,9 @@ import zipfile
 from pathlib import Path
 from typing import IO, Callable
 
-from mutualslam_cli.datasets.archive_scan import scan_tar
-from mutualslam_cli.datasets.limits import MAX_HEADER_BYTES, Budget, UnpackLimits
-from mutualslam_cli.datasets.members import (
+from mutualslam_cli.datasets.download.archive_scan import scan_tar
+from mutualslam_cli.datasets.download.limits import MAX_HEADER_BYTES, Budget, UnpackLimits
+from mutualslam_cli.datasets.download.members import (
     MAX_MEMBER_CHARS,
     MAX_MEMBER_DEPTH,
     check_zip_member,
@@ -49,8 +49,8 @@ from mutualslam_cli.datasets.members import (
     refuse_special,
     safe_relpath,
 )
-from mutualslam_cli.datasets.safe_names import path_inside
-from mutualslam_cli.datasets.seven_scenes import convert_7scenes
+from mutualslam_cli.datasets.download.safe_names import path_inside
+from mutualslam_cli.datasets.download.seven_scenes import convert_7scenes
 from mutualslam_cli.errors import ArchiveTooLarge, CorruptArchive, DatasetError, UnsafeMember
 
 __all__ = ["MARKER", "MAX_MEMBER_CHARS", "MAX_MEMBER_DEPTH", "UnpackProgress", "UnsafeMember", "content_root",
@@ -151,7 +151,7 @@ def extract_archive(archive: Path, dest: Path, progress: UnpackProgress | None =
     Raises:
         UnsafeMember: a member path that :func:`safe_relpath` refuses, a link or special file, an
             unsupported zip compression (some members may be written already).
-        ArchiveTooLarge: a limit of ``budget`` (default :class:`~mutualslam_cli.datasets.limits.UnpackLimits`).
+        ArchiveTooLarge: a limit of ``budget`` (default :class:`~mutualslam_cli.datasets.download.limits.UnpackLimits`).
         CorruptArchive: the archive is truncated or corrupt.
         OSError: writing failed (e.g. ``errno.ENOSPC``).
     """
@@ -262,7 +262,7 @@ def install_archive(archive: Path, root: Path, *, layout: str = "archive", seque
     files (safe file name in the sequence folder → source path) into it, then rename it to ``root``.
 
     ``layout``: ``"archive"`` (the sequence is the archive's only top folder, or its top level) or
-    ``"7scenes"`` (:func:`~mutualslam_cli.datasets.seven_scenes.convert_7scenes` of ``sequence``). The
+    ``"7scenes"`` (:func:`~mutualslam_cli.datasets.download.seven_scenes.convert_7scenes` of ``sequence``). The
     temporary folder is removed in every case; ``root`` is only ever absent or complete, and with
     ``force`` an existing ``root`` survives any failure.
 
@@ -272,7 +272,7 @@ def install_archive(archive: Path, root: Path, *, layout: str = "archive", seque
 
     Raises:
         CorruptArchive: the archive is truncated or corrupt (the caller decides what to do with it).
-        DatasetError: an unsafe member, a limit (:mod:`~mutualslam_cli.datasets.limits`), a full disk,
+        DatasetError: an unsafe member, a limit (:mod:`~mutualslam_cli.datasets.download.limits`), a full disk,
             another write error — one line each.
     """
     root.parent.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ registry field (``gt:``, ``sequence:``) is *validated*, never decoded into a pat
 
 A name that breaks the rule raises :class:`~mutualslam_cli.errors.UnsafeName` naming where it came from;
 nothing has been written by then. Archive *members* are relative paths, not single names: they
-follow :func:`~mutualslam_cli.datasets.unpack.safe_relpath`, which applies the same "no ``..``, no
+follow :func:`~mutualslam_cli.datasets.download.unpack.safe_relpath`, which applies the same "no ``..``, no
 absolute path, stays inside" rule component by component.
 """
 

@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mutualslam_cli.datasets.conversion import RecordingOptions, TumWriter
+from mutualslam_cli.datasets.recordings.conversion import RecordingOptions, TumWriter
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import pose_from_tq
 from mutualslam_cli.types import Intrinsics, Trajectory

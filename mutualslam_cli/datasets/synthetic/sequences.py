@@ -2,7 +2,7 @@
 
 Scenes are unions of axis-aligned boxes: an enclosing box seen from inside (the room) plus
 boxes seen from outside (furniture, panels, pillars). Each frame is ray-cast analytically
-(slab method, Kay & Kajiya 1986; :mod:`~mutualslam_cli.datasets.raycast`): camera rays
+(slab method, Kay & Kajiya 1986; :mod:`~mutualslam_cli.datasets.synthetic.raycast`): camera rays
 ``d = R_wc K⁻¹ [u, v, 1]ᵀ`` have unit camera z, so the ray parameter at the hit *is* the
 z-depth. Texture coordinates come from the hit point and are sampled from a mip-mapped atlas
 (:mod:`textures`) with ``cv2.remap``. This module owns the sequences: scene setup, camera
@@ -33,11 +33,11 @@ from typing import Callable, Iterable, Iterator, Literal
 import cv2
 import numpy as np
 
-from mutualslam_cli.datasets import scenes
 from mutualslam_cli.datasets.associate import write_tum_trajectory
-from mutualslam_cli.datasets.raycast import Renderer
-from mutualslam_cli.datasets.scenes import SCENES, SceneDef, camera_pose
-from mutualslam_cli.datasets.textures import STYLES, build_atlas, face_texture
+from mutualslam_cli.datasets.synthetic import scenes
+from mutualslam_cli.datasets.synthetic.raycast import Renderer
+from mutualslam_cli.datasets.synthetic.scenes import SCENES, SceneDef, camera_pose
+from mutualslam_cli.datasets.synthetic.textures import STYLES, build_atlas, face_texture
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.types import Intrinsics, Trajectory, check_shape
 

@@ -6,7 +6,7 @@ sequence becomes ``rgb/``, ``depth/``, ``rgb.txt``, ``depth.txt`` (timestamps in
 ``groundtruth.txt`` (quaternions of the 4×4 camera-to-world poses); depth stays in millimetres with
 the invalid value 65535 set to 0.
 
-Written through the same :class:`~mutualslam_cli.datasets.limits.Budget` as any archive: every member
+Written through the same :class:`~mutualslam_cli.datasets.download.limits.Budget` as any archive: every member
 streamed to disk within the limits (the nested zip too, then its own members), file names made from the
 frame index (never taken from the archive), a pose file read at most :data:`MAX_POSE_BYTES`, a depth
 image decoded only when its PNG header says at most :data:`MAX_DEPTH_PIXELS` pixels.
@@ -22,8 +22,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from mutualslam_cli.datasets.limits import Budget
-from mutualslam_cli.datasets.members import check_zip_member, open_zip, reading_archive
+from mutualslam_cli.datasets.download.limits import Budget
+from mutualslam_cli.datasets.download.members import check_zip_member, open_zip, reading_archive
 from mutualslam_cli.errors import CorruptArchive, DatasetError
 from mutualslam_cli.geometry import rot_to_quat
 
@@ -140,7 +140,7 @@ def convert_7scenes(archive: Path, sequence: str, dest: Path, progress: UnpackPr
         CorruptArchive: the zip (or the nested one) is truncated or corrupt, or a depth image does not
             decode as 16-bit.
         DatasetError: the archive holds no frame of ``sequence``.
-        UnsafeMember, ArchiveTooLarge, OSError: as :func:`~mutualslam_cli.datasets.unpack.extract_archive`.
+        UnsafeMember, ArchiveTooLarge, OSError: as :func:`~mutualslam_cli.datasets.download.unpack.extract_archive`.
     """
     dest.mkdir(parents=True, exist_ok=True)
     budget = budget or Budget(archive, dest)

@@ -15,7 +15,7 @@ read-modify-write of a small shared file (``checksums.json``), held for millisec
 
 A ``.lock`` file is opened without following a symbolic link, and the holder's record is read through
 its schema (:data:`LOCK_SCHEMA`): one of another shape is named as damaged in the message, never shown as
-a holder (:mod:`~mutualslam_cli.datasets.download_files`).
+a holder (:mod:`~mutualslam_cli.datasets.download.files`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Iterator
 
-from mutualslam_cli.datasets.download_files import (
+from mutualslam_cli.datasets.download.files import (
     COUNT,
     TEXT,
     Schema,

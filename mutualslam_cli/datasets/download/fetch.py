@@ -14,7 +14,7 @@
   with another range would have those bytes kept as the start of the file); a resume accepts only the
   exact range it asked for (``N`` to the end of the recorded size), else it starts over.
 - ``NAME.part`` is opened with ``O_NOFOLLOW`` and ``NAME.partinfo`` is read through its schema
-  (:mod:`~mutualslam_cli.datasets.download_files`): a link is refused, a damaged record means starting over.
+  (:mod:`~mutualslam_cli.datasets.download.files`): a link is refused, a damaged record means starting over.
 - Redirects from ``https`` to ``http`` are refused (a downgrade would drop the server's authentication).
 
 Timeouts in seconds, sizes in bytes (MB = 10⁶ bytes in messages).
@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.datasets.download_files import (
+from mutualslam_cli.datasets.download.files import (
     OPTIONAL_COUNT,
     OPTIONAL_TEXT,
     TEXT,

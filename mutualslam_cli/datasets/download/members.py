@@ -1,5 +1,5 @@
 """What a member of a downloaded archive may be, and how the readers' errors are reported
-(shared by :mod:`~mutualslam_cli.datasets.unpack` and :mod:`~mutualslam_cli.datasets.seven_scenes`).
+(shared by :mod:`~mutualslam_cli.datasets.download.unpack` and :mod:`~mutualslam_cli.datasets.download.seven_scenes`).
 
 A member becomes a path only through :func:`safe_relpath` (relative, no ``..``, no control character,
 at most :data:`MAX_MEMBER_DEPTH` components and :data:`MAX_MEMBER_CHARS` characters) and
@@ -23,8 +23,8 @@ from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
 from typing import Iterator
 
-from mutualslam_cli.datasets.archive_scan import zip_declared_members
-from mutualslam_cli.datasets.limits import Budget
+from mutualslam_cli.datasets.download.archive_scan import zip_declared_members
+from mutualslam_cli.datasets.download.limits import Budget
 from mutualslam_cli.errors import ArchiveTooLarge, CorruptArchive, UnsafeMember
 
 MAX_MEMBER_DEPTH = 32

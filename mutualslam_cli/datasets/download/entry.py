@@ -14,23 +14,23 @@ What comes from outside is checked before it touches the disk, in this order:
 
 - **where**: the entry's ``root``, resolved (``..`` and symbolic links), must lie inside the data root
   (and not in ``_downloads/``); a root elsewhere can still be read, but not downloaded into. ``force``
-  replaces only a folder that mslam unpacked (it holds :data:`~mutualslam_cli.datasets.unpack.MARKER`),
+  replaces only a folder that mslam unpacked (it holds :data:`~mutualslam_cli.datasets.download.unpack.MARKER`),
   never a folder of the user's;
 - **names**: each URL's file name, the entry's ``gt:`` and ``sequence:`` must be safe single file
-  names (:mod:`~mutualslam_cli.datasets.safe_names`), so nothing lands outside ``<data root>/_downloads/``
+  names (:mod:`~mutualslam_cli.datasets.download.safe_names`), so nothing lands outside ``<data root>/_downloads/``
   or the sequence folder;
-- **one process per file**: the files of the entry are locked (:mod:`~mutualslam_cli.datasets.download_lock`);
+- **one process per file**: the files of the entry are locked (:mod:`~mutualslam_cli.datasets.download.lock`);
   a second command on the same file stops at once, naming the holder;
 - **the bytes**: files arrive as ``FILE.part``; a ``.part`` is resumed only when it is the same version
-  of the file (``If-Range`` with the recorded ETag / Last-Modified, :mod:`~mutualslam_cli.datasets.fetch`).
+  of the file (``If-Range`` with the recorded ETag / Last-Modified, :mod:`~mutualslam_cli.datasets.download.fetch`).
   A complete file is checked against its size, a published checksum when the block gives one, and
   otherwise against what ``_downloads/checksums.json`` recorded at its first complete download
-  (:mod:`~mutualslam_cli.datasets.checksums`: SHA-256, size, URL, ETag; recorded once its archive has
+  (:mod:`~mutualslam_cli.datasets.download.checksums`: SHA-256, size, URL, ETag; recorded once its archive has
   unpacked); a mismatching file is removed, and the message says whether the publisher changed it;
-- **the archive**: unpacked within limits (:mod:`~mutualslam_cli.datasets.limits`) into a temporary
+- **the archive**: unpacked within limits (:mod:`~mutualslam_cli.datasets.download.limits`) into a temporary
   folder beside the sequence folder, checked there with the sequence check
   (:func:`~mutualslam_cli.datasets.check.check_sequence`), and renamed into place only when it passes
-  (:mod:`~mutualslam_cli.datasets.unpack`), so the sequence folder either does not exist or is whole and
+  (:mod:`~mutualslam_cli.datasets.download.unpack`), so the sequence folder either does not exist or is whole and
   checked; ``force`` keeps the old folder (and the old checksum record) until the new one takes its
   place. Only then is the archive's SHA-256 recorded.
 
@@ -47,13 +47,13 @@ from pathlib import Path
 from typing import Callable
 
 from mutualslam_cli.datasets.check import CheckProgress, CheckReport, check_sequence
-from mutualslam_cli.datasets.checksums import ALGORITHMS, CHECKSUMS_FILE, ChecksumStore, verify
-from mutualslam_cli.datasets.download_lock import download_lock
-from mutualslam_cli.datasets.fetch import TIMEOUT_S, DownloadProgress, Entity, fetch
-from mutualslam_cli.datasets.limits import UnpackLimits
+from mutualslam_cli.datasets.download.checksums import ALGORITHMS, CHECKSUMS_FILE, ChecksumStore, verify
+from mutualslam_cli.datasets.download.lock import download_lock
+from mutualslam_cli.datasets.download.fetch import TIMEOUT_S, DownloadProgress, Entity, fetch
+from mutualslam_cli.datasets.download.limits import UnpackLimits
 from mutualslam_cli.datasets.registry import DEFAULT_REGISTRY, list_datasets
-from mutualslam_cli.datasets.safe_names import check_name, path_inside, url_file_name
-from mutualslam_cli.datasets.unpack import (
+from mutualslam_cli.datasets.download.safe_names import check_name, path_inside, url_file_name
+from mutualslam_cli.datasets.download.unpack import (
     install_archive,
     is_complete,
     is_unpacked_by_mslam,
@@ -238,10 +238,10 @@ def download_sequence(spec: SequenceSpec, download_dir: Path, base_url: str | No
             the data root, inside which ``spec.root`` must lie.
         base_url: a mirror replacing everything before each file name (default ``$MSLAM_DOWNLOAD_BASE_URL``).
         force: unpack again and replace an existing sequence folder (the downloaded files are reused).
-        progress: see :data:`~mutualslam_cli.datasets.fetch.DownloadProgress`.
+        progress: see :data:`~mutualslam_cli.datasets.download.fetch.DownloadProgress`.
         on_message: one-line notes (skipped, reused, resumed, restarted, checksum recorded).
         timeout: seconds for a connection or the next bytes.
-        limits: unpacking limits (default :class:`~mutualslam_cli.datasets.limits.UnpackLimits`).
+        limits: unpacking limits (default :class:`~mutualslam_cli.datasets.download.limits.UnpackLimits`).
         sample: the sequence check of the unpacked folder decodes the images of this many frames (0: all).
         check_progress: see :data:`~mutualslam_cli.datasets.check.CheckProgress`.
 

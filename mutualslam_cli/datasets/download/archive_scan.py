@@ -1,5 +1,5 @@
 """What an archive declares about itself, read before anything of it is written
-(used by :mod:`~mutualslam_cli.datasets.unpack` and :mod:`~mutualslam_cli.datasets.members`).
+(used by :mod:`~mutualslam_cli.datasets.download.unpack` and :mod:`~mutualslam_cli.datasets.download.members`).
 
 An archive of a quarter of a million empty members is half a megabyte; unpacking it member by member
 creates files until the member limit is reached, which took ~45 s of one core before the archive was
@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 from typing import IO, Callable
 
-from mutualslam_cli.datasets.limits import MAX_HEADER_BYTES
+from mutualslam_cli.datasets.download.limits import MAX_HEADER_BYTES
 from mutualslam_cli.errors import ArchiveTooLarge
 
 BLOCK = 512

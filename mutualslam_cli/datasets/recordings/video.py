@@ -29,7 +29,7 @@ import numpy as np
 from mutualslam_cli.errors import DatasetError
 
 if TYPE_CHECKING:
-    from mutualslam_cli.datasets.conversion import RecordingOptions, TumWriter
+    from mutualslam_cli.datasets.recordings.conversion import RecordingOptions, TumWriter
 
 #: Frame rate of an image folder whose names are not times, when ``RecordingOptions.fps`` is not given.
 DEFAULT_FPS = 30.0
@@ -55,7 +55,7 @@ def convert_video(path: Path, opts: RecordingOptions, writer: TumWriter) -> dict
     Args:
         path: the video file (whatever OpenCV's FFmpeg backend decodes).
         opts: ``opts.fps`` (frames/s), when given, times frames ``index / fps`` instead of the container.
-        writer: receives each frame with :meth:`~mutualslam_cli.datasets.conversion.TumWriter.add_rgb`.
+        writer: receives each frame with :meth:`~mutualslam_cli.datasets.recordings.conversion.TumWriter.add_rgb`.
 
     Returns:
         Metadata for ``source.json``: ``video_frames``, ``fps`` (the container's), ``fps_used``
@@ -178,7 +178,7 @@ def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) 
     Args:
         path: the folder (no ``rgb.txt``; subfolders such as ``depth/`` are not read).
         opts: ``opts.fps`` (frames/s; default 30) times frames whose names are not times.
-        writer: receives each image with :meth:`~mutualslam_cli.datasets.conversion.TumWriter.add_rgb_path`.
+        writer: receives each image with :meth:`~mutualslam_cli.datasets.recordings.conversion.TumWriter.add_rgb_path`.
 
     Returns:
         Metadata for ``source.json``: ``images``, ``times`` (from the names or ``index / fps``),
@@ -188,7 +188,7 @@ def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) 
         DatasetError: no image, two images with the same time, or the first image that is truncated, does not
             decode, or differs in size from the first.
     """
-    from mutualslam_cli.datasets.conversion import IMAGE_SUFFIXES
+    from mutualslam_cli.datasets.recordings.conversion import IMAGE_SUFFIXES
 
     path = Path(path)
     files = [q for q in path.iterdir() if q.is_file() and not q.name.startswith(".")

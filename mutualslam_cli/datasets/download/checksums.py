@@ -8,10 +8,10 @@ entry to accept the new version) or the bytes are *corrupt* (same size and ETag:
 checksum published in ``datasets.yaml`` (``checksums:``) wins over the record.
 
 Several processes may record files at once (different entries, one data root): each update re-reads
-the file under a short lock (:func:`~mutualslam_cli.datasets.download_lock.locked_update`) and
+the file under a short lock (:func:`~mutualslam_cli.datasets.download.lock.locked_update`) and
 replaces it atomically, so no record is lost.
 
-Each entry is read through its schema (:data:`CHECKSUM_SCHEMA`, :mod:`~mutualslam_cli.datasets.download_files`):
+Each entry is read through its schema (:data:`CHECKSUM_SCHEMA`, :mod:`~mutualslam_cli.datasets.download.files`):
 an entry of another shape is never trusted; the line names the entry and field and says to delete it.
 The file itself and the files it checks are opened without following symbolic links.
 """
@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.datasets.download_files import (
+from mutualslam_cli.datasets.download.files import (
     COUNT,
     OPTIONAL_TEXT,
     SHA256,
@@ -36,8 +36,8 @@ from mutualslam_cli.datasets.download_files import (
     open_no_follow,
     read_text_no_follow,
 )
-from mutualslam_cli.datasets.download_lock import locked_update
-from mutualslam_cli.datasets.fetch import Entity
+from mutualslam_cli.datasets.download.lock import locked_update
+from mutualslam_cli.datasets.download.fetch import Entity
 from mutualslam_cli.errors import DamagedRecord, DatasetError
 
 CHECKSUMS_FILE = "checksums.json"

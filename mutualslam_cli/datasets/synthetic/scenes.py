@@ -1,4 +1,4 @@
-"""Layouts and camera paths of the synthetic scenes (geometry only; see :mod:`synthetic`).
+"""Layouts and camera paths of the synthetic scenes (geometry only; see :mod:`.sequences`).
 
 A scene is a list of axis-aligned boxes in a z-up world: box 0 encloses everything and is
 seen from inside, the others are seen from outside. Face ``f = 6·box + 2·axis + side``

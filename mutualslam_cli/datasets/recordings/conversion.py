@@ -1,4 +1,4 @@
-"""What a recording is converted into (:mod:`~mutualslam_cli.datasets.recording`): the options that say how
+"""What a recording is converted into (:mod:`~mutualslam_cli.datasets.recordings.recording`): the options that say how
 to read it (:class:`RecordingOptions`) and the TUM-layout folder its frames are written to (:class:`TumWriter`).
 The converters (:mod:`.rosbag`, :mod:`.video`) write through these; :mod:`.recording` dispatches to them.
 """

@@ -7,11 +7,11 @@ in a temporary sibling and renamed into place, so a killed conversion leaves not
 would read; the cache key holds the recording's size, mtime and the options that change the
 result, so an edited recording or other topics convert anew.
 
-- ROS 1 ``.bag`` and ROS 2 bag folders / ``.db3`` / ``.mcap``: :mod:`~mutualslam_cli.datasets.rosbag`.
+- ROS 1 ``.bag`` and ROS 2 bag folders / ``.db3`` / ``.mcap``: :mod:`~mutualslam_cli.datasets.recordings.rosbag`.
 - Videos (``.mp4``, ``.avi``, ``.mkv``, ``.mov`` …) and image folders with a camera file:
-  :mod:`~mutualslam_cli.datasets.video`.
+  :mod:`~mutualslam_cli.datasets.recordings.video`.
 - Camera files (OpenCV calibration YAML, ROS ``camera_calibration`` YAML, plain
-  ``fx fy cx cy [k1 k2 p1 p2 k3]``): :mod:`~mutualslam_cli.datasets.camera_file`.
+  ``fx fy cx cy [k1 k2 p1 p2 k3]``): :mod:`~mutualslam_cli.datasets.recordings.camera_file`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from mutualslam_cli.datasets.associate import read_tum_trajectory
-from mutualslam_cli.datasets.conversion import (
+from mutualslam_cli.datasets.recordings.conversion import (
     BAG_SUFFIXES,
     CONVERSION_VERSION,
     IMAGE_SUFFIXES,
@@ -88,7 +88,7 @@ def open_recording(path: str | os.PathLike, opts: RecordingOptions,
         DatasetError: an unreadable recording, no colour frames, no intrinsics (no ``CameraInfo``
             and no camera file), a bad camera or GT file — one line naming the file.
     """
-    from mutualslam_cli.datasets.camera_file import read_camera_file
+    from mutualslam_cli.datasets.recordings.camera_file import read_camera_file
 
     path = Path(path).expanduser()
     kind = recording_kind(path, opts)
@@ -101,11 +101,11 @@ def open_recording(path: str | os.PathLike, opts: RecordingOptions,
         writer = TumWriter(folder, progress, source=str(path), expect_size=size, camera=str(opts.camera))
         try:
             if kind == "bag":
-                from mutualslam_cli.datasets.rosbag import convert_bag
+                from mutualslam_cli.datasets.recordings.rosbag import convert_bag
 
                 intr, depth_scale, meta = convert_bag(path, opts, writer)
             else:
-                from mutualslam_cli.datasets.video import convert_image_folder, convert_video
+                from mutualslam_cli.datasets.recordings.video import convert_image_folder, convert_video
 
                 convert = convert_video if kind == "video" else convert_image_folder
                 intr, depth_scale, meta = None, 5000.0, convert(path, opts, writer)

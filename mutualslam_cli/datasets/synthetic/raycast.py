@@ -4,7 +4,7 @@ Each frame is ray-cast analytically (slab method, Kay & Kajiya 1986): camera ray
 ``d = R_wc K⁻¹ [u, v, 1]ᵀ`` have unit camera z, so the ray parameter at the hit *is* the
 z-depth. The enclosing box (the room) is seen from inside, every other box from outside and
 z-buffered. Texture coordinates come from the hit point and are sampled from a mip-mapped atlas
-(:mod:`~mutualslam_cli.datasets.textures`) with ``cv2.remap``, blending two mip levels
+(:mod:`~mutualslam_cli.datasets.synthetic.textures`) with ``cv2.remap``, blending two mip levels
 (trilinear filtering, Williams 1983).
 """
 
@@ -13,8 +13,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mutualslam_cli.datasets.scenes import SceneDef
-from mutualslam_cli.datasets.textures import N_LEVELS, Atlas
+from mutualslam_cli.datasets.synthetic.scenes import SceneDef
+from mutualslam_cli.datasets.synthetic.textures import N_LEVELS, Atlas
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.types import Intrinsics
 
