@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -165,7 +166,11 @@ def test_complete_run_is_skipped_and_deterministic(setup):
 
 def test_scheme_none_and_report(setup):
     tmp, seq = setup
-    run_sequence(seq, _cfg(tmp, "adapt.scheme=none"), out=tmp / "rep")
+    r = run_sequence(seq, _cfg(tmp, "adapt.scheme=none"), out=tmp / "rep")
+    kf = pd.read_csv(r.folder / "keyframes.csv")  # a row per keyframe, though Algorithm 1 ticked none
+    n_kf = len(np.loadtxt(r.folder / "traj_kf.txt", ndmin=2))
+    assert list(kf["kf_id"]) == list(range(n_kf)) and set(kf["not_ticked"]) == {"scheme none"}
+    assert r.summary["adaptation"]["labels"] == "oracle"  # smoke.yaml's oracle front end re-triangulates later
     # settings the pre-trained rows do not depend on differ: the rows are still shared
     run_sequence(seq, _cfg(tmp, "adapt.scheme=recent", "eval.online=false", "eval.export_frames=1"), out=tmp / "rep")
     rep = build_tables(collect([tmp / "rep"]))
