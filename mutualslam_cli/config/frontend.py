@@ -59,7 +59,7 @@ class VOConfig:
     bridge_segments: bool = True
     """Scale-consistent re-initialisation: a new segment (relocalisation failed) is joined to the map
     before it by the adaptation stage, scaled by the network's depth ratio on both sides of the gap
-    and placed at the last tracked pose (:mod:`~mutualslam_cli.vo.segments`); ``false`` keeps every
+    and placed at the last tracked pose (:mod:`~mutualslam_cli.backend.bridges`); ``false`` keeps every
     segment in its own frame and unit (the paper's fresh start). Not part of the front end's cache key."""
     merge_segments: bool = True
     """A segment started after a tracking loss keeps looking for the map before it (the loop closure's place

@@ -56,7 +56,7 @@ from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import DeferredMap, RealtimeClock, run_realtime
 from mutualslam_cli.vo.feedback import MapRefinement
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import plan_bridge
+from mutualslam_cli.backend.bridges import plan_bridge
 
 class OnlineLoop:
     """Algorithm 1 over the front end's events, for one run (module docstring).
@@ -271,7 +271,7 @@ class Adapted:
         source: the front end's event source (cache use, replayed frames).
         injected: ids of map points corrupted by ``vo.inject_outliers``.
         requested: how many times Algorithm 1 requested global BA.
-        bridges: one record per bridge made (:class:`~mutualslam_cli.vo.segments.Bridge`); refused: per bridge
+        bridges: one record per bridge made (:class:`~mutualslam_cli.backend.bridges.Bridge`); refused: per bridge
             refused; loops: per loop closed (:mod:`~mutualslam_cli.stages.loop`); credit: the bridges of
             ``bridged``, planned on ``frontend``'s own map.
         l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).

@@ -3,7 +3,7 @@
 :class:`BAStage` gives the adaptation stage the step it calls when Algorithm 1 requests global BA
 (the mutual loop, :func:`make_ba_step`), refines the whole map at the end (:func:`final_ba`) and
 writes its maps, trajectories and summary keys. The BA itself is
-:func:`~mutualslam_cli.ba.global_ba.run_global_ba`.
+:func:`~mutualslam_cli.backend.ba.global_ba.run_global_ba`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch
 
 from mutualslam_cli.adapt.inputs import frame_lookup, keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter
-from mutualslam_cli.ba.global_ba import GlobalBAResult, run_global_ba
+from mutualslam_cli.backend.ba.global_ba import GlobalBAResult, run_global_ba
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.map_ply import write_ply
@@ -39,7 +39,7 @@ from mutualslam_cli.stages.slam_metrics import (
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import units_of
+from mutualslam_cli.backend.bridges import units_of
 
 log = logging.getLogger(__name__)
 

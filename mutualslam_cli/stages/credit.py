@@ -23,7 +23,7 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.stages.loop_inputs import depth_predictor
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import plan_bridge
+from mutualslam_cli.backend.bridges import plan_bridge
 
 
 def front_end_alone(seq: Sequence, cfg: RunConfig, cache_dir: Path | None) -> tuple[VOResult, set[int]]:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mutualslam_cli.ba.culling import inject_outliers
+from mutualslam_cli.backend.culling import inject_outliers
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.map_ply import write_ply

@@ -2,10 +2,10 @@
 
 :class:`LoopCloser` keeps every keyframe's image for place recognition and, for each new keyframe, looks
 for it among the keyframes of its map unit at least ``loop.min_gap`` older
-(:class:`~mutualslam_cli.vo.loop_closure.LoopDetector`: appearance, geometry, and the adapted network's
+(:class:`~mutualslam_cli.backend.loop_detector.LoopDetector`: appearance, geometry, and the adapted network's
 depth for the scale and as a check). A verified loop is closed on the map as it stands — like the
 global BA's feedback, in the live front end with causal labels: a Sim(3) pose graph spreads the
-correction over the keyframes it closes (:func:`~mutualslam_cli.ba.pose_graph.close_loop`), then culling +
+correction over the keyframes it closes (:func:`~mutualslam_cli.backend.pose_graph.close_loop`), then culling +
 the robust global BA refine the unit, the loop's two ends now close enough for nearby-keyframe targets to
 tie them (the loop's correspondences). The refined poses and points feed training as the BA's do.
 
@@ -22,13 +22,13 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from mutualslam_cli.ba.pose_graph import close_loop
+from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.vo.camera import focal_px
 from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector
+from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 
 log = logging.getLogger(__name__)
 

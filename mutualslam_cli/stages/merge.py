@@ -2,11 +2,11 @@
 T-RO 2021, §VI-B): the measured join that replaces the network's bridge.
 
 A tracking loss the relocalisation could not repair starts a new segment in its own frame and unit; the
-adaptation loop then *bridges* it (:mod:`~mutualslam_cli.vo.segments`): placed at the last tracked pose, scaled
+adaptation loop then *bridges* it (:mod:`~mutualslam_cli.backend.bridges`): placed at the last tracked pose, scaled
 by the network's depth ratio on the two sides of the gap — an estimate that put whole TUM fr1_desk segments
 20–25 % off in scale. A merge measures instead. At each keyframe of a segment not merged yet, the keyframe is
 looked for among the keyframes of the segments before it with the loop closure's place recognition and
-verification (:class:`~mutualslam_cli.vo.loop_closure.LoopDetector`: ORB homography, KLT from the old image,
+verification (:class:`~mutualslam_cli.backend.loop_detector.LoopDetector`: ORB homography, KLT from the old image,
 PnP-RANSAC, inlier halves, other old keyframes as witnesses, the old points' depths agreeing with the
 network's), which gives the keyframe's pose ``T_o`` in the old map and the scale ``s`` between the two maps
 from pairs of nearby old and new points (old units per new unit). Then:
@@ -32,11 +32,11 @@ import numpy as np
 
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.ba.pose_graph import close_loop
+from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.loop import LoopCloser
 from mutualslam_cli.vo.camera import focal_px
-from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector
+from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 
 
 def merge_similarity(T_new: np.ndarray, loop: LoopClosure) -> tuple[np.ndarray, np.ndarray, float]:

@@ -12,7 +12,7 @@ from mutualslam_cli.config import RunConfig
 from mutualslam_cli.geometry import exp_so3, se3_inv
 from mutualslam_cli.stages.merge import SegmentMerger, merge_similarity
 from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.loop_closure import LoopClosure
+from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.relocalise import HeldImages
 

@@ -11,7 +11,7 @@ import torch
 from synth import make_tum_dir
 
 from mutualslam_cli.adapt import losses
-from mutualslam_cli.ba.global_ba import GlobalBAResult
+from mutualslam_cli.backend.ba.global_ba import GlobalBAResult
 from mutualslam_cli.config import RunConfig, VOConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.stages.adaptation import OnlineLoop
@@ -187,7 +187,7 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
     network goes on in its first unit only — the second segment's keyframes are neither trained on nor
     replayed nor validated, and the run counts them."""
     from mutualslam_cli.stages import adaptation
-    from mutualslam_cli.vo.segments import Bridge
+    from mutualslam_cli.backend.bridges import Bridge
 
     seq, vo, events = oracle
     script = []

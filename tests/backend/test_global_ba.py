@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from synth import make_tum_dir
 
-from mutualslam_cli.ba import global_ba as gba
+from mutualslam_cli.backend.ba import global_ba as gba
 from mutualslam_cli.bench.ba import perturb, synthetic_problem
 from mutualslam_cli.config import BAConfig, VOConfig
 from mutualslam_cli.datasets.registry import load_sequence

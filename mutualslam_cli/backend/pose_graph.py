@@ -1,5 +1,5 @@
 """Sim(3) pose graph over keyframes: a loop's correction spread over the keyframes it closes
-(:mod:`~mutualslam_cli.vo.loop_closure`).
+(:mod:`~mutualslam_cli.backend.loop_detector`).
 
 Each keyframe ``k`` of the loop's map unit from the loop's old end on is a node ``M_k = [s_k R_k | t_k]``
 (camera to world, ``s_k`` the unit of its own map: 1 before). Edges hold what the odometry measured:
@@ -24,7 +24,7 @@ import gtsam
 import numpy as np
 
 from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.loop_closure import LoopClosure
+from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.vo.map_state import MapState
 
 #: Standard deviations of an odometry edge, per tangent coordinate (rotation ×3 rad, translation ×3 map units, log
@@ -34,7 +34,7 @@ EDGE_SIGMAS = (0.01,) * 6 + (0.03,)
 LOOP_SIGMA = 0.01
 #: ... and of the edge across a bridge, per tangent coordinate (rotation ×3 rad, translation ×3 map units, log
 #: scale): its rotation came from the images and its translation spans a gap of a few frames, but its scale is an
-#: estimate from the network's depth (:mod:`~mutualslam_cli.vo.segments`), so the loop's correction goes to the
+#: estimate from the network's depth (:mod:`~mutualslam_cli.backend.bridges`), so the loop's correction goes to the
 #: bridges' scales first — and only there, not into rotations and places the bridge did measure.
 BRIDGE_SIGMAS = (0.05,) * 3 + (0.1,) * 3 + (0.3,)
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from mutualslam_cli.ba.global_ba import run_global_ba
+from mutualslam_cli.backend.ba.global_ba import run_global_ba
 from mutualslam_cli.config import BAConfig, RunConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.synthetic import iter_render, write_tum

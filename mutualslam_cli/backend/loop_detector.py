@@ -18,13 +18,13 @@ For each new keyframe (:class:`LoopDetector`):
    so its error across the image (a wall nearer or farther than it thinks) cancels — and ``s`` is the median
    over the old points (each its pairs' median), refused when uncertain by more than ``max_scale_error``
    and when too few old points have a new one near: the medians over each whole set (the bridge's rule,
-   :func:`~mutualslam_cli.vo.segments.depth_ratio`) were off by 20 % on a rendered room, where the old and
+   :func:`~mutualslam_cli.backend.bridges.depth_ratio`) were off by 20 % on a rendered room, where the old and
    the new points lay in different parts of the image. **The adapted depth must agree**: the old points' depths
    under the loop pose, divided by the network's, must be nearly one number (relative spread ≤
    ``max_depth_spread``, or ≤ :data:`DEPTH_SPREAD_FACTOR` × the spread of the keyframe's own points, the
    network's own noise on the image); the depths of a wrong pose do not follow the picture the network sees.
 
-The accepted loop is a Sim(3) measurement between the two keyframes; :mod:`~mutualslam_cli.ba.pose_graph`
+The accepted loop is a Sim(3) measurement between the two keyframes; :mod:`~mutualslam_cli.backend.pose_graph`
 spreads it over the keyframes between them.
 """
 
@@ -41,7 +41,7 @@ from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import undistort_points
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
-from mutualslam_cli.vo.segments import MIN_RATIO_POINTS
+from mutualslam_cli.backend.bridges import MIN_RATIO_POINTS
 
 
 #: A loop that moves its query keyframe less than this (degrees; relative to its median point depth, and in log

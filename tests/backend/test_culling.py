@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mutualslam_cli.ba.culling import choose_hosts, correct, cull_map_points, inject_outliers
+from mutualslam_cli.backend.culling import choose_hosts, correct, cull_map_points, inject_outliers
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
