@@ -51,7 +51,6 @@ from mutualslam_cli.stages.credit import WeightsAt, credit_bridges, front_end_al
 from mutualslam_cli.stages.event_source import FrontEndSource
 from mutualslam_cli.stages.loop import LoopCloser, summarise_off
 from mutualslam_cli.stages.merge import SegmentMerger
-from mutualslam_cli.stages.frontend import corrupt
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import DeferredMap, RealtimeClock, run_realtime
 from mutualslam_cli.vo.feedback import MapRefinement
@@ -320,7 +319,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
         if not causal:  # hindsight (or comoda): the front end on its own, to the end, first
             source.run_all()
             if cfg.vo.inject_outliers:  # the test knob corrupts the finished map (hindsight only)
-                injected = corrupt(source.state, source.result(), cfg)
+                injected = source.inject_outliers(cfg.vo.inject_outliers, cfg.seed)
         # the front end on its own (causal: from the journal cache, which it fills): Table 4's "vo" column, and
         # the frames where its own segments start, whose weights the "bridged" credit needs (stages/credit.py)
         pure, starts = (source.result(), segment_starts(source.state)) if not causal else \
