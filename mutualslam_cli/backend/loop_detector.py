@@ -197,7 +197,7 @@ class LoopDetector:
             state: the map now; gray: ``(H, W)`` uint8 raw grey image of ``kf``; depth: ``(h, w)`` the adapted
                 network's depth of ``kf`` (any unit; looked up at the nearest pixel).
             pool: the old keyframes that may match (default: those of its map unit ``min_gap`` or more keyframes
-                older; a merge, :mod:`~mutualslam_cli.stages.merge`, gives the other segments').
+                older; a merge, :mod:`~mutualslam_cli.backend.merge`, gives the other segments').
         """
         m, s = state.map, self.settings
         unit = state.unit(m.kf_segment[kf])

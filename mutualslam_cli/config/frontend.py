@@ -65,7 +65,7 @@ class VOConfig:
     """A segment started after a tracking loss keeps looking for the map before it (the loop closure's place
     recognition and verification, its scale from nearby old and new points); when found, it is moved onto that
     map by the measured Sim(3), replacing its bridge or joining a segment whose bridge was refused (ORB-SLAM3's
-    map merging, :mod:`~mutualslam_cli.stages.merge`). Needs the network (the scale), as bridges do; not part of
+    map merging, :mod:`~mutualslam_cli.backend.merge`). Needs the network (the scale), as bridges do; not part of
     the front end's cache key. ``false``: bridges only."""
     gt_kf_every: int = 5
     """``gt-depth`` oracle: a keyframe every k frames."""

@@ -43,14 +43,17 @@ from mutualslam_cli.stages.adaptation_summary import (
     step_row,
     summarise_bridges,
     summarise_finetuning,
+    summarise_loops,
+    summarise_merges,
+    summarise_no_loops,
     summarise_strength,
 )
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.loop_inputs import DepthOf, MapLabels, depth_predictor
 from mutualslam_cli.stages.credit import WeightsAt, credit_bridges, front_end_alone, segment_starts
 from mutualslam_cli.stages.event_source import FrontEndSource
-from mutualslam_cli.stages.loop import LoopCloser, summarise_off
-from mutualslam_cli.stages.merge import SegmentMerger
+from mutualslam_cli.backend.loop_closer import LoopCloser
+from mutualslam_cli.backend.merge import SegmentMerger
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import DeferredMap, RealtimeClock, run_realtime
 from mutualslam_cli.vo.feedback import MapRefinement
@@ -271,7 +274,7 @@ class Adapted:
         injected: ids of map points corrupted by ``vo.inject_outliers``.
         requested: how many times Algorithm 1 requested global BA.
         bridges: one record per bridge made (:class:`~mutualslam_cli.backend.bridges.Bridge`); refused: per bridge
-            refused; loops: per loop closed (:mod:`~mutualslam_cli.stages.loop`); credit: the bridges of
+            refused; loops: per loop closed (:mod:`~mutualslam_cli.backend.loop_closer`); credit: the bridges of
             ``bridged``, planned on ``frontend``'s own map.
         l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).
         online: the ``online_*`` per-frame scores of the model of each frame's time
@@ -353,17 +356,17 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
             for k, v in adapted.l_val.items():
                 summary.set(f"adaptation.l_val.{k}", v, "no validation keyframe had an L_val")
             if loop.merger is not None:
-                loop.merger.summarise(summary)
+                summarise_merges(summary, loop.merger)
                 adapted.merges = loop.merger.merges
             else:
                 for key in ("vo.merges", "vo.merge_queries"):
                     summary.absent(key, "vo.merge_segments=false or an oracle front end")
             if loop.closer is not None:
-                loop.closer.summarise(summary)
+                summarise_loops(summary, loop.closer)
                 adapted.loops = loop.closer.loops
                 loop_recall.run_stage(run, loop.closer, final)  # against GT, after the run
             else:
-                summarise_off(summary, "loop.enabled=false (the paper: no loop closure)")
+                summarise_no_loops(summary, "loop.enabled=false (the paper: no loop closure)")
             summarise_finetuning(summary, cfg.adapt.scheme, adapter, rows)
             summarise_strength(summary, adapter)
             for key in (comoda.POSENET_ATE_KEY, comoda.POSE_NETWORK_KEY):

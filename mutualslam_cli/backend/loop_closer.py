@@ -9,9 +9,11 @@ correction over the keyframes it closes (:func:`~mutualslam_cli.backend.pose_gra
 the robust global BA refine the unit, the loop's two ends now close enough for nearby-keyframe targets to
 tie them (the loop's correspondences). The refined poses and points feed training as the BA's do.
 
-Outputs: ``loop.{candidates,accepted,rejected}`` (rejections by reason in ``notes``), and the loops in
-``manifest.json`` (``loops``), drawn on the trajectory figure. With GT, after the run, the recall of true revisits
-(``loop.recall.*``, ``loop_recall.csv``: :mod:`~mutualslam_cli.stages.loop_recall`) from what the closer recorded.
+What it records — the loops closed, the detector's queries and rejections, the keyframes not queried — the
+stages write out: ``loop.{candidates,accepted,rejected}``
+(:func:`~mutualslam_cli.stages.adaptation_summary.summarise_loops`), the loops in ``manifest.json`` (``loops``),
+drawn on the trajectory figure, and with GT, after the run, the recall of true revisits (``loop.recall.*``,
+``loop_recall.csv``: :mod:`~mutualslam_cli.stages.loop_recall`).
 """
 
 from __future__ import annotations
@@ -25,15 +27,11 @@ import numpy as np
 from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.vo.camera import focal_px
 from mutualslam_cli.vo.feedback import MapRefinement
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 
 log = logging.getLogger(__name__)
-
-#: The ``loop.recall.*`` keys (:mod:`~mutualslam_cli.stages.loop_recall`).
-RECALL = ("revisits", "found", "verified", "closed", "refused")
 
 
 class LoopCloser:
@@ -90,7 +88,7 @@ class LoopCloser:
     def close(self, loop: LoopClosure, depth_of: Callable[[int], np.ndarray],
               val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[dict[str, Any]]) -> dict[str, Any]:
         """Close a verified ``loop`` on the map as it stands: the pose graph, then (with a BA stage) culling + the
-        robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.stages.merge`)."""
+        robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.backend.merge`)."""
         kf, state = loop.query, self.source.state
         self._last = kf  # whoever asked (a loop, a merge): no other loop within loop.min_gap keyframes of it
         self.source.settle()
@@ -106,18 +104,3 @@ class LoopCloser:
             rec["ba_nearby_targets"] = int(r.stats["n_nearby_targets"])
             self.ba_seconds += time.perf_counter() - t_ba
         return rec
-
-    def summarise(self, summary: Summary) -> None:
-        """``loop.{candidates,accepted,rejected}``; the rejections by reason in ``notes``."""
-        d = self.detector
-        summary.set("loop.candidates", d.tried)
-        summary.set("loop.accepted", len(self.loops))
-        summary.set("loop.rejected", int(sum(d.rejected.values())))
-        if d.rejected:
-            summary.notes["loop.rejected"] = "; ".join(f"{why}: {n}" for why, n in sorted(d.rejected.items()))
-
-
-def summarise_off(summary: Summary, why: str) -> None:
-    """The ``loop.*`` keys of a run without loop closure (``loop.recall.*`` too), null with ``why``."""
-    for k in ("candidates", "accepted", "rejected", *(f"recall.{r}" for r in RECALL)):
-        summary.absent(f"loop.{k}", why)

@@ -16,7 +16,7 @@ from pairs of nearby old and new points (old units per new unit). Then:
   puts it exactly at ``T_o``; the front end goes on in the old frame and unit, and re-observes the old map there
   (map reuse);
 * a segment a bridge already put into that map unit is corrected as a loop is (the Sim(3) pose graph, whose
-  bridge edges are loose in scale, then culling + BA: :meth:`~mutualslam_cli.stages.loop.LoopCloser.close`):
+  bridge edges are loose in scale, then culling + BA: :meth:`~mutualslam_cli.backend.loop_closer.LoopCloser.close`):
   the map between the two ends has drifted too, and a rigid move would only shift the tear to the bridge (on
   a 2,000-frame rendered room a rigid merge raised the ATE from 0.152 to 0.187 m).
 
@@ -33,8 +33,7 @@ import numpy as np
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.backend.pose_graph import close_loop
-from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.loop import LoopCloser
+from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.vo.camera import focal_px
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 
@@ -121,12 +120,3 @@ class SegmentMerger:
         self._merged.add(seg)
         self.merges.append(rec)
         return time.perf_counter() - t
-
-    def summarise(self, summary: Summary) -> None:
-        """``vo.merges`` and ``vo.merge_queries``; each merge in ``notes``."""
-        summary.set("vo.merges", len(self.merges))
-        summary.set("vo.merge_queries", self.tried)
-        if self.merges:
-            summary.notes["vo.merges"] = "; ".join(
-                f"segment {g['segment']} onto {g['onto']} at keyframe {g['query']} (scale {g['scale']:.3f}, "
-                f"{g['inliers']} inliers)" for g in self.merges)
