@@ -24,12 +24,12 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.pose_graph import close_loop
+from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.vo.camera import focal_px
-from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 
 log = logging.getLogger(__name__)
 
@@ -39,15 +39,16 @@ class LoopCloser:
 
     Args:
         seq: the sequence (keyframe images); cfg: the run's config (``loop``, ``vo``, ``seed``).
-        source: the front end's event source: its ``state`` is the map now; ``settle`` / ``refine`` change it.
-        ba: the run's culling + BA stage (``run_ba``), ``None`` without BA: the pose graph alone.
+        source: where the map is (:class:`~mutualslam_cli.backend.refine.MapTarget`): its ``state`` is the map now;
+            ``settle`` / ``refine`` change it.
+        ba: the run's culling + BA, ``None`` without BA: the pose graph alone.
 
     Attributes:
         loops: one record per loop closed (``manifest.json``'s ``loops``).
         skipped: ``{kf: why}`` of the keyframes kept but not queried (loop recall's reasons).
     """
 
-    def __init__(self, seq: Sequence, cfg: RunConfig, source: Any, ba: Any | None) -> None:
+    def __init__(self, seq: Sequence, cfg: RunConfig, source: MapTarget, ba: MapBA | None) -> None:
         self.seq, self.cfg, self.source, self.ba = seq, cfg, source, ba
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
@@ -97,10 +98,7 @@ class LoopCloser:
                "match_timestamp": float(state.map.kf_time[loop.match])}
         if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
             t_ba = time.perf_counter()
-            snap = self.source.state.snapshot(self.seq.frames, covisibility=False)
-            first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
-            r = self.ba.run_ba(snap, kf, depth_of, val_loss([k.id for k in snap.keyframes[first:kf + 1]]), bridges)
-            self.source.refine(MapRefinement.between(snap, r.vo, snap.points.ids[~r.keep | r.dropped]))
+            r = refine_map(self.source, kf, self.ba, depth_of, val_loss, bridges)
             rec["ba_nearby_targets"] = int(r.stats["n_nearby_targets"])
             self.ba_seconds += time.perf_counter() - t_ba
         return rec

@@ -30,12 +30,13 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from mutualslam_cli.backend.loop_closer import LoopCloser
+from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
+from mutualslam_cli.backend.pose_graph import close_loop
+from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.backend.pose_graph import close_loop
-from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.vo.camera import focal_px
-from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 
 
 def merge_similarity(T_new: np.ndarray, loop: LoopClosure) -> tuple[np.ndarray, np.ndarray, float]:
@@ -52,7 +53,8 @@ class SegmentMerger:
 
     Args:
         seq: the sequence (keyframe images); cfg: the run's config (``loop`` thresholds, ``vo``, ``seed``).
-        source: the front end's event source: its ``state`` is the map now; ``transform_segment`` moves a segment.
+        source: where the map is (:class:`~mutualslam_cli.backend.refine.MapTarget`): its ``state`` is the map now;
+            ``transform_segment`` moves a segment.
         closer: the run's loop closure (``loop.enabled``): its keyframe index is shared, and a merge within one map
             unit is closed its way (pose graph + BA); ``None``: an index of its own, the pose graph alone.
 
@@ -61,7 +63,7 @@ class SegmentMerger:
         tried: keyframes queried.
     """
 
-    def __init__(self, seq: Sequence, cfg: RunConfig, source: Any, closer: LoopCloser | None = None) -> None:
+    def __init__(self, seq: Sequence, cfg: RunConfig, source: MapTarget, closer: LoopCloser | None = None) -> None:
         self.seq, self.cfg, self.source, self.closer = seq, cfg, source, closer
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),

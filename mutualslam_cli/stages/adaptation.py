@@ -36,6 +36,10 @@ from mutualslam_cli.adapt.depthnet import predict_depth, prepare
 from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.backend.bridges import plan_bridge
+from mutualslam_cli.backend.loop_closer import LoopCloser
+from mutualslam_cli.backend.merge import SegmentMerger
+from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
 from mutualslam_cli.stages import comoda, loop_recall
 from mutualslam_cli.stages.adaptation_summary import (
     L_VAL_KEYS,
@@ -49,16 +53,13 @@ from mutualslam_cli.stages.adaptation_summary import (
     summarise_strength,
 )
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.loop_inputs import DepthOf, MapLabels, depth_predictor
 from mutualslam_cli.stages.credit import WeightsAt, credit_bridges, front_end_alone, segment_starts
 from mutualslam_cli.stages.event_source import FrontEndSource
-from mutualslam_cli.backend.loop_closer import LoopCloser
-from mutualslam_cli.backend.merge import SegmentMerger
+from mutualslam_cli.stages.loop_inputs import DepthOf, MapLabels, depth_predictor
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import DeferredMap, RealtimeClock, run_realtime
-from mutualslam_cli.vo.feedback import MapRefinement
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.backend.bridges import plan_bridge
+
 
 class OnlineLoop:
     """Algorithm 1 over the front end's events, for one run (module docstring).
@@ -68,7 +69,7 @@ class OnlineLoop:
         source: the front end's events; its ``state`` is the map at the loop's time.
         net: the network to adapt (a copy of the pre-trained one).
         fast: bf16 autocast for the network.
-        ba: culling + global BA (:class:`~mutualslam_cli.stages.ba.BAStage`), ``None`` without BA.
+        ba: the run's culling + global BA (:class:`~mutualslam_cli.backend.refine.MapBA`), ``None`` without BA.
         scorer: scores evaluated frames with the model of their time (``None``: not scored).
 
     Attributes:
@@ -77,7 +78,7 @@ class OnlineLoop:
     """
 
     def __init__(self, run: RunContext, source: FrontEndSource, net: torch.nn.Module, fast: bool,
-                 ba: Any | None = None, scorer: OnlineScorer | None = None) -> None:
+                 ba: MapBA | None = None, scorer: OnlineScorer | None = None) -> None:
         cfg = run.cfg
         self.run, self.source, self.state, self.cfg, self.fast = run, source, source.state, cfg, fast
         self.ba, self.scorer = ba, scorer
@@ -91,7 +92,7 @@ class OnlineLoop:
                                          val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode,
                                          labels=MapLabels(self.state, w, h), device=run.device)
         self.clock: RealtimeClock | None = None
-        self.writer: Any = source  # where the loop's map changes go: the source now, or when their work ends
+        self.writer: MapTarget = source  # where the loop's map changes go: the source now, or when their work ends
         if cfg.adapt.schedule == "realtime" and self.adapter is not None:
             cost = cfg.adapt.step_cost_ms
             self.clock = RealtimeClock(None if cost == "measured" else float(cost), cfg.adapt.max_steps)
@@ -200,13 +201,7 @@ class OnlineLoop:
         if self.ba is None:
             return
         t = time.perf_counter()
-        self.writer.settle()
-        snap = self.writer.state.snapshot(self.run.seq.frames, covisibility=False)
-        first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
-        ids = [k.id for k in snap.keyframes[first:kf + 1]]
-        r = self.ba.run_ba(snap, kf, self._depth_of(), self.adapter.per_keyframe_val_loss(ids), self.bridges)
-        removed = snap.points.ids[~r.keep | r.dropped]
-        self.writer.refine(MapRefinement.between(snap, r.vo, removed))
+        refine_map(self.writer, kf, self.ba, self._depth_of(), self._val_loss, self.bridges)
         self._busy("ba_s", kf, time.perf_counter() - t)
 
     def keyframe_rows(self) -> list[dict[str, Any]]:
@@ -307,7 +302,7 @@ class Adapted:
                 f"{v['validations']} validations)")
 
 
-def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None = None) -> Adapted:
+def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | None = None) -> Adapted:
     """The front end and the adaptation of a copy of ``net0``, on one clock: ``keyframes.csv`` and the keys
     ``timing.finetune_*``, ``adaptation.*``, ``vo.bridges`` (scheme ``comoda``: its own outputs).
 

@@ -124,6 +124,12 @@ def _follow(poses: np.ndarray, times: np.ndarray, segs: np.ndarray, ref_times: n
     return out
 
 
+def window_start(last: int, window: int) -> int:
+    """The first keyframe of a BA of the keyframes up to ``last`` with ``ba.window = window``: the newest
+    ``window`` of them (0: every keyframe, from the first)."""
+    return max(0, last - window + 1) if window else 0
+
+
 def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
                   depth_of: Callable[[int], np.ndarray] | None, val_loss: Mapping[int, float] | None,
                   cfg: BAConfig, *, cull: bool, upto: int | None = None,
@@ -153,7 +159,7 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     t0 = time.perf_counter()
     nk = len(vo.keyframes)
     upto = nk - 1 if upto is None else int(upto)
-    first = max(0, upto - cfg.window + 1) if cfg.window else 0  # the keyframes [first, upto] take part
+    first = window_start(upto, cfg.window)  # the keyframes [first, upto] take part
     pts = vo.points
     inside = (pts.host <= upto) & (pts.host >= first)
     sub_idx = np.flatnonzero(inside)  # the points that exist at keyframe ``upto`` (hosted in the window)
