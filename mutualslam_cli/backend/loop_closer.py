@@ -53,7 +53,7 @@ class LoopCloser:
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
                                      lc,
-                                     load=lambda kf: seq.load_gray(source.state.map.kf_frame[kf]))
+                                     load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
         self.loops: list[dict[str, Any]] = []
         self.skipped: dict[int, str] = {}
         self._last = -(10 ** 9)  # the query keyframe of the last loop closed
@@ -70,7 +70,7 @@ class LoopCloser:
         """
         t = time.perf_counter()
         state = self.source.state
-        gray = self.seq.load_gray(state.map.kf_frame[kf])
+        gray = self.seq.load_gray(state.frame_of(kf))
         self.detector.add(kf, gray)
         if kf - self._last < self.cfg.loop.min_gap:
             self.skipped[kf] = (f"not queried: within loop.min_gap ({self.cfg.loop.min_gap}) keyframes of the loop "
@@ -94,8 +94,8 @@ class LoopCloser:
         self._last = kf  # whoever asked (a loop, a merge): no other loop within loop.min_gap keyframes of it
         self.source.settle()
         self.source.refine(close_loop(state, loop))
-        rec = {**loop.record(), "frame": int(state.map.kf_frame[kf]), "timestamp": float(state.map.kf_time[kf]),
-               "match_timestamp": float(state.map.kf_time[loop.match])}
+        rec = {**loop.record(), "frame": int(state.frame_of(kf)), "timestamp": float(state.time_of(kf)),
+               "match_timestamp": float(state.time_of(loop.match))}
         if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
             t_ba = time.perf_counter()
             r = refine_map(self.source, kf, self.ba, depth_of, val_loss, bridges)

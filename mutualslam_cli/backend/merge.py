@@ -68,7 +68,7 @@ class SegmentMerger:
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
                                      lc,
-                                     load=lambda kf: seq.load_gray(source.state.map.kf_frame[kf]))
+                                     load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
         if closer is not None:  # one keyframe index for both: one ORB extraction per keyframe
             self.detector.index = closer.detector.index
         self.merges: list[dict[str, Any]] = []
@@ -85,26 +85,25 @@ class SegmentMerger:
         """
         t = time.perf_counter()
         state = self.source.state
-        m = state.map
         gray = None
         if kf not in self.detector.index.images:
-            gray = self.seq.load_gray(m.kf_frame[kf])
+            gray = self.seq.load_gray(state.frame_of(kf))
             self.detector.add(kf, gray)
-        seg = m.kf_segment[kf]
-        first = min(k for k, sg in enumerate(m.kf_segment) if sg == seg)
+        seg = state.segment(kf)
+        first = state.first_keyframe(seg)
         if seg in self._merged or first == 0:
             return time.perf_counter() - t
-        pool = [k for k in sorted(self.detector.index.images) if k < first and m.kf_segment[k] != seg]
+        pool = [k for k in sorted(self.detector.index.images) if k < first and state.segment(k) != seg]
         if not pool:
             return time.perf_counter() - t
-        gray = self.seq.load_gray(m.kf_frame[kf]) if gray is None else gray
+        gray = self.seq.load_gray(state.frame_of(kf)) if gray is None else gray
         self.tried += 1
         loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf, pool=pool)
         if loop is None:
             return time.perf_counter() - t
-        onto = m.kf_segment[loop.match]
-        rec = {**loop.record(), "segment": int(seg), "onto": int(onto), "frame": int(m.kf_frame[kf]),
-               "timestamp": float(m.kf_time[kf])}
+        onto = state.segment(loop.match)
+        rec = {**loop.record(), "segment": int(seg), "onto": int(onto), "frame": int(state.frame_of(kf)),
+               "timestamp": float(state.time_of(kf))}
         if state.unit(seg) == state.unit(onto):  # bridged into that map already: the measured loop corrects it
             if self.detector.already_closed(state, loop):
                 return time.perf_counter() - t
@@ -116,7 +115,7 @@ class SegmentMerger:
                 rec["how"] = "pose graph"
         else:  # a segment in a unit of its own (its bridge refused): moved onto the old map whole
             self.source.settle()  # the windowed BA in flight first: the keyframe's pose as it now stands
-            R, t_, s = merge_similarity(m.T_cw(kf), loop)
+            R, t_, s = merge_similarity(state.pose_cw(kf), loop)
             self.source.transform_segment(seg, R, t_, s, onto)
             rec["how"] = "similarity"
         self._merged.add(seg)

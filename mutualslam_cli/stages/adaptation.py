@@ -84,7 +84,7 @@ class OnlineLoop:
         self.ba, self.scorer = ba, scorer
         w, h = cfg.net.width, cfg.net.height
         self.net = prepare(net, fast, device=run.device)
-        self.load = keyframe_images(run.seq, lambda k: self.state.map.kf_frame[k], w, h)
+        self.load = keyframe_images(run.seq, lambda k: self.state.frame_of(k), w, h)
         self.adapter: OnlineAdapter | None = None
         if cfg.adapt.scheme != "none":
             K_net = torch.from_numpy(self.state.intr.scaled(w, h).K()).float()

@@ -79,7 +79,7 @@ def credit_bridges(seq: Sequence, cfg: RunConfig, cache_dir: Path | None, net: t
         return front_end_alone(seq, cfg, cache_dir)[0], []
     source = FrontEndSource(seq, cfg, cache_dir)
     twin = copy.deepcopy(net)
-    load = keyframe_images(seq, lambda k: source.state.map.kf_frame[k], cfg.net.width, cfg.net.height)
+    load = keyframe_images(seq, lambda k: source.state.frame_of(k), cfg.net.width, cfg.net.height)
     records: list[dict[str, Any]] = []
     seen: set[int] = set()
     try:
