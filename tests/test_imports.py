@@ -353,3 +353,23 @@ def test_a_planted_forbidden_import_is_caught(tmp_path: Path):
         f"{P}.report.plots → {P}.vo.frontend (report → domain)",
         f"{P}.vo.frontend → {P}.stages.ba (domain → stages)",
     ]
+
+
+def test_a_planted_import_against_the_back_end_is_caught(tmp_path: Path):
+    """The back end sits on the front end and the network: the front end importing it, or the back end importing
+    a stage or results (it writes no file and no summary key), is named; a stage importing it is not."""
+    pkg = tmp_path / PACKAGE
+    for rel, text in {
+        "__init__.py": "", "vo/__init__.py": "", "vo/feedback.py": "from mutualslam_cli.backend import refine\n",
+        "backend/__init__.py": "", "backend/refine.py": "from mutualslam_cli.vo import feedback\n",
+        "backend/loop_closer.py": "from mutualslam_cli.results.summary import Summary\n",
+        "results/__init__.py": "", "results/summary.py": "",
+        "stages/__init__.py": "", "stages/ba.py": "from mutualslam_cli.backend.refine import MapBA\n",
+    }.items():
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    P = PACKAGE
+    assert layer_violations(import_graph(pkg)) == [
+        f"{P}.backend.loop_closer → {P}.results.summary (backend → results)",
+        f"{P}.vo.feedback → {P}.backend.refine (domain → backend)",
+    ]
