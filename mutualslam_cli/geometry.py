@@ -2,7 +2,7 @@
 
 Quaternions are ``(qx, qy, qz, qw)`` as in TUM files; poses are 4×4 ``T_wc``. The SO(3)/SE(3)
 increments (:func:`exp_so3`, :func:`left_update`) are shared by the windowed geometric BA
-(:mod:`mutualslam_cli.vo.local_ba`) and the global photometric BA (:mod:`mutualslam_cli.ba`),
+(:mod:`mutualslam_cli.vo.local_ba`) and the global photometric BA (:mod:`mutualslam_cli.backend.ba`),
 which both optimise world-to-camera ``T_cw`` by left increments ``(ρ, φ)``.
 """
 

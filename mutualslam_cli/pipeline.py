@@ -125,7 +125,7 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     fast = use_fast_path(cfg, run.device)
     net0 = load_network(cfg, fast, run.device)  # the pre-trained model
     ba = BAStage(run)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
-    adapted = adaptation.run_stage(run, net0, fast, ba if cfg.ba.enabled else None)  # front end + Algorithm 1
+    adapted = adaptation.run_stage(run, net0, fast, ba.map_ba if cfg.ba.enabled else None)  # front end + Algorithm 1
     fe = frontend.run_stage(run, adapted.frontend, adapted.source.replayed, adapted.injected)  # its own map
     ba.finish(adapted, fe, fast)
     scale_drift.run_stage(run, {"vo": fe.vo, "ba": ba.final}, {"ba": ba.why_no_final},  # local vs global Sim(3)

@@ -208,24 +208,26 @@ def test_no_import_cycles_between_subpackages():
 LAYER_OF = {
     "": "ground", "errors": "ground", "types": "ground", "config": "ground", "geometry": "ground", "pixels": "ground",
     "atomic": "ground", "allocator": "ground", "machine": "ground", "device": "ground",
-    "datasets": "domain", "vo": "domain", "adapt": "domain", "ba": "domain", "metrics": "domain", "dense": "domain",
-    "results": "results", "stages": "stages", "report": "report",
+    "datasets": "domain", "vo": "domain", "adapt": "domain", "metrics": "domain", "dense": "domain",
+    "backend": "backend", "results": "results", "stages": "stages", "report": "report",
     "pipeline": "doors", "ablate": "doors", "bench": "bench", "cli": "cli",
 }
 #: What each layer may import (besides itself). The ground floor imports nothing above it; the domain
-#: never imports stages, results, report, the front doors or the CLI; results know the file formats
-#: (datasets' TUM writer) and nothing that computes; the report reads results and files and re-applies
-#: the metrics' formulas for its figures, never a stage or the VO / adaptation / BA; nothing imports
-#: the CLI but the CLI.
+#: never imports the back end, stages, results, report, the front doors or the CLI; the back end (the map
+#: after the front end: bridges, merges, loop closure, culling, BA) sits on the front end and the network
+#: and writes no file and no summary key (the stages do); results know the file formats (datasets' TUM
+#: writer) and nothing that computes; the report reads results and files and re-applies the metrics'
+#: formulas for its figures, never a stage or the VO / adaptation / BA; nothing imports the CLI but the CLI.
 ALLOWED = {
     "ground": set(),
     "domain": {"ground"},
+    "backend": {"ground", "domain"},
     "results": {"ground", "datasets"},
-    "stages": {"ground", "domain", "results"},
+    "stages": {"ground", "domain", "backend", "results"},
     "report": {"ground", "results", "datasets", "metrics"},
-    "doors": {"ground", "domain", "results", "stages"},
-    "bench": {"ground", "domain", "results", "stages", "doors"},
-    "cli": {"ground", "domain", "results", "stages", "report", "doors", "bench"},
+    "doors": {"ground", "domain", "backend", "results", "stages"},
+    "bench": {"ground", "domain", "backend", "results", "stages", "doors"},
+    "cli": {"ground", "domain", "backend", "results", "stages", "report", "doors", "bench"},
 }
 
 
@@ -350,4 +352,24 @@ def test_a_planted_forbidden_import_is_caught(tmp_path: Path):
         f"{P}.newpart: part 'newpart' has no layer in LAYER_OF",
         f"{P}.report.plots → {P}.vo.frontend (report → domain)",
         f"{P}.vo.frontend → {P}.stages.ba (domain → stages)",
+    ]
+
+
+def test_a_planted_import_against_the_back_end_is_caught(tmp_path: Path):
+    """The back end sits on the front end and the network: the front end importing it, or the back end importing
+    a stage or results (it writes no file and no summary key), is named; a stage importing it is not."""
+    pkg = tmp_path / PACKAGE
+    for rel, text in {
+        "__init__.py": "", "vo/__init__.py": "", "vo/feedback.py": "from mutualslam_cli.backend import refine\n",
+        "backend/__init__.py": "", "backend/refine.py": "from mutualslam_cli.vo import feedback\n",
+        "backend/loop_closer.py": "from mutualslam_cli.results.summary import Summary\n",
+        "results/__init__.py": "", "results/summary.py": "",
+        "stages/__init__.py": "", "stages/ba.py": "from mutualslam_cli.backend.refine import MapBA\n",
+    }.items():
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    P = PACKAGE
+    assert layer_violations(import_graph(pkg)) == [
+        f"{P}.backend.loop_closer → {P}.results.summary (backend → results)",
+        f"{P}.vo.feedback → {P}.backend.refine (domain → backend)",
     ]

@@ -36,7 +36,7 @@ def default_run(setup):
     tmp, seq = setup
     # The random network predicts ~0.23 everywhere, the oracle map is metric (~1.8 m): Eq. 10 would
     # cull all but a lucky few. With d_max below the network's depth every point counts as far and
-    # is kept, so the BA has the whole map to refine (culling itself: tests/ba/test_culling.py).
+    # is kept, so the BA has the whole map to refine (culling itself: tests/backend/test_culling.py).
     return run_sequence(seq, _cfg(tmp, "ba.d_max=0.2", "ba.final=always"), out=tmp / "res", command=["test"])
 
 

@@ -16,7 +16,7 @@ import torch
 
 import mutualslam_cli
 from mutualslam_cli.adapt.warp import warp
-from mutualslam_cli.ba.culling import cull_map_points
+from mutualslam_cli.backend.culling import cull_map_points
 from mutualslam_cli.datasets.fy_sign import warp_error
 from mutualslam_cli.geometry import exp_so3 as _exp_so3
 from mutualslam_cli.pixels import PIXEL_TOL, in_image, in_image_uv, lookup_nearest
@@ -127,7 +127,7 @@ def test_sparse_depth_keeps_map_points_on_the_border():
 
 
 def test_culling_judges_map_points_on_the_border():
-    """ba/culling.py: a corner point is compared with the CNN depth, not left unjudged."""
+    """backend/culling.py: a corner point is compared with the CNN depth, not left unjudged."""
     vo, z = _border_vo()
     res = cull_map_points(vo, {0: 0.1, 1: 0.2}, lambda k, px: np.full(len(px), 1.0), 0.5, 1.5)
     assert res.judged.all()
@@ -152,7 +152,7 @@ _HAND_BOUNDS = re.compile(r"(>=?\s*0\)?\s*&[^\n]*(<=?)\s*\(?\s*(w|h|W|H|width|he
 
 
 def test_no_module_decides_inside_the_image_by_hand():
-    """vo/frontend.py, vo/reproject.py, vo/tracking.py, vo/oracle.py, ba/global_ba.py, ba/residuals.py,
+    """vo/frontend.py, vo/reproject.py, vo/tracking.py, vo/oracle.py, backend/ba/global_ba.py, backend/ba/residuals.py,
     evaluation.py and the dense stage use :mod:`mutualslam_cli.pixels` rather than their own comparison."""
     root = Path(mutualslam_cli.__file__).parent
     hits = [f"{f.relative_to(root)}:{i}: {line.strip()}"

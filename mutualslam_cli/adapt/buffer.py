@@ -66,7 +66,7 @@ class KeyframeSample:
         depth: ``(M,)`` their depth in map units (D_sparse of Eq. 6).
         segment: the front end's tracking segment. Photometric sources come from the same segment
             only: across a re-initialisation the relative pose was not measured (a bridged segment
-            is placed by an estimate, :mod:`~mutualslam_cli.vo.segments`).
+            is placed by an estimate, :mod:`~mutualslam_cli.backend.bridges`).
     """
 
     kf_id: int

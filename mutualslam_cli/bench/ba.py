@@ -1,7 +1,7 @@
 """Synthetic photometric-BA problems and the global-BA benchmark (DESIGN §10).
 
 ``python -m mutualslam_cli.bench.ba`` (and the ``ba`` section of ``make bench``,
-:func:`bench_ba`) times :func:`~mutualslam_cli.ba.photometric.solve` with 10 LM iterations on
+:func:`bench_ba`) times :func:`~mutualslam_cli.backend.ba.photometric.solve` with 10 LM iterations on
 100 keyframes × 10 000 points (≤ 5 targets, 3×3 patch; design target ≤ 5 s) and reports what it
 recovers, before and after: keyframe centre error (mm, max and RMS; also the map's scale error
 and the centre error after a Sim(3) alignment), rotation error (deg), inverse-depth relative
@@ -31,7 +31,7 @@ ended 5.6 mm (max) from the true centres, mostly scale (−0.32 %; 0.37 mm after
 the robust BA (Huber at 5 grey levels, gradient weights, two rounds of outlier classification, the
 extent anchor) takes 3.5 s and ends 0.24 mm (max) from them, 0.06 mm RMS after Sim(3), inverse
 depths 0.03 % (median) off; the cost at the true state is 0.0026, after BA 0.0082. The time went
-up with the second residual evaluation of a rejected point step (:mod:`mutualslam_cli.ba.lm`)
+up with the second residual evaluation of a rejected point step (:mod:`mutualslam_cli.backend.ba.lm`)
 and the classification per round.
 
 ``path="compact"`` (the default of :func:`synthetic_problem`) is the unit tests' small scene.
@@ -46,8 +46,8 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from mutualslam_cli.ba.lm import centres, extent
-from mutualslam_cli.ba.photometric import PhotoBAProblem, solve
+from mutualslam_cli.backend.ba.lm import centres, extent
+from mutualslam_cli.backend.ba.photometric import PhotoBAProblem, solve
 from mutualslam_cli.geometry import exp_so3
 from mutualslam_cli.metrics.alignment import umeyama
 from mutualslam_cli.pixels import in_image_uv
@@ -219,7 +219,7 @@ def perturb(prob: PhotoBAProblem, rng: np.random.Generator, trans: float = 0.015
             rot_deg: float = 0.5, rho_rel: float = 0.05) -> PhotoBAProblem:
     """Copy of ``prob`` with keyframes ≥ 1 and all inverse depths perturbed; the perturbed camera
     centres are then scaled about ``c_0`` so that the keyframe trajectory keeps its true extent
-    (the BA's scale anchor, :func:`mutualslam_cli.ba.lm.extent`): a monocular BA cannot recover scale."""
+    (the BA's scale anchor, :func:`mutualslam_cli.backend.ba.lm.extent`): a monocular BA cannot recover scale."""
     T = prob.T_cw.copy()
     c = centres(T)
     new = c.copy()

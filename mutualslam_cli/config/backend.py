@@ -59,8 +59,8 @@ class BAConfig:
 
 @dataclass(frozen=True)
 class LoopConfig:
-    """Loop closure (:mod:`~mutualslam_cli.vo.loop_closure`, :mod:`~mutualslam_cli.ba.pose_graph`): the paper's
-    future work, off by default (the paper). The loop detector takes this record as its thresholds."""
+    """Loop closure (:mod:`~mutualslam_cli.backend.loop_detector`, :mod:`~mutualslam_cli.backend.pose_graph`): the
+    paper's future work, off by default (the paper). The loop detector takes this record as its thresholds."""
 
     enabled: bool = False
     """Look for each new keyframe among the old ones; a verified loop is closed by a Sim(3) pose graph and a BA."""

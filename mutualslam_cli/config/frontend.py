@@ -59,13 +59,13 @@ class VOConfig:
     bridge_segments: bool = True
     """Scale-consistent re-initialisation: a new segment (relocalisation failed) is joined to the map
     before it by the adaptation stage, scaled by the network's depth ratio on both sides of the gap
-    and placed at the last tracked pose (:mod:`~mutualslam_cli.vo.segments`); ``false`` keeps every
+    and placed at the last tracked pose (:mod:`~mutualslam_cli.backend.bridges`); ``false`` keeps every
     segment in its own frame and unit (the paper's fresh start). Not part of the front end's cache key."""
     merge_segments: bool = True
     """A segment started after a tracking loss keeps looking for the map before it (the loop closure's place
     recognition and verification, its scale from nearby old and new points); when found, it is moved onto that
     map by the measured Sim(3), replacing its bridge or joining a segment whose bridge was refused (ORB-SLAM3's
-    map merging, :mod:`~mutualslam_cli.stages.merge`). Needs the network (the scale), as bridges do; not part of
+    map merging, :mod:`~mutualslam_cli.backend.merge`). Needs the network (the scale), as bridges do; not part of
     the front end's cache key. ``false``: bridges only."""
     gt_kf_every: int = 5
     """``gt-depth`` oracle: a keyframe every k frames."""

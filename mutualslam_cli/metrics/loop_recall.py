@@ -11,7 +11,7 @@ Recognition: A Survey", IEEE T-RO 32(1), 2016); for a camera the viewing directi
 For each query keyframe ``j`` with at least one true partner:
 
 - ``found``: one of its true partners was among the candidates the detector proposed (the best ``n_candidates``
-  by appearance, :attr:`~mutualslam_cli.vo.loop_closure.LoopDetector.queries`);
+  by appearance, :attr:`~mutualslam_cli.backend.loop_detector.LoopDetector.queries`);
 - ``verified``: the candidate that passed geometric verification is a true partner;
 - ``closed``: a loop closed from ``j`` onto a true partner.
 

@@ -36,6 +36,10 @@ from mutualslam_cli.adapt.depthnet import predict_depth, prepare
 from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.backend.bridges import plan_bridge
+from mutualslam_cli.backend.loop_closer import LoopCloser
+from mutualslam_cli.backend.merge import SegmentMerger
+from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
 from mutualslam_cli.stages import comoda, loop_recall
 from mutualslam_cli.stages.adaptation_summary import (
     L_VAL_KEYS,
@@ -43,20 +47,19 @@ from mutualslam_cli.stages.adaptation_summary import (
     step_row,
     summarise_bridges,
     summarise_finetuning,
+    summarise_loops,
+    summarise_merges,
+    summarise_no_loops,
     summarise_strength,
 )
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.loop_inputs import DepthOf, MapLabels, depth_predictor
 from mutualslam_cli.stages.credit import WeightsAt, credit_bridges, front_end_alone, segment_starts
 from mutualslam_cli.stages.event_source import FrontEndSource
-from mutualslam_cli.stages.loop import LoopCloser, summarise_off
-from mutualslam_cli.stages.merge import SegmentMerger
-from mutualslam_cli.stages.frontend import corrupt
+from mutualslam_cli.stages.loop_inputs import DepthOf, MapLabels, depth_predictor
 from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
 from mutualslam_cli.stages.realtime import DeferredMap, RealtimeClock, run_realtime
-from mutualslam_cli.vo.feedback import MapRefinement
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import plan_bridge
+
 
 class OnlineLoop:
     """Algorithm 1 over the front end's events, for one run (module docstring).
@@ -66,7 +69,7 @@ class OnlineLoop:
         source: the front end's events; its ``state`` is the map at the loop's time.
         net: the network to adapt (a copy of the pre-trained one).
         fast: bf16 autocast for the network.
-        ba: culling + global BA (:class:`~mutualslam_cli.stages.ba.BAStage`), ``None`` without BA.
+        ba: the run's culling + global BA (:class:`~mutualslam_cli.backend.refine.MapBA`), ``None`` without BA.
         scorer: scores evaluated frames with the model of their time (``None``: not scored).
 
     Attributes:
@@ -75,13 +78,13 @@ class OnlineLoop:
     """
 
     def __init__(self, run: RunContext, source: FrontEndSource, net: torch.nn.Module, fast: bool,
-                 ba: Any | None = None, scorer: OnlineScorer | None = None) -> None:
+                 ba: MapBA | None = None, scorer: OnlineScorer | None = None) -> None:
         cfg = run.cfg
         self.run, self.source, self.state, self.cfg, self.fast = run, source, source.state, cfg, fast
         self.ba, self.scorer = ba, scorer
         w, h = cfg.net.width, cfg.net.height
         self.net = prepare(net, fast, device=run.device)
-        self.load = keyframe_images(run.seq, lambda k: self.state.map.kf_frame[k], w, h)
+        self.load = keyframe_images(run.seq, lambda k: self.state.frame_of(k), w, h)
         self.adapter: OnlineAdapter | None = None
         if cfg.adapt.scheme != "none":
             K_net = torch.from_numpy(self.state.intr.scaled(w, h).K()).float()
@@ -89,7 +92,7 @@ class OnlineLoop:
                                          val_scope=cfg.adapt.val_scope, reg_mode=cfg.adapt.reg_mode,
                                          labels=MapLabels(self.state, w, h), device=run.device)
         self.clock: RealtimeClock | None = None
-        self.writer: Any = source  # where the loop's map changes go: the source now, or when their work ends
+        self.writer: MapTarget = source  # where the loop's map changes go: the source now, or when their work ends
         if cfg.adapt.schedule == "realtime" and self.adapter is not None:
             cost = cfg.adapt.step_cost_ms
             self.clock = RealtimeClock(None if cost == "measured" else float(cost), cfg.adapt.max_steps)
@@ -198,13 +201,7 @@ class OnlineLoop:
         if self.ba is None:
             return
         t = time.perf_counter()
-        self.writer.settle()
-        snap = self.writer.state.snapshot(self.run.seq.frames, covisibility=False)
-        first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
-        ids = [k.id for k in snap.keyframes[first:kf + 1]]
-        r = self.ba.run_ba(snap, kf, self._depth_of(), self.adapter.per_keyframe_val_loss(ids), self.bridges)
-        removed = snap.points.ids[~r.keep | r.dropped]
-        self.writer.refine(MapRefinement.between(snap, r.vo, removed))
+        refine_map(self.writer, kf, self.ba, self._depth_of(), self._val_loss, self.bridges)
         self._busy("ba_s", kf, time.perf_counter() - t)
 
     def keyframe_rows(self) -> list[dict[str, Any]]:
@@ -271,8 +268,8 @@ class Adapted:
         source: the front end's event source (cache use, replayed frames).
         injected: ids of map points corrupted by ``vo.inject_outliers``.
         requested: how many times Algorithm 1 requested global BA.
-        bridges: one record per bridge made (:class:`~mutualslam_cli.vo.segments.Bridge`); refused: per bridge
-            refused; loops: per loop closed (:mod:`~mutualslam_cli.stages.loop`); credit: the bridges of
+        bridges: one record per bridge made (:class:`~mutualslam_cli.backend.bridges.Bridge`); refused: per bridge
+            refused; loops: per loop closed (:mod:`~mutualslam_cli.backend.loop_closer`); credit: the bridges of
             ``bridged``, planned on ``frontend``'s own map.
         l_val: Algorithm 1's validations against τ (:func:`l_val_stats`; empty without the loop).
         online: the ``online_*`` per-frame scores of the model of each frame's time
@@ -305,7 +302,7 @@ class Adapted:
                 f"{v['validations']} validations)")
 
 
-def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None = None) -> Adapted:
+def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | None = None) -> Adapted:
     """The front end and the adaptation of a copy of ``net0``, on one clock: ``keyframes.csv`` and the keys
     ``timing.finetune_*``, ``adaptation.*``, ``vo.bridges`` (scheme ``comoda``: its own outputs).
 
@@ -320,7 +317,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
         if not causal:  # hindsight (or comoda): the front end on its own, to the end, first
             source.run_all()
             if cfg.vo.inject_outliers:  # the test knob corrupts the finished map (hindsight only)
-                injected = corrupt(source.state, source.result(), cfg)
+                injected = source.inject_outliers(cfg.vo.inject_outliers, cfg.seed)
         # the front end on its own (causal: from the journal cache, which it fills): Table 4's "vo" column, and
         # the frames where its own segments start, whose weights the "bridged" credit needs (stages/credit.py)
         pure, starts = (source.result(), segment_starts(source.state)) if not causal else \
@@ -354,17 +351,17 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: Any | None
             for k, v in adapted.l_val.items():
                 summary.set(f"adaptation.l_val.{k}", v, "no validation keyframe had an L_val")
             if loop.merger is not None:
-                loop.merger.summarise(summary)
+                summarise_merges(summary, loop.merger)
                 adapted.merges = loop.merger.merges
             else:
                 for key in ("vo.merges", "vo.merge_queries"):
                     summary.absent(key, "vo.merge_segments=false or an oracle front end")
             if loop.closer is not None:
-                loop.closer.summarise(summary)
+                summarise_loops(summary, loop.closer)
                 adapted.loops = loop.closer.loops
                 loop_recall.run_stage(run, loop.closer, final)  # against GT, after the run
             else:
-                summarise_off(summary, "loop.enabled=false (the paper: no loop closure)")
+                summarise_no_loops(summary, "loop.enabled=false (the paper: no loop closure)")
             summarise_finetuning(summary, cfg.adapt.scheme, adapter, rows)
             summarise_strength(summary, adapter)
             for key in (comoda.POSENET_ATE_KEY, comoda.POSE_NETWORK_KEY):

@@ -1,6 +1,7 @@
 """The adaptation stage's summary keys: Algorithm 1's validations (``adaptation.l_val.*``), the bridges
-(``vo.bridges``, ``trajectory.*.bridged``), the regulariser's strength (``adaptation.reg.*``) and the
-fine-tuning's cost (``timing.finetune_*``, ``adaptation.steps``)."""
+(``vo.bridges``, ``trajectory.*.bridged``), the merges (``vo.merges``) and loops (``loop.*``) of the back end it
+drove, the regulariser's strength (``adaptation.reg.*``) and the fine-tuning's cost (``timing.finetune_*``,
+``adaptation.steps``)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,12 @@ import numpy as np
 
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.adapt.step_info import StepInfo
+from mutualslam_cli.backend.loop_closer import LoopCloser
+from mutualslam_cli.backend.merge import SegmentMerger
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.loop_recall import RECALL_KEYS
 from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, set_ate
 from mutualslam_cli.vo.result import VOResult
 
@@ -135,3 +139,29 @@ def step_row(info: StepInfo) -> dict[str, Any]:
         else:
             row[k] = v.value if hasattr(v, "value") else v
     return row
+
+
+def summarise_merges(summary: Summary, merger: SegmentMerger) -> None:
+    """``vo.merges`` and ``vo.merge_queries``; each merge in ``notes``."""
+    summary.set("vo.merges", len(merger.merges))
+    summary.set("vo.merge_queries", merger.tried)
+    if merger.merges:
+        summary.notes["vo.merges"] = "; ".join(
+            f"segment {g['segment']} onto {g['onto']} at keyframe {g['query']} (scale {g['scale']:.3f}, "
+            f"{g['inliers']} inliers)" for g in merger.merges)
+
+
+def summarise_loops(summary: Summary, closer: LoopCloser) -> None:
+    """``loop.{candidates,accepted,rejected}``; the rejections by reason in ``notes``."""
+    d = closer.detector
+    summary.set("loop.candidates", d.tried)
+    summary.set("loop.accepted", len(closer.loops))
+    summary.set("loop.rejected", int(sum(d.rejected.values())))
+    if d.rejected:
+        summary.notes["loop.rejected"] = "; ".join(f"{why}: {n}" for why, n in sorted(d.rejected.items()))
+
+
+def summarise_no_loops(summary: Summary, why: str) -> None:
+    """The ``loop.*`` keys of a run without loop closure (``loop.recall.*`` too), null with ``why``."""
+    for k in ("loop.candidates", "loop.accepted", "loop.rejected", *RECALL_KEYS):
+        summary.absent(k, why)

@@ -1,24 +1,23 @@
-"""The culling + global BA stage of a run (paper §III-C): Algorithm 1's requests and the final BA.
+"""The final culling + global BA of a run (paper §III-C) and the outputs of every culling + BA it made.
 
-:class:`BAStage` gives the adaptation stage the step it calls when Algorithm 1 requests global BA
-(the mutual loop, :func:`make_ba_step`), refines the whole map at the end (:func:`final_ba`) and
-writes its maps, trajectories and summary keys. The BA itself is
-:func:`~mutualslam_cli.ba.global_ba.run_global_ba`.
+:class:`BAStage` holds the run's :class:`~mutualslam_cli.backend.refine.MapBA` — the culling + BA the
+adaptation loop calls at Algorithm 1's requests and after loop closures
+(:func:`~mutualslam_cli.backend.refine.refine_map`: the mutual loop) — refines the whole map at the end
+(:func:`final_ba`) and writes its maps, trajectories and summary keys.
 """
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
-from mutualslam_cli.adapt.inputs import frame_lookup, keyframe_images
+from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter
-from mutualslam_cli.ba.global_ba import GlobalBAResult, run_global_ba
+from mutualslam_cli.backend.ba.global_ba import window_start
+from mutualslam_cli.backend.bridges import units_of
+from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.map_ply import write_ply
@@ -36,12 +35,8 @@ from mutualslam_cli.stages.slam_metrics import (
     point_units,
     set_ate,
 )
-from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import units_of
 
-log = logging.getLogger(__name__)
 
 def no_culling_reason(cfg: RunConfig) -> str | None:
     """Why a run's global BA does not cull (``None``: it culls with the adapted network)."""
@@ -54,57 +49,17 @@ def no_culling_reason(cfg: RunConfig) -> str | None:
     return None
 
 
-def ba_images(seq: Sequence, keyframes: VOResult | Callable[[int], int], scale: float = 1.0,
-              keep: int = 0, camera: Intrinsics | None = None) -> Callable[[int], np.ndarray]:
-    """``kf_id → (H, W)`` float32 grey in [0, 1] of the keyframes (of a map, or ``kf_id → frame index``),
-    undistorted, at ``scale`` × the pinhole camera (area resampling; cached for the run, at most the
-    ``keep`` newest ids when ``keep > 0``)."""
-    und = Undistorter(seq.intrinsics)
-    cam = camera or (keyframes.intrinsics if isinstance(keyframes, VOResult) else seq.intrinsics)
-    size = (round(cam.width * scale), round(cam.height * scale))
-    frame_of = frame_lookup(keyframes)
-    cache: dict[int, np.ndarray] = {}
-
-    def load(kf_id: int) -> np.ndarray:
-        if kf_id not in cache:
-            grey = cv2.cvtColor(und.image(seq.load_rgb(frame_of(kf_id))), cv2.COLOR_RGB2GRAY)
-            cache[kf_id] = cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
-            if keep and len(cache) > keep:  # a windowed BA (ba.window) asks for newer keyframes only
-                del cache[next(iter(cache))]  # the oldest read
-        return cache[kf_id]
-
-    return load
-
-
-@dataclass
-class BALog:
-    """What the culling + BA runs of one run did: each run's ``stats`` (Algorithm 1's requests, then
-    the final one), the ids of every culled map point and of every point dropped as an outlier."""
-
-    runs: list[dict[str, Any]] = field(default_factory=list)
-    culled: set[int] = field(default_factory=set)
-    dropped: set[int] = field(default_factory=set)
-
-    def culled_mask(self, ids: np.ndarray) -> np.ndarray:
-        """``(P,)`` bool: which of the map-point ``ids`` were culled."""
-        return np.isin(ids, np.fromiter(self.culled, np.int64, len(self.culled)))
-
-    def dropped_mask(self, ids: np.ndarray) -> np.ndarray:
-        """``(P,)`` bool: which of the map-point ``ids`` the BA dropped as outliers."""
-        return np.isin(ids, np.fromiter(self.dropped, np.int64, len(self.dropped)))
-
-
 def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: OnlineAdapter | None,
-             cfg: RunConfig, fast: bool, stage: "BAStage", bridges: list[dict[str, Any]] | None = None) -> VOResult:
+             cfg: RunConfig, fast: bool, ba: MapBA, bridges: list[dict[str, Any]] | None = None) -> VOResult:
     """The final culling + BA of the loop's map over every keyframe (the newest ``ba.window`` with a window)
     with the final network (L_val of those keyframes; none for scheme ``none``); the refined map without
     the culled and dropped points."""
     load = keyframe_images(seq, loop_map, cfg.net.width, cfg.net.height)
     depth_of = depth_predictor(net, load, fast, adapter.buffer if adapter is not None else None)
     last = len(loop_map.keyframes) - 1
-    ids = list(range(max(0, last - cfg.ba.window + 1), last + 1)) if cfg.ba.window else None
+    ids = list(range(window_start(last, cfg.ba.window), last + 1)) if cfg.ba.window else None
     val_loss = adapter.per_keyframe_val_loss(ids) if adapter is not None else {}
-    return stage.run_ba(loop_map, last, depth_of, val_loss, bridges).kept()
+    return ba.run_ba(loop_map, last, depth_of, val_loss, bridges).kept()
 
 
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).
@@ -115,40 +70,20 @@ BA_KEYS = ("trajectory.ate_rmse_m.ba", "trajectory.credit.ba", "trajectory.ate_r
 
 
 class BAStage:
-    """Culling + global BA of a run: :meth:`run_ba` at Algorithm 1's requests (the adaptation loop hands the
-    refined map back to the front end: the mutual loop), then :meth:`finish` once at the end.
+    """Culling + global BA of a run: :attr:`map_ba` at Algorithm 1's requests and loop closures (the adaptation
+    loop hands the refined map back to the front end: the mutual loop), then :meth:`finish` once at the end.
 
     Attributes:
-        record: what each culling + BA did (:class:`BALog`).
+        map_ba: the run's culling + BA (:class:`~mutualslam_cli.backend.refine.MapBA`); record: its log.
         final: the map after culling + BA once :meth:`finish` ran (``None``: no such map, ``why_no_final`` says why).
     """
 
     def __init__(self, run: RunContext) -> None:
         self.run = run
-        self.record = BALog()
-        cfg = run.cfg
-        self._frame_of: dict[int, int] = {}  # keyframe → frame, of the maps BA has seen (the map grows)
-        self.images = ba_images(run.seq, self._frame_of.__getitem__, cfg.ba.image_scale, keep=cfg.ba.window,
-                                camera=run.seq.intrinsics)
-        self.cull = no_culling_reason(cfg) is None
+        self.map_ba = MapBA(run.seq, run.cfg.ba, cull=no_culling_reason(run.cfg) is None)
+        self.record = self.map_ba.record
         self.final: VOResult | None = None
         self.why_no_final = "culling + global BA not finished"
-
-    def run_ba(self, vo: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
-               val_loss: Mapping[int, float], bridges: list[dict[str, Any]] | None = None) -> GlobalBAResult:
-        """Culling (unless ``ba.culling=false`` or scheme ``none``) + global BA of ``vo``'s keyframes ≤ ``kf_id``
-        (segments the ``bridges`` joined as one map), recorded into :attr:`record`."""
-        self._frame_of.update((k.id, k.frame_index) for k in vo.keyframes)
-        units = units_of(sorted({k.segment for k in vo.keyframes}), bridges or [])
-        r = run_global_ba(vo, self.images, depth_of, val_loss, self.run.cfg.ba, cull=self.cull, upto=kf_id,
-                          units=units)
-        self.record.culled.update(vo.points.ids[~r.keep].tolist())
-        self.record.dropped.update(vo.points.ids[r.dropped].tolist())
-        self.record.runs.append({"kf_id": kf_id, **{k: x for k, x in r.stats.items() if k != "costs"}})
-        log.info("global BA after keyframe %d: %d culled, %d dropped, %d refined (%d unrefined), cost %.4g -> %.4g, "
-                 "%.2f s", kf_id, r.stats["n_culled"], r.stats["n_dropped"], r.stats["n_refined"],
-                 r.stats["n_unrefined"], r.stats["cost0"], r.stats["cost"], r.stats["seconds"])
-        return r
 
     def finish(self, adapted: Adapted, fe: FrontEnd, fast: bool) -> None:
         """The map after culling + BA, by ``ba.final``: ``always`` — one more culling + BA of the loop's
@@ -164,7 +99,8 @@ class BAStage:
             why = "disabled (ba.enabled=false)"
         elif cfg.ba.final == "always":
             with run.timed("ba"):
-                vo_ba = final_ba(run.seq, adapted.map, adapted.net, adapted.adapter, cfg, fast, self, adapted.bridges)
+                vo_ba = final_ba(run.seq, adapted.map, adapted.net, adapted.adapter, cfg, fast, self.map_ba,
+                                 adapted.bridges)
         elif self.record.runs:
             vo_ba = adapted.map
             last = self.record.runs[-1]["kf_id"]

@@ -23,7 +23,7 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.stages.loop_inputs import depth_predictor
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import plan_bridge
+from mutualslam_cli.backend.bridges import plan_bridge
 
 
 def front_end_alone(seq: Sequence, cfg: RunConfig, cache_dir: Path | None) -> tuple[VOResult, set[int]]:
@@ -79,7 +79,7 @@ def credit_bridges(seq: Sequence, cfg: RunConfig, cache_dir: Path | None, net: t
         return front_end_alone(seq, cfg, cache_dir)[0], []
     source = FrontEndSource(seq, cfg, cache_dir)
     twin = copy.deepcopy(net)
-    load = keyframe_images(seq, lambda k: source.state.map.kf_frame[k], cfg.net.width, cfg.net.height)
+    load = keyframe_images(seq, lambda k: source.state.frame_of(k), cfg.net.width, cfg.net.height)
     records: list[dict[str, Any]] = []
     seen: set[int] = set()
     try:

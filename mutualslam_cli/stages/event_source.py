@@ -33,6 +33,7 @@ from mutualslam_cli.vo import checkpoint
 from mutualslam_cli.vo.camera import pinhole
 from mutualslam_cli.vo.depth_oracle import run_oracle
 from mutualslam_cli.vo.depth_prior import DepthHint
+from mutualslam_cli.vo.faults import corrupt_depths
 from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
 from mutualslam_cli.vo.frontend import FrontEnd
 from mutualslam_cli.vo.journal import Event
@@ -194,6 +195,14 @@ class FrontEndSource:
             self._drain()
         else:
             apply_refinement(self.state, r)
+
+    def inject_outliers(self, fraction: float, seed: int) -> np.ndarray:
+        """The ``vo.inject_outliers`` test knob on the finished map: gross depth errors in ``round(fraction · P)``
+        points (:func:`~mutualslam_cli.vo.faults.inject_outliers`); returns their ids. Hindsight only: a live
+        front end would never see them."""
+        if self.live_feedback:
+            raise RuntimeError("inject_outliers(): the live front end would not see the faults (hindsight only)")
+        return corrupt_depths(self.state, self.result(), fraction, seed)
 
     # ------------------------------------------------------------------ results
     def result(self) -> VOResult:

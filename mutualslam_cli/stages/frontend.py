@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from mutualslam_cli.ba.culling import inject_outliers
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.map_ply import write_ply
@@ -31,7 +30,7 @@ from mutualslam_cli.stages.slam_metrics import (
     set_ate,
 )
 from mutualslam_cli.types import Progress
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.vo.faults import inject_outliers
 from mutualslam_cli.vo.result import VOResult
 
 log = logging.getLogger(__name__)
@@ -50,17 +49,6 @@ def run_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
         return source.result(), source.replayed == len(seq)
     finally:
         source.close()
-
-
-def corrupt(state: MapState, vo: VOResult, cfg: RunConfig) -> np.ndarray:
-    """The ``vo.inject_outliers`` test knob on a finished map: the chosen points' depths corrupted in
-    ``state`` (``vo``: its snapshot); returns their ids (hindsight labels only: the config says so)."""
-    bad_vo, ids = inject_outliers(vo, cfg.vo.inject_outliers, cfg.seed)
-    if len(ids):
-        rows = np.searchsorted(vo.points.ids, ids)
-        state.map.set_depths(ids, bad_vo.points.inv_depth[rows])
-        state.map.refresh(ids)
-    return ids
 
 
 def load_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,

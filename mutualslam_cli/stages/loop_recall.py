@@ -9,8 +9,6 @@ keyframes it did not query): GT never reaches a decision of the run.
 from __future__ import annotations
 
 import logging
-from typing import Any
-
 import numpy as np
 import pandas as pd
 
@@ -19,11 +17,13 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.metrics.loop_recall import MAX_ANGLE_DEG, MAX_DIST_M, RecallRow, classify, counts, true_revisits
 from mutualslam_cli.metrics.trajectory import associate_indices
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.loop import RECALL
+from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.vo.result import VOResult
 
 log = logging.getLogger(__name__)
 
+#: The ``loop.recall.*`` counts.
+RECALL = ("revisits", "found", "verified", "closed", "refused")
 #: The summary keys of loop recall.
 RECALL_KEYS = tuple(f"loop.recall.{k}" for k in RECALL)
 #: ``loop_recall.csv``'s columns.
@@ -42,9 +42,9 @@ def keyframe_gt(seq: Sequence, vo: VOResult, max_dt: float) -> np.ndarray:
     return out
 
 
-def run_stage(run: RunContext, closer: Any, vo: VOResult) -> list[RecallRow] | None:
-    """Loop recall of ``closer`` (:class:`~mutualslam_cli.stages.loop.LoopCloser`) over the keyframes of ``vo``
-    (the run's live map, whose keyframe ids the closer used): keys and ``loop_recall.csv``.
+def run_stage(run: RunContext, closer: LoopCloser, vo: VOResult) -> list[RecallRow] | None:
+    """Loop recall of ``closer`` (:class:`~mutualslam_cli.backend.loop_closer.LoopCloser`) over the keyframes of
+    ``vo`` (the run's live map, whose keyframe ids the closer used): keys and ``loop_recall.csv``.
 
     Returns:
         The rows, or ``None`` without GT poses (the keys null with the reason).

@@ -24,7 +24,7 @@ from mutualslam_cli.metrics.scale_drift import STRIDE, WINDOW, ScaleDrift, scale
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.segments import units_of
+from mutualslam_cli.backend.bridges import units_of
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def evaluate(seq: Sequence, vo: VOResult, max_dt: float, bridges: list[dict[str,
              window: int = WINDOW) -> ScaleDrift:
     """:func:`~mutualslam_cli.metrics.scale_drift.scale_drift` of ``vo``'s keyframes against the sequence's GT,
     windows within one map unit: a segment, or segments the ``bridges`` joined
-    (:func:`~mutualslam_cli.vo.segments.units_of`). Raises :class:`MslamError` with the reason when it cannot
+    (:func:`~mutualslam_cli.backend.bridges.units_of`). Raises :class:`MslamError` with the reason when it cannot
     be computed."""
     if seq.gt is None or len(seq.gt) == 0:
         raise MslamError("sequence has no GT poses")

@@ -1,7 +1,7 @@
 """What the network's side hands back to the map while the front end runs (the mutual loop, DESIGN §5).
 
 Two changes reach the map between frames: a new segment joined to the map before it
-(:meth:`FeedbackMixin.transform_segment`, a similarity from :mod:`~mutualslam_cli.vo.segments`) and
+(:meth:`FeedbackMixin.transform_segment`, a similarity from :mod:`~mutualslam_cli.backend.bridges`) and
 a global BA's refinement (:class:`MapRefinement`: keyframe poses, point depths and host pixels,
 removed points). Each is applied to a :class:`~mutualslam_cli.vo.map_state.MapState` — the live
 front end's (journaled, so the adaptation loop's replica follows) or, when there is no live front

@@ -10,7 +10,8 @@ step (:meth:`sparse_depth`, :meth:`pose`), the map a bridge or a global BA start
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Container
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from mutualslam_cli.vo.assemble import RunStats, build_result
 from mutualslam_cli.vo.journal import Event, Journal
 from mutualslam_cli.vo.result import VOResult
 from mutualslam_cli.vo.state import Map
+
+if TYPE_CHECKING:
+    from mutualslam_cli.vo.relocalise import RelocIndex, Relocalisation
 
 
 class MapState:
@@ -161,18 +165,69 @@ class MapState:
         else:  # pragma: no cover - SCHEMA and this dispatch list the same kinds
             raise ValueError(f"unknown event kind {k!r}")
 
-    # ------------------------------------------------------------------ what the loop reads
+    # ------------------------------------------------------------------ what the loop and the back end read
     @property
     def n_keyframes(self) -> int:
         return len(self.map.kf_frame)
+
+    def frame_of(self, kf: int) -> int:
+        """The sequence frame keyframe ``kf`` was made from."""
+        return self.map.kf_frame[kf]
+
+    def time_of(self, kf: int) -> float:
+        """The timestamp of keyframe ``kf``'s frame (seconds)."""
+        return self.map.kf_time[kf]
 
     def pose(self, kf: int) -> np.ndarray:
         """``(4, 4)`` ``T_wc`` of keyframe ``kf`` now (a copy)."""
         return self.map.kf_T_wc[kf].copy()
 
+    def pose_cw(self, kf: int) -> np.ndarray:
+        """``(4, 4)`` ``T_cw`` (world to camera) of keyframe ``kf`` now (a copy)."""
+        return self.map.T_cw(kf)
+
     def segment(self, kf: int) -> int:
         """The tracking segment of keyframe ``kf``."""
         return self.map.kf_segment[kf]
+
+    def unit_of(self, kf: int) -> int:
+        """The map unit of keyframe ``kf`` (:meth:`unit` of its segment)."""
+        return self.unit(self.map.kf_segment[kf])
+
+    def first_keyframe(self, segment: int) -> int:
+        """The first keyframe of tracking segment ``segment``."""
+        return min(k for k, sg in enumerate(self.map.kf_segment) if sg == segment)
+
+    def n_shared(self, a: int, b: int) -> int:
+        """How many map points keyframes ``a`` and ``b`` both observe now."""
+        return len(self.map.kf_points[a] & self.map.kf_points[b])
+
+    def points_world(self, pids: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` world positions of map points ``pids`` now (a copy)."""
+        return self.map.Xw[pids]
+
+    def hosted_points(self, kfs: Container[int]) -> np.ndarray:
+        """``(n,)`` int64 ids, ascending, of the map points hosted by keyframes in ``kfs`` with a finite depth."""
+        m = self.map
+        return np.array([p for p, h in enumerate(m.host) if h in kfs and np.isfinite(m.rho[p])], np.int64)
+
+    def host_of(self, pid: int) -> int:
+        """The host keyframe of map point ``pid``."""
+        return self.map.host[pid]
+
+    def inv_depth(self, pid: int) -> float:
+        """The inverse depth of map point ``pid`` along its host ray (1/map units; NaN once removed)."""
+        return self.map.rho[pid]
+
+    def host_pixel(self, pid: int) -> np.ndarray:
+        """``(2,)`` the host pixel of map point ``pid`` (undistorted pinhole; a copy)."""
+        return self.map.px_h[pid].copy()
+
+    def locate(self, index: RelocIndex, gray: np.ndarray, thr: float, seed: int = 0,
+               keyframes: list[int] | None = None, newest: int = 2) -> Relocalisation | None:
+        """The pose of the grey image ``gray`` in this map now, by the relocaliser's keyframe ``index``
+        (:meth:`~mutualslam_cli.vo.relocalise.RelocIndex.query`: its arguments)."""
+        return index.query(gray, self.map, thr, seed=seed, keyframes=keyframes, newest=newest)
 
     def sparse_depth(self, kf: int) -> tuple[np.ndarray, np.ndarray]:
         """The map points keyframe ``kf`` observes now, projected into it with its pose now: pixels

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mutualslam_cli.bench import ba as bench
-from mutualslam_cli.ba.photometric import solve
+from mutualslam_cli.backend.ba.photometric import solve
 
 
 @pytest.fixture(scope="module")

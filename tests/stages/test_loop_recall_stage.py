@@ -16,7 +16,7 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.results.summary import Summary, flatten
 from mutualslam_cli.stages import loop_recall
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.loop import summarise_off
+from mutualslam_cli.stages.adaptation_summary import summarise_no_loops
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 
@@ -95,7 +95,7 @@ def test_absent_without_gt_or_without_loop_closure(seq, tmp_path):
         assert flatten(s)[k] is None and s["notes"][k] == "sequence has no GT poses"
     assert not (tmp_path / "loop_recall.csv").exists()
     off = Summary()
-    summarise_off(off, "loop.enabled=false (the paper: no loop closure)")
+    summarise_no_loops(off, "loop.enabled=false (the paper: no loop closure)")
     d = off.to_dict(required=())
     for k in loop_recall.RECALL_KEYS:
         assert flatten(d)[k] is None and d["notes"][k].startswith("loop.enabled=false")

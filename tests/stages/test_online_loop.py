@@ -11,7 +11,7 @@ import torch
 from synth import make_tum_dir
 
 from mutualslam_cli.adapt import losses
-from mutualslam_cli.ba.global_ba import GlobalBAResult
+from mutualslam_cli.backend.ba.global_ba import GlobalBAResult
 from mutualslam_cli.config import RunConfig, VOConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.stages.adaptation import OnlineLoop
@@ -145,9 +145,11 @@ def test_a_step_trains_on_the_map_as_it_stood(oracle, monkeypatch, tmp_path, hin
 
 
 class FakeBA:
-    """``run_ba`` of a BA stage that 'refines': depths of points hosted ≤ the request ×1.1, poses moved."""
+    """``run_ba`` of a BA stage that 'refines': depths of points hosted ≤ the request ×1.1, poses moved (the
+    :class:`~mutualslam_cli.backend.refine.MapBA` face: ``frames``, ``window``, ``run_ba``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, frames) -> None:
+        self.frames, self.window = frames, 0
         self.calls = []
 
     def run_ba(self, v, kf_id, depth_of, val_loss, bridges=None):
@@ -168,7 +170,7 @@ def test_a_global_ba_reaches_later_batches_and_not_earlier_ones(oracle, monkeypa
     seq, vo, events = oracle
     calls = _spy(monkeypatch)
     cfg = _cfg(validate_every=3, patience=1, tau_val=1e9)  # one request: validation keyframe t = 3
-    source, ba = ScriptedSource(seq, events), FakeBA()
+    source, ba = ScriptedSource(seq, events), FakeBA(seq.frames)
     loop = _run(seq, source, cfg, tmp_path, ba)
     assert ba.calls == [3] and [r["kf_id"] for r in loop.rows if r["run_global_ba"]] == [3] and "ba_s" in loop.rows[3]
     assert [f for f, _ in source.refined] == [6]  # at keyframe 3's creation frame
@@ -187,7 +189,7 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
     network goes on in its first unit only — the second segment's keyframes are neither trained on nor
     replayed nor validated, and the run counts them."""
     from mutualslam_cli.stages import adaptation
-    from mutualslam_cli.vo.segments import Bridge
+    from mutualslam_cli.backend.bridges import Bridge
 
     seq, vo, events = oracle
     script = []

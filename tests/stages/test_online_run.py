@@ -149,7 +149,7 @@ def test_the_bridged_credit_is_the_front_end_alone_and_its_own_bridges(lost, cau
     from mutualslam_cli.stages.loop_inputs import depth_predictor
     from mutualslam_cli.stages.event_source import FrontEndSource
     from mutualslam_cli.adapt.inputs import keyframe_images
-    from mutualslam_cli.vo.segments import plan_bridge
+    from mutualslam_cli.backend.bridges import plan_bridge
 
     tmp, root = lost
     r, _, loop = causal

@@ -79,7 +79,7 @@ def test_every_effect_takes_hold_when_its_charged_work_ends(oracle, monkeypatch,
     calls = _spy(monkeypatch)
     cfg = with_overrides(_cfg(validate_every=3, patience=1, tau_val=1e9),
                          adapt={"schedule": "realtime", "step_cost_ms": 0.5 * dt, "max_steps": 3})
-    source, ba = WatchedSource(seq, events), FakeBA()
+    source, ba = WatchedSource(seq, events), FakeBA(seq.frames)
     torch.manual_seed(0)
     loop = OnlineLoop(RunContext(seq, cfg, tmp_path, tmp_path), source, TinyNet(), False, ba, scorer=Scores())
     source.net = loop.net

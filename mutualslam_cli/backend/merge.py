@@ -2,11 +2,11 @@
 T-RO 2021, §VI-B): the measured join that replaces the network's bridge.
 
 A tracking loss the relocalisation could not repair starts a new segment in its own frame and unit; the
-adaptation loop then *bridges* it (:mod:`~mutualslam_cli.vo.segments`): placed at the last tracked pose, scaled
+adaptation loop then *bridges* it (:mod:`~mutualslam_cli.backend.bridges`): placed at the last tracked pose, scaled
 by the network's depth ratio on the two sides of the gap — an estimate that put whole TUM fr1_desk segments
 20–25 % off in scale. A merge measures instead. At each keyframe of a segment not merged yet, the keyframe is
 looked for among the keyframes of the segments before it with the loop closure's place recognition and
-verification (:class:`~mutualslam_cli.vo.loop_closure.LoopDetector`: ORB homography, KLT from the old image,
+verification (:class:`~mutualslam_cli.backend.loop_detector.LoopDetector`: ORB homography, KLT from the old image,
 PnP-RANSAC, inlier halves, other old keyframes as witnesses, the old points' depths agreeing with the
 network's), which gives the keyframe's pose ``T_o`` in the old map and the scale ``s`` between the two maps
 from pairs of nearby old and new points (old units per new unit). Then:
@@ -16,7 +16,7 @@ from pairs of nearby old and new points (old units per new unit). Then:
   puts it exactly at ``T_o``; the front end goes on in the old frame and unit, and re-observes the old map there
   (map reuse);
 * a segment a bridge already put into that map unit is corrected as a loop is (the Sim(3) pose graph, whose
-  bridge edges are loose in scale, then culling + BA: :meth:`~mutualslam_cli.stages.loop.LoopCloser.close`):
+  bridge edges are loose in scale, then culling + BA: :meth:`~mutualslam_cli.backend.loop_closer.LoopCloser.close`):
   the map between the two ends has drifted too, and a rigid move would only shift the tear to the bridge (on
   a 2,000-frame rendered room a rigid merge raised the ATE from 0.152 to 0.187 m).
 
@@ -30,13 +30,13 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from mutualslam_cli.backend.loop_closer import LoopCloser
+from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
+from mutualslam_cli.backend.pose_graph import close_loop
+from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.ba.pose_graph import close_loop
-from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.loop import LoopCloser
 from mutualslam_cli.vo.camera import focal_px
-from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector
 
 
 def merge_similarity(T_new: np.ndarray, loop: LoopClosure) -> tuple[np.ndarray, np.ndarray, float]:
@@ -53,7 +53,8 @@ class SegmentMerger:
 
     Args:
         seq: the sequence (keyframe images); cfg: the run's config (``loop`` thresholds, ``vo``, ``seed``).
-        source: the front end's event source: its ``state`` is the map now; ``transform_segment`` moves a segment.
+        source: where the map is (:class:`~mutualslam_cli.backend.refine.MapTarget`): its ``state`` is the map now;
+            ``transform_segment`` moves a segment.
         closer: the run's loop closure (``loop.enabled``): its keyframe index is shared, and a merge within one map
             unit is closed its way (pose graph + BA); ``None``: an index of its own, the pose graph alone.
 
@@ -62,12 +63,12 @@ class SegmentMerger:
         tried: keyframes queried.
     """
 
-    def __init__(self, seq: Sequence, cfg: RunConfig, source: Any, closer: LoopCloser | None = None) -> None:
+    def __init__(self, seq: Sequence, cfg: RunConfig, source: MapTarget, closer: LoopCloser | None = None) -> None:
         self.seq, self.cfg, self.source, self.closer = seq, cfg, source, closer
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
                                      lc,
-                                     load=lambda kf: seq.load_gray(source.state.map.kf_frame[kf]))
+                                     load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
         if closer is not None:  # one keyframe index for both: one ORB extraction per keyframe
             self.detector.index = closer.detector.index
         self.merges: list[dict[str, Any]] = []
@@ -84,26 +85,25 @@ class SegmentMerger:
         """
         t = time.perf_counter()
         state = self.source.state
-        m = state.map
         gray = None
         if kf not in self.detector.index.images:
-            gray = self.seq.load_gray(m.kf_frame[kf])
+            gray = self.seq.load_gray(state.frame_of(kf))
             self.detector.add(kf, gray)
-        seg = m.kf_segment[kf]
-        first = min(k for k, sg in enumerate(m.kf_segment) if sg == seg)
+        seg = state.segment(kf)
+        first = state.first_keyframe(seg)
         if seg in self._merged or first == 0:
             return time.perf_counter() - t
-        pool = [k for k in sorted(self.detector.index.images) if k < first and m.kf_segment[k] != seg]
+        pool = [k for k in sorted(self.detector.index.images) if k < first and state.segment(k) != seg]
         if not pool:
             return time.perf_counter() - t
-        gray = self.seq.load_gray(m.kf_frame[kf]) if gray is None else gray
+        gray = self.seq.load_gray(state.frame_of(kf)) if gray is None else gray
         self.tried += 1
         loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf, pool=pool)
         if loop is None:
             return time.perf_counter() - t
-        onto = m.kf_segment[loop.match]
-        rec = {**loop.record(), "segment": int(seg), "onto": int(onto), "frame": int(m.kf_frame[kf]),
-               "timestamp": float(m.kf_time[kf])}
+        onto = state.segment(loop.match)
+        rec = {**loop.record(), "segment": int(seg), "onto": int(onto), "frame": int(state.frame_of(kf)),
+               "timestamp": float(state.time_of(kf))}
         if state.unit(seg) == state.unit(onto):  # bridged into that map already: the measured loop corrects it
             if self.detector.already_closed(state, loop):
                 return time.perf_counter() - t
@@ -115,18 +115,9 @@ class SegmentMerger:
                 rec["how"] = "pose graph"
         else:  # a segment in a unit of its own (its bridge refused): moved onto the old map whole
             self.source.settle()  # the windowed BA in flight first: the keyframe's pose as it now stands
-            R, t_, s = merge_similarity(m.T_cw(kf), loop)
+            R, t_, s = merge_similarity(state.pose_cw(kf), loop)
             self.source.transform_segment(seg, R, t_, s, onto)
             rec["how"] = "similarity"
         self._merged.add(seg)
         self.merges.append(rec)
         return time.perf_counter() - t
-
-    def summarise(self, summary: Summary) -> None:
-        """``vo.merges`` and ``vo.merge_queries``; each merge in ``notes``."""
-        summary.set("vo.merges", len(self.merges))
-        summary.set("vo.merge_queries", self.tried)
-        if self.merges:
-            summary.notes["vo.merges"] = "; ".join(
-                f"segment {g['segment']} onto {g['onto']} at keyframe {g['query']} (scale {g['scale']:.3f}, "
-                f"{g['inliers']} inliers)" for g in self.merges)

@@ -13,7 +13,7 @@ network is supervised with the map's sparse depth, Eq. 7).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable, Mapping
 
 import numpy as np
@@ -144,31 +144,3 @@ def cull_map_points(vo: VOResult, val_loss: Mapping[int, float], depth_at: Depth
     keep = ~judged | correct(d_mp, d_cnn, gamma, d_max)
     return CullResult(keep=keep, host=host, d_mp=d_mp, d_cnn=d_cnn, judged=judged)
 
-
-#: Depth factors of :func:`inject_outliers`: both break Eq. 10 with γ = 0.5 against the true depth.
-OUTLIER_FACTORS = (2.0, 0.4)
-
-
-def inject_outliers(vo: VOResult, fraction: float, seed: int) -> tuple[VOResult, np.ndarray]:
-    """Gross depth outliers in a map, to measure culling against known outliers.
-
-    ``round(fraction · P)`` points, drawn without replacement with ``seed``, get their depth in
-    their host keyframe multiplied by 2 or 0.4 (each with probability ½): their inverse depth is
-    divided by the factor. Hosts, pixels and observations are unchanged.
-
-    Returns:
-        ``(vo_with_outliers, ids)``: the map (``vo`` itself when there is nothing to inject) and
-        the ``(n,)`` int64 ids (``vo.points.ids``) of the corrupted points.
-    """
-    if not 0 <= fraction < 1:
-        raise ConfigError(f"inject_outliers: fraction must be in [0, 1), got {fraction}")
-    P = len(vo.points)
-    n = int(round(fraction * P))
-    if n == 0:
-        return vo, np.zeros(0, np.int64)
-    rng = np.random.default_rng([seed, 0x0B1])
-    idx = np.sort(rng.choice(P, n, replace=False))
-    inv = vo.points.inv_depth.copy()
-    inv[idx] /= rng.choice(OUTLIER_FACTORS, n)
-    pts = replace(vo.points, inv_depth=inv)
-    return replace(vo, points=pts, meta={**vo.meta, "injected_outliers": n}), vo.points.ids[idx].astype(np.int64)

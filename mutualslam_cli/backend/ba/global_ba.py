@@ -7,7 +7,7 @@ returns a refined copy. It is the only module that reads :class:`~mutualslam_cli
 Choices the paper leaves open (written down here):
 
 - **Host**: Eq. 10 judges each point in its best-validated observing keyframe (lowest L_val, Fig. 3,
-  :func:`~mutualslam_cli.ba.culling.choose_hosts`), comparing the point's depth there with the CNN's.
+  :func:`~mutualslam_cli.backend.culling.choose_hosts`), comparing the point's depth there with the CNN's.
   The BA keeps the front end's host (the keyframe where the feature was detected: its patch is the
   detected corner). Re-hosting the BA parameters in the best-validated keyframe (pixel = the point's
   projection there, exact at the time) was tried: on ``redkitchen_7scenes`` with GT depth as the
@@ -20,11 +20,11 @@ Choices the paper leaves open (written down here):
   including the existing 3D-2D constraints"): the point's existing observations first (nearest
   keyframe index first, at most ``max_targets − nearby_slots``), then the keyframes of its map unit
   nearest to its host *in space* (camera centres), where it projects inside the image in front of
-  the camera, not more than :data:`~mutualslam_cli.ba.targets.MAX_DEPTH_RATIO` farther or nearer than
-  in its host, and where its block passes the robust test at the start
-  (:func:`~mutualslam_cli.ba.residuals.classify`) (:mod:`~mutualslam_cli.ba.targets`). Keyframes far apart in time
-  that see the same place are what pulls drift out of a sequence that returns; an occluded or
-  mismatched target is kept out by that test and again at every round of the solver. The slots
+  the camera, not more than :data:`~mutualslam_cli.backend.ba.targets.MAX_DEPTH_RATIO` farther or nearer
+  than in its host, and where its block passes the robust test at the start
+  (:func:`~mutualslam_cli.backend.ba.residuals.classify`) (:mod:`~mutualslam_cli.backend.ba.targets`).
+  Keyframes far apart in time that see the same place are what pulls drift out of a sequence that
+  returns; an occluded or mismatched target is kept out by that test and again at every round of the solver. The slots
   kept for them matter: a tracked point has its five neighbours in time as observations, and with
   all five taken first a synthetic 1,600-frame room sequence that returns to its start got 244
   nearby targets of 23,055 and keyframe ATE 5.5 → 7.5 mm; with two slots kept, 2.75 mm.
@@ -59,9 +59,16 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from mutualslam_cli.ba.culling import cull_map_points
-from mutualslam_cli.ba.photometric import solve
-from mutualslam_cli.ba.targets import MARGIN, UnitScene, connected_parts, existing_targets, nearby_targets, pattern_of
+from mutualslam_cli.backend.culling import cull_map_points
+from mutualslam_cli.backend.ba.photometric import solve
+from mutualslam_cli.backend.ba.targets import (
+    MARGIN,
+    UnitScene,
+    connected_parts,
+    existing_targets,
+    nearby_targets,
+    pattern_of,
+)
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
@@ -117,6 +124,12 @@ def _follow(poses: np.ndarray, times: np.ndarray, segs: np.ndarray, ref_times: n
     return out
 
 
+def window_start(last: int, window: int) -> int:
+    """The first keyframe of a BA of the keyframes up to ``last`` with ``ba.window = window``: the newest
+    ``window`` of them (0: every keyframe, from the first)."""
+    return max(0, last - window + 1) if window else 0
+
+
 def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
                   depth_of: Callable[[int], np.ndarray] | None, val_loss: Mapping[int, float] | None,
                   cfg: BAConfig, *, cull: bool, upto: int | None = None,
@@ -146,7 +159,7 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     t0 = time.perf_counter()
     nk = len(vo.keyframes)
     upto = nk - 1 if upto is None else int(upto)
-    first = max(0, upto - cfg.window + 1) if cfg.window else 0  # the keyframes [first, upto] take part
+    first = window_start(upto, cfg.window)  # the keyframes [first, upto] take part
     pts = vo.points
     inside = (pts.host <= upto) & (pts.host >= first)
     sub_idx = np.flatnonzero(inside)  # the points that exist at keyframe ``upto`` (hosted in the window)
@@ -221,7 +234,7 @@ def _solve_units(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, sta
                  units: np.ndarray) -> _Solved:
     """The photometric BAs of the points of ``sub`` that ``keep`` over the keyframes from ``first`` on: per map
     unit (``units``: per keyframe, its segment or the unit bridges joined it into), per part of the unit its
-    blocks tie together (:func:`~mutualslam_cli.ba.targets.connected_parts`), each part's first keyframe fixed
+    blocks tie together (:func:`~mutualslam_cli.backend.ba.targets.connected_parts`), each part's first keyframe fixed
     and one scale prior on its extent (module docstring)."""
     host, rho = sub.points.host, sub.points.inv_depth
     out = _Solved(T_wc.copy(), rho.copy(), np.zeros(len(host), bool), np.zeros(len(host), bool))

@@ -5,15 +5,15 @@ brightness ``(a, b)`` (8 values); per point its inverse depth in the host keyfra
 residuals per (point, target keyframe) pair, one residual per pixel of a pattern around the host pixel
 (the paper's 3×3 patch by default, or DSO's eight pixels), with DSO's affine brightness model (Engel et al. 2018,
 "Direct Sparse Odometry", eq. 4), weighted and robustified as DSO does (Huber on grey levels, a
-gradient-dependent weight, blocks above an energy threshold out: :mod:`mutualslam_cli.ba.residuals`).
+gradient-dependent weight, blocks above an energy threshold out: :mod:`mutualslam_cli.backend.ba.residuals`).
 Solver: Levenberg–Marquardt with the Schur complement on the diagonal inverse-depth block (Triggs et
 al. 2000, §6); the reduced camera system (8 unknowns per free keyframe) is solved densely. Gauge:
 keyframe 0 fixed; the monocular scale held by a prior on the keyframe trajectory's extent
-(:mod:`mutualslam_cli.ba.lm`).
+(:mod:`mutualslam_cli.backend.ba.lm`).
 
 **Levels and rounds.** Optionally coarse-to-fine over an image pyramid (each coarse level one round
 of ``coarse_iterations``); at full resolution ``rounds`` rounds share ``iterations``. Each round starts
-by deciding which blocks take part (:func:`~mutualslam_cli.ba.residuals.classify`, at the round's
+by deciding which blocks take part (:func:`~mutualslam_cli.backend.ba.residuals.classify`, at the round's
 start state) and keeps that set: within a round the robust cost never increases across accepted
 steps. A point whose blocks are mostly outliers (more than ``drop_ratio`` of them, or all) takes no
 part in the round (its inlier blocks neither: the point itself is in doubt), and at the end it is
@@ -22,11 +22,11 @@ with fewer than ``min_blocks`` active blocks in a round is held fixed in it: nea
 LM's damped step moved one such keyframe of a 161-keyframe synthetic sequence by half a metre.
 
 Modules, each importing only those listed before it:
-:mod:`~mutualslam_cli.ba.problem` (inputs, outputs, validation),
-:mod:`~mutualslam_cli.ba.schur` (sparsity, reduced camera system, LM step),
-:mod:`~mutualslam_cli.ba.residuals` (residuals, Jacobians, weights, block energies, robust cost),
-:mod:`~mutualslam_cli.ba.lm` (LM iterations at one resolution, the scale anchor),
-:mod:`~mutualslam_cli.ba.pyramid` (image pyramid, problems per level) and this module
+:mod:`~mutualslam_cli.backend.ba.problem` (inputs, outputs, validation),
+:mod:`~mutualslam_cli.backend.ba.schur` (sparsity, reduced camera system, LM step),
+:mod:`~mutualslam_cli.backend.ba.residuals` (residuals, Jacobians, weights, block energies, robust cost),
+:mod:`~mutualslam_cli.backend.ba.lm` (LM iterations at one resolution, the scale anchor),
+:mod:`~mutualslam_cli.backend.ba.pyramid` (image pyramid, problems per level) and this module
 (:func:`solve`, the entry point).
 """
 
@@ -38,10 +38,10 @@ from typing import Callable
 
 import numpy as np
 
-from mutualslam_cli.ba import pyramid
-from mutualslam_cli.ba.lm import BAState, Gauge, LMSettings, apply_step, extent, normal_equations, solve_level
-from mutualslam_cli.ba.problem import NP, PhotoBAProblem, PhotoBAResult, validate
-from mutualslam_cli.ba.residuals import GRADIENT_C, SQUARE3, PatchData, classify, residuals, robust_cost
+from mutualslam_cli.backend.ba import pyramid
+from mutualslam_cli.backend.ba.lm import BAState, Gauge, LMSettings, apply_step, extent, normal_equations, solve_level
+from mutualslam_cli.backend.ba.problem import NP, PhotoBAProblem, PhotoBAResult, validate
+from mutualslam_cli.backend.ba.residuals import GRADIENT_C, SQUARE3, PatchData, classify, residuals, robust_cost
 from mutualslam_cli.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,7 @@ def _blocks_per_keyframe(d: PatchData, active: np.ndarray) -> np.ndarray:
 
 class _Rounds:
     """The rounds of one :func:`solve`, in order: each decides its active blocks and held keyframes, runs LM
-    (:func:`~mutualslam_cli.ba.lm.solve_level`) and keeps its record in :attr:`records`."""
+    (:func:`~mutualslam_cli.backend.ba.lm.solve_level`) and keeps its record in :attr:`records`."""
 
     def __init__(self, free: np.ndarray, affine: bool, min_blocks: int, drop_ratio: float, outlier_delta: float,
                  s0: float, anchor: np.ndarray | None, lm: LMSettings):
@@ -113,7 +113,7 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
         huber_delta, outlier_delta: Huber threshold and per-pixel outlier threshold, intensity in [0, 1].
         pattern: ``(S, 2)`` residual pattern offsets, pixels of each level.
         max_targets: largest allowed number of targets per point.
-        scale_weight: cost of a relative error of 1 in the scale anchor (:mod:`mutualslam_cli.ba.lm`).
+        scale_weight: cost of a relative error of 1 in the scale anchor (:mod:`mutualslam_cli.backend.ba.lm`).
         margin: pixels (of each level) at the border where a projection is invalid.
         lambda0: initial LM damping (reset at each round).
         max_tries: damping increases per iteration before giving up (ends that round).

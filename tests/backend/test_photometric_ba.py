@@ -7,9 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mutualslam_cli.ba import photometric as ph
-from mutualslam_cli.ba import lm, pyramid
-from mutualslam_cli.ba.residuals import DSO_PATTERN
+from mutualslam_cli.backend.ba import photometric as ph
+from mutualslam_cli.backend.ba import lm, pyramid
+from mutualslam_cli.backend.ba.residuals import DSO_PATTERN
 from mutualslam_cli.bench.ba import perturb, synthetic_problem
 from mutualslam_cli.errors import ConfigError, ShapeError
 

@@ -1,6 +1,6 @@
 """Sparse normal equations of the photometric BA and their Schur complement.
 
-The Gauss–Newton system has a camera block ``H_cc`` (:data:`~mutualslam_cli.ba.problem.NP`
+The Gauss–Newton system has a camera block ``H_cc`` (:data:`~mutualslam_cli.backend.ba.problem.NP`
 unknowns per keyframe), a diagonal inverse-depth block ``H_pp`` and the coupling ``H_cp``.
 The points are eliminated with the Schur complement on the diagonal inverse-depth block
 (Triggs et al. 2000, "Bundle adjustment — a modern synthesis", §6); the reduced camera system
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mutualslam_cli.ba.problem import NP
+from mutualslam_cli.backend.ba.problem import NP
 
 
 class BlockStructure:

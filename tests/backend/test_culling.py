@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mutualslam_cli.ba.culling import choose_hosts, correct, cull_map_points, inject_outliers
+from mutualslam_cli.backend.culling import choose_hosts, correct, cull_map_points
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
@@ -81,26 +81,3 @@ def test_cull_rejects_bad_parameters_and_lookups():
         cull_map_points(vo, {}, lambda k, p: np.ones(len(p)), gamma=0.0)
     with pytest.raises(ShapeError):
         cull_map_points(vo, {}, lambda k, p: np.ones(len(p) + 1))
-
-
-def test_inject_outliers_is_seeded_and_only_scales_depths():
-    rng = np.random.default_rng(0)
-    P = 200
-    obs = [np.array([0, 1]) for _ in range(P)]
-    pts = MapPoints(np.arange(P) + 1000, np.zeros(P, np.int64), rng.random((P, 2)) * 50, rng.uniform(0.2, 1, P),
-                    np.zeros(P), obs, [np.zeros((2, 2)) for _ in range(P)])
-    vo = VOResult([Keyframe(0, 0, 0.0, np.eye(4)), Keyframe(1, 1, 0.1, np.eye(4))], pts,
-                  Intrinsics(50, 50, 25, 25, 50, 50), Trajectory(np.array([0.0, 0.1]), np.stack([np.eye(4)] * 2)),
-                  np.zeros(2, np.int64))
-    out, ids = inject_outliers(vo, 0.1, seed=3)
-    assert len(ids) == 20 and len(np.unique(ids)) == 20 and np.isin(ids, pts.ids).all()
-    bad = np.isin(pts.ids, ids)
-    factor = pts.inv_depth / out.points.inv_depth  # depth multiplier
-    np.testing.assert_allclose(np.sort(np.unique(np.round(factor[bad], 12))), [0.4, 2.0])
-    np.testing.assert_array_equal(out.points.inv_depth[~bad], pts.inv_depth[~bad])
-    np.testing.assert_array_equal(out.points.pixel, pts.pixel)
-    np.testing.assert_array_equal(inject_outliers(vo, 0.1, seed=3)[1], ids)  # seeded
-    assert not np.array_equal(inject_outliers(vo, 0.1, seed=4)[1], ids)
-    assert inject_outliers(vo, 0.0, seed=3)[0] is vo
-    with pytest.raises(ConfigError):
-        inject_outliers(vo, 1.0, seed=3)

@@ -1,4 +1,4 @@
-"""Scale-consistent re-initialisation: a new segment joined to the map before it (mutualslam_cli.vo.segments)."""
+"""Scale-consistent re-initialisation: a new segment joined to the map before it (mutualslam_cli.backend.bridges)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from mutualslam_cli.geometry import exp_so3, scale_motion
 from mutualslam_cli.metrics.trajectory import ate, ate_segments
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import run_vo
-from mutualslam_cli.vo.segments import bridge_segment, bridged, plan_bridge, units_of
+from mutualslam_cli.backend.bridges import bridge_segment, bridged, plan_bridge, units_of
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ import logging
 
 import numpy as np
 
-from mutualslam_cli.ba.problem import PhotoBAProblem
+from mutualslam_cli.backend.ba.problem import PhotoBAProblem
 from mutualslam_cli.errors import ConfigError
 
 log = logging.getLogger(__name__)

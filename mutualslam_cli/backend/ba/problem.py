@@ -1,4 +1,4 @@
-"""Inputs and outputs of the global photometric BA (:mod:`mutualslam_cli.ba.photometric`).
+"""Inputs and outputs of the global photometric BA (:mod:`mutualslam_cli.backend.ba.photometric`).
 
 Unknowns: per free keyframe an SE(3) left increment ``(ρ, φ)`` on ``T_cw`` plus the affine
 brightness ``(a, b)`` (:data:`NP` values); per point its inverse depth in the host keyframe.
@@ -49,7 +49,7 @@ class PhotoBAProblem:
 
 @dataclass
 class PhotoBAResult:
-    """Output of :func:`~mutualslam_cli.ba.photometric.solve`: ``T_cw`` ``(K, 4, 4)``, ``affine`` ``(K, 2)``,
+    """Output of :func:`~mutualslam_cli.backend.ba.photometric.solve`: ``T_cw`` ``(K, 4, 4)``, ``affine`` ``(K, 2)``,
     ``inv_depth`` ``(P,)`` and ``stats`` (cost0, cost, costs, iterations, accepted, seconds)."""
 
     T_cw: np.ndarray

@@ -1,9 +1,9 @@
 """Levenberg–Marquardt for the photometric BA at one image resolution and one set of active blocks.
 
 Each iteration builds the Gauss–Newton normal equations of the active blocks with IRLS weights
-(Huber × the host pixel's gradient weight, :mod:`mutualslam_cli.ba.residuals`; Alismail et al.
+(Huber × the host pixel's gradient weight, :mod:`mutualslam_cli.backend.ba.residuals`; Alismail et al.
 2016), adds the scale anchor, and tries damped steps through the Schur complement
-(:mod:`mutualslam_cli.ba.schur`) until the robust cost decreases: within one call the cost never
+(:mod:`mutualslam_cli.backend.ba.schur`) until the robust cost decreases: within one call the cost never
 increases across accepted steps. Given the cameras the cost is a sum over points, so a trial step
 keeps the inverse depth of each point whose own cost it raised (:meth:`_Level.trial`): one point in a
 narrow basin no longer forces up the damping of every unknown (on the unit tests' scene LM stalled
@@ -26,9 +26,9 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from mutualslam_cli.ba.problem import NP
-from mutualslam_cli.ba.residuals import PatchData, Residuals, point_costs, residuals, robust_cost
-from mutualslam_cli.ba.schur import NormalEquations
+from mutualslam_cli.backend.ba.problem import NP
+from mutualslam_cli.backend.ba.residuals import PatchData, Residuals, point_costs, residuals, robust_cost
+from mutualslam_cli.backend.ba.schur import NormalEquations
 from mutualslam_cli.geometry import left_update
 
 log = logging.getLogger(__name__)

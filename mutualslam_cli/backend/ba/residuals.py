@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mutualslam_cli.ba.problem import PhotoBAProblem
-from mutualslam_cli.ba.schur import BlockStructure
+from mutualslam_cli.backend.ba.problem import PhotoBAProblem
+from mutualslam_cli.backend.ba.schur import BlockStructure
 from mutualslam_cli.pixels import in_image, in_image_uv
 
 #: DSO's residual pattern (``staticPattern[8]``): eight pixels spread over 5×5 around the host pixel.

@@ -1,5 +1,5 @@
 """Which keyframes a map point's residual blocks go to, in one map unit of the global BA
-(:mod:`~mutualslam_cli.ba.global_ba` states the policy: existing observations first, then keyframes
+(:mod:`~mutualslam_cli.backend.ba.global_ba` states the policy: existing observations first, then keyframes
 nearby in space that pass the robust test), and which keyframes those blocks tie together
 (:func:`connected_parts`: each part is one problem with a gauge of its own).
 
@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mutualslam_cli.ba.problem import PhotoBAProblem
-from mutualslam_cli.ba.residuals import DSO_PATTERN, SQUARE3, PatchData, classify, residuals
+from mutualslam_cli.backend.ba.problem import PhotoBAProblem
+from mutualslam_cli.backend.ba.residuals import DSO_PATTERN, SQUARE3, PatchData, classify, residuals
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.pixels import in_image
 

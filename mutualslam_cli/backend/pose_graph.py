@@ -1,5 +1,5 @@
 """Sim(3) pose graph over keyframes: a loop's correction spread over the keyframes it closes
-(:mod:`~mutualslam_cli.vo.loop_closure`).
+(:mod:`~mutualslam_cli.backend.loop_detector`).
 
 Each keyframe ``k`` of the loop's map unit from the loop's old end on is a node ``M_k = [s_k R_k | t_k]``
 (camera to world, ``s_k`` the unit of its own map: 1 before). Edges hold what the odometry measured:
@@ -24,7 +24,7 @@ import gtsam
 import numpy as np
 
 from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.loop_closure import LoopClosure
+from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.vo.map_state import MapState
 
 #: Standard deviations of an odometry edge, per tangent coordinate (rotation ×3 rad, translation ×3 map units, log
@@ -34,7 +34,7 @@ EDGE_SIGMAS = (0.01,) * 6 + (0.03,)
 LOOP_SIGMA = 0.01
 #: ... and of the edge across a bridge, per tangent coordinate (rotation ×3 rad, translation ×3 map units, log
 #: scale): its rotation came from the images and its translation spans a gap of a few frames, but its scale is an
-#: estimate from the network's depth (:mod:`~mutualslam_cli.vo.segments`), so the loop's correction goes to the
+#: estimate from the network's depth (:mod:`~mutualslam_cli.backend.bridges`), so the loop's correction goes to the
 #: bridges' scales first — and only there, not into rotations and places the bridge did measure.
 BRIDGE_SIGMAS = (0.05,) * 3 + (0.1,) * 3 + (0.3,)
 
@@ -56,10 +56,9 @@ def _matrix(S: gtsam.Similarity3) -> np.ndarray:
 
 def close_loop(state: MapState, loop: LoopClosure, min_shared: int = 20, window: int = 10) -> MapRefinement:
     """The refinement that closes ``loop`` in ``state``'s map (module docstring)."""
-    m = state.map
-    unit = state.unit(m.kf_segment[loop.query])
-    kfs = [k for k in range(loop.match, len(m.kf_frame)) if state.unit(m.kf_segment[k]) == unit]
-    M0 = {k: m.kf_T_wc[k].copy() for k in kfs}
+    unit = state.unit_of(loop.query)
+    kfs = [k for k in range(loop.match, state.n_keyframes) if state.unit_of(k) == unit]
+    M0 = {k: state.pose(k) for k in kfs}
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     edge = gtsam.noiseModel.Diagonal.Sigmas(np.array(EDGE_SIGMAS))
     for k in kfs:
@@ -68,12 +67,12 @@ def close_loop(state: MapState, loop: LoopClosure, min_shared: int = 20, window:
     pairs = set(zip(kfs, kfs[1:]))
     for a_i, a in enumerate(kfs):
         for b in kfs[a_i + 1:a_i + 1 + window]:
-            if len(m.kf_points[a] & m.kf_points[b]) >= min_shared:
+            if state.n_shared(a, b) >= min_shared:
                 pairs.add((a, b))
     bridge = gtsam.noiseModel.Diagonal.Sigmas(np.array(BRIDGE_SIGMAS))
     for a, b in sorted(pairs):
         graph.add(gtsam.BetweenFactorSimilarity3(a, b, _sim3(np.linalg.inv(M0[a]) @ M0[b]),
-                                                 edge if m.kf_segment[a] == m.kf_segment[b] else bridge))
+                                                 edge if state.segment(a) == state.segment(b) else bridge))
     T_loop = np.linalg.inv(loop.T_cw)
     M_loop = T_loop.copy()
     M_loop[:3, :3] *= loop.scale
@@ -92,8 +91,8 @@ def close_loop(state: MapState, loop: LoopClosure, min_shared: int = 20, window:
         poses.append(T)
         scales.append(s)
     scale_of = dict(zip(kfs, scales))
-    pids = np.array([p for p, h in enumerate(m.host) if h in scale_of and np.isfinite(m.rho[p])], np.int64)
-    rho = np.array([m.rho[p] / scale_of[m.host[p]] for p in pids.tolist()])
-    px = np.array([m.px_h[p] for p in pids.tolist()]).reshape(-1, 2)
+    pids = state.hosted_points(scale_of)
+    rho = np.array([state.inv_depth(p) / scale_of[state.host_of(p)] for p in pids.tolist()])
+    px = np.array([state.host_pixel(p) for p in pids.tolist()]).reshape(-1, 2)
     return MapRefinement(np.array(kfs, np.int64), np.array(poses).reshape(-1, 4, 4), pids, rho, px,
                          np.zeros(0, np.int64), np.array(scales))

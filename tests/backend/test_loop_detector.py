@@ -1,4 +1,4 @@
-"""Loop closure's detection and verification (mutualslam_cli.vo.loop_closure) on a rendered room the camera
+"""Loop closure's detection and verification (mutualslam_cli.backend.loop_detector) on a rendered room the camera
 circles: frame 1273 sees again what frames 45-75 saw, 13 cm and 2.3 degrees from frame 60."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from mutualslam_cli.datasets.synthetic.sequences import FPS, _setup, synthetic_i
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.vo.camera import to_normalized
 from mutualslam_cli.vo.features import detect_grid
-from mutualslam_cli.vo.loop_closure import DEPTH_SPREAD_FACTOR, LoopDetector, depth_agrees
+from mutualslam_cli.backend.loop_detector import DEPTH_SPREAD_FACTOR, LoopDetector, depth_agrees
 from mutualslam_cli.vo.map_state import MapState
 
 W, H = 320, 240
@@ -82,7 +82,7 @@ def test_a_look_alike_place_is_rejected(frames):
 
 
 def test_the_loop_scale_pairs_nearby_points_so_a_biased_network_cancels():
-    from mutualslam_cli.vo.loop_closure import _local_scale
+    from mutualslam_cli.backend.loop_detector import _local_scale
 
     rng = np.random.default_rng(0)
     size = (320, 240)

@@ -18,13 +18,13 @@ For each new keyframe (:class:`LoopDetector`):
    so its error across the image (a wall nearer or farther than it thinks) cancels — and ``s`` is the median
    over the old points (each its pairs' median), refused when uncertain by more than ``max_scale_error``
    and when too few old points have a new one near: the medians over each whole set (the bridge's rule,
-   :func:`~mutualslam_cli.vo.segments.depth_ratio`) were off by 20 % on a rendered room, where the old and
+   :func:`~mutualslam_cli.backend.bridges.depth_ratio`) were off by 20 % on a rendered room, where the old and
    the new points lay in different parts of the image. **The adapted depth must agree**: the old points' depths
    under the loop pose, divided by the network's, must be nearly one number (relative spread ≤
    ``max_depth_spread``, or ≤ :data:`DEPTH_SPREAD_FACTOR` × the spread of the keyframe's own points, the
    network's own noise on the image); the depths of a wrong pose do not follow the picture the network sees.
 
-The accepted loop is a Sim(3) measurement between the two keyframes; :mod:`~mutualslam_cli.ba.pose_graph`
+The accepted loop is a Sim(3) measurement between the two keyframes; :mod:`~mutualslam_cli.backend.pose_graph`
 spreads it over the keyframes between them.
 """
 
@@ -41,7 +41,7 @@ from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import undistort_points
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
-from mutualslam_cli.vo.segments import MIN_RATIO_POINTS
+from mutualslam_cli.backend.bridges import MIN_RATIO_POINTS
 
 
 #: A loop that moves its query keyframe less than this (degrees; relative to its median point depth, and in log
@@ -179,7 +179,7 @@ class LoopDetector:
         the rejections as ``already closed``. Agreement: the query keyframe's pose now and the loop pose within
         :data:`CLOSED_DEG` and :data:`CLOSED_REL` of the keyframe's median point depth, the scale within
         :data:`CLOSED_REL` of one."""
-        T_now, T_loop = state.map.kf_T_wc[loop.query], np.linalg.inv(loop.T_cw)
+        T_now, T_loop = state.pose(loop.query), np.linalg.inv(loop.T_cw)
         cos = (np.trace(T_now[:3, :3].T @ T_loop[:3, :3]) - 1.0) / 2.0
         _, z = state.sparse_depth(loop.query)
         shift = float(np.linalg.norm(T_now[:3, 3] - T_loop[:3, 3])) / (float(np.median(z)) if len(z) else 1.0)
@@ -197,13 +197,12 @@ class LoopDetector:
             state: the map now; gray: ``(H, W)`` uint8 raw grey image of ``kf``; depth: ``(h, w)`` the adapted
                 network's depth of ``kf`` (any unit; looked up at the nearest pixel).
             pool: the old keyframes that may match (default: those of its map unit ``min_gap`` or more keyframes
-                older; a merge, :mod:`~mutualslam_cli.stages.merge`, gives the other segments').
+                older; a merge, :mod:`~mutualslam_cli.backend.merge`, gives the other segments').
         """
-        m, s = state.map, self.settings
-        unit = state.unit(m.kf_segment[kf])
+        s = self.settings
+        unit = state.unit_of(kf)
         if pool is None:
-            pool = [k for k in sorted(self.index.images)
-                    if k <= kf - s.min_gap and state.unit(m.kf_segment[k]) == unit]
+            pool = [k for k in sorted(self.index.images) if k <= kf - s.min_gap and state.unit_of(k) == unit]
         rec = {"kf": kf, "pool": np.array(pool, np.int64), "candidates": [], "geometry": {}, "verified": None,
                "outcome": "no old keyframe in its map unit"}
         self.queries.append(rec)
@@ -211,7 +210,7 @@ class LoopDetector:
             return None
         rec["candidates"] = self.index.candidates(gray, pool, 0)
         rejected0 = self.index.rejected
-        r = self.index.query(gray, m, self.thr, seed=seed, keyframes=pool, newest=0)
+        r = state.locate(self.index, gray, self.thr, seed=seed, keyframes=pool, newest=0)
         self.tried += min(len(pool), s.n_candidates) if r is None else r.candidates_tried
         rec["geometry"], rec["outcome"] = dict(self.index.outcomes), "geometry: no candidate passed"
         if self.index.rejected > rejected0:
@@ -224,7 +223,7 @@ class LoopDetector:
         uv_new, z_new = state.sparse_depth(kf)
         r_new, spread_new, _, n_new = _ratios(z_new, lookup_nearest(np.asarray(depth, float), uv_new, size))
         # the old points it matched, under the loop pose (the old unit)
-        Xc = m.Xw[r.pids] @ r.T_cw[:3, :3].T + r.T_cw[:3, 3]
+        Xc = state.points_world(r.pids) @ r.T_cw[:3, :3].T + r.T_cw[:3, 3]
         px = undistort_points(r.raw, self.intr)
         r_old, spread, _, n_old = _ratios(Xc[:, 2], lookup_nearest(np.asarray(depth, float), px, size))
         rec["spread_old"], rec["spread_new"] = spread, spread_new

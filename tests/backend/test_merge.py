@@ -1,4 +1,4 @@
-"""Merging a segment into the map before it (:mod:`mutualslam_cli.stages.merge`): a segment in a unit of its own
+"""Merging a segment into the map before it (:mod:`mutualslam_cli.backend.merge`): a segment in a unit of its own
 moves whole by the measured Sim(3); one a bridge already joined is corrected as a loop is; a segment merges once."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.geometry import exp_so3, se3_inv
-from mutualslam_cli.stages.merge import SegmentMerger, merge_similarity
+from mutualslam_cli.backend.merge import SegmentMerger, merge_similarity
 from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.loop_closure import LoopClosure
+from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.relocalise import HeldImages
 

@@ -1,14 +1,14 @@
-"""The Sim(3) pose graph that closes a loop (mutualslam_cli.ba.pose_graph)."""
+"""The Sim(3) pose graph that closes a loop (mutualslam_cli.backend.pose_graph)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from mutualslam_cli.ba.pose_graph import close_loop
+from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.geometry import exp_so3
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.feedback import apply_refinement
-from mutualslam_cli.vo.loop_closure import LoopClosure
+from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.vo.map_state import MapState
 
 INTR = Intrinsics(250.0, 250.0, 160.0, 120.0, 320, 240)
@@ -105,7 +105,7 @@ def test_a_wrong_bridge_scale_is_corrected_at_the_bridge():
 
 
 def test_a_loop_the_map_already_agrees_with_is_not_closed_again():
-    from mutualslam_cli.vo.loop_closure import LoopDetector
+    from mutualslam_cli.backend.loop_detector import LoopDetector
 
     gt = _circle(40)
     st = _state(gt)

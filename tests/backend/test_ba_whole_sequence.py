@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from mutualslam_cli.ba.global_ba import run_global_ba
+from mutualslam_cli.backend.ba.global_ba import run_global_ba
 from mutualslam_cli.config import BAConfig, RunConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.synthetic import iter_render, write_tum
 from mutualslam_cli.machine import cpu_info
 from mutualslam_cli.metrics.trajectory import ate
-from mutualslam_cli.stages.ba import ba_images
+from mutualslam_cli.backend.refine import ba_images
 from mutualslam_cli.stages.frontend import run_frontend
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from synth import make_tum_dir
 
-from mutualslam_cli.ba import global_ba as gba
+from mutualslam_cli.backend.ba import global_ba as gba
 from mutualslam_cli.bench.ba import perturb, synthetic_problem
 from mutualslam_cli.config import BAConfig, VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
@@ -190,7 +190,7 @@ def test_points_observed_in_a_keyframe_match_a_scan(scene):
 
 
 def test_ba_images_keep_only_the_newest_with_a_window(tmp_path):
-    from mutualslam_cli.stages.ba import ba_images
+    from mutualslam_cli.backend.refine import ba_images
 
     seq = load_sequence(str(make_tum_dir(tmp_path / "seq", n=6)))
     vo = run_oracle(seq, VOConfig(mode="gt-depth", gt_kf_every=1))

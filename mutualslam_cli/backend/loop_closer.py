@@ -2,16 +2,18 @@
 
 :class:`LoopCloser` keeps every keyframe's image for place recognition and, for each new keyframe, looks
 for it among the keyframes of its map unit at least ``loop.min_gap`` older
-(:class:`~mutualslam_cli.vo.loop_closure.LoopDetector`: appearance, geometry, and the adapted network's
+(:class:`~mutualslam_cli.backend.loop_detector.LoopDetector`: appearance, geometry, and the adapted network's
 depth for the scale and as a check). A verified loop is closed on the map as it stands — like the
 global BA's feedback, in the live front end with causal labels: a Sim(3) pose graph spreads the
-correction over the keyframes it closes (:func:`~mutualslam_cli.ba.pose_graph.close_loop`), then culling +
+correction over the keyframes it closes (:func:`~mutualslam_cli.backend.pose_graph.close_loop`), then culling +
 the robust global BA refine the unit, the loop's two ends now close enough for nearby-keyframe targets to
 tie them (the loop's correspondences). The refined poses and points feed training as the BA's do.
 
-Outputs: ``loop.{candidates,accepted,rejected}`` (rejections by reason in ``notes``), and the loops in
-``manifest.json`` (``loops``), drawn on the trajectory figure. With GT, after the run, the recall of true revisits
-(``loop.recall.*``, ``loop_recall.csv``: :mod:`~mutualslam_cli.stages.loop_recall`) from what the closer recorded.
+What it records — the loops closed, the detector's queries and rejections, the keyframes not queried — the
+stages write out: ``loop.{candidates,accepted,rejected}``
+(:func:`~mutualslam_cli.stages.adaptation_summary.summarise_loops`), the loops in ``manifest.json`` (``loops``),
+drawn on the trajectory figure, and with GT, after the run, the recall of true revisits (``loop.recall.*``,
+``loop_recall.csv``: :mod:`~mutualslam_cli.stages.loop_recall`).
 """
 
 from __future__ import annotations
@@ -22,18 +24,14 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from mutualslam_cli.ba.pose_graph import close_loop
+from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
+from mutualslam_cli.backend.pose_graph import close_loop
+from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.vo.camera import focal_px
-from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.loop_closure import LoopClosure, LoopDetector
 
 log = logging.getLogger(__name__)
-
-#: The ``loop.recall.*`` keys (:mod:`~mutualslam_cli.stages.loop_recall`).
-RECALL = ("revisits", "found", "verified", "closed", "refused")
 
 
 class LoopCloser:
@@ -41,20 +39,21 @@ class LoopCloser:
 
     Args:
         seq: the sequence (keyframe images); cfg: the run's config (``loop``, ``vo``, ``seed``).
-        source: the front end's event source: its ``state`` is the map now; ``settle`` / ``refine`` change it.
-        ba: the run's culling + BA stage (``run_ba``), ``None`` without BA: the pose graph alone.
+        source: where the map is (:class:`~mutualslam_cli.backend.refine.MapTarget`): its ``state`` is the map now;
+            ``settle`` / ``refine`` change it.
+        ba: the run's culling + BA, ``None`` without BA: the pose graph alone.
 
     Attributes:
         loops: one record per loop closed (``manifest.json``'s ``loops``).
         skipped: ``{kf: why}`` of the keyframes kept but not queried (loop recall's reasons).
     """
 
-    def __init__(self, seq: Sequence, cfg: RunConfig, source: Any, ba: Any | None) -> None:
+    def __init__(self, seq: Sequence, cfg: RunConfig, source: MapTarget, ba: MapBA | None) -> None:
         self.seq, self.cfg, self.source, self.ba = seq, cfg, source, ba
         lc = cfg.loop
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
                                      lc,
-                                     load=lambda kf: seq.load_gray(source.state.map.kf_frame[kf]))
+                                     load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
         self.loops: list[dict[str, Any]] = []
         self.skipped: dict[int, str] = {}
         self._last = -(10 ** 9)  # the query keyframe of the last loop closed
@@ -71,7 +70,7 @@ class LoopCloser:
         """
         t = time.perf_counter()
         state = self.source.state
-        gray = self.seq.load_gray(state.map.kf_frame[kf])
+        gray = self.seq.load_gray(state.frame_of(kf))
         self.detector.add(kf, gray)
         if kf - self._last < self.cfg.loop.min_gap:
             self.skipped[kf] = (f"not queried: within loop.min_gap ({self.cfg.loop.min_gap}) keyframes of the loop "
@@ -90,34 +89,16 @@ class LoopCloser:
     def close(self, loop: LoopClosure, depth_of: Callable[[int], np.ndarray],
               val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[dict[str, Any]]) -> dict[str, Any]:
         """Close a verified ``loop`` on the map as it stands: the pose graph, then (with a BA stage) culling + the
-        robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.stages.merge`)."""
+        robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.backend.merge`)."""
         kf, state = loop.query, self.source.state
         self._last = kf  # whoever asked (a loop, a merge): no other loop within loop.min_gap keyframes of it
         self.source.settle()
         self.source.refine(close_loop(state, loop))
-        rec = {**loop.record(), "frame": int(state.map.kf_frame[kf]), "timestamp": float(state.map.kf_time[kf]),
-               "match_timestamp": float(state.map.kf_time[loop.match])}
+        rec = {**loop.record(), "frame": int(state.frame_of(kf)), "timestamp": float(state.time_of(kf)),
+               "match_timestamp": float(state.time_of(loop.match))}
         if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
             t_ba = time.perf_counter()
-            snap = self.source.state.snapshot(self.seq.frames, covisibility=False)
-            first = max(0, kf - self.cfg.ba.window + 1) if self.cfg.ba.window else 0
-            r = self.ba.run_ba(snap, kf, depth_of, val_loss([k.id for k in snap.keyframes[first:kf + 1]]), bridges)
-            self.source.refine(MapRefinement.between(snap, r.vo, snap.points.ids[~r.keep | r.dropped]))
+            r = refine_map(self.source, kf, self.ba, depth_of, val_loss, bridges)
             rec["ba_nearby_targets"] = int(r.stats["n_nearby_targets"])
             self.ba_seconds += time.perf_counter() - t_ba
         return rec
-
-    def summarise(self, summary: Summary) -> None:
-        """``loop.{candidates,accepted,rejected}``; the rejections by reason in ``notes``."""
-        d = self.detector
-        summary.set("loop.candidates", d.tried)
-        summary.set("loop.accepted", len(self.loops))
-        summary.set("loop.rejected", int(sum(d.rejected.values())))
-        if d.rejected:
-            summary.notes["loop.rejected"] = "; ".join(f"{why}: {n}" for why, n in sorted(d.rejected.items()))
-
-
-def summarise_off(summary: Summary, why: str) -> None:
-    """The ``loop.*`` keys of a run without loop closure (``loop.recall.*`` too), null with ``why``."""
-    for k in ("candidates", "accepted", "rejected", *(f"recall.{r}" for r in RECALL)):
-        summary.absent(f"loop.{k}", why)

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mutualslam_cli.ba.global_ba import run_global_ba
-from mutualslam_cli.ba.photometric import PhotoBAProblem, solve
+from mutualslam_cli.backend.ba.global_ba import run_global_ba
+from mutualslam_cli.backend.ba.photometric import PhotoBAProblem, solve
 from mutualslam_cli.bench import ba as bench
 from mutualslam_cli.config import BAConfig, RunConfig, VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.metrics.trajectory import ate
-from mutualslam_cli.stages.ba import ba_images
+from mutualslam_cli.backend.refine import ba_images
 from mutualslam_cli.stages.frontend import run_frontend
 
 #: Settings without DSO's outlier handling (the BA before it): Huber at ~25 grey levels, no
