@@ -35,8 +35,8 @@ log = logging.getLogger(__name__)
 
 class MapTarget(Protocol):
     """Where the back end's changes to a run's map go: the front end's event source
-    (:class:`~mutualslam_cli.stages.event_source.FrontEndSource`), or under the realtime schedule the copy of the
-    map a piece of work runs on until its changes are due (:class:`~mutualslam_cli.stages.realtime.DeferredMap`)."""
+    (:class:`~mutualslam_cli.vo.source.FrontEndSource`), or under the realtime schedule the copy of the
+    map a piece of work runs on until its changes are due (:class:`~mutualslam_cli.online.realtime.DeferredMap`)."""
 
     @property
     def state(self) -> MapState:

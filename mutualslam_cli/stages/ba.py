@@ -20,21 +20,21 @@ from mutualslam_cli.backend.bridges import units_of
 from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.results.map_ply import write_ply
-from mutualslam_cli.results.run_folder import write_trajectories
-from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.adaptation import Adapted
-from mutualslam_cli.stages.loop_inputs import depth_predictor
-from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.frontend import FrontEnd
-from mutualslam_cli.stages.slam_metrics import (
+from mutualslam_cli.metrics.slam import (
     common_frames_ate,
     esi_of_log_errors,
     evaluate_trajectory,
     map_log_depth_errors,
     point_units,
-    set_ate,
 )
+from mutualslam_cli.online.labels import depth_predictor
+from mutualslam_cli.results.map_ply import write_ply
+from mutualslam_cli.results.run_folder import write_trajectories
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.stages.adaptation import Adapted
+from mutualslam_cli.stages.ate_keys import set_ate
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.vo.result import VOResult
 
 

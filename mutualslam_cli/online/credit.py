@@ -18,18 +18,18 @@ from typing import Any
 import torch
 
 from mutualslam_cli.adapt.inputs import keyframe_images
+from mutualslam_cli.backend.bridges import plan_bridge
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.stages.loop_inputs import depth_predictor
+from mutualslam_cli.online.labels import depth_predictor
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.backend.bridges import plan_bridge
 
 
 def front_end_alone(seq: Sequence, cfg: RunConfig, cache_dir: Path | None) -> tuple[VOResult, set[int]]:
     """The front end on its own to the end (from the journal cache, which it fills) and the frames at which it
     created the first keyframe of each segment but the first (where its bridges are planned)."""
-    from mutualslam_cli.stages.event_source import FrontEndSource
+    from mutualslam_cli.vo.source import FrontEndSource
 
     source = FrontEndSource(seq, cfg, cache_dir)
     try:
@@ -73,7 +73,7 @@ def credit_bridges(seq: Sequence, cfg: RunConfig, cache_dir: Path | None, net: t
     """The front end alone (its journal in ``cache_dir``, or run again) with each new segment bridged at its
     first keyframe on its own map of then, by the weights of then; returns ``(joined map, bridge records)``
     (refused bridges among the records, their segments left apart)."""
-    from mutualslam_cli.stages.event_source import FrontEndSource
+    from mutualslam_cli.vo.source import FrontEndSource
 
     if not weights.frames:  # one segment, or no bridging: the front end alone
         return front_end_alone(seq, cfg, cache_dir)[0], []
