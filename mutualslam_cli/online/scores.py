@@ -15,7 +15,7 @@ Frames between two keyframes share one model, so they are predicted together whe
 to change (:meth:`OnlineScorer.score_until`, called at the next keyframe's arrival), in forward passes of
 :func:`batch_size` frames. On the CPU an fp32 (NCHW) network predicts through a channels-last twin that
 takes its weights at each call (the layout oneDNN prefers). Both change the depth only at float rounding
-(the kernels sum in another order: 3e-7 relative here; ``tests/stages/test_online_eval.py`` bounds it).
+(the kernels sum in another order: 3e-7 relative here; ``tests/online/test_scores.py`` bounds it).
 Measured on a loaded 2-core AVX2 CPU, fp32 640×192, ms per frame (one pass per frame, NCHW = before):
 
 =========  =====  =====  =====  ===============  ===============

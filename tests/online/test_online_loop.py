@@ -189,7 +189,7 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
     network goes on in its first unit only — the second segment's keyframes are neither trained on nor
     replayed nor validated, and the run counts them."""
     from mutualslam_cli.backend.bridges import Bridge
-    from mutualslam_cli.stages import adaptation
+    from mutualslam_cli.online import loop as online_loop
 
     seq, vo, events = oracle
     script = []
@@ -203,7 +203,7 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
         refused.append(kf)
         return Bridge(1, 0, 6, 0.6, -1, float("nan"), 1.0, 1.0, 40, 40, 0.0, "none", refused="spread too wide")
 
-    monkeypatch.setattr(adaptation, "plan_bridge", refuse)
+    monkeypatch.setattr(online_loop, "plan_bridge", refuse)
     calls = _spy(monkeypatch)
     loop = _run(seq, ScriptedSource(seq, script), _cfg(scheme="replay", validate_every=2), tmp_path)
     second = [k for k in range(loop.state.n_keyframes) if loop.state.segment(k) == 1]
