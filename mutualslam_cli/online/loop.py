@@ -22,7 +22,6 @@ are made to that map only.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict
 from typing import Any, Callable
 
 import torch
@@ -31,7 +30,7 @@ from mutualslam_cli.adapt.buffer import KeyframeSample
 from mutualslam_cli.adapt.depthnet import predict_depth, prepare
 from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
-from mutualslam_cli.backend.bridges import plan_bridge
+from mutualslam_cli.backend.bridges import Bridge, plan_bridge
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.merge import SegmentMerger
 from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
@@ -99,8 +98,8 @@ class OnlineLoop:
             frame_image = keyframe_images(run.seq, lambda f: f, w, h)  # by frame: not in the map yet when asked
             source.use_network(lambda f: predict_depth(self.net, frame_image(f)[None], fast)[0])
         self.rows: list[dict[str, Any]] = []
-        self.bridges: list[dict[str, Any]] = []
-        self.refused: list[dict[str, Any]] = []
+        self.bridges: list[Bridge] = []
+        self.refused: list[Bridge] = []
         self.net_unit: int | None = None  # the map unit the network is trained in (its first keyframe's)
         self.other_unit: list[int] = []  # keyframes of segments kept apart: not trained on, not validated
         self.trained_kf = -1  # the keyframe whose steps made the weights now (-1: pre-trained)
@@ -185,10 +184,10 @@ class OnlineLoop:
         snap = self.state.snapshot(self.run.seq.frames, covisibility=False)
         b = plan_bridge(snap, kf, self._depth_of(), self.run.seq.load_gray, self.run.seq.intrinsics)
         if b is not None and b.refused:
-            self.refused.append(asdict(b))
+            self.refused.append(b)
         elif b is not None:
             self.writer.transform_segment(b.segment, *b.similarity(), b.onto)
-            self.bridges.append(asdict(b))
+            self.bridges.append(b)
         self._busy("bridge_s", kf, time.perf_counter() - t)
 
     def _global_ba(self, kf: int) -> None:

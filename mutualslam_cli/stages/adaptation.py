@@ -17,6 +17,7 @@ import torch
 
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.online.credit import WeightsAt, credit_bridges, front_end_alone, segment_starts
 from mutualslam_cli.online.loop import OnlineLoop
@@ -69,11 +70,11 @@ class Adapted:
     source: FrontEndSource
     injected: np.ndarray
     requested: int
-    bridges: list[dict[str, Any]] | None = None
-    refused: list[dict[str, Any]] = field(default_factory=list)
+    bridges: list[Bridge] | None = None
+    refused: list[Bridge] = field(default_factory=list)
     loops: list[dict[str, Any]] = field(default_factory=list)
     merges: list[dict[str, Any]] = field(default_factory=list)
-    credit: list[dict[str, Any]] = field(default_factory=list)
+    credit: list[Bridge] = field(default_factory=list)
     l_val: dict[str, Any] = field(default_factory=dict)
     online: pd.DataFrame | None = None
 
@@ -110,7 +111,9 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
         fe_alone_s = time.perf_counter() - t if causal else 0.0
         if cfg.adapt.scheme == "comoda":  # every frame, its own pose network, no keyframes
             net = comoda.run_stage(run, copy.deepcopy(net0), fast)
-            adapted, rows, kf_rows, online_s = Adapted(net, None, pure, pure, pure, source, injected, 0), [], [], 0.0
+            adapted = Adapted(net=net, adapter=None, map=pure, frontend=pure, bridged=pure, source=source,
+                              injected=injected, requested=0)
+            rows, kf_rows, online_s = [], [], 0.0
             for k in L_VAL_KEYS:
                 summary.absent(f"adaptation.l_val.{k}", "scheme 'comoda' has no Algorithm 1")
             summarise_strength(summary, None)
@@ -124,14 +127,15 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
             rows, adapter, kf_rows = loop.rows, loop.adapter, loop.keyframe_rows()
             last = loop.trained_kf if loop.clock is not None else final.keyframes[-1].id if final.keyframes else -1
             online = scorer.finish(loop.net, last) if scorer else None
-            adapted = Adapted(loop.net, adapter, final, pure, None, source, injected,
+            adapted = Adapted(net=loop.net, adapter=adapter, map=final, frontend=pure, bridged=None, source=source,
+                              injected=injected,
                               requested=sum(bool(r.get("run_global_ba")) for r in rows), bridges=loop.bridges,
                               refused=loop.refused, l_val=l_val_stats(rows, cfg.adapt.tau_val, final), online=online)
             online_s = scorer.seconds if scorer is not None else 0.0
             summary.set("vo.bridges_refused", len(loop.refused))
             summary.set("adaptation.keyframes_other_unit", len(loop.other_unit))
             if loop.refused:
-                summary.notes["vo.bridges_refused"] = "; ".join(f"segment {b['segment']}: {b['refused']}"
+                summary.notes["vo.bridges_refused"] = "; ".join(f"segment {b.segment}: {b.refused}"
                                                                 for b in loop.refused)
             for k, v in adapted.l_val.items():
                 summary.set(f"adaptation.l_val.{k}", v, "no validation keyframe had an L_val")

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from mutualslam_cli.adapt.online import OnlineAdapter
+from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.merge import SegmentMerger
 from mutualslam_cli.metrics.slam import evaluate_trajectory
@@ -42,8 +43,8 @@ def l_val_stats(rows: list[dict[str, Any]], tau: float, vo: VOResult) -> dict[st
             "map_median_depth": depth}
 
 
-def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[dict[str, Any]] | None,
-                      credit: list[dict[str, Any]] | None = None) -> None:
+def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[Bridge] | None,
+                      credit: list[Bridge] | None = None) -> None:
     """``vo.bridges`` and, when a segment was bridged, ``traj_{kf,all}_bridged.txt`` and
     ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the front end on its own joined by bridges
     planned on its own map and nothing else (no BA: Table 4 credits each part; :mod:`~mutualslam_cli.online.credit`),
@@ -57,8 +58,8 @@ def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[dict[str,
             run.summary.absent(key, why)
         return
     run.summary.set("vo.bridges", len(bridges))
-    run.summary.set("vo.bridges_credit", sum(not b.get("refused") for b in credit or []))
-    if not any(not b.get("refused") for b in credit or []):
+    run.summary.set("vo.bridges_credit", sum(not b.refused for b in credit or []))
+    if not any(not b.refused for b in credit or []):
         why = ("no segment to bridge" if len({k.segment for k in joined.keyframes}) < 2 else
                "no bridge could be made (vo.bridge_segments=false, or no depth ratio on a side of a gap)")
         for key in keys:
