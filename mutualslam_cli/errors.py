@@ -27,7 +27,7 @@ Two families, told apart by what the CLI does with them:
   - :class:`TransitionError` (a ``RuntimeError``): an event that Algorithm 1 does not allow in
     the current state (:mod:`~mutualslam_cli.adapt.state`).
   - :class:`CacheMismatch` (a ``RuntimeError``): a cached front-end journal disagrees with the front end
-    run again from a checkpoint (:mod:`~mutualslam_cli.stages.event_source`): the code changed under the
+    run again from a checkpoint (:mod:`~mutualslam_cli.vo.source`): the code changed under the
     cache key, or the front end is not deterministic.
 """
 

@@ -209,25 +209,28 @@ LAYER_OF = {
     "": "ground", "errors": "ground", "types": "ground", "config": "ground", "geometry": "ground", "pixels": "ground",
     "atomic": "ground", "allocator": "ground", "machine": "ground", "device": "ground",
     "datasets": "domain", "vo": "domain", "adapt": "domain", "metrics": "domain", "dense": "domain",
-    "backend": "backend", "results": "results", "stages": "stages", "report": "report",
-    "pipeline": "doors", "ablate": "doors", "bench": "bench", "cli": "cli",
+    "backend": "backend", "online": "online", "results": "results", "stages": "stages", "report": "report",
+    "pipeline": "doors", "ablate": "doors", "eval_depth": "doors", "bench": "bench", "cli": "cli",
 }
 #: What each layer may import (besides itself). The ground floor imports nothing above it; the domain
 #: never imports the back end, stages, results, report, the front doors or the CLI; the back end (the map
 #: after the front end: bridges, merges, loop closure, culling, BA) sits on the front end and the network
-#: and writes no file and no summary key (the stages do); results know the file formats (datasets' TUM
-#: writer) and nothing that computes; the report reads results and files and re-applies the metrics'
+#: and writes no file and no summary key (the stages do); ``online`` (Algorithm 1 on one clock: the loop the
+#: adaptation stage drives, its labels, realtime clock, online scores and Table 4's credit) drives the front end,
+#: the network and the back end, and writes no file and no summary key either; results know the file formats
+#: (datasets' TUM writer) and nothing that computes; the report reads results and files and re-applies the metrics'
 #: formulas for its figures, never a stage or the VO / adaptation / BA; nothing imports the CLI but the CLI.
 ALLOWED = {
     "ground": set(),
     "domain": {"ground"},
     "backend": {"ground", "domain"},
     "results": {"ground", "datasets"},
-    "stages": {"ground", "domain", "backend", "results"},
+    "online": {"ground", "domain", "backend"},
+    "stages": {"ground", "domain", "backend", "online", "results"},
     "report": {"ground", "results", "datasets", "metrics"},
-    "doors": {"ground", "domain", "backend", "results", "stages"},
-    "bench": {"ground", "domain", "backend", "results", "stages", "doors"},
-    "cli": {"ground", "domain", "backend", "results", "stages", "report", "doors", "bench"},
+    "doors": {"ground", "domain", "backend", "online", "results", "stages"},
+    "bench": {"ground", "domain", "backend", "online", "results", "stages", "doors"},
+    "cli": {"ground", "domain", "backend", "online", "results", "stages", "report", "doors", "bench"},
 }
 
 

@@ -19,7 +19,7 @@ from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.report.tables import build_tables, collect, write_report
 from mutualslam_cli.results.summary import SUMMARY_KEYS, flatten
 from mutualslam_cli.stages.ba import BA_KEYS
-from mutualslam_cli.stages.vo_cache import vo_cache_key
+from mutualslam_cli.vo.journal_cache import vo_cache_key
 
 
 @pytest.fixture(scope="module")

@@ -207,15 +207,15 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
     return move_segment(vo, b.segment, R, t, s), b
 
 
-def bridged(vo: VOResult, bridges: list[dict]) -> VOResult:
-    """``vo`` (each segment in its own unit) with the bridges a run made (:class:`Bridge` records, as in
-    ``manifest.json``) applied in order: the front end joined, and nothing else (refused ones skipped)."""
-    for b in (b for b in bridges if not b.get("refused")):
-        vo = move_segment(vo, int(b["segment"]), np.array(b["R"], float), np.array(b["t"], float), float(b["scale"]))
+def bridged(vo: VOResult, bridges: list[Bridge]) -> VOResult:
+    """``vo`` (each segment in its own unit) with the bridges a run made applied in order: the front end joined,
+    and nothing else (refused ones skipped)."""
+    for b in (b for b in bridges if not b.refused):
+        vo = move_segment(vo, int(b.segment), np.array(b.R, float), np.array(b.t, float), float(b.scale))
     return vo
 
 
-def units_of(segments: list[int], bridges: list[dict]) -> dict[int, int]:
+def units_of(segments: list[int], bridges: list[Bridge]) -> dict[int, int]:
     """``{segment: unit}``: segments joined by bridges (``segment`` onto ``onto``) share one unit (map frame
     and scale), labelled by the first of them; every other segment is a unit of its own."""
     unit = {s: s for s in segments}
@@ -225,8 +225,8 @@ def units_of(segments: list[int], bridges: list[dict]) -> dict[int, int]:
             s = unit[s]
         return s
 
-    for b in (b for b in bridges if not b.get("refused")):
-        a, c = find(int(b["segment"])), find(int(b["onto"]))
+    for b in (b for b in bridges if not b.refused):
+        a, c = find(int(b.segment)), find(int(b.onto))
         unit[max(a, c)] = min(a, c)
     return {s: find(s) for s in segments}
 

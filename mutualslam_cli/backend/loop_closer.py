@@ -24,6 +24,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
@@ -61,7 +62,7 @@ class LoopCloser:
 
     def after_keyframe(self, kf: int, depth_of: Callable[[int], np.ndarray],
                        val_loss: Callable[[list[int]], Mapping[int, float]],
-                       bridges: list[dict[str, Any]]) -> float:
+                       bridges: list[Bridge]) -> float:
         """Keep keyframe ``kf`` and close a loop from it when there is one; returns the seconds spent.
 
         Args:
@@ -87,7 +88,7 @@ class LoopCloser:
         return time.perf_counter() - t
 
     def close(self, loop: LoopClosure, depth_of: Callable[[int], np.ndarray],
-              val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[dict[str, Any]]) -> dict[str, Any]:
+              val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[Bridge]) -> dict[str, Any]:
         """Close a verified ``loop`` on the map as it stands: the pose graph, then (with a BA stage) culling + the
         robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.backend.merge`)."""
         kf, state = loop.query, self.source.state

@@ -30,6 +30,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.pose_graph import close_loop
@@ -76,7 +77,7 @@ class SegmentMerger:
         self._merged: set[int] = set()
 
     def after_keyframe(self, kf: int, depth_of: Callable[[int], np.ndarray],
-                       val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[dict[str, Any]]) -> float:
+                       val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[Bridge]) -> float:
         """Keep keyframe ``kf``; merge its segment into an older one when it is found there. Returns the seconds.
 
         Args:

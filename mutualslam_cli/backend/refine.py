@@ -21,7 +21,7 @@ import numpy as np
 
 from mutualslam_cli.adapt.inputs import frame_lookup
 from mutualslam_cli.backend.ba.global_ba import GlobalBAResult, run_global_ba, window_start
-from mutualslam_cli.backend.bridges import units_of
+from mutualslam_cli.backend.bridges import Bridge, units_of
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.types import FrameRef, Intrinsics
@@ -35,8 +35,8 @@ log = logging.getLogger(__name__)
 
 class MapTarget(Protocol):
     """Where the back end's changes to a run's map go: the front end's event source
-    (:class:`~mutualslam_cli.stages.event_source.FrontEndSource`), or under the realtime schedule the copy of the
-    map a piece of work runs on until its changes are due (:class:`~mutualslam_cli.stages.realtime.DeferredMap`)."""
+    (:class:`~mutualslam_cli.vo.source.FrontEndSource`), or under the realtime schedule the copy of the
+    map a piece of work runs on until its changes are due (:class:`~mutualslam_cli.online.realtime.DeferredMap`)."""
 
     @property
     def state(self) -> MapState:
@@ -125,7 +125,7 @@ class MapBA:
         return self.cfg.window
 
     def run_ba(self, vo: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
-               val_loss: Mapping[int, float], bridges: list[dict[str, Any]] | None = None) -> GlobalBAResult:
+               val_loss: Mapping[int, float], bridges: list[Bridge] | None = None) -> GlobalBAResult:
         """Culling (unless :attr:`cull` is off) + global BA of ``vo``'s keyframes ≤ ``kf_id`` (segments the
         ``bridges`` joined as one map), recorded into :attr:`record`."""
         self._frame_of.update((k.id, k.frame_index) for k in vo.keyframes)
@@ -142,7 +142,7 @@ class MapBA:
 
 def refine_map(target: MapTarget, kf: int, ba: MapBA, depth_of: Callable[[int], np.ndarray],
                val_loss: Callable[[list[int]], Mapping[int, float]],
-               bridges: list[dict[str, Any]] | None) -> GlobalBAResult:
+               bridges: list[Bridge] | None) -> GlobalBAResult:
     """Culling + global BA of the map as it stands in ``target``, keyframes ≤ ``kf`` (the newest ``ba.window``),
     the refinement handed back to ``target`` (module docstring); returns the BA's result.
 

@@ -13,7 +13,7 @@ from typing import Any
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, map_esi
+from mutualslam_cli.metrics.slam import evaluate_trajectory, map_esi
 from mutualslam_cli.vo.frontend import STAGES, run_vo
 
 

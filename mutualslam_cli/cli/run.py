@@ -123,8 +123,8 @@ def run(
 
     SEQ may also be a ROS 1/2 bag, a video, or an image folder with --camera: converted once into a
     TUM-layout folder under <out>/_cache/recordings. Without GT, every GT metric is null with its reason."""
-    from mutualslam_cli.datasets.recordings.recording import RecordingOptions
     from mutualslam_cli.adapt.schemes import get_scheme
+    from mutualslam_cli.datasets.recordings.recording import RecordingOptions
     from mutualslam_cli.pipeline import run_sequence
 
     cfg = config_from(config, sets, data_root, device)
@@ -229,8 +229,8 @@ def eval_depth(
     registry: Optional[Path] = RegistryOpt,
 ) -> None:
     """Score another network's depth predictions exactly as `run` scores ours → results/<seq>/<NAME>/seed0/."""
+    from mutualslam_cli.eval_depth import eval_depth as score_external
     from mutualslam_cli.results.summary import flatten
-    from mutualslam_cli.stages.external import eval_depth as score_external
 
     cfg = config_from(config, sets, data_root)
     with progress_bar() as p:

@@ -61,10 +61,10 @@ class AdaptConfig:
     the front end runs to the end first, every keyframe is trained on the final map, segments bridged after it."""
     schedule: Literal["fixed", "realtime"] = "fixed"
     """``fixed``: ``steps_per_keyframe`` steps each; ``realtime``: the loop on the sequence's clock, every piece
-    of its work charged, trained until the next keyframe arrives (:mod:`~mutualslam_cli.stages.realtime`)."""
+    of its work charged, trained until the next keyframe arrives (:mod:`~mutualslam_cli.online.realtime`)."""
     step_cost_ms: float | Literal["measured"] = 250.0
     """``realtime``: the cost of one optimiser step, ms of sequence time (250: the paper's GPU, DESIGN §10);
-    ``measured``: this machine's step, all other work at its wall time (:mod:`~mutualslam_cli.stages.realtime`)."""
+    ``measured``: this machine's step, all other work at its wall time (:mod:`~mutualslam_cli.online.realtime`)."""
     max_steps: int = 32
     """``realtime``: cap on one keyframe's steps (a camera at rest makes long keyframe intervals)."""
     train_width: int = 0

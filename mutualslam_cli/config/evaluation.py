@@ -28,7 +28,7 @@ class EvalConfig:
     5000 per unit, TUM's convention, and ``.npy``) and show in ``depth.png``, GT or not. 0 = none."""
     online: bool = True
     """Also score every evaluated frame with the model of its time, as the adaptation loop goes
-    (:mod:`~mutualslam_cli.stages.online_eval`; ``depth.pcd_online.*``): one more prediction per frame."""
+    (:mod:`~mutualslam_cli.online.scores`; ``depth.pcd_online.*``): one more prediction per frame."""
 
 
 @dataclass(frozen=True)

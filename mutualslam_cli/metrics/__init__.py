@@ -1,5 +1,7 @@
 """Evaluation metrics (DESIGN §7): depth accuracy (PCD, e_si, abs_rel) and trajectory ATE
-(association and statistics in :mod:`.trajectory`, Umeyama alignment in :mod:`.alignment`).
+(association and statistics in :mod:`.trajectory`, Umeyama alignment in :mod:`.alignment`); a run's
+trajectory and map against GT (:mod:`.slam`: keyframe and all-frame ATE, the map's per-point log-depth
+errors and e_si), whose summary keys the stages write.
 
 Library code only (numpy, OpenCV for resizing); each formula cites its source next to the line.
 """

@@ -4,7 +4,7 @@ plotting helpers the report's figures share.
 :func:`accuracy_figure` is the paper's Fig. ``ablation_err``: one panel per sequence, x the frame
 index, y the running mean over frames ``0..t`` of the adapted model's percent correct depth, each
 frame scored by the model of its time (``per_frame.csv``'s ``online_pcd_lsq_running``: δ < 0.1,
-per-frame least-squares scaling; :mod:`~mutualslam_cli.stages.online_eval`) — the final model's
+per-frame least-squares scaling; :mod:`~mutualslam_cli.online.scores`) — the final model's
 ``adapted_pcd_lsq_running`` for runs without online scores, said in the legend — one line per
 scheme (and config) = the mean over seeds with a min–max band over seeds, and the pre-trained
 model dashed grey. Each scheme keeps its colour (:data:`SCHEME_COLOURS`) in every figure.

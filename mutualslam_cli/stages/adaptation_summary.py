@@ -10,16 +10,16 @@ from typing import Any
 import numpy as np
 
 from mutualslam_cli.adapt.online import OnlineAdapter
-from mutualslam_cli.adapt.step_info import StepInfo
+from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.merge import SegmentMerger
+from mutualslam_cli.metrics.slam import evaluate_trajectory
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.loop_recall import RECALL_KEYS
-from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, set_ate
 from mutualslam_cli.vo.result import VOResult
-
 
 #: The keys of :func:`l_val_stats` (``adaptation.l_val.*`` in ``summary.json``).
 L_VAL_KEYS = ("validations", "min", "median", "longest_below_tau", "map_median_depth")
@@ -43,11 +43,11 @@ def l_val_stats(rows: list[dict[str, Any]], tau: float, vo: VOResult) -> dict[st
             "map_median_depth": depth}
 
 
-def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[dict[str, Any]] | None,
-                      credit: list[dict[str, Any]] | None = None) -> None:
+def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[Bridge] | None,
+                      credit: list[Bridge] | None = None) -> None:
     """``vo.bridges`` and, when a segment was bridged, ``traj_{kf,all}_bridged.txt`` and
     ``trajectory.ate_rmse_m.bridged`` / ``all_frames_bridged``: the front end on its own joined by bridges
-    planned on its own map and nothing else (no BA: Table 4 credits each part; :mod:`~mutualslam_cli.stages.credit`),
+    planned on its own map and nothing else (no BA: Table 4 credits each part; :mod:`~mutualslam_cli.online.credit`),
     one Sim(3) as every headline ATE. ``bridges``: the bridges the run made, ``None`` when no keyframe loop ran
     (scheme ``comoda``); ``credit``: the front end's own (``vo.bridges_credit`` counts those joined)."""
     keys = [f"trajectory.{group}.{leaf}" for group in ("ate_rmse_m", "ate_rmse_m_per_segment")
@@ -58,8 +58,8 @@ def summarise_bridges(run: RunContext, joined: VOResult, bridges: list[dict[str,
             run.summary.absent(key, why)
         return
     run.summary.set("vo.bridges", len(bridges))
-    run.summary.set("vo.bridges_credit", sum(not b.get("refused") for b in credit or []))
-    if not any(not b.get("refused") for b in credit or []):
+    run.summary.set("vo.bridges_credit", sum(not b.refused for b in credit or []))
+    if not any(not b.refused for b in credit or []):
         why = ("no segment to bridge" if len({k.segment for k in joined.keyframes}) < 2 else
                "no bridge could be made (vo.bridge_segments=false, or no depth ratio on a side of a gap)")
         for key in keys:
@@ -126,19 +126,6 @@ def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter |
         summary.set("adaptation.luo_keyframes_with_partner", sum(bool(str(r.get("sources") or "").strip())
                                                                  for r in training))
         summary.set("adaptation.training_keyframes", len(training))
-
-
-def step_row(info: StepInfo) -> dict[str, Any]:
-    """A flat CSV row from the adapter's step info (loss parts as ``loss_<part>`` columns)."""
-    row: dict[str, Any] = {}
-    for k, v in dict(vars(info)).items():
-        if isinstance(v, dict):
-            row.update({f"{k}_{p}": x for p, x in v.items()})
-        elif isinstance(v, (list, tuple)):
-            row[k] = " ".join(map(str, v))
-        else:
-            row[k] = v.value if hasattr(v, "value") else v
-    return row
 
 
 def summarise_merges(summary: Summary, merger: SegmentMerger) -> None:

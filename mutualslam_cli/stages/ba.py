@@ -8,7 +8,6 @@ adaptation loop calls at Algorithm 1's requests and after loop closures
 
 from __future__ import annotations
 
-from typing import Any
 
 import numpy as np
 import torch
@@ -16,25 +15,25 @@ import torch
 from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.backend.ba.global_ba import window_start
-from mutualslam_cli.backend.bridges import units_of
+from mutualslam_cli.backend.bridges import Bridge, units_of
 from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.results.map_ply import write_ply
-from mutualslam_cli.results.run_folder import write_trajectories
-from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.stages.adaptation import Adapted
-from mutualslam_cli.stages.loop_inputs import depth_predictor
-from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.frontend import FrontEnd
-from mutualslam_cli.stages.slam_metrics import (
+from mutualslam_cli.metrics.slam import (
     common_frames_ate,
     esi_of_log_errors,
     evaluate_trajectory,
     map_log_depth_errors,
     point_units,
-    set_ate,
 )
+from mutualslam_cli.online.labels import depth_predictor
+from mutualslam_cli.results.map_ply import write_ply
+from mutualslam_cli.results.run_folder import write_trajectories
+from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.stages.adaptation import Adapted
+from mutualslam_cli.stages.ate_keys import set_ate
+from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.vo.result import VOResult
 
 
@@ -50,7 +49,7 @@ def no_culling_reason(cfg: RunConfig) -> str | None:
 
 
 def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: OnlineAdapter | None,
-             cfg: RunConfig, fast: bool, ba: MapBA, bridges: list[dict[str, Any]] | None = None) -> VOResult:
+             cfg: RunConfig, fast: bool, ba: MapBA, bridges: list[Bridge] | None = None) -> VOResult:
     """The final culling + BA of the loop's map over every keyframe (the newest ``ba.window`` with a window)
     with the final network (L_val of those keyframes; none for scheme ``none``); the refined map without
     the culled and dropped points."""

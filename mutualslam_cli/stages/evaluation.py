@@ -30,11 +30,11 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.device import describe_device, module_device
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics.ratios import pcd_from_sketch
+from mutualslam_cli.online.scores import eval_frames
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
-from mutualslam_cli.stages.online_eval import eval_frames
 from mutualslam_cli.vo.camera import Undistorter
 
 log = logging.getLogger(__name__)
@@ -293,7 +293,7 @@ def _summarise(summary: Summary, table: pd.DataFrame, ms: dict[str, float], sche
 
 def _summarise_online(summary: Summary, table: pd.DataFrame, cfg: RunConfig, no_depth: str | None = None) -> None:
     """``depth.pcd_online[_nonkf].{lsq,median,seq_lsq}`` and ``depth.esi_online``: each frame scored with the
-    model of its time (:mod:`~mutualslam_cli.stages.online_eval`), means over frames."""
+    model of its time (:mod:`~mutualslam_cli.online.scores`), means over frames."""
     if "online_pcd_lsq" in table:
         why = "no frame with valid GT depth"
         for group, rows in (("", table), ("_nonkf", table[~table["is_keyframe"]])):

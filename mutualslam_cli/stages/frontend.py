@@ -1,11 +1,11 @@
 """The front end's outputs of a run (:func:`run_stage`) and the front end on its own (:func:`run_frontend`).
 
 The front end runs inside the adaptation stage, on the loop's clock
-(:mod:`~mutualslam_cli.stages.event_source`); this stage writes what it made once the run has gone
+(:mod:`~mutualslam_cli.vo.source`); this stage writes what it made once the run has gone
 through the sequence: ``traj_kf.txt``, ``traj_all.txt``, ``map_vo.ply`` and the ``vo.*`` keys, from the
 front end's map with each segment in its own unit (:attr:`~mutualslam_cli.stages.adaptation.Adapted.frontend`).
 :func:`run_frontend` runs the front end alone to the end, through the per-sequence journal cache
-(:mod:`~mutualslam_cli.stages.vo_cache`): what ``mslam ablate`` prepares for its jobs, and ``mslam fuse`` reads.
+(:mod:`~mutualslam_cli.vo.journal_cache`): what ``mslam ablate`` prepares for its jobs, and ``mslam fuse`` reads.
 """
 
 from __future__ import annotations
@@ -18,20 +18,20 @@ import numpy as np
 
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.results.map_ply import write_ply
-from mutualslam_cli.results.run_folder import write_trajectories
-from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.event_source import FrontEndSource
-from mutualslam_cli.stages.slam_metrics import (
+from mutualslam_cli.metrics.slam import (
     esi_of_log_errors,
     evaluate_trajectory,
     map_log_depth_errors,
     point_units,
-    set_ate,
 )
+from mutualslam_cli.results.map_ply import write_ply
+from mutualslam_cli.results.run_folder import write_trajectories
+from mutualslam_cli.stages.ate_keys import set_ate
+from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.faults import inject_outliers
 from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.vo.source import FrontEndSource
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ class FrontEnd:
         cached: every frame came from the journal cache; replayed: frames that did.
         injected: ids of map points corrupted by ``vo.inject_outliers``.
         map_errors: ``(P,)`` log-depth error of each map point in its host keyframe against GT
-            (:func:`~mutualslam_cli.stages.slam_metrics.map_log_depth_errors`; NaN without GT).
+            (:func:`~mutualslam_cli.metrics.slam.map_log_depth_errors`; NaN without GT).
         points_with_gt: map points with GT depth at their host pixel.
     """
 

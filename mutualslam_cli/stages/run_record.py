@@ -7,6 +7,7 @@ the sequence, the front end's metadata, BA runs, bridges, loops), and then ``sum
 from __future__ import annotations
 
 import time
+from dataclasses import asdict
 from typing import TYPE_CHECKING, Any
 
 from mutualslam_cli.device import device_label
@@ -85,8 +86,8 @@ def run_facts(run: RunContext, fe: FrontEnd, ba: BAStage, adapted: Adapted) -> d
         "vo_meta": {k: v for k, v in fe.vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
         "map_points_with_gt": fe.points_with_gt,
         "ba_runs": ba.record.runs,
-        "bridges": adapted.bridges or [],
-        "bridges_credit": adapted.credit,
-        "bridges_refused": adapted.refused,
+        "bridges": [asdict(b) for b in adapted.bridges or []],
+        "bridges_credit": [asdict(b) for b in adapted.credit],
+        "bridges_refused": [asdict(b) for b in adapted.refused],
         "loops": adapted.loops,
     }

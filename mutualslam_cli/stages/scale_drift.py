@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -24,7 +23,7 @@ from mutualslam_cli.metrics.scale_drift import STRIDE, WINDOW, ScaleDrift, scale
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.backend.bridges import units_of
+from mutualslam_cli.backend.bridges import Bridge, units_of
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +60,7 @@ def set_scale_drift(summary: Summary, name: str, r: ScaleDrift | None, why: str 
                             f"whole: {r.global_rmse:.4g} m")
 
 
-def evaluate(seq: Sequence, vo: VOResult, max_dt: float, bridges: list[dict[str, Any]] | None = None,
+def evaluate(seq: Sequence, vo: VOResult, max_dt: float, bridges: list[Bridge] | None = None,
              window: int = WINDOW) -> ScaleDrift:
     """:func:`~mutualslam_cli.metrics.scale_drift.scale_drift` of ``vo``'s keyframes against the sequence's GT,
     windows within one map unit: a segment, or segments the ``bridges`` joined
@@ -88,7 +87,7 @@ def rows(seq: Sequence, name: str, vo: VOResult, r: ScaleDrift) -> pd.DataFrame:
 
 
 def run_stage(run: RunContext, maps: dict[str, VOResult | None], why: dict[str, str] | None = None,
-              bridges: dict[str, list[dict[str, Any]]] | None = None) -> dict[str, ScaleDrift]:
+              bridges: dict[str, list[Bridge]] | None = None) -> dict[str, ScaleDrift]:
     """Every map's keys; ``scale_drift.csv`` and ``scale_drift.png`` when at least one map has a value.
 
     Args:

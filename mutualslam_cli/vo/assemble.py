@@ -101,7 +101,7 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
             covis[a][b] = covis[a].get(b, 0) + 1
             covis[b][a] = covis[b].get(a, 0) + 1
     n_frames = len(frame_seg)
-    st = stats.ba_stats
+    ba_runs = stats.ba_stats
     total_s = stats.total_s
     timing = {k: 1000.0 * v / max(n_frames, 1) for k, v in stats.timing.items()}
     meta = {
@@ -122,9 +122,9 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         "reprojected": stats.reprojected,
         "reused": stats.reused,
         "scale_check": stats.scale_check,
-        "local_ba": {"runs": len(st),
-                     "mean_points": float(np.mean([s["points"] for s in st])) if st else 0.0,
-                     "mean_solve_ms": float(np.mean([s["solve_ms"] for s in st])) if st else 0.0,
+        "local_ba": {"runs": len(ba_runs),
+                     "mean_points": float(np.mean([s["points"] for s in ba_runs])) if ba_runs else 0.0,
+                     "mean_solve_ms": float(np.mean([s["solve_ms"] for s in ba_runs])) if ba_runs else 0.0,
                      "threaded": stats.ba_threaded},
     }
     return VOResult(kfs, pts, pinhole(intr), Trajectory(ts, poses), frame_seg, covis, meta)

@@ -261,8 +261,8 @@ def events_from_result(vo: VOResult, n_frames: int) -> list[Event]:
     relative to the latest keyframe of its segment at or before it (at the segment's first keyframe's
     frame when it comes before that). A replica of it ends as ``vo`` (point ids renumbered in host order)."""
     journal = Journal()
-    st = MapState(vo.intrinsics, n_frames, journal)
-    m, K = st.map, vo.intrinsics.K()
+    state = MapState(vo.intrinsics, n_frames, journal)
+    m, K = state.map, vo.intrinsics.K()
     pts = vo.points
     kfs = sorted(vo.keyframes, key=lambda k: (k.frame_index, k.id))
     hosted_by = {k.id: np.flatnonzero(pts.host == k.id) for k in kfs}
@@ -290,7 +290,7 @@ def events_from_result(vo: VOResult, n_frames: int) -> list[Event]:
         for kf in kf_at.get(f, []):
             if kf.segment not in segments:
                 segments.add(kf.segment)
-                st.start_segment(kf.segment, f, str(vo.meta.get("mode", "oracle")))
+                state.start_segment(kf.segment, f, str(vo.meta.get("mode", "oracle")))
             local[kf.id] = m.add_keyframe(f, kf.timestamp, kf.pose, kf.segment)
             known = [(p, px) for p, px in seen_by.get(kf.id, []) if new_id[p] >= 0]
             if known:
@@ -303,5 +303,5 @@ def events_from_result(vo: VOResult, n_frames: int) -> list[Event]:
                                               (pts.pixel[hosted] - K[:2, 2]) / np.diag(K)[:2], pts.inv_depth[hosted],
                                               pts.sigma[hosted], obs)
         for g, ref, T in frames_at.get(f, []):
-            st.track_frame(g, int(vo.frame_segment[g]), local[ref.id], np.linalg.inv(ref.pose) @ T)
+            state.track_frame(g, int(vo.frame_segment[g]), local[ref.id], np.linalg.inv(ref.pose) @ T)
     return journal.events

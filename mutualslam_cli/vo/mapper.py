@@ -116,9 +116,9 @@ class Mapper:
 
     def _solve(self, prob: BAProblem) -> tuple:
         t0 = time.perf_counter()
-        T_new, rho_new, st = solve(prob, self.thr, iters=self.iters)
-        st["solve_ms"] = 1000.0 * (time.perf_counter() - t0)
-        return T_new, rho_new, st
+        T_new, rho_new, ba_stats = solve(prob, self.thr, iters=self.iters)
+        ba_stats["solve_ms"] = 1000.0 * (time.perf_counter() - t0)
+        return T_new, rho_new, ba_stats
 
     def collect(self) -> np.ndarray:
         """Wait for the pending job (if any) and write its result into the map.
@@ -132,9 +132,9 @@ class Mapper:
             return np.zeros(0, np.int64)
         self.job = None
         res = job.result.result() if isinstance(job.result, Future) else job.result
-        T_new, rho_new, st = res  # type: ignore[misc]
-        st.update(kf=job.kf, points=len(job.pids), obs=len(job.o_id))
-        self.stats.append(st)
+        T_new, rho_new, ba_stats = res  # type: ignore[misc]
+        ba_stats.update(kf=job.kf, points=len(job.pids), obs=len(job.o_id))
+        self.stats.append(ba_stats)
         free = np.flatnonzero(job.free)
         m.set_poses(np.array(job.kfs, np.int64)[free], np.array([se3_inv(T) for T in T_new[free]]).reshape(-1, 4, 4))
         m.set_depths(np.array(job.pids, np.int64), rho_new)

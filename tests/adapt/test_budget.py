@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch
@@ -11,9 +10,9 @@ from mutualslam_cli.adapt.depthnet import DepthNet, freeze_encoder_stages
 from mutualslam_cli.adapt.online import OnlineAdapter, resample_batch
 from mutualslam_cli.config import AdaptConfig, RunConfig, load_config
 from mutualslam_cli.errors import ConfigError
-from mutualslam_cli.stages.realtime import RealtimeClock
+from mutualslam_cli.online.realtime import RealtimeClock
 from mutualslam_cli.types import Intrinsics
-from tests.adapt.test_online import K, SCENE, make_net
+from tests.adapt.test_online import SCENE, K, make_net
 
 torch.set_num_threads(1)
 

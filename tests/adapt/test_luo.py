@@ -16,7 +16,7 @@ from mutualslam_cli.adapt.schemes.luo import is_stereo_pair, stereo_measures
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.geometry import exp_so3, se3_inv
-from mutualslam_cli.stages.adaptation_summary import step_row
+from mutualslam_cli.online.loop import step_row
 
 torch.set_num_threads(1)
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import numpy as np
 import pytest
 from synth import make_tum_dir, plant_tracking_failures
@@ -14,7 +12,7 @@ from mutualslam_cli.geometry import exp_so3, scale_motion
 from mutualslam_cli.metrics.trajectory import ate, ate_segments
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import run_vo
-from mutualslam_cli.backend.bridges import bridge_segment, bridged, plan_bridge, units_of
+from mutualslam_cli.backend.bridges import Bridge, bridge_segment, bridged, plan_bridge, units_of
 
 
 @pytest.fixture(scope="module")
@@ -93,9 +91,12 @@ def test_ratios_spread_too_wide_leave_the_segment_apart_and_say_why(two_segments
     b = plan_bridge(vo, first, noisy, seq.load_gray, seq.intrinsics)
     assert b is not None and "spread too wide" in b.refused and b.segment == 1 and b.onto == 0
     assert bridge_segment(vo, first, noisy, seq.load_gray, seq.intrinsics) is None
-    assert bridged(vo, [asdict(b)]) is vo  # a refused bridge joins nothing
+    assert bridged(vo, [b]) is vo  # a refused bridge joins nothing
 
 
 def test_units_follow_the_bridges_that_were_made():
-    made = [{"segment": 1, "onto": 0}, {"segment": 3, "onto": 2}, {"segment": 4, "onto": 3, "refused": "spread"}]
+    def made_(segment: int, onto: int, refused: str = "") -> Bridge:
+        return Bridge(segment, onto, 0, 0.0, -1, 1.0, 1.0, 1.0, 0, 0, 0.0, "none", refused=refused)
+
+    made = [made_(1, 0), made_(3, 2), made_(4, 3, refused="spread")]
     assert units_of([0, 1, 2, 3, 4], made) == {0: 0, 1: 0, 2: 2, 3: 2, 4: 4}

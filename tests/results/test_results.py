@@ -104,7 +104,7 @@ def _fake_map():
 
 def test_map_log_depth_errors_and_esi_are_one_computation():
     from mutualslam_cli.metrics.depth import esi
-    from mutualslam_cli.stages.slam_metrics import map_esi, map_log_depth_errors
+    from mutualslam_cli.metrics.slam import map_esi, map_log_depth_errors
 
     seq, vo = _fake_map()
     d = map_log_depth_errors(seq, vo)
@@ -119,8 +119,8 @@ def test_map_log_depth_errors_and_esi_are_one_computation():
 def test_map_ply_round_trip_through_open3d(tmp_path: Path):
     import open3d as o3d
 
+    from mutualslam_cli.metrics.slam import map_log_depth_errors
     from mutualslam_cli.results import map_ply
-    from mutualslam_cli.stages.slam_metrics import map_log_depth_errors
 
     seq, vo = _fake_map()
     d = map_log_depth_errors(seq, vo)  # mean over GT points is 0: colours show d itself

@@ -15,11 +15,11 @@ from synth import make_tum_dir
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.stages.frontend import run_frontend
-from mutualslam_cli.stages.vo_cache import CHECKPOINT_EVERY, cache_path, load_entry, vo_cache_key
-from mutualslam_cli.stages.event_source import FrontEndSource
 from mutualslam_cli.vo.journal import JOURNAL_VERSION, journal_from_arrays, journal_to_arrays
+from mutualslam_cli.vo.journal_cache import CHECKPOINT_EVERY, cache_path, load_entry, vo_cache_key
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.vo.source import FrontEndSource
 
 
 def _cfg(mode: str):
@@ -159,7 +159,7 @@ def test_invalid_entry_is_recomputed_and_replaced(seq, results, tmp_path, caplog
     path = cache_path(tmp_path, seq, cfg)
     run_frontend(seq, cfg, cache_dir=tmp_path)
     spoil(path)
-    with caplog.at_level(logging.WARNING, logger="mutualslam_cli.stages.vo_cache"):
+    with caplog.at_level(logging.WARNING, logger="mutualslam_cli.vo.journal_cache"):
         vo, cached = run_frontend(seq, cfg, cache_dir=tmp_path)
     assert not cached
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]

@@ -13,8 +13,8 @@ import pytest
 from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.synthetic import iter_render, write_tum
-from mutualslam_cli.stages.event_source import FrontEndSource
-from mutualslam_cli.stages.vo_cache import cache_path
+from mutualslam_cli.vo.journal_cache import cache_path
+from mutualslam_cli.vo.source import FrontEndSource
 
 #: README figures (5,000 frames: 10,185 events, 540 keyframes, 67 resumption points): bytes.
 PER_KEYFRAME, PER_CHECKPOINT, FILE_PER_KEYFRAME = 22.81e6 / 540, 31.27e6 / 67, 48.59e6 / 540

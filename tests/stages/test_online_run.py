@@ -18,11 +18,12 @@ from mutualslam_cli.adapt.depthnet import DepthNet, predict_depth
 from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.online import loop as online_loop
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.summary import flatten
 from mutualslam_cli.stages import adaptation
 from mutualslam_cli.stages.frontend import run_frontend
-from mutualslam_cli.stages.vo_cache import cache_path, load_entry
+from mutualslam_cli.vo.journal_cache import cache_path, load_entry
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +51,7 @@ def causal(lost):
     tmp, root = lost
     seen, loops = [], []
     mp = pytest.MonkeyPatch()
-    plan, run_loop, alone = adaptation.plan_bridge, adaptation.OnlineLoop.run_loop, adaptation.front_end_alone
+    plan, run_loop, alone = online_loop.plan_bridge, adaptation.OnlineLoop.run_loop, adaptation.front_end_alone
 
     def spy_loop(self):
         loops.append(self)
@@ -64,7 +65,7 @@ def causal(lost):
         return plan(snap, kf, depth_of, *a)
 
     mp.setattr(adaptation.OnlineLoop, "run_loop", spy_loop)
-    mp.setattr(adaptation, "plan_bridge", spy_plan)
+    mp.setattr(online_loop, "plan_bridge", spy_plan)
     mp.setattr(adaptation, "front_end_alone", lambda seq, cfg, cache_dir=None: alone(seq, cfg, None))
     try:
         r = run_sequence(root, _cfg(tmp), out=tmp / "a", command=["test"])
@@ -146,10 +147,10 @@ def test_the_bridged_credit_is_the_front_end_alone_and_its_own_bridges(lost, cau
     """Algorithm 1's global BA moved poses of the first segment before the bridge; Table 4's "bridged" column is
     the front end alone, joined by a bridge planned on its own map of then with the weights of then: its first
     segment is the front end's, untouched by the BA, and its bridge is the one planned there."""
-    from mutualslam_cli.stages.loop_inputs import depth_predictor
-    from mutualslam_cli.stages.event_source import FrontEndSource
     from mutualslam_cli.adapt.inputs import keyframe_images
     from mutualslam_cli.backend.bridges import plan_bridge
+    from mutualslam_cli.online.labels import depth_predictor
+    from mutualslam_cli.vo.source import FrontEndSource
 
     tmp, root = lost
     r, _, loop = causal

@@ -96,8 +96,8 @@ def normal_equations(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarra
     A = np.stack([np.bincount(d.p, hcp[:, i], minlength=P) for i in range(NP)], 1)  # host slots
     Hpp = np.bincount(d.p, np.einsum("ms,ms->m", w * Jp, Jp), minlength=P)
     bp = np.bincount(d.p, np.einsum("ms,ms->m", w * Jp, r), minlength=P)
-    Hcc, bc = d.st.camera_system(Jc, Jw, bblk)
-    return NormalEquations(d.st, Hcc, bc, A, hcp[:, NP:], Hpp, bp)
+    Hcc, bc = d.structure.camera_system(Jc, Jw, bblk)
+    return NormalEquations(d.structure, Hcc, bc, A, hcp[:, NP:], Hpp, bp)
 
 
 def centres(T: np.ndarray) -> np.ndarray:

@@ -88,7 +88,7 @@ class PatchData:
         self.p, self.t = p[order], t[order]
         self.h = np.asarray(prob.host)[self.p]
         self.host_ok = hv[self.p]
-        self.st = BlockStructure(np.asarray(prob.host), self.p, self.t, self.nk)
+        self.structure = BlockStructure(np.asarray(prob.host), self.p, self.t, self.nk)
 
     def sample(self, kf: np.ndarray, u: np.ndarray, v: np.ndarray):
         """Bilinear intensity at ``(u, v)`` (clamped inside the image) and its exact

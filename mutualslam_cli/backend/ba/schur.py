@@ -99,28 +99,28 @@ class BlockStructure:
 class NormalEquations:
     """Gauss–Newton normal equations in Schur form (point block diagonal)."""
 
-    def __init__(self, st: BlockStructure, Hcc, bc, A, Ct, Hpp, bp):
-        self.st, self.Hcc, self.bc, self.A, self.Ct, self.Hpp, self.bp = st, Hcc, bc, A, Ct, Hpp, bp
+    def __init__(self, structure: BlockStructure, Hcc, bc, A, Ct, Hpp, bp):
+        self.structure, self.Hcc, self.bc, self.A, self.Ct, self.Hpp, self.bp = structure, Hcc, bc, A, Ct, Hpp, bp
 
     def step(self, lam: float, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """LM step ``(dc (8K,), dp (P,))`` with damping ``λ·diag(H)``; ``cols`` are the
         optimised columns of ``dc`` (sorted, keyframe-major)."""
-        st, A, Ct = self.st, self.A, self.Ct
+        structure, A, Ct = self.structure, self.A, self.Ct
         fk = np.unique(cols // NP)
-        frow = np.full(st.nk, len(fk))
+        frow = np.full(structure.nk, len(fk))
         frow[fk] = np.arange(len(fk))
         loc = frow[cols // NP] * NP + cols % NP  # column positions inside the free block
         Hd = self.Hpp * (1 + lam) + 1e-12
-        Ssch = st.schur(A, Ct, 1.0 / Hd, frow)[np.ix_(loc, loc)]
+        Ssch = structure.schur(A, Ct, 1.0 / Hd, frow)[np.ix_(loc, loc)]
         Sf = self.Hcc[np.ix_(cols, cols)] - Ssch  # reduced camera system (Schur complement)
         q = self.bp / Hd
-        g = self.bc - st.scatter_vec(np.r_[st.host, st.t],
-                                     np.concatenate([A * q[:, None], Ct * q[st.p][:, None]]))
+        g = self.bc - structure.scatter_vec(np.r_[structure.host, structure.t],
+                                            np.concatenate([A * q[:, None], Ct * q[structure.p][:, None]]))
         hdiag = np.diag(self.Hcc)[cols]
         Sf[np.diag_indices_from(Sf)] += lam * np.maximum(hdiag, 1e-6) + 1e-9
         dc = np.zeros(len(self.bc))
         dc[cols] = -np.linalg.solve(Sf, g[cols])
         dck = dc.reshape(-1, NP)
-        Hcp_dc = np.einsum("pi,pi->p", A, dck[st.host]) + np.bincount(
-            st.p, np.einsum("mi,mi->m", Ct, dck[st.t]), minlength=len(Hd))
+        Hcp_dc = np.einsum("pi,pi->p", A, dck[structure.host]) + np.bincount(
+            structure.p, np.einsum("mi,mi->m", Ct, dck[structure.t]), minlength=len(Hd))
         return dc, -(self.bp + Hcp_dc) / Hd  # back-substitution

@@ -1,4 +1,4 @@
-"""The online evaluation: each frame scored with the network of its time (stages/online_eval.py)."""
+"""The online evaluation: each frame scored with the network of its time (online/scores.py)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from synth import make_tum_dir
 from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.metrics.depth import depth_stats
-from mutualslam_cli.stages.online_eval import OnlineScorer, eval_frames
+from mutualslam_cli.online.scores import OnlineScorer, eval_frames
 from mutualslam_cli.vo.camera import Undistorter
 
 
@@ -56,7 +56,7 @@ def test_the_frames_of_one_model_share_forward_passes_and_batches_change_only_ro
     to change, on the CPU through a channels-last twin of the NCHW network; the scores equal one frame at a time
     with the network itself up to float rounding (the kernels sum in another order)."""
     from mutualslam_cli.adapt.depthnet import DepthNet
-    from mutualslam_cli.stages import online_eval
+    from mutualslam_cli.online import scores as online_eval
 
     seq = load_sequence(make_tum_dir(tmp_path, scene="room", n=11, width=128, height=96))
     cfg = with_overrides(RunConfig(), net={"width": 96, "height": 64})
@@ -93,7 +93,7 @@ def test_the_frames_of_one_model_share_forward_passes_and_batches_change_only_ro
 
 
 def test_batch_size_follows_device_and_threads():
-    from mutualslam_cli.stages.online_eval import BATCH, batch_size
+    from mutualslam_cli.online.scores import BATCH, batch_size
 
     cpu, cuda = torch.device("cpu"), torch.device("cuda", 0)
     assert (batch_size(cpu, 1), batch_size(cpu, 2), batch_size(cpu, 16), batch_size(cuda, 1)) == (2, 4, 4, BATCH)

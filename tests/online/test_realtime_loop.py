@@ -1,4 +1,4 @@
-"""``adapt.schedule: realtime`` through :class:`~mutualslam_cli.stages.adaptation.OnlineLoop`, with a clock
+"""``adapt.schedule: realtime`` through :class:`~mutualslam_cli.online.loop.OnlineLoop`, with a clock
 that charges fixed costs: every effect takes hold when its charged work ends — a step's weights for the front
 end and the online scores, a global BA's refinement for the front end and the labels — checked frame by frame."""
 
@@ -10,9 +10,9 @@ import torch
 from test_online_loop import FakeBA, ScriptedSource, TinyNet, _cfg, _spy, oracle  # noqa: F401
 
 from mutualslam_cli.config import with_overrides
-from mutualslam_cli.stages.adaptation import OnlineLoop
+from mutualslam_cli.online.loop import OnlineLoop
+from mutualslam_cli.online.realtime import RealtimeClock
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.realtime import RealtimeClock
 
 
 def batch_labels(calls, loop) -> dict[tuple[int, int], np.ndarray]:

@@ -14,7 +14,7 @@ from mutualslam_cli.adapt import losses
 from mutualslam_cli.backend.ba.global_ba import GlobalBAResult
 from mutualslam_cli.config import RunConfig, VOConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.stages.adaptation import OnlineLoop
+from mutualslam_cli.online.loop import OnlineLoop
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.vo.camera import pinhole
 from mutualslam_cli.vo.depth_oracle import run_oracle
@@ -188,8 +188,8 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
     """Keyframes from frame 6 on start a second segment; its bridge is refused (ratios too spread): the
     network goes on in its first unit only — the second segment's keyframes are neither trained on nor
     replayed nor validated, and the run counts them."""
-    from mutualslam_cli.stages import adaptation
     from mutualslam_cli.backend.bridges import Bridge
+    from mutualslam_cli.online import loop as online_loop
 
     seq, vo, events = oracle
     script = []
@@ -203,7 +203,7 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
         refused.append(kf)
         return Bridge(1, 0, 6, 0.6, -1, float("nan"), 1.0, 1.0, 40, 40, 0.0, "none", refused="spread too wide")
 
-    monkeypatch.setattr(adaptation, "plan_bridge", refuse)
+    monkeypatch.setattr(online_loop, "plan_bridge", refuse)
     calls = _spy(monkeypatch)
     loop = _run(seq, ScriptedSource(seq, script), _cfg(scheme="replay", validate_every=2), tmp_path)
     second = [k for k in range(loop.state.n_keyframes) if loop.state.segment(k) == 1]

@@ -1,11 +1,10 @@
 """Trajectory and map of a run held against GT: the ATE of keyframes and of every tracked frame,
-each map point's log-depth error in its host keyframe, the map's e_si, and the summary keys they fill.
+each map point's log-depth error in its host keyframe, the map's e_si (their summary keys:
+:func:`mutualslam_cli.stages.ate_keys.set_ate`).
 
 Used by the stages that make a trajectory or a map (front end, BA)."""
 
 from __future__ import annotations
-
-from typing import Any
 
 import numpy as np
 
@@ -14,9 +13,8 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import MslamError
 from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.pixels import lookup_nearest
-from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.vo.camera import distort_points
 from mutualslam_cli.types import Trajectory
+from mutualslam_cli.vo.camera import distort_points
 from mutualslam_cli.vo.result import VOResult
 
 
@@ -162,22 +160,3 @@ def map_esi(seq: Sequence, vo: VOResult, keep: np.ndarray | None = None) -> tupl
         ``(e_si, n_points_with_gt)``; e_si is NaN when no point has GT depth.
     """
     return esi_of_log_errors(map_log_depth_errors(seq, vo, keep))
-
-
-def set_ate(summary: Summary, traj: dict[str, Any], names: dict[str, str]) -> None:
-    """:func:`evaluate_trajectory`'s RMSEs under ``names`` (``{"kf": leaf, "all": leaf}``): as
-    ``trajectory.ate_rmse_m.<leaf>`` (one Sim(3), the headline) and, secondary,
-    ``trajectory.ate_rmse_m_per_segment.<leaf>`` (each segment aligned on its own; equal to the
-    headline for one segment)."""
-    for key, name in names.items():
-        for src, group in ((key, "ate_rmse_m"), (f"{key}_per_segment", "ate_rmse_m_per_segment")):
-            dotted = f"trajectory.{group}.{name}"
-            r = traj.get(src)
-            if r is None and src.endswith("_per_segment") and traj.get(key) is not None:
-                summary.set(dotted, float(traj[key].rmse))  # one segment
-            elif r is None:
-                summary.absent(dotted, traj["notes"].get(src, traj["notes"].get("trajectory", "not computed")))
-            else:
-                summary.set(dotted, float(r.rmse))
-                if getattr(r, "note", None):  # each segment aligned on its own
-                    summary.notes[dotted] = r.note

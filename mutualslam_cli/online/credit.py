@@ -11,25 +11,23 @@ up to that frame — the weights :class:`WeightsAt` kept while the loop ran.
 from __future__ import annotations
 
 import copy
-from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 import torch
 
 from mutualslam_cli.adapt.inputs import keyframe_images
+from mutualslam_cli.backend.bridges import Bridge, plan_bridge
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.stages.loop_inputs import depth_predictor
+from mutualslam_cli.online.labels import depth_predictor
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.backend.bridges import plan_bridge
 
 
 def front_end_alone(seq: Sequence, cfg: RunConfig, cache_dir: Path | None) -> tuple[VOResult, set[int]]:
     """The front end on its own to the end (from the journal cache, which it fills) and the frames at which it
     created the first keyframe of each segment but the first (where its bridges are planned)."""
-    from mutualslam_cli.stages.event_source import FrontEndSource
+    from mutualslam_cli.vo.source import FrontEndSource
 
     source = FrontEndSource(seq, cfg, cache_dir)
     try:
@@ -69,18 +67,18 @@ class WeightsAt:
 
 
 def credit_bridges(seq: Sequence, cfg: RunConfig, cache_dir: Path | None, net: torch.nn.Module, fast: bool,
-                   weights: WeightsAt) -> tuple[VOResult, list[dict[str, Any]]]:
+                   weights: WeightsAt) -> tuple[VOResult, list[Bridge]]:
     """The front end alone (its journal in ``cache_dir``, or run again) with each new segment bridged at its
     first keyframe on its own map of then, by the weights of then; returns ``(joined map, bridge records)``
     (refused bridges among the records, their segments left apart)."""
-    from mutualslam_cli.stages.event_source import FrontEndSource
+    from mutualslam_cli.vo.source import FrontEndSource
 
     if not weights.frames:  # one segment, or no bridging: the front end alone
         return front_end_alone(seq, cfg, cache_dir)[0], []
     source = FrontEndSource(seq, cfg, cache_dir)
     twin = copy.deepcopy(net)
     load = keyframe_images(seq, lambda k: source.state.frame_of(k), cfg.net.width, cfg.net.height)
-    records: list[dict[str, Any]] = []
+    records: list[Bridge] = []
     seen: set[int] = set()
     try:
         for frame, keyframes in source.timeline():
@@ -99,7 +97,7 @@ def credit_bridges(seq: Sequence, cfg: RunConfig, cache_dir: Path | None, net: t
                 if b is not None and not b.refused:
                     source.transform_segment(b.segment, *b.similarity(), b.onto)
                 if b is not None:
-                    records.append(asdict(b))
+                    records.append(b)
         return source.result(), records
     finally:
         source.close()

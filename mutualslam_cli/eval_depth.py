@@ -43,11 +43,11 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
 from mutualslam_cli.metrics import depth as dm
+from mutualslam_cli.online.scores import eval_frames
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, manifest, read_summary, run_dir, write_json, write_yaml
 from mutualslam_cli.results.summary import SUMMARY_KEYS, Summary
 from mutualslam_cli.stages.evaluation import depth_means
-from mutualslam_cli.stages.online_eval import eval_frames
 from mutualslam_cli.vo.camera import Undistorter
 
 KINDS: tuple[str, ...] = ("depth", "inverse", "relative-inverse")

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from test_online_loop import ScriptedSource, TinyNet, W, H, _cfg, _map_at, oracle  # noqa: F401
+from test_online_loop import H, ScriptedSource, TinyNet, W, _cfg, _map_at, oracle  # noqa: F401
 
 from mutualslam_cli.adapt.online import OnlineAdapter
-from mutualslam_cli.stages.adaptation import OnlineLoop
+from mutualslam_cli.online.labels import MapLabels
+from mutualslam_cli.online.loop import OnlineLoop
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.loop_inputs import MapLabels
 from mutualslam_cli.vo.camera import pinhole
 from mutualslam_cli.vo.journal import Event
 from mutualslam_cli.vo.map_state import MapState

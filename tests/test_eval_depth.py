@@ -16,11 +16,11 @@ from typer.testing import CliRunner
 
 from mutualslam_cli.cli import app
 from mutualslam_cli.config import load_config
+from mutualslam_cli.datasets.predictions import match_predictions, prediction_files, read_pfm, read_prediction
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
+from mutualslam_cli.eval_depth import eval_depth
 from mutualslam_cli.metrics import depth as dm
-from mutualslam_cli.datasets.predictions import match_predictions, prediction_files, read_pfm, read_prediction
-from mutualslam_cli.stages.external import eval_depth
 from mutualslam_cli.vo.camera import Undistorter
 
 runner = CliRunner()

@@ -7,8 +7,9 @@ import pytest
 from synth import make_tum_dir
 
 from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.metrics.slam import evaluate_trajectory
 from mutualslam_cli.results.summary import Summary, flatten
-from mutualslam_cli.stages.slam_metrics import evaluate_trajectory, set_ate
+from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 

@@ -1,7 +1,7 @@
 """The front end's events, frame by frame, into the map the adaptation loop reads (DESIGN §5, §9).
 
 :class:`FrontEndSource` owns the loop's :class:`~mutualslam_cli.vo.map_state.MapState` (:attr:`~FrontEndSource.state`)
-and advances it one frame at a time: from the per-sequence journal (:mod:`~mutualslam_cli.stages.vo_cache`)
+and advances it one frame at a time: from the per-sequence journal (:mod:`~mutualslam_cli.vo.journal_cache`)
 while there is one, else from the live front end. A change from the network's side — a segment joined
 to the map (a bridge), a global BA's refinement — is made, with ``live_feedback``, in the live front end,
 which goes on from it (its events reach the state like any other); a source that reads a cached journal
@@ -27,7 +27,6 @@ import numpy as np
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence, grey_frames
 from mutualslam_cli.errors import CacheMismatch, DatasetError
-from mutualslam_cli.stages.vo_cache import CHECKPOINT_EVERY, JournalEntry, cache_path, load_entry, save_entry
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo import checkpoint
 from mutualslam_cli.vo.camera import pinhole
@@ -37,6 +36,7 @@ from mutualslam_cli.vo.faults import corrupt_depths
 from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
 from mutualslam_cli.vo.frontend import FrontEnd
 from mutualslam_cli.vo.journal import Event
+from mutualslam_cli.vo.journal_cache import CHECKPOINT_EVERY, JournalEntry, cache_path, load_entry, save_entry
 from mutualslam_cli.vo.map_state import MapState, events_from_result
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
 from mutualslam_cli.vo.result import VOResult

@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
-from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.credit import WeightsAt
+from mutualslam_cli.online.credit import WeightsAt
+from mutualslam_cli.online.run import OnlineRun
 from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
 from mutualslam_cli.vo.map_state import MapState
 
@@ -168,9 +168,9 @@ class DeferredMap:
 
 
 class Loop(Protocol):
-    """What :func:`run_realtime` drives: :class:`~mutualslam_cli.stages.adaptation.OnlineLoop`."""
+    """What :func:`run_realtime` drives: :class:`~mutualslam_cli.online.loop.OnlineLoop`."""
 
-    run: RunContext
+    run: OnlineRun
     source: Any  # FrontEndSource, or a scripted one in tests
     state: MapState
     net: torch.nn.Module

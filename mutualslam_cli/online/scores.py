@@ -15,7 +15,7 @@ Frames between two keyframes share one model, so they are predicted together whe
 to change (:meth:`OnlineScorer.score_until`, called at the next keyframe's arrival), in forward passes of
 :func:`batch_size` frames. On the CPU an fp32 (NCHW) network predicts through a channels-last twin that
 takes its weights at each call (the layout oneDNN prefers). Both change the depth only at float rounding
-(the kernels sum in another order: 3e-7 relative here; ``tests/stages/test_online_eval.py`` bounds it).
+(the kernels sum in another order: 3e-7 relative here; ``tests/online/test_scores.py`` bounds it).
 Measured on a loaded 2-core AVX2 CPU, fp32 640×192, ms per frame (one pass per frame, NCHW = before):
 
 =========  =====  =====  =====  ===============  ===============
@@ -110,10 +110,10 @@ class OnlineScorer:
             small = np.stack([resample(self._und.image(self.seq.load_rgb(i)), cfg.net.width, cfg.net.height)
                               for i in chunk])  # (B, h, w, 3) uint8: what goes to the network's device
             for i, depth in zip(chunk, predict_depth(net, small, self.fast)):
-                st = asdict(dm.depth_stats(depth, self._und.depth(self.seq.load_depth(i)), cfg.eval.max_depth,
+                stats = asdict(dm.depth_stats(depth, self._und.depth(self.seq.load_depth(i)), cfg.eval.max_depth,
                                            cfg.eval.pcd_threshold, sketch=True))
-                self._sketches.append(st.pop("sketch"))
-                self._rows.append({"frame": i, "online_kf": kf_id, **{f"online_{k}": st[k] for k in COLUMNS}})
+                self._sketches.append(stats.pop("sketch"))
+                self._rows.append({"frame": i, "online_kf": kf_id, **{f"online_{k}": stats[k] for k in COLUMNS}})
         self.seconds += time.perf_counter() - t
 
     def _scoring_net(self, net: torch.nn.Module) -> torch.nn.Module:
