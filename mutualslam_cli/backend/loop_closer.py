@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable, Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 
 from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.pose_graph import close_loop
+from mutualslam_cli.backend.records import LoopRecord
 from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
@@ -55,7 +56,7 @@ class LoopCloser:
         self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
                                      lc,
                                      load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
-        self.loops: list[dict[str, Any]] = []
+        self.loops: list[LoopRecord] = []
         self.skipped: dict[int, str] = {}
         self._last = -(10 ** 9)  # the query keyframe of the last loop closed
         self.ba_seconds = 0.0  # of the closing BAs (booked to BA, not to the loop)
@@ -88,18 +89,18 @@ class LoopCloser:
         return time.perf_counter() - t
 
     def close(self, loop: LoopClosure, depth_of: Callable[[int], np.ndarray],
-              val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[Bridge]) -> dict[str, Any]:
+              val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[Bridge]) -> LoopRecord:
         """Close a verified ``loop`` on the map as it stands: the pose graph, then (with a BA stage) culling + the
         robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.backend.merge`)."""
         kf, state = loop.query, self.source.state
         self._last = kf  # whoever asked (a loop, a merge): no other loop within loop.min_gap keyframes of it
         self.source.settle()
         self.source.refine(close_loop(state, loop))
-        rec = {**loop.record(), "frame": int(state.frame_of(kf)), "timestamp": float(state.time_of(kf)),
-               "match_timestamp": float(state.time_of(loop.match))}
+        nearby = None
         if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
             t_ba = time.perf_counter()
             r = refine_map(self.source, kf, self.ba, depth_of, val_loss, bridges)
-            rec["ba_nearby_targets"] = int(r.stats["n_nearby_targets"])
+            nearby = int(r.stats["n_nearby_targets"])
             self.ba_seconds += time.perf_counter() - t_ba
-        return rec
+        return LoopRecord(loop, int(state.frame_of(kf)), float(state.time_of(kf)), float(state.time_of(loop.match)),
+                          nearby)

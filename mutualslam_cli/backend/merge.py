@@ -26,7 +26,7 @@ A segment is merged at most once.
 from __future__ import annotations
 
 import time
-from typing import Any, Callable, Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -34,6 +34,7 @@ from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.pose_graph import close_loop
+from mutualslam_cli.backend.records import MergeRecord
 from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
@@ -72,7 +73,7 @@ class SegmentMerger:
                                      load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
         if closer is not None:  # one keyframe index for both: one ORB extraction per keyframe
             self.detector.index = closer.detector.index
-        self.merges: list[dict[str, Any]] = []
+        self.merges: list[MergeRecord] = []
         self.tried = 0
         self._merged: set[int] = set()
 
@@ -103,22 +104,23 @@ class SegmentMerger:
         if loop is None:
             return time.perf_counter() - t
         onto = state.segment(loop.match)
-        rec = {**loop.record(), "segment": int(seg), "onto": int(onto), "frame": int(state.frame_of(kf)),
-               "timestamp": float(state.time_of(kf))}
+        where = dict(segment=int(seg), onto=int(onto), frame=int(state.frame_of(kf)),
+                     timestamp=float(state.time_of(kf)))
         if state.unit(seg) == state.unit(onto):  # bridged into that map already: the measured loop corrects it
             if self.detector.already_closed(state, loop):
                 return time.perf_counter() - t
             if self.closer is not None:
-                rec.update(how="pose graph + BA", **self.closer.close(loop, depth_of, val_loss, bridges))
+                rec = MergeRecord(loop, **where, how="pose graph + BA",
+                                  closed=self.closer.close(loop, depth_of, val_loss, bridges))
             else:
                 self.source.settle()
                 self.source.refine(close_loop(state, loop))
-                rec["how"] = "pose graph"
+                rec = MergeRecord(loop, **where, how="pose graph")
         else:  # a segment in a unit of its own (its bridge refused): moved onto the old map whole
             self.source.settle()  # the windowed BA in flight first: the keyframe's pose as it now stands
             R, t_, s = merge_similarity(state.pose_cw(kf), loop)
             self.source.transform_segment(seg, R, t_, s, onto)
-            rec["how"] = "similarity"
+            rec = MergeRecord(loop, **where, how="similarity")
         self._merged.add(seg)
         self.merges.append(rec)
         return time.perf_counter() - t

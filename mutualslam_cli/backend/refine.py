@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Protocol
+from typing import Callable, Mapping, Protocol
 
 import cv2
 import numpy as np
@@ -22,6 +22,7 @@ import numpy as np
 from mutualslam_cli.adapt.inputs import frame_lookup
 from mutualslam_cli.backend.ba.global_ba import GlobalBAResult, run_global_ba, window_start
 from mutualslam_cli.backend.bridges import Bridge, units_of
+from mutualslam_cli.backend.records import BARun
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.types import FrameRef, Intrinsics
@@ -83,7 +84,7 @@ class BALog:
     """What the culling + BA runs of one run did: each run's ``stats`` (Algorithm 1's requests, loop closures,
     then the final one), the ids of every culled map point and of every point dropped as an outlier."""
 
-    runs: list[dict[str, Any]] = field(default_factory=list)
+    runs: list[BARun] = field(default_factory=list)
     culled: set[int] = field(default_factory=set)
     dropped: set[int] = field(default_factory=set)
 
@@ -133,7 +134,7 @@ class MapBA:
         r = run_global_ba(vo, self.images, depth_of, val_loss, self.cfg, cull=self.cull, upto=kf_id, units=units)
         self.record.culled.update(vo.points.ids[~r.keep].tolist())
         self.record.dropped.update(vo.points.ids[r.dropped].tolist())
-        self.record.runs.append({"kf_id": kf_id, **{k: x for k, x in r.stats.items() if k != "costs"}})
+        self.record.runs.append(BARun(kf_id, {k: x for k, x in r.stats.items() if k != "costs"}))
         log.info("global BA after keyframe %d: %d culled, %d dropped, %d refined (%d unrefined), cost %.4g -> %.4g, "
                  "%.2f s", kf_id, r.stats["n_culled"], r.stats["n_dropped"], r.stats["n_refined"],
                  r.stats["n_unrefined"], r.stats["cost0"], r.stats["cost"], r.stats["seconds"])

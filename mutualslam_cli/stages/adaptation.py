@@ -18,6 +18,7 @@ import torch
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.backend.bridges import Bridge
+from mutualslam_cli.backend.records import LoopRecord, MergeRecord
 from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.online.credit import WeightsAt, credit_bridges, front_end_alone, segment_starts
 from mutualslam_cli.online.loop import OnlineLoop
@@ -72,8 +73,8 @@ class Adapted:
     requested: int
     bridges: list[Bridge] | None = None
     refused: list[Bridge] = field(default_factory=list)
-    loops: list[dict[str, Any]] = field(default_factory=list)
-    merges: list[dict[str, Any]] = field(default_factory=list)
+    loops: list[LoopRecord] = field(default_factory=list)
+    merges: list[MergeRecord] = field(default_factory=list)
     credit: list[Bridge] = field(default_factory=list)
     l_val: dict[str, Any] = field(default_factory=dict)
     online: pd.DataFrame | None = None

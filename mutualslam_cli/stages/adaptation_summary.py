@@ -134,8 +134,8 @@ def summarise_merges(summary: Summary, merger: SegmentMerger) -> None:
     summary.set("vo.merge_queries", merger.tried)
     if merger.merges:
         summary.notes["vo.merges"] = "; ".join(
-            f"segment {g['segment']} onto {g['onto']} at keyframe {g['query']} (scale {g['scale']:.3f}, "
-            f"{g['inliers']} inliers)" for g in merger.merges)
+            f"segment {g.segment} onto {g.onto} at keyframe {g.query} (scale {g.loop.scale:.3f}, "
+            f"{g.loop.inliers} inliers)" for g in merger.merges)
 
 
 def summarise_loops(summary: Summary, closer: LoopCloser) -> None:

@@ -102,7 +102,7 @@ class BAStage:
                                  adapted.bridges)
         elif self.record.runs:
             vo_ba = adapted.map
-            last = self.record.runs[-1]["kf_id"]
+            last = self.record.runs[-1].kf_id
             if last < len(vo_ba.keyframes) - 1:
                 run.summary.notes["trajectory.ate_rmse_m.ba"] = (
                     f"ba.final=on_request: the map after the BAs Algorithm 1 requested; keyframes after {last} "
@@ -168,7 +168,7 @@ class BAStage:
         summary.set("ba.runs", len(runs))
         summary.set("ba.points_dropped", len(self.record.dropped))
         for key in BA_RUN_KEYS[1:]:
-            summary.set(key, runs[-1][key.rsplit(".", 1)[1]])
+            summary.set(key, runs[-1].stats[key.rsplit(".", 1)[1]])
 
 
 #: ``summary.json`` keys of the last culling + BA of a run (its counts, ``ba.last.*``) and the points

@@ -58,7 +58,7 @@ def run_stage(run: RunContext, closer: LoopCloser, vo: VOResult) -> list[RecallR
     ids = np.array([k.id for k in vo.keyframes], np.int64)
     revisits = true_revisits(poses, ids, cfg.loop.min_gap)
     queries = {int(q["kf"]): q for q in closer.detector.queries}
-    closed = {int(lp["query"]): int(lp["match"]) for lp in closer.loops}
+    closed = {lp.query: lp.match for lp in closer.loops}
     rows = classify(revisits, queries, closed, closer.skipped, cfg.loop.n_candidates)
     c = counts(rows)
     for k in RECALL_KEYS:

@@ -85,9 +85,9 @@ def run_facts(run: RunContext, fe: FrontEnd, ba: BAStage, adapted: Adapted) -> d
                      "intrinsics": seq.intrinsics.as_list()},
         "vo_meta": {k: v for k, v in fe.vo.meta.items() if isinstance(v, (int, float, str, bool, dict, list))},
         "map_points_with_gt": fe.points_with_gt,
-        "ba_runs": ba.record.runs,
+        "ba_runs": [r.to_json() for r in ba.record.runs],
         "bridges": [asdict(b) for b in adapted.bridges or []],
         "bridges_credit": [asdict(b) for b in adapted.credit],
         "bridges_refused": [asdict(b) for b in adapted.refused],
-        "loops": adapted.loops,
+        "loops": [lp.to_json() for lp in adapted.loops],
     }

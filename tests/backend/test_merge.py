@@ -90,7 +90,7 @@ def test_a_segment_of_its_own_moves_whole_onto_the_old_map_once():
     assert [a[0] for a in mg.asked] == [3, 4]  # segment 0 is the map: only the new segment's keyframes ask
     assert mg.asked[0][1] == [0, 1, 2]  # … and only about the keyframes before the segment
     np.testing.assert_allclose(state.pose(4), se3_inv(T_o), atol=1e-9)
-    assert state.unit(1) == 0 and mg.merges[0]["how"] == "similarity"
+    assert state.unit(1) == 0 and mg.merges[0].how == "similarity"
     # the hosted points moved with their keyframes, their distances from them ×2
     assert np.linalg.norm(state.map.Xw[1] - state.pose(4)[:3, 3]) == pytest.approx(
         2.0 * np.linalg.norm(X0[1] - _T_wc(0.4, [0.05, 0, 0])[:3, 3]))
@@ -109,5 +109,5 @@ def test_a_bridged_segment_is_corrected_as_a_loop():
     before = state.pose(3).copy()
     for kf in range(5):
         mg.after_keyframe(kf, lambda kf: np.ones((8, 8)), lambda ids: {}, [])
-    assert calls == [4] and mg.merges[0]["how"] == "pose graph + BA"
+    assert calls == [4] and mg.merges[0].how == "pose graph + BA"
     np.testing.assert_array_equal(state.pose(3), before)  # not moved rigidly: the loop's pose graph does it

@@ -61,7 +61,7 @@ def _closer():
                         "verified": verified, "outcome": "loop" if kf == 40 else "scale uncertain"})
     skipped = {kf: "not queried: within loop.min_gap (30) keyframes of the loop closed at keyframe 40"
                for kf in range(41, 70)}
-    return SimpleNamespace(detector=SimpleNamespace(queries=queries), loops=[{"query": 40, "match": 0}],
+    return SimpleNamespace(detector=SimpleNamespace(queries=queries), loops=[SimpleNamespace(query=40, match=0)],
                            skipped=skipped)
 
 
