@@ -44,7 +44,13 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
     for label, key in rows:
         t.add_row(label, fmt_value(f.get(f"{key}.pretrained"), 3 if key.startswith("dense") else 2),
                   fmt_value(f.get(f"{key}.adapted"), 3 if key.startswith("dense") else 2))
+    for q, label in (("q1", "PCD lsq, first quarter"), ("q4", "PCD lsq, last quarter")):
+        if f.get(f"depth.quarter_pcd_lsq.adapted.{q}") is not None:
+            t.add_row(label, fmt_value(f.get(f"depth.quarter_pcd_lsq.pretrained.{q}"), 2),
+                      fmt_value(f.get(f"depth.quarter_pcd_lsq.adapted.{q}"), 2))
     notes = s.get("notes") or {}
+    if notes.get("depth.bwt.vs_pretrained"):
+        t.caption = escape(f"note: {notes['depth.bwt.vs_pretrained']}")
     if f.get("depth.pcd.lsq.adapted") is None and notes.get("depth.pcd.lsq.adapted"):
         t.caption = escape(f"no depth score: {notes['depth.pcd.lsq.adapted']}")  # a recording without GT, say
     common.console.print(t)

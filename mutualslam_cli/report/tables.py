@@ -36,6 +36,7 @@ from mutualslam_cli.report.maps import map_figures
 from mutualslam_cli.report.pictures import run_pictures
 from mutualslam_cli.report.paper import paper_tables
 from mutualslam_cli.report.plots import plot_accuracy
+from mutualslam_cli.report.forgetting import FORGETTING_TABLE
 from mutualslam_cli.report.slam_tables import SLAM_TABLES, shown
 from mutualslam_cli.report.trajectories import trajectory_figures
 from mutualslam_cli.results.run_folder import read_summary
@@ -55,6 +56,7 @@ TABLES: dict[str, tuple[str, list[tuple[str, str]]]] = {
         ("PCD med pre", "depth.pcd_nonkf.median.pretrained"), ("PCD med adapt", "depth.pcd_nonkf.median.adapted"),
         ("e_si pre", "depth.esi_nonkf.pretrained"), ("e_si adapt", "depth.esi_nonkf.adapted"),
     ]),
+    **FORGETTING_TABLE,  # backward transfer by quarter
     "trajectory": ("ATE RMSE (m), one Sim(3) over the whole trajectory (KF: keyframes); 'per segment': each "
                    "tracking segment aligned on its own (a secondary figure); segments the front end started, "
                    "relocalisations it made, segments the adaptation bridged", [

@@ -34,6 +34,7 @@ from mutualslam_cli.online.scores import eval_frames
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.forgetting import summarise_forgetting
 from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.vo.camera import Undistorter
 
@@ -238,6 +239,7 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, adapted: Ada
     no_depth = None if run.seq.has_depth else "the sequence has no depth images (no GT depth)"
     _summarise(run.summary, table, ms, cfg.adapt.scheme, no_depth)
     _summarise_online(run.summary, table, cfg, no_depth)
+    summarise_forgetting(run.summary, table, len(run.seq), cfg.adapt.scheme, no_depth)
     run.summary.set("depth.eval_stride", cfg.eval.stride)  # every k-th frame with GT depth was evaluated
     run.summary.set("depth.fast_path", fast)
     if cfg.eval.save_weights and net is not None:
