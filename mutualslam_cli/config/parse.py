@@ -2,8 +2,8 @@
 
 The machinery behind :mod:`mutualslam_cli.config`: every field is checked against its annotation
 (``Literal`` choices, lists, mappings, optionals, bool / int / float / str), and an error names the
-dotted key, what was expected and what was found. The checks of values beyond their types are in
-:mod:`~mutualslam_cli.config.checks`.
+dotted key, what was expected and what was found; a string holds no NUL. The ranges of values (finite, a
+count's bounds) are declared beside the fields and checked by :mod:`~mutualslam_cli.config.checks`.
 """
 
 from __future__ import annotations
@@ -67,11 +67,16 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         if value != value:
-            raise ConfigError(f"{where}: NaN is not allowed")
-        return float(value)
+            raise ConfigError(f"{where} = nan: expected a finite number (NaN is not allowed)")
+        try:
+            return float(value)
+        except OverflowError:  # an integer beyond a float's range: infinite, which its range refuses
+            return float("inf") if value > 0 else float("-inf")
     if tp is str:
         if not isinstance(value, (str, int, float)) or isinstance(value, bool):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
+        if "\0" in str(value):
+            raise ConfigError(f"{where} = {value!r}: expected a string without NUL characters")
         return str(value)
     return value
 
@@ -83,9 +88,9 @@ def build(cls: type, data: Any, where: str) -> Any:
         raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
+    unknown = sorted(set(data) - names, key=str)
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys: {sorted(names)}")
+        raise ConfigError(f"{where or 'top level'}: unknown key(s) {unknown}; valid keys: {sorted(names)}")
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name not in data:
@@ -93,7 +98,7 @@ def build(cls: type, data: Any, where: str) -> Any:
         tp = hints[f.name]
         key = f"{where}.{f.name}" if where else f.name
         if dataclasses.is_dataclass(tp):
-            kwargs[f.name] = build(tp, data[f.name] or {}, key)
+            kwargs[f.name] = build(tp, {} if data[f.name] is None else data[f.name], key)
         else:
             kwargs[f.name] = coerce(data[f.name], tp, key)
     return cls(**kwargs)

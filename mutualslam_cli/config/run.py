@@ -8,13 +8,13 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import yaml
 
 from mutualslam_cli.config.adaptation import AdaptConfig, NetConfig
 from mutualslam_cli.config.backend import BAConfig, LoopConfig
-from mutualslam_cli.config.checks import check_run
+from mutualslam_cli.config.checks import DEVICE, NOT_EMPTY, SEED, Relation, at_least, between, check_run, setting
 from mutualslam_cli.config.evaluation import DenseConfig, EvalConfig
 from mutualslam_cli.config.experiment import ExperimentConfig
 from mutualslam_cli.config.frontend import VOConfig
@@ -28,25 +28,37 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
 class DataConfig:
     data_root: str | None = None
     """Root for relative ``datasets.yaml`` paths; ``None`` → ``$MSLAM_DATA`` or the yaml's folder."""
-    max_frames: int = 0
+    max_frames: int = setting(0, at_least(0, "0 = all"))
     """Use only the first N associated frames (0 = all)."""
-    stride: int = 1
+    stride: int = setting(1, at_least(1, "frames"))
     """Use every k-th frame."""
 
 
 @dataclass(frozen=True)
 class RunConfig:
-    seed: int = 0
+    """A run's whole configuration: the top-level settings (each with its range beside it) and one record per
+    section; ``RELATIONS`` holds the rules between sections."""
+
+    RELATIONS: ClassVar[tuple[Relation, ...]] = (
+        Relation("vo.inject_outliers", lambda c: c.vo.inject_outliers == 0 or c.adapt.labels == "hindsight",
+                 lambda c: "0 (it corrupts the finished front end's map: it needs adapt.labels=hindsight)"),
+        Relation("adapt.train_width", lambda c: c.adapt.train_width <= c.net.width,
+                 lambda c: f"≤ net.width ({c.net.width}; 0 = net.width)"),
+        Relation("adapt.train_height", lambda c: c.adapt.train_height <= c.net.height,
+                 lambda c: f"≤ net.height ({c.net.height}; 0 = net.height)"),
+    )
+
+    seed: int = setting(0, SEED)
     """Seed of every random choice (replay sampling, RANSAC, init)."""
-    threads: int = 0
+    threads: int = setting(0, between(0, 4096, "0 = all cores"))
     """torch/OpenCV threads (0 = all cores)."""
-    device: str = "auto"
+    device: str = setting("auto", DEVICE)
     """Where the depth network runs: ``auto`` (CUDA when ``torch.cuda.is_available()``, else the CPU), ``cpu``,
     ``cuda`` or ``cuda:N``; VO, BA and metrics always run on the CPU (:mod:`~mutualslam_cli.device`)."""
     deterministic: bool = True
     """CUDA: deterministic cuDNN algorithms, no autotuning (one seed, one result; slower convolution backward
     kernels); ``false``: ``cudnn.benchmark`` autotuning (:mod:`~mutualslam_cli.device`). No effect on the CPU."""
-    out: str = "results"
+    out: str = setting("results", NOT_EMPTY)
     """Folder that receives ``<sequence>/<scheme>/seed<k>/``."""
     data: DataConfig = field(default_factory=DataConfig)
     vo: VOConfig = field(default_factory=VOConfig)
