@@ -4,6 +4,7 @@ The machinery behind :mod:`mutualslam_cli.config`: every field is checked agains
 (``Literal`` choices, lists, mappings, optionals, bool / int / float / str), and an error names the
 dotted key, what was expected and what was found; a string holds no NUL. The ranges of values (finite, a
 count's bounds) are declared beside the fields and checked by :mod:`~mutualslam_cli.config.checks`.
+``--set`` values are YAML, read by :mod:`~mutualslam_cli.config.yaml_file` as a config file is.
 """
 
 from __future__ import annotations
@@ -13,8 +14,7 @@ import types
 import typing
 from typing import Any, Literal
 
-import yaml
-
+from mutualslam_cli.config.yaml_file import parse_yaml
 from mutualslam_cli.errors import ConfigError
 
 
@@ -109,10 +109,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if "=" not in text:
         raise ConfigError(f"--set {text!r}: expected key=value, e.g. adapt.lr=1e-4")
     key, raw = text.split("=", 1)
-    try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as e:
-        raise ConfigError(f"--set {text!r}: value is not valid YAML ({e})") from None
+    value = parse_yaml(raw, f"--set {text!r}") if raw.strip() else ""
     parts = [p for p in key.strip().split(".") if p]
     if not parts:
         raise ConfigError(f"--set {text!r}: empty key")

@@ -10,8 +10,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-import yaml
-
 from mutualslam_cli.config.adaptation import AdaptConfig, NetConfig
 from mutualslam_cli.config.backend import BAConfig, LoopConfig
 from mutualslam_cli.config.checks import DEVICE, NOT_EMPTY, SEED, Relation, at_least, between, check_run, setting
@@ -19,6 +17,7 @@ from mutualslam_cli.config.evaluation import DenseConfig, EvalConfig
 from mutualslam_cli.config.experiment import ExperimentConfig
 from mutualslam_cli.config.frontend import VOConfig
 from mutualslam_cli.config.parse import apply_overrides, build
+from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
@@ -80,20 +79,14 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     """Load a YAML config (default ``configs/paper.yaml``), apply ``--set`` overrides, validate.
 
     Raises:
-        ConfigError: missing file, invalid YAML, unknown key, wrong type, invalid value.
+        ConfigError: one line naming the file or the key: a file that is missing, not a file, not UTF-8, not
+            valid YAML, with a key given twice or too many aliases (:mod:`~mutualslam_cli.config.yaml_file`); an
+            unknown key, a wrong type, a value out of its range (:mod:`~mutualslam_cli.config.checks`).
     """
     path = Path(path) if path is not None else CONFIG_DIR / "paper.yaml"
     data: dict[str, Any] = {}
-    if path.exists():
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"{path}: expected a mapping of sections (seed, vo, net, adapt, ...)")
-        data = loaded or {}
-    elif path != CONFIG_DIR / "paper.yaml":
-        raise ConfigError(f"{path}: config file not found")
+    if path != CONFIG_DIR / "paper.yaml" or path.exists():
+        data = read_yaml_mapping(path, ConfigError, "YAML config file")
     cfg = build(RunConfig, apply_overrides(data, overrides or [], create=True), "")
     check_run(cfg)
     return cfg
