@@ -40,8 +40,7 @@ from typing import Any, Callable, Iterator
 
 from threadpoolctl import threadpool_limits
 
-from mutualslam_cli.adapt.schemes import get_scheme
-from mutualslam_cli.config import RunConfig, with_overrides, with_settings
+from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.device import claim_gpu, gpu_slots
 from mutualslam_cli.errors import ConfigError, MslamError
@@ -76,54 +75,6 @@ class JobOutcome:
 def expand(sequences: list[str], schemes: list[str], seeds: list[int]) -> list[Job]:
     """The grid in a stable order (sequence, then seed, then scheme)."""
     return [Job(q, s, k) for q, k, s in itertools.product(sequences, seeds, schemes)]
-
-
-#: Schemes ``mslam ablate`` runs without ``--schemes`` or ``experiment.schemes``.
-DEFAULT_SCHEMES = ("none", "recent", "replay", "replay+ewc", "replay+mas", "replay+si")
-
-
-@dataclass
-class GridPart:
-    """One variant of a grid: its config, its jobs and its results folder."""
-
-    label: str
-    cfg: RunConfig
-    jobs: list[Job]
-    out: Path
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``"0,1,2"`` or ``"0-2"`` → ``[0, 1, 2]``."""
-    try:
-        a, _, b = text.partition("-")
-        return list(range(int(a), int(b) + 1)) if b else [int(x) for x in text.split(",")]
-    except ValueError:
-        raise ConfigError(f"--seeds {text!r}: expected e.g. 0,1,2 or 0-2") from None
-
-
-def plan_grid(cfg: RunConfig, sequences: list[str], schemes: str | None, seeds: str | None,
-              out: Path) -> list[GridPart]:
-    """The grid of a command line: schemes and seeds from the arguments, else from ``cfg.experiment``,
-    else the defaults; one :class:`GridPart` per ``experiment.variants`` entry (into ``out/<label>``),
-    or one for ``cfg`` itself into ``out``.
-
-    Raises:
-        ConfigError: unknown scheme, malformed seeds or variant override.
-    """
-    names = ([s.strip() for s in schemes.split(",") if s.strip()] if schemes is not None
-             else list(cfg.experiment.schemes) or list(DEFAULT_SCHEMES))
-    for n in names:
-        get_scheme(n, cfg.adapt)  # unknown name or a setting out of range: before any work
-    seed_list = parse_seeds(seeds) if seeds is not None else list(cfg.experiment.seeds) or [0]
-    jobs = expand(sequences, names, seed_list)
-    if not cfg.experiment.variants:
-        return [GridPart("", cfg, jobs, Path(out))]
-    parts = []
-    for label, overrides in cfg.experiment.variants.items():
-        if not label or "/" in label or label.startswith((".", "_")):
-            raise ConfigError(f"experiment.variants: {label!r} is not a usable folder name")
-        parts.append(GridPart(label, with_settings(cfg, list(overrides)), jobs, Path(out) / label))
-    return parts
 
 
 def _job_config(cfg: RunConfig, job: Job, threads: int) -> RunConfig:

@@ -53,7 +53,8 @@ def ablate(
 
     With --executor dask the front ends and jobs run on a Dask cluster; the sequences, the results
     folder (with its _cache/) and the weights must then be on a filesystem every worker sees."""
-    from mutualslam_cli.ablate import plan_grid, run_grid
+    from mutualslam_cli.ablate import run_grid
+    from mutualslam_cli.grid_plan import plan_grid
 
     cfg = config_from(config, sets, data_root, device)
     root = Path(out or cfg.out)
