@@ -26,12 +26,18 @@ ALIAS_BUDGET = 16
 MAX_BYTES = 4 << 20
 
 
-class Refused(yaml.YAMLError):
-    """What :class:`StrictLoader` refuses (a duplicate key, too many aliases), with the line it was found on."""
+#: The ``note`` of the YAML errors :class:`StrictLoader` raises for what it refuses (not a syntax error).
+REFUSED = "refused by mslam's strict YAML reader"
 
-    def __init__(self, reason: str, mark: Any) -> None:
-        super().__init__(reason)
-        self.reason, self.problem_mark = reason, mark
+
+def refusal(reason: str, mark: Any) -> yaml.MarkedYAMLError:
+    """The YAML error of a refusal: ``reason`` at ``mark`` (the line), told apart by :func:`is_refusal`."""
+    return yaml.MarkedYAMLError(problem=reason, problem_mark=mark, note=REFUSED)
+
+
+def is_refusal(e: BaseException) -> bool:
+    """Whether ``e`` is a refusal of :class:`StrictLoader` (a key given twice, too many aliases)."""
+    return isinstance(e, yaml.MarkedYAMLError) and e.note == REFUSED
 
 
 class StrictLoader(yaml.SafeLoader):
@@ -46,7 +52,7 @@ class StrictLoader(yaml.SafeLoader):
         if self.check_event(yaml.AliasEvent):
             self.aliases += 1
             if self.aliases > ALIAS_BUDGET:
-                raise Refused(f"more than {ALIAS_BUDGET} aliases (*name): refused, as a few aliases can stand for "
+                raise refusal(f"more than {ALIAS_BUDGET} aliases (*name): refused, as a few aliases can stand for "
                               "billions of values", self.peek_event().start_mark)
         return super().compose_node(parent, index)
 
@@ -62,7 +68,7 @@ class StrictLoader(yaml.SafeLoader):
                 except TypeError:  # an unhashable key: the constructor names it below
                     continue
                 if seen:
-                    raise Refused(f"key {key!r} is given twice in one mapping (first on line {first[key] + 1}); "
+                    raise refusal(f"key {key!r} is given twice in one mapping (first on line {first[key] + 1}); "
                                   "the second would silently replace the first", key_node.start_mark)
                 first[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep=deep)
@@ -72,8 +78,8 @@ def _problem(e: yaml.YAMLError) -> tuple[str, str]:
     """``(":line", reason)`` of a YAML error (``""`` where it has no position)."""
     mark = getattr(e, "problem_mark", None)
     where = f":{mark.line + 1}" if mark is not None else ""
-    if isinstance(e, Refused):
-        return where, e.reason
+    if is_refusal(e):
+        return where, str(e.problem)
     problem = getattr(e, "problem", None) or str(e).splitlines()[0]
     return where, f"not valid YAML ({problem})"
 

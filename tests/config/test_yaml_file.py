@@ -130,3 +130,13 @@ def test_cli_names_the_file_in_one_line(tmp_path: Path, make, needle):
     assert r.exit_code == 1 and len(lines) == 1, r.output
     assert lines[0].startswith(f"error: {path}") and needle in lines[0], r.output
     assert not out.exists()
+
+
+def test_a_camera_file_with_a_key_given_twice_is_refused_not_read_as_text(tmp_path: Path):
+    from mutualslam_cli.datasets.recordings.camera_file import read_camera_file
+
+    f = tmp_path / "cam.yaml"
+    f.write_text("camera_matrix: {rows: 3, cols: 3, data: [500, 0, 32, 0, 500, 24, 0, 0, 1]}\n"
+                 "camera_matrix: {rows: 3, cols: 3, data: [100, 0, 32, 0, 100, 24, 0, 0, 1]}\n")
+    with pytest.raises(DatasetError, match=rf"^{f}: line 2: key 'camera_matrix' is given twice"):
+        read_camera_file(f)

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.config.yaml_file import Refused, StrictLoader
+from mutualslam_cli.config.yaml_file import StrictLoader, is_refusal
 from mutualslam_cli.errors import CameraFileError, DatasetError
 from mutualslam_cli.types import Intrinsics
 
@@ -123,9 +123,9 @@ def _yaml_mapping(text: str) -> dict[str, Any] | None:
 
     try:
         data = yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader
-    except Refused as e:
-        raise CameraFileError(f"line {e.problem_mark.line + 1}: {e.reason}") from None
-    except (yaml.YAMLError, RecursionError):
+    except (yaml.YAMLError, RecursionError) as e:
+        if is_refusal(e):
+            raise CameraFileError(f"line {e.problem_mark.line + 1}: {e.problem}") from None  # type: ignore[attr-defined]
         return None
     return data if isinstance(data, dict) else None
 
