@@ -4,9 +4,10 @@ The front end does not depend on the scheme, so it runs once per (sequence, seed
 scheme jobs and lands in the VO cache that every job then reads. Jobs run in a local process
 pool by default (one torch thread per worker when there are as many workers as cores), or on a
 Dask cluster (``executor="dask"``: a ``LocalCluster`` without a scheduler address). Each job
-writes only its own result folder, and a folder counts as complete only once its
-``summary.json`` exists (written last, atomically), so a killed grid is resumed by running it
-again and a half-written folder is redone.
+writes only its own result folder, through a staging folder beside it that takes its place once
+``summary.json`` is written (:mod:`~mutualslam_cli.results.staging`), so a folder is either a complete
+run or untouched; a killed grid is resumed by running it again (complete runs are skipped, a killed
+job's staging folder is removed and the job redone).
 
 Nothing is left behind: local pool workers are spawned (not forked from a process that already
 runs OpenMP threads), ask the kernel to kill them when the grid's process dies (Linux
@@ -47,6 +48,7 @@ from mutualslam_cli.errors import ConfigError, MslamError
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, run_dir
+from mutualslam_cli.results.writable import check_output_folder, write_errors
 from mutualslam_cli.stages.context import use_threads
 from mutualslam_cli.stages.frontend import run_frontend
 
@@ -105,7 +107,7 @@ def _prepare_one(cfg: RunConfig, sequence: str, seed: int, out: str, registry: s
     try:
         seq = load_sequence(sequence, data_root=c.data.data_root, registry_path=registry,
                             max_frames=c.data.max_frames, stride=c.data.stride)
-        with threadpool_limits(limits=c.threads, user_api="blas"):
+        with threadpool_limits(limits=c.threads, user_api="blas"), write_errors(out):  # a full disk: OutputError
             run_frontend(seq, c, cache_dir=Path(out) / "_cache" / "vo")
     except MslamError as e:
         log.warning("front end for %s (seed %d) failed: %s", sequence, seed, e)
@@ -292,13 +294,17 @@ def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,
         executor: ``"local"`` (process pool, the default) or ``"dask"``.
         scheduler: Dask scheduler address (``tcp://host:8786``); ``None`` starts a ``LocalCluster``.
 
+    Each job's run writes a staging folder that replaces its run folder when it completes
+    (:mod:`~mutualslam_cli.results.staging`), so a failed or killed job leaves no half-written run folder.
+
     Raises:
         ResultsLocked: another grid or run holds ``out``.
+        OutputError: ``out`` is a file or cannot be written.
         KeyboardInterrupt: Ctrl-C; the workers are stopped first, finished jobs stay complete.
     """
     if executor not in ("local", "dask"):
         raise ConfigError(f"--executor {executor!r}: expected local or dask")
-    out = str(out)
+    out = str(check_output_folder(out))  # a file, read-only: one line before any work
     reg = str(registry) if registry else None
     threads = cfg.threads if cfg.threads > 0 else max(1, (os.cpu_count() or 1) // max(1, workers))
     outcomes: list[JobOutcome] = []

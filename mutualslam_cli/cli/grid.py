@@ -22,6 +22,7 @@ from mutualslam_cli.cli.common import (
     config_from,
     progress_bar,
 )
+from mutualslam_cli.results.writable import check_output_folder
 
 # --------------------------------------------------------------------------- ablate
 
@@ -59,6 +60,7 @@ def ablate(
     cfg = config_from(config, sets, data_root, device)
     root = Path(out or cfg.out)
     parts = plan_grid(cfg, list(seqs), schemes, seeds, root)
+    check_output_folder(root)  # a file, read-only: one line, before the bar
     total = sum(len(p.jobs) for p in parts)
     failed, outcomes = [], []
     with progress_bar() as p:
