@@ -129,3 +129,13 @@ def test_cli_refuses_an_out_that_is_a_file_before_any_work(tree: Path, tmp_path:
     assert r.exit_code == 1 and r.output.splitlines() == [
         f"error: {f}: is a file, not a folder for the report; choose another --out (a folder, created when missing)"]
     assert f.read_text() == "keep me\n"  # and no table was printed before the refusal
+
+
+def test_a_summary_that_is_not_utf8_or_a_folder_is_skipped_too(tmp_path: Path, tree: Path):
+    run_dir(tree, "torn", "none", 0).joinpath("summary.json").write_bytes(b'{"scheme": "caf\xe9"}')
+    odd = run_dir(tree, "odd", "none", 0) / "summary.json"
+    odd.mkdir(parents=True)  # a folder of that name
+    notes: list[str] = []
+    assert len(collect([tree], notes)) == 2
+    assert any("torn" in n and "not UTF-8 text (byte 0xe9" in n for n in notes)
+    assert any("odd" in n and "cannot be read" in n for n in notes)
