@@ -104,7 +104,7 @@ def check_output_folder(folder: str | os.PathLike[str], what: str = "results") -
         OutputError: ``folder`` (or a parent) is a file, is read-only or denied.
     """
     folder = Path(folder)
-    base = next((p for p in (folder, *folder.absolute().parents) if p.exists()), None)
+    base = next((p for p in (folder, *folder.parents) if p.exists()), None)
     if base is not None and not base.is_dir():
         raise OutputError(f"{base}: is a file, not a folder for the {what}; " + (
             "choose another --out (a folder, created when missing)" if base == folder else
