@@ -43,7 +43,7 @@ class DenseConfig:
     those between fields."""
 
     RELATIONS: ClassVar[tuple[Relation, ...]] = (
-        Relation("depth_max", lambda c: c.depth_max > c.depth_min, lambda c: f"> depth_min ({c.depth_min})"),
+        Relation("depth_min", lambda c: c.depth_min < c.depth_max, lambda c: f"< depth_max ({c.depth_max})"),
         Relation("scalings", lambda c: "sequence" in c.scalings and len(set(c.scalings)) == len(c.scalings),
                  lambda c: "a list that holds 'sequence' (the headline scores) and no name twice"),
     )

@@ -54,7 +54,7 @@ def test_every_number_of_every_section_has_its_range_beside_it():
     ("adapt.train_width=1024", "adapt.train_width = 1024: expected ≤ net.width (640"),
     ("net.width=0", "net.width = 0: expected a multiple of 32 in [32, 8192]"),
     ("ba.image_scale=0", "ba.image_scale = 0.0: expected a number in (0, 1]"),
-    ("dense.depth_max=0.05", "dense.depth_max = 0.05: expected > depth_min (0.1)"),
+    ("dense.depth_max=0.05", "dense.depth_min = 0.1: expected < depth_max (0.05)"),
     ("experiment.seeds=[0, -3]", "experiment.seeds[1] = -3: expected an integer in [0, 4294967295]"),
     ("experiment.seeds=[1, 1]", "experiment.seeds = [1, 1]: expected no seed named twice"),
     ("experiment.variants={.hidden: []}", "experiment.variants = {'.hidden': []}: expected labels that are folder"),
