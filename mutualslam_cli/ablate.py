@@ -4,9 +4,10 @@ The front end does not depend on the scheme, so it runs once per (sequence, seed
 scheme jobs and lands in the VO cache that every job then reads. Jobs run in a local process
 pool by default (one torch thread per worker when there are as many workers as cores), or on a
 Dask cluster (``executor="dask"``: a ``LocalCluster`` without a scheduler address). Each job
-writes only its own result folder, and a folder counts as complete only once its
-``summary.json`` exists (written last, atomically), so a killed grid is resumed by running it
-again and a half-written folder is redone.
+writes only its own result folder, through a staging folder beside it that takes its place once
+``summary.json`` is written (:mod:`~mutualslam_cli.results.staging`), so a folder is either a complete
+run or untouched; a killed grid is resumed by running it again (complete runs are skipped, a killed
+job's staging folder is removed and the job redone).
 
 Nothing is left behind: local pool workers are spawned (not forked from a process that already
 runs OpenMP threads), ask the kernel to kill them when the grid's process dies (Linux
@@ -40,14 +41,14 @@ from typing import Any, Callable, Iterator
 
 from threadpoolctl import threadpool_limits
 
-from mutualslam_cli.adapt.schemes import get_scheme
-from mutualslam_cli.config import RunConfig, with_overrides, with_settings
+from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.device import claim_gpu, gpu_slots
 from mutualslam_cli.errors import ConfigError, MslamError
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, run_dir
+from mutualslam_cli.results.writable import check_output_folder, write_errors
 from mutualslam_cli.stages.context import use_threads
 from mutualslam_cli.stages.frontend import run_frontend
 
@@ -78,54 +79,6 @@ def expand(sequences: list[str], schemes: list[str], seeds: list[int]) -> list[J
     return [Job(q, s, k) for q, k, s in itertools.product(sequences, seeds, schemes)]
 
 
-#: Schemes ``mslam ablate`` runs without ``--schemes`` or ``experiment.schemes``.
-DEFAULT_SCHEMES = ("none", "recent", "replay", "replay+ewc", "replay+mas", "replay+si")
-
-
-@dataclass
-class GridPart:
-    """One variant of a grid: its config, its jobs and its results folder."""
-
-    label: str
-    cfg: RunConfig
-    jobs: list[Job]
-    out: Path
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``"0,1,2"`` or ``"0-2"`` → ``[0, 1, 2]``."""
-    try:
-        a, _, b = text.partition("-")
-        return list(range(int(a), int(b) + 1)) if b else [int(x) for x in text.split(",")]
-    except ValueError:
-        raise ConfigError(f"--seeds {text!r}: expected e.g. 0,1,2 or 0-2") from None
-
-
-def plan_grid(cfg: RunConfig, sequences: list[str], schemes: str | None, seeds: str | None,
-              out: Path) -> list[GridPart]:
-    """The grid of a command line: schemes and seeds from the arguments, else from ``cfg.experiment``,
-    else the defaults; one :class:`GridPart` per ``experiment.variants`` entry (into ``out/<label>``),
-    or one for ``cfg`` itself into ``out``.
-
-    Raises:
-        ConfigError: unknown scheme, malformed seeds or variant override.
-    """
-    names = ([s.strip() for s in schemes.split(",") if s.strip()] if schemes is not None
-             else list(cfg.experiment.schemes) or list(DEFAULT_SCHEMES))
-    for n in names:
-        get_scheme(n, cfg.adapt)  # unknown name or a setting out of range: before any work
-    seed_list = parse_seeds(seeds) if seeds is not None else list(cfg.experiment.seeds) or [0]
-    jobs = expand(sequences, names, seed_list)
-    if not cfg.experiment.variants:
-        return [GridPart("", cfg, jobs, Path(out))]
-    parts = []
-    for label, overrides in cfg.experiment.variants.items():
-        if not label or "/" in label or label.startswith((".", "_")):
-            raise ConfigError(f"experiment.variants: {label!r} is not a usable folder name")
-        parts.append(GridPart(label, with_settings(cfg, list(overrides)), jobs, Path(out) / label))
-    return parts
-
-
 def _job_config(cfg: RunConfig, job: Job, threads: int) -> RunConfig:
     return with_overrides(cfg, adapt={"scheme": job.scheme}, seed=job.seed, threads=threads)  # type: ignore[arg-type]
 
@@ -154,7 +107,7 @@ def _prepare_one(cfg: RunConfig, sequence: str, seed: int, out: str, registry: s
     try:
         seq = load_sequence(sequence, data_root=c.data.data_root, registry_path=registry,
                             max_frames=c.data.max_frames, stride=c.data.stride)
-        with threadpool_limits(limits=c.threads, user_api="blas"):
+        with threadpool_limits(limits=c.threads, user_api="blas"), write_errors(out):  # a full disk: OutputError
             run_frontend(seq, c, cache_dir=Path(out) / "_cache" / "vo")
     except MslamError as e:
         log.warning("front end for %s (seed %d) failed: %s", sequence, seed, e)
@@ -341,13 +294,17 @@ def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,
         executor: ``"local"`` (process pool, the default) or ``"dask"``.
         scheduler: Dask scheduler address (``tcp://host:8786``); ``None`` starts a ``LocalCluster``.
 
+    Each job's run writes a staging folder that replaces its run folder when it completes
+    (:mod:`~mutualslam_cli.results.staging`), so a failed or killed job leaves no half-written run folder.
+
     Raises:
         ResultsLocked: another grid or run holds ``out``.
+        OutputError: ``out`` is a file or cannot be written.
         KeyboardInterrupt: Ctrl-C; the workers are stopped first, finished jobs stay complete.
     """
     if executor not in ("local", "dask"):
         raise ConfigError(f"--executor {executor!r}: expected local or dask")
-    out = str(out)
+    out = str(check_output_folder(out))  # a file, read-only: one line before any work
     reg = str(registry) if registry else None
     threads = cfg.threads if cfg.threads > 0 else max(1, (os.cpu_count() or 1) // max(1, workers))
     outcomes: list[JobOutcome] = []

@@ -19,6 +19,8 @@ Two families, told apart by what the CLI does with them:
     or not increasing).
   - :class:`ResultsLocked`: another live process works in the same result folder
     (:func:`~mutualslam_cli.results.lock.hold_lock`).
+  - :class:`OutputError`: a results or report folder cannot be written (read-only, the disk full, a file
+    where a folder should be; :mod:`~mutualslam_cli.results.writable`).
 
 - Programming errors, deliberately *not* ``MslamError`` so that they keep their traceback:
 
@@ -109,6 +111,12 @@ class ResultsLocked(MslamError):
     holder (pid, host, since when, doing what) and what to do. A plain message-only class, so it
     crosses process pools intact.
     """
+
+
+class OutputError(MslamError):
+    """A results or report folder cannot be written: read-only, the disk full (or a quota reached), a file in
+    the way of a folder. The one-line message names the path, the reason and what to do, and what became of
+    the run (nothing of it kept; a previous run in the folder as it was)."""
 
 
 class ShapeError(ValueError):

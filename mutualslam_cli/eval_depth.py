@@ -46,7 +46,9 @@ from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.online.scores import eval_frames
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, manifest, read_summary, run_dir, write_json, write_yaml
+from mutualslam_cli.results.staging import staged
 from mutualslam_cli.results.summary import SUMMARY_KEYS, Summary
+from mutualslam_cli.results.writable import check_output_folder, write_errors
 from mutualslam_cli.stages.evaluation import depth_means
 from mutualslam_cli.vo.camera import Undistorter
 
@@ -186,30 +188,33 @@ def eval_depth(sequence: str | Path | Sequence, predictions: str | Path, name: s
     seq = sequence if isinstance(sequence, Sequence) else load_sequence(
         sequence, data_root=cfg.data.data_root, registry_path=registry,
         max_frames=cfg.data.max_frames, stride=cfg.data.stride)
-    folder = run_dir(Path(out if out is not None else cfg.out), seq.name, name, 0)
+    root = check_output_folder(out if out is not None else cfg.out)  # a file, read-only: before any work
+    folder = run_dir(root, seq.name, name, 0)
     if is_complete(folder) and not force:
         return ExternalResult(folder, read_summary(folder), skipped=True)
     frames = eval_frames(seq, cfg.eval.stride)
     if not frames:
         raise DatasetError(f"{seq.root}: no frame has GT depth; nothing to score")
     files = match_predictions(seq, frames, prediction_files(predictions, ext))  # every file found before any work
-    with hold_lock(folder, "mslam eval-depth"):
-        (folder / "summary.json").unlink(missing_ok=True)  # a forced rescore is incomplete until its summary
+    kept = "the previous result in it is as it was" if is_complete(folder) else "nothing of it was kept"
+    # the folder changes only when the scoring completes (results/staging.py): a failed --force keeps the old one
+    with write_errors(root, kept), hold_lock(folder, "mslam eval-depth", beside=True), staged(folder) as stage, \
+            write_errors(root, kept):
         table = score_predictions(seq, files, kind, cfg, scale, npz_key, progress)
         info = {"model": name, "kind": kind, "scale": scale, "predictions": str(Path(predictions).resolve()),
                 "ext": files[frames[0]].suffix.lstrip("."), "npz_key": npz_key,
                 "alignment": "per-frame least-squares scale and shift in inverse depth (MiDaS)"
                 if kind == "relative-inverse" else "none"}
-        write_yaml(folder / "config.yaml", to_dict(cfg))
-        atomic_write_text(folder / "per_frame.csv", table.to_csv(index=False))
+        write_yaml(stage / "config.yaml", to_dict(cfg))
+        atomic_write_text(stage / "per_frame.csv", table.to_csv(index=False))
         summary = _summary(table, seq, name, info, cfg)
         timings = {"total_s": time.perf_counter() - t0}
-        write_json(folder / "manifest.json", manifest(command, 0, timings, {
+        write_json(stage / "manifest.json", manifest(command, 0, timings, {
             "sequence": {"name": seq.name, "root": str(seq.root), "frames": len(seq), "meta": seq.meta,
                          "intrinsics": seq.intrinsics.as_list()},
             "external": info}))
         s = summary.to_dict()
-        write_json(folder / "summary.json", s)  # last: marks the result complete
+        write_json(stage / "summary.json", s)  # last: marks the result complete
     return ExternalResult(folder, s)
 
 

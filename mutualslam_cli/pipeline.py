@@ -37,7 +37,9 @@ from mutualslam_cli.results.run_folder import (
     write_json,
     write_yaml,
 )
+from mutualslam_cli.results.staging import staged
 from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.results.writable import check_output_folder, write_errors
 from mutualslam_cli.stages import adaptation, dense, depth_export, evaluation, frontend, scale_drift
 from mutualslam_cli.stages.ba import BAStage
 from mutualslam_cli.stages.context import RunContext, open_sequence, use_threads
@@ -89,35 +91,48 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         :class:`RunResult`. A complete run (``summary.json`` present) is returned as is unless
         ``force``.
 
+    The run writes a staging folder that replaces the run folder only once ``summary.json`` is in it
+    (:mod:`~mutualslam_cli.results.staging`): a run that fails, or is killed, leaves the folder as it was.
+
     Raises:
         ResultsLocked: another process works in the same run folder (:mod:`~mutualslam_cli.results.lock`).
         ConfigError: ``device`` names a CUDA device this process cannot use.
+        OutputError: ``out`` is a file, read-only, or a write failed (the disk full): one line naming the path
+            (:mod:`~mutualslam_cli.results.writable`).
     """
     t_start = time.perf_counter()
     device = resolve_device(cfg.device)  # once per run; everything that holds network tensors gets it
     torch.manual_seed(cfg.seed)  # seeds CUDA's generators too
     retain_freed_memory()  # image-sized buffers reuse pages (VO, warps, evaluation)
     cfg = use_threads(cfg)
-    out_root = Path(out if out is not None else cfg.out)
+    out_root = check_output_folder(out if out is not None else cfg.out)  # a file, read-only: before any work
     recording = recording or RecordingOptions()
     if recording.cache is None:
         recording = replace(recording, cache=out_root / "_cache" / "recordings")
-    seq = open_sequence(sequence, cfg, registry, recording, progress)
+    with write_errors(out_root):
+        seq = open_sequence(sequence, cfg, registry, recording, progress)
+    t_load = time.perf_counter() - t_start
     folder = run_dir(out_root, seq.name, cfg.adapt.scheme, cfg.seed)
-    run = RunContext(seq, cfg, folder, out_root, progress=progress, timings={"load": time.perf_counter() - t_start},
-                     device=device)
     if is_complete(folder) and not force:
         log.info("%s is complete; skipping (use --force to recompute)", folder)
         return RunResult(folder, read_summary(folder), skipped=True)
+    kept = "the previous run in it is as it was" if is_complete(folder) else "nothing of this run was kept"
     # a second process on this folder stops at the lock, having touched nothing
-    with hold_lock(folder, "mslam run"), threadpool_limits(limits=cfg.threads, user_api="blas"):
+    with write_errors(out_root, kept), hold_lock(folder, "mslam run", beside=True), \
+            threadpool_limits(limits=cfg.threads, user_api="blas"):
         if is_complete(folder) and not force:  # completed by the previous holder just before we locked
             return RunResult(folder, read_summary(folder), skipped=True)
-        return _run(run, command, t_start)
+        # the folder changes only when the run completes (results/staging.py); a write error is named while
+        # the staging folder still fills the disk, then the staging folder goes
+        with staged(folder) as stage, write_errors(out_root, kept):
+            run = RunContext(seq, cfg, stage, out_root, progress=progress, device=device, timings={"load": t_load})
+            summary, timings = _run(run, command, t_start)
+        return RunResult(folder, summary, timings=timings)
 
 
-def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResult:
-    """Algorithm 1 around a sequence, in its run folder, under the folder's lock."""
+def _run(run: RunContext, command: list[str] | None, t_start: float) -> tuple[dict[str, Any], dict[str, float]]:
+    """Algorithm 1 around a sequence, in its staging folder, under the run folder's lock; returns
+    ``(summary, timings)`` (:func:`~mutualslam_cli.stages.run_record.write_record`)."""
     cfg = run.cfg
     write_yaml(run.folder / "config.yaml", to_dict(cfg))
     run.device_info = {**describe_device(run.device), **configure(run.device, cfg.deterministic)}
@@ -134,8 +149,7 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> RunResul
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:
         dense.run_stage(run, fe, net0, adapted, fast)  # TSDF meshes of both models, scored against GT
-    summary, timings = write_record(run, fe, ba, adapted, command, t_start)  # summary.json last: the run is complete
-    return RunResult(run.folder, summary, timings=timings)
+    return write_record(run, fe, ba, adapted, command, t_start)  # summary.json last: the run is complete
 
 
 # ----------------------------------------------------------------------------- mslam fuse
@@ -147,7 +161,8 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
     """The dense stage on a finished run folder (``mslam fuse RUN_DIR``), with the run's setup: its
     config, sequence, front end (from the VO cache beside the results, recomputed if absent),
     pre-trained model and ``weights/``; updates ``summary.json`` (the ``dense.*`` keys),
-    ``config.yaml``'s ``dense`` section and ``manifest.json`` (a ``fuse`` entry).
+    ``config.yaml``'s ``dense`` section and ``manifest.json`` (a ``fuse`` entry) — in a staging copy of the run
+    folder that replaces it when the dense stage is done (a failed fuse leaves the run as it was).
 
     Args:
         overrides: ``--set``-style ``dense.*`` (or other) settings on top of the run's config.
@@ -172,7 +187,8 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
     if seq is None and not root:
         raise DatasetError(f"{folder}: manifest.json names no sequence root")
     t0 = time.perf_counter()
-    with hold_lock(folder, "mslam fuse"):
+    with write_errors(folder.parent, "the run is as it was"), hold_lock(folder, "mslam fuse", beside=True), \
+            staged(folder, from_current=True) as stage, write_errors(folder.parent, "the run is as it was"):
         cfg = use_threads(cfg)
         device = resolve_device(cfg.device)
         configure(device, cfg.deterministic)
@@ -182,12 +198,12 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         nets = {"pretrained": load_network(cfg, fast, device),
                 "adapted": load_saved_network(wdir, cfg, fast, device) if adapted else None}
         summary = Summary.from_dict(old, drop_prefix="dense.")
-        dense.run_dense(folder, seq, vo, nets, cfg, fast, summary, progress)
+        dense.run_dense(stage, seq, vo, nets, cfg, fast, summary, progress)
         data = to_dict(cfg)
         data["dense"]["enabled"] = True  # the folder now holds the dense results of these settings
-        write_yaml(folder / "config.yaml", data)
+        write_yaml(stage / "config.yaml", data)
         record["fuse"] = fuse_record(command, time.perf_counter() - t0, describe_device(device))
-        write_json(folder / "manifest.json", record)
+        write_json(stage / "manifest.json", record)
         out = summary.to_dict()
-        write_json(folder / "summary.json", out)
+        write_json(stage / "summary.json", out)
     return out

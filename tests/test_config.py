@@ -41,7 +41,7 @@ def test_overrides_parse_yaml_values():
         ("vo.mode=foo", "not one of"),
         ("adapt.lr=abc", "expected a number"),
         ("adapt.lr=.nan", "NaN"),
-        ("net.width=100", "multiples of 32"),
+        ("net.width=100", "a multiple of 32"),
         ("adapt.validate_every=0", "≥ 1"),
         ("seed=1.5", "integer"),
         ("nosection", "key=value"),
@@ -110,10 +110,10 @@ def test_experiment_section_lists_and_variants_are_checked(tmp_path):
 
 
 @pytest.mark.parametrize("override, match", [
-    ("vo.min_tracked=3", r"vo.min_tracked = 3: expected ≥ 6"),
+    ("vo.min_tracked=3", r"vo.min_tracked = 3: expected an integer ≥ 6"),
     ("vo.grid_size=2", r"vo.grid_size = 2: expected an integer ≥ 4"),
-    ("vo.inject_outliers=1.0", r"vo.inject_outliers = 1.0: expected in \[0, 1\)"),
-    ("ba.nearby_slots=5", r"ba.nearby_slots must be in \[0, ba.max_targets\)"),
+    ("vo.inject_outliers=1.0", r"vo.inject_outliers = 1.0: expected a number in \[0, 1\)"),
+    ("ba.nearby_slots=5", r"ba.nearby_slots = 5: expected in \[0, max_targets\) \(max_targets = 5\)"),
 ])
 def test_values_the_tool_cannot_work_with_are_named(override, match):
     """One check per value, at load time: the message names the key, the value and what was expected."""

@@ -64,7 +64,7 @@ def test_auto_is_the_cpu_without_cuda_and_cuda_fails_with_the_way_out(monkeypatc
     with pytest.raises(ConfigError, match="CUDA is not available.*device=cpu or auto"):
         device.resolve_device("cuda")
     for bad in ("gpu", "cuda:x", "CUDA", "", "cuda:0:1"):
-        with pytest.raises(ConfigError, match="not one of auto, cpu, cuda, cuda:N"):
+        with pytest.raises(ConfigError, match="expected one of auto, cpu, cuda, cuda:N"):
             device.resolve_device(bad)
     with pytest.raises(ConfigError, match="device"):
         load_config(None, ["device=gpu"])

@@ -14,9 +14,10 @@ from pathlib import Path
 import psutil
 import pytest
 
-from mutualslam_cli.ablate import expand, plan_grid, run_grid
+from mutualslam_cli.ablate import expand, run_grid
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.errors import ConfigError, ResultsLocked
+from mutualslam_cli.grid_plan import plan_grid
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.summary import flatten
 
@@ -56,6 +57,38 @@ def test_plan_grid_reads_the_experiment_and_expands_variants(setup, tmp_path):
         plan_grid(load_config(), [str(seq)], "nope", None, tmp_path)
     with pytest.raises(ConfigError, match="--seeds"):
         plan_grid(load_config(), [str(seq)], None, "a-b", tmp_path)
+
+
+@pytest.mark.parametrize("schemes, seeds, message", [
+    (None, "3-1", r"^--seeds '3-1': the range is empty \(1 < 3\), so the grid would run nothing; expected e.g. 1-3$"),
+    (",", None, r"^--schemes ',': names no scheme, so the grid would run nothing"),
+    (" , ,", None, r"^--schemes ' , ,': names no scheme"),
+    ("none,none", None, r"^--schemes 'none,none': none given twice"),
+    (None, "0,0", r"^--seeds '0,0': a seed is given twice"),
+    (None, "0,4294967296", r"^--seeds '0,4294967296': seed 4294967296 is outside 0..4294967295$"),
+    (None, "0-99999999999", r"^--seeds '0-99999999999': 100000000000 seeds; a grid runs at most 10000$"),
+])
+def test_a_grid_that_would_run_nothing_or_twice_is_refused(setup, tmp_path, schemes, seeds, message):
+    tmp, seq = setup
+    with pytest.raises(ConfigError, match=message):
+        plan_grid(load_config(), [str(seq)], schemes, seeds, tmp_path)
+
+
+def test_cli_refuses_an_empty_grid_with_exit_1_and_keeps_typers_usage_errors_at_2(setup, tmp_path):
+    from typer.testing import CliRunner
+
+    from mutualslam_cli.cli import app
+
+    tmp, seq = setup
+    out = tmp_path / "grid"
+    for args, needle in ((["--seeds", "3-1"], "--seeds '3-1': the range is empty"),
+                         (["--schemes", ","], "--schemes ',': names no scheme")):
+        r = CliRunner().invoke(app, ["ablate", str(seq), "--out", str(out), *args])
+        lines = [ln for ln in r.output.splitlines() if ln.strip()]
+        assert r.exit_code == 1 and len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0], r.output
+        assert "0 jobs" not in r.output and not out.exists()
+    r = CliRunner().invoke(app, ["ablate", str(seq), "--out", str(out), "-j", "0"])
+    assert r.exit_code == 2 and not out.exists()  # typer's own usage check, its own exit code
 
 
 def test_a_second_grid_on_the_same_folder_stops_at_once(setup, tmp_path):

@@ -65,8 +65,9 @@ from mutualslam_cli.adapt.losses import photometric_error, smoothness_loss
 from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.adapt.warp import warp
 from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.config.checks import check_config
 from mutualslam_cli.device import grad_scaler, module_device, synchronize
-from mutualslam_cli.errors import ConfigError, ShapeError
+from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.types import check_shape
 
 #: Std of the noise added to the identity reprojection error to break ties (Monodepth2: 1e-5).
@@ -75,23 +76,6 @@ IDENTITY_NOISE = 1e-5
 INVALID_PE = 1e4
 #: The BatchNorm layers :func:`freeze_batchnorm` freezes.
 BATCHNORM_TYPES = (nn.BatchNorm1d, nn.BatchNorm2d, nn.BatchNorm3d, nn.SyncBatchNorm)
-
-
-def check_comoda_config(c: AdaptConfig) -> None:
-    """Raise :class:`ConfigError` naming the first ``comoda_*`` setting out of range."""
-    checks = [
-        (c.comoda_lr > 0, f"adapt.comoda_lr = {c.comoda_lr}: must be > 0"),
-        (c.comoda_steps_per_frame >= 1, f"adapt.comoda_steps_per_frame = {c.comoda_steps_per_frame}: must be ≥ 1"),
-        (c.comoda_replay_per_step >= 0, f"adapt.comoda_replay_per_step = {c.comoda_replay_per_step}: must be ≥ 0"),
-        (c.comoda_replay_capacity >= 1, f"adapt.comoda_replay_capacity = {c.comoda_replay_capacity}: must be ≥ 1"),
-        (c.comoda_smoothness >= 0, f"adapt.comoda_smoothness = {c.comoda_smoothness}: must be ≥ 0"),
-        (c.comoda_min_motion >= 0, f"adapt.comoda_min_motion = {c.comoda_min_motion}: must be ≥ 0"),
-        (c.comoda_replay_from in ("source", "sequence"),
-         f"adapt.comoda_replay_from = {c.comoda_replay_from!r}: expected 'source' or 'sequence'"),
-    ]
-    for ok, msg in checks:
-        if not ok:
-            raise ConfigError(msg)
 
 
 def freeze_batchnorm(*modules: nn.Module) -> int:
@@ -203,7 +187,7 @@ class ComodaAdapter:
                  K_net: torch.Tensor | np.ndarray, seed: int = 0, fast: bool = False,
                  replay_bank: tuple[torch.Tensor, torch.Tensor] | None = None,
                  device: torch.device | str | None = None) -> None:
-        check_comoda_config(cfg)
+        check_config(cfg, "adapt")  # every setting in its range (records built in code skip load_config)
         self.device = torch.device(device) if device is not None else module_device(depth_net)
         depth_net.to(self.device)
         pose_net.to(self.device)

@@ -22,6 +22,7 @@ from mutualslam_cli.cli.common import (
     config_from,
     progress_bar,
 )
+from mutualslam_cli.results.writable import check_output_folder, write_errors
 
 # --------------------------------------------------------------------------- ablate
 
@@ -53,11 +54,13 @@ def ablate(
 
     With --executor dask the front ends and jobs run on a Dask cluster; the sequences, the results
     folder (with its _cache/) and the weights must then be on a filesystem every worker sees."""
-    from mutualslam_cli.ablate import plan_grid, run_grid
+    from mutualslam_cli.ablate import run_grid
+    from mutualslam_cli.grid_plan import plan_grid
 
     cfg = config_from(config, sets, data_root, device)
     root = Path(out or cfg.out)
     parts = plan_grid(cfg, list(seqs), schemes, seeds, root)
+    check_output_folder(root)  # a file, read-only: one line, before the bar
     total = sum(len(p.jobs) for p in parts)
     failed, outcomes = [], []
     with progress_bar() as p:
@@ -100,17 +103,25 @@ def report(
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
 ) -> None:
-    """The paper's tables and plots from result folders."""
+    """The paper's tables and plots from result folders.
+
+    A damaged run (a summary.json that is not valid JSON or not an object, an unreadable config.yaml) is
+    skipped with a note and the others are reported; the command fails only when no run could be."""
     from mutualslam_cli.report.columns import cell_text
     from mutualslam_cli.report.tables import build_tables, collect, write_report
 
-    out = out or Path(config_from(config, sets).out) / "report"
-    rep = build_tables(collect(list(results)))
+    out = check_output_folder(out or Path(config_from(config, sets).out) / "report", "report")  # before any work
+    notes: list[str] = []
+    rep = build_tables(collect(list(results), notes), notes)
     for name, tdf in rep.tables.items():
         # titles and cells are text, not rich markup: a config label "[vo.inject_outliers=0.1]" stays
         t = Table(*(escape(str(c)) for c in tdf.columns), title=escape(rep.titles[name]))
         for row in tdf.itertuples(index=False):
             t.add_row(*(escape(cell_text(v)) for v in row))
         common.console.print(t)
-    paths = write_report(rep, out)
-    common.console.print(f"wrote {len(paths)} files to {out}")
+    with write_errors(out, "the tables above were not all written"):
+        paths = write_report(rep, out)
+    for note in rep.notes:  # paths and values from the result folders: shown, never markup
+        common.err_console.print(f"[yellow]note:[/] {common.shown(note)}", highlight=False, soft_wrap=True)
+    common.console.print(f"wrote {len(paths)} files to {escape(str(out))}"
+                         + (f" ({len(rep.notes)} notes in report.md)" if rep.notes else ""))

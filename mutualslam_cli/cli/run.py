@@ -27,6 +27,7 @@ from mutualslam_cli.cli.common import (
 )
 from mutualslam_cli.config import with_overrides
 from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.results.writable import check_output_folder
 
 # --------------------------------------------------------------------------- run
 
@@ -138,6 +139,7 @@ def run(
             "net": {"weights": str(weights)} if weights else None, "seed": seed}
     cfg = with_overrides(cfg, **{k: v for k, v in over.items() if v is not None})  # type: ignore[arg-type]
     get_scheme(cfg.adapt.scheme, cfg.adapt)  # unknown name or bad setting → ConfigError, before any work
+    check_output_folder(out if out is not None else cfg.out)  # a file, read-only: one line, before the bars
     with progress_bar() as p:
         tasks: dict[str, Any] = {}
 
@@ -239,6 +241,7 @@ def eval_depth(
     from mutualslam_cli.results.summary import flatten
 
     cfg = config_from(config, sets, data_root)
+    check_output_folder(out if out is not None else cfg.out)  # a file, read-only: one line, before the bar
     with progress_bar() as p:
         task = p.add_task(f"score {name}", total=None, info="")
         r = score_external(seq, predictions, name, kind, cfg, scale=scale, out=out, ext=ext, npz_key=key,

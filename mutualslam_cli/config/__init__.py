@@ -1,13 +1,14 @@
-"""Run configuration: frozen dataclasses, loaded with ``yaml.safe_load`` and validated. ``configs/paper.yaml``
+"""Run configuration: frozen dataclasses, loaded by a strict YAML reader and validated. ``configs/paper.yaml``
 holds the paper's values (DESIGN §4–7), which are the defaults: a missing key means "the paper's value".
 ``--set section.key=value`` overrides one field; the value is parsed as YAML (``--set adapt.lr=1e-4``).
 
 The package owns every setting of a run, one module per thing configured: :mod:`.run` (the top level,
 :class:`RunConfig`, ``data:``), :mod:`.frontend` (``vo:``), :mod:`.adaptation` (``net:``, ``adapt:``),
 :mod:`.backend` (``ba:``, ``loop:``), :mod:`.evaluation` (``eval:``, ``dense:``), :mod:`.experiment`
-(``experiment:``); :mod:`.parse` turns plain values into them, :mod:`.checks` refuses values the tool
-cannot work with. It sits on the ground floor: it imports :mod:`mutualslam_cli.errors` and nothing else
-of the package.
+(``experiment:``); :mod:`.yaml_file` reads the YAML a user wrote (no key twice, no alias bomb, UTF-8),
+:mod:`.parse` turns plain values into the records, :mod:`.checks` holds the range of every value (declared
+beside its field) and refuses values the tool cannot work with, once, before any work. It sits on the ground
+floor: it imports :mod:`mutualslam_cli.errors` and nothing else of the package.
 
 Entry points: :func:`load_config`, :func:`with_settings`, :func:`with_overrides`, :func:`to_dict` and
 :data:`CONFIG_DIR`; the section records below.

@@ -1,86 +1,219 @@
-"""The values the tool cannot work with: :func:`check_run` over a whole run configuration,
-:func:`check_vo` over the front end's section (the front end checks it on its own too) and
-:func:`check_device_spec` over a device name. Each raises :class:`~mutualslam_cli.errors.ConfigError`
-naming the first offending key."""
+"""The values the tool cannot work with, declared beside the fields they bound, and the one check of them.
+
+Every field of a section record is declared with :func:`setting`, which puts its :class:`Range` (or
+:class:`Pattern`) into the field's metadata; a record's relations between its own fields (``max_fts`` ≥
+``min_tracked``, ``min_depth`` < ``max_depth``) are its class attribute ``RELATIONS``, a tuple of
+:class:`Relation`. :func:`check_config` walks a record and its nested records and raises
+:class:`~mutualslam_cli.errors.ConfigError` naming the first offending key, its value and what was expected
+(``vo.grid_size = 2: expected an integer ≥ 4 (pixels)``). Types, finiteness and the size of integers are
+:mod:`~mutualslam_cli.config.parse`'s, which runs first.
+
+:func:`check_run` (a whole run configuration), :func:`check_vo` (the front end's section, which the front
+end checks on its own too) and :func:`check_device_spec` (a device name) are the entry points.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import math
 import re
-from typing import Any
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, Callable, Literal
 
 from mutualslam_cli.errors import ConfigError
 
+#: Metadata key of a field's rule.
+RULE = "rule"
+#: The largest integer a count, size or index may be: a C ``int``, what OpenCV and torch take.
+INT_MAX = 2**31 - 1
+#: Seeds: what numpy's and torch's generators accept, an unsigned 32-bit integer.
+SEED_MAX = 2**32 - 1
+
+
+def _num(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else repr(x)
+
+
+@dataclass(frozen=True)
+class Range:
+    """An interval for a number (for a list: for each element), with an optional step.
+
+    Attributes:
+        lo, hi: bounds (``None``: unbounded on that side; an integer field is bounded by :data:`INT_MAX`).
+        lo_open, hi_open: the bound itself is excluded.
+        multiple_of: integers only: the value is a multiple of this.
+        or_zero: 0 is allowed besides the interval (``0 = all``).
+        unit: shown after the expectation (``pixels``, ``0 = all``).
+    """
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    multiple_of: int | None = None
+    or_zero: bool = False
+    unit: str = ""
+
+    def holds(self, v: Any) -> bool:
+        """Whether the number ``v`` is inside (a non-number: not this rule's business, True)."""
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            return True
+        if self.or_zero and v == 0:
+            return True
+        hi = INT_MAX if self.hi is None and isinstance(v, int) else self.hi
+        return not ((isinstance(v, float) and not math.isfinite(v))
+                    or (self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo))
+                    or (hi is not None and (v >= hi if self.hi_open else v > hi))
+                    or bool(self.multiple_of and v % self.multiple_of))
+
+    def expected(self, v: Any) -> str:
+        """What the rule asks of ``v``, in words: ``an integer ≥ 4 (pixels)``, ``a number in (0, 1]``."""
+        integer = isinstance(v, int) and not isinstance(v, bool)
+        if integer and self.hi is None and v > INT_MAX:
+            return f"an integer ≤ {INT_MAX} (a 32-bit count)"
+        what = (f"a multiple of {self.multiple_of}" if self.multiple_of else "an integer" if integer
+                else "a number" if math.isfinite(v) else "a finite number")
+        lo, hi = self.lo, self.hi
+        if lo is not None and hi is not None:
+            text = f"{what} in {'(' if self.lo_open else '['}{_num(lo)}, {_num(hi)}{')' if self.hi_open else ']'}"
+        elif lo is not None:
+            text = f"{what} {'>' if self.lo_open else '≥'} {_num(lo)}"
+        elif hi is not None:
+            text = f"{what} {'<' if self.hi_open else '≤'} {_num(hi)}"
+        else:
+            text = what
+        if self.or_zero:
+            text = f"0 or {text}"
+        return text + (f" ({self.unit})" if self.unit else "")
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """A string that matches ``regex`` (the whole string), ``expected`` in words."""
+
+    regex: str
+    expected_text: str
+
+    def holds(self, v: Any) -> bool:
+        return not isinstance(v, str) or re.fullmatch(self.regex, v) is not None
+
+    def expected(self, v: Any) -> str:
+        return self.expected_text
+
+
+@dataclass(frozen=True)
+class Relation:
+    """A rule between fields of one record: ``holds(record)``; the message names ``key`` (dotted, from the
+    record) and ``expected(record)``."""
+
+    key: str
+    holds: Callable[[Any], bool]
+    expected: Callable[[Any], str]
+
+
+def setting(default: Any = dataclasses.MISSING, rule: Range | Pattern | None = None, *,
+            factory: Callable[[], Any] | None = None) -> Any:
+    """A dataclass field with its rule: ``grid_size: int = setting(20, at_least(4, "pixels"))``."""
+    meta = {RULE: rule} if rule is not None else {}
+    if factory is not None:
+        return dataclasses.field(default_factory=factory, metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def at_least(lo: float, unit: str = "") -> Range:
+    """``≥ lo``."""
+    return Range(lo=lo, unit=unit)
+
+
+def above(lo: float, unit: str = "") -> Range:
+    """``> lo`` (``above(0)``: positive, a rate, a threshold, a size)."""
+    return Range(lo=lo, lo_open=True, unit=unit)
+
+
+def between(lo: float, hi: float, unit: str = "", hi_open: bool = False, lo_open: bool = False) -> Range:
+    """``[lo, hi]`` (either end open on request)."""
+    return Range(lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open, unit=unit)
+
+
+#: Every seed: 0 … 2³² − 1.
+SEED = between(0, SEED_MAX)
+#: A fraction, a weight balance: [0, 1].
+FRACTION = between(0, 1)
+#: Anything of a string field that must not be empty.
+NOT_EMPTY = Pattern(r"(?s).+", "a non-empty string")
+
 #: The values of ``device`` (:mod:`~mutualslam_cli.device`).
 DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+DEVICE = Pattern(DEVICE_PATTERN.pattern[1:-1], "one of auto, cpu, cuda, cuda:N")
+
+
+def _value_text(v: Any) -> str:
+    return _num(v) if isinstance(v, int) and not isinstance(v, bool) else repr(v)
+
+
+def _dotted(record: Any, key: str) -> Any:
+    for part in key.split("."):
+        record = getattr(record, part)
+    return record
+
+
+@functools.lru_cache(maxsize=None)
+def _choices(cls: type) -> dict[str, tuple[Any, ...]]:
+    """Field name → the values its ``Literal`` annotation allows (alone or beside another type)."""
+    out = {}
+    for name, tp in typing.get_type_hints(cls).items():
+        origin = typing.get_origin(tp)
+        args = [tp] if origin is Literal else typing.get_args(tp) if origin in (typing.Union, types.UnionType) else []
+        literal = [a for a in args if typing.get_origin(a) is Literal]
+        if literal and len(literal) == len(args):
+            out[name] = tuple(v for a in literal for v in typing.get_args(a))
+    return out
+
+
+def check_config(record: Any, where: str = "") -> None:
+    """Raise :class:`ConfigError` naming the first value of the dataclass ``record`` (nested records
+    included) outside its field's rule, its ``Literal`` choices (a record built in code, not read by
+    :mod:`~mutualslam_cli.config.parse`) or breaking one of the record's ``RELATIONS``.
+
+    Args:
+        where: the record's dotted key (``vo``), prefixed to every key named.
+    """
+    pre = f"{where}." if where else ""
+    for f in dataclasses.fields(record):
+        value = getattr(record, f.name)
+        if dataclasses.is_dataclass(value):
+            check_config(value, pre + f.name)
+            continue
+        choices = _choices(type(record)).get(f.name)
+        if choices is not None and value not in choices:
+            raise ConfigError(f"{pre}{f.name} = {value!r}: expected one of {list(choices)}")
+        rule = f.metadata.get(RULE)
+        if rule is None:
+            continue
+        for i, v in enumerate(value) if isinstance(value, list) else [(None, value)]:
+            if not rule.holds(v):
+                key = pre + f.name + (f"[{i}]" if i is not None else "")
+                raise ConfigError(f"{key} = {_value_text(v)}: expected {rule.expected(v)}")
+    for rel in getattr(type(record), "RELATIONS", ()):
+        if not rel.holds(record):
+            raise ConfigError(f"{pre}{rel.key} = {_value_text(_dotted(record, rel.key))}: "
+                              f"expected {rel.expected(record)}")
 
 
 def check_device_spec(spec: Any) -> None:
     """Raise :class:`ConfigError` unless ``spec`` is ``auto``, ``cpu``, ``cuda`` or ``cuda:N``."""
     if not isinstance(spec, str) or not DEVICE_PATTERN.match(spec):
-        raise ConfigError(f"device: {spec!r} is not one of auto, cpu, cuda, cuda:N")
+        raise ConfigError(f"device = {spec!r}: expected {DEVICE.expected_text}")
 
 
 def check_vo(cfg: Any) -> None:
     """Raise :class:`ConfigError` for options of a ``VOConfig`` the front end cannot work with."""
-    rules = [
-        ("grid_size", cfg.grid_size >= 4, "an integer ≥ 4 (pixels)"),
-        ("max_fts", cfg.max_fts >= max(cfg.min_tracked, 8), f"≥ min_tracked ({cfg.min_tracked}) and ≥ 8"),
-        ("min_tracked", cfg.min_tracked >= 6, "≥ 6 (PnP needs at least 6 matches)"),
-        ("core_kfs", cfg.core_kfs >= 2, "≥ 2 keyframes"),
-        ("klt_window", cfg.klt_window >= 5, "≥ 5 pixels"),
-        ("klt_levels", cfg.klt_levels >= 0, "≥ 0"),
-        ("fb_threshold_px", cfg.fb_threshold_px > 0, "> 0 pixels"),
-        ("ransac_threshold_px", cfg.ransac_threshold_px > 0, "> 0 pixels"),
-        ("kf_min_parallax_px", cfg.kf_min_parallax_px > 0, "> 0 pixels"),
-        ("kf_min_tracked_ratio", 0 < cfg.kf_min_tracked_ratio <= 1, "in (0, 1]"),
-        ("inject_outliers", 0 <= cfg.inject_outliers < 1, "in [0, 1)"),
-    ]
-    for name, ok, expected in rules:
-        if not ok:
-            raise ConfigError(f"vo.{name} = {getattr(cfg, name)!r}: expected {expected}")
+    check_config(cfg, "vo")
 
 
 def check_run(cfg: Any) -> None:
     """Raise :class:`ConfigError` naming the first value of a ``RunConfig`` the tool cannot work with."""
-    check_vo(cfg.vo)
-    check_device_spec(cfg.device)
-    checks = [
-        (cfg.adapt.lr > 0, "adapt.lr must be > 0"),
-        (cfg.adapt.validate_every >= 1, "adapt.validate_every (m) must be ≥ 1"),
-        (cfg.adapt.patience >= 1, "adapt.patience (n) must be ≥ 1"),
-        (cfg.adapt.steps_per_keyframe >= 1, "adapt.steps_per_keyframe must be ≥ 1"),
-        ((cfg.adapt.step_cost_ms == "measured" or cfg.adapt.step_cost_ms > 0) and cfg.adapt.max_steps >= 1,
-         "adapt.step_cost_ms must be > 0 or 'measured', adapt.max_steps ≥ 1"),
-        (cfg.vo.inject_outliers == 0 or cfg.adapt.labels == "hindsight",
-         "vo.inject_outliers corrupts the finished front end's map: it needs adapt.labels=hindsight"),
-        (cfg.adapt.train_width % 32 == 0 and cfg.adapt.train_height % 32 == 0
-         and 0 <= cfg.adapt.train_width <= cfg.net.width and 0 <= cfg.adapt.train_height <= cfg.net.height,
-         "adapt.train_width/train_height must be multiples of 32 in [0, net.width/net.height] (0 = the net's)"),
-        (0 <= cfg.adapt.freeze_stages <= 5, "adapt.freeze_stages must be in 0..5 (encoder stages)"),
-        (cfg.adapt.val_max >= 0 and cfg.ba.window >= 0, "adapt.val_max and ba.window must be ≥ 0 (0 = all)"),
-        (0 <= cfg.adapt.alpha <= 1, "adapt.alpha must be in [0, 1]"),
-        (cfg.net.width % 32 == 0 and cfg.net.height % 32 == 0, "net.width and net.height must be multiples of 32"),
-        (0 < cfg.net.min_depth < cfg.net.max_depth, "net.min_depth must be in (0, net.max_depth)"),
-        (cfg.data.stride >= 1, "data.stride must be ≥ 1"),
-        (cfg.data.max_frames >= 0, "data.max_frames must be ≥ 0"),
-        (cfg.eval.pcd_threshold > 0, "eval.pcd_threshold must be > 0"),
-        (cfg.eval.batch >= 0 and cfg.eval.export_frames >= 0,
-         "eval.batch (0 = auto) and eval.export_frames must be ≥ 0"),
-        (cfg.ba.max_targets >= 1 and cfg.ba.rounds >= 1 and cfg.ba.levels >= 1,
-         "ba.max_targets, ba.rounds and ba.levels must be ≥ 1"),
-        (0 <= cfg.ba.nearby_slots < cfg.ba.max_targets, "ba.nearby_slots must be in [0, ba.max_targets)"),
-        (0 < cfg.ba.image_scale <= 1, "ba.image_scale must be in (0, 1]"),
-        (0 < cfg.ba.huber_grey <= cfg.ba.outlier_grey, "ba.huber_grey must be in (0, ba.outlier_grey]"),
-        (cfg.dense.every >= 0, "dense.every must be ≥ 0 (0 = keyframes)"),
-        ("sequence" in cfg.dense.scalings and len(set(cfg.dense.scalings)) == len(cfg.dense.scalings),
-         "dense.scalings must hold 'sequence' (the headline scores) and no name twice"),
-        (cfg.dense.voxel_size > 0 and cfg.dense.trunc_voxels >= 1, "dense.voxel_size > 0 and dense.trunc_voxels ≥ 1"),
-        (0 < cfg.dense.depth_min < cfg.dense.depth_max, "dense.depth_min must be in (0, dense.depth_max)"),
-        (cfg.dense.block_resolution >= 2 and cfg.dense.block_count >= 1,
-         "dense.block_resolution ≥ 2 and dense.block_count ≥ 1"),
-        (cfg.dense.weight_threshold >= 0, "dense.weight_threshold must be ≥ 0"),
-        (cfg.dense.render_width >= 32, "dense.render_width must be ≥ 32"),
-    ]
-    for ok, msg in checks:
-        if not ok:
-            raise ConfigError(msg)
+    check_config(cfg)

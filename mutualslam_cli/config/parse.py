@@ -2,8 +2,9 @@
 
 The machinery behind :mod:`mutualslam_cli.config`: every field is checked against its annotation
 (``Literal`` choices, lists, mappings, optionals, bool / int / float / str), and an error names the
-dotted key, what was expected and what was found. The checks of values beyond their types are in
-:mod:`~mutualslam_cli.config.checks`.
+dotted key, what was expected and what was found; a string holds no NUL. The ranges of values (finite, a
+count's bounds) are declared beside the fields and checked by :mod:`~mutualslam_cli.config.checks`.
+``--set`` values are YAML, read by :mod:`~mutualslam_cli.config.yaml_file` as a config file is.
 """
 
 from __future__ import annotations
@@ -13,8 +14,7 @@ import types
 import typing
 from typing import Any, Literal
 
-import yaml
-
+from mutualslam_cli.config.yaml_file import parse_yaml
 from mutualslam_cli.errors import ConfigError
 
 
@@ -67,11 +67,16 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         if value != value:
-            raise ConfigError(f"{where}: NaN is not allowed")
-        return float(value)
+            raise ConfigError(f"{where} = nan: expected a finite number (NaN is not allowed)")
+        try:
+            return float(value)
+        except OverflowError:  # an integer beyond a float's range: infinite, which its range refuses
+            return float("inf") if value > 0 else float("-inf")
     if tp is str:
         if not isinstance(value, (str, int, float)) or isinstance(value, bool):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
+        if "\0" in str(value):
+            raise ConfigError(f"{where} = {value!r}: expected a string without NUL characters")
         return str(value)
     return value
 
@@ -83,9 +88,9 @@ def build(cls: type, data: Any, where: str) -> Any:
         raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
+    unknown = sorted(set(data) - names, key=str)
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys: {sorted(names)}")
+        raise ConfigError(f"{where or 'top level'}: unknown key(s) {unknown}; valid keys: {sorted(names)}")
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name not in data:
@@ -93,7 +98,7 @@ def build(cls: type, data: Any, where: str) -> Any:
         tp = hints[f.name]
         key = f"{where}.{f.name}" if where else f.name
         if dataclasses.is_dataclass(tp):
-            kwargs[f.name] = build(tp, data[f.name] or {}, key)
+            kwargs[f.name] = build(tp, {} if data[f.name] is None else data[f.name], key)
         else:
             kwargs[f.name] = coerce(data[f.name], tp, key)
     return cls(**kwargs)
@@ -104,10 +109,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if "=" not in text:
         raise ConfigError(f"--set {text!r}: expected key=value, e.g. adapt.lr=1e-4")
     key, raw = text.split("=", 1)
-    try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as e:
-        raise ConfigError(f"--set {text!r}: value is not valid YAML ({e})") from None
+    value = parse_yaml(raw, f"--set {text!r}") if raw.strip() else ""
     parts = [p for p in key.strip().split(".") if p]
     if not parts:
         raise ConfigError(f"--set {text!r}: empty key")

@@ -8,17 +8,16 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-import yaml
+from typing import Any, ClassVar
 
 from mutualslam_cli.config.adaptation import AdaptConfig, NetConfig
 from mutualslam_cli.config.backend import BAConfig, LoopConfig
-from mutualslam_cli.config.checks import check_run
+from mutualslam_cli.config.checks import DEVICE, NOT_EMPTY, SEED, Relation, at_least, between, check_run, setting
 from mutualslam_cli.config.evaluation import DenseConfig, EvalConfig
 from mutualslam_cli.config.experiment import ExperimentConfig
 from mutualslam_cli.config.frontend import VOConfig
 from mutualslam_cli.config.parse import apply_overrides, build
+from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
@@ -28,25 +27,37 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
 class DataConfig:
     data_root: str | None = None
     """Root for relative ``datasets.yaml`` paths; ``None`` → ``$MSLAM_DATA`` or the yaml's folder."""
-    max_frames: int = 0
+    max_frames: int = setting(0, at_least(0, "0 = all"))
     """Use only the first N associated frames (0 = all)."""
-    stride: int = 1
+    stride: int = setting(1, at_least(1, "frames"))
     """Use every k-th frame."""
 
 
 @dataclass(frozen=True)
 class RunConfig:
-    seed: int = 0
+    """A run's whole configuration: the top-level settings (each with its range beside it) and one record per
+    section; ``RELATIONS`` holds the rules between sections."""
+
+    RELATIONS: ClassVar[tuple[Relation, ...]] = (
+        Relation("vo.inject_outliers", lambda c: c.vo.inject_outliers == 0 or c.adapt.labels == "hindsight",
+                 lambda c: "0 (it corrupts the finished front end's map: it needs adapt.labels=hindsight)"),
+        Relation("adapt.train_width", lambda c: c.adapt.train_width <= c.net.width,
+                 lambda c: f"≤ net.width ({c.net.width}; 0 = net.width)"),
+        Relation("adapt.train_height", lambda c: c.adapt.train_height <= c.net.height,
+                 lambda c: f"≤ net.height ({c.net.height}; 0 = net.height)"),
+    )
+
+    seed: int = setting(0, SEED)
     """Seed of every random choice (replay sampling, RANSAC, init)."""
-    threads: int = 0
+    threads: int = setting(0, between(0, 4096, "0 = all cores"))
     """torch/OpenCV threads (0 = all cores)."""
-    device: str = "auto"
+    device: str = setting("auto", DEVICE)
     """Where the depth network runs: ``auto`` (CUDA when ``torch.cuda.is_available()``, else the CPU), ``cpu``,
     ``cuda`` or ``cuda:N``; VO, BA and metrics always run on the CPU (:mod:`~mutualslam_cli.device`)."""
     deterministic: bool = True
     """CUDA: deterministic cuDNN algorithms, no autotuning (one seed, one result; slower convolution backward
     kernels); ``false``: ``cudnn.benchmark`` autotuning (:mod:`~mutualslam_cli.device`). No effect on the CPU."""
-    out: str = "results"
+    out: str = setting("results", NOT_EMPTY)
     """Folder that receives ``<sequence>/<scheme>/seed<k>/``."""
     data: DataConfig = field(default_factory=DataConfig)
     vo: VOConfig = field(default_factory=VOConfig)
@@ -68,20 +79,14 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     """Load a YAML config (default ``configs/paper.yaml``), apply ``--set`` overrides, validate.
 
     Raises:
-        ConfigError: missing file, invalid YAML, unknown key, wrong type, invalid value.
+        ConfigError: one line naming the file or the key: a file that is missing, not a file, not UTF-8, not
+            valid YAML, with a key given twice or too many aliases (:mod:`~mutualslam_cli.config.yaml_file`); an
+            unknown key, a wrong type, a value out of its range (:mod:`~mutualslam_cli.config.checks`).
     """
     path = Path(path) if path is not None else CONFIG_DIR / "paper.yaml"
     data: dict[str, Any] = {}
-    if path.exists():
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"{path}: expected a mapping of sections (seed, vo, net, adapt, ...)")
-        data = loaded or {}
-    elif path != CONFIG_DIR / "paper.yaml":
-        raise ConfigError(f"{path}: config file not found")
+    if path != CONFIG_DIR / "paper.yaml" or path.exists():
+        data = read_yaml_mapping(path, ConfigError, "YAML config file")
     cfg = build(RunConfig, apply_overrides(data, overrides or [], create=True), "")
     check_run(cfg)
     return cfg

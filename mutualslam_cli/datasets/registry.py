@@ -13,8 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
-import yaml
-
+from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.datasets.associate import read_list_file
 from mutualslam_cli.datasets.icl_nuim import NATIVE_RE, load_icl, load_icl_loop
 from mutualslam_cli.datasets.recordings.conversion import BAG_SUFFIXES, VIDEO_SUFFIXES
@@ -42,13 +41,10 @@ def _registry_path(registry_path: str | os.PathLike | None) -> Path:
 
 
 def _read_registry(path: Path) -> dict[str, dict[str, Any]]:
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f":{mark.line + 1}" if mark is not None else ""
-        raise DatasetError(f"{path}{where}: invalid YAML ({getattr(e, 'problem', e)})") from None
-    entries = data.get("datasets") if isinstance(data, dict) else None
+    """The ``datasets:`` mapping of a registry file, read strictly (:mod:`~mutualslam_cli.config.yaml_file`: no
+    key given twice, few aliases, UTF-8)."""
+    data = read_yaml_mapping(path, DatasetError, "dataset registry (datasets.yaml)")
+    entries = data.get("datasets")
     if not isinstance(entries, dict):
         raise DatasetError(f"{path}: expected a top-level 'datasets:' mapping of name -> entry")
     return entries

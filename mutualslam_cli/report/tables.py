@@ -1,9 +1,11 @@
 """Paper-style tables and plots from result folders (DESIGN §8).
 
-``collect`` finds complete runs (folders with ``summary.json``) and their ``config.yaml``,
-``build_tables`` turns them into pandas DataFrames shaped like the paper's tables (mean over
-seeds, with the seed count), and ``write_report`` saves each table as Markdown, LaTeX and CSV
-plus PNG plots. Values that a run could not compute stay empty (``NaN`` → "—"), never 0.
+``collect`` (:mod:`~mutualslam_cli.report.runs`) finds complete runs (folders with ``summary.json``)
+and their ``config.yaml``, skipping damaged ones with a note, ``build_tables`` turns them into pandas
+DataFrames shaped like the paper's tables (mean over seeds, with the seed count), and ``write_report``
+saves each table as Markdown, LaTeX and CSV plus PNG plots, and the notes in ``report.md``. Values that a
+run could not compute stay empty (``NaN`` → "—", an empty CSV cell), never 0; so does a value that is
+not a finite number, with a note.
 
 Runs whose resolved configs differ (other than seed, scheme and output; thread counts count) are
 never averaged together: every table gets a ``config`` column naming the settings that differ
@@ -24,10 +26,8 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from mutualslam_cli.atomic import atomic_write_text
-from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.report.budget import BUDGET_TITLE, budget_table, frontier_figure
 from mutualslam_cli.report.columns import cell_text, numeric
 from mutualslam_cli.report.dense import TITLE as DENSE_TITLE
@@ -37,10 +37,9 @@ from mutualslam_cli.report.pictures import run_pictures
 from mutualslam_cli.report.paper import paper_tables
 from mutualslam_cli.report.plots import plot_accuracy
 from mutualslam_cli.report.forgetting import FORGETTING_TABLE
+from mutualslam_cli.report.runs import IGNORED_CONFIG, collect, config_labels  # noqa: F401 - collect: re-exported
 from mutualslam_cli.report.slam_tables import SLAM_TABLES, shown
 from mutualslam_cli.report.trajectories import trajectory_figures
-from mutualslam_cli.results.run_folder import read_summary
-from mutualslam_cli.results.summary import flatten
 
 log = logging.getLogger(__name__)
 
@@ -88,74 +87,13 @@ class Report:
     titles: dict[str, str] = field(default_factory=dict)
     bold: dict[str, set[tuple[int, str]]] = field(default_factory=dict)  # (row, column) bold in LaTeX
     csv: dict[str, pd.DataFrame] = field(default_factory=dict)  # numeric CSV where the table shows text
+    notes: list[str] = field(default_factory=list)  # runs skipped, values left empty (report.md's Notes)
 
 
-#: Config keys that do not make runs different experiments (``adapt.scheme`` has its own column).
-#: ``threads`` is not among them: the numbers follow the thread count (torch's reductions sum in
-#: another order), so runs with different counts are told apart like any other setting.
-#: ``device`` is the setting (``auto`` resolves per machine): the device a run used is ``run_device``.
-IGNORED_CONFIG = ("seed", "out", "adapt.scheme", "data.data_root", "eval.save_weights", "device")
-
-
-def _read_config(folder: Path) -> dict[str, Any]:
-    """``config.*`` columns of a run's ``config.yaml`` (empty when the run has none)."""
-    path = folder / "config.yaml"
-    if not path.is_file():
-        return {}
-    try:
-        cfg = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise DatasetError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    if not isinstance(cfg, dict):
-        raise DatasetError(f"{path}: expected a mapping of config sections (the resolved config of mslam run)")
-    return {f"config.{k}": v for k, v in flatten(cfg).items()}
-
-
-def config_labels(runs: pd.DataFrame, exclude: tuple[str, ...] = ()) -> pd.Series:
-    """Per run, ``"key=value, ..."`` of the config keys whose values differ between the runs
-    (except :data:`IGNORED_CONFIG` and ``exclude``); ``""`` when all runs agree. ``?``: the run
-    has no such key (older ``config.yaml`` or none)."""
-    keys = [c for c in runs.columns if c.startswith("config.") and c[7:] not in IGNORED_CONFIG + exclude
-            and not c.startswith(("config.experiment.", "config.dense."))]  # what a run was for / after it
-    shown = runs[keys].map(lambda v: "?" if v is None or (isinstance(v, float) and v != v) else str(v))
-    differing = [c for c in keys if shown[c].nunique() > 1]
-    if not differing:
-        return pd.Series("", index=runs.index)
-    return shown[differing].apply(lambda r: ", ".join(f"{c[7:]}={r[c]}" for c in differing), axis=1)
-
-
-def collect(paths: list[str | Path]) -> pd.DataFrame:
-    """One row per complete run found under ``paths``: flattened summary keys, ``folder``,
-    ``config.<key>`` of its ``config.yaml`` and ``config`` (:func:`config_labels`).
-
-    Raises:
-        DatasetError: a path does not exist, no complete run is found, or a ``config.yaml`` is not
-            a YAML mapping.
-    """
-    rows: list[dict[str, Any]] = []
-    for p in map(Path, paths):
-        if not p.exists():
-            raise DatasetError(f"{p}: no such results folder")
-        for s in sorted(p.rglob("summary.json")):
-            d = flatten(read_summary(s.parent))
-            d["folder"] = str(s.parent)
-            parts = s.parent.parts
-            d.setdefault("sequence.name", parts[-3] if len(parts) >= 3 else "?")
-            d.setdefault("scheme", parts[-2] if len(parts) >= 2 else "?")
-            d.update(_read_config(s.parent))
-            d["config.run_device"] = d.get("run.device_label")  # a grouping key like any setting (module docstring)
-            rows.append(d)
-    if not rows:
-        raise DatasetError(f"{', '.join(map(str, paths))}: no complete run (no summary.json found)")
-    runs = pd.DataFrame(rows)
-    runs["config"] = config_labels(runs)
-    return runs
-
-
-def build_tables(runs: pd.DataFrame) -> Report:
+def build_tables(runs: pd.DataFrame, notes: list[str] | None = None) -> Report:
     """Mean over seeds per (sequence, scheme, config) for every table in :data:`TABLES`, the scheme
-    ablation, and paper Tables 4 (``ate_ba``) and 5 (``map_ba``)."""
-    rep = Report(runs=runs)
+    ablation, and paper Tables 4 (``ate_ba``) and 5 (``map_ba``); ``notes``: :func:`collect`'s."""
+    rep = Report(runs=runs, notes=list(notes or []))
     runs = runs.assign(config=runs["config"] if "config" in runs else "")
     varied = bool((runs["config"] != "").any())
     g = runs.groupby(["sequence.name", "scheme", "config"], sort=True)
@@ -372,6 +310,17 @@ def to_latex(t: pd.DataFrame, caption: str, bold: set[tuple[int, str]] | None = 
     return "\n".join(lines) + "\n"
 
 
+def _finite_csv(t: pd.DataFrame, name: str, notes: list[str]) -> str:
+    """``t`` as CSV, a number that is not finite (a mean that overflowed) as an empty cell, with a note."""
+    num = t.select_dtypes("number")
+    bad = num.apply(lambda c: ~np.isfinite(c) & c.notna())
+    if not bad.any().any():
+        return t.to_csv(index=False)
+    for col in bad.columns[bad.any()]:
+        notes.append(f"{name}: column {col!r} had a value that is not a finite number; its cell is left empty")
+    return t.mask(bad.reindex(columns=t.columns, fill_value=False)).to_csv(index=False)
+
+
 def write_report(rep: Report, out_dir: Path) -> list[Path]:
     """Write every table as ``<name>.md``, ``<name>.tex``, ``<name>.csv``, the figures (accuracy over
     frames, trajectories, maps, dense, depth of chosen frames), and ``report.md``
@@ -381,7 +330,7 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
     written = []
     md = []
     for name, t in rep.tables.items():
-        atomic_write_text(out_dir / f"{name}.csv", rep.csv.get(name, t).to_csv(index=False))
+        atomic_write_text(out_dir / f"{name}.csv", _finite_csv(rep.csv.get(name, t), f"{name}.csv", rep.notes))
         atomic_write_text(out_dir / f"{name}.tex", to_latex(t, rep.titles[name], rep.bold.get(name)))
         atomic_write_text(out_dir / f"{name}.md", f"### {rep.titles[name]}\n\n" + to_markdown(t))
         md.append(f"## {rep.titles[name]}\n\n" + to_markdown(t))
@@ -396,5 +345,7 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
         figures.append(out_dir / "frontier.png")
     md.append("## Figures\n\n" + "".join(f"{n}\n\n" for n in notes)
               + "".join(f"![{f.stem}]({f.relative_to(out_dir).as_posix()})\n\n" for f in figures))
+    if rep.notes:
+        md.append("## Notes\n\n" + "".join(f"- {n}\n" for n in rep.notes))
     atomic_write_text(out_dir / "report.md", "# mslam report\n\n" + "\n".join(md))
     return written + [out_dir / "report.md"] + figures

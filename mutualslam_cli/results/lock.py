@@ -1,14 +1,19 @@
-"""One process at a time per result folder: an advisory ``flock`` on ``<folder>/.lock``.
+"""One process at a time per result folder: an advisory ``flock`` on its lock file.
 
-``mslam run`` holds the lock of its run folder (``<out>/<seq>/<scheme>/seed<k>/``) while it
-works there, and ``mslam ablate`` the lock of its results root, so two processes started on the
-same folder never interleave their files: the second stops at once with
-:class:`~mutualslam_cli.errors.ResultsLocked`, naming the holder.
+``mslam run`` (and ``eval-depth``, ``fuse``) holds the lock of its run folder
+(``<out>/<seq>/<scheme>/seed<k>/``) while it works on it, and ``mslam ablate`` the lock of its results
+root, so two processes started on the same folder never interleave their files: the second stops at
+once with :class:`~mutualslam_cli.errors.ResultsLocked`, naming the holder.
+
+A results root's lock file is ``<folder>/.lock``. A run folder's is beside it, ``<parent>/.<name>.lock``
+(``beside=True``): a run writes a staging folder that replaces the run folder whole when the run completes
+(:mod:`~mutualslam_cli.results.staging`), so a lock file inside it would be replaced with it, and a run
+that fails would still have changed the old run's folder.
 
 Usage::
 
-    with hold_lock(folder, "mslam run"):
-        ...  # only this process works in folder
+    with hold_lock(folder, "mslam run", beside=True):
+        ...  # only this process works on folder
 
 Choices:
 
@@ -20,7 +25,8 @@ Choices:
   next process that finds the folder locked.
 - The lock file is written in place, not through :mod:`~mutualslam_cli.atomic`: renaming a new
   file over it would replace the very file the holder has locked. It is a note for humans; no
-  result depends on it, and :func:`~mutualslam_cli.results.run_folder.is_complete` ignores it.
+  result depends on it, and :func:`~mutualslam_cli.results.run_folder.is_complete` ignores it. The same
+  holds for the folder it lives in: it is never renamed while the lock exists (hence ``beside``).
 - Not re-entrant: a second :func:`hold_lock` on the same folder fails even in the holding process.
   A child forked while the lock is held shares it until the child exits (spawned children do
   not).
@@ -52,16 +58,18 @@ LOCK_NAME = ".lock"
 _UNSUPPORTED = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL}
 
 
-def lock_path(folder: str | os.PathLike[str]) -> Path:
-    """``<folder>/.lock``."""
-    return Path(folder) / LOCK_NAME
+def lock_path(folder: str | os.PathLike[str], beside: bool = False) -> Path:
+    """``<folder>/.lock``; with ``beside``, ``<parent>/.<name>.lock`` (a run folder, replaced whole by a run)."""
+    folder = Path(folder)
+    return folder.parent / f".{folder.name}{LOCK_NAME}" if beside else folder / LOCK_NAME
 
 
-def read_holder(folder: str | os.PathLike[str]) -> dict[str, Any]:
-    """What the current (or last) holder wrote into ``<folder>/.lock``: ``pid``, ``host``, ``since``
-    (ISO 8601 local time), ``what`` and ``argv``; ``{}`` when the file is absent, empty or unreadable."""
+def read_holder(folder: str | os.PathLike[str], beside: bool = False) -> dict[str, Any]:
+    """What the current (or last) holder wrote into the lock file of ``folder`` (:func:`lock_path`): ``pid``,
+    ``host``, ``since`` (ISO 8601 local time), ``what`` and ``argv``; ``{}`` when the file is absent, empty or
+    unreadable."""
     try:
-        info = json.loads(lock_path(folder).read_text(encoding="utf-8"))
+        info = json.loads(lock_path(folder, beside).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
     return info if isinstance(info, dict) else {}
@@ -78,16 +86,17 @@ def _locked_message(folder: Path, what: str, holder: dict[str, Any]) -> str:
 
 
 @contextmanager
-def hold_lock(folder: str | os.PathLike[str], what: str) -> Iterator[None]:
+def hold_lock(folder: str | os.PathLike[str], what: str, beside: bool = False) -> Iterator[None]:
     """Hold the exclusive lock of ``folder`` for the duration of the ``with`` block.
 
-    Creates ``folder`` (and ``.lock`` in it) when needed, takes the lock without waiting, records
-    the holder (pid, host, start time, ``what``, ``sys.argv``) in the lock file, and releases the
-    lock when the block exits, normally or by an exception.
+    Creates ``folder`` (with ``beside``: only its parent) and the lock file (:func:`lock_path`) when
+    needed, takes the lock without waiting, records the holder (pid, host, start time, ``what``,
+    ``sys.argv``) in the lock file, and releases the lock when the block exits, normally or by an exception.
 
     Args:
         folder: the folder to lock (a run folder, or a grid's results root).
         what: what the caller is doing, e.g. ``"mslam run"``; shown to whoever finds the folder locked.
+        beside: the lock file is beside ``folder``, not in it (a run folder: it is replaced whole).
 
     Raises:
         ResultsLocked: another open file holds the lock (another process, or this one: not
@@ -95,10 +104,11 @@ def hold_lock(folder: str | os.PathLike[str], what: str) -> Iterator[None]:
             command, and what to do.
     """
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    fd = os.open(lock_path(folder), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+    path = lock_path(folder, beside)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
     try:
-        if _try_lock(fd, folder, what):
+        if _try_lock(fd, folder, what, beside):
             info = {"pid": os.getpid(), "host": socket.gethostname(), "what": what,
                     "since": datetime.now().astimezone().isoformat(timespec="seconds"), "argv": sys.argv}
             os.ftruncate(fd, 0)
@@ -108,12 +118,12 @@ def hold_lock(folder: str | os.PathLike[str], what: str) -> Iterator[None]:
         os.close(fd)  # closing the last descriptor releases the flock
 
 
-def _try_lock(fd: int, folder: Path, what: str) -> bool:
+def _try_lock(fd: int, folder: Path, what: str, beside: bool) -> bool:
     """Lock ``fd`` without waiting: True when locked, False when the filesystem has no locks."""
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
-        raise ResultsLocked(_locked_message(folder, what, read_holder(folder))) from None
+        raise ResultsLocked(_locked_message(folder, what, read_holder(folder, beside))) from None
     except OSError as e:
         if e.errno not in _UNSUPPORTED:
             raise

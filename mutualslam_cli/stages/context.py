@@ -29,7 +29,8 @@ class RunContext:
     Attributes:
         seq: the sequence.
         cfg: the resolved configuration (threads resolved too).
-        folder: the run folder ``<out>/<sequence>/<scheme>/seed<k>``.
+        folder: the folder the run writes: the staging folder that becomes ``<out>/<sequence>/<scheme>/seed<k>``
+            when the run completes (:mod:`~mutualslam_cli.results.staging`).
         out_root: the results root; its ``_cache/`` is shared by the runs of a grid.
         summary: the run's ``summary.json`` under construction.
         progress: ``progress(stage, info)`` or ``None``.

@@ -119,9 +119,14 @@ def test_table5_blocks_per_max_fts_and_missing_config(tmp_path: Path, roots):
     t = build_tables(collect([*roots, other])).tables["map_ba"]
     assert list(t["max_fts"]) == ["120"] * 4 + ["500"] * 4
     assert t.iloc[0]["seqA points"] == 700 and np.isnan(t.iloc[0]["seqB points"])
-    (roots[0] / "seqA" / "replay+ewc" / "seed0" / "config.yaml").write_text("vo: [unclosed\n")
+    damaged = roots[0] / "seqA" / "replay+ewc" / "seed0"
+    (damaged / "config.yaml").write_text("vo: [unclosed\n")
+    notes: list[str] = []
+    runs = collect(list(roots), notes)  # the damaged run is skipped with its reason, the others reported
+    assert str(damaged) not in set(runs["folder"]) and len(runs) == 3
+    assert len(notes) == 1 and notes[0].startswith(f"skipped, damaged: {damaged / 'config.yaml'}:2: not valid YAML")
     with pytest.raises(DatasetError, match="config.yaml"):
-        collect(list(roots))
+        collect([damaged])  # nothing left to report
 
 
 def test_map_figure_is_written_and_listed(roots, tmp_path: Path):

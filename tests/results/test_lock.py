@@ -103,11 +103,12 @@ def test_lock_file_does_not_make_a_folder_complete(tmp_path):
 
 @pytest.fixture
 def locked_run(tmp_path):
-    """A tiny sequence, its run folder under ``tmp_path / "res"`` and the smoke config; the folder is locked."""
+    """A tiny sequence, its run folder under ``tmp_path / "res"`` and the smoke config; the folder is locked as a
+    run locks it (the lock file beside the folder, which a completing run replaces whole)."""
     seq = make_tum_dir(tmp_path, scene="room", n=6, width=64, height=48)
     cfg = load_config(CONFIG_DIR / "smoke.yaml")
     folder = run_dir(tmp_path / "res", seq.name, cfg.adapt.scheme, cfg.seed)
-    with hold_lock(folder, "another mslam run"):
+    with hold_lock(folder, "another mslam run", beside=True):
         yield seq, cfg, folder
 
 
@@ -115,7 +116,8 @@ def test_run_sequence_on_a_locked_folder_touches_nothing(locked_run, tmp_path):
     seq, cfg, folder = locked_run
     with pytest.raises(ResultsLocked, match="another mslam run"):
         run_sequence(seq, cfg, out=tmp_path / "res")
-    assert sorted(p.name for p in folder.iterdir()) == [LOCK_NAME]
+    assert not folder.exists()  # the run folder itself is made only by a run that completes
+    assert sorted(p.name for p in folder.parent.iterdir()) == [f".{folder.name}{LOCK_NAME}"]
     assert not (tmp_path / "res" / "_cache").exists()  # not even the front end ran
 
 

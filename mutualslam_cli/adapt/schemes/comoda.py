@@ -12,9 +12,9 @@ from typing import ClassVar
 import numpy as np
 
 from mutualslam_cli.adapt.buffer import KeyframeBuffer
-from mutualslam_cli.adapt.comoda import check_comoda_config
 from mutualslam_cli.adapt.schemes.base import Scheme
 from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.config.checks import check_config
 from mutualslam_cli.errors import ConfigError
 
 
@@ -30,7 +30,7 @@ class Comoda(Scheme):
 
     def __init__(self, cfg: AdaptConfig | None = None) -> None:
         super().__init__(cfg)
-        check_comoda_config(self.cfg)
+        check_config(self.cfg, "adapt")
 
     def select(self, buffer: KeyframeBuffer, newest: int, rng: np.random.Generator) -> list[int]:
         raise ConfigError("scheme 'comoda' trains on frames, not keyframes: run it with mslam run "

@@ -44,7 +44,7 @@ import numpy as np
 from mutualslam_cli.adapt.buffer import KeyframeBuffer
 from mutualslam_cli.adapt.schemes.recent import Recent
 from mutualslam_cli.config import AdaptConfig
-from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.config.checks import check_config
 from mutualslam_cli.types import check_shape
 
 
@@ -100,7 +100,8 @@ class Luo(Recent):
             (default: :class:`AdaptConfig`'s defaults).
 
     Raises:
-        ConfigError: window < 2, ratio outside [0, 1] or rotation outside [0, 180].
+        ConfigError: a setting of ``cfg`` out of its range (window < 2, ratio outside [0, 1], rotation outside
+            [0, 180], ...).
     """
 
     name = "luo"
@@ -108,13 +109,7 @@ class Luo(Recent):
 
     def __init__(self, cfg: AdaptConfig | None = None) -> None:
         super().__init__(cfg)
-        c = self.cfg
-        if c.luo_window < 2:
-            raise ConfigError(f"adapt.luo_window = {c.luo_window}: must be ≥ 2 (the target and one candidate)")
-        if not 0 <= c.luo_min_horizontal_ratio <= 1:
-            raise ConfigError(f"adapt.luo_min_horizontal_ratio = {c.luo_min_horizontal_ratio}: must be in [0, 1]")
-        if not 0 <= c.luo_max_rotation_deg <= 180:
-            raise ConfigError(f"adapt.luo_max_rotation_deg = {c.luo_max_rotation_deg}: must be in [0, 180]")
+        check_config(self.cfg, "adapt")  # luo_window ≥ 2, the ratio in [0, 1], the rotation in [0, 180]
 
     def select(self, buffer: KeyframeBuffer, newest: int, rng: np.random.Generator) -> list[int]:
         """The ``recent`` targets that have at least one stereo partner (newest first; may be empty)."""

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from mutualslam_cli.config.yaml_file import StrictLoader, is_refusal
 from mutualslam_cli.errors import CameraFileError, DatasetError
 from mutualslam_cli.types import Intrinsics
 
@@ -116,12 +117,15 @@ def _fs_value(node: Any) -> Any:
 # --- YAML mappings (ROS, Kalibr, OpenCV key names) ---------------------------------------------------------------
 
 def _yaml_mapping(text: str) -> dict[str, Any] | None:
-    """The file as a YAML mapping, or ``None`` when it is not one (then it is read as plain text)."""
+    """The file as a YAML mapping, or ``None`` when it is not one (then it is read as plain text); read strictly
+    (:class:`~mutualslam_cli.config.yaml_file.StrictLoader`): a key given twice or an alias bomb is refused."""
     import yaml
 
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError:
+        data = yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader
+    except (yaml.YAMLError, RecursionError) as e:
+        if is_refusal(e):
+            raise CameraFileError(f"line {e.problem_mark.line + 1}: {e.problem}") from None  # type: ignore[attr-defined]
         return None
     return data if isinstance(data, dict) else None
 
