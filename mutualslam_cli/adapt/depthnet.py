@@ -5,6 +5,19 @@ bf16 autocast, gated on a CPU that really runs bf16 (AVX512-BF16 or AMX); on CUD
 autocast (:mod:`mutualslam_cli.device`). Losses stay in fp32 (:mod:`mutualslam_cli.adapt.losses`
 casts its inputs). The network's device is where its parameters are (:func:`prepare` moves them);
 :func:`predict_depth` sends its input there and brings the depth back to the CPU.
+
+**Where precision breaks the adaptation** (issue 46, measured on an AMX Xeon, replay+ewc, the shared
+windows). Master weights, Adam's moments, the regularisers' importance and the losses are fp32 throughout.
+What bf16 changed was the trained model: (1) the decoder's in-place ELU zeroed gradients
+(:class:`~mutualslam_cli.adapt.networks.depth_decoder.ConvBlock`, fixed: out of place); (2) with the encoder's
+forward and backward in bf16 the adapted model ended 6.3 PCD points (lsq) away from fp32's on icl_lr_kt2
+(47.3 vs 41.0) and 2.5 on tum_fr1_xyz — by a systematic change, not noise: fp32 with ×(1 + 0.03·N(0, 1))
+noise on every gradient entry, or the learning rate moved by 1e-5, stayed within 0.8 of fp32, while
+bf16 in any part of the encoder (conv1 + layer1 only, or layers 2–4 only) moved it by 7–10 points. With the
+encoder in fp32 and the rest in bf16: 40.5 vs 41.0 and 41.5 vs 42.6. So by default the encoder trains in
+fp32 inside the fast path (its gradients are taken with autocast off; predictions without gradients stay
+all-bf16), the decoder in bf16: a step costs 422 ms against 309 all-bf16 and 583 fp32 (one interleaved
+probe, 2 threads). ``net.fast_train: all`` keeps the encoder in bf16 too (the fastest, not fp32's model).
 """
 
 from __future__ import annotations
@@ -71,6 +84,7 @@ class DepthNet(nn.Module):
             self.encoder = ResnetEncoder(num_layers)
             self.decoder = DepthDecoder(self.encoder.num_ch_enc, scales=range(4))
         self.channels_last = False
+        self.bf16_encoder = False  # :func:`prepare`: the encoder's gradients under mixed precision too (module docstring)
 
     def _check(self, x: torch.Tensor) -> torch.Tensor:
         if x.dim() != 4 or x.shape[1] != 3:
@@ -84,8 +98,17 @@ class DepthNet(nn.Module):
     def forward_scales(self, x: torch.Tensor, scales: Iterable[int] | None = None) -> dict[int, torch.Tensor]:
         """Sigmoid disparities ``{s: (B, 1, H/2**s, W/2**s)}`` float32 for ``scales`` (default ``self.scales``)."""
         x = self._check(x)
-        out = self.decoder(self.encoder(x), self.scales if scales is None else scales)
+        out = self.decoder(self._encode(x), self.scales if scales is None else scales)
         return {s: d.float().contiguous() for s, d in out.items()}
+
+    def _encode(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The encoder's five feature maps; in full precision inside a mixed-precision region when gradients are
+        taken and :attr:`bf16_encoder` is off (module docstring: where precision breaks the adaptation)."""
+        dev = x.device.type
+        if not self.bf16_encoder and torch.is_grad_enabled() and torch.is_autocast_enabled(dev):
+            with torch.autocast(dev, enabled=False):
+                return self.encoder(x.float())
+        return self.encoder(x)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Sigmoid disparity at scale 0.
@@ -156,7 +179,7 @@ def fast_context(enabled: bool, device: torch.device | str = "cpu") -> Iterator[
 
 
 def prepare(net: DepthNet, fast: bool, channels_last: bool | None = None,
-            device: torch.device | str | None = None) -> DepthNet:
+            device: torch.device | str | None = None, bf16_encoder: bool = False) -> DepthNet:
     """Put ``net`` on ``device`` (default: where it is) in the memory format of the chosen path (in place;
     returns ``net``).
 
@@ -166,12 +189,16 @@ def prepare(net: DepthNet, fast: bool, channels_last: bool | None = None,
         channels_last: channels-last weights and inputs (oneDNN's and the tensor cores' preferred layout;
             also ~1.3× faster in fp32 on this CPU, mostly through max-pool); default: ``fast``.
         device: where the network runs (:mod:`mutualslam_cli.device`).
+        bf16_encoder: take the encoder's gradients under mixed precision too (``net.fast_train: all``); default:
+            the encoder trains in fp32 inside the fast path and only predicts in mixed precision (module docstring).
     """
     cl = bool(fast) if channels_last is None else bool(channels_last)
     if device is not None:
         net.to(torch.device(device))
     net.to(memory_format=torch.channels_last if cl else torch.contiguous_format)
     net.channels_last = cl
+    if isinstance(net, DepthNet):
+        net.bf16_encoder = bool(bf16_encoder)
     return net
 
 

@@ -77,7 +77,7 @@ class OnlineLoop:
         self.run, self.source, self.state, self.cfg, self.fast = run, source, source.state, cfg, fast
         self.ba, self.scorer = ba, scorer
         w, h = cfg.net.width, cfg.net.height
-        self.net = prepare(net, fast, device=run.device)
+        self.net = prepare(net, fast, device=run.device, bf16_encoder=cfg.net.fast_train == "all")
         self.load = keyframe_images(run.seq, lambda k: self.state.frame_of(k), w, h)
         self.adapter: OnlineAdapter | None = None
         if cfg.adapt.scheme != "none":
