@@ -84,7 +84,7 @@ class DepthNet(nn.Module):
             self.encoder = ResnetEncoder(num_layers)
             self.decoder = DepthDecoder(self.encoder.num_ch_enc, scales=range(4))
         self.channels_last = False
-        self.bf16_encoder = False  # :func:`prepare`: the encoder's gradients under mixed precision too (module docstring)
+        self.bf16_encoder = False  # :func:`prepare`: encoder gradients under mixed precision too (module docstring)
 
     def _check(self, x: torch.Tensor) -> torch.Tensor:
         if x.dim() != 4 or x.shape[1] != 3:

@@ -33,7 +33,8 @@ class NetConfig:
     fast_train: Literal["decoder", "all"] = "decoder"
     """What trains in mixed precision on the fast path: ``decoder`` (the encoder's gradients in fp32, the
     adapted model within 1.1 PCD points of fp32's, README "Precision") or ``all`` (the encoder too: a
-    faster step, and a model 3–6 points away from fp32's on the shared windows, :mod:`~mutualslam_cli.adapt.depthnet`)."""
+    faster step, and a model 3–6 points away from fp32's on the shared windows,
+    :mod:`~mutualslam_cli.adapt.depthnet`)."""
     runtime: Literal["auto", "torch", "openvino", "openvino-int8"] = "auto"
     """Depth evaluation runtime (:mod:`~mutualslam_cli.adapt.inference`): ``auto`` = OpenVINO when
     installed and ``fast`` is not ``off``, in bf16 where the CPU has it (40 vs 64 ms per frame here),
