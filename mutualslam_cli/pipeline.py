@@ -143,8 +143,7 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> tuple[di
     adapted = adaptation.run_stage(run, net0, fast, ba.map_ba if cfg.ba.enabled else None)  # front end + Algorithm 1
     fe = frontend.run_stage(run, adapted.frontend, adapted.source.replayed, adapted.injected)  # its own map
     ba.finish(adapted, fe, fast)
-    scale_drift.run_stage(run, {"vo": fe.vo, "ba": ba.final}, {"ba": ba.why_no_final},  # local vs global Sim(3)
-                          {"ba": adapted.bridges or []})
+    scale_drift.run_stage(run, {"vo": fe.vo, "ba": ba.final}, {"ba": ba.why_no_final})  # local vs global Sim(3)
     evaluation.run_stage(run, fe, net0, adapted, fast)  # both models' depth on every frame with GT
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured
     if cfg.dense.enabled:

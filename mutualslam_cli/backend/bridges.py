@@ -204,36 +204,22 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
     if b is None or b.refused:
         return None
     R, t, s = b.similarity()
-    return move_segment(vo, b.segment, R, t, s), b
+    return move_segment(vo, b.segment, R, t, s, onto=b.onto), b
 
 
 def bridged(vo: VOResult, bridges: list[Bridge]) -> VOResult:
     """``vo`` (each segment in its own unit) with the bridges a run made applied in order: the front end joined,
     and nothing else (refused ones skipped)."""
     for b in (b for b in bridges if not b.refused):
-        vo = move_segment(vo, int(b.segment), np.array(b.R, float), np.array(b.t, float), float(b.scale))
+        vo = move_segment(vo, int(b.segment), np.array(b.R, float), np.array(b.t, float), float(b.scale),
+                          onto=int(b.onto))
     return vo
 
 
-def units_of(segments: list[int], bridges: list[Bridge]) -> dict[int, int]:
-    """``{segment: unit}``: segments joined by bridges (``segment`` onto ``onto``) share one unit (map frame
-    and scale), labelled by the first of them; every other segment is a unit of its own."""
-    unit = {s: s for s in segments}
-
-    def find(s: int) -> int:
-        while unit.setdefault(s, s) != s:
-            s = unit[s]
-        return s
-
-    for b in (b for b in bridges if not b.refused):
-        a, c = find(int(b.segment)), find(int(b.onto))
-        unit[max(a, c)] = min(a, c)
-    return {s: find(s) for s in segments}
-
-
-def move_segment(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float) -> VOResult:
+def move_segment(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float, onto: int | None = None) -> VOResult:
     """``vo`` with segment ``seg`` moved by the similarity ``x ↦ s·R·x + t``: keyframe and frame poses
-    ``T_wc ↦ [R·R_wc | s·R·t_wc + t]``, inverse depths ÷ ``s`` (points follow their hosts)."""
+    ``T_wc ↦ [R·R_wc | s·R·t_wc + t]``, inverse depths ÷ ``s`` (points follow their hosts); with ``onto``, into
+    that segment's map unit (:attr:`VOResult.units`)."""
     def move(T: np.ndarray) -> np.ndarray:
         out = T.copy()
         out[..., :3, :3] = R @ T[..., :3, :3]
@@ -251,4 +237,5 @@ def move_segment(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float)
     sel = tracked == seg
     if sel.any():
         poses[sel] = move(poses[sel])
-    return replace(vo, keyframes=kfs, points=points, traj_all=Trajectory(vo.traj_all.timestamps, poses))
+    units = vo.units if onto is None else {k: u for k, u in vo.joined(seg, onto).items() if k != u}
+    return replace(vo, keyframes=kfs, points=points, traj_all=Trajectory(vo.traj_all.timestamps, poses), units=units)

@@ -24,7 +24,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.backend.records import LoopRecord
@@ -62,20 +61,18 @@ class LoopCloser:
         self.ba_seconds = 0.0  # of the closing BAs (booked to BA, not to the loop)
 
     def after_keyframe(self, kf: int, depth_of: Callable[[int], np.ndarray],
-                       val_loss: Callable[[list[int]], Mapping[int, float]],
-                       bridges: list[Bridge]) -> float:
+                       val_loss: Callable[[list[int]], Mapping[int, float]]) -> float:
         """Keep keyframe ``kf`` and close a loop from it when there is one; returns the seconds spent.
 
         Args:
             depth_of: ``kf_id → (h, w)`` the adapted network's depth now; val_loss: L_val of keyframe ids now.
-            bridges: the run's bridges (the map units).
         """
         t = time.perf_counter()
         state = self.source.state
         gray = self.seq.load_gray(state.frame_of(kf))
         self.detector.add(kf, gray)
-        if kf - self._last < self.cfg.loop.min_gap:
-            self.skipped[kf] = (f"not queried: within loop.min_gap ({self.cfg.loop.min_gap}) keyframes of the loop "
+        if kf - self._last < self.cfg.loop.cooldown:
+            self.skipped[kf] = (f"not queried: within loop.cooldown ({self.cfg.loop.cooldown}) keyframes of the loop "
                                 f"closed at keyframe {self._last}")
             return time.perf_counter() - t
         loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf)
@@ -83,23 +80,23 @@ class LoopCloser:
             return time.perf_counter() - t
         if self.detector.already_closed(state, loop):  # e.g. the front end relocalised there: nothing to correct
             return time.perf_counter() - t
-        self.loops.append(self.close(loop, depth_of, val_loss, bridges))
+        self.loops.append(self.close(loop, depth_of, val_loss))
         log.info("loop closed: keyframe %d sees keyframe %d again (scale %.3f, %d inliers)", kf, loop.match,
                  loop.scale, loop.inliers)
         return time.perf_counter() - t
 
     def close(self, loop: LoopClosure, depth_of: Callable[[int], np.ndarray],
-              val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[Bridge]) -> LoopRecord:
+              val_loss: Callable[[list[int]], Mapping[int, float]]) -> LoopRecord:
         """Close a verified ``loop`` on the map as it stands: the pose graph, then (with a BA stage) culling + the
         robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.backend.merge`)."""
         kf, state = loop.query, self.source.state
-        self._last = kf  # whoever asked (a loop, a merge): no other loop within loop.min_gap keyframes of it
+        self._last = kf  # whoever asked (a loop, a merge): no other loop within loop.cooldown keyframes of it
         self.source.settle()
         self.source.refine(close_loop(state, loop))
         nearby = None
         if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
             t_ba = time.perf_counter()
-            r = refine_map(self.source, kf, self.ba, depth_of, val_loss, bridges)
+            r = refine_map(self.source, kf, self.ba, depth_of, val_loss)
             nearby = int(r.stats["n_nearby_targets"])
             self.ba_seconds += time.perf_counter() - t_ba
         return LoopRecord(loop, int(state.frame_of(kf)), float(state.time_of(kf)), float(state.time_of(loop.match)),

@@ -38,7 +38,7 @@ import numpy as np
 from mutualslam_cli.config import LoopConfig
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.camera import undistort_points
+from mutualslam_cli.vo.camera import focal_px, undistort_points
 from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
 from mutualslam_cli.backend.bridges import MIN_RATIO_POINTS
@@ -59,6 +59,8 @@ class LoopClosure:
         scale: ``s``, old units per unit of the new keyframe's (drifted) map.
         inliers: PnP inliers of the match; spread: the depth agreement's relative spread.
         n_new, n_old: points behind each scale ratio; scale_error: the scale's relative standard error.
+        T_match_cw: ``(4, 4)`` the match keyframe's pose when the loop was found (the loop's relative pose is
+            ``T_cw @ inv(T_match_cw)``; evaluation compares it with GT).
     """
 
     query: int
@@ -70,6 +72,7 @@ class LoopClosure:
     n_new: int
     n_old: int
     scale_error: float = 0.0
+    T_match_cw: np.ndarray | None = None
 
     def record(self) -> dict:
         """A JSON-ready record (``manifest.json``'s ``loops``)."""
@@ -133,6 +136,42 @@ def _local_scale(px_old: np.ndarray, z_old: np.ndarray, uv_new: np.ndarray, z_ne
     return float(np.exp(med)), 1.2533 * spread / np.sqrt(len(per))
 
 
+#: An old and a new point nearer than this in the query image (pixels) are taken for one point of the scene.
+SAME_POINT_PX = 3.0
+#: Same-point pairs a map-measured loop scale needs.
+MIN_SAME_POINTS = 10
+
+
+def paired_scale(px_old: np.ndarray, z_old: np.ndarray, uv_new: np.ndarray,
+                 z_new: np.ndarray) -> tuple[float, float] | None:
+    """The loop's scale from 3D–3D pairs of the two maps and its relative standard error; ``None`` with fewer than
+    :data:`MIN_SAME_POINTS` pairs.
+
+    The old points under the loop pose and the query keyframe's own points are both in the query camera; an old
+    point within :data:`SAME_POINT_PX` of a new one lies on the same ray, so the Sim(3) between the two maps' points
+    (Umeyama 1991) is a pure scale along the rays — ``s = median(z_old / z_new)`` over the pairs (old units per
+    new unit), robust to a share of wrong pairs, its standard error ``1.2533 · 1.4826 · MAD(log r) / √n``. No network:
+    the maps measure it themselves (ORB-SLAM's loop Sim(3) from matched map points, Mur-Artal & Tardós 2017).
+
+    Args:
+        px_old, z_old: ``(n, 2)`` pinhole pixels and depths (old unit, loop pose) of the matched old points.
+        uv_new, z_new: ``(m, 2)`` pixels and depths (the drifted unit) of the query keyframe's own points.
+    """
+    ok = np.isfinite(z_old) & (z_old > 0)
+    a, za = px_old[ok], z_old[ok]
+    if not len(a) or not len(uv_new):
+        return None
+    d = np.linalg.norm(a[:, None, :] - uv_new[None, :, :], axis=2)
+    j = d.argmin(axis=1)
+    same = (d[np.arange(len(a)), j] < SAME_POINT_PX) & (z_new[j] > 0)
+    if same.sum() < MIN_SAME_POINTS:
+        return None
+    lr = np.log(za[same] / z_new[j[same]])
+    med = float(np.median(lr))
+    spread = 1.4826 * float(np.median(np.abs(lr - med)))
+    return float(np.exp(med)), 1.2533 * spread / np.sqrt(int(same.sum()))
+
+
 class LoopDetector:
     """Finds and verifies loops over a growing map (module docstring).
 
@@ -158,7 +197,9 @@ class LoopDetector:
                  load: Callable[[int], np.ndarray] | None = None) -> None:
         self.intr, self.K, self.thr = intr, intr.K(), thr
         self.settings = settings or LoopConfig()
-        self.index = RelocIndex(intr, RelocSettings(n_candidates=self.settings.n_candidates), load)
+        factor = self.settings.inlier_px / focal_px(intr) / thr  # the loop's inlier threshold over the front end's
+        self.index = RelocIndex(intr, RelocSettings(n_candidates=self.settings.n_candidates, inlier_factor=factor,
+                                                    witness_ratio=self.settings.witness_ratio), load)
         self.tried = 0
         self.rejected: dict[str, int] = {}
         self.queries: list[dict] = []
@@ -190,7 +231,7 @@ class LoopDetector:
         return closed
 
     def query(self, state: MapState, kf: int, gray: np.ndarray, depth: np.ndarray, seed: int = 0,
-              pool: list[int] | None = None) -> LoopClosure | None:
+              pool: list[int] | None = None, newest: int = 0) -> LoopClosure | None:
         """A loop from keyframe ``kf`` to an old keyframe of its map unit, verified (module docstring).
 
         Args:
@@ -198,6 +239,8 @@ class LoopDetector:
                 network's depth of ``kf`` (any unit; looked up at the nearest pixel).
             pool: the old keyframes that may match (default: those of its map unit ``min_gap`` or more keyframes
                 older; a merge, :mod:`~mutualslam_cli.backend.merge`, gives the other segments').
+            newest: the pool's newest keyframes tried first, before the appearance ranking (a merge: where the camera
+                was when tracking was lost; a loop: 0, by appearance only).
         """
         s = self.settings
         unit = state.unit_of(kf)
@@ -208,9 +251,9 @@ class LoopDetector:
         self.queries.append(rec)
         if not pool:
             return None
-        rec["candidates"] = self.index.candidates(gray, pool, 0)
+        rec["candidates"] = self.index.candidates(gray, pool, newest)
         rejected0 = self.index.rejected
-        r = state.locate(self.index, gray, self.thr, seed=seed, keyframes=pool, newest=0)
+        r = state.locate(self.index, gray, self.thr, seed=seed, keyframes=pool, newest=newest, witnesses=pool)
         self.tried += min(len(pool), s.n_candidates) if r is None else r.candidates_tried
         rec["geometry"], rec["outcome"] = dict(self.index.outcomes), "geometry: no candidate passed"
         if self.index.rejected > rejected0:
@@ -230,8 +273,13 @@ class LoopDetector:
         if not (np.isfinite(r_new) and np.isfinite(r_old)):
             self._reject("too few points with a predicted depth")
             return None
-        # pairs of nearby old and new points: the network's bias across the image cancels
-        local = _local_scale(px, Xc[:, 2], uv_new, z_new, np.asarray(depth, float), size)
+        # the scale from the two maps themselves: an old and a new point on one pixel are one point (3D–3D pairs);
+        # too few such pairs: nearby pairs through the network's depth, whose bias across the image cancels
+        local = paired_scale(px, Xc[:, 2], uv_new, z_new)
+        rec["scale_from"] = "map"
+        if local is None:
+            local = _local_scale(px, Xc[:, 2], uv_new, z_new, np.asarray(depth, float), size)
+            rec["scale_from"] = "network"
         if local is None:
             self._reject("scale not measurable (too few nearby old and new points)")
             return None
@@ -243,4 +291,5 @@ class LoopDetector:
             self._reject("depth disagrees with the network")
             return None
         rec["outcome"] = "loop"
-        return LoopClosure(kf, r.keyframe, r.T_cw, scale, r.inliers, spread, n_new, n_old, scale_error)
+        return LoopClosure(kf, r.keyframe, r.T_cw, scale, r.inliers, spread, n_new, n_old, scale_error,
+                           np.linalg.inv(state.pose(r.keyframe)))

@@ -30,7 +30,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.pose_graph import close_loop
@@ -39,6 +38,12 @@ from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.vo.camera import focal_px
+
+
+#: The old segments' newest keyframes a merge query tries before the appearance ranking: a segment started after a
+#: loss most often sees again what the camera saw when it lost track (TUM fr1_desk: the appearance ranking alone
+#: offered the window's first keyframes and no merge was verified).
+MERGE_NEWEST = 2
 
 
 def merge_similarity(T_new: np.ndarray, loop: LoopClosure) -> tuple[np.ndarray, np.ndarray, float]:
@@ -78,12 +83,11 @@ class SegmentMerger:
         self._merged: set[int] = set()
 
     def after_keyframe(self, kf: int, depth_of: Callable[[int], np.ndarray],
-                       val_loss: Callable[[list[int]], Mapping[int, float]], bridges: list[Bridge]) -> float:
+                       val_loss: Callable[[list[int]], Mapping[int, float]]) -> float:
         """Keep keyframe ``kf``; merge its segment into an older one when it is found there. Returns the seconds.
 
         Args:
-            depth_of: ``kf_id → (h, w)`` the adapted network's depth now; val_loss: L_val of keyframe ids now;
-            bridges: the run's bridges (the map units), as the loop closure takes them.
+            depth_of: ``kf_id → (h, w)`` the adapted network's depth now; val_loss: L_val of keyframe ids now.
         """
         t = time.perf_counter()
         state = self.source.state
@@ -100,7 +104,8 @@ class SegmentMerger:
             return time.perf_counter() - t
         gray = self.seq.load_gray(state.frame_of(kf)) if gray is None else gray
         self.tried += 1
-        loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf, pool=pool)
+        loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf, pool=pool,
+                                   newest=MERGE_NEWEST)
         if loop is None:
             return time.perf_counter() - t
         onto = state.segment(loop.match)
@@ -111,7 +116,7 @@ class SegmentMerger:
                 return time.perf_counter() - t
             if self.closer is not None:
                 rec = MergeRecord(loop, **where, how="pose graph + BA",
-                                  closed=self.closer.close(loop, depth_of, val_loss, bridges))
+                                  closed=self.closer.close(loop, depth_of, val_loss))
             else:
                 self.source.settle()
                 self.source.refine(close_loop(state, loop))

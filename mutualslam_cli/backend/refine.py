@@ -21,7 +21,6 @@ import numpy as np
 
 from mutualslam_cli.adapt.inputs import frame_lookup
 from mutualslam_cli.backend.ba.global_ba import GlobalBAResult, run_global_ba, window_start
-from mutualslam_cli.backend.bridges import Bridge, units_of
 from mutualslam_cli.backend.records import BARun
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.datasets.sequence import Sequence
@@ -126,11 +125,12 @@ class MapBA:
         return self.cfg.window
 
     def run_ba(self, vo: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
-               val_loss: Mapping[int, float], bridges: list[Bridge] | None = None) -> GlobalBAResult:
-        """Culling (unless :attr:`cull` is off) + global BA of ``vo``'s keyframes ≤ ``kf_id`` (segments the
-        ``bridges`` joined as one map), recorded into :attr:`record`."""
+               val_loss: Mapping[int, float]) -> GlobalBAResult:
+        """Culling (unless :attr:`cull` is off) + global BA of ``vo``'s keyframes ≤ ``kf_id`` (the segments a bridge
+        or a merge joined as one map: :attr:`~mutualslam_cli.vo.result.VOResult.units`), recorded into
+        :attr:`record`."""
         self._frame_of.update((k.id, k.frame_index) for k in vo.keyframes)
-        units = units_of(sorted({k.segment for k in vo.keyframes}), bridges or [])
+        units = vo.unit_of_segment()  # the map's own answer: bridges and merges
         r = run_global_ba(vo, self.images, depth_of, val_loss, self.cfg, cull=self.cull, upto=kf_id, units=units)
         self.record.culled.update(vo.points.ids[~r.keep].tolist())
         self.record.dropped.update(vo.points.ids[r.dropped].tolist())
@@ -142,18 +142,17 @@ class MapBA:
 
 
 def refine_map(target: MapTarget, kf: int, ba: MapBA, depth_of: Callable[[int], np.ndarray],
-               val_loss: Callable[[list[int]], Mapping[int, float]],
-               bridges: list[Bridge] | None) -> GlobalBAResult:
+               val_loss: Callable[[list[int]], Mapping[int, float]]) -> GlobalBAResult:
     """Culling + global BA of the map as it stands in ``target``, keyframes ≤ ``kf`` (the newest ``ba.window``),
     the refinement handed back to ``target`` (module docstring); returns the BA's result.
 
     Args:
         depth_of: ``kf_id → (h, w)`` the adapted network's depth now; val_loss: L_val of keyframe ids now (the
-            window's); bridges: the run's bridges (the map units).
+            window's).
     """
     target.settle()
     snap = target.state.snapshot(ba.frames, covisibility=False)
     first = window_start(kf, ba.window)
-    r = ba.run_ba(snap, kf, depth_of, val_loss([k.id for k in snap.keyframes[first:kf + 1]]), bridges)
+    r = ba.run_ba(snap, kf, depth_of, val_loss([k.id for k in snap.keyframes[first:kf + 1]]))
     target.refine(MapRefinement.between(snap, r.vo, snap.points.ids[~r.keep | r.dropped]))
     return r

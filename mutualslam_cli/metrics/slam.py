@@ -116,7 +116,7 @@ def esi_of_log_errors(d: np.ndarray, units: np.ndarray | None = None) -> tuple[f
 
 def point_units(vo: VOResult, units: dict[int, int] | None = None) -> np.ndarray:
     """``(P,)`` the map unit of each point: its host keyframe's segment, or ``units[segment]`` (segments a
-    bridge joined share one, :func:`~mutualslam_cli.backend.bridges.units_of`)."""
+    bridge or a merge joined share one, :meth:`~mutualslam_cli.vo.result.VOResult.unit_of_segment`)."""
     seg = {k.id: k.segment for k in vo.keyframes}
     out = np.array([seg.get(int(h), -1) for h in vo.points.host], np.int64)
     return out if units is None else np.array([units.get(int(s), int(s)) for s in out], np.int64)

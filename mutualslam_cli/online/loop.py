@@ -132,14 +132,12 @@ class OnlineLoop:
             self._extra.setdefault(kf, {})["rt_start_ms"] = self.clock.now_ms
         self._join_segment(kf)                          # a new segment: the network of now bridges it
         if self.merger is not None:                     # a segment found in the map before it: merged
-            self._backend("merge_s", kf, lambda: self.merger.after_keyframe(kf, self._depth_of(), self._val_loss,
-                                                                            self.bridges))
+            self._backend("merge_s", kf, lambda: self.merger.after_keyframe(kf, self._depth_of(), self._val_loss))
         info = self._tick(kf)                           # validate, or assemble the batch (labels of now)
         if info is not None and info.run_global_ba:
             self._global_ba(kf)                         # cull + BA; the refined map goes back to the front end
         if self.closer is not None:                     # a place seen before: close the loop (loop.enabled)
-            self._backend("loop_s", kf, lambda: self.closer.after_keyframe(kf, self._depth_of(), self._val_loss,
-                                                                           self.bridges))
+            self._backend("loop_s", kf, lambda: self.closer.after_keyframe(kf, self._depth_of(), self._val_loss))
 
     def _tick(self, kf: int) -> StepInfo | None:
         if self.adapter is None:
@@ -195,7 +193,7 @@ class OnlineLoop:
         if self.ba is None:
             return
         t = time.perf_counter()
-        refine_map(self.writer, kf, self.ba, self._depth_of(), self._val_loss, self.bridges)
+        refine_map(self.writer, kf, self.ba, self._depth_of(), self._val_loss)
         self._busy("ba_s", kf, time.perf_counter() - t)
 
     def keyframe_rows(self) -> list[dict[str, Any]]:

@@ -25,6 +25,7 @@ from mutualslam_cli.online.loop import OnlineLoop
 from mutualslam_cli.online.scores import OnlineScorer, eval_frames
 from mutualslam_cli.stages import comoda, loop_recall
 from mutualslam_cli.stages.adaptation_summary import (
+    summarise_live_reuse,
     L_VAL_KEYS,
     l_val_stats,
     summarise_bridges,
@@ -125,6 +126,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
             loop.weights_at = WeightsAt(starts if cfg.vo.bridge_segments else set())
             loop.run_loop()
             final = source.result()
+            summarise_live_reuse(summary, final, cfg.vo.mode)
             rows, adapter, kf_rows = loop.rows, loop.adapter, loop.keyframe_rows()
             last = loop.trained_kf if loop.clock is not None else final.keyframes[-1].id if final.keyframes else -1
             online = scorer.finish(loop.net, last) if scorer else None

@@ -18,7 +18,7 @@ from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.stages.loop_recall import RECALL_KEYS
+from mutualslam_cli.stages.loop_recall import POSE_KEYS, RECALL_KEYS
 from mutualslam_cli.vo.result import VOResult
 
 #: The keys of :func:`l_val_stats` (``adaptation.l_val.*`` in ``summary.json``).
@@ -150,5 +150,19 @@ def summarise_loops(summary: Summary, closer: LoopCloser) -> None:
 
 def summarise_no_loops(summary: Summary, why: str) -> None:
     """The ``loop.*`` keys of a run without loop closure (``loop.recall.*`` too), null with ``why``."""
-    for k in ("loop.candidates", "loop.accepted", "loop.rejected", *RECALL_KEYS):
+    for k in ("loop.candidates", "loop.accepted", "loop.rejected", *RECALL_KEYS, *POSE_KEYS):
         summary.absent(k, why)
+
+
+def summarise_live_reuse(summary: Summary, live: VOResult, mode: str) -> None:
+    """``vo.live.{points_reused,points_fused,old_share}``: map reuse by the run's front end — the one the back end
+    handed its loops, merges and BAs to (the ``vo.*`` keys are the front end's on its own)."""
+    keys = ("points_reused", "points_fused", "old_share")
+    if mode != "svo" or not live.meta:
+        for k in keys:
+            summary.absent(f"vo.live.{k}", f"oracle front end (--vo {mode}) or no live front end (hindsight labels)")
+        return
+    share = live.meta.get("old_share")
+    summary.set("vo.live.points_reused", int(live.meta.get("reused", 0)))
+    summary.set("vo.live.points_fused", int(live.meta.get("fused", 0)))
+    summary.set("vo.live.old_share", None if share is None else 100.0 * float(share), "no frame tracked a map point")

@@ -15,7 +15,6 @@ import torch
 from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.backend.ba.global_ba import window_start
-from mutualslam_cli.backend.bridges import Bridge, units_of
 from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
@@ -49,7 +48,7 @@ def no_culling_reason(cfg: RunConfig) -> str | None:
 
 
 def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: OnlineAdapter | None,
-             cfg: RunConfig, fast: bool, ba: MapBA, bridges: list[Bridge] | None = None) -> VOResult:
+             cfg: RunConfig, fast: bool, ba: MapBA) -> VOResult:
     """The final culling + BA of the loop's map over every keyframe (the newest ``ba.window`` with a window)
     with the final network (L_val of those keyframes; none for scheme ``none``); the refined map without
     the culled and dropped points."""
@@ -58,7 +57,7 @@ def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: O
     last = len(loop_map.keyframes) - 1
     ids = list(range(window_start(last, cfg.ba.window), last + 1)) if cfg.ba.window else None
     val_loss = adapter.per_keyframe_val_loss(ids) if adapter is not None else {}
-    return ba.run_ba(loop_map, last, depth_of, val_loss, bridges).kept()
+    return ba.run_ba(loop_map, last, depth_of, val_loss).kept()
 
 
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).
@@ -98,8 +97,7 @@ class BAStage:
             why = "disabled (ba.enabled=false)"
         elif cfg.ba.final == "always":
             with run.timed("ba"):
-                vo_ba = final_ba(run.seq, adapted.map, adapted.net, adapted.adapter, cfg, fast, self.map_ba,
-                                 adapted.bridges)
+                vo_ba = final_ba(run.seq, adapted.map, adapted.net, adapted.adapter, cfg, fast, self.map_ba)
         elif self.record.runs:
             vo_ba = adapted.map
             last = self.record.runs[-1].kf_id
@@ -159,7 +157,7 @@ class BAStage:
             summary.set("map.points.culled", int(keep.sum()))
             summary.set("map.esi.culled", esi_of_log_errors(err[keep], point_units(vo)[keep])[0],
                         "no kept map point has GT depth at its host pixel")
-        units = units_of(sorted({k.segment for k in vo_ba.keyframes}), adapted.bridges or [])
+        units = vo_ba.unit_of_segment()
         summary.set("map.points.ba", len(vo_ba.points))
         summary.set("map.esi.ba", esi_of_log_errors(err_ba, point_units(vo_ba, units))[0],
                     "no map point has GT depth at its host pixel after BA")

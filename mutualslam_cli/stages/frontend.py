@@ -116,8 +116,12 @@ def run_stage(run: RunContext, vo: VOResult, replayed: int, injected: np.ndarray
         summary.set("vo.relocalisations", len(vo.meta.get("relocalisations", [])))
         summary.set("vo.relocalisations_rejected", int(vo.meta.get("reloc_rejected", 0)))
         summary.set("vo.points_reused", int(vo.meta.get("reused", 0)))
+        summary.set("vo.points_fused", int(vo.meta.get("fused", 0)))
+        share = vo.meta.get("old_share")
+        summary.set("vo.old_share", None if share is None else 100.0 * float(share), "no frame tracked a map point")
     else:
-        for key in ("vo.relocalisations", "vo.relocalisations_rejected", "vo.points_reused"):
+        for key in ("vo.relocalisations", "vo.relocalisations_rejected", "vo.points_reused", "vo.points_fused",
+                    "vo.old_share"):
             summary.absent(key, f"oracle front end (--vo {mode}): GT poses, nothing to relocalise")
     summary.set("vo.from_cache", replayed == len(seq))
     summary.set("vo.frames_from_cache", replayed)

@@ -16,6 +16,7 @@ from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.metrics.loop_recall import MAX_ANGLE_DEG, MAX_DIST_M, RecallRow, classify, counts, true_revisits
 from mutualslam_cli.metrics.trajectory import associate_indices
+from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.vo.result import VOResult
@@ -26,6 +27,8 @@ log = logging.getLogger(__name__)
 RECALL = ("revisits", "found", "verified", "closed", "refused")
 #: The summary keys of loop recall.
 RECALL_KEYS = tuple(f"loop.recall.{k}" for k in RECALL)
+#: The keys of the closed loops' poses against GT (:func:`summarise_loop_poses`).
+POSE_KEYS = ("loop.closed_right", "loop.closed_rot_err_deg_max")
 #: ``loop_recall.csv``'s columns.
 COLUMNS = ("kf", "frame", "timestamp", "partner", "partner_frame", "dist_m", "angle_deg", "n_partners", "found",
            "verified", "closed", "reason", "candidates", "verified_kf", "closed_kf")
@@ -42,6 +45,54 @@ def keyframe_gt(seq: Sequence, vo: VOResult, max_dt: float) -> np.ndarray:
     return out
 
 
+#: A closed loop is *right* when its relative pose (query keyframe in the match's camera) is within these of GT's:
+#: rotation (degrees) and the translation's direction (degrees; a monocular map has no metric length to compare).
+RIGHT_ROT_DEG, RIGHT_DIR_DEG = 5.0, 20.0
+
+
+def loop_pose_errors(T_query_cw: np.ndarray, T_match_cw: np.ndarray, gt_query_wc: np.ndarray,
+                     gt_match_wc: np.ndarray) -> tuple[float, float]:
+    """``(rotation, translation-direction)`` error in degrees of a loop's relative pose ``T_query_cw @ inv(T_match_cw)``
+    (match camera → query camera) against GT's; a translation shorter than 1 mm in GT gives 0 for its direction."""
+    rel = T_query_cw @ np.linalg.inv(T_match_cw)
+    g = np.linalg.inv(gt_query_wc) @ gt_match_wc
+    cos = (np.trace(rel[:3, :3] @ g[:3, :3].T) - 1.0) / 2.0
+    rot = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    a, b = rel[:3, 3], g[:3, 3]
+    if np.linalg.norm(b) < 1e-3 or np.linalg.norm(a) < 1e-12:
+        return rot, 0.0
+    return rot, float(np.degrees(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
+
+
+def summarise_loop_poses(summary: Summary, closer: LoopCloser, poses: np.ndarray, ids: np.ndarray) -> None:
+    """``loop.closed_right`` (closed loops whose relative pose agrees with GT, :data:`RIGHT_ROT_DEG`,
+    :data:`RIGHT_DIR_DEG`) and ``loop.closed_rot_err_deg_max``: whether what was closed was so, whatever the revisit
+    rule (a loop onto a keyframe 60 cm away that sees the same counter is a true loop, not a true revisit)."""
+    row = {int(k): i for i, k in enumerate(ids.tolist())}
+    errs = []
+    for lp in closer.loops:
+        loop = getattr(lp, "loop", None)
+        if loop is None or loop.T_match_cw is None:
+            continue
+        q, m = row.get(loop.query), row.get(loop.match)
+        if q is None or m is None or not (np.isfinite(poses[q]).all() and np.isfinite(poses[m]).all()):
+            continue
+        errs.append(loop_pose_errors(loop.T_cw, loop.T_match_cw, poses[q], poses[m]))
+    if not closer.loops:
+        summary.absent("loop.closed_right", "no loop closed")
+        summary.absent("loop.closed_rot_err_deg_max", "no loop closed")
+        return
+    if not errs:
+        summary.absent("loop.closed_right", "no closed loop has its pose recorded and GT at both ends")
+        summary.absent("loop.closed_rot_err_deg_max", "no closed loop has its pose recorded and GT at both ends")
+        return
+    right = sum(r <= RIGHT_ROT_DEG and d <= RIGHT_DIR_DEG for r, d in errs)
+    summary.set("loop.closed_right", right)
+    summary.set("loop.closed_rot_err_deg_max", max(r for r, _ in errs))
+    summary.notes["loop.closed_right"] = (f"{right} of {len(errs)} closed loops within {RIGHT_ROT_DEG:g}° and "
+                                          f"{RIGHT_DIR_DEG:g}° (translation direction) of GT's relative pose")
+
+
 def run_stage(run: RunContext, closer: LoopCloser, vo: VOResult) -> list[RecallRow] | None:
     """Loop recall of ``closer`` (:class:`~mutualslam_cli.backend.loop_closer.LoopCloser`) over the keyframes of
     ``vo`` (the run's live map, whose keyframe ids the closer used): keys and ``loop_recall.csv``.
@@ -51,7 +102,7 @@ def run_stage(run: RunContext, closer: LoopCloser, vo: VOResult) -> list[RecallR
     """
     seq, cfg, summary = run.seq, run.cfg, run.summary
     if seq.gt is None or len(seq.gt) == 0:
-        for k in RECALL_KEYS:
+        for k in (*RECALL_KEYS, *POSE_KEYS):
             summary.absent(k, "sequence has no GT poses")
         return None
     poses = keyframe_gt(seq, vo, cfg.eval.ate_max_dt)
@@ -68,6 +119,7 @@ def run_stage(run: RunContext, closer: LoopCloser, vo: VOResult) -> list[RecallR
         f"{MAX_ANGLE_DEG:.0f}° (GT), of {int(np.isfinite(poses[:, 0, 0]).sum())} keyframes with GT")
     if c["reasons"]:
         summary.notes["loop.recall.refused"] = "; ".join(f"{why}: {n}" for why, n in c["reasons"].items())
+    summarise_loop_poses(summary, closer, poses, ids)
     elsewhere = [q for q, m in closed.items() if m not in {p.kf for p in revisits.get(q, [])}]
     if elsewhere:
         summary.notes["loop.recall.closed"] = (f"{len(elsewhere)} of {len(closed)} loops closed onto a keyframe that "

@@ -23,7 +23,6 @@ from mutualslam_cli.metrics.scale_drift import STRIDE, WINDOW, ScaleDrift, scale
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.backend.bridges import Bridge, units_of
 
 log = logging.getLogger(__name__)
 
@@ -60,15 +59,14 @@ def set_scale_drift(summary: Summary, name: str, r: ScaleDrift | None, why: str 
                             f"whole: {r.global_rmse:.4g} m")
 
 
-def evaluate(seq: Sequence, vo: VOResult, max_dt: float, bridges: list[Bridge] | None = None,
-             window: int = WINDOW) -> ScaleDrift:
+def evaluate(seq: Sequence, vo: VOResult, max_dt: float, window: int = WINDOW) -> ScaleDrift:
     """:func:`~mutualslam_cli.metrics.scale_drift.scale_drift` of ``vo``'s keyframes against the sequence's GT,
-    windows within one map unit: a segment, or segments the ``bridges`` joined
-    (:func:`~mutualslam_cli.backend.bridges.units_of`). Raises :class:`MslamError` with the reason when it cannot
+    windows within one map unit: a segment, or the segments a bridge or a merge joined
+    (:attr:`~mutualslam_cli.vo.result.VOResult.units`). Raises :class:`MslamError` with the reason when it cannot
     be computed."""
     if seq.gt is None or len(seq.gt) == 0:
         raise MslamError("sequence has no GT poses")
-    unit = units_of(sorted({k.segment for k in vo.keyframes}), bridges or [])
+    unit = vo.unit_of_segment()  # the map's own units: bridges and merges (VOResult.units)
     seg = np.array([unit[k.segment] for k in vo.keyframes], np.int64)
     return scale_drift(seq.gt, vo.traj_kf, seg, window=window, stride=STRIDE, max_dt=max_dt)
 
@@ -87,12 +85,12 @@ def rows(seq: Sequence, name: str, vo: VOResult, r: ScaleDrift) -> pd.DataFrame:
 
 
 def run_stage(run: RunContext, maps: dict[str, VOResult | None], why: dict[str, str] | None = None,
-              bridges: dict[str, list[Bridge]] | None = None) -> dict[str, ScaleDrift]:
+              ) -> dict[str, ScaleDrift]:
     """Every map's keys; ``scale_drift.csv`` and ``scale_drift.png`` when at least one map has a value.
 
     Args:
-        maps: ``{name: map or None}`` (:data:`MAPS`); why: ``{name: why the map is None}``.
-        bridges: ``{name: the bridges that joined the map's segments}`` (default: none, each segment its own unit).
+        maps: ``{name: map or None}`` (:data:`MAPS`), each with its own map units; why: ``{name: why the map is
+            None}``.
 
     Returns:
         ``{name: ScaleDrift}`` of the maps that have one.
@@ -105,7 +103,7 @@ def run_stage(run: RunContext, maps: dict[str, VOResult | None], why: dict[str, 
             set_scale_drift(run.summary, name, None, why.get(name, "no such map in this run"))
             continue
         try:
-            r = evaluate(run.seq, vo, run.cfg.eval.ate_max_dt, (bridges or {}).get(name))
+            r = evaluate(run.seq, vo, run.cfg.eval.ate_max_dt)
         except MslamError as e:
             set_scale_drift(run.summary, name, None, str(e))
             continue

@@ -30,6 +30,8 @@ class RunStats:
         total_s: wall time of the whole run.
         reprojected: map points re-attached by re-projection (reused: of them, points from outside the newest
             keyframes, ``vo.reuse_map``).
+        old_share: mean over tracked frames of the share of their tracked map points first seen more than
+            :data:`~mutualslam_cli.vo.frontend.OLD_AGE_KFS` keyframes before the newest (``None``: none tracked).
         scale_check: the network's scale check (:meth:`~mutualslam_cli.vo.depth_prior.ScaleCheck.summary`), ``None``
             when the front end ran without the network.
         ba_stats: one dict per windowed BA (``points``, ``solve_ms``, …).
@@ -49,6 +51,8 @@ class RunStats:
     relocalisations: Seq[dict[str, Any]] = ()
     reloc_rejected: int = 0
     reused: int = 0
+    fused: int = 0
+    old_share: float | None = None
     scale_check: dict[str, Any] | None = None
 
 
@@ -67,7 +71,8 @@ def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
 
 
 def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, np.ndarray]],
-                 frame_seg: np.ndarray, intr: Intrinsics, stats: RunStats, covisibility: bool = True) -> VOResult:
+                 frame_seg: np.ndarray, intr: Intrinsics, stats: RunStats, covisibility: bool = True,
+                 units: dict[int, int] | None = None) -> VOResult:
     """Final keyframe poses, frame poses re-anchored on them, map points and covisibility.
 
     Args:
@@ -79,6 +84,7 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         stats: counters and timings of the run.
         covisibility: count the points each keyframe pair shares (``False``: an empty graph; a mid-run
             snapshot for a bridge or a BA does not read it).
+        units: ``{segment: map unit}`` of the segments a bridge or a merge joined (:attr:`VOResult.units`).
     """
     kfs = [Keyframe(k, m.kf_frame[k], m.kf_time[k], m.kf_T_wc[k].copy(), m.kf_segment[k])
            for k in range(len(m.kf_frame))]
@@ -121,10 +127,12 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         "time_s": total_s,
         "reprojected": stats.reprojected,
         "reused": stats.reused,
+        "fused": stats.fused,
+        "old_share": stats.old_share,
         "scale_check": stats.scale_check,
         "local_ba": {"runs": len(ba_runs),
                      "mean_points": float(np.mean([s["points"] for s in ba_runs])) if ba_runs else 0.0,
                      "mean_solve_ms": float(np.mean([s["solve_ms"] for s in ba_runs])) if ba_runs else 0.0,
                      "threaded": stats.ba_threaded},
     }
-    return VOResult(kfs, pts, pinhole(intr), Trajectory(ts, poses), frame_seg, covis, meta)
+    return VOResult(kfs, pts, pinhole(intr), Trajectory(ts, poses), frame_seg, covis, meta, dict(units or {}))

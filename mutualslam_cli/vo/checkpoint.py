@@ -29,7 +29,7 @@ from mutualslam_cli.vo.tracking import build_pyramid
 
 #: The scalar fields of :class:`~mutualslam_cli.vo.state.TrackerState` (the rest: arrays, tracks, images).
 _SCALARS = ("mode", "segment", "vel_dt", "t_prev", "n_at_kf", "last_kf", "n_tracked", "n_reprojected", "n_reused",
-            "ba_due", "lost_at", "frame", "wall_s")
+            "n_fused", "old_share_sum", "old_share_frames", "ba_due", "lost_at", "frame", "wall_s")
 _TRACK_ARRAYS = ("raw", "px", "xn", "pid", "host", "f_h", "px_h", "kf_px", "at_kf")
 
 

@@ -37,14 +37,14 @@ from mutualslam_cli.vo.map_state import MapState
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
-from mutualslam_cli.vo.local_map import KeyframeImages, LocalMapMixin
+from mutualslam_cli.vo.local_map import OLD_AGE, KeyframeImages, LocalMapMixin
 from mutualslam_cli.vo.result import VOResult
 from mutualslam_cli.vo.state import Tracks, TrackerState
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 
 log = logging.getLogger(__name__)
 
-FRONTEND_VERSION = 4
+FRONTEND_VERSION = 5
 """Bumped whenever the front end's output changes for the same config (invalidates VO caches)."""
 
 BA_LAG = 4
@@ -140,6 +140,10 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
         keep = np.ones(len(tr), bool)
         keep[pm[~near]] = False
         tr = tr.select(keep)
+        is_pt = tr.pid >= 0
+        if is_pt.any():  # map reuse as a share: tracked points first seen long before
+            self.st.old_share_sum += float(np.mean(tr.host[is_pt] < self.st.last_kf - OLD_AGE))
+            self.st.old_share_frames += 1
         self.st.vel = T @ se3_inv(self.st.T_cw)
         t_i = self.seq.frames[i].timestamp
         self.st.vel_dt, self.st.t_prev = t_i - self.st.t_prev, t_i
@@ -276,7 +280,7 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
     def _keyframe(self, i: int, gray: np.ndarray) -> None:
         self._collect_ba()
         t0 = time.perf_counter()
-        self.st.tracks = self._reproject(self.st.tracks, gray, self.st.T_cw)
+        self.st.tracks = self._reproject(self.st.tracks, gray, self.st.T_cw, fuse=True)
         m, tr = self.map, self.st.tracks
         kf = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(self.st.T_cw), self.st.segment)
         seen = np.flatnonzero(tr.pid >= 0)
@@ -331,7 +335,9 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
                         ba_threaded=self.mapper.pool is not None,
                         relocalisations=list(self.state_map.relocalisations),
                         reloc_rejected=self.reloc.rejected if self.reloc is not None else 0,
-                        reused=self.st.n_reused,
+                        reused=self.st.n_reused, fused=self.st.n_fused,
+                        old_share=(self.st.old_share_sum / self.st.old_share_frames
+                                   if self.st.old_share_frames else None),
                         scale_check=self.scale.summary() if self.scale is not None else None)
 
     def result(self) -> VOResult:

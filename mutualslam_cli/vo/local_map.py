@@ -9,12 +9,19 @@ keyframes that overlap the new frame; ORB-SLAM's local map is the covisible keyf
   and is not tracked already is a candidate;
 * it is matched (KLT, :func:`~mutualslam_cli.vo.reproject.match_points`) from the image of the observing
   keyframe whose viewpoint is closest: the angle at the point between the two rays at most
-  :data:`MAX_VIEW_ANGLE_DEG`, the distance ratio within :data:`MAX_SCALE_CHANGE` (a patch still looks alike);
+  :data:`MAX_VIEW_ANGLE_DEG`, the distance ratio within :data:`MAX_SCALE_CHANGE`; an old point's patch is first
+  warped into the current view by the relative pose (SVO 2.0's affine warp,
+  :func:`~mutualslam_cli.vo.reproject.warped_klt`: on RedKitchen's 1000 frames the front end's ATE went 8.25 →
+  6.78 cm against unwarped KLT at the same gate) and kept within :data:`REUSE_GATE_PX` of its prediction;
   points of the newest keyframes are matched from the newest image holding them, as before;
 * one old candidate per grid cell that no track and no newest keyframe's point holds (the best observed point
   of the cell), so the recovered points take the cells where new seeds would otherwise start, and at most
   :data:`MAX_SOURCES` old keyframe images are decoded per call (:class:`KeyframeImages`: an LRU over the
   sequence's files, memory flat in the sequence's length).
+
+At a keyframe, young tracked points that are old points seen again — made while the old ones projected a drift
+away, until a loop or the windowed BA brought the two maps together — are fused into them (:func:`duplicates`,
+ORB-SLAM's point fusion): a point found again is observed, not made again.
 """
 
 from __future__ import annotations
@@ -31,6 +38,11 @@ from mutualslam_cli.vo.camera import distort_points
 from mutualslam_cli.vo.reproject import match_points, reproject_points
 from mutualslam_cli.vo.state import Map, Tracks
 
+OLD_AGE = 15
+"""A point hosted more than this many keyframes before the newest is *old*: the share of them among a frame's
+tracked points measures map reuse (``vo.old_share``); a younger one may be fused into an old one
+(:func:`duplicates`)."""
+
 MAX_VIEW_ANGLE_DEG = 30.0
 """Largest angle at a point between an old keyframe's ray and the current one for KLT to match its patch."""
 
@@ -45,6 +57,23 @@ IMAGE_CACHE = 8
 
 BORDER_PX = 8
 """Candidates this close to the image border are not matched (KLT's window would leave the image)."""
+
+REUSE_GATE_PX = 10.0
+"""An old point found (warped KLT, :func:`~mutualslam_cli.vo.reproject.warped_klt`) within this many pixels of its
+prediction is observed again. The newest keyframes' points are held to the RANSAC threshold; an old point's depth
+was made from other viewpoints and the map has drifted since: on RedKitchen's 1000 real frames the warped matches of
+old points landed a median 8.4 px from their predictions (under 2 px: none) while the same matcher lands within
+0.1 px on a render, so a 2 px gate kept nothing. The windowed BA then refines the old point's depth and pulls the
+window to the old map (its keyframes fixed)."""
+
+FUSE_PX = 6.0
+"""An old point projecting this close to a young tracked point (pixels) is a candidate duplicate of it."""
+
+SAME_PX = 2.0
+"""… and is its duplicate when KLT from the old point's own keyframe image lands this close to the track."""
+
+FUSE_DEPTH = 0.15
+"""… with depths in the frame within this relative difference."""
 
 
 class KeyframeImages:
@@ -184,6 +213,65 @@ def local_map(m: Map, T_cw: np.ndarray, K: np.ndarray, size: tuple[int, int], kf
     return LocalMap(pids[ok], source[ok], old[ok])
 
 
+def duplicates(m: Map, T_cw: np.ndarray, K: np.ndarray, kfs: np.ndarray, young_before: int, track_pids: np.ndarray,
+               track_raw: np.ndarray, to_raw: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Old points that may be young tracked points seen again: candidate pairs for :func:`fuse_duplicates`.
+
+    A camera back in a place it mapped long ago makes new points there before its map reuse finds the old ones
+    (the old ones project a drift away, or every grid cell is held by a track); once a loop or the windowed BA has
+    brought the two maps together, the same corner is two points. A young point (hosted at or after keyframe
+    ``young_before``) and an old one of the same map unit (hosted before it) are a candidate pair when the old
+    point projects within :data:`FUSE_PX` of the young one's track and their depths in the frame agree within
+    :data:`FUSE_DEPTH`; the nearest old point per track.
+
+    Args:
+        m: the map; T_cw: ``(4, 4)`` the frame's pose; K: ``(3, 3)`` pinhole; kfs: keyframes of the map unit.
+        track_pids, track_raw: ``(T,)`` point ids and ``(T, 2)`` raw pixels of the frame's map-point tracks.
+        to_raw: undistorted → raw pixels.
+
+    Returns:
+        ``(young, old)`` point ids ``(P,)`` each.
+    """
+    none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    host = np.asarray(m.host, np.int64)
+    if not len(track_pids) or not len(host):
+        return none
+    in_unit = np.zeros(len(m.kf_frame), bool)
+    in_unit[kfs] = True
+    old = np.flatnonzero(np.isfinite(m.Xw[:, 0]) & in_unit[host] & (host < young_before))
+    young = host[track_pids] >= young_before
+    if not len(old) or not young.any():
+        return none
+    yp, yraw = track_pids[young], track_raw[young]
+    Xc = m.Xw[old] @ T_cw[:3, :3].T + T_cw[:3, 3]
+    front = Xc[:, 2] > 1e-6
+    old, Xc = old[front], Xc[front]
+    if not len(old):
+        return none
+    raw = to_raw(Xc[:, :2] / Xc[:, 2:3] @ K[:2, :2].T + K[:2, 2])
+    # nearest old projection per young track, on a grid of FUSE_PX cells (no quadratic search)
+    cell = np.floor(raw / FUSE_PX).astype(np.int64)
+    table: dict[tuple[int, int], list[int]] = {}
+    for j, (cx, cy) in enumerate(cell.tolist()):
+        table.setdefault((cx, cy), []).append(j)
+    z_young = (m.Xw[yp] @ T_cw[2, :3] + T_cw[2, 3])
+    pair_y, pair_o = [], []
+    for i, (x, y) in enumerate(yraw.tolist()):
+        cx, cy = int(np.floor(x / FUSE_PX)), int(np.floor(y / FUSE_PX))
+        near = [j for dx in (-1, 0, 1) for dy in (-1, 0, 1) for j in table.get((cx + dx, cy + dy), ())]
+        if not near:
+            continue
+        near_a = np.array(near)
+        d = np.linalg.norm(raw[near_a] - (x, y), axis=1)
+        ok = (d < FUSE_PX) & (np.abs(Xc[near_a, 2] / max(z_young[i], 1e-9) - 1.0) < FUSE_DEPTH)
+        if ok.any():
+            pair_y.append(int(yp[i]))
+            pair_o.append(int(old[near_a[ok][np.argmin(d[ok])]]))
+    if not pair_y:
+        return none
+    return np.array(pair_y, np.int64), np.array(pair_o, np.int64)
+
+
 class LocalMapMixin:
     """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that re-attach lost map points:
     the newest keyframes' always, with ``vo.reuse_map`` the whole map unit's in view (:func:`local_map`)."""
@@ -193,9 +281,56 @@ class LocalMapMixin:
         img = self.st.kf_imgs.get(kf)
         return img if img is not None else self.old_images.get(self.map.kf_frame[kf])
 
-    def _reproject(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray) -> Tracks:
+    def _fuse_duplicates(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray, kfs: np.ndarray) -> Tracks:
+        """Young tracked points that are old points seen again (:func:`duplicates`, confirmed by KLT from the old
+        point's own keyframe image landing within :data:`SAME_PX` of the track) are fused into the old ones: the
+        track goes on as the old point, which takes the young one's observations (:meth:`Map.fuse_points`)."""
+        m = self.map
+        pm = np.flatnonzero(tr.pid >= 0)
+        young_before = max(0, self.st.last_kf - OLD_AGE) + 1
+        y, o = duplicates(m, T_cw, self.K, kfs, young_before, tr.pid[pm], tr.raw[pm],
+                          lambda px: distort_points(px, self.intr))
+        if not len(y):
+            return tr
+        src = _closest_view(m, o, -T_cw[:3, :3].T @ T_cw[:3, 3])
+        has = src >= 0
+        y, o, src = y[has], o[has], src[has]
+        if len(src) and len(np.unique(src)) > MAX_SOURCES:  # bound the decoding: the sources with most candidates
+            srcs, counts = np.unique(src, return_counts=True)
+            top = srcs[np.lexsort((-srcs, -counts))[:MAX_SOURCES]]
+            keep = np.isin(src, top)
+            y, o, src = y[keep], o[keep], src[keep]
+        if not len(y):
+            return tr
+        cfg = self.cfg
+        found, raw = match_points(m, self._image_of, gray, T_cw, o, src, self.intr, cfg.klt_window, cfg.klt_levels,
+                                  cfg.fb_threshold_px, FUSE_PX / self.f, warp=True)
+        at = {int(p): r for p, r in zip(found.tolist(), raw)}
+        row = {int(p): j for j, p in enumerate(tr.pid.tolist()) if p >= 0}
+        fy, fo = [], []
+        used: set[int] = set()
+        for a, b in zip(y.tolist(), o.tolist()):
+            r = at.get(b)
+            if r is None or b in used or b in row:  # not found, taken, or tracked already on its own
+                continue
+            if np.linalg.norm(r - tr.raw[row[a]]) < SAME_PX:
+                fy.append(a)
+                fo.append(b)
+                used.add(b)
+        if not fy:
+            return tr
+        m.fuse_points(np.array(fy, np.int64), np.array(fo, np.int64))
+        for a, b in zip(fy, fo):
+            tr.pid[row[a]] = b
+            tr.host[row[a]] = m.host[b]
+        self.st.n_fused += len(fy)
+        return tr
+
+    def _reproject(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray, fuse: bool = False) -> Tracks:
         """Re-attach lost map points to the current frame: the newest keyframes' (see :mod:`reproject`), and with
-        ``vo.reuse_map`` every point of the map unit the frame sees (:mod:`~mutualslam_cli.vo.local_map`)."""
+        ``vo.reuse_map`` every point of the map unit the frame sees (:mod:`~mutualslam_cli.vo.local_map`); with
+        ``fuse`` (at a keyframe, no windowed BA in flight) young tracked points that are old ones seen again are
+        fused into them first (:meth:`_fuse_duplicates`)."""
         m = self.map
         seg = [k for k in range(len(m.kf_frame)) if m.kf_segment[k] == self.st.segment]
         window = seg[-self.cfg.core_kfs:]
@@ -204,11 +339,19 @@ class LocalMapMixin:
             unit = self.state_map.unit(self.st.segment)
             kfs = np.array([k for k in range(len(m.kf_frame)) if self.state_map.unit(m.kf_segment[k]) == unit],
                            np.int64)
+            if fuse:
+                tr = self._fuse_duplicates(tr, gray, T_cw, kfs)
             lm = local_map(m, T_cw, self.K, (self.intr.width, self.intr.height), kfs, window, set(self.st.kf_imgs),
                            tr.pid[tr.pid >= 0], tr.raw, lambda px: distort_points(px, self.intr), cfg.grid_size)
-            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids, lm.source, self.intr, cfg.klt_window,
-                                     cfg.klt_levels, cfg.fb_threshold_px, self.thr)
-            self.st.n_reused += int(np.isin(pids, lm.pids[lm.old]).sum())
+            new = ~lm.old
+            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids[new], lm.source[new], self.intr,
+                                     cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px, self.thr)
+            if lm.old.any():  # old points: their depth, made from other viewpoints, misses by more (REUSE_GATE_PX)
+                p_old, r_old = match_points(m, self._image_of, gray, T_cw, lm.pids[lm.old], lm.source[lm.old],
+                                            self.intr, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px,
+                                            REUSE_GATE_PX / self.f, warp=True)
+                pids, raw = np.concatenate([pids, p_old]), np.concatenate([raw, r_old]).astype(np.float32)
+                self.st.n_reused += len(p_old)
         else:
             pids, raw = reproject_points(m, self.st.kf_imgs, gray, T_cw, tr.pid[tr.pid >= 0], window, self.intr,
                                          cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px, self.thr)

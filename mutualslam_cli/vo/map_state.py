@@ -224,10 +224,11 @@ class MapState:
         return self.map.px_h[pid].copy()
 
     def locate(self, index: RelocIndex, gray: np.ndarray, thr: float, seed: int = 0,
-               keyframes: list[int] | None = None, newest: int = 2) -> Relocalisation | None:
+               keyframes: list[int] | None = None, newest: int = 2,
+               witnesses: list[int] | None = None) -> Relocalisation | None:
         """The pose of the grey image ``gray`` in this map now, by the relocaliser's keyframe ``index``
         (:meth:`~mutualslam_cli.vo.relocalise.RelocIndex.query`: its arguments)."""
-        return index.query(gray, self.map, thr, seed=seed, keyframes=keyframes, newest=newest)
+        return index.query(gray, self.map, thr, seed=seed, keyframes=keyframes, newest=newest, witnesses=witnesses)
 
     def sparse_depth(self, kf: int) -> tuple[np.ndarray, np.ndarray]:
         """The map points keyframe ``kf`` observes now, projected into it with its pose now: pixels
@@ -251,7 +252,8 @@ class MapState:
             stats = RunStats(segment=len(self.init_methods) - 1, init_methods=list(self.init_methods), timing={},
                              total_s=0.0, reprojected=0, ba_stats=(), ba_threaded=False,
                              relocalisations=list(self.relocalisations))
-        return build_result(self.map, frames, self.frame_rel, self.frame_seg, self.intr, stats, covisibility)
+        units = {sg: self.unit(sg) for sg in set(self.map.kf_segment) if self.unit(sg) != sg}
+        return build_result(self.map, frames, self.frame_rel, self.frame_seg, self.intr, stats, covisibility, units)
 
 
 def events_from_result(vo: VOResult, n_frames: int) -> list[Event]:

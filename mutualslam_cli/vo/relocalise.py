@@ -71,6 +71,12 @@ class RelocSettings:
     place, and of the other keyframes' points in view that their images must find."""
     neighbours: int = 4
     """Other keyframes (same segment, most points in view under the pose) whose images verify it."""
+    inlier_factor: float = 1.0
+    """The PnP inlier threshold is the front end's RANSAC threshold times this. 1 for a frame just lost (the map
+    it returns to was made seconds ago); a loop's old map has drifted since it was made, and its points miss a
+    true revisit's own image by more (RedKitchen's true revisits: a median 2.1–2.9 px)."""
+    witness_ratio: float | None = None
+    """Share of the witnesses' points in view their images must find; ``None``: ``min_ratio``."""
 
 
 @dataclass
@@ -170,27 +176,33 @@ class RelocIndex:
         return (newest + rest)[: self.settings.n_candidates]
 
     def query(self, gray: np.ndarray, m: Map, thr: float, seed: int = 0,
-              keyframes: list[int] | None = None, newest: int = 2) -> Relocalisation | None:
+              keyframes: list[int] | None = None, newest: int = 2,
+              witnesses: list[int] | None = None) -> Relocalisation | None:
         """The pose of the grey frame ``gray`` in map ``m`` (``None``: no candidate passed).
 
         Args:
-            thr: inlier threshold in normalised units (the front end's RANSAC threshold / f).
+            thr: the front end's RANSAC threshold in normalised units (/ f); the inliers' is it ×
+                ``settings.inlier_factor``.
             keyframes: keyframes that may serve (default: every keyframe of the index).
             newest: candidates taken by recency before the thumbnail ranking (0: by appearance only).
+            witnesses: keyframes that may witness a candidate's pose (default: the candidate's segment). A loop gives
+                the old side of the map: the keyframes made since the old visit carry the drift the loop corrects,
+                so their points under a true loop pose are off by that drift and refute every true revisit.
         """
         feats = orb_features(gray, ORB_FEATURES)
         pool = sorted(self.images) if keyframes is None else keyframes
+        thr = thr * self.settings.inlier_factor
         self.outcomes = {}
         for tried, kf in enumerate(self.candidates(gray, pool, newest), 1):
             rejected0 = self.rejected
-            found = self._try(kf, m, gray, feats, thr, seed)
+            found = self._try(kf, m, gray, feats, thr, seed, witnesses)
             self.outcomes[kf] = PASSED if found is not None else REFUTED if self.rejected > rejected0 else NO_MATCH
             if found is not None:
                 return dataclasses.replace(found, candidates_tried=tried)
         return None
 
     def _try(self, kf: int, m: Map, gray: np.ndarray, feats: tuple[np.ndarray, np.ndarray], thr: float,
-             seed: int) -> Relocalisation | None:
+             seed: int, witnesses: list[int] | None = None) -> Relocalisation | None:
         s = self.settings
         H = self._homography(self.features[kf], feats, seed)
         pids = np.array(sorted(m.kf_points[kf]), np.int64)
@@ -206,14 +218,14 @@ class RelocIndex:
         T, inl = estimate_pose(m.Xw[pids], xn, [m.T_cw(kf)], thr, seed=seed)
         if T is None or inl.sum() < s.min_matches:
             return None
-        if not self._verified(T, kf, m, gray, pids, xn, thr, seed):
+        if not self._verified(T, kf, m, gray, pids, xn, thr, seed, witnesses):
             self.rejected += 1
             return None
         good = reprojection_errors(T, m.Xw[pids], xn) < thr
         return Relocalisation(T, pids[good], raw[good].astype(np.float32), kf, int(good.sum()), 0)
 
     def _verified(self, T: np.ndarray, kf: int, m: Map, gray: np.ndarray, pids: np.ndarray, xn: np.ndarray,
-                  thr: float, seed: int) -> bool:
+                  thr: float, seed: int, witnesses: list[int] | None = None) -> bool:
         """The tests a relocalised pose ``T`` must pass (module docstring): enough inliers among the
         matches; a pose from either half of the inliers placing the other half; and other keyframes'
         images finding their points where ``T`` projects them — evidence the candidate's own image cannot
@@ -229,7 +241,7 @@ class RelocIndex:
             Ta = estimate_pose(Xw[a], xn[a], [m.T_cw(kf)], thr, seed=seed + 1)[0]
             if Ta is None or np.mean(reprojection_errors(Ta, Xw[b], xn[b]) < thr) < s.min_ratio:
                 return False
-        others = self._witnesses(T, kf, m, gray.shape)
+        others = self._witnesses(T, kf, m, gray.shape, witnesses)
         if not others:
             return False
         cand = np.array(sorted(set().union(*(m.kf_points[k] for k in others))), np.int64)
@@ -238,7 +250,7 @@ class RelocIndex:
             return False
         found, _ = reproject_points(m, {k: self.images[k] for k in others}, gray, T, np.zeros(0, np.int64), others,
                                     self.intr, KLT_WIN, KLT_LEVELS, KLT_FB_PX, 2 * thr)
-        return len(found) >= s.min_ratio * seen
+        return len(found) >= (s.min_ratio if s.witness_ratio is None else s.witness_ratio) * seen
 
     def _in_view(self, T: np.ndarray, Xw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         """``(N,)`` bool: world points ``Xw`` in front of ``T`` and inside the image, away from the border."""
@@ -247,13 +259,17 @@ class RelocIndex:
         h, w = shape
         return (Xc[:, 2] > 0) & in_image(px, w, h, margin=KLT_WIN // 2)
 
-    def _witnesses(self, T: np.ndarray, kf: int, m: Map, shape: tuple[int, int]) -> list[int]:
-        """Keyframes of the candidate's segment other than it, with an image, whose points ``T`` puts most in
-        view: at most ``neighbours`` of them, each with ``min_verified`` points in view at least."""
+    def _witnesses(self, T: np.ndarray, kf: int, m: Map, shape: tuple[int, int],
+                   pool: list[int] | None = None) -> list[int]:
+        """Keyframes other than the candidate, with an image — of ``pool``, else of the candidate's segment — whose
+        points ``T`` puts most in view: at most ``neighbours`` of them, each with ``min_verified`` points in view."""
         s = self.settings
+        allowed = None if pool is None else set(pool)
         counts = []
         for k in self.images:
-            if k == kf or m.kf_segment[k] != m.kf_segment[kf] or not m.kf_points[k]:
+            if k == kf or not m.kf_points[k]:
+                continue
+            if (m.kf_segment[k] != m.kf_segment[kf]) if allowed is None else (k not in allowed):
                 continue
             pts = np.fromiter(m.kf_points[k], np.int64, len(m.kf_points[k]))
             n = int(self._in_view(T, m.Xw[pts], shape).sum())

@@ -108,6 +108,9 @@ class VOResult:
         frame_segment: ``(N_frames,)`` int: tracking segment of each frame, −1 = not tracked.
         covisibility: ``{kf_id: {other_kf_id: shared_points}}``.
         meta: front-end facts (mode, timings, init method, re-initialisations…).
+        units: ``{segment: map unit}`` for the segments a bridge or a merge joined to another (one frame and scale:
+            :meth:`unit_of_segment`); a segment not in it is a unit of its own. The map's own answer, which every
+            reader takes (the BA's parts, the scale-drift windows, the map's e_si).
     """
 
     keyframes: list[Keyframe]
@@ -117,6 +120,18 @@ class VOResult:
     frame_segment: np.ndarray
     covisibility: dict[int, dict[int, int]] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
+    units: dict[int, int] = field(default_factory=dict)
+
+    def unit_of_segment(self) -> dict[int, int]:
+        """``{segment: map unit}`` for every segment of the keyframes (its own where nothing joined it)."""
+        return {k.segment: self.units.get(k.segment, k.segment) for k in self.keyframes}
+
+    def joined(self, segment: int, onto: int) -> dict[int, int]:
+        """The units after ``segment``'s unit is joined onto ``onto``'s (a bridge or a merge moved it there)."""
+        units = self.unit_of_segment()
+        old, new = units.get(segment, segment), units.get(onto, onto)
+        return {s: (new if u == old else u) for s, u in units.items()} | ({segment: new} if segment not in units
+                                                                          else {})
 
     @property
     def traj_kf(self) -> Trajectory:

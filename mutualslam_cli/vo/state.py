@@ -90,6 +90,8 @@ class TrackerState:
         n_at_kf: tracks alive at the last keyframe; last_kf: the keyframe frames are tracked against.
         n_tracked: PnP inliers of the last tracked frame; n_reprojected: points re-attached so far (n_reused:
             of them, points from outside the newest keyframes, ``vo.reuse_map``).
+        old_share_sum, old_share_frames: the sum over tracked frames of the share of their tracked map points first
+            seen more than :data:`~mutualslam_cli.vo.frontend.OLD_AGE_KFS` keyframes before, and the frames summed.
         ba_due: the frame at which the windowed BA in flight is applied.
         lost_at: the frame of the last tracking loss (−1: none).
         kf_imgs: grey images of the newest ``core_kfs`` keyframes (reprojection sources).
@@ -110,6 +112,9 @@ class TrackerState:
     n_tracked: int = 0
     n_reprojected: int = 0
     n_reused: int = 0
+    n_fused: int = 0
+    old_share_sum: float = 0.0
+    old_share_frames: int = 0
     ba_due: int = 0
     lost_at: int = -1
     kf_imgs: dict[int, np.ndarray] = field(default_factory=dict)
@@ -269,6 +274,22 @@ class Map:
         if len(pids):
             self.Xw[pids] = np.nan
             self._emit("remove", pids=pids)
+
+    def fuse_points(self, young: np.ndarray, old: np.ndarray) -> None:
+        """Point ``young[j]`` is found to be point ``old[j]`` seen again: its observations go to ``old[j]`` (where
+        that keyframe does not observe ``old[j]`` already) and it leaves the map (ORB-SLAM's point fusion). Journaled
+        as the observations and the removal it is made of."""
+        young = np.asarray(young, np.int64).reshape(-1)
+        old = np.asarray(old, np.int64).reshape(-1)
+        by_kf: dict[int, tuple[list[int], list[np.ndarray]]] = {}
+        for y, o in zip(young.tolist(), old.tolist()):
+            for k, x in self.obs[y].items():
+                if k not in self.obs[o]:
+                    by_kf.setdefault(k, ([], []))[0].append(o)
+                    by_kf[k][1].append(x)
+        for k in sorted(by_kf):
+            self.observe(k, np.array(by_kf[k][0], np.int64), np.array(by_kf[k][1], np.float64).reshape(-1, 2))
+        self.remove_points(young)
 
     def set_host_pixels(self, pids: np.ndarray, px_h: np.ndarray, xn_h: np.ndarray) -> None:
         """Move points' host pixels (undistorted ``px_h`` and normalised ``xn_h``, ``(n, 2)`` each)."""

@@ -12,7 +12,9 @@ from mutualslam_cli.geometry import exp_so3, scale_motion
 from mutualslam_cli.metrics.trajectory import ate, ate_segments
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import run_vo
-from mutualslam_cli.backend.bridges import Bridge, bridge_segment, bridged, plan_bridge, units_of
+from mutualslam_cli.backend.bridges import Bridge, bridge_segment, bridged, plan_bridge
+from mutualslam_cli.types import Intrinsics, Trajectory
+from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
 
 
 @pytest.fixture(scope="module")
@@ -95,8 +97,17 @@ def test_ratios_spread_too_wide_leave_the_segment_apart_and_say_why(two_segments
 
 
 def test_units_follow_the_bridges_that_were_made():
+    """A bridged map carries its units (VOResult.units): the segments the made bridges joined share one, a refused
+    bridge joins nothing, and a bridge onto a joined segment joins its whole unit."""
     def made_(segment: int, onto: int, refused: str = "") -> Bridge:
-        return Bridge(segment, onto, 0, 0.0, -1, 1.0, 1.0, 1.0, 0, 0, 0.0, "none", refused=refused)
+        return Bridge(segment, onto, 0, 0.0, -1, 1.0, 1.0, 1.0, 0, 0, 0.0, "none", R=np.eye(3).tolist(),
+                      t=[0.0, 0.0, 0.0], refused=refused)
 
-    made = [made_(1, 0), made_(3, 2), made_(4, 3, refused="spread")]
-    assert units_of([0, 1, 2, 3, 4], made) == {0: 0, 1: 0, 2: 2, 3: 2, 4: 4}
+    kfs = [Keyframe(k, k, 0.1 * k, np.eye(4), k) for k in range(5)]
+    pts = MapPoints(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros(0), [], [])
+    vo = VOResult(kfs, pts, Intrinsics(100.0, 100.0, 32.0, 24.0, 64, 48), Trajectory(np.zeros(0), np.zeros((0, 4, 4))),
+                  np.full(5, -1))
+    units = bridged(vo, [made_(1, 0), made_(3, 2), made_(4, 3, refused="spread")]).unit_of_segment()
+    assert units[0] == units[1] != units[2] == units[3] != units[4] and units[4] == 4
+    units = bridged(vo, [made_(1, 0), made_(3, 2), made_(2, 1)]).unit_of_segment()
+    assert len(set(units[s] for s in range(4))) == 1 and units[4] == 4

@@ -24,7 +24,7 @@ def frames():
     """``frame → (grey, depth, T_wc)`` of the frames the tests use (rendered one by one)."""
     sdef, renderer = _setup("room", W, H, 0, "target")
     out = {}
-    for f in (30, 45, 60, 75, 90, 300, 315, 330, 1270, 1273):
+    for f in (30, 45, 60, 75, 90, 300, 315, 330, 1262, 1266, 1270, 1273, 1276):
         T = camera_pose(sdef.path, f / FPS)
         rgb, depth = renderer.render(T)
         grey = (0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]).astype(np.uint8)
@@ -32,13 +32,15 @@ def frames():
     return out
 
 
-def _map(frames, old: list[int], query: int, unit: float, offset: np.ndarray) -> MapState:
+def _map(frames, old: list[int], query: int, unit: float, offset: np.ndarray, drifted: tuple = ()) -> MapState:
     """Keyframes of ``old`` frames with GT poses and points (metric), then the ``query`` frame placed ``offset``
-    (a drift) from its true pose, its own points in a unit ``unit`` times the old one's."""
+    (a drift) from its true pose, its own points in a unit ``unit`` times the old one's; frames in ``drifted`` (of
+    ``old``) are placed and scaled like the query (the new map, made since the old visit)."""
     intr = synthetic_intrinsics(W, H)
     st = MapState(intr, 2000)
     K = intr.K()
-    for f, scale, T in [(f, 1.0, frames[f][2]) for f in old] + [(query, unit, offset @ frames[query][2])]:
+    placed = [(f, unit, offset @ frames[f][2]) if f in drifted else (f, 1.0, frames[f][2]) for f in old]
+    for f, scale, T in placed + [(query, unit, offset @ frames[query][2])]:
         k = st.map.add_keyframe(f, f / FPS, T, 0)
         grey, depth = frames[f][0], frames[f][1]
         px = detect_grid(grey, 16, 300).astype(np.float64)
@@ -159,3 +161,39 @@ def test_depth_agreement_is_against_the_networks_own_noise():
     assert depth_agrees(0.2, 0.0, 0.25) and depth_agrees(0.4, 0.3, 0.25)
     assert not depth_agrees(0.5, 0.3, 0.25)  # 1.67 × the network's own spread: the pose's depths do not follow
     assert not depth_agrees(0.3, 0.1, 0.25)
+
+
+def test_a_true_loop_is_witnessed_by_the_old_map_not_by_the_drifted_new_one(frames):
+    """The keyframes made since the old visit carry the drift the loop corrects: under the true loop pose their points
+    are a drift away from where their images put them. Taken as witnesses (the old rule: the candidate's segment)
+    they refute every true revisit; the old side of the map (the pool) confirms it. Its scale comes from the two maps'
+    own points on one pixel (3D–3D pairs), not from the network."""
+    drift = np.eye(4)
+    drift[:3, 3] = [0.2, -0.05, 0.1]
+    new = [1262, 1266, 1270, 1276]  # the query's neighbours, made in the drifted map
+    st = _map(frames, [30, 45, 60, 75, 90, *new], 1273, unit=1.25, offset=drift, drifted=new)
+    q = st.n_keyframes - 1
+    pool = [0, 1, 2, 3, 4]  # the old visit: keyframes 5–8 are within min_gap of the query
+    d = _detector(st, frames, LoopConfig(min_gap=5))
+    loop = d.query(st, q, frames[1273][0], np.full_like(frames[1273][1], 5.0))  # a useless "network": flat
+    assert loop is not None and st.map.kf_frame[loop.match] in (45, 60, 75)
+    T_true = se3_inv(frames[1273][2])
+    assert set(d.index._witnesses(T_true, loop.match, st.map, (H, W), pool)) <= set(pool) - {loop.match}
+    assert set(d.index._witnesses(T_true, loop.match, st.map, (H, W))) & {5, 6, 7, 8}  # the old rule took new ones
+    assert np.linalg.norm(se3_inv(loop.T_cw)[:3, 3] - frames[1273][2][:3, 3]) < 0.02
+    assert d.queries[-1]["scale_from"] == "map" and loop.scale == pytest.approx(1 / 1.25, rel=0.03)
+
+
+def test_the_maps_own_scale_pairs_points_on_one_pixel():
+    from mutualslam_cli.backend.loop_detector import MIN_SAME_POINTS, paired_scale
+
+    rng = np.random.default_rng(1)
+    uv = rng.uniform(0, 300, (60, 2))
+    z = rng.uniform(1.0, 4.0, 60)
+    s, err = paired_scale(uv + rng.normal(0, 0.5, uv.shape), 0.8 * z, uv, z)  # old units per new: 0.8
+    assert s == pytest.approx(0.8, rel=1e-6) and err < 1e-6
+    wrong = z.copy()
+    wrong[:15] *= 3.0  # a quarter of the pairs are other points: the median holds
+    assert paired_scale(uv, 0.8 * wrong, uv, z)[0] == pytest.approx(0.8, rel=1e-6)
+    assert paired_scale(uv[:MIN_SAME_POINTS - 1], z[:MIN_SAME_POINTS - 1], uv, z) is None
+    assert paired_scale(uv + 10.0, z, uv, z) is None  # no old point on a new one's pixel

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -60,7 +62,7 @@ def _merger(state: MapState, loop: LoopClosure | None, closer=None) -> SegmentMe
     mg.detector.add = lambda kf, gray: mg.detector.index.images.add(kf, gray)
     asked = []
 
-    def query(state, kf, gray, depth, seed=0, pool=None):
+    def query(state, kf, gray, depth, seed=0, pool=None, newest=0):
         asked.append((kf, list(pool)))
         return loop if loop is not None and kf == loop.query else None
 
@@ -86,7 +88,7 @@ def test_a_segment_of_its_own_moves_whole_onto_the_old_map_once():
     X0 = state.map.Xw[[0, 1]].copy()
     depth_of = lambda kf: np.ones((8, 8))  # noqa: E731
     for kf in range(5):
-        mg.after_keyframe(kf, depth_of, lambda ids: {}, [])
+        mg.after_keyframe(kf, depth_of, lambda ids: {})
     assert [a[0] for a in mg.asked] == [3, 4]  # segment 0 is the map: only the new segment's keyframes ask
     assert mg.asked[0][1] == [0, 1, 2]  # … and only about the keyframes before the segment
     np.testing.assert_allclose(state.pose(4), se3_inv(T_o), atol=1e-9)
@@ -94,8 +96,25 @@ def test_a_segment_of_its_own_moves_whole_onto_the_old_map_once():
     # the hosted points moved with their keyframes, their distances from them ×2
     assert np.linalg.norm(state.map.Xw[1] - state.pose(4)[:3, 3]) == pytest.approx(
         2.0 * np.linalg.norm(X0[1] - _T_wc(0.4, [0.05, 0, 0])[:3, 3]))
-    mg.after_keyframe(4, depth_of, lambda ids: {}, [])
+    mg.after_keyframe(4, depth_of, lambda ids: {})
     assert len(mg.asked) == 2 and len(mg.merges) == 1  # merged: not asked again
+
+
+def test_after_a_merge_every_reader_sees_one_unit():
+    """One answer to "which unit": the merged segment is in the old unit in the map state, in its snapshot (which the
+    global BA, the scale-drift windows and the map's e_si read) and in the point units of the map's metrics."""
+    from mutualslam_cli.metrics.slam import point_units
+    from mutualslam_cli.types import FrameRef
+
+    state = _state()
+    mg = _merger(state, LoopClosure(4, 1, se3_inv(_T_wc(0.7, [0.3, 0.2, 0.1])), 2.0, 100, 0.1, 50, 50))
+    before = state.snapshot([FrameRef(i, float(i), Path(f"{i}.png"), None) for i in range(50)])
+    assert before.unit_of_segment() == {0: 0, 1: 1}
+    for kf in range(5):
+        mg.after_keyframe(kf, lambda kf: np.ones((8, 8)), lambda ids: {})
+    vo = state.snapshot([FrameRef(i, float(i), Path(f"{i}.png"), None) for i in range(50)])
+    assert state.unit(1) == 0 and vo.unit_of_segment() == {0: 0, 1: 0}
+    assert set(point_units(vo, vo.unit_of_segment()).tolist()) == {0}
 
 
 def test_a_bridged_segment_is_corrected_as_a_loop():
@@ -104,10 +123,10 @@ def test_a_bridged_segment_is_corrected_as_a_loop():
     loop = LoopClosure(4, 1, se3_inv(_T_wc(0.7, [0.3, 0.2, 0.1])), 1.2, 100, 0.1, 50, 50)
     calls = []
     closer = SimpleNamespace(detector=SimpleNamespace(index=SimpleNamespace(images=HeldImages())),
-                             close=lambda lp, d, v, b: calls.append(lp.query) or {"ba_nearby_targets": 3})
+                             close=lambda lp, d, v: calls.append(lp.query) or {"ba_nearby_targets": 3})
     mg = _merger(state, loop, closer)
     before = state.pose(3).copy()
     for kf in range(5):
-        mg.after_keyframe(kf, lambda kf: np.ones((8, 8)), lambda ids: {}, [])
+        mg.after_keyframe(kf, lambda kf: np.ones((8, 8)), lambda ids: {})
     assert calls == [4] and mg.merges[0].how == "pose graph + BA"
     np.testing.assert_array_equal(state.pose(3), before)  # not moved rigidly: the loop's pose graph does it
