@@ -11,8 +11,9 @@ trains on it, so no score is of a model that saw its frame), and frames up to th
 included, get the pre-trained network. The realtime schedule applies the same rule on its clock: each frame
 by the weights before the step that ends after it (:mod:`~mutualslam_cli.online.realtime`). Frames and GT
 are those of the evaluation (every ``eval.stride``-th frame with GT depth, undistorted to the network's
-pinhole camera); prediction is the torch path of the training loop (mixed precision with ``fast``) on the network's device, so the last frames — scored
-online by the final network — also show how far this path is from the evaluation's runtime.
+pinhole camera); prediction is the torch path of the training loop (mixed precision with ``fast``) on the
+network's device, so the last frames — scored online by the final network — also show how far this path is
+from the evaluation's runtime.
 
 Frames between two keyframes share one model, so they are predicted together when the model is about
 to change (:meth:`OnlineScorer.score_until`, called at the next keyframe's arrival), in forward passes of
