@@ -136,7 +136,13 @@ def pair_runs(runs: pd.DataFrame, a: Arm, b: Arm, broadcast: bool = False) -> pd
         return pd.DataFrame({"sequence": r["sequence.name"].astype(str), "seed": r["_seed"], "rest": r["_rest"],
                              name: numeric(r, arm.key), f"folder_{name}": r["folder"]})
 
-    left, right = side(a, "a"), side(b, "b")
+    return pair_values(side(a, "a"), side(b, "b"), broadcast)
+
+
+def pair_values(left: pd.DataFrame, right: pd.DataFrame, broadcast: bool = False) -> pd.DataFrame:
+    """Pairs of two arms' values: ``left`` (columns ``sequence``, ``seed``, ``rest``, ``a``, ``folder_a``) and
+    ``right`` (… ``b``, ``folder_b``) matched on sequence, seed and rest; with ``broadcast``, an arm's only seed on a
+    sequence stands for each seed of the other there. Pairs with a missing value are left out; ``diff = a − b``."""
     on = ["sequence", "seed", "rest"]
     pairs = left.merge(right, on=on, how="inner")
     pairs["broadcast"] = False
