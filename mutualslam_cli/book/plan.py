@@ -183,7 +183,9 @@ def plan_book(spec: BookSpec, out: Path, grids: list[str], registry: str | None 
         seq_args = [str(out / "data" / r.name) if r.synth is not None else r.name for r in refs.values()]
         for variant, sets in g.variants.items():
             cfg = with_settings(base, list(sets))
-            part = Part(name, variant, cfg, config_hash(cfg), expand(seq_args, list(g.schemes), list(g.seeds)),
+            many = [x for x in g.schemes if x not in g.one_seed]
+            jobs = expand(seq_args, many, list(g.seeds)) + expand(seq_args, list(g.one_seed), list(g.seeds[:1]))
+            part = Part(name, variant, cfg, config_hash(cfg), jobs,
                         out / "runs" / name / variant, tuple(common) + tuple(sets),
                         str(g.preset))
             if render:

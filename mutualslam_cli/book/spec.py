@@ -5,8 +5,9 @@ A book file has five sections (the header of ``configs/book.yaml`` shows each in
 - ``book:`` its ``name``, the ``preset`` every grid starts from (a config file, relative to the repository),
   ``sets`` (``key=value`` on every grid's config, e.g. ``threads=1``) and ``out`` (default ``results/book``);
 - ``grids:`` what runs: per grid its ``sequences`` (required: a missing one is an error), ``when_present`` (the
-  paper's whole sequences: run where their folder exists, else listed as skipped), ``schemes``, ``seeds``, a
-  ``preset`` of its own, ``sets`` (``key=value`` on the preset) and ``variants`` (label → overrides: the grid once
+  paper's whole sequences: run where their folder exists, else listed as skipped), ``schemes``, ``seeds``,
+  ``one_seed`` (schemes run for the first seed only: those without replay give the same figures for every seed;
+  a comparison with them says ``broadcast``), a ``preset`` of its own, ``sets`` (``key=value`` on the preset) and ``variants`` (label → overrides: the grid once
   per variant). A sequence is a ``datasets.yaml`` name, a folder, or a rendered room
   ``{synth: room, frames: 40, size: 128x96, seed: 0}`` (rendered once into ``<out>/data/``);
 - ``tables:`` what is published: rows = the grid's sequences (+ ``Average``), ``columns`` each a summary ``key``
@@ -65,6 +66,7 @@ class GridSpec:
     preset: str
     sets: tuple[str, ...]
     variants: dict[str, tuple[str, ...]]
+    one_seed: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -246,8 +248,11 @@ def _grid(path: Path, name: str, data: Any, preset: str) -> GridSpec:
         if not isinstance(sets, list) or not all(isinstance(s, str) and "=" in s for s in sets):
             raise r.fail(f"variant {label}: expected a list of key=value overrides, got {sets!r}")
         variants[label] = tuple(sets)
+    one_seed = _names(r, "one_seed", [])
+    if set(one_seed) - set(schemes):
+        raise r.fail(f"'one_seed': {', '.join(sorted(set(one_seed) - set(schemes)))} not among its schemes")
     g = GridSpec(name, seqs, present, schemes, tuple(seeds), r.get("preset", str, preset), _names(r, "sets", []),
-                 variants)
+                 variants, one_seed)
     r.done()
     labels = [s.label for s in seqs + present]
     if not labels:
