@@ -7,8 +7,9 @@ A book file has five sections (the header of ``configs/book.yaml`` shows each in
 - ``grids:`` what runs: per grid its ``sequences`` (required: a missing one is an error), ``when_present`` (the
   paper's whole sequences: run where their folder exists, else listed as skipped), ``schemes``, ``seeds``,
   ``one_seed`` (schemes run for the first seed only: those without replay give the same figures for every seed;
-  a comparison with them says ``broadcast``), a ``preset`` of its own, ``sets`` (``key=value`` on the preset) and ``variants`` (label → overrides: the grid once
-  per variant). A sequence is a ``datasets.yaml`` name, a folder, or a rendered room
+  a comparison with them says ``broadcast``), a ``preset`` of its own, ``sets`` (``key=value`` on the preset)
+  and ``variants`` (label → overrides: the grid once per variant). A sequence is a ``datasets.yaml`` name, a
+  folder, or a rendered room
   ``{synth: room, frames: 40, size: 128x96, seed: 0}`` (rendered once into ``<out>/data/``);
 - ``tables:`` what is published: rows = the grid's sequences (+ ``Average``), ``columns`` each a summary ``key``
   of one ``scheme`` (and ``variant``, and ``grid``) as mean ± std over seeds, ``scale`` (100: m → cm), ``digits``
