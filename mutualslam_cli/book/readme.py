@@ -1,5 +1,5 @@
 """The README's results come from the book: every block between ``<!-- book:NAME -->`` and ``<!-- /book:NAME -->``
-is rendered from the committed ``results/book.json`` (:func:`render`), so no hand-typed figure there can go stale —
+(each marker on a line of its own) is rendered from the committed ``results/book.json`` (:func:`render`), so no hand-typed figure there can go stale —
 ``tests/book/test_readme_blocks.py`` fails when the README differs from what this makes of it.
 
 ``NAME`` is a table of the book, ``findings`` (the verdicts) or ``figure:NAME`` (a figure's caption and file). Each
@@ -24,8 +24,9 @@ REPO = CONFIG_DIR.parent
 #: The committed book the README is rendered from, and the README.
 BOOK_JSON = REPO / "results" / "book.json"
 README = REPO / "README.md"
-_BLOCK = re.compile(r"(<!-- book:(?P<name>[^ ]+?) -->\n)(?P<body>.*?)(<!-- /book:(?P=name) -->)", re.S)
-_OPEN = re.compile(r"<!-- book:([^ ]+?) -->")
+#: A block: its opening and closing markers each on a line of their own (a marker quoted in prose is not one).
+_BLOCK = re.compile(r"^(<!-- book:(?P<name>\S+?) -->\n)(?P<body>.*?)^(<!-- /book:(?P=name) -->)$", re.S | re.M)
+_OPEN = re.compile(r"^<!-- book:(\S+?) -->$", re.M)
 
 
 def _md_table(columns: list[str], rows: list[list[str]], bold: set[tuple[int, str]] | None = None) -> str:
