@@ -1,6 +1,7 @@
 """The README's results come from the book: every block between ``<!-- book:NAME -->`` and ``<!-- /book:NAME -->``
-(each marker on a line of its own) is rendered from the committed ``results/book.json`` (:func:`render`), so no hand-typed figure there can go stale —
-``tests/book/test_readme_blocks.py`` fails when the README differs from what this makes of it.
+(each marker on a line of its own) is rendered from the committed ``results/book.json`` (:func:`render`), so no
+hand-typed figure there can go stale — ``tests/book/test_readme_blocks.py`` fails when the README differs from
+what this makes of it.
 
 ``NAME`` is a table of the book, ``findings`` (the verdicts) or ``figure:NAME`` (a figure's caption and file). Each
 block ends with a provenance line: the book's name and file, its commit, the commits and CPU kinds of the runs
