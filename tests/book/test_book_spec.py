@@ -88,3 +88,17 @@ def test_the_config_hash_follows_what_changes_numbers_only():
     a = load_config(CONFIG_DIR / "smoke.yaml")
     assert config_hash(a) == config_hash(load_config(CONFIG_DIR / "smoke.yaml", ["out=elsewhere"]))
     assert config_hash(a) != config_hash(load_config(CONFIG_DIR / "smoke.yaml", ["adapt.lr=0.01"]))
+
+
+def test_the_full_book_reads_and_reports_no_preset_on_its_tuning_data():
+    from mutualslam_cli.book.plan import _check_tuning, preset_path
+
+    spec = load_book(CONFIG_DIR / "book.yaml")
+    for g in spec.grids.values():
+        _check_tuning(g, preset_path(g.preset, spec.path))  # raises on a tuned preset's own data
+    assert {"T1", "T3", "T4", "T5", "F4"} <= set(spec.findings)
+    assert "tum_fr1_xyz" not in {s.name for s in spec.grids["tuned"].sequences}
+    assert [s.name for s in spec.grids["fast"].sequences] == ["redkitchen_7scenes"]
+    assert len(spec.bounds) >= 10 and any(b.ci for b in spec.bounds)
+    t4 = [c.label for c in spec.tables["table4"].columns]
+    assert t4 == ["front end", "+ bridges", "+ merges", "+ culling + BA", "+ loops"]
