@@ -7,7 +7,7 @@ MSLAM := $(VENV)/bin/mslam
 DEMO_DIR ?= results/demo
 PYTEST_ARGS ?=
 
-.PHONY: install demo test test-all bench gpu-check lint clean weights
+.PHONY: install demo test test-all bench gpu-check lint clean weights book book-smoke
 
 install: $(VENV)/.installed
 
@@ -46,6 +46,18 @@ bench: install
 # a 100-frame shared window on cuda and on cpu (same keyframes, PCD within 1 point). Skips without CUDA.
 gpu-check: install
 	$(PY) -m mutualslam_cli.bench.gpu_check
+
+# The results book (configs/book.yaml): every experiment the README reports, resumable (run it again after a kill),
+# then results/book/ and, with --publish, results/book.json (committed) and the README's blocks rendered from it.
+# Hours on 2 cores; BOOK_ARGS adds options (--only table3, --executor dask --scheduler ADDR, ...).
+BOOK ?= configs/book.yaml
+BOOK_ARGS ?= -j 2
+book: install
+	$(MSLAM) book $(BOOK) $(BOOK_ARGS) --publish
+
+# The book's machinery in a minute, on rendered rooms (what CI's tests/book run).
+book-smoke: install
+	$(MSLAM) book configs/book_smoke.yaml --out results/book_smoke
 
 weights: install
 	$(MSLAM) pretrain

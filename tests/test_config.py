@@ -19,7 +19,7 @@ def test_paper_yaml_equals_dataclass_defaults():
 def test_paper_values():
     c = load_config()
     assert (c.adapt.lambda_sparse, c.adapt.lambda_smooth, c.adapt.alpha) == (0.1, 0.1, 0.85)
-    assert (c.adapt.lr, c.adapt.steps_per_keyframe) == (1e-4, 8)  # departures, measured: configs/paper.yaml
+    assert (c.adapt.lr, c.adapt.steps_per_keyframe) == (1e-3, 8)  # the paper's lr; steps: the paper is silent
     assert (c.adapt.ewc_beta, c.adapt.ewc_max_f) == (5e7, 1e-3)
     assert (c.adapt.mas_lambda, c.adapt.si_lambda) == (43.0, 240.0)  # departures, measured: bench/strength.py
     assert (c.adapt.validate_every, c.adapt.patience, c.adapt.tau_val) == (5, 3, 0.2)
@@ -125,5 +125,27 @@ def test_fast_config_changes_only_the_budget_and_the_bounds():
     fast, paper = to_dict(load_config(CONFIG_DIR / "fast.yaml")), to_dict(load_config(CONFIG_DIR / "paper.yaml"))
     changed = {f"{sec}.{k}" for sec, vals in paper.items() if isinstance(vals, dict)
                for k, v in vals.items() if fast[sec][k] != v}
-    assert changed == {"adapt.freeze_stages", "adapt.val_max", "ba.window", "eval.online"}
+    assert changed == {"adapt.freeze_stages", "adapt.val_max", "ba.window", "eval.online", "adapt.lr"}
     assert fast["adapt"]["scheme"] == "replay+ewc" and fast["net"] == paper["net"]  # evaluated as the paper's
+
+
+def test_tuned_presets_name_the_data_they_were_tuned_on():
+    """paper.yaml is tuned on nothing; tuned.yaml differs from it only in the learning rate it took from
+    tum_fr1_xyz, and fast.yaml names the four windows its budget was chosen on (the book reads these lines)."""
+    from mutualslam_cli.config import tuned_on
+
+    assert tuned_on(CONFIG_DIR / "paper.yaml") == []
+    assert tuned_on(CONFIG_DIR / "tuned.yaml") == ["tum_fr1_xyz"]
+    assert tuned_on(CONFIG_DIR / "fast.yaml") == ["tum_fr1_xyz", "icl_lr_kt2", "tum_fr1_desk_loss", "tum_fr1_desk_9f"]
+    tuned, paper = to_dict(load_config(CONFIG_DIR / "tuned.yaml")), to_dict(load_config(CONFIG_DIR / "paper.yaml"))
+    changed = {f"{sec}.{k}" for sec, vals in paper.items() if isinstance(vals, dict)
+               for k, v in vals.items() if tuned[sec][k] != v}
+    assert changed == {"adapt.lr"} and tuned["adapt"]["lr"] == 1e-4 and paper["adapt"]["lr"] == 1e-3
+
+
+def test_a_preset_without_a_tuned_on_line_is_unknown(tmp_path: Path):
+    from mutualslam_cli.config import tuned_on
+
+    f = tmp_path / "mine.yaml"
+    f.write_text("adapt:\n  lr: 1.0e-4\n")
+    assert tuned_on(f) is None  # unknown: the book treats it as tuned on everything it reports

@@ -210,7 +210,8 @@ LAYER_OF = {
     "atomic": "ground", "allocator": "ground", "machine": "ground", "device": "ground",
     "datasets": "domain", "vo": "domain", "adapt": "domain", "metrics": "domain", "dense": "domain",
     "backend": "backend", "online": "online", "results": "results", "stages": "stages", "report": "report",
-    "pipeline": "doors", "ablate": "doors", "grid_plan": "doors", "eval_depth": "doors", "bench": "bench", "cli": "cli",
+    "pipeline": "doors", "ablate": "doors", "grid_plan": "doors", "eval_depth": "doors", "bench": "bench",
+    "book": "book", "cli": "cli",
 }
 #: What each layer may import (besides itself). The ground floor imports nothing above it; the domain
 #: never imports the back end, stages, results, report, the front doors or the CLI; the back end (the map
@@ -230,7 +231,8 @@ ALLOWED = {
     "report": {"ground", "results", "datasets", "metrics"},
     "doors": {"ground", "domain", "backend", "online", "results", "stages"},
     "bench": {"ground", "domain", "backend", "online", "results", "stages", "doors"},
-    "cli": {"ground", "domain", "backend", "online", "results", "stages", "report", "doors", "bench"},
+    "book": {"ground", "domain", "results", "report", "doors"},
+    "cli": {"ground", "domain", "backend", "online", "results", "stages", "report", "doors", "bench", "book"},
 }
 
 

@@ -72,6 +72,13 @@ def test_run_writes_complete_result(setup, default_run):
     assert all(v >= 0 for v in stages.values())
     # Oracle keyframe poses are GT: ATE ~ 0 (written and re-read in TUM format).
     assert flat["trajectory.ate_rmse_m.vo"] < 1e-4
+    # Table 4's credit, all frames and keyframes named apart: one segment, no merge, so the run's own map before
+    # the final BA is the front end's; after BA it moved (the BA refines what the oracle got exact)
+    assert flat["trajectory.credit.frames"] == 12 and flat["trajectory.credit_kf.frames"] == flat["vo.keyframes"]
+    for group in ("credit", "credit_kf"):
+        assert flat[f"trajectory.{group}.live"] == pytest.approx(flat[f"trajectory.{group}.vo"], abs=1e-9)
+        assert flat[f"trajectory.{group}.ba"] > flat[f"trajectory.{group}.vo"]
+    assert flat["trajectory.credit_kf.ba"] == pytest.approx(flat["trajectory.ate_rmse_m.ba"])  # every keyframe
     assert len(read_tum_trajectory(f / "traj_kf.txt")) == flat["vo.keyframes"]
     pf = pd.read_csv(f / "per_frame.csv")
     assert len(pf) == 12 and {"pretrained_pcd_lsq", "adapted_pcd_lsq", "adapted_pcd_lsq_running"} <= set(pf.columns)

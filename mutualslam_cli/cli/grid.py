@@ -102,17 +102,31 @@ def report(
                                        help="Folder for tables and plots (default <config out>/report)."),
     config: Optional[Path] = ConfigOpt,
     sets: Optional[list[str]] = SetOpt,
+    pair: Optional[list[str]] = typer.Option(None, "--pair",
+                                             help="A paired comparison 'A vs B' (repeatable): each side a scheme, "
+                                                  "key=value config selectors (comma-separated) and/or @KEY, e.g. "
+                                                  "'replay+ewc vs replay', 'ba.final=always vs ba.final=on_request', "
+                                                  "'@depth.pcd.lsq.adapted vs @depth.pcd.lsq.pretrained'."),
+    metric: str = typer.Option("depth.pcd.lsq.adapted", "--metric",
+                               help="Summary key of a --pair side without @KEY."),
+    better: Optional[str] = typer.Option(None, "--better", help="higher or lower (default: lower for errors and "
+                                                                "times, else higher)."),
+    broadcast: bool = typer.Option(False, "--broadcast", help="--pair: an arm with one seed on a sequence stands "
+                                                              "for every seed there (schemes without replay)."),
 ) -> None:
-    """The paper's tables and plots from result folders.
+    """The paper's tables and plots from result folders; with --pair, paired differences of two variants run
+    on the same sequences and seeds (wins out of N, mean ± std, sign test, bootstrap CI, a verdict).
 
     A damaged run (a summary.json that is not valid JSON or not an object, an unreadable config.yaml) is
     skipped with a note and the others are reported; the command fails only when no run could be."""
     from mutualslam_cli.report.columns import cell_text
-    from mutualslam_cli.report.tables import build_tables, collect, write_report
+    from mutualslam_cli.report.tables import add_paired, build_tables, collect, write_report
 
     out = check_output_folder(out or Path(config_from(config, sets).out) / "report", "report")  # before any work
     notes: list[str] = []
     rep = build_tables(collect(list(results), notes), notes)
+    if pair:
+        add_paired(rep, list(pair), metric, better, broadcast)
     for name, tdf in rep.tables.items():
         # titles and cells are text, not rich markup: a config label "[vo.inject_outliers=0.1]" stays
         t = Table(*(escape(str(c)) for c in tdf.columns), title=escape(rep.titles[name]))

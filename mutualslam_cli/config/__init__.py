@@ -10,8 +10,9 @@ The package owns every setting of a run, one module per thing configured: :mod:`
 beside its field) and refuses values the tool cannot work with, once, before any work. It sits on the ground
 floor: it imports :mod:`mutualslam_cli.errors` and nothing else of the package.
 
-Entry points: :func:`load_config`, :func:`with_settings`, :func:`with_overrides`, :func:`to_dict` and
-:data:`CONFIG_DIR`; the section records below.
+Entry points: :func:`load_config`, :func:`with_settings`, :func:`with_overrides`, :func:`to_dict`,
+:func:`tuned_on` (:mod:`.presets`: the data a preset was tuned on, from its header) and :data:`CONFIG_DIR`; the
+section records below.
 """
 
 from mutualslam_cli.config.adaptation import AdaptConfig, NetConfig
@@ -19,6 +20,7 @@ from mutualslam_cli.config.backend import BAConfig, LoopConfig
 from mutualslam_cli.config.evaluation import DenseConfig, EvalConfig
 from mutualslam_cli.config.experiment import ExperimentConfig
 from mutualslam_cli.config.frontend import VOConfig
+from mutualslam_cli.config.presets import tuned_on
 from mutualslam_cli.config.run import (
     CONFIG_DIR,
     DataConfig,
@@ -30,5 +32,5 @@ from mutualslam_cli.config.run import (
 )
 
 __all__ = ["AdaptConfig", "BAConfig", "CONFIG_DIR", "DataConfig", "DenseConfig", "EvalConfig", "ExperimentConfig",
-           "LoopConfig", "NetConfig", "RunConfig", "VOConfig", "load_config", "to_dict", "with_overrides",
+           "LoopConfig", "NetConfig", "RunConfig", "VOConfig", "load_config", "to_dict", "tuned_on", "with_overrides",
            "with_settings"]

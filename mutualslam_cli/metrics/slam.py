@@ -123,9 +123,10 @@ def point_units(vo: VOResult, units: dict[int, int] | None = None) -> np.ndarray
 
 
 def common_frames_ate(seq: Sequence, maps: dict[str, VOResult | None], max_dt: float = MAX_DT,
-                      ) -> tuple[dict[str, float | None], int, str | None]:
+                      keyframes: bool = False) -> tuple[dict[str, float | None], int, str | None]:
     """ATE RMSE (one Sim(3) each) of the frames *every* given map tracked, so each column of a credit table
-    (front end, bridged, after BA, …) is scored on the same frames.
+    (front end, bridged, after BA, …) is scored on the same frames; ``keyframes``: of the keyframes every map
+    has (their ``traj_kf``) instead of every tracked frame.
 
     Returns:
         ``({name: rmse or None for a None map}, n_frames, why)``: ``why`` says why nothing could be scored.
@@ -136,14 +137,15 @@ def common_frames_ate(seq: Sequence, maps: dict[str, VOResult | None], max_dt: f
         return out, 0, "sequence has no GT poses"
     if not have:
         return out, 0, "no trajectory"
-    common = set.intersection(*(set(np.round(v.traj_all.timestamps, 6).tolist()) for v in have.values()))
+    trajs = {k: v.traj_kf if keyframes else v.traj_all for k, v in have.items()}
+    common = set.intersection(*(set(np.round(t.timestamps, 6).tolist()) for t in trajs.values()))
     if len(common) < 3:
-        return out, len(common), f"only {len(common)} frames tracked in every column"
+        return out, len(common), f"only {len(common)} {'keyframes' if keyframes else 'frames'} in every column"
     keep = np.array(sorted(common))
-    for k, v in have.items():
-        m = np.isin(np.round(v.traj_all.timestamps, 6), keep)
+    for k, t in trajs.items():
+        m = np.isin(np.round(t.timestamps, 6), keep)
         try:
-            out[k] = float(tm.ate(seq.gt, Trajectory(v.traj_all.timestamps[m], v.traj_all.poses[m]),
+            out[k] = float(tm.ate(seq.gt, Trajectory(t.timestamps[m], t.poses[m]),
                                   align="sim3", max_dt=max_dt).rmse)
         except MslamError as e:
             return {k: None for k in maps}, len(keep), str(e)

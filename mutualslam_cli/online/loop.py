@@ -6,7 +6,8 @@ After each frame's events (:class:`~mutualslam_cli.vo.source.FrontEndSource`) th
 map as it stood then, and for each keyframe the frame created:
 
 1. the previous keyframe's optimiser steps, when the realtime schedule waited for this arrival to know them;
-2. the online scores of the frames before it, with the model of their time;
+2. the online scores of the frames up to it, its own included, with the model of their time (before it trains on
+   the keyframe);
 3. a new tracking segment is joined to the map before it by the network as adapted up to now (a bridge);
 4. Algorithm 1's tick: a validation keyframe's L_val (the FSM may request global BA), or a training
    keyframe's batch — the newest keyframe plus the scheme's replay — with every label (poses, sparse
@@ -119,7 +120,9 @@ class OnlineLoop:
         for frame, keyframes in self.source.timeline():
             self.weights_at.at_frame(frame, self.net)
             for kf in keyframes:
-                self.score_before(self.state.created_at[kf], kf - 1)  # frames before it: the model of their time
+                # the frames up to and including the keyframe's own: the model of their time, before it learns
+                # from this one (test-time adaptation's rule: a frame is scored before the model trains on it)
+                self.score_before(self.state.created_at[kf] + 1, kf - 1)
                 self.keyframe_work(kf)
                 if self.adapter is not None:
                     self._train(self.cfg.adapt.steps_per_keyframe)
@@ -231,7 +234,7 @@ class OnlineLoop:
             self._busy("ba_s", kf, ba)
 
     def score_before(self, frame: int, kf: int) -> None:
-        """Online scores of the frames before ``frame`` not scored yet, with the weights now (``kf``'s)."""
+        """Online scores of the frames before ``frame`` not scored yet, with the weights now (after ``kf``'s steps)."""
         if self.scorer is not None:
             self.scorer.score_until(self.net, frame, kf)
 

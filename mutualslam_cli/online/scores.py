@@ -4,12 +4,16 @@ The evaluation stage (:mod:`~mutualslam_cli.stages.evaluation`) scores the final
 frame, so a frame seen early is scored with a network that trained on keyframes long after it.
 Luo et al. score each keyframe with the model of its time (the paper notes this under Table 1),
 and it is what a SLAM system consuming the depth sees live. Here frame ``f`` is scored with the
-network as it was right after the adaptation loop processed the last keyframe whose frame index
-is ``≤ f`` (its fine-tuning and any global BA it triggered); frames before the first keyframe get
-the pre-trained network. Frames and GT are those of the evaluation (every ``eval.stride``-th frame
-with GT depth, undistorted to the network's pinhole camera); prediction is the torch path of the
-training loop (mixed precision with ``fast``) on the network's device, so the last frames — scored
-online by the final network — also show how far this path is from the evaluation's runtime.
+network as it was *before it learned from* ``f``: after the adaptation loop trained on the last keyframe
+whose frame index is ``< f`` (its fine-tuning and any global BA it triggered); a keyframe's own frame is
+scored before the steps on that keyframe (test-time adaptation's rule: a frame is scored before the model
+trains on it, so no score is of a model that saw its frame), and frames up to the first keyframe, its own
+included, get the pre-trained network. The realtime schedule applies the same rule on its clock: each frame
+by the weights before the step that ends after it (:mod:`~mutualslam_cli.online.realtime`). Frames and GT
+are those of the evaluation (every ``eval.stride``-th frame with GT depth, undistorted to the network's
+pinhole camera); prediction is the torch path of the training loop (mixed precision with ``fast``) on the
+network's device, so the last frames — scored online by the final network — also show how far this path is
+from the evaluation's runtime.
 
 Frames between two keyframes share one model, so they are predicted together when the model is about
 to change (:meth:`OnlineScorer.score_until`, called at the next keyframe's arrival), in forward passes of

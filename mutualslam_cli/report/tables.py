@@ -88,6 +88,7 @@ class Report:
     bold: dict[str, set[tuple[int, str]]] = field(default_factory=dict)  # (row, column) bold in LaTeX
     csv: dict[str, pd.DataFrame] = field(default_factory=dict)  # numeric CSV where the table shows text
     notes: list[str] = field(default_factory=list)  # runs skipped, values left empty (report.md's Notes)
+    extra_csv: dict[str, pd.DataFrame] = field(default_factory=dict)  # <name>.csv only (e.g. every pair)
 
 
 def build_tables(runs: pd.DataFrame, notes: list[str] | None = None) -> Report:
@@ -335,6 +336,9 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
         atomic_write_text(out_dir / f"{name}.md", f"### {rep.titles[name]}\n\n" + to_markdown(t))
         md.append(f"## {rep.titles[name]}\n\n" + to_markdown(t))
         written += [out_dir / f"{name}.{e}" for e in ("csv", "tex", "md")]
+    for name, t in rep.extra_csv.items():
+        atomic_write_text(out_dir / f"{name}.csv", _finite_csv(t, f"{name}.csv", rep.notes))
+        written.append(out_dir / f"{name}.csv")
     acc = out_dir / "accuracy_over_frames.png"
     figures = [acc] if plot_accuracy(rep.runs, acc) else []
     traj, notes = trajectory_figures(rep.runs, out_dir)
@@ -349,3 +353,21 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
         md.append("## Notes\n\n" + "".join(f"- {n}\n" for n in rep.notes))
     atomic_write_text(out_dir / "report.md", "# mslam report\n\n" + "\n".join(md))
     return written + [out_dir / "report.md"] + figures
+
+
+def add_paired(rep: Report, comparisons: list[str], metric: str, better: str | None = None,
+               broadcast: bool = False) -> list[Any]:
+    """``mslam report --pair``: the paired comparisons (:mod:`~mutualslam_cli.report.paired`, ``"A vs B"`` each)
+    as table ``paired`` and every pair as ``paired_pairs.csv``; returns the results.
+
+    Raises:
+        ConfigError: a malformed comparison, or one with no pair of runs.
+    """
+    from mutualslam_cli.report.paired import RULE, paired_table, parse_pair
+
+    table, pairs, results = paired_table(rep.runs, [parse_pair(c, metric) for c in comparisons], better, broadcast)
+    rep.tables["paired"] = table
+    rep.titles["paired"] = ("Paired comparisons: a − b over runs of the same sequence and seed (identical pairs once; "
+                            "wins: a better), exact two-sided sign test, seeded paired-bootstrap 95 % CI; " + RULE)
+    rep.extra_csv["paired_pairs"] = pairs
+    return results

@@ -61,7 +61,8 @@ def final_ba(seq: Sequence, loop_map: VOResult, net: torch.nn.Module, adapter: O
 
 
 #: ``summary.json`` keys of culling and global BA (DESIGN §8).
-BA_KEYS = ("trajectory.ate_rmse_m.ba", "trajectory.credit.ba", "trajectory.ate_rmse_m.all_frames_ba",
+BA_KEYS = ("trajectory.ate_rmse_m.ba", "trajectory.credit.ba", "trajectory.credit_kf.ba",
+           "trajectory.ate_rmse_m.all_frames_ba",
            "trajectory.ate_rmse_m_per_segment.ba",
            "trajectory.ate_rmse_m_per_segment.all_frames_ba", "map.points.culled", "map.points.ba", "map.esi.culled",
            "map.esi.ba", "timing.ba_s")
@@ -122,15 +123,19 @@ class BAStage:
                                 self.record.dropped_mask(fe.vo.points.ids) if self.record.runs else None)
 
     def _credit(self, fe: FrontEnd, adapted: Adapted, vo_ba: VOResult | None, why: str | None) -> None:
-        """Table 4's columns on the same frames, one Sim(3) each (``trajectory.credit.*``): the front end on
-        its own (``vo``), joined by the run's bridges and nothing else (``bridged``), after culling + BA
-        (``ba``); ``frames``: how many frames every column tracked."""
-        ates, n, no = common_frames_ate(self.run.seq, {"vo": fe.vo, "bridged": adapted.bridged, "ba": vo_ba},
-                                        self.run.cfg.eval.ate_max_dt)
+        """Table 4's columns on the same frames, one Sim(3) each: the front end on its own (``vo``), joined by the
+        run's bridges and nothing else (``bridged``), the run's own map as it ended before ``ba.final``'s last BA
+        (``live``: its bridges, merges, and the BAs and loop closures Algorithm 1 made — with ``ba.enabled=false``
+        and ``loop.enabled=false`` the front end + bridges + merges alone), after culling + BA (``ba``).
+        ``trajectory.credit.*`` over every frame every column tracked, ``trajectory.credit_kf.*`` over the
+        keyframes every column has; ``frames``: how many."""
+        maps = {"vo": fe.vo, "bridged": adapted.bridged, "live": adapted.map, "ba": vo_ba}
         summary = self.run.summary
-        summary.set("trajectory.credit.frames", n)
-        for k, v in ates.items():
-            summary.set(f"trajectory.credit.{k}", v, no or (why if k == "ba" else "not computed"))
+        for group, kf in (("credit", False), ("credit_kf", True)):
+            ates, n, no = common_frames_ate(self.run.seq, maps, self.run.cfg.eval.ate_max_dt, keyframes=kf)
+            summary.set(f"trajectory.{group}.frames", n)
+            for k, v in ates.items():
+                summary.set(f"trajectory.{group}.{k}", v, no or (why if k == "ba" else "not computed"))
 
     def _absent(self, why: str) -> None:
         summary = self.run.summary

@@ -98,7 +98,10 @@ def test_ewc_fisher_is_the_same_either_way(monkeypatch):
         if not split:
             monkeypatch.setattr(online, "plan", lambda net, params: None)
         torch.manual_seed(0)
-        ad = online.OnlineAdapter(DepthNet(), AdaptConfig(scheme="replay+ewc", steps_per_keyframe=1), K, seed=0)
+        # lr 1e-4 (configs/tuned.yaml's): the two paths' rounding grows with the step, and at the paper's 1e-3 six
+        # keyframes carry it to 1.7e-3 of the norm, past the bound below that tells rounding from a wrong Fisher
+        ad = online.OnlineAdapter(DepthNet(), AdaptConfig(scheme="replay+ewc", steps_per_keyframe=1, lr=1e-4), K,
+                                  seed=0)
         for s in samples:
             ad.add_keyframe(s)
         assert ad.regularizer.batches >= 3

@@ -89,8 +89,10 @@ def test_l_val_uses_the_labels_of_its_time(oracle, monkeypatch, tmp_path):  # no
 
 
 def test_each_online_score_comes_from_the_weights_of_its_time(oracle, monkeypatch, tmp_path):  # noqa: F811
-    """Fixed schedule: a frame between keyframes k and k+1 is scored with the weights right after k's training
-    — the weights themselves, compared by a fingerprint taken when each keyframe's training ended."""
+    """Fixed schedule: a frame after keyframe k's frame, up to keyframe k+1's own frame, is scored with the weights
+    right after k's training — the weights themselves, compared by a fingerprint taken when each keyframe's
+    training ended. A keyframe's own frame is scored before the model trains on it (until 2026-12 it was scored
+    after: this test failed on that rule at every keyframe's frame)."""
     seq, vo, events = oracle
 
     class Scores:
@@ -121,6 +123,7 @@ def test_each_online_score_comes_from_the_weights_of_its_time(oracle, monkeypatc
     created = np.array(loop.state.created_at)
     assert len(set(after.values())) >= 4  # the weights moved keyframe after keyframe
     for f in range(len(seq)):
-        k = int(np.flatnonzero(created <= f).max()) if (created <= f).any() else -1
+        k = int(np.flatnonzero(created < f).max()) if (created < f).any() else -1  # strictly before f
         k = max((j for j in after if j <= k), default=-1)  # keyframes without a batch leave the weights as they were
         assert loop.scorer.seen[f] == after[k], f
+    assert set(created) & set(range(len(seq)))  # the keyframes' own frames are among those checked

@@ -41,6 +41,7 @@ def test_no_budget_table_without_differing_configs(tmp_path):
 
 
 def test_short_labels_drop_the_paper_values():
-    assert short_label("adapt.lr=0.0001, adapt.steps_per_keyframe=4, adapt.train_width=0") == "steps_per_keyframe=4"
+    assert short_label("adapt.lr=0.001, adapt.steps_per_keyframe=4, adapt.train_width=0") == "steps_per_keyframe=4"
     assert short_label("adapt.train_width=0, ba.window=30") == "ba.window=30"
-    assert short_label("adapt.lr=0.0001") == "paper values"
+    assert short_label("adapt.lr=0.001") == "paper values"
+    assert short_label("adapt.lr=0.0001") == "lr=0.0001"  # configs/tuned.yaml's: not the paper's

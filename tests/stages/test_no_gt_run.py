@@ -30,7 +30,9 @@ def no_gt_run(tiny_run, tmp_path_factory):
     (seq / "groundtruth.txt").unlink()
     (seq / "depth.txt").unlink()
     shutil.rmtree(seq / "depth")
-    cfg = load_config(CONFIG_DIR / "smoke.yaml", [f"net.weights={tmp / 'weights'}", "vo.mode=svo"])
+    # the export's range is what is checked here: at the paper's lr 1e-3 the tiny random network's adapted depth
+    # leaves the 16-bit PNG's 13.1 units on most pixels, so this run takes the gentler 1e-4 (configs/tuned.yaml)
+    cfg = load_config(CONFIG_DIR / "smoke.yaml", [f"net.weights={tmp / 'weights'}", "vo.mode=svo", "adapt.lr=1e-4"])
     out = tmp_path_factory.mktemp("nogt_res")
     return run_sequence(seq, cfg, out=out), out
 

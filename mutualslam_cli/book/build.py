@@ -1,0 +1,221 @@
+"""What the book publishes, from its runs: tables whose every cell carries its provenance, figures, and the cells
+its bounds rerun (:func:`build_tables`, :func:`build_figures`, :func:`build_bounds`).
+
+The runs of each (grid, variant) are read as ``mslam report`` reads them (:func:`~mutualslam_cli.report.runs.collect`)
+into one frame with ``book.grid`` and ``book.variant`` columns (:func:`collect_book`). A table's rows are its grid's
+sequences and an ``Average`` (the mean of the sequence means, over the sequences that have every column, their
+count named when that is not all); a cell is the mean ± std over the seeds that have the value, with, in
+``book.json``, every seed's value and run folder, the config hash, the commits and CPU kinds of those runs, and
+the schedule — a figure is never published without the runs it came from.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from mutualslam_cli.book.plan import Plan, part_of
+from mutualslam_cli.book.spec import BookSpec, ColumnSpec, TableSpec
+from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.report.columns import numeric
+from mutualslam_cli.report.paper import cell
+from mutualslam_cli.report.runs import collect
+
+
+def collect_book(plan: Plan, notes: list[str]) -> pd.DataFrame:
+    """Every complete run of the plan's parts, with ``book.grid``, ``book.variant``, ``book.commit`` (the run's
+    ``manifest.json`` ``git_revision``) and ``book.run`` (its folder relative to the book's ``runs/``)."""
+    frames = []
+    for p in plan.parts:
+        if not p.out.is_dir():
+            continue
+        try:
+            runs = collect([p.out], notes)
+        except DatasetError as e:  # nothing complete yet (a book run with --only, a failed grid)
+            notes.append(f"{p.grid}/{p.variant}: {e}")
+            continue
+        runs = runs[runs["sequence.name"].astype(str).isin(plan.sequences[p.grid])]
+        frames.append(runs.assign(**{"book.grid": p.grid, "book.variant": p.variant,
+                                     "book.config_hash": p.config_hash,
+                                     "book.commit": [_commit(Path(f)) for f in runs["folder"]],
+                                     "book.run": [Path(f).relative_to(p.out.parent.parent).as_posix()
+                                                  for f in runs["folder"]]}))
+    return pd.concat(frames, ignore_index=True).copy() if frames else pd.DataFrame(
+        columns=["book.grid", "book.variant", "sequence.name", "scheme", "seed", "folder"])
+
+
+def _commit(folder: Path) -> str | None:
+    try:
+        return json.loads((folder / "manifest.json").read_text()).get("git_revision")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def arm_runs(runs: pd.DataFrame, grid: str, variant: str, scheme: str, sequence: str | None = None) -> pd.DataFrame:
+    """The runs of one (grid, variant, scheme), of one sequence when given."""
+    if runs.empty:
+        return runs
+    m = (runs["book.grid"] == grid) & (runs["book.variant"] == variant) & (runs["scheme"].astype(str) == scheme)
+    if sequence is not None:
+        m &= runs["sequence.name"].astype(str) == sequence
+    return runs[m]
+
+
+def _sorted_unique(values: pd.Series) -> list[str]:
+    return sorted({str(v) for v in values if v is not None and v == v})
+
+
+@dataclass
+class Cell:
+    """One published cell: mean ± std over seeds, the text shown, and where each value came from."""
+
+    mean: float
+    std: float
+    n: int
+    text: str
+    source: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        def f(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+        return {"mean": f(self.mean), "std": f(self.std), "n": self.n, "text": self.text, **self.source}
+
+
+def column_cell(runs: pd.DataFrame, col: ColumnSpec, sequence: str, digits: int, config_hash: str,
+                schedule: str) -> Cell:
+    """The cell of ``col`` on ``sequence`` (module docstring)."""
+    r = arm_runs(runs, col.grid, col.variant, col.scheme, sequence)
+    v = numeric(r, col.key) * col.scale if len(r) else pd.Series(dtype=float)
+    have = r[np.isfinite(v.to_numpy(dtype=float))] if len(r) else r
+    vals = v[np.isfinite(v.to_numpy(dtype=float))] if len(r) else v
+    n = len(vals)
+    mean = float(vals.mean()) if n else float("nan")
+    std = float(vals.std(ddof=1)) if n > 1 else float("nan")
+    source = {"grid": col.grid, "variant": col.variant, "scheme": col.scheme, "key": col.key, "scale": col.scale,
+              "sequence": sequence, "config_hash": config_hash, "schedule": schedule,
+              "values": [{"seed": int(s) if s == s else None, "value": float(x), "run": run}
+                         for s, x, run in zip(have.get("seed", []), vals, have.get("book.run", []))],
+              "commits": _sorted_unique(have["book.commit"]) if n else [],
+              "devices": _sorted_unique(have["run.device_label"]) if n and "run.device_label" in have else []}
+    return Cell(mean, std, n, cell(mean, std, n, digits), source)
+
+
+@dataclass
+class BookTable:
+    """A built table: ``columns`` (``Sequence`` first), ``rows`` of :class:`Cell` (the first a label), bold cells."""
+
+    spec: TableSpec
+    columns: list[str]
+    rows: list[tuple[str, list[Cell]]]
+    bold: set[tuple[int, str]]
+
+    def display(self) -> pd.DataFrame:
+        return pd.DataFrame([[label, *(c.text for c in cells)] for label, cells in self.rows], columns=self.columns)
+
+    def numeric(self) -> pd.DataFrame:
+        recs = []
+        for label, cells in self.rows:
+            d: dict[str, Any] = {"sequence": label}
+            for c, x in zip(self.columns[1:], cells):
+                d.update({f"{c} mean": x.mean, f"{c} std": x.std, f"{c} n": x.n})
+            recs.append(d)
+        return pd.DataFrame(recs)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"title": self.spec.title, "grid": self.spec.grid, "columns": self.columns,
+                "rows": [{"label": label, "cells": [c.as_dict() for c in cells]} for label, cells in self.rows],
+                "bold": sorted([i, c] for i, c in self.bold)}
+
+
+def build_table(spec: TableSpec, runs: pd.DataFrame, plan: Plan) -> BookTable:
+    """One table of the book (module docstring)."""
+    seqs = list(plan.sequences[spec.grid])
+    rows: list[tuple[str, list[Cell]]] = []
+    for seq in seqs:
+        cells = []
+        for col in spec.columns:
+            part = part_of(plan, col.grid, col.variant)
+            cells.append(column_cell(runs, col, seq, _digits(spec, col), part.config_hash, part.cfg.adapt.schedule))
+        rows.append((seq, cells))
+    full = [cells for _, cells in rows if all(c.n for c in cells)]
+    k = len(full)
+    avg = []
+    for j, col in enumerate(spec.columns):
+        m = float(np.mean([cells[j].mean for cells in full])) if full else float("nan")
+        avg.append(Cell(m, float("nan"), k, "—" if not np.isfinite(m) else f"{m:.{_digits(spec, col)}f}",
+                        {"average_of": [seqs[i] for i, (_, c) in enumerate(rows) if all(x.n for x in c)]}))
+    rows.append(("Average" if k == len(seqs) else f"Average ({k} of {len(seqs)})", avg))
+    bold: set[tuple[int, str]] = set()
+    if spec.better is not None:
+        for i, (_, cells) in enumerate(rows):
+            have = [(c.mean, col.label) for c, col in zip(cells, spec.columns) if np.isfinite(c.mean)]
+            if len(have) > 1:
+                best = (min if spec.better == "lower" else max)(m for m, _ in have)
+                bold |= {(i, lab) for m, lab in have if f"{m:.{spec.digits}f}" == f"{best:.{spec.digits}f}"}
+    return BookTable(spec, ["Sequence", *(c.label for c in spec.columns)], rows, bold)
+
+
+def _digits(spec: TableSpec, col: ColumnSpec) -> int:
+    return spec.digits if col.digits is None else col.digits
+
+
+def build_tables(spec: BookSpec, runs: pd.DataFrame, plan: Plan, only_grids: set[str]) -> dict[str, BookTable]:
+    """Every table whose grids all ran in this plan."""
+    return {name: build_table(t, runs, plan) for name, t in spec.tables.items()
+            if {c.grid for c in t.columns} | {t.grid} <= only_grids}
+
+
+def build_figures(spec: BookSpec, runs: pd.DataFrame, plan: Plan, out: Path, only_grids: set[str],
+                  notes: list[str]) -> dict[str, dict[str, Any]]:
+    """Every figure whose grid ran: its PNG under ``out`` and its provenance (the runs, config hash, schemes)."""
+    from mutualslam_cli.report.plots import plot_accuracy
+
+    figs: dict[str, dict[str, Any]] = {}
+    for name, f in spec.figures.items():
+        if f.grid not in only_grids:
+            continue
+        r = runs[(runs["book.grid"] == f.grid) & (runs["book.variant"] == f.variant)
+                 & runs["scheme"].astype(str).isin(f.schemes)] if not runs.empty else runs
+        path = out / f"{name}.png"
+        if r.empty or not plot_accuracy(r, path):
+            notes.append(f"figure {name}: no run had what it draws")
+            continue
+        part = part_of(plan, f.grid, f.variant)
+        figs[name] = {"title": f.title, "file": path.name, "kind": f.kind, "grid": f.grid, "variant": f.variant,
+                      "schemes": list(f.schemes), "config_hash": part.config_hash,
+                      "schedule": part.cfg.adapt.schedule, "runs": sorted(r["book.run"]),
+                      "commits": _sorted_unique(r["book.commit"]),
+                      "devices": _sorted_unique(r["run.device_label"]) if "run.device_label" in r else []}
+    return figs
+
+
+def build_bounds(spec: BookSpec, tables: dict[str, BookTable], plan: Plan, notes: list[str]) -> list[dict[str, Any]]:
+    """The cells the bounds rerun: the seed's value, and everything a test needs to make that one run again."""
+    out = []
+    for b in spec.bounds:
+        t = tables.get(b.table)
+        if t is None:
+            continue
+        row = next((cells for label, cells in t.rows if label == b.row), None)
+        j = t.columns.index(b.column) - 1
+        col = t.spec.columns[j]
+        value = None
+        run = None
+        if row is not None:
+            for v in row[j].source.get("values", []):
+                if v["seed"] == b.seed:
+                    value, run = v["value"], v["run"]
+        if value is None:
+            notes.append(f"bound {b.table} / {b.row} / {b.column} seed {b.seed}: no such value in the book")
+            continue
+        part = part_of(plan, col.grid, col.variant)
+        out.append({"table": b.table, "row": b.row, "column": b.column, "seed": b.seed, "value": value,
+                    "factor": b.factor, "ci": b.ci, "grid": col.grid, "variant": col.variant, "scheme": col.scheme,
+                    "key": col.key, "scale": col.scale, "config_hash": part.config_hash, "run": run,
+                    "sequence": plan.sequences[col.grid][b.row].as_dict()})
+    return out

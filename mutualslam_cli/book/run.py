@@ -1,0 +1,170 @@
+"""``mslam book``: every experiment of the book through the resumable grid, then every table, figure and verdict
+with its provenance (:func:`run_book`).
+
+The grids run as ``mslam ablate`` runs them (:func:`~mutualslam_cli.ablate.run_grid`: a local process pool or
+Dask; complete runs skipped, a killed job's staging folder redone), one (grid, variant) after another into
+``<out>/runs/<grid>/<variant>/``. A book killed at any point resumes when run again: what completed is reused,
+nothing else was published (``book.json`` is written last, and only when every job of the planned grids is
+complete — with failures it is not written and the command fails, naming them).
+
+``<out>/`` then holds ``tables/<name>.{md,tex,csv}`` (and ``findings.*``, the verdicts), ``figures/<name>.png``,
+``reports/<grid>/`` (``mslam report`` of each grid's runs: every table and figure of the report) and
+``book.json``: each published table cell, figure and verdict with where it came from (:mod:`.build`).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from mutualslam_cli.ablate import JobOutcome, run_grid
+from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.book.build import build_bounds, build_figures, build_tables, collect_book
+from mutualslam_cli.book.findings import judge, verdict_rows
+from mutualslam_cli.book.plan import Plan, describe, plan_book
+from mutualslam_cli.book.spec import BookSpec
+from mutualslam_cli.config import CONFIG_DIR
+from mutualslam_cli.machine import cpu_info
+from mutualslam_cli.report.runs import config_labels
+from mutualslam_cli.report.tables import build_tables as report_tables
+from mutualslam_cli.report.tables import to_latex, to_markdown, write_report
+from mutualslam_cli.results.lock import hold_lock
+from mutualslam_cli.results.run_folder import git_revision
+from mutualslam_cli.results.summary import plain
+from mutualslam_cli.results.writable import check_output_folder
+
+#: ``book.json``'s format; a reader refuses another.
+FORMAT = 1
+
+
+@dataclass
+class BookResult:
+    """What a book run did: every job's outcome, the files written (none when jobs failed) and the notes."""
+
+    outcomes: list[JobOutcome] = field(default_factory=list)
+    written: list[Path] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    book_json: Path | None = None
+
+    @property
+    def failed(self) -> list[JobOutcome]:
+        return [o for o in self.outcomes if o.status == "failed"]
+
+
+def total_jobs(plan: Plan) -> int:
+    return sum(len(p.jobs) for p in plan.parts)
+
+
+def run_book(spec: BookSpec, out: Path, only: list[str] | None = None, workers: int = 1, executor: str = "local",
+             scheduler: str | None = None, registry: str | None = None, data_root: str | None = None,
+             overrides: list[str] | None = None, command: list[str] | None = None,
+             on_plan: Callable[[Plan], None] | None = None,
+             on_done: Callable[[JobOutcome], None] | None = None) -> BookResult:
+    """Run the book (module docstring); ``only``: the entries (tables, figures, findings, grids) to run and write.
+
+    Raises:
+        ConfigError, DatasetError: before any work (:func:`~mutualslam_cli.book.plan.plan_book`).
+        ResultsLocked: another book (or grid) works in ``out``.
+        KeyboardInterrupt: Ctrl-C; finished runs stay complete, nothing is published.
+    """
+    out = check_output_folder(out)
+    grids = spec.grids_for(only)
+    res = BookResult()
+    with hold_lock(out, "mslam book"):
+        plan = plan_book(spec, out, grids, registry, data_root, overrides)
+        if on_plan is not None:
+            on_plan(plan)
+        for part in plan.parts:
+            res.outcomes += run_grid(part.cfg, part.jobs, part.out, workers=workers, command=command,
+                                     registry=registry, on_done=on_done, executor=executor, scheduler=scheduler)
+        if res.failed:
+            res.notes.append(f"{len(res.failed)} job(s) failed: nothing published; run the book again to retry them")
+            return res
+        write_book(spec, plan, out, set(grids), only, res)
+    return res
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _relative(path: Path) -> str:
+    try:
+        return path.resolve().relative_to(CONFIG_DIR.parent).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def write_book(spec: BookSpec, plan: Plan, out: Path, grids: set[str], only: list[str] | None,
+               res: BookResult) -> None:
+    """Build and write every output (module docstring), ``book.json`` last."""
+    notes = res.notes
+    runs = collect_book(plan, notes)
+
+    def wanted(name: str) -> bool:  # --only: the entries named, and every entry of a grid named
+        return not only or name in only or bool(set(only) & grids & set(spec.grids))
+
+    tables = {k: v for k, v in build_tables(spec, runs, plan, grids).items() if wanted(k)}
+    tdir, fdir = out / "tables", out / "figures"
+    for d in (tdir, fdir):
+        d.mkdir(parents=True, exist_ok=True)
+    for name, t in tables.items():
+        disp = t.display()
+        for path, text in ((tdir / f"{name}.md", f"### {t.spec.title}\n\n" + to_markdown(disp)),
+                           (tdir / f"{name}.tex", to_latex(disp, t.spec.title, t.bold)),
+                           (tdir / f"{name}.csv", t.numeric().to_csv(index=False))):
+            atomic_write_text(path, text)
+            res.written.append(path)
+    findings = {k: v for k, v in judge(spec, runs, grids).items() if wanted(k)}
+    if findings:
+        v = verdict_rows(findings)
+        for path, text in ((tdir / "findings.md", "### The paper's findings on the book's runs\n\n" + to_markdown(v)),
+                           (tdir / "findings.csv", v.to_csv(index=False)),
+                           (tdir / "findings.tex", to_latex(v, "The paper's findings on the book's runs"))):
+            atomic_write_text(path, text)
+            res.written.append(path)
+    figures = {k: v for k, v in build_figures(spec, runs, plan, fdir, grids, notes).items() if wanted(k)}
+    res.written += [fdir / f["file"] for f in figures.values()]
+    for grid in sorted(grids):  # the whole report of each grid's runs: every table and figure it can fill
+        r = runs[runs["book.grid"] == grid] if not runs.empty else runs
+        if not r.empty:  # variants apart: the config label over the grid's runs together
+            r = r.drop(columns=[c for c in r if c.startswith("book.")]).copy()
+            res.written += write_report(report_tables(r.assign(config=config_labels(r).values), []),
+                                        out / "reports" / grid)
+    bounds = build_bounds(spec, tables, plan, notes)
+    cpu = cpu_info()
+    book = {"format": FORMAT,
+            "book": {"name": spec.name, "file": _relative(spec.path), "file_sha256": _sha256(spec.path),
+                     "commit": git_revision(), "created_utc": dt.datetime.now(dt.timezone.utc).isoformat(
+                         timespec="seconds"), "cpu_kind": cpu.get("cpu_kind"), "cpu_model": cpu.get("cpu_model"),
+                     "only": list(only or []), "runs": int(len(runs)),
+                     "commits": sorted({str(c) for c in runs.get("book.commit", []) if c}),
+                     "devices": sorted({str(c) for c in runs.get("run.device_label", []) if c == c and c})},
+            "grids": describe(plan), "tables": {k: t.as_dict() for k, t in tables.items()},
+            "figures": figures, "findings": findings, "bounds": bounds, "notes": notes}
+    path = out / "book.json"
+    atomic_write_text(path, json.dumps(plain(book), indent=1, ensure_ascii=False, allow_nan=False) + "\n")
+    res.written.append(path)
+    res.book_json = path
+
+
+def read_book(path: str | Path) -> dict[str, Any]:
+    """A ``book.json`` (:func:`write_book`).
+
+    Raises:
+        ConfigError: not readable, not JSON, or another format.
+    """
+    from mutualslam_cli.errors import ConfigError
+
+    path = Path(path)
+    try:
+        book = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"{path}: not a readable book.json ({e})") from None
+    if not isinstance(book, dict) or book.get("format") != FORMAT:
+        raise ConfigError(f"{path}: not a book.json of format {FORMAT} (written by mslam book)")
+    return book

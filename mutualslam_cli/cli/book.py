@@ -1,0 +1,97 @@
+"""``mslam book``: the results book — every experiment the README reports, from one config, then every table,
+figure and verdict with its provenance; ``--render-readme`` rewrites the README's blocks from the committed book."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.markup import escape
+
+from mutualslam_cli.cli import common
+from mutualslam_cli.cli.common import DataRootOpt, RegistryOpt, SetOpt, app, progress_bar
+
+
+@app.command()
+def book(
+    book_file: Path = typer.Argument(Path("configs/book.yaml"), help="The book file (default configs/book.yaml)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default: the book's, results/book)."),
+    only: Optional[list[str]] = typer.Option(None, "--only", help="Run and write only this entry (a table, figure, "
+                                                                  "finding or grid; repeatable)."),
+    workers: int = typer.Option(1, "--workers", "-j", min=1, help="Worker processes (as mslam ablate)."),
+    executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address."),
+    sets: Optional[list[str]] = SetOpt,
+    data_root: Optional[str] = DataRootOpt,
+    registry: Optional[Path] = RegistryOpt,
+    dry_run: bool = typer.Option(False, "--dry-run", help="Only say what would run (jobs per grid, how many done)."),
+    publish: bool = typer.Option(False, "--publish", help="Then copy book.json to results/book.json (the committed "
+                                                          "copy) and rewrite the README's blocks from it."),
+    render_readme: bool = typer.Option(False, "--render-readme", help="Run nothing: rewrite the README's blocks "
+                                                                      "from results/book.json."),
+) -> None:
+    """Run the results book: its grids through the resumable grid (complete runs skipped: a killed book resumes),
+    then results/book/: tables (Markdown, LaTeX, CSV), figures (PNG), the verdicts on the paper's findings,
+    each grid's full report, and book.json with every published figure's provenance.
+
+    A preset tuned on a grid's own sequences (its '# tuned-on:' header line) is refused, as is a variant folder
+    whose runs were made under another config."""
+    from mutualslam_cli.book import readme
+
+    if render_readme:
+        stale = readme.render_file()
+        common.console.print(f"README: {len(stale)} block(s) rewritten from {escape(str(readme.BOOK_JSON))}"
+                             + (f": {', '.join(stale)}" if stale else ""))
+        return
+    from mutualslam_cli.book.plan import plan_book
+    from mutualslam_cli.book.run import run_book, total_jobs
+    from mutualslam_cli.book.spec import load_book
+    from mutualslam_cli.results.run_folder import is_complete, run_dir
+
+    spec = load_book(book_file)
+    root = Path(out or spec.out)
+    reg = str(registry) if registry else None
+    if dry_run:
+        plan = plan_book(spec, root, spec.grids_for(only), reg, data_root, sets, render=False)
+        for p in plan.parts:
+            done = sum(is_complete(run_dir(p.out, Path(j.sequence).name, j.scheme, j.seed)) for j in p.jobs)
+            common.console.print(f"{p.grid}/{p.variant}: {len(p.jobs)} jobs, {done} complete (config {p.config_hash})")
+        for g, names in plan.skipped.items():
+            common.console.print(f"{g}: not on this machine, left out: {', '.join(names)}")
+        common.console.print(f"{total_jobs(plan)} jobs in all")
+        return
+    with progress_bar() as bar:
+        task = bar.add_task("book", total=None, info="")
+
+        def planned(plan: Any) -> None:
+            bar.update(task, total=total_jobs(plan))
+
+        def done(o: Any) -> None:
+            bar.update(task, advance=1, info=f"{Path(o.job.sequence).name} {o.job.scheme} seed{o.job.seed}: {o.status}")
+
+        try:
+            res = run_book(spec, root, list(only or []) or None, workers, executor, scheduler, reg, data_root,
+                           list(sets or []), sys.argv, on_plan=planned, on_done=done)
+        except KeyboardInterrupt:
+            bar.stop()
+            common.err_console.print("[yellow]interrupted[/]: complete runs stay; run the same command again to "
+                                     "resume (nothing was published).")
+            raise typer.Exit(130) from None
+    counts = {s: sum(o.status == s for o in res.outcomes) for s in ("done", "skipped", "failed")}
+    common.console.print(f"{len(res.outcomes)} jobs: {counts['done']} done, {counts['skipped']} already complete, "
+                         f"{counts['failed']} failed")
+    for o in res.failed:
+        common.err_console.print(f"[red]failed[/] {escape(o.job.sequence)} {o.job.scheme} seed{o.job.seed}: "
+                                 f"{common.shown((o.error or '').splitlines()[0] if o.error else '')}")
+    for n in res.notes:
+        common.err_console.print(f"[yellow]note:[/] {common.shown(n)}", highlight=False, soft_wrap=True)
+    if res.failed:
+        raise typer.Exit(1)
+    common.console.print(f"wrote {len(res.written)} files to {escape(str(root))} (book.json: {res.book_json})")
+    if publish and res.book_json is not None:
+        shutil.copyfile(res.book_json, readme.BOOK_JSON)
+        stale = readme.render_file()
+        common.console.print(f"published {escape(str(readme.BOOK_JSON))}; README: {len(stale)} block(s) rewritten")
