@@ -180,8 +180,9 @@ def gpu_slots(spec: str, workers: int) -> list[str]:
 
 def claim_gpu(slots: Any) -> None:
     """Grid worker initialiser: take one ``CUDA_VISIBLE_DEVICES`` value from the ``slots`` queue (before this
-    process initialises CUDA, which reads it then); an empty queue leaves the environment alone."""
+    process initialises CUDA, which reads it then); an empty queue leaves the environment alone. A blocking
+    get with a timeout: ``get_nowait`` also fails while the other worker holds the queue's reader lock."""
     try:
-        os.environ["CUDA_VISIBLE_DEVICES"] = slots.get_nowait()
+        os.environ["CUDA_VISIBLE_DEVICES"] = slots.get(timeout=10)
     except queue.Empty:
         return
