@@ -40,7 +40,7 @@ test-all: install
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 bench: install
-	$(PY) -m mutualslam_cli.bench --memory --grid
+	$(PY) -m mutualslam_cli.bench --memory --whole-run --grid
 
 # The CUDA path against the CPU on a machine with an NVIDIA GPU (≤ 5 min): step and prediction times,
 # a 100-frame shared window on cuda and on cpu (same keyframes, PCD within 1 point). Skips without CUDA.

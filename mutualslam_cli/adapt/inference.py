@@ -96,6 +96,25 @@ def _without_telemetry() -> None:
     telemetry_utils.tm = telemetry_stub
 
 
+def openvino_precision(int8: bool) -> str:
+    """OpenVINO's inference precision hint: ``bf16`` where the CPU runs bf16, else ``f32`` (also for int8 models:
+    the fake-quantised convolutions run int8 whatever the hint; the rest stays fp32)."""
+    return "f32" if int8 or not fast_path_supported() else "bf16"
+
+
+def compile_for_cpu(model: object, threads: int, precision: str) -> object:
+    """Compile an ``openvino.Model`` for the CPU with ``threads`` inference threads and ``precision``
+    (:func:`openvino_precision`), latency hint; returns the compiled model (callable on numpy inputs)."""
+    import openvino as ov
+
+    # OpenVINO pins its threads to cores by default, the same first cores in every process: two grid
+    # workers with one thread each then share one core (measured, 640×192 bf16, two processes at once:
+    # 158 ms each pinned, 77 ms unpinned, 78 ms alone). Pin only when this process may use every core.
+    return ov.Core().compile_model(model, "CPU", {
+        "INFERENCE_NUM_THREADS": threads, "ENABLE_CPU_PINNING": threads >= (os.cpu_count() or 1),
+        "INFERENCE_PRECISION_HINT": precision, "PERFORMANCE_HINT": "LATENCY"})
+
+
 def openvino_predictor(net: torch.nn.Module, width: int, height: int, threads: int | None = None,
                        calibration: torch.Tensor | None = None) -> Callable[[torch.Tensor], np.ndarray]:
     """Compile ``net`` (eval mode, its current weights) for the CPU.
@@ -129,15 +148,8 @@ def openvino_predictor(net: torch.nn.Module, width: int, height: int, threads: i
             model = ov.convert_model(_Predict(net), example_input=torch.rand(1, 3, height, width, device="cpu"))
     finally:
         net.train(was_training)
-    # int8: the fake-quantised convolutions run int8 whatever the hint; the rest stays fp32
-    precision = "f32" if calibration is not None or not fast_path_supported() else "bf16"
-    n_threads = int(threads or torch.get_num_threads())
-    # OpenVINO pins its threads to cores by default, the same first cores in every process: two grid
-    # workers with one thread each then share one core (measured, 640×192 bf16, two processes at once:
-    # 158 ms each pinned, 77 ms unpinned, 78 ms alone). Pin only when this process may use every core.
-    compiled = ov.Core().compile_model(model, "CPU", {
-        "INFERENCE_NUM_THREADS": n_threads, "ENABLE_CPU_PINNING": n_threads >= (os.cpu_count() or 1),
-        "INFERENCE_PRECISION_HINT": precision, "PERFORMANCE_HINT": "LATENCY"})
+    precision = openvino_precision(int8=calibration is not None)
+    compiled = compile_for_cpu(model, int(threads or torch.get_num_threads()), precision)
     log.info("depth evaluation through OpenVINO (%s)", "int8" if calibration is not None else precision)
 
     def predict(x: torch.Tensor) -> np.ndarray:

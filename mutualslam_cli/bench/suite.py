@@ -1,11 +1,14 @@
 """``make bench``: the speed figures of DESIGN §10, medians measured in one run.
 
-Usage: ``python -m mutualslam_cli.bench [--quick] [--memory] [--grid | --only-grid] [--out results/bench.json]``.
+Usage: ``python -m mutualslam_cli.bench [--quick] [--memory] [--whole-run] [--grid | --only-grid]
+[--out results/bench.json]``.
 
 Sections: synthetic rendering, loader and VO front end, depth network, global photometric BA
 (:func:`mutualslam_cli.bench.ba.bench_ba`: time of 10 LM iterations on 100 keyframes × 10 000
 points and the accuracy it recovers) and, with ``--memory``, peak memory of ``mslam run`` with
-the BA's share of its wall time (``summary.json`` ``timing.ba_s / timing.total_s``). The CPU model
+the BA's share of its wall time (``summary.json`` ``timing.ba_s / timing.total_s``) and, with
+``--whole-run``, a whole default run on a real window split by stage, per frame, with its total over
+steps × median step (:mod:`mutualslam_cli.bench.whole_run`). The CPU model
 and SIMD flags the figures were measured on are recorded too.
 
 Every figure is a median over repeats; fp32 and fast-path figures are measured side by side in
@@ -42,6 +45,7 @@ from mutualslam_cli.bench.finetune import (
 )
 from mutualslam_cli.bench.kernels import step_kernels
 from mutualslam_cli.bench.vo import bench_vo
+from mutualslam_cli.bench.whole_run import bench_whole_run, table_lines
 from mutualslam_cli.datasets.check import bench_loader
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.synthetic import bench_render
@@ -287,6 +291,7 @@ def _table(res: dict[str, Any]) -> str:
                      f"{', '.join(f'{i} ×{n}' for i, n in isa.most_common())}; by data type "
                      f"{', '.join(f'{d} ×{n}' for d, n in k['convolution_dtypes'].items())} (f32: the loss's box "
                      f"filter); reorders {k['reorder_ms']:.0f} ms beside {k['convolution_ms']:.0f} ms of convolutions")
+    lines += table_lines(res)
     if "vo_ms_per_frame" in res:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in res["vo_ms_per_frame"].items())
         lines.append(f"\nVO per-stage ms/frame: {stages}")
@@ -299,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--memory", action="store_true", help="also measure peak memory of `mslam run` (minutes)")
     ap.add_argument("--grid", action="store_true", help="also time a 4-job grid with 1 and 2 workers (minutes)")
     ap.add_argument("--only-grid", action="store_true", help="only the grid timing")
+    ap.add_argument("--whole-run", action="store_true",
+                    help="also time a whole default `mslam run tum_fr1_xyz`, split by stage (minutes)")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch threads for the network")
     ap.add_argument("--out", default="results/bench.json")
     a = ap.parse_args(argv)
@@ -310,6 +317,8 @@ def main(argv: list[str] | None = None) -> int:
     for part in parts + ([_grid] if a.grid or a.only_grid else []):
         res.update(part())
         print(_table(res).splitlines()[-1], file=sys.stderr, flush=True)
+    if a.whole_run:
+        res.update(bench_whole_run("tum_fr1_xyz", a.threads))
     if a.memory:
         res.update(_memory(60, a.threads))
         res.update(step_in_run(res))

@@ -11,9 +11,24 @@ trains on it, so no score is of a model that saw its frame), and frames up to th
 included, get the pre-trained network. The realtime schedule applies the same rule on its clock: each frame
 by the weights before the step that ends after it (:mod:`~mutualslam_cli.online.realtime`). Frames and GT
 are those of the evaluation (every ``eval.stride``-th frame with GT depth, undistorted to the network's
-pinhole camera); prediction is the torch path of the training loop (mixed precision with ``fast``) on the
-network's device, so the last frames — scored online by the final network — also show how far this path is
-from the evaluation's runtime.
+pinhole camera).
+
+**Runtime.** On CPUs of the kinds in :data:`OPENVINO_ONLINE_KINDS`, where ``net.runtime`` resolves to
+OpenVINO bf16 (:func:`~mutualslam_cli.adapt.inference.resolve_runtime`), the online scores go through the
+evaluation's runtime: the network is converted once, at the first scored frames, and each later model only
+swaps the compiled weights (:class:`~mutualslam_cli.adapt.ov_refresh.RefreshablePredictor`; the refreshes'
+seconds are ``timing.online_refresh_s``), and the evaluation reuses that predictor for the final model instead
+of converting it again. The refresh (fold + compile, ~0.2 s on one idle core, 0.35–0.4 s loaded) pays only
+where OpenVINO predicts much faster than PyTorch: on AMX (OpenVINO ~11–14 ms a frame against ~127 ms
+through PyTorch, issue 51) it pays on the first frame of a model. On AMD EPYC with AVX512-BF16 (no AMX) it
+does not: alternated runs of tum_fr1_xyz (replay+ewc, 1 thread, loaded host; 16 models, ~6 frames each)
+took 22.6 s of online scoring through OpenVINO (6.1 s of it refreshes, ~5 s the first conversion) against
+15.3 s through PyTorch bf16 autocast, the evaluation's saved conversion (2 s) included — so there, and on
+GPUs, int8 CPUs (the activation ranges would need a new calibration per model) or with
+``net.runtime=torch``, prediction is the torch path of the training loop (mixed precision with ``fast``) on
+the network's device. Either path's depth is within
+:data:`~mutualslam_cli.adapt.ov_refresh.BF16_REL_TOL` of fp32 with the same weights
+(``tests/online/test_scores.py``).
 
 Frames between two keyframes share one model, so they are predicted together when the model is about
 to change (:meth:`OnlineScorer.score_until`, called at the next keyframe's arrival), in forward passes of
@@ -39,21 +54,42 @@ summary keys ``depth.pcd_online[_nonkf].{lsq,median,seq_lsq}`` and ``depth.esi_o
 from __future__ import annotations
 
 import copy
+import logging
 import time
 from dataclasses import asdict
+from typing import Callable
 
 import numpy as np
 import pandas as pd
 import torch
 
 from mutualslam_cli.adapt.depthnet import DepthNet, predict_depth, prepare
-from mutualslam_cli.adapt.inputs import resample
+from mutualslam_cli.adapt.inference import resolve_runtime
+from mutualslam_cli.adapt.inputs import resample, to_net_image
+from mutualslam_cli.adapt.ov_refresh import NotRefreshable, RefreshablePredictor
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.machine import cpu_info
 from mutualslam_cli.device import module_device
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics.ratios import pcd_from_sketch
 from mutualslam_cli.vo.camera import Undistorter
+
+log = logging.getLogger(__name__)
+
+#: CPU kinds (:func:`~mutualslam_cli.machine.cpu_kind`) whose online scores go through OpenVINO (module
+#: docstring, "Runtime": where a weight refresh costs less than the predictions it speeds up).
+OPENVINO_ONLINE_KINDS = ("AMX",)
+
+
+def online_runtime(cfg: RunConfig, device: torch.device, kind: str | None = None) -> str:
+    """``"openvino"`` where the online scores go through the evaluation's OpenVINO bf16 runtime, else ``"torch"``
+    (module docstring, "Runtime"); ``kind``: the CPU kind (default: this machine's)."""
+    if device.type != "cpu" or resolve_runtime(cfg.net.runtime, cfg.net.fast, device) != "openvino":
+        return "torch"
+    kind = cpu_info()["cpu_kind"] if kind is None else kind
+    return "openvino" if kind in OPENVINO_ONLINE_KINDS else "torch"
+
 
 #: Frames per forward pass of the online scores on a GPU (at most; the frames one model scores).
 BATCH = 8
@@ -94,6 +130,7 @@ class OnlineScorer:
         self._rows: list[dict[str, float | int]] = []
         self._sketches: list[np.ndarray | None] = []
         self._twin: torch.nn.Module | None = None  # channels-last copy of an NCHW network on the CPU
+        self._ov: RefreshablePredictor | None | bool = None  # None: not decided yet; False: the torch path
         self.seconds = 0.0
 
     def score_until(self, net: torch.nn.Module, frame_index: int, kf_id: int) -> None:
@@ -107,18 +144,62 @@ class OnlineScorer:
             self._next += 1
         if not todo:
             return
-        net = self._scoring_net(net)
-        bs = batch_size(module_device(net), torch.get_num_threads())
+        predict, device = self._predictor(net)
+        bs = batch_size(device, torch.get_num_threads())
         for c in range(0, len(todo), bs):
             chunk = todo[c:c + bs]
             small = np.stack([resample(self._und.image(self.seq.load_rgb(i)), cfg.net.width, cfg.net.height)
                               for i in chunk])  # (B, h, w, 3) uint8: what goes to the network's device
-            for i, depth in zip(chunk, predict_depth(net, small, self.fast)):
+            for i, depth in zip(chunk, predict(small)):
                 stats = asdict(dm.depth_stats(depth, self._und.depth(self.seq.load_depth(i)), cfg.eval.max_depth,
                                            cfg.eval.pcd_threshold, sketch=True))
                 self._sketches.append(stats.pop("sketch"))
                 self._rows.append({"frame": i, "online_kf": kf_id, **{f"online_{k}": stats[k] for k in COLUMNS}})
         self.seconds += time.perf_counter() - t
+
+    @property
+    def refresh_seconds(self) -> float:
+        """Seconds spent giving the OpenVINO predictor each new model's weights (0 on the torch path)."""
+        return float(sum(self._ov.refresh_s)) if self._ov else 0.0
+
+    def _predictor(self, net: torch.nn.Module) -> tuple[Callable[[np.ndarray], np.ndarray], torch.device]:
+        """``f(small)``: ``(B, h, w, 3)`` uint8 → ``(B, h, w)`` float32 depth with ``net``'s weights now, and the
+        device it runs on (module docstring, "Runtime")."""
+        device = module_device(net)
+        fresh = self._ov is None
+        if fresh:
+            self._ov = False
+            if isinstance(net, DepthNet) and online_runtime(self.cfg, device) == "openvino":
+                try:
+                    self._ov = RefreshablePredictor(net, self.cfg.net.width, self.cfg.net.height)
+                except NotRefreshable as exc:
+                    log.warning("online scores through PyTorch: %s", exc)
+        if self._ov:
+            if not fresh:
+                self._ov.refresh(net)
+            ov = self._ov
+            return (lambda small: ov(torch.from_numpy(small).permute(0, 3, 1, 2).float() / 255.0)), device
+        twin = self._scoring_net(net)
+        return (lambda small: predict_depth(twin, small, self.fast)), device
+
+    def eval_predictor(self, net: torch.nn.Module) -> Callable[[list[np.ndarray]], np.ndarray] | None:
+        """The evaluation's predictor of ``net`` made of this scorer's OpenVINO conversion (``None`` on the torch
+        path): ``B`` frames ``(H, W, 3)`` uint8 (pinhole) → ``(B, h, w)`` depth, as
+        :func:`~mutualslam_cli.adapt.inputs.make_predictor` would build by converting ``net`` again (~2 s); at its
+        first call it takes ``net``'s weights of then (one refresh, ~0.2 s). Call it after :meth:`finish`: the
+        scorer's predictor is the evaluation's from then on."""
+        ov = self._ov
+        if not ov:
+            return None
+        width, height, pending = self.cfg.net.width, self.cfg.net.height, [True]
+
+        def predict(frames: list[np.ndarray]) -> np.ndarray:
+            if pending:
+                ov.refresh(net)
+                pending.clear()
+            return ov(torch.stack([to_net_image(rgb, width, height) for rgb in frames]))
+
+        return predict
 
     def _scoring_net(self, net: torch.nn.Module) -> torch.nn.Module:
         """``net``, or on the CPU for an NCHW :class:`DepthNet` its channels-last twin holding its weights now."""

@@ -115,7 +115,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
             net = comoda.run_stage(run, copy.deepcopy(net0), fast)
             adapted = Adapted(net=net, adapter=None, map=pure, frontend=pure, bridged=pure, source=source,
                               injected=injected, requested=0)
-            rows, kf_rows, online_s = [], [], 0.0
+            rows, kf_rows, online_s, refresh_s = [], [], 0.0, 0.0
             for k in L_VAL_KEYS:
                 summary.absent(f"adaptation.l_val.{k}", "scheme 'comoda' has no Algorithm 1")
             summarise_strength(summary, None)
@@ -130,11 +130,15 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
             rows, adapter, kf_rows = loop.rows, loop.adapter, loop.keyframe_rows()
             last = loop.trained_kf if loop.clock is not None else final.keyframes[-1].id if final.keyframes else -1
             online = scorer.finish(loop.net, last) if scorer else None
+            shared = scorer.eval_predictor(loop.net) if scorer else None
+            if shared is not None:  # the evaluation's OpenVINO predictor: the scorer's, not a second conversion
+                run.predictors[("adapted", id(loop.net))] = shared
             adapted = Adapted(net=loop.net, adapter=adapter, map=final, frontend=pure, bridged=None, source=source,
                               injected=injected,
                               requested=sum(bool(r.get("run_global_ba")) for r in rows), bridges=loop.bridges,
                               refused=loop.refused, l_val=l_val_stats(rows, cfg.adapt.tau_val, final), online=online)
             online_s = scorer.seconds if scorer is not None else 0.0
+            refresh_s = scorer.refresh_seconds if scorer is not None else 0.0
             summary.set("vo.bridges_refused", len(loop.refused))
             summary.set("adaptation.keyframes_other_unit", len(loop.other_unit))
             if loop.refused:
@@ -172,6 +176,8 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
     run.add_time("evaluation", online_s)  # the online scores are evaluation, done inside the loop
     summary.set("timing.online_scoring_s", online_s or None,
                 "no online scores (eval.online false, scheme none or comoda, or no GT depth)")
+    summary.set("timing.online_refresh_s", refresh_s or None,  # of it: new weights into the OpenVINO predictor
+                "no online scores through OpenVINO (the torch path, eval.online false, or no GT depth)")
     if kf_rows:
         atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(kf_rows).to_csv(index=False))
     summarise_bridges(run, adapted.bridged, adapted.bridges, adapted.credit)

@@ -8,6 +8,8 @@ import pytest
 import torch
 from synth import make_tum_dir
 
+from mutualslam_cli.adapt.depthnet import fast_path_supported
+from mutualslam_cli.adapt.inference import openvino_available
 from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.metrics.depth import depth_stats
@@ -59,7 +61,7 @@ def test_the_frames_of_one_model_share_forward_passes_and_batches_change_only_ro
     from mutualslam_cli.online import scores as online_eval
 
     seq = load_sequence(make_tum_dir(tmp_path, scene="room", n=11, width=128, height=96))
-    cfg = with_overrides(RunConfig(), net={"width": 96, "height": 64})
+    cfg = with_overrides(RunConfig(), net={"width": 96, "height": 64, "runtime": "torch"})  # the torch path
     torch.manual_seed(0)
     net = DepthNet().eval()
     calls: list[tuple[int, bool]] = []
@@ -97,3 +99,70 @@ def test_batch_size_follows_device_and_threads():
 
     cpu, cuda = torch.device("cpu"), torch.device("cuda", 0)
     assert (batch_size(cpu, 1), batch_size(cpu, 2), batch_size(cpu, 16), batch_size(cuda, 1)) == (2, 4, 4, BATCH)
+
+
+@pytest.mark.skipif(not openvino_available() or not fast_path_supported(), reason="needs OpenVINO and a bf16 CPU")
+def test_online_scores_go_through_openvino_with_each_models_weights_within_bf16_tolerance(tmp_path, monkeypatch):
+    """Where the evaluation runs OpenVINO bf16, so do the online scores: one conversion, then each model's weights
+    swapped in (refresh); every frame's depth is within BF16_REL_TOL of PyTorch fp32 with *that* model's weights
+    (a stale refresh would be off by the 30 % the weights change), and the evaluation gets the same predictor."""
+    from mutualslam_cli.adapt import ov_refresh
+    from mutualslam_cli.adapt.depthnet import DepthNet, predict_depth
+    from mutualslam_cli.adapt.inputs import resample
+    from mutualslam_cli.adapt.ov_refresh import BF16_REL_TOL
+
+    from mutualslam_cli.online import scores as online_eval
+
+    monkeypatch.setattr(online_eval, "cpu_info", lambda: {"cpu_kind": "AMX"})  # the kind that takes this path
+    seq = load_sequence(make_tum_dir(tmp_path, scene="room", n=7, width=128, height=96))
+    cfg = with_overrides(RunConfig(), net={"width": 96, "height": 64})
+    und = Undistorter(seq.intrinsics)
+    torch.manual_seed(0)
+    net = DepthNet().eval()
+    got: list[np.ndarray] = []
+    real = ov_refresh.RefreshablePredictor.__call__
+    monkeypatch.setattr(ov_refresh.RefreshablePredictor, "__call__",
+                        lambda self, x: (got.append(real(self, x)), got[-1])[1])
+    sc = OnlineScorer(seq, eval_frames(seq, 1), cfg, fast=True)
+    refs = []
+
+    def fp32(frames: range) -> None:
+        small = np.stack([resample(und.image(seq.load_rgb(i)), 96, 64) for i in frames])
+        refs.append(predict_depth(net, small, fast=False))
+
+    sc.score_until(net, 3, -1)
+    fp32(range(3))
+    with torch.no_grad():  # the next model: a large change of every weight and statistic
+        for p in net.parameters():
+            p.mul_(1.3)
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_var.mul_(0.7)
+    table = sc.finish(net, 0)
+    fp32(range(3, 7))
+    assert isinstance(sc._ov, ov_refresh.RefreshablePredictor) and len(sc._ov.refresh_s) == 1
+    assert sc.refresh_seconds > 0
+    depth, ref = np.concatenate(got), np.concatenate(refs)
+    rel = np.abs(depth / ref - 1).mean(axis=(1, 2))
+    assert (rel < BF16_REL_TOL).all(), rel
+    change = np.abs(refs[1][0] / refs[0][0] - 1).mean()
+    assert change > 10 * BF16_REL_TOL  # the check above could see a stale model
+    assert table["online_kf"].tolist() == [-1] * 3 + [0] * 4
+    predict = sc.eval_predictor(net)
+    assert predict is not None
+    again = predict([und.image(seq.load_rgb(i)) for i in (3, 4)])
+    assert np.abs(again / ref[3:5] - 1).mean() < BF16_REL_TOL  # frames 3, 4 by the final model
+
+
+def test_online_runtime_by_cpu_kind_and_config():
+    """OpenVINO for the online scores only where it pays (AMX) and the evaluation runs OpenVINO bf16."""
+    from mutualslam_cli.online.scores import online_runtime
+
+    cpu = torch.device("cpu")
+    cfg = RunConfig()
+    ov_bf16 = openvino_available() and fast_path_supported()
+    assert online_runtime(cfg, cpu, "AMX") == ("openvino" if ov_bf16 else "torch")
+    assert online_runtime(cfg, cpu, "AVX512-BF16") == "torch"  # measured: the refreshes cost more than they save
+    assert online_runtime(with_overrides(cfg, net={"runtime": "torch"}), cpu, "AMX") == "torch"
+    assert online_runtime(with_overrides(cfg, net={"fast": "off"}), cpu, "AMX") == "torch"
+    assert online_runtime(cfg, torch.device("cuda", 0), "AMX") == "torch"
