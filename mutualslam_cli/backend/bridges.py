@@ -28,9 +28,10 @@ import numpy as np
 
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.camera import to_normalized, undistort_points
+from mutualslam_cli.vo.camera import undistort_points
+from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import orb_features, orb_matches
-from mutualslam_cli.vo.result import MapPoints, VOResult
+from mutualslam_cli.map.result import MapPoints, VOResult
 
 #: Map points with a depth prediction a keyframe needs for its scale ratio.
 MIN_RATIO_POINTS = 10

@@ -5,7 +5,7 @@
 :class:`BALog`. :func:`refine_map` is the one way to refine the map of a run while it runs — at Algorithm 1's
 requests (the mutual loop) and after a loop closure's pose graph: the map settled, a snapshot of it, the BA of
 its newest ``ba.window`` keyframes (:func:`~mutualslam_cli.backend.ba.global_ba.window_start`), and the
-change handed back to the map (:class:`~mutualslam_cli.vo.feedback.MapRefinement`) — to the front end's
+change handed back to the map (:class:`~mutualslam_cli.map.refinement.MapRefinement`) — to the front end's
 event source or, under the realtime schedule, to the copy the work runs on (:class:`MapTarget`). The final BA
 of a run refines a finished map with the same :meth:`MapBA.run_ba` (:mod:`~mutualslam_cli.stages.ba`).
 """
@@ -26,9 +26,9 @@ from mutualslam_cli.config import BAConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.types import FrameRef, Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
-from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.map_state import MapState
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.refinement import MapRefinement
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +127,7 @@ class MapBA:
     def run_ba(self, vo: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
                val_loss: Mapping[int, float]) -> GlobalBAResult:
         """Culling (unless :attr:`cull` is off) + global BA of ``vo``'s keyframes ≤ ``kf_id`` (the segments a bridge
-        or a merge joined as one map: :attr:`~mutualslam_cli.vo.result.VOResult.units`), recorded into
+        or a merge joined as one map: :attr:`~mutualslam_cli.map.result.VOResult.units`), recorded into
         :attr:`record`."""
         self._frame_of.update((k.id, k.frame_index) for k in vo.keyframes)
         units = vo.unit_of_segment()  # the map's own answer: bridges and merges

@@ -33,7 +33,7 @@ from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 
 def no_culling_reason(cfg: RunConfig) -> str | None:

@@ -16,7 +16,7 @@ import numpy as np
 
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.vo import depth_filter as dfl
-from mutualslam_cli.vo.camera import to_normalized
+from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.initialization import InitResult, initialize
 from mutualslam_cli.vo.state import Tracks
@@ -73,9 +73,10 @@ class InitMixin:
         ref = self.st.ref
         self.st.segment += 1
         self.state_map.start_segment(self.st.segment, ref["frame"], res.method)
-        m = self.map
-        k0 = m.add_keyframe(ref["frame"], self.seq.frames[ref["frame"]].timestamp, np.eye(4), self.st.segment)
-        k1 = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(res.T_10), self.st.segment)
+        sm = self.state_map
+        m = sm.map
+        k0 = sm.add_keyframe(ref["frame"], self.seq.frames[ref["frame"]].timestamp, np.eye(4), self.st.segment)
+        k1 = sm.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(res.T_10), self.st.segment)
         # well-triangulated correspondences become map points; the rest become seeds of kf0
         # initialised from their two-view depth (ORB-SLAM keeps only parallax > ~0.4°; the
         # filter decides about ours)
@@ -88,7 +89,7 @@ class InitMixin:
         tau = dfl.compute_tau(T_hc, f0, dist, self.px_err_angle)
         sig_rho = 0.5 * (1 / np.maximum(dist - tau, 1e-7) - 1 / (dist + tau)) * f0[:, 2] ** -1
         obs = [{k0: px0[j], k1: px1[j]} for j in idx]
-        pids = m.add_points(np.full(len(idx), k0), px0[idx], to_normalized(px0[idx], self.K),
+        pids = self.state_map.add_points(np.full(len(idx), k0), px0[idx], to_normalized(px0[idx], self.K),
                             1.0 / X0[:, 2], np.nan_to_num(sig_rho[strong], nan=1.0), obs)
         # poses of the frames between the two keyframes: PnP on the stored track positions
         self.st.last_kf = k0

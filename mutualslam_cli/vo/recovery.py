@@ -31,13 +31,13 @@ class RecoveryMixin:
     def _relocalise(self, i: int, gray: np.ndarray) -> bool:
         """Find frame ``i`` in the map (:mod:`~mutualslam_cli.vo.relocalise`); on success continue the
         matched keyframe's segment from it: tracks on the verified points, a keyframe at this frame."""
-        if self.reloc is None or not self.map.kf_frame:
+        if self.reloc is None or not self.state_map.map.kf_frame:
             return False
-        r = self.reloc.query(gray, self.map, self.thr, seed=self.seed + i)
+        r = self.reloc.query(gray, self.state_map.map, self.thr, seed=self.seed + i)
         if r is None:
             return False
         self._collect_ba()
-        m, n = self.map, len(r.pids)
+        m, n = self.state_map.map, len(r.pids)
         self.st.segment = m.kf_segment[r.keyframe]
         t = Tracks.empty()
         t.raw = r.raw

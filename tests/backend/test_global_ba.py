@@ -15,7 +15,7 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.depth_oracle import run_oracle
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 HW = (180, 240)
 CFG = BAConfig(d_max=10.0, nearby_targets=False)  # the plane scene lies at 2–3 m: inside the CNN's "effective range";

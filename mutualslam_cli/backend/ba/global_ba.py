@@ -1,6 +1,6 @@
 """Map-point culling + global photometric BA as one stage (paper §III-C, DESIGN §6).
 
-:func:`run_global_ba` takes a front-end map (a :class:`~mutualslam_cli.vo.result.VOResult`),
+:func:`run_global_ba` takes a front-end map (a :class:`~mutualslam_cli.map.result.VOResult`),
 keyframe images at the BA resolution, the adapted network's depth and per-keyframe L_val, and
 returns a refined copy. It is the only module that reads :class:`~mutualslam_cli.config.BAConfig`.
 
@@ -74,7 +74,7 @@ from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 #: Largest factor by which the BA may change a point's inverse depth; beyond it the point keeps
 #: its value before BA (an under-constrained depth, e.g. one short-baseline target). The same

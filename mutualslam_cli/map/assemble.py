@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 
 from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
-from mutualslam_cli.vo.camera import pinhole
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
-from mutualslam_cli.vo.state import Map
+from mutualslam_cli.geometry import pinhole
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.store import Map
 
 
 @dataclass(frozen=True)
