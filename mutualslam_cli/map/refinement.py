@@ -14,6 +14,7 @@ import numpy as np
 
 from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.sim3 import follow
 
 if TYPE_CHECKING:
     from mutualslam_cli.map.state import MapState
@@ -76,10 +77,8 @@ class MapRefinement:
             if ref is None or ref not in moved:  # its unit's newest keyframe then did not move: nor does it
                 continue
             s = self.scale_of(ref)
-            rel = np.linalg.inv(m.kf_T_wc[ref]) @ m.kf_T_wc[k]
-            rel[:3, 3] *= s
             kfs.append(k)
-            poses.append(self.T_wc[moved[ref]] @ rel)
+            poses.append(follow(m.kf_T_wc[k], np.linalg.inv(m.kf_T_wc[ref]), self.T_wc[moved[ref]], s))
             scales.append(s)
             if s != 1.0:
                 own = [p for p in m.kf_points[k] if m.host[p] == k and np.isfinite(m.rho[p])]

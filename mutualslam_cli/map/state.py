@@ -23,6 +23,7 @@ from mutualslam_cli.types import FrameRef, Intrinsics
 from mutualslam_cli.map.assemble import RunStats, build_result
 from mutualslam_cli.map.journal import Event, Journal
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.sim3 import Sim3, rescaled
 from mutualslam_cli.map.store import Map
 
 
@@ -146,12 +147,10 @@ class MapState:
     def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> np.ndarray:
         """Move ``segment`` by ``x ↦ s·R·x + t`` (keyframes, hosted points, its frames' relative
         translations ×s) into the frame and unit of segment ``onto`` (a bridge); returns the hosted points' ids."""
-        hosted = self.map._transform_segment(segment, R, t, s)
+        hosted = self.map._transform_segment(segment, Sim3(np.asarray(R, np.float64), np.asarray(t, np.float64), s))
         for i, (ref, T) in self.frame_rel.items():
             if self.frame_seg[i] == segment:
-                T = T.copy()
-                T[:3, 3] *= s
-                self.frame_rel[i] = (ref, T)
+                self.frame_rel[i] = (ref, rescaled(T, s))
         self.joined[segment] = onto
         self._emit("similarity", segment=segment, onto=onto, s=s, R=R, t=t)
         return hosted
@@ -162,9 +161,7 @@ class MapState:
         by_kf = dict(zip(np.asarray(kfs).tolist(), np.asarray(scales, float).tolist()))
         for i, (ref, T) in self.frame_rel.items():
             if ref in by_kf:
-                T = T.copy()
-                T[:3, 3] *= by_kf[ref]
-                self.frame_rel[i] = (ref, T)
+                self.frame_rel[i] = (ref, rescaled(T, by_kf[ref]))
         self._emit("rescale", kfs=kfs, scales=scales)
 
     def unit(self, segment: int) -> int:

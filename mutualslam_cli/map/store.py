@@ -13,6 +13,7 @@ import numpy as np
 
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.map.journal import Journal
+from mutualslam_cli.map.sim3 import Sim3
 
 
 @dataclass
@@ -189,19 +190,19 @@ class Map:
         if len(pids):
             self._emit("pixel", pids=pids, px_h=px_h, xn_h=xn_h)
 
-    def _transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
-        """Move segment ``segment`` by the similarity ``x ↦ s·R·x + t``: its keyframes' ``T_wc ↦ [R·R_wc |
-        s·R·t_wc + t]``, the inverse depths (and σ) of the points they host ÷ ``s`` (points follow their
-        hosts). Not journaled here (the map state's :meth:`~mutualslam_cli.map.state.MapState.transform_segment` is).
+    def _transform_segment(self, segment: int, S: Sim3) -> np.ndarray:
+        """Move segment ``segment`` by the similarity ``S`` (``x ↦ s·R·x + t``): its keyframes' ``T_wc ↦ [R·R_wc |
+        s·R·t_wc + t]`` (:meth:`~mutualslam_cli.map.sim3.Sim3.apply_pose`), the inverse depths (and σ) of the
+        points they host ÷ ``s`` (points follow their hosts). Not journaled here (the map state's
+        :meth:`~mutualslam_cli.map.state.MapState.transform_segment` is).
 
         Returns:
             ids of the points hosted in the segment.
         """
         kfs = [k for k, sg in enumerate(self.kf_segment) if sg == segment]
+        s = S.s
         for k in kfs:
-            T = self.kf_T_wc[k].copy()
-            T[:3, :3] = R @ T[:3, :3]
-            T[:3, 3] = s * R @ T[:3, 3] + t
+            T = S.apply_pose(self.kf_T_wc[k])
             self.kf_T_wc[k] = T
             self._wc[k] = T
             self._cw[k] = se3_inv(T)

@@ -15,6 +15,7 @@ import numpy as np
 
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
+from mutualslam_cli.map.sim3 import Sim3, follow, rescaled
 
 
 class FeedbackMixin:
@@ -32,12 +33,9 @@ class FeedbackMixin:
         self.state_map.transform_segment(segment, R, t, s, onto)
         if segment != self.st.segment or self.st.mode != "tracking":
             return
-        T = se3_inv(self.st.T_cw)
-        T[:3, :3] = R @ T[:3, :3]
-        T[:3, 3] = s * R @ T[:3, 3] + t
-        self.st.T_cw = se3_inv(T)
-        self.st.vel = self.st.vel.copy()
-        self.st.vel[:3, 3] *= s  # a motion between two camera frames: its translation in the new unit
+        S = Sim3(np.asarray(R, np.float64), np.asarray(t, np.float64), s)
+        self.st.T_cw = se3_inv(S.apply_pose(se3_inv(self.st.T_cw)))
+        self.st.vel = rescaled(self.st.vel, s)  # a motion between two camera frames: its translation in the new unit
         tr = self.st.tracks
         in_seg = np.array([sg == segment for sg in self.state_map.map.kf_segment], bool)
         seeds = (tr.pid < 0) & in_seg[np.clip(tr.host, 0, len(in_seg) - 1)] if len(tr) else np.zeros(0, bool)
@@ -54,11 +52,9 @@ class FeedbackMixin:
         old = self.state_map.map.kf_T_wc[ref].copy() if ref >= 0 else None
         apply_refinement(self.state_map, r)
         if old is not None and st.mode == "tracking":
-            rel = se3_inv(old) @ se3_inv(st.T_cw)
-            rel[:3, 3] *= r.scale_of(ref)
-            st.T_cw = se3_inv(self.state_map.map.kf_T_wc[ref] @ rel)
-            st.vel = st.vel.copy()
-            st.vel[:3, 3] *= r.scale_of(ref)
+            s = r.scale_of(ref)
+            st.T_cw = se3_inv(follow(se3_inv(st.T_cw), se3_inv(old), self.state_map.map.kf_T_wc[ref], s))
+            st.vel = rescaled(st.vel, s)
         if r.scale is not None and len(st.tracks):
             seeds = np.flatnonzero(st.tracks.pid < 0)
             s = np.array([r.scale_of(int(h)) for h in st.tracks.host[seeds]])

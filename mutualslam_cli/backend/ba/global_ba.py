@@ -75,6 +75,7 @@ from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.sim3 import follow
 
 #: Largest factor by which the BA may change a point's inverse depth; beyond it the point keeps
 #: its value before BA (an under-constrained depth, e.g. one short-baseline target). The same
@@ -120,7 +121,7 @@ def _follow(poses: np.ndarray, times: np.ndarray, segs: np.ndarray, ref_times: n
         if not len(r) or not len(m):
             continue
         j = r[np.clip(np.searchsorted(ref_times[r], times[m], side="right") - 1, 0, len(r) - 1)]
-        out[m] = ref_new[j] @ np.linalg.inv(ref_old[j]) @ poses[m]
+        out[m] = follow(poses[m], np.linalg.inv(ref_old[j]), ref_new[j])
     return out
 
 
