@@ -134,10 +134,11 @@ class MapBA:
         r = run_global_ba(vo, self.images, depth_of, val_loss, self.cfg, cull=self.cull, upto=kf_id, units=units)
         self.record.culled.update(vo.points.ids[~r.keep].tolist())
         self.record.dropped.update(vo.points.ids[r.dropped].tolist())
-        self.record.runs.append(BARun(kf_id, {k: x for k, x in r.stats.items() if k != "costs"}))
+        self.record.runs.append(BARun(kf_id, r.stats))
+        st = r.stats
         log.info("global BA after keyframe %d: %d culled, %d dropped, %d refined (%d unrefined), cost %.4g -> %.4g, "
-                 "%.2f s", kf_id, r.stats["n_culled"], r.stats["n_dropped"], r.stats["n_refined"],
-                 r.stats["n_unrefined"], r.stats["cost0"], r.stats["cost"], r.stats["seconds"])
+                 "%.2f s", kf_id, st.n_culled, st.n_dropped, st.n_refined, st.n_unrefined, st.cost0, st.cost,
+                 st.seconds)
         return r
 
 

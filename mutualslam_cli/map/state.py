@@ -22,6 +22,7 @@ from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import FrameRef, Intrinsics
 from mutualslam_cli.map.assemble import RunStats, build_result
 from mutualslam_cli.map.journal import Event, Journal
+from mutualslam_cli.map.records import Relocalised
 from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.map.sim3 import Sim3, rescaled
 from mutualslam_cli.map.store import Map
@@ -40,7 +41,7 @@ class MapState:
         frame_rel: tracked frame → ``(reference keyframe, T_kf,c)``; a frame follows its keyframe.
         frame_seg: ``(N,)`` segment of each frame, −1 = not tracked.
         init_methods: how each segment was initialised, in order.
-        relocalisations: one dict per accepted relocalisation.
+        relocalisations: one :class:`~mutualslam_cli.map.records.Relocalised` per accepted relocalisation.
         losses: ``(frame, why)`` of each tracking loss.
         created_at: the front end's frame when each keyframe was created (replicas only: the clock of
             its :class:`~mutualslam_cli.map.journal.Event`).
@@ -54,7 +55,7 @@ class MapState:
         self.frame_rel: dict[int, tuple[int, np.ndarray]] = {}
         self.frame_seg = -np.ones(n_frames, np.int64)
         self.init_methods: list[str] = []
-        self.relocalisations: list[dict[str, Any]] = []
+        self.relocalisations: list[Relocalised] = []
         self.losses: list[tuple[int, str]] = []
         self.created_at: list[int] = []
         self.joined: dict[int, int] = {}
@@ -138,11 +139,11 @@ class MapState:
         self.losses.append((frame, why))
         self._emit("lost", index=frame, why=why)
 
-    def relocalise(self, info: dict[str, Any]) -> None:
-        """A relocalisation was accepted (``frame``, ``timestamp``, ``keyframe``, ``inliers``, …)."""
-        self.relocalisations.append(dict(info))
-        self._emit("reloc", index=info["frame"], t=info["timestamp"], keyframe=info["keyframe"],
-                   inliers=info["inliers"], frames_lost=info["frames_lost"], candidates_tried=info["candidates_tried"])
+    def relocalise(self, r: Relocalised) -> None:
+        """A relocalisation was accepted."""
+        self.relocalisations.append(r)
+        self._emit("reloc", index=r.frame, t=r.timestamp, keyframe=r.keyframe, inliers=r.inliers,
+                   frames_lost=r.frames_lost, candidates_tried=r.candidates_tried)
 
     def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> np.ndarray:
         """Move ``segment`` by ``x ↦ s·R·x + t`` (keyframes, hosted points, its frames' relative
@@ -213,9 +214,8 @@ class MapState:
         elif k == "lost":
             self.lose(e["index"], e["why"])
         elif k == "reloc":
-            self.relocalise({"frame": e["index"], "timestamp": e["t"], "keyframe": e["keyframe"],
-                             "inliers": e["inliers"], "frames_lost": e["frames_lost"],
-                             "candidates_tried": e["candidates_tried"]})
+            self.relocalise(Relocalised(e["index"], e["t"], e["keyframe"], e["inliers"], e["frames_lost"],
+                                        e["candidates_tried"]))
         else:  # pragma: no cover - SCHEMA and this dispatch list the same kinds
             raise ValueError(f"unknown event kind {k!r}")
 

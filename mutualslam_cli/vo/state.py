@@ -73,6 +73,26 @@ class Tracks:
 
 
 @dataclass
+class InitReference:
+    """The reference frame of an initialisation (``TrackerState.ref`` while ``mode == "init"``).
+
+    Attributes:
+        frame: its index; gray: ``(H, W)`` uint8 its grey image.
+        raw0: ``(N, 2)`` float32 raw pixels of the features detected in it.
+        raw: ``(n, 2)`` where the features still tracked are in the current frame (raw pixels); alive: ``(n,)``
+            their rows in ``raw0``.
+        hist: per frame tracked since, ``(frame, alive, raw)`` as they stood then (PnP for the frames in between).
+    """
+
+    frame: int
+    gray: np.ndarray
+    raw0: np.ndarray
+    raw: np.ndarray
+    alive: np.ndarray
+    hist: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
+
+
+@dataclass
 class TrackerState:
     """What the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) carries from one frame to the next
     besides its map: one declared object its parts share (and :mod:`~mutualslam_cli.vo.checkpoint` saves).
@@ -80,8 +100,8 @@ class TrackerState:
     Attributes:
         mode: ``"init"`` (bringing up a segment) or ``"tracking"``.
         segment: the current tracking segment (−1 before the first).
-        ref: the initialisation's reference frame (``init`` only): its grey image, its features and
-            their tracks so far; ``None`` otherwise.
+        ref: the initialisation's reference frame (``init`` only, :class:`InitReference`): its grey image, its
+            features and their tracks so far; ``None`` otherwise.
         T_cw: ``(4, 4)`` pose of the last tracked frame (world to camera, map units).
         vel: ``(4, 4)`` the last frame-to-frame motion (camera frames); vel_dt: the time it took (s; 0:
             unknown); t_prev: timestamp of the last tracked frame (s).
@@ -100,7 +120,7 @@ class TrackerState:
 
     mode: str = "init"
     segment: int = -1
-    ref: dict | None = None
+    ref: InitReference | None = None
     T_cw: np.ndarray = field(default_factory=lambda: np.eye(4))
     vel: np.ndarray = field(default_factory=lambda: np.eye(4))
     vel_dt: float = 0.0
