@@ -7,7 +7,7 @@ MSLAM := $(VENV)/bin/mslam
 DEMO_DIR ?= results/demo
 PYTEST_ARGS ?=
 
-.PHONY: install demo test test-all bench gpu-check lint clean weights book book-smoke
+.PHONY: install demo test test-all bench gpu-check lint typecheck clean weights book book-smoke
 
 install: $(VENV)/.installed
 
@@ -32,8 +32,9 @@ demo: install
 	$(MSLAM) run $(DEMO_DIR)/data/room --out $(DEMO_DIR) --force
 	$(MSLAM) report $(DEMO_DIR) --out $(DEMO_DIR)/report
 
-# CI: lint, then everything but `slow` (tests marked `data` run when ../shared/data exists, else skip).
-test: install lint
+# CI: lint and type check, then everything but `slow` (tests marked `data` run when ../shared/data exists, else
+# skip); the docstrings' examples run as tests too (tests/test_doctests.py).
+test: install lint typecheck
 	$(PY) -m pytest -q -m "not slow and not gpu" $(PYTEST_ARGS)
 
 test-all: install
@@ -65,6 +66,10 @@ weights: install
 # The rule set lives in pyproject.toml ([tool.ruff.lint]); a finding fails the target (and `make test`).
 lint: install
 	$(PY) -m ruff check mutualslam_cli tests
+
+# mypy over the files pyproject.toml's [tool.mypy] names (the map package and the ground floor).
+typecheck: install
+	$(PY) -m mypy
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -3,15 +3,18 @@
 Quaternions are ``(qx, qy, qz, qw)`` as in TUM files; poses are 4×4 ``T_wc``. The SO(3)/SE(3)
 increments (:func:`exp_so3`, :func:`left_update`) are shared by the windowed geometric BA
 (:mod:`mutualslam_cli.vo.local_ba`) and the global photometric BA (:mod:`mutualslam_cli.backend.ba`),
-which both optimise world-to-camera ``T_cw`` by left increments ``(ρ, φ)``.
+which both optimise world-to-camera ``T_cw`` by left increments ``(ρ, φ)``. The pinhole camera's pixels ↔
+normalised coordinates (:func:`to_normalized`, :func:`to_pixels`) are here too, for the map and the VO alike.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from mutualslam_cli.errors import ShapeError
-from mutualslam_cli.types import check_shape
+from mutualslam_cli.types import Intrinsics, check_shape
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
@@ -174,3 +177,20 @@ def left_update(T: np.ndarray, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
         U, _, Vt = np.linalg.svd(T[idx, :3, :3])  # stay on SO(3)
         T[idx, :3, :3] = U @ Vt
     return T
+
+
+def pinhole(intr: Intrinsics) -> Intrinsics:
+    """The same camera without distortion (what ``VOResult.intrinsics`` holds)."""
+    return replace(intr, dist=None)
+
+
+def to_normalized(pix: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pinhole pixels ``(N, 2)`` → normalised image coordinates ``(N, 2)`` (``K⁻¹ [u v 1]``)."""
+    pix = np.asarray(pix, dtype=np.float64).reshape(-1, 2)
+    return np.stack([(pix[:, 0] - K[0, 2]) / K[0, 0], (pix[:, 1] - K[1, 2]) / K[1, 1]], axis=1)
+
+
+def to_pixels(xn: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Normalised coordinates ``(N, 2)`` → pinhole pixels ``(N, 2)``."""
+    xn = np.asarray(xn, dtype=np.float64).reshape(-1, 2)
+    return np.stack([xn[:, 0] * K[0, 0] + K[0, 2], xn[:, 1] * K[1, 1] + K[1, 2]], axis=1)

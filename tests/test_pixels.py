@@ -21,7 +21,7 @@ from mutualslam_cli.datasets.fy_sign import warp_error
 from mutualslam_cli.geometry import exp_so3 as _exp_so3
 from mutualslam_cli.pixels import PIXEL_TOL, in_image, in_image_uv, lookup_nearest
 from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 def exp_so3(phi: np.ndarray) -> np.ndarray:

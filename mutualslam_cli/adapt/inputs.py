@@ -23,7 +23,7 @@ from mutualslam_cli.device import amp_supported, module_device
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 
 def resample(rgb: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -9,7 +9,7 @@ Entry points: :func:`.refine.refine_map` (culling + BA of the map now, the refin
 :class:`.refine.MapBA` (culling + BA of a snapshot, logged), :class:`.loop_closer.LoopCloser`,
 :class:`.merge.SegmentMerger`, :func:`.bridges.plan_bridge`, :func:`.ba.global_ba.run_global_ba`.
 
-What it hands back is a :class:`~mutualslam_cli.vo.feedback.MapRefinement`, which stays with the front end
+What it hands back is a :class:`~mutualslam_cli.map.refinement.MapRefinement`, which stays with the front end
 that takes it (the front end must not import the back end). May import the ground floor and the domain
 (``vo``, ``adapt``, ``datasets``, ``config``, …); writes no file and no ``summary.json`` key (the stages do).
 """

@@ -28,9 +28,11 @@ import numpy as np
 
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.camera import to_normalized, undistort_points
+from mutualslam_cli.vo.camera import undistort_points
+from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import orb_features, orb_matches
-from mutualslam_cli.vo.result import MapPoints, VOResult
+from mutualslam_cli.map.result import MapPoints, VOResult
+from mutualslam_cli.map.sim3 import Sim3
 
 #: Map points with a depth prediction a keyframe needs for its scale ratio.
 MIN_RATIO_POINTS = 10
@@ -79,6 +81,10 @@ class Bridge:
     def similarity(self) -> tuple[np.ndarray, np.ndarray, float]:
         """``(R (3, 3), t (3,), s)`` of the move ``x ↦ s·R·x + t`` applied to the segment."""
         return np.array(self.R, float), np.array(self.t, float), self.scale
+
+    def sim3(self) -> Sim3:
+        """The move applied to the segment as a :class:`~mutualslam_cli.map.sim3.Sim3`."""
+        return Sim3(*self.similarity())
 
 
 def depth_ratio(vo: VOResult, kf_id: int, depth: np.ndarray,
@@ -187,12 +193,11 @@ def plan_bridge(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarra
     if R_rel is not None:
         P[:3, :3] = T_last[:3, :3] @ R_rel
     T0 = kfs[first_kf].pose
-    R_g = P[:3, :3] @ T0[:3, :3].T
-    t_g = P[:3, 3] - s * R_g @ T0[:3, 3]
+    S = Sim3.onto(T0, P, s)
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R_rel) - 1) / 2, -1, 1)))) if R_rel is not None else 0.0
     return Bridge(int(seg), int(prev.segment), int(first_frame), float(kfs[first_kf].timestamp), int(last),
                   float(s), r_prev, r_new, n_prev, n_new, angle, "images" if R_rel is not None else "none",
-                  R_g.tolist(), t_g.tolist())
+                  S.R.tolist(), S.t.tolist())
 
 
 def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarray],
@@ -220,13 +225,8 @@ def move_segment(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float,
     """``vo`` with segment ``seg`` moved by the similarity ``x ↦ s·R·x + t``: keyframe and frame poses
     ``T_wc ↦ [R·R_wc | s·R·t_wc + t]``, inverse depths ÷ ``s`` (points follow their hosts); with ``onto``, into
     that segment's map unit (:attr:`VOResult.units`)."""
-    def move(T: np.ndarray) -> np.ndarray:
-        out = T.copy()
-        out[..., :3, :3] = R @ T[..., :3, :3]
-        out[..., :3, 3] = s * T[..., :3, 3] @ R.T + t
-        return out
-
-    kfs = [replace(k, pose=move(k.pose)) if k.segment == seg else k for k in vo.keyframes]
+    S = Sim3(np.asarray(R, np.float64), np.asarray(t, np.float64), s)
+    kfs = [replace(k, pose=S.apply_pose(k.pose)) if k.segment == seg else k for k in vo.keyframes]
     in_seg = np.array([k.segment == seg for k in vo.keyframes])
     pts = vo.points
     hosted = in_seg[pts.host] if len(pts.host) else np.zeros(0, bool)
@@ -236,6 +236,6 @@ def move_segment(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float,
     poses = vo.traj_all.poses.copy()
     sel = tracked == seg
     if sel.any():
-        poses[sel] = move(poses[sel])
+        poses[sel] = S.apply_poses(poses[sel])
     units = vo.units if onto is None else {k: u for k, u in vo.joined(seg, onto).items() if k != u}
     return replace(vo, keyframes=kfs, points=points, traj_all=Trajectory(vo.traj_all.timestamps, poses), units=units)

@@ -21,7 +21,7 @@ import numpy as np
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.geometry import project, se3_inv, transform
 from mutualslam_cli.pixels import in_image
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 DepthLookup = Callable[[int, np.ndarray], np.ndarray]
 """``depth_at(kf_id, pixels)``: CNN depth (map units) of keyframe ``kf_id`` at ``(M, 2)``

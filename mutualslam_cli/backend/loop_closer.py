@@ -97,7 +97,7 @@ class LoopCloser:
         if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
             t_ba = time.perf_counter()
             r = refine_map(self.source, kf, self.ba, depth_of, val_loss)
-            nearby = int(r.stats["n_nearby_targets"])
+            nearby = int(r.stats.n_nearby_targets)
             self.ba_seconds += time.perf_counter() - t_ba
         return LoopRecord(loop, int(state.frame_of(kf)), float(state.time_of(kf)), float(state.time_of(loop.match)),
                           nearby)

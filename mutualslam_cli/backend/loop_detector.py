@@ -39,7 +39,7 @@ from mutualslam_cli.config import LoopConfig
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import focal_px, undistort_points
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.map.state import MapState
 from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
 from mutualslam_cli.backend.bridges import MIN_RATIO_POINTS
 
@@ -253,7 +253,7 @@ class LoopDetector:
             return None
         rec["candidates"] = self.index.candidates(gray, pool, newest)
         rejected0 = self.index.rejected
-        r = state.locate(self.index, gray, self.thr, seed=seed, keyframes=pool, newest=newest, witnesses=pool)
+        r = self.index.query(gray, state.map, self.thr, seed=seed, keyframes=pool, newest=newest, witnesses=pool)
         self.tried += min(len(pool), s.n_candidates) if r is None else r.candidates_tried
         rec["geometry"], rec["outcome"] = dict(self.index.outcomes), "geometry: no candidate passed"
         if self.index.rejected > rejected0:

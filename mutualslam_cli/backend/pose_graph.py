@@ -9,7 +9,7 @@ placement was an estimate (:data:`BRIDGE_SIGMAS`: above all its scale); the loop
 loop measured, the new keyframe in the old keyframe's frame and unit (``[s R_loop | t_loop]``), its scale as
 sure as the loop's own standard error says. The old end
 is fixed; Levenberg–Marquardt finds the poses that strain the edges least. The result is a
-:class:`~mutualslam_cli.vo.feedback.MapRefinement`: keyframe poses ``[R_k | t_k]``, each keyframe's unit grown
+:class:`~mutualslam_cli.map.refinement.MapRefinement`: keyframe poses ``[R_k | t_k]``, each keyframe's unit grown
 by ``s_k`` (the points it hosts: inverse depth ÷ ``s_k``; its frames: translation × ``s_k``).
 
 Why GTSAM: a Sim(3) graph needs the group's Jacobians (7 degrees of freedom with the scale), a sparse
@@ -23,9 +23,9 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from mutualslam_cli.vo.feedback import MapRefinement
+from mutualslam_cli.map.refinement import MapRefinement
 from mutualslam_cli.backend.loop_detector import LoopClosure
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.map.state import MapState
 
 #: Standard deviations of an odometry edge, per tangent coordinate (rotation ×3 rad, translation ×3 map units, log
 #: scale): a monocular odometry drifts in scale more than in rotation and place.

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from mutualslam_cli.backend.ba.global_ba import BAStats
 from mutualslam_cli.backend.loop_detector import LoopClosure
 
 
@@ -75,11 +76,11 @@ class MergeRecord:
 
 @dataclass(frozen=True)
 class BARun:
-    """One culling + global BA: after keyframe ``kf_id``, its statistics (``backend.ba.global_ba``'s ``stats``:
-    counts, costs before and after, seconds, …; the per-iteration ``costs`` left out)."""
+    """One culling + global BA: after keyframe ``kf_id``, what it did (:class:`~mutualslam_cli.backend.ba.global_ba.
+    BAStats`: counts, costs before and after, seconds, …; the manifest leaves the per-round ``costs`` out)."""
 
     kf_id: int
-    stats: dict[str, Any] = field(default_factory=dict)
+    stats: BAStats = field(default_factory=BAStats)
 
     def to_json(self) -> dict[str, Any]:
-        return {"kf_id": self.kf_id, **self.stats}
+        return {"kf_id": self.kf_id, **self.stats.record()}

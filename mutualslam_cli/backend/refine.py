@@ -5,7 +5,7 @@
 :class:`BALog`. :func:`refine_map` is the one way to refine the map of a run while it runs — at Algorithm 1's
 requests (the mutual loop) and after a loop closure's pose graph: the map settled, a snapshot of it, the BA of
 its newest ``ba.window`` keyframes (:func:`~mutualslam_cli.backend.ba.global_ba.window_start`), and the
-change handed back to the map (:class:`~mutualslam_cli.vo.feedback.MapRefinement`) — to the front end's
+change handed back to the map (:class:`~mutualslam_cli.map.refinement.MapRefinement`) — to the front end's
 event source or, under the realtime schedule, to the copy the work runs on (:class:`MapTarget`). The final BA
 of a run refines a finished map with the same :meth:`MapBA.run_ba` (:mod:`~mutualslam_cli.stages.ba`).
 """
@@ -26,9 +26,9 @@ from mutualslam_cli.config import BAConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.types import FrameRef, Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
-from mutualslam_cli.vo.feedback import MapRefinement
-from mutualslam_cli.vo.map_state import MapState
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.refinement import MapRefinement
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -127,17 +127,18 @@ class MapBA:
     def run_ba(self, vo: VOResult, kf_id: int, depth_of: Callable[[int], np.ndarray],
                val_loss: Mapping[int, float]) -> GlobalBAResult:
         """Culling (unless :attr:`cull` is off) + global BA of ``vo``'s keyframes ≤ ``kf_id`` (the segments a bridge
-        or a merge joined as one map: :attr:`~mutualslam_cli.vo.result.VOResult.units`), recorded into
+        or a merge joined as one map: :attr:`~mutualslam_cli.map.result.VOResult.units`), recorded into
         :attr:`record`."""
         self._frame_of.update((k.id, k.frame_index) for k in vo.keyframes)
         units = vo.unit_of_segment()  # the map's own answer: bridges and merges
         r = run_global_ba(vo, self.images, depth_of, val_loss, self.cfg, cull=self.cull, upto=kf_id, units=units)
         self.record.culled.update(vo.points.ids[~r.keep].tolist())
         self.record.dropped.update(vo.points.ids[r.dropped].tolist())
-        self.record.runs.append(BARun(kf_id, {k: x for k, x in r.stats.items() if k != "costs"}))
+        self.record.runs.append(BARun(kf_id, r.stats))
+        st = r.stats
         log.info("global BA after keyframe %d: %d culled, %d dropped, %d refined (%d unrefined), cost %.4g -> %.4g, "
-                 "%.2f s", kf_id, r.stats["n_culled"], r.stats["n_dropped"], r.stats["n_refined"],
-                 r.stats["n_unrefined"], r.stats["cost0"], r.stats["cost"], r.stats["seconds"])
+                 "%.2f s", kf_id, st.n_culled, st.n_dropped, st.n_refined, st.n_unrefined, st.cost0, st.cost,
+                 st.seconds)
         return r
 
 

@@ -15,7 +15,7 @@ from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.camera import distort_points
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 
 def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = MAX_DT) -> dict[str, object]:
@@ -116,7 +116,7 @@ def esi_of_log_errors(d: np.ndarray, units: np.ndarray | None = None) -> tuple[f
 
 def point_units(vo: VOResult, units: dict[int, int] | None = None) -> np.ndarray:
     """``(P,)`` the map unit of each point: its host keyframe's segment, or ``units[segment]`` (segments a
-    bridge or a merge joined share one, :meth:`~mutualslam_cli.vo.result.VOResult.unit_of_segment`)."""
+    bridge or a merge joined share one, :meth:`~mutualslam_cli.map.result.VOResult.unit_of_segment`)."""
     seg = {k.id: k.segment for k in vo.keyframes}
     out = np.array([seg.get(int(h), -1) for h in vo.points.host], np.int64)
     return out if units is None else np.array([units.get(int(s), int(s)) for s in out], np.int64)

@@ -20,8 +20,8 @@ from mutualslam_cli.backend.bridges import Bridge, plan_bridge
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.online.labels import depth_predictor
-from mutualslam_cli.vo.map_state import MapState
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.map.result import VOResult
 
 
 def front_end_alone(seq: Sequence, cfg: RunConfig, cache_dir: Path | None) -> tuple[VOResult, set[int]]:

@@ -12,7 +12,7 @@ from mutualslam_cli.adapt.buffer import KeyframeBuffer
 from mutualslam_cli.adapt.depthnet import predict_depth
 from mutualslam_cli.adapt.inputs import scale_pixels
 from mutualslam_cli.device import module_device
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.map.state import MapState
 
 DepthOf = Callable[[int], np.ndarray]
 """``depth_of(kf_id)``: ``(h, w)`` depth of the current network at network resolution, map units."""

@@ -31,7 +31,6 @@ steps and ``rt_start_ms`` / ``rt_end_ms``.
 from __future__ import annotations
 
 import bisect
-import copy
 import math
 from collections import deque
 from typing import Any, Mapping, Protocol
@@ -42,8 +41,8 @@ import torch
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.online.credit import WeightsAt
 from mutualslam_cli.online.run import OnlineRun
-from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
+from mutualslam_cli.map.state import MapState
 
 
 class RealtimeClock:
@@ -137,7 +136,7 @@ class DeferredMap:
 
     def _shadow(self) -> Any:
         if self._copy is None:
-            self._copy = copy.deepcopy(self.source.state)
+            self._copy = self.source.state.fork()
             self._last_kf = self._copy.n_keyframes - 1
         return self._copy
 

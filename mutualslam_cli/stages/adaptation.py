@@ -36,7 +36,7 @@ from mutualslam_cli.stages.adaptation_summary import (
     summarise_strength,
 )
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.vo.source import FrontEndSource
 
 

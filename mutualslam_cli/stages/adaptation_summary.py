@@ -19,7 +19,7 @@ from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.loop_recall import POSE_KEYS, RECALL_KEYS
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 #: The keys of :func:`l_val_stats` (``adaptation.l_val.*`` in ``summary.json``).
 L_VAL_KEYS = ("validations", "min", "median", "longest_below_tau", "map_median_depth")

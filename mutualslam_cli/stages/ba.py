@@ -14,7 +14,7 @@ import torch
 
 from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter
-from mutualslam_cli.backend.ba.global_ba import window_start
+from mutualslam_cli.backend.ba.global_ba import BAStats, window_start
 from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
@@ -33,7 +33,7 @@ from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 
 def no_culling_reason(cfg: RunConfig) -> str | None:
@@ -170,16 +170,23 @@ class BAStage:
         runs = self.record.runs
         summary.set("ba.runs", len(runs))
         summary.set("ba.points_dropped", len(self.record.dropped))
-        for key in BA_RUN_KEYS[1:]:
-            summary.set(key, runs[-1].stats[key.rsplit(".", 1)[1]])
+        for key, value in _last_run(runs[-1].stats).items():
+            summary.set(key, value)
 
 
-#: ``summary.json`` keys of the last culling + BA of a run (its counts, ``ba.last.*``) and the points
-#: the BAs dropped as outliers (``ba.points_dropped``).
-BA_RUN_KEYS = ("ba.points_dropped",) + tuple(
-    f"ba.last.{k}" for k in ("keyframes", "n_culled", "n_judged_elsewhere", "n_refined", "n_unrefined", "n_diverged",
-                             "n_dropped", "n_targets", "n_nearby_targets", "n_blocks", "n_outlier_blocks",
-                             "iterations", "cost0", "cost"))
+def _last_run(s: BAStats) -> dict[str, int | float]:
+    """The ``summary.json`` keys ``ba.last.*`` of a run's last culling + BA ``s``: its counts and costs."""
+    return {"ba.last.keyframes": s.keyframes, "ba.last.n_culled": s.n_culled,
+            "ba.last.n_judged_elsewhere": s.n_judged_elsewhere, "ba.last.n_refined": s.n_refined,
+            "ba.last.n_unrefined": s.n_unrefined, "ba.last.n_diverged": s.n_diverged, "ba.last.n_dropped": s.n_dropped,
+            "ba.last.n_targets": s.n_targets, "ba.last.n_nearby_targets": s.n_nearby_targets,
+            "ba.last.n_blocks": s.n_blocks, "ba.last.n_outlier_blocks": s.n_outlier_blocks,
+            "ba.last.iterations": s.iterations, "ba.last.cost0": s.cost0, "ba.last.cost": s.cost}
+
+
+#: ``summary.json`` keys of the last culling + BA of a run (its counts, ``ba.last.*``: :func:`_last_run`) and the
+#: points the BAs dropped as outliers (``ba.points_dropped``).
+BA_RUN_KEYS = ("ba.points_dropped",) + tuple(_last_run(BAStats()))
 
 
 def _summarise_outliers(summary: Summary, ids: np.ndarray, injected: np.ndarray, culled: np.ndarray | None,

@@ -68,8 +68,9 @@ from mutualslam_cli.stages.dense_frames import FusedFrame, front_end_scales, sel
 from mutualslam_cli.stages.evaluation import eval_batch, predictors_for
 from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.types import Progress
-from mutualslam_cli.vo.camera import Undistorter, pinhole
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.vo.camera import Undistorter
+from mutualslam_cli.geometry import pinhole
+from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 

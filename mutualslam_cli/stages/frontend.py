@@ -30,7 +30,7 @@ from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.faults import inject_outliers
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.vo.source import FrontEndSource
 
 log = logging.getLogger(__name__)

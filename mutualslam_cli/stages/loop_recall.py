@@ -19,7 +19,7 @@ from mutualslam_cli.metrics.trajectory import associate_indices
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.backend.loop_closer import LoopCloser
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 

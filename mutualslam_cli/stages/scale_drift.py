@@ -22,7 +22,7 @@ from mutualslam_cli.errors import MslamError
 from mutualslam_cli.metrics.scale_drift import STRIDE, WINDOW, ScaleDrift, scale_drift
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ def set_scale_drift(summary: Summary, name: str, r: ScaleDrift | None, why: str 
 def evaluate(seq: Sequence, vo: VOResult, max_dt: float, window: int = WINDOW) -> ScaleDrift:
     """:func:`~mutualslam_cli.metrics.scale_drift.scale_drift` of ``vo``'s keyframes against the sequence's GT,
     windows within one map unit: a segment, or the segments a bridge or a merge joined
-    (:attr:`~mutualslam_cli.vo.result.VOResult.units`). Raises :class:`MslamError` with the reason when it cannot
+    (:attr:`~mutualslam_cli.map.result.VOResult.units`). Raises :class:`MslamError` with the reason when it cannot
     be computed."""
     if seq.gt is None or len(seq.gt) == 0:
         raise MslamError("sequence has no GT poses")

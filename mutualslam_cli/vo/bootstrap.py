@@ -16,10 +16,10 @@ import numpy as np
 
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.vo import depth_filter as dfl
-from mutualslam_cli.vo.camera import to_normalized
+from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.initialization import InitResult, initialize
-from mutualslam_cli.vo.state import Tracks
+from mutualslam_cli.vo.state import InitReference, Tracks
 from mutualslam_cli.vo.tracking import estimate_pose, klt_track
 
 log = logging.getLogger("mutualslam_cli.vo.frontend")
@@ -37,27 +37,27 @@ class InitMixin:
 
     def _start_ref(self, i: int, gray: np.ndarray) -> None:
         pts = detect_grid(gray, self.cfg.grid_size, self.cfg.max_fts)
-        self.st.ref = {"frame": i, "gray": gray, "raw0": pts, "raw": pts, "alive": np.arange(len(pts)), "hist": []}
+        self.st.ref = InitReference(i, gray, pts, pts, np.arange(len(pts)))
 
     def _init_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
         cfg = self.cfg
         if self._relocalise(i, gray):
             return
         ref = self.st.ref
-        stale = ref is None or len(ref["raw"]) < cfg.min_tracked or len(ref["hist"]) >= MAX_INIT_FRAMES
+        stale = ref is None or len(ref.raw) < cfg.min_tracked or len(ref.hist) >= MAX_INIT_FRAMES
         if stale or prev_pyr is None:
             self._start_ref(i, gray)
             return
         t0 = time.perf_counter()
-        raw, ok = klt_track(prev_pyr, pyr, ref["raw"], cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px)
+        raw, ok = klt_track(prev_pyr, pyr, ref.raw, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px)
         self.st.timing["track"] += time.perf_counter() - t0
-        ref["raw"], ref["alive"] = raw[ok], ref["alive"][ok]
-        ref["hist"].append((i, ref["alive"].copy(), ref["raw"].copy()))
-        if len(ref["raw"]) < cfg.min_tracked:
+        ref.raw, ref.alive = raw[ok], ref.alive[ok]
+        ref.hist.append((i, ref.alive.copy(), ref.raw.copy()))
+        if len(ref.raw) < cfg.min_tracked:
             self._start_ref(i, gray)
             return
-        px0, x0 = self._undist(ref["raw0"][ref["alive"]])
-        px1, x1 = self._undist(ref["raw"])
+        px0, x0 = self._undist(ref.raw0[ref.alive])
+        px1, x1 = self._undist(ref.raw)
         if np.median(np.linalg.norm(px1 - px0, axis=1)) < cfg.kf_min_parallax_px:
             return
         if self.reloc is not None and self.st.lost_at >= 0 and i - self.st.lost_at < cfg.reloc_frames:
@@ -72,10 +72,11 @@ class InitMixin:
         """Create the two first keyframes and the initial map of a new segment."""
         ref = self.st.ref
         self.st.segment += 1
-        self.state_map.start_segment(self.st.segment, ref["frame"], res.method)
-        m = self.map
-        k0 = m.add_keyframe(ref["frame"], self.seq.frames[ref["frame"]].timestamp, np.eye(4), self.st.segment)
-        k1 = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(res.T_10), self.st.segment)
+        self.state_map.start_segment(self.st.segment, ref.frame, res.method)
+        sm = self.state_map
+        m = sm.map
+        k0 = sm.add_keyframe(ref.frame, self.seq.frames[ref.frame].timestamp, np.eye(4), self.st.segment)
+        k1 = sm.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(res.T_10), self.st.segment)
         # well-triangulated correspondences become map points; the rest become seeds of kf0
         # initialised from their two-view depth (ORB-SLAM keeps only parallax > ~0.4°; the
         # filter decides about ours)
@@ -88,12 +89,12 @@ class InitMixin:
         tau = dfl.compute_tau(T_hc, f0, dist, self.px_err_angle)
         sig_rho = 0.5 * (1 / np.maximum(dist - tau, 1e-7) - 1 / (dist + tau)) * f0[:, 2] ** -1
         obs = [{k0: px0[j], k1: px1[j]} for j in idx]
-        pids = m.add_points(np.full(len(idx), k0), px0[idx], to_normalized(px0[idx], self.K),
+        pids = self.state_map.add_points(np.full(len(idx), k0), px0[idx], to_normalized(px0[idx], self.K),
                             1.0 / X0[:, 2], np.nan_to_num(sig_rho[strong], nan=1.0), obs)
         # poses of the frames between the two keyframes: PnP on the stored track positions
         self.st.last_kf = k0
-        alive_ref = ref["alive"][idx]
-        for fi, alive, raw in ref["hist"][:-1]:
+        alive_ref = ref.alive[idx]
+        for fi, alive, raw in ref.hist[:-1]:
             sel = np.isin(alive, alive_ref)
             if sel.sum() < self.cfg.min_tracked:
                 continue
@@ -103,10 +104,10 @@ class InitMixin:
             if T is not None and inl.sum() >= self.cfg.min_tracked:
                 self.st.T_cw = T
                 self._record(fi)
-        self.state_map.track_frame(ref["frame"], self.st.segment, k0, np.eye(4))
+        self.state_map.track_frame(ref.frame, self.st.segment, k0, np.eye(4))
         t = Tracks.empty()
         n = len(idx)
-        raw = ref["raw"][idx]
+        raw = ref.raw[idx]
         t.raw, t.px, t.xn = raw.astype(np.float32), px1[idx], x1[idx]
         t.pid = pids.astype(np.int64)
         t.host = np.full(n, k0)
@@ -118,7 +119,7 @@ class InitMixin:
             jw = res.index[weak]
             zmin = float(np.min(res.points0[:, 2]))
             w = Tracks.empty()
-            w.raw, w.px, w.xn = ref["raw"][jw].astype(np.float32), px1[jw], x1[jw]
+            w.raw, w.px, w.xn = ref.raw[jw].astype(np.float32), px1[jw], x1[jw]
             w.pid = -np.ones(len(jw), np.int64)
             w.host = np.full(len(jw), k0)
             w.f_h, w.px_h = f0[weak], px0[jw]
@@ -134,9 +135,9 @@ class InitMixin:
         self.st.vel, self.st.vel_dt, self.st.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
         self.st.last_kf = k1
         self._new_seeds(k1, gray)
-        self.st.kf_imgs = {k0: ref["gray"], k1: gray}
+        self.st.kf_imgs = {k0: ref.gray, k1: gray}
         if self.reloc is not None:
-            self.reloc.add_keyframe(k0, ref["gray"])
+            self.reloc.add_keyframe(k0, ref.gray)
             self.reloc.add_keyframe(k1, gray)
         self._record(i)
         self.st.mode = "tracking"

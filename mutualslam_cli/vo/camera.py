@@ -9,17 +9,10 @@ negative (ICL-NUIM); all maths goes through ``K`` and its inverse, never assumes
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import cv2
 import numpy as np
 
 from mutualslam_cli.types import Intrinsics
-
-
-def pinhole(intr: Intrinsics) -> Intrinsics:
-    """The same camera without distortion (what ``VOResult.intrinsics`` holds)."""
-    return replace(intr, dist=None)
 
 
 def undistort_points(pix: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -53,18 +46,6 @@ def distort_points(pix: np.ndarray, intr: Intrinsics) -> np.ndarray:
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return np.stack([xd * intr.fx + intr.cx, yd * intr.fy + intr.cy], axis=1)
-
-
-def to_normalized(pix: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Pinhole pixels ``(N, 2)`` → normalised image coordinates ``(N, 2)`` (``K⁻¹ [u v 1]``)."""
-    pix = np.asarray(pix, dtype=np.float64).reshape(-1, 2)
-    return np.stack([(pix[:, 0] - K[0, 2]) / K[0, 0], (pix[:, 1] - K[1, 2]) / K[1, 1]], axis=1)
-
-
-def to_pixels(xn: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Normalised coordinates ``(N, 2)`` → pinhole pixels ``(N, 2)``."""
-    xn = np.asarray(xn, dtype=np.float64).reshape(-1, 2)
-    return np.stack([xn[:, 0] * K[0, 0] + K[0, 2], xn[:, 1] * K[1, 1] + K[1, 2]], axis=1)
 
 
 def focal_px(intr: Intrinsics) -> float:

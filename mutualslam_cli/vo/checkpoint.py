@@ -2,7 +2,7 @@
 
 A run replays the per-sequence journal up to its first event that depends on the network (a bridge,
 a BA's feedback); from there its front end must run live, in the state it had at that frame. The
-map and frame records are the journal's events replayed (:class:`~mutualslam_cli.vo.map_state.MapState`);
+map and frame records are the journal's events replayed (:class:`~mutualslam_cli.map.state.MapState`);
 what is left — the KLT tracks and their depth-filter seeds, the current pose and motion, counters,
 which keyframe images the reprojection and the relocalisation hold, the windowed BA in flight (its
 problem, solved again) — is a :func:`capture` taken at a frame where the front end tracks (no
@@ -22,7 +22,7 @@ import numpy as np
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.vo.frontend import FrontEnd
-from mutualslam_cli.vo.journal import Event
+from mutualslam_cli.map.journal import Event
 from mutualslam_cli.vo.local_ba import BAProblem
 from mutualslam_cli.vo.state import Tracks
 from mutualslam_cli.vo.tracking import build_pyramid
@@ -73,10 +73,10 @@ def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: 
     ``events`` (the journal up to the captured frame). New events go to a fresh journal."""
     fe = FrontEnd(seq, cfg, seed)
     journal = fe.journal
-    fe.state_map.journal = fe.map.journal = None  # the replay is the past: not journaled again
+    fe.state_map.journal = None  # the replay is the past: not journaled again
     for e in events:
         fe.state_map.apply(e)
-    fe.state_map.journal = fe.map.journal = journal
+    fe.state_map.journal = journal
     h = json.loads(bytes(np.asarray(ckpt["header"], np.uint8)).decode("utf-8"))
     st = fe.st
     for k in _SCALARS:
@@ -84,7 +84,7 @@ def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: 
     st.timing = {k: float(v) for k, v in h["timing"].items()}
     st.T_cw, st.vel = np.array(ckpt["T_cw"]), np.array(ckpt["vel"])
     fe.mapper.stats = list(h["ba_stats"])
-    gray_of = {k: seq.load_gray(fe.map.kf_frame[k]) for k in set(h["kf_imgs"]) | set((h["reloc"] or {}).get(
+    gray_of = {k: seq.load_gray(fe.state_map.map.kf_frame[k]) for k in set(h["kf_imgs"]) | set((h["reloc"] or {}).get(
         "keyframes", []))}
     st.kf_imgs = {k: gray_of[k] for k in h["kf_imgs"]}
     if fe.reloc is not None and h["reloc"] is not None:

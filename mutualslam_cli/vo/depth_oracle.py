@@ -27,7 +27,7 @@ from mutualslam_cli.geometry import backproject, project, se3_inv, transform
 from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.camera import distort_points, undistort_points
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 log = logging.getLogger(__name__)
 

@@ -159,7 +159,7 @@ class NetworkMixin:
 
     def _prior_rho(self, pids: np.ndarray) -> np.ndarray:
         """Prior inverse depths ``(P,)`` of points ``pids`` from their hosts' network depth (NaN: none)."""
-        m, out = self.map, np.full(len(pids), np.nan)
+        m, out = self.state_map.map, np.full(len(pids), np.nan)
         host = np.array([m.host[p] for p in pids.tolist()], np.int64)
         unit = self.state_map.unit(self.st.segment)
         for h in set(host.tolist()) & set(self.scale.depths):
@@ -173,5 +173,5 @@ class NetworkMixin:
             return None
         tr = self.st.tracks
         pm = np.flatnonzero(tr.pid >= 0)
-        Xc = self.map.Xw[tr.pid[pm]] @ self.st.T_cw[:3, :3].T + self.st.T_cw[:3, 3]
+        Xc = self.state_map.map.Xw[tr.pid[pm]] @ self.st.T_cw[:3, :3].T + self.st.T_cw[:3, 3]
         return self.scale.keyframe(kf, i, self.state_map.unit(self.st.segment), tr.px[pm], Xc[:, 2])

@@ -2,8 +2,8 @@
 
 Gross depth outliers put where they are known, to measure how well the back end's culling finds them
 (:mod:`~mutualslam_cli.backend.culling`). :func:`inject_outliers` corrupts a map record (a
-:class:`~mutualslam_cli.vo.result.VOResult`); :func:`corrupt_depths` does the same to a
-:class:`~mutualslam_cli.vo.map_state.MapState`, for a finished front end (hindsight labels only: a live front
+:class:`~mutualslam_cli.map.result.VOResult`); :func:`corrupt_depths` does the same to a
+:class:`~mutualslam_cli.map.state.MapState`, for a finished front end (hindsight labels only: a live front
 end would never see the change).
 """
 
@@ -14,8 +14,8 @@ from dataclasses import replace
 import numpy as np
 
 from mutualslam_cli.errors import ConfigError
-from mutualslam_cli.vo.map_state import MapState
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.map.result import VOResult
 
 #: Depth factors of :func:`inject_outliers`: both break Eq. 10 with γ = 0.5 against the true depth.
 OUTLIER_FACTORS = (2.0, 0.4)
@@ -52,6 +52,6 @@ def corrupt_depths(state: MapState, vo: VOResult, fraction: float, seed: int) ->
     bad_vo, ids = inject_outliers(vo, fraction, seed)
     if len(ids):
         rows = np.searchsorted(vo.points.ids, ids)
-        state.map.set_depths(ids, bad_vo.points.inv_depth[rows])
-        state.map.refresh(ids)
+        state.set_depths(ids, bad_vo.points.inv_depth[rows])
+        state.refresh(ids)
     return ids

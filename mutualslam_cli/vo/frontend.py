@@ -26,19 +26,20 @@ from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import scale_motion, se3_inv
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
-from mutualslam_cli.vo.assemble import RunStats
+from mutualslam_cli.map.assemble import RunStats
 from mutualslam_cli.vo.bootstrap import InitMixin
 from mutualslam_cli.vo.depth_prior import KeyframeRatio, NetworkMixin, ScaleCheck
-from mutualslam_cli.vo.camera import distort_points, focal_px, pinhole, to_normalized, undistort_points
+from mutualslam_cli.vo.camera import distort_points, focal_px, undistort_points
+from mutualslam_cli.geometry import pinhole, to_normalized
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.feedback import FeedbackMixin
-from mutualslam_cli.vo.journal import Journal
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.map.journal import Journal
+from mutualslam_cli.map.state import MapState
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
 from mutualslam_cli.vo.local_map import OLD_AGE, KeyframeImages, LocalMapMixin
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.vo.state import Tracks, TrackerState
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 
@@ -69,11 +70,11 @@ STAGES = ("decode", "track", "pose", "filter", "keyframe", "local_ba")
 class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMixin):
     """State machine ``init`` → ``tracking`` → (loss) → ``init`` … over one sequence, one frame per
     :meth:`process`. Every change to the map and the frame records is journaled in :attr:`journal`
-    (:mod:`~mutualslam_cli.vo.journal`); between frames the adaptation loop may join a new segment to
+    (:mod:`~mutualslam_cli.map.journal`); between frames the adaptation loop may join a new segment to
     the map (:meth:`transform_segment`) or hand it a global BA's refinement (:meth:`refine`).
 
     Its state from frame to frame is two declared objects its mixins share: :attr:`state_map` (the map and
-    frame records, :class:`~mutualslam_cli.vo.map_state.MapState`) and :attr:`st` (:class:`TrackerState`);
+    frame records, :class:`~mutualslam_cli.map.state.MapState`) and :attr:`st` (:class:`TrackerState`);
     besides them: the camera and settings, the BA worker (:attr:`mapper`), the relocalisation index."""
 
     def __init__(self, seq: Sequence, cfg: VOConfig, seed: int, journal: Journal | None = None) -> None:
@@ -86,9 +87,8 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
         self.px_err_angle = 2.0 * np.arctan(0.5 / self.f)  # SVO: one-pixel bearing error
         self.journal = journal if journal is not None else Journal()
         self.state_map = MapState(pinhole(self.intr), len(seq), self.journal)
-        self.map = self.state_map.map
-        self.mapper = Mapper(self.map, self.K, cfg.core_kfs, self.thr)
-        self.reloc = (RelocIndex(self.intr, load=lambda kf: seq.load_gray(self.map.kf_frame[kf]))
+        self.mapper = Mapper(self.state_map, self.K, cfg.core_kfs, self.thr)
+        self.reloc = (RelocIndex(self.intr, load=lambda kf: seq.load_gray(self.state_map.map.kf_frame[kf]))
                       if cfg.relocalise else None)  # keyframe images decoded again when needed: memory flat
         self.st = TrackerState(timing={k: 0.0 for k in STAGES})
         self.old_images = KeyframeImages(seq.load_gray)
@@ -102,11 +102,12 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
     def _record(self, i: int) -> None:
         """Store frame ``i``'s pose relative to the current reference keyframe."""
         T_wc = se3_inv(self.st.T_cw)
-        self.state_map.track_frame(i, self.st.segment, self.st.last_kf, self.map.poses_cw()[self.st.last_kf] @ T_wc)
+        sm = self.state_map
+        sm.track_frame(i, self.st.segment, self.st.last_kf, sm.map.poses_cw()[self.st.last_kf] @ T_wc)
 
     # ---------------------------------------------------------------- tracking
     def _track_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
-        cfg, m = self.cfg, self.map
+        cfg, m = self.cfg, self.state_map.map
         if self.mapper.pending is not None and i >= self.st.ba_due:
             self._collect_ba()
         t0 = time.perf_counter()
@@ -190,7 +191,7 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
         depth-filter mean; guesses that fall behind the camera or off the image keep the
         previous position (KLT's default start).
         """
-        m = self.map
+        m = self.state_map.map
         n = len(tr)
         X = np.empty((n, 3))
         pm = tr.pid >= 0
@@ -216,7 +217,6 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
 
     def _promote(self, tr: Tracks, conv: np.ndarray) -> None:
         """Converged seeds become map points (host observation + keyframes seen since)."""
-        m = self.map
         f_h = tr.f_h[conv]
         mu = tr.seed["mu"][conv]
         rho_z = mu / f_h[:, 2]  # inverse distance along the bearing → inverse z-depth
@@ -226,13 +226,13 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
             o = {int(tr.host[j]): tr.px_h[j]}
             o.update({k: p for k, p in tr.obs[j]})
             obs.append(o)
-        pids = m.add_points(tr.host[conv], tr.px_h[conv], f_h[:, :2] / f_h[:, 2:3], rho_z, sig_z, obs)
+        pids = self.state_map.add_points(tr.host[conv], tr.px_h[conv], f_h[:, :2] / f_h[:, 2:3], rho_z, sig_z, obs)
         tr.pid[conv] = pids
 
     def _new_seeds(self, kf: int, gray: np.ndarray, ratio: KeyframeRatio | None = None) -> None:
         """Detect features in empty grid cells of keyframe ``kf`` and start seeds for them (with
         ``vo.depth_seeds`` and the keyframe's scale check ``ratio``: at the network's depth)."""
-        m, tr = self.map, self.st.tracks
+        m, tr = self.state_map.map, self.st.tracks
         pts = detect_grid(gray, self.cfg.grid_size, self.cfg.max_fts, occupied_px=tr.raw)
         pm = tr.pid >= 0
         if pm.any():
@@ -281,10 +281,10 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
         self._collect_ba()
         t0 = time.perf_counter()
         self.st.tracks = self._reproject(self.st.tracks, gray, self.st.T_cw, fuse=True)
-        m, tr = self.map, self.st.tracks
-        kf = m.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(self.st.T_cw), self.st.segment)
+        tr = self.st.tracks
+        kf = self.state_map.add_keyframe(i, self.seq.frames[i].timestamp, se3_inv(self.st.T_cw), self.st.segment)
         seen = np.flatnonzero(tr.pid >= 0)
-        m.observe(kf, tr.pid[seen], tr.px[seen])
+        self.state_map.observe(kf, tr.pid[seen], tr.px[seen])
         for j in np.flatnonzero(tr.pid < 0):
             tr.obs[j] = tr.obs[j] + [(kf, tr.px[j])]
         if self.reloc is not None:
@@ -324,7 +324,7 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
     def progress_info(self) -> dict:
         """What a progress bar shows after a frame."""
         i, n = self.st.frame, len(self.seq)
-        return {"frame": i, "n_frames": n, "keyframes": len(self.map.kf_frame),
+        return {"frame": i, "n_frames": n, "keyframes": len(self.state_map.map.kf_frame),
                 "tracked": self.st.n_tracked if self.st.mode == "tracking" else 0,
                 "fps": (i + 1) / self.st.wall_s if self.st.wall_s > 0 else 0.0, "state": self.st.mode}
 
@@ -341,7 +341,7 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
                         scale_check=self.scale.summary() if self.scale is not None else None)
 
     def result(self) -> VOResult:
-        """The map and trajectories now (see :func:`~mutualslam_cli.vo.assemble.build_result`)."""
+        """The map and trajectories now (see :func:`~mutualslam_cli.map.assemble.build_result`)."""
         return self.state_map.snapshot(self.seq.frames, self.stats())
 
 

@@ -2,7 +2,7 @@
 
 Every scheme of a grid starts from the same front end, which does not depend on the network up to
 the first event that asks it (a bridge, a BA's feedback). The cache keeps that front end's
-:class:`~mutualslam_cli.vo.journal.Journal` from frame 0 — the whole sequence when it ran alone,
+:class:`~mutualslam_cli.map.journal.Journal` from frame 0 — the whole sequence when it ran alone,
 else up to the frame of its run's first such event — with resumption points
 (:mod:`~mutualslam_cli.vo.checkpoint`) every :data:`CHECKPOINT_EVERY` keyframes, in
 ``<results>/_cache/vo/<sequence>-<mode>-<key>.journal.npz`` (key: :func:`vo_cache_key`).
@@ -29,7 +29,7 @@ from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION
-from mutualslam_cli.vo.journal import JOURNAL_VERSION, Event, journal_from_arrays, journal_to_arrays
+from mutualslam_cli.map.journal import JOURNAL_VERSION, Event, journal_from_arrays, journal_to_arrays
 
 log = logging.getLogger(__name__)
 

@@ -36,7 +36,8 @@ from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.camera import distort_points
 from mutualslam_cli.vo.reproject import match_points, reproject_points
-from mutualslam_cli.vo.state import Map, Tracks
+from mutualslam_cli.vo.state import Tracks
+from mutualslam_cli.map.store import Map
 
 OLD_AGE = 15
 """A point hosted more than this many keyframes before the newest is *old*: the share of them among a frame's
@@ -279,13 +280,13 @@ class LocalMapMixin:
     def _image_of(self, kf: int) -> np.ndarray:
         """The grey image of keyframe ``kf``: held when among the newest, else decoded again (an LRU)."""
         img = self.st.kf_imgs.get(kf)
-        return img if img is not None else self.old_images.get(self.map.kf_frame[kf])
+        return img if img is not None else self.old_images.get(self.state_map.map.kf_frame[kf])
 
     def _fuse_duplicates(self, tr: Tracks, gray: np.ndarray, T_cw: np.ndarray, kfs: np.ndarray) -> Tracks:
         """Young tracked points that are old points seen again (:func:`duplicates`, confirmed by KLT from the old
         point's own keyframe image landing within :data:`SAME_PX` of the track) are fused into the old ones: the
         track goes on as the old point, which takes the young one's observations (:meth:`Map.fuse_points`)."""
-        m = self.map
+        m = self.state_map.map
         pm = np.flatnonzero(tr.pid >= 0)
         young_before = max(0, self.st.last_kf - OLD_AGE) + 1
         y, o = duplicates(m, T_cw, self.K, kfs, young_before, tr.pid[pm], tr.raw[pm],
@@ -319,7 +320,7 @@ class LocalMapMixin:
                 used.add(b)
         if not fy:
             return tr
-        m.fuse_points(np.array(fy, np.int64), np.array(fo, np.int64))
+        self.state_map.fuse_points(np.array(fy, np.int64), np.array(fo, np.int64))
         for a, b in zip(fy, fo):
             tr.pid[row[a]] = b
             tr.host[row[a]] = m.host[b]
@@ -331,7 +332,7 @@ class LocalMapMixin:
         ``vo.reuse_map`` every point of the map unit the frame sees (:mod:`~mutualslam_cli.vo.local_map`); with
         ``fuse`` (at a keyframe, no windowed BA in flight) young tracked points that are old ones seen again are
         fused into them first (:meth:`_fuse_duplicates`)."""
-        m = self.map
+        m = self.state_map.map
         seg = [k for k in range(len(m.kf_frame)) if m.kf_segment[k] == self.st.segment]
         window = seg[-self.cfg.core_kfs:]
         cfg = self.cfg

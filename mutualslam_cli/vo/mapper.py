@@ -20,9 +20,9 @@ from typing import Callable
 import numpy as np
 
 from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.vo.camera import to_normalized
+from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.local_ba import BAProblem, residuals, solve
-from mutualslam_cli.vo.state import Map
+from mutualslam_cli.map.state import MapState
 
 log = logging.getLogger(__name__)
 
@@ -42,11 +42,12 @@ class _Job:
 
 
 class Mapper:
-    """Windowed BA of the newest keyframe's window on a :class:`Map`, optionally threaded."""
+    """Windowed BA of the newest keyframe's window on a map (written through its
+    :class:`~mutualslam_cli.map.state.MapState`), optionally threaded."""
 
-    def __init__(self, m: Map, K: np.ndarray, core_kfs: int, thr: float, iters: int = 6,
+    def __init__(self, state: MapState, K: np.ndarray, core_kfs: int, thr: float, iters: int = 6,
                  threaded: bool = True) -> None:
-        self.map, self.K, self.core_kfs, self.thr, self.iters = m, K, core_kfs, thr, iters
+        self.state, self.K, self.core_kfs, self.thr, self.iters = state, K, core_kfs, thr, iters
         self.pool = ThreadPoolExecutor(max_workers=1) if threaded else None
         self.job: _Job | None = None
         self.stats: list[dict] = []
@@ -70,7 +71,7 @@ class Mapper:
         is submitted when the window has fewer than two keyframes or no multi-view point.
         """
         assert self.job is None, "collect() the pending BA before submitting another"
-        m = self.map
+        m = self.state.map
         seg = [k for k in range(kf + 1) if m.kf_segment[k] == segment]
         window = seg[-self.core_kfs:]
         pids = sorted(set().union(*(m.kf_points[k] for k in window)))
@@ -127,7 +128,8 @@ class Mapper:
             ids of points whose observation in the job's keyframe was rejected (their tracks
             should be dropped); empty when nothing was pending.
         """
-        job, m = self.job, self.map
+        job, st = self.job, self.state
+        m = st.map
         if job is None:
             return np.zeros(0, np.int64)
         self.job = None
@@ -136,16 +138,16 @@ class Mapper:
         ba_stats.update(kf=job.kf, points=len(job.pids), obs=len(job.o_id))
         self.stats.append(ba_stats)
         free = np.flatnonzero(job.free)
-        m.set_poses(np.array(job.kfs, np.int64)[free], np.array([se3_inv(T) for T in T_new[free]]).reshape(-1, 4, 4))
-        m.set_depths(np.array(job.pids, np.int64), rho_new)
+        st.set_poses(np.array(job.kfs, np.int64)[free], np.array([se3_inv(T) for T in T_new[free]]).reshape(-1, 4, 4))
+        st.set_depths(np.array(job.pids, np.int64), rho_new)
         # reject observations the optimised window cannot explain
         r, front = residuals(job.prob, T_new, rho_new)
         err = np.where(front, np.linalg.norm(r, axis=1), np.inf)
         bad = [(p, k) for e, (p, k) in zip(err, job.o_id) if not np.isfinite(e) or e > OUTLIER_FACTOR * self.thr]
-        m.remove_observations(np.array([p for p, _ in bad], np.int64), np.array([k for _, k in bad], np.int64))
+        st.remove_observations(np.array([p for p, _ in bad], np.int64), np.array([k for _, k in bad], np.int64))
         bad_kf = [p for p, k in bad if k == job.kf]
         all_pids = sorted(set().union(*(m.kf_points[k] for k in job.kfs)))
-        m.refresh(np.array(all_pids, dtype=np.int64))
+        st.refresh(np.array(all_pids, dtype=np.int64))
         return np.array(bad_kf, np.int64)
 
     def close(self) -> None:

@@ -44,7 +44,7 @@ from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import backproject, project, se3_inv
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.frontend import run_vo
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 log = logging.getLogger(__name__)
 

@@ -8,6 +8,7 @@ import logging
 
 import numpy as np
 
+from mutualslam_cli.map.records import Relocalised
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.state import Tracks
 
@@ -31,13 +32,13 @@ class RecoveryMixin:
     def _relocalise(self, i: int, gray: np.ndarray) -> bool:
         """Find frame ``i`` in the map (:mod:`~mutualslam_cli.vo.relocalise`); on success continue the
         matched keyframe's segment from it: tracks on the verified points, a keyframe at this frame."""
-        if self.reloc is None or not self.map.kf_frame:
+        if self.reloc is None or not self.state_map.map.kf_frame:
             return False
-        r = self.reloc.query(gray, self.map, self.thr, seed=self.seed + i)
+        r = self.reloc.query(gray, self.state_map.map, self.thr, seed=self.seed + i)
         if r is None:
             return False
         self._collect_ba()
-        m, n = self.map, len(r.pids)
+        m, n = self.state_map.map, len(r.pids)
         self.st.segment = m.kf_segment[r.keyframe]
         t = Tracks.empty()
         t.raw = r.raw
@@ -50,10 +51,9 @@ class RecoveryMixin:
         self.st.tracks, self.st.T_cw, self.st.n_tracked = t, r.T_cw, r.inliers
         self.st.vel, self.st.vel_dt, self.st.t_prev = np.eye(4), 0.0, self.seq.frames[i].timestamp
         self.st.mode, self.st.ref = "tracking", None
-        self.state_map.relocalise({"frame": i, "timestamp": float(self.seq.frames[i].timestamp),
-                                   "keyframe": int(r.keyframe), "inliers": int(r.inliers),
-                                   "frames_lost": 0 if self.st.lost_at < 0 else i - self.st.lost_at,
-                                   "candidates_tried": int(r.candidates_tried)})
+        self.state_map.relocalise(Relocalised(i, float(self.seq.frames[i].timestamp), int(r.keyframe), int(r.inliers),
+                                              0 if self.st.lost_at < 0 else i - self.st.lost_at,
+                                              int(r.candidates_tried)))
         log.info("relocalised frame %d against keyframe %d (%d inliers)", i, r.keyframe, r.inliers)
         self._keyframe(i, gray)
         self._record(i)

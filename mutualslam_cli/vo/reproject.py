@@ -17,8 +17,9 @@ import numpy as np
 
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.camera import distort_points, to_normalized, undistort_points
-from mutualslam_cli.vo.state import Map
+from mutualslam_cli.vo.camera import distort_points, undistort_points
+from mutualslam_cli.geometry import to_normalized
+from mutualslam_cli.map.store import Map
 from mutualslam_cli.vo.tracking import klt_track
 
 

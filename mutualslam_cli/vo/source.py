@@ -1,6 +1,6 @@
 """The front end's events, frame by frame, into the map the adaptation loop reads (DESIGN §5, §9).
 
-:class:`FrontEndSource` owns the loop's :class:`~mutualslam_cli.vo.map_state.MapState` (:attr:`~FrontEndSource.state`)
+:class:`FrontEndSource` owns the loop's :class:`~mutualslam_cli.map.state.MapState` (:attr:`~FrontEndSource.state`)
 and advances it one frame at a time: from the per-sequence journal (:mod:`~mutualslam_cli.vo.journal_cache`)
 while there is one, else from the live front end. A change from the network's side — a segment joined
 to the map (a bridge), a global BA's refinement — is made, with ``live_feedback``, in the live front end,
@@ -29,17 +29,17 @@ from mutualslam_cli.datasets.sequence import Sequence, grey_frames
 from mutualslam_cli.errors import CacheMismatch, DatasetError
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo import checkpoint
-from mutualslam_cli.vo.camera import pinhole
+from mutualslam_cli.geometry import pinhole
 from mutualslam_cli.vo.depth_oracle import run_oracle
 from mutualslam_cli.vo.depth_prior import DepthHint
 from mutualslam_cli.vo.faults import corrupt_depths
-from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
+from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
 from mutualslam_cli.vo.frontend import FrontEnd
-from mutualslam_cli.vo.journal import Event
+from mutualslam_cli.map.journal import Event
 from mutualslam_cli.vo.journal_cache import CHECKPOINT_EVERY, JournalEntry, cache_path, load_entry, save_entry
-from mutualslam_cli.vo.map_state import MapState, events_from_result
+from mutualslam_cli.map.state import MapState, events_from_result
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ class FrontEndSource:
 
     # ------------------------------------------------------------------ results
     def result(self) -> VOResult:
-        """The map now as a :class:`~mutualslam_cli.vo.result.VOResult`, with the front end's counters."""
+        """The map now as a :class:`~mutualslam_cli.map.result.VOResult`, with the front end's counters."""
         if self.live is not None:
             return self.state.snapshot(self.seq.frames, self.live.stats())
         vo = self.state.snapshot(self.seq.frames)

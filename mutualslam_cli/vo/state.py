@@ -1,8 +1,9 @@
-"""Mutable bookkeeping of the front end: active tracks and the growing map.
+"""Mutable bookkeeping of tracking: the active tracks and what the front end carries from frame to frame.
 
 :class:`Tracks` holds one row per feature currently tracked by KLT (map-point tracks and
 depth-filter seeds alike, aligned arrays so every per-frame step is vectorised);
-:class:`Map` holds keyframes and map points (host, host pixel, inverse depth, observations).
+:class:`TrackerState` the rest of the tracker's state. The map itself (keyframes, points) is
+:mod:`mutualslam_cli.map`'s.
 """
 
 from __future__ import annotations
@@ -11,8 +12,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.vo.journal import Journal
 
 _SEED_KEYS = ("a", "b", "mu", "sigma2", "z_range")
 
@@ -74,6 +73,26 @@ class Tracks:
 
 
 @dataclass
+class InitReference:
+    """The reference frame of an initialisation (``TrackerState.ref`` while ``mode == "init"``).
+
+    Attributes:
+        frame: its index; gray: ``(H, W)`` uint8 its grey image.
+        raw0: ``(N, 2)`` float32 raw pixels of the features detected in it.
+        raw: ``(n, 2)`` where the features still tracked are in the current frame (raw pixels); alive: ``(n,)``
+            their rows in ``raw0``.
+        hist: per frame tracked since, ``(frame, alive, raw)`` as they stood then (PnP for the frames in between).
+    """
+
+    frame: int
+    gray: np.ndarray
+    raw0: np.ndarray
+    raw: np.ndarray
+    alive: np.ndarray
+    hist: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
+
+
+@dataclass
 class TrackerState:
     """What the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) carries from one frame to the next
     besides its map: one declared object its parts share (and :mod:`~mutualslam_cli.vo.checkpoint` saves).
@@ -81,8 +100,8 @@ class TrackerState:
     Attributes:
         mode: ``"init"`` (bringing up a segment) or ``"tracking"``.
         segment: the current tracking segment (−1 before the first).
-        ref: the initialisation's reference frame (``init`` only): its grey image, its features and
-            their tracks so far; ``None`` otherwise.
+        ref: the initialisation's reference frame (``init`` only, :class:`InitReference`): its grey image, its
+            features and their tracks so far; ``None`` otherwise.
         T_cw: ``(4, 4)`` pose of the last tracked frame (world to camera, map units).
         vel: ``(4, 4)`` the last frame-to-frame motion (camera frames); vel_dt: the time it took (s; 0:
             unknown); t_prev: timestamp of the last tracked frame (s).
@@ -101,7 +120,7 @@ class TrackerState:
 
     mode: str = "init"
     segment: int = -1
-    ref: dict | None = None
+    ref: InitReference | None = None
     T_cw: np.ndarray = field(default_factory=lambda: np.eye(4))
     vel: np.ndarray = field(default_factory=lambda: np.eye(4))
     vel_dt: float = 0.0
@@ -122,209 +141,3 @@ class TrackerState:
     frame: int = -1
     timing: dict[str, float] = field(default_factory=dict)
     wall_s: float = 0.0
-
-
-@dataclass
-class Map:
-    """Keyframes and map points of all segments.
-
-    Map points are stored as (host keyframe, host pixel, inverse depth z⁻¹ along the host ray),
-    the ``MapPoints`` parametrisation; ``Xw`` caches their world positions (recomputed by
-    :meth:`refresh`, which the callers ask for where a pose or a depth changed). A removed point
-    keeps its id with a NaN depth and no observation.
-
-    Every change goes through a method here and is recorded in ``journal`` (when given) as an
-    :class:`~mutualslam_cli.vo.journal.Event`; a map built by replaying those events
-    (:meth:`~mutualslam_cli.vo.map_state.MapState.apply`) is identical to this one.
-    """
-
-    kf_frame: list[int] = field(default_factory=list)
-    kf_time: list[float] = field(default_factory=list)
-    kf_T_wc: list[np.ndarray] = field(default_factory=list)
-    kf_segment: list[int] = field(default_factory=list)
-    kf_points: list[set[int]] = field(default_factory=list)
-    host: list[int] = field(default_factory=list)
-    px_h: list[np.ndarray] = field(default_factory=list)
-    xn_h: list[np.ndarray] = field(default_factory=list)
-    rho: list[float] = field(default_factory=list)
-    sigma: list[float] = field(default_factory=list)
-    obs: list[dict[int, np.ndarray]] = field(default_factory=list)
-    Xw: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    _wc: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
-    _cw: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
-    journal: Journal | None = field(default=None, repr=False, compare=False)
-
-    def _emit(self, kind: str, **data) -> None:
-        if self.journal is not None:
-            self.journal.emit(kind, **data)
-
-    def add_keyframe(self, frame: int, t: float, T_wc: np.ndarray, segment: int) -> int:
-        """Append a keyframe, return its id."""
-        self.kf_frame.append(frame)
-        self.kf_time.append(t)
-        self.kf_T_wc.append(T_wc.copy())
-        self.kf_segment.append(segment)
-        self.kf_points.append(set())
-        k = len(self.kf_frame) - 1
-        if k >= len(self._wc):  # grow the stacked pose arrays geometrically
-            grow = np.tile(np.eye(4), (max(16, len(self._wc)), 1, 1))
-            self._wc = np.concatenate([self._wc, grow])
-            self._cw = np.concatenate([self._cw, grow.copy()])
-        self._wc[k] = T_wc
-        self._cw[k] = se3_inv(T_wc)
-        self._emit("keyframe", kf=k, frame=frame, t=t, segment=segment, T_wc=T_wc)
-        return k
-
-    def set_poses(self, kfs: np.ndarray, T_wc: np.ndarray) -> None:
-        """Replace the poses ``T_wc`` ``(n, 4, 4)`` of keyframes ``kfs`` (points' ``Xw``: :meth:`refresh`)."""
-        kfs = np.asarray(kfs, np.int64).reshape(-1)
-        T_wc = np.asarray(T_wc, np.float64).reshape(-1, 4, 4)
-        for k, T in zip(kfs.tolist(), T_wc):
-            self.kf_T_wc[k] = T.copy()
-            self._wc[k] = T
-            self._cw[k] = se3_inv(T)
-        if len(kfs):
-            self._emit("pose", kfs=kfs, T_wc=T_wc)
-
-    def set_pose(self, kf: int, T_wc: np.ndarray) -> None:
-        """Replace the pose of keyframe ``kf`` (``T_wc``)."""
-        self.set_poses(np.array([kf]), T_wc[None])
-
-    def poses_wc(self) -> np.ndarray:
-        """``(K, 4, 4)`` stacked ``T_wc`` of all keyframes (a view; do not modify)."""
-        return self._wc[: len(self.kf_frame)]
-
-    def poses_cw(self) -> np.ndarray:
-        """``(K, 4, 4)`` stacked ``T_cw`` of all keyframes (a view; do not modify)."""
-        return self._cw[: len(self.kf_frame)]
-
-    def add_points(self, host: np.ndarray, px_h: np.ndarray, xn_h: np.ndarray, rho: np.ndarray,
-                   sigma: np.ndarray, obs: list[dict[int, np.ndarray]]) -> np.ndarray:
-        """Append points (host observation included in ``obs``), return their ids."""
-        start = len(self.host)
-        ids = np.arange(start, start + len(host))
-        px_h, xn_h = np.asarray(px_h, np.float64), np.asarray(xn_h, np.float64)  # as a replayed journal holds them
-        obs = [{int(k): np.asarray(x, np.float64) for k, x in o.items()} for o in obs]
-        for j, pid in enumerate(ids):
-            self.host.append(int(host[j]))
-            self.px_h.append(px_h[j])
-            self.xn_h.append(xn_h[j])
-            self.rho.append(float(rho[j]))
-            self.sigma.append(float(sigma[j]))
-            self.obs.append(obs[j])
-            for k in obs[j]:
-                self.kf_points[k].add(int(pid))
-        self.Xw = np.concatenate([self.Xw, np.zeros((len(ids), 3))])
-        self.refresh(ids, emit=False)
-        if len(ids):
-            self._emit("points", first=start, host=host, px_h=px_h, xn_h=xn_h, rho=rho, sigma=sigma,
-                       obs_n=[len(o) for o in obs], obs_kf=[k for o in obs for k in o],
-                       obs_px=np.array([p for o in obs for p in o.values()], np.float64).reshape(-1, 2))
-        return ids
-
-    def refresh(self, ids: np.ndarray, emit: bool = True) -> None:
-        """Recompute cached world positions of points ``ids`` from host pose and inverse depth."""
-        if len(ids) == 0:
-            return
-        ids = np.asarray(ids)
-        h = np.array([self.host[i] for i in ids])
-        ray = np.c_[np.array([self.xn_h[i] for i in ids]), np.ones(len(ids))]
-        rho = np.array([self.rho[i] for i in ids])
-        T = self._wc[h]
-        Xh = ray / rho[:, None]
-        self.Xw[ids] = np.einsum("nij,nj->ni", T[:, :3, :3], Xh) + T[:, :3, 3]
-        if emit:
-            self._emit("refresh", pids=ids)
-
-    def observe(self, kf: int, pids: np.ndarray, px: np.ndarray) -> None:
-        """Record that keyframe ``kf`` observes points ``pids`` at undistorted pixels ``px`` ``(n, 2)``."""
-        pids = np.asarray(pids, np.int64).reshape(-1)
-        for p, x in zip(pids.tolist(), np.asarray(px, np.float64)):
-            self.obs[p][kf] = x
-            self.kf_points[kf].add(p)
-        if len(pids):
-            self._emit("observe", kf=kf, pids=pids, px=px)
-
-    def set_depths(self, pids: np.ndarray, rho: np.ndarray) -> None:
-        """Replace the inverse depths of points ``pids`` (``Xw``: :meth:`refresh`)."""
-        pids = np.asarray(pids, np.int64).reshape(-1)
-        for p, r in zip(pids.tolist(), np.asarray(rho, np.float64).reshape(-1).tolist()):
-            self.rho[p] = r
-        if len(pids):
-            self._emit("depth", pids=pids, rho=rho)
-
-    def remove_observations(self, pids: np.ndarray, kfs: np.ndarray) -> None:
-        """Forget that keyframe ``kfs[j]`` observes point ``pids[j]``."""
-        pids = np.asarray(pids, np.int64).reshape(-1)
-        kfs = np.asarray(kfs, np.int64).reshape(-1)
-        for p, k in zip(pids.tolist(), kfs.tolist()):
-            self.obs[p].pop(k, None)
-            self.kf_points[k].discard(p)
-        if len(pids):
-            self._emit("unobserve", pids=pids, kfs=kfs)
-
-    def remove_points(self, pids: np.ndarray) -> None:
-        """Take points out of the map: no observation left, depth NaN (their ids stay taken)."""
-        pids = np.asarray(pids, np.int64).reshape(-1)
-        for p in pids.tolist():
-            for k in self.obs[p]:
-                self.kf_points[k].discard(p)
-            self.obs[p] = {}
-            self.rho[p] = float("nan")
-        if len(pids):
-            self.Xw[pids] = np.nan
-            self._emit("remove", pids=pids)
-
-    def fuse_points(self, young: np.ndarray, old: np.ndarray) -> None:
-        """Point ``young[j]`` is found to be point ``old[j]`` seen again: its observations go to ``old[j]`` (where
-        that keyframe does not observe ``old[j]`` already) and it leaves the map (ORB-SLAM's point fusion). Journaled
-        as the observations and the removal it is made of."""
-        young = np.asarray(young, np.int64).reshape(-1)
-        old = np.asarray(old, np.int64).reshape(-1)
-        by_kf: dict[int, tuple[list[int], list[np.ndarray]]] = {}
-        for y, o in zip(young.tolist(), old.tolist()):
-            for k, x in self.obs[y].items():
-                if k not in self.obs[o]:
-                    by_kf.setdefault(k, ([], []))[0].append(o)
-                    by_kf[k][1].append(x)
-        for k in sorted(by_kf):
-            self.observe(k, np.array(by_kf[k][0], np.int64), np.array(by_kf[k][1], np.float64).reshape(-1, 2))
-        self.remove_points(young)
-
-    def set_host_pixels(self, pids: np.ndarray, px_h: np.ndarray, xn_h: np.ndarray) -> None:
-        """Move points' host pixels (undistorted ``px_h`` and normalised ``xn_h``, ``(n, 2)`` each)."""
-        pids = np.asarray(pids, np.int64).reshape(-1)
-        for j, p in enumerate(pids.tolist()):
-            self.px_h[p] = np.array(px_h[j], np.float64)
-            self.xn_h[p] = np.array(xn_h[j], np.float64)
-        if len(pids):
-            self._emit("pixel", pids=pids, px_h=px_h, xn_h=xn_h)
-
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
-        """Move segment ``segment`` by the similarity ``x ↦ s·R·x + t``: its keyframes' ``T_wc ↦ [R·R_wc |
-        s·R·t_wc + t]``, the inverse depths (and σ) of the points they host ÷ ``s`` (points follow their
-        hosts). Not journaled here (:meth:`~mutualslam_cli.vo.map_state.MapState.transform_segment` is).
-
-        Returns:
-            ids of the points hosted in the segment.
-        """
-        kfs = [k for k, sg in enumerate(self.kf_segment) if sg == segment]
-        for k in kfs:
-            T = self.kf_T_wc[k].copy()
-            T[:3, :3] = R @ T[:3, :3]
-            T[:3, 3] = s * R @ T[:3, 3] + t
-            self.kf_T_wc[k] = T
-            self._wc[k] = T
-            self._cw[k] = se3_inv(T)
-        in_seg = set(kfs)
-        hosted = np.array([p for p, h in enumerate(self.host) if h in in_seg], np.int64)
-        for p in hosted.tolist():
-            self.rho[p] = self.rho[p] / s
-            self.sigma[p] = self.sigma[p] / s
-        live = hosted[np.isfinite(np.array([self.rho[p] for p in hosted.tolist()]))] if len(hosted) else hosted
-        self.refresh(live, emit=False)
-        return hosted
-
-    def T_cw(self, kf: int) -> np.ndarray:
-        """World-to-camera transform of keyframe ``kf``."""
-        return self._cw[kf].copy()

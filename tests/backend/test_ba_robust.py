@@ -108,5 +108,5 @@ def test_ba_started_from_gt_poses_stays_on_icl(shared_data: Path, tmp_path: Path
     seq = load_sequence(shared_data / "icl_lr_kt2")
     vo, _ = run_frontend(seq, RunConfig(vo=VOConfig(mode="gt")), cache_dir=tmp_path)
     r = run_global_ba(vo, ba_images(seq, vo), None, None, BAConfig(), cull=False)
-    assert r.stats["n_refined"] > 0.8 * len(vo.points) and r.stats["accepted"] >= 1
+    assert r.stats.n_refined > 0.8 * len(vo.points) and r.stats.accepted >= 1
     assert ate(vo.traj_kf, r.vo.traj_kf).rmse < 1e-3

@@ -37,7 +37,7 @@ def test_ba_of_2000_frames_fits_in_time_and_memory(tmp_path: Path):
     before, after = ate(seq.gt, vo.traj_kf).rmse, ate(seq.gt, r.vo.traj_kf).rmse
     print(f"2000 frames: {len(vo.keyframes)} keyframes, {len(vo.points)} points; BA {seconds:.1f} s, peak RSS "
           f"+{grew:.0f} MB; keyframe ATE {1000 * before:.2f} -> {1000 * after:.2f} mm; "
-          f"{r.stats['n_nearby_targets']} nearby targets, {r.stats['n_dropped']} dropped")
+          f"{r.stats.n_nearby_targets} nearby targets, {r.stats.n_dropped} dropped")
     # the README's figures within 1.5x, for the kind of CPU it runs on (the BA is numpy: the CPU matters, 2.3x
     # between these two; an AVX2-only CPU has no figure yet and gets the slower one); time depends on the
     # machine's load, so run it on an idle machine

@@ -14,7 +14,7 @@ from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import run_vo
 from mutualslam_cli.backend.bridges import Bridge, bridge_segment, bridged, plan_bridge
 from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 @pytest.fixture(scope="module")

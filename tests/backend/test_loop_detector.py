@@ -10,10 +10,10 @@ from mutualslam_cli.config import LoopConfig
 from mutualslam_cli.datasets.synthetic.scenes import camera_pose
 from mutualslam_cli.datasets.synthetic.sequences import FPS, _setup, synthetic_intrinsics
 from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.vo.camera import to_normalized
+from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.backend.loop_detector import DEPTH_SPREAD_FACTOR, LoopDetector, depth_agrees
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.map.state import MapState
 
 W, H = 320, 240
 THR = 2.0 / 250.0
@@ -41,11 +41,11 @@ def _map(frames, old: list[int], query: int, unit: float, offset: np.ndarray, dr
     K = intr.K()
     placed = [(f, unit, offset @ frames[f][2]) if f in drifted else (f, 1.0, frames[f][2]) for f in old]
     for f, scale, T in placed + [(query, unit, offset @ frames[query][2])]:
-        k = st.map.add_keyframe(f, f / FPS, T, 0)
+        k = st.add_keyframe(f, f / FPS, T, 0)
         grey, depth = frames[f][0], frames[f][1]
         px = detect_grid(grey, 16, 300).astype(np.float64)
         z = depth[np.rint(px[:, 1]).astype(int), np.rint(px[:, 0]).astype(int)] * scale
-        st.map.add_points(np.full(len(z), k), px, to_normalized(px, K), 1.0 / z, np.zeros(len(z)),
+        st.add_points(np.full(len(z), k), px, to_normalized(px, K), 1.0 / z, np.zeros(len(z)),
                           [{k: p} for p in px])
     return st
 

@@ -15,7 +15,7 @@ from mutualslam_cli.geometry import exp_so3, se3_inv
 from mutualslam_cli.backend.merge import SegmentMerger, merge_similarity
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.backend.loop_detector import LoopClosure
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.map.state import MapState
 from mutualslam_cli.vo.relocalise import HeldImages
 
 INTR = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
@@ -31,14 +31,13 @@ def _T_wc(yaw: float, centre) -> np.ndarray:
 def _state() -> MapState:
     """Segment 0: keyframes 0–2; segment 1 (after a loss): keyframes 3–4, in its own frame and unit."""
     st = MapState(INTR, 50)
-    m = st.map
     kfs = [(0, [0, 0, 0]), (0, [0.1, 0, 0]), (0, [0.2, 0, 0]), (1, [0, 0, 0]), (1, [0.05, 0, 0])]
     for k, (seg, c) in enumerate(kfs):
         if k in (0, 3):
             st.start_segment(seg, 10 * k, "homography")
-        m.add_keyframe(10 * k, float(k), _T_wc(0.1 * k, c), seg)
-    m.add_points(np.array([3, 4]), np.array([[100.0, 100.0], [200.0, 150.0]]), np.array([[0.1, 0.0], [-0.2, 0.1]]),
-                 np.array([0.5, 0.25]), np.array([0.01, 0.01]), [{3: np.zeros(2)}, {4: np.zeros(2)}])
+        st.add_keyframe(10 * k, float(k), _T_wc(0.1 * k, c), seg)
+    st.add_points(np.array([3, 4]), np.array([[100.0, 100.0], [200.0, 150.0]]), np.array([[0.1, 0.0], [-0.2, 0.1]]),
+                  np.array([0.5, 0.25]), np.array([0.01, 0.01]), [{3: np.zeros(2)}, {4: np.zeros(2)}])
     return st
 
 

@@ -7,9 +7,9 @@ import numpy as np
 from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.geometry import exp_so3
 from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.feedback import apply_refinement
+from mutualslam_cli.map.refinement import apply_refinement
 from mutualslam_cli.backend.loop_detector import LoopClosure
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.map.state import MapState
 
 INTR = Intrinsics(250.0, 250.0, 160.0, 120.0, 320, 240)
 
@@ -45,13 +45,13 @@ def test_a_loop_spreads_its_correction_over_the_keyframes_it_closes():
     poses, units = _drifted(gt, 0.99)
     st = MapState(INTR, 400)
     for k, T in enumerate(poses):
-        st.map.add_keyframe(5 * k, 0.1 * k, T, 0)
+        st.add_keyframe(5 * k, 0.1 * k, T, 0)
         rel = np.eye(4)
         rel[:3, 3] = [0.1, 0.0, 0.0]
         st.track_frame(5 * k + 1, 0, k, rel)  # a frame just after each keyframe
     # one point per keyframe, 2 units in front of it in its own (drifted) unit
     for k in range(len(poses)):
-        st.map.add_points(np.array([k]), np.array([[160.0, 120.0]]), np.zeros((1, 2)), np.array([0.5]),
+        st.add_points(np.array([k]), np.array([[160.0, 120.0]]), np.zeros((1, 2)), np.array([0.5]),
                           np.array([0.01]), [{k: np.array([160.0, 120.0])}])
     # the last keyframe sees the first one's place: its true pose, and the drifted unit's ratio to the old one
     loop = LoopClosure(query=39, match=0, T_cw=np.linalg.inv(gt[39]), scale=1 / units[39], inliers=100, spread=0.1,
@@ -72,8 +72,8 @@ def test_a_loop_spreads_its_correction_over_the_keyframes_it_closes():
 def _state(poses: list[np.ndarray], segment_of=lambda k: 0) -> MapState:
     st = MapState(INTR, 400)
     for k, T in enumerate(poses):
-        st.map.add_keyframe(5 * k, 0.1 * k, T, segment_of(k))
-        st.map.add_points(np.array([k]), np.array([[160.0, 120.0]]), np.zeros((1, 2)), np.array([0.5]),
+        st.add_keyframe(5 * k, 0.1 * k, T, segment_of(k))
+        st.add_points(np.array([k]), np.array([[160.0, 120.0]]), np.zeros((1, 2)), np.array([0.5]),
                           np.array([0.01]), [{k: np.array([160.0, 120.0])}])
     return st
 

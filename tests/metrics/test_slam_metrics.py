@@ -11,7 +11,7 @@ from mutualslam_cli.metrics.slam import evaluate_trajectory
 from mutualslam_cli.results.summary import Summary, flatten
 from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 def _vo(seq, segment_of_frame: np.ndarray, moves: dict[int, tuple[float, np.ndarray]]) -> VOResult:

@@ -12,9 +12,9 @@ from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.online.labels import MapLabels
 from mutualslam_cli.online.loop import OnlineLoop
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.vo.camera import pinhole
-from mutualslam_cli.vo.journal import Event
-from mutualslam_cli.vo.map_state import MapState
+from mutualslam_cli.geometry import pinhole
+from mutualslam_cli.map.journal import Event
+from mutualslam_cli.map.state import MapState
 
 
 def _moved_script(seq, events):

@@ -16,11 +16,11 @@ from mutualslam_cli.config import RunConfig, VOConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.online.loop import OnlineLoop
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.vo.camera import pinhole
+from mutualslam_cli.geometry import pinhole
 from mutualslam_cli.vo.depth_oracle import run_oracle
-from mutualslam_cli.vo.feedback import MapRefinement, apply_refinement
-from mutualslam_cli.vo.journal import Event
-from mutualslam_cli.vo.map_state import MapState, events_from_result
+from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
+from mutualslam_cli.map.journal import Event
+from mutualslam_cli.map.state import MapState, events_from_result
 
 W, H = 96, 64
 

@@ -87,7 +87,7 @@ def _fake_map():
     from types import SimpleNamespace
 
     from mutualslam_cli.types import Intrinsics, Trajectory
-    from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+    from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
     intr = Intrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
     depth = np.full((24, 32), 2.0)

@@ -15,10 +15,10 @@ from synth import make_tum_dir
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.stages.frontend import run_frontend
-from mutualslam_cli.vo.journal import JOURNAL_VERSION, journal_from_arrays, journal_to_arrays
+from mutualslam_cli.map.journal import JOURNAL_VERSION, journal_from_arrays, journal_to_arrays
 from mutualslam_cli.vo.journal_cache import CHECKPOINT_EVERY, cache_path, load_entry, vo_cache_key
-from mutualslam_cli.vo.map_state import MapState
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.vo.source import FrontEndSource
 
 

@@ -18,7 +18,7 @@ from mutualslam_cli.stages import loop_recall
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.adaptation_summary import summarise_no_loops
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 N = 80  # keyframes: two laps of 40 on a 1 m circle (15.7 cm apart)
 

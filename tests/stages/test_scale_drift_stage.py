@@ -16,7 +16,7 @@ from mutualslam_cli.results.summary import flatten
 from mutualslam_cli.stages import scale_drift
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 def _vo(seq, unit_of_frame: np.ndarray, segment_of_frame: np.ndarray | None = None) -> VOResult:

@@ -8,8 +8,8 @@ import pytest
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
 from mutualslam_cli.vo.faults import corrupt_depths, inject_outliers
-from mutualslam_cli.vo.map_state import MapState
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 def test_inject_outliers_is_seeded_and_only_scales_depths():
@@ -44,10 +44,10 @@ def test_corrupt_depths_writes_the_same_outliers_into_the_map():
     T1 = np.eye(4)
     T1[0, 3] = 0.1
     for k, T in enumerate((np.eye(4), T1)):
-        st.map.add_keyframe(k, 0.1 * k, T, 0)
+        st.add_keyframe(k, 0.1 * k, T, 0)
     P = 60
     px = rng.random((P, 2)) * 50
-    st.map.add_points(np.zeros(P, np.int64), px, (px - 25) / 50, rng.uniform(0.2, 1, P), np.full(P, 0.01),
+    st.add_points(np.zeros(P, np.int64), px, (px - 25) / 50, rng.uniform(0.2, 1, P), np.full(P, 0.01),
                       [{0: p, 1: p} for p in px])
     frames = [FrameRef(i, 0.1 * i, None, None, None) for i in range(2)]
     vo = st.snapshot(frames)

@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from mutualslam_cli.geometry import exp_so3, se3_inv
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.local_map import MAX_SOURCES, KeyframeImages, local_map
-from mutualslam_cli.vo.state import Map
 
 K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
 SIZE = (320, 240)
+INTR = Intrinsics(300.0, 300.0, 160.0, 120.0, *SIZE)
 
 
 def _T_wc(centre, yaw_deg: float = 0.0) -> np.ndarray:
@@ -19,8 +21,9 @@ def _T_wc(centre, yaw_deg: float = 0.0) -> np.ndarray:
     return T
 
 
-def _add_point(m: Map, X: np.ndarray, kfs: list[int]) -> int:
+def _add_point(st: MapState, X: np.ndarray, kfs: list[int]) -> int:
     """A point at world ``X`` hosted by ``kfs[0]`` and observed by every keyframe of ``kfs``."""
+    m = st.map
     T_cw = se3_inv(m.kf_T_wc[kfs[0]])
     Xc = T_cw[:3, :3] @ X + T_cw[:3, 3]
     xn = Xc[:2] / Xc[2]
@@ -29,25 +32,25 @@ def _add_point(m: Map, X: np.ndarray, kfs: list[int]) -> int:
         Tk = se3_inv(m.kf_T_wc[k])
         Xk = Tk[:3, :3] @ X + Tk[:3, 3]
         obs[k] = (Xk[:2] / Xk[2]) * 300.0 + np.array([160.0, 120.0])
-    return int(m.add_points(np.array([kfs[0]]), np.array([obs[kfs[0]]]), xn[None], np.array([1 / Xc[2]]),
-                            np.array([0.01]), [obs])[0])
+    return int(st.add_points(np.array([kfs[0]]), np.array([obs[kfs[0]]]), xn[None], np.array([1 / Xc[2]]),
+                             np.array([0.01]), [obs])[0])
 
 
-def _scene() -> tuple[Map, dict[str, int]]:
-    m = Map()
-    m.add_keyframe(0, 0.0, _T_wc([0, 0, 0]), 0)            # kf 0: old, same viewpoint as the query
-    m.add_keyframe(10, 1.0, _T_wc([1.8, 0, 1.2], -60.0), 0)  # kf 1: old, a very different viewpoint
-    for j in range(2, 7):                                  # kf 2–6: the newest, far to the side
-        m.add_keyframe(100 + j, 5.0 + j, _T_wc([3.0 + 0.1 * j, 0, 0]), 0)
-    p = {"old": _add_point(m, np.array([0.1, 0.05, 2.0]), [0]),
-         "oblique": _add_point(m, np.array([-0.2, 0.0, 2.0]), [1]),
-         "both": _add_point(m, np.array([0.3, -0.1, 2.5]), [1, 0]),
-         "behind": _add_point(m, np.array([0.0, 0.0, -2.0]), [0]),
-         "recent": _add_point(m, np.array([3.4, 0.0, 2.0]), [5, 6])}
-    return m, p
+def _scene() -> tuple[MapState, dict[str, int]]:
+    st = MapState(INTR, 200)
+    st.add_keyframe(0, 0.0, _T_wc([0, 0, 0]), 0)            # kf 0: old, same viewpoint as the query
+    st.add_keyframe(10, 1.0, _T_wc([1.8, 0, 1.2], -60.0), 0)  # kf 1: old, a very different viewpoint
+    for j in range(2, 7):                                   # kf 2–6: the newest, far to the side
+        st.add_keyframe(100 + j, 5.0 + j, _T_wc([3.0 + 0.1 * j, 0, 0]), 0)
+    p = {"old": _add_point(st, np.array([0.1, 0.05, 2.0]), [0]),
+         "oblique": _add_point(st, np.array([-0.2, 0.0, 2.0]), [1]),
+         "both": _add_point(st, np.array([0.3, -0.1, 2.5]), [1, 0]),
+         "behind": _add_point(st, np.array([0.0, 0.0, -2.0]), [0]),
+         "recent": _add_point(st, np.array([3.4, 0.0, 2.0]), [5, 6])}
+    return st, p
 
 
-def _query(m: Map, tracked=(), occupied=None, kfs=None):
+def _query(m, tracked=(), occupied=None, kfs=None):
     occupied = np.zeros((0, 2)) if occupied is None else occupied
     T_cw = se3_inv(_T_wc([0.02, 0, 0]))
     kfs = np.arange(len(m.kf_frame)) if kfs is None else np.asarray(kfs)
@@ -56,7 +59,8 @@ def _query(m: Map, tracked=(), occupied=None, kfs=None):
 
 
 def test_old_points_in_view_are_looked_for_from_the_closest_viewpoint():
-    m, p = _scene()
+    st, p = _scene()
+    m = st.map
     lm = _query(m)
     got = dict(zip(lm.pids.tolist(), lm.source.tolist()))
     assert got[p["old"]] == 0 and got[p["both"]] == 0  # kf 0 saw them from where the frame is; kf 1 from ~60° away
@@ -66,7 +70,8 @@ def test_old_points_in_view_are_looked_for_from_the_closest_viewpoint():
 
 
 def test_tracked_points_other_units_and_taken_cells_are_skipped():
-    m, p = _scene()
+    st, p = _scene()
+    m = st.map
     assert p["old"] not in _query(m, tracked=[p["old"]]).pids
     assert len(_query(m, kfs=[2, 3, 4, 5, 6]).pids) == 0  # the old keyframes in another map unit
     px = (np.array([0.1 - 0.02, 0.05]) / 2.0) * 300 + np.array([160, 120])  # where "old" projects
@@ -74,13 +79,14 @@ def test_tracked_points_other_units_and_taken_cells_are_skipped():
 
 
 def test_at_most_max_sources_old_keyframes_are_decoded():
-    m = Map()
+    st = MapState(INTR, 200)
+    m = st.map
     n = MAX_SOURCES + 3
     for j in range(n):
-        m.add_keyframe(j, float(j), _T_wc([0.01 * j, 0, 0]), 0)
+        st.add_keyframe(j, float(j), _T_wc([0.01 * j, 0, 0]), 0)
     for j in range(n):  # each old keyframe the closest view of its own points (1 + j of them)
         for i in range(1 + j):
-            _add_point(m, np.array([-0.6 + 0.15 * i, -0.3 + 0.1 * j, 2.0]), [j])
+            _add_point(st, np.array([-0.6 + 0.15 * i, -0.3 + 0.1 * j, 2.0]), [j])
     T_cw = se3_inv(_T_wc([0.01 * (n - 1), 0, 0]))
     lm = local_map(m, T_cw, K, SIZE, np.arange(n), [], set(), np.zeros(0, np.int64), np.zeros((0, 2)),
                    lambda px: px, 10)
@@ -102,7 +108,7 @@ def _render_map():
     """Frame 60 of a rendered room as a keyframe with GT points, and the grey images and poses of later frames."""
     from mutualslam_cli.datasets.synthetic.scenes import camera_pose
     from mutualslam_cli.datasets.synthetic.sequences import FPS, _setup, synthetic_intrinsics
-    from mutualslam_cli.vo.camera import to_normalized
+    from mutualslam_cli.geometry import to_normalized
     from mutualslam_cli.vo.features import detect_grid
 
     w, h = 320, 240
@@ -113,13 +119,14 @@ def _render_map():
         rgb, depth = renderer.render(T)
         frames[f] = ((0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]).astype(np.uint8), depth, T)
     intr = synthetic_intrinsics(w, h)
-    m = Map()
+    st = MapState(intr, 200)
+    m = st.map
     g, d, T = frames[60]
-    k = m.add_keyframe(60, 60 / FPS, T, 0)
+    k = st.add_keyframe(60, 60 / FPS, T, 0)
     px = detect_grid(g, 16, 300).astype(np.float64)
     z = d[np.rint(px[:, 1]).astype(int), np.rint(px[:, 0]).astype(int)]
-    pids = m.add_points(np.full(len(z), k), px, to_normalized(px, intr.K()), 1.0 / z, np.zeros(len(z)),
-                        [{k: p} for p in px])
+    pids = st.add_points(np.full(len(z), k), px, to_normalized(px, intr.K()), 1.0 / z, np.zeros(len(z)),
+                         [{k: p} for p in px])
     return m, pids, frames, intr
 
 
@@ -151,20 +158,21 @@ def test_a_young_point_that_is_an_old_one_seen_again_is_fused_into_it():
     """A young point at an old point's corner (a revisit that made the corner again) is a candidate duplicate of it;
     fusing moves its observations to the old point and takes it out of the map, journaled as observations and a
     removal."""
-    from mutualslam_cli.vo.journal import Journal
+    from mutualslam_cli.map.journal import Journal
     from mutualslam_cli.vo.local_map import duplicates
 
-    m, p = _scene()
-    m.journal = Journal()
+    st, p = _scene()
+    m = st.map
+    st.journal = Journal()
     X_old = m.Xw[p["old"]].copy()
-    young = _add_point(m, X_old + [0.001, 0.0, 0.0], [5, 6])  # the same corner, made again by keyframes 5–6
-    far = _add_point(m, X_old * [1.0, 1.0, 1.5], [5, 6])  # on the same ray, 50 % deeper: another point
+    young = _add_point(st, X_old + [0.001, 0.0, 0.0], [5, 6])  # the same corner, made again by keyframes 5–6
+    far = _add_point(st, X_old * [1.0, 1.0, 1.5], [5, 6])  # on the same ray, 50 % deeper: another point
     T_cw = se3_inv(_T_wc([0.02, 0, 0]))
     pc = lambda i: m.Xw[i] @ T_cw[:3, :3].T + T_cw[:3, 3]  # noqa: E731
     raw = np.array([pc(i)[:2] / pc(i)[2] * 300.0 + [160.0, 120.0] for i in (young, far)])
     y, o = duplicates(m, T_cw, K, np.arange(len(m.kf_frame)), 2, np.array([young, far]), raw, lambda px: px)
     assert y.tolist() == [young] and o.tolist() == [p["old"]]
-    m.fuse_points(y, o)
+    st.fuse_points(y, o)
     assert set(m.obs[p["old"]]) == {0, 5, 6} and not m.obs[young] and np.isnan(m.Xw[young]).all()
     assert p["old"] in m.kf_points[5] and young not in m.kf_points[5]
     assert [e.kind for e in m.journal.events[-3:]] == ["observe", "observe", "remove"]

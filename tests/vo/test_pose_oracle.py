@@ -15,7 +15,7 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import project, se3_inv, transform
 from mutualslam_cli.vo.frontend import run_vo
 from mutualslam_cli.vo.pose_oracle import REASONS, retriangulate, run_pose_oracle
-from mutualslam_cli.vo.result import MapPoints
+from mutualslam_cli.map.result import MapPoints
 
 W, H = 640, 480
 

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.vo.camera import to_normalized
+from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.relocalise import RelocIndex
-from mutualslam_cli.vo.state import Map
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.map.store import Map
 from synth import make_sequence
 
 W, H = 320, 240
@@ -28,17 +29,17 @@ def _gray(rgb: np.ndarray) -> np.ndarray:
 def _map(seq, kf_frames: list[int]) -> tuple[Map, RelocIndex]:
     """A metric map with GT poses: keyframes at ``kf_frames``, map points from GT depth at grid corners."""
     K = seq.intrinsics.K()
-    m, index = Map(), RelocIndex(seq.intrinsics)
+    st, index = MapState(seq.intrinsics, len(seq)), RelocIndex(seq.intrinsics)
     for fi in kf_frames:
-        k = m.add_keyframe(fi, float(seq.timestamps[fi]), seq.poses[fi], 0)
+        k = st.add_keyframe(fi, float(seq.timestamps[fi]), seq.poses[fi], 0)
         gray = _gray(seq.rgb[fi])
         px = detect_grid(gray, 16, 300)
         z = seq.depth[fi][np.rint(px[:, 1]).astype(int), np.rint(px[:, 0]).astype(int)]
         ok = z > 0
         px, z = px[ok], z[ok]
-        m.add_points(np.full(len(z), k), px, to_normalized(px, K), 1.0 / z, np.zeros(len(z)), [{k: p} for p in px])
+        st.add_points(np.full(len(z), k), px, to_normalized(px, K), 1.0 / z, np.zeros(len(z)), [{k: p} for p in px])
         index.add_keyframe(k, gray)
-    return m, index
+    return st.map, index
 
 
 def _pose_error(T_cw: np.ndarray, T_wc_gt: np.ndarray) -> tuple[float, float]:

@@ -10,7 +10,8 @@ import pytest
 from mutualslam_cli.geometry import exp_so3, se3_inv
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo import depth_filter as dfl
-from mutualslam_cli.vo.camera import distort_points, to_normalized, to_pixels, undistort_points
+from mutualslam_cli.vo.camera import distort_points, undistort_points
+from mutualslam_cli.geometry import to_normalized, to_pixels
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.initialization import initialize
 from mutualslam_cli.vo.local_ba import BAProblem, residuals, solve

@@ -1,6 +1,6 @@
 """Map-point culling + global photometric BA as one stage (paper §III-C, DESIGN §6).
 
-:func:`run_global_ba` takes a front-end map (a :class:`~mutualslam_cli.vo.result.VOResult`),
+:func:`run_global_ba` takes a front-end map (a :class:`~mutualslam_cli.map.result.VOResult`),
 keyframe images at the BA resolution, the adapted network's depth and per-keyframe L_val, and
 returns a refined copy. It is the only module that reads :class:`~mutualslam_cli.config.BAConfig`.
 
@@ -54,7 +54,7 @@ Choices the paper leaves open (written down here):
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Callable, Mapping
 
 import numpy as np
@@ -74,12 +74,55 @@ from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.vo.result import VOResult
+from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.sim3 import follow
 
 #: Largest factor by which the BA may change a point's inverse depth; beyond it the point keeps
 #: its value before BA (an under-constrained depth, e.g. one short-baseline target). The same
 #: factor as a gross outlier of Eq. 10 with γ = 0.5.
 MAX_CHANGE = 2.0
+
+
+@dataclass
+class BAStats:
+    """What one culling + global BA did (:func:`run_global_ba`), in the order the manifest's ``ba_runs`` lists it.
+
+    Attributes:
+        n_points: points of the map; n_culled: of them culled by Eq. 10; n_judged: those Eq. 10 could judge;
+            n_judged_elsewhere: judged in another host than the front end's (``val_loss``).
+        n_targets: photometric targets; n_nearby_targets: of them in keyframes beyond the existing observations.
+        n_diverged: kept points not refined because they moved by more than :data:`MAX_CHANGE`.
+        n_blocks, n_outlier_blocks: residual blocks, and those the robust cost found to be outliers.
+        iterations, accepted: LM iterations and accepted steps; cost0, cost: the robust cost before and after
+            (each summed over the solved problems, ``n_parts`` of them).
+        n_refined, n_unrefined, n_dropped: points refined, kept but not refined, dropped as outliers.
+        keyframes: keyframes taking part; costs: per problem, the last round's cost sequence; seconds: wall time.
+    """
+
+    n_points: int = 0
+    n_culled: int = 0
+    n_judged: int = 0
+    n_judged_elsewhere: int = 0
+    n_targets: int = 0
+    n_nearby_targets: int = 0
+    n_diverged: int = 0
+    n_blocks: int = 0
+    n_outlier_blocks: int = 0
+    iterations: int = 0
+    accepted: int = 0
+    cost0: float = 0
+    cost: float = 0
+    n_parts: int = 0
+    n_refined: int = 0
+    n_unrefined: int = 0
+    n_dropped: int = 0
+    keyframes: int = 0
+    costs: list = field(default_factory=list)
+    seconds: float = 0.0
+
+    def record(self) -> dict[str, int | float]:
+        """The manifest's row of this run: every field but ``costs``, in order."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "costs"}
 
 
 @dataclass
@@ -92,17 +135,13 @@ class GlobalBAResult:
             docstring). Culled and dropped points are still in it, unchanged; :meth:`kept` drops them.
         keep: ``(P,)`` bool over the input's points, False = culled by Eq. 10.
         dropped: ``(P,)`` bool, points the BA found to be outliers (mostly outlier blocks).
-        stats: ``n_points, n_culled, n_judged, n_judged_elsewhere, n_refined, n_unrefined`` (kept, not
-            refined; ``n_diverged`` of them by :data:`MAX_CHANGE`), ``n_dropped``, ``n_targets``
-            (``n_nearby_targets`` of them beyond the existing observations), ``n_blocks``,
-            ``n_outlier_blocks``, ``keyframes``, ``cost0``, ``cost`` (summed over segments), ``costs``
-            (per segment, the last round's sequence), ``iterations``, ``accepted``, ``seconds``.
+        stats: what the run did (:class:`BAStats`).
     """
 
     vo: VOResult
     keep: np.ndarray
     dropped: np.ndarray
-    stats: dict = field(default_factory=dict)
+    stats: BAStats = field(default_factory=BAStats)
 
     def kept(self) -> VOResult:
         """The refined map without the culled and the dropped points."""
@@ -120,7 +159,7 @@ def _follow(poses: np.ndarray, times: np.ndarray, segs: np.ndarray, ref_times: n
         if not len(r) or not len(m):
             continue
         j = r[np.clip(np.searchsorted(ref_times[r], times[m], side="right") - 1, 0, len(r) - 1)]
-        out[m] = ref_new[j] @ np.linalg.inv(ref_old[j]) @ poses[m]
+        out[m] = follow(poses[m], np.linalg.inv(ref_old[j]), ref_new[j])
     return out
 
 
@@ -169,10 +208,9 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     sub = replace(vo, keyframes=vo.keyframes[:upto + 1],
                   points=replace(pts.subset(inside), observations=sub_obs, obs_pixels=sub_pix))
     keep = np.ones(len(pts), bool)
-    stats = {"n_points": len(pts), "n_culled": 0, "n_judged": 0, "n_judged_elsewhere": 0}
+    culled = (0, 0, 0)  # culled, judged, judged elsewhere
     if cull and depth_of is not None and len(sub_idx):
         keep[sub_idx], culled = _cull(sub, vo, depth_of, val_loss, cfg)
-        stats.update(culled)
     stack_all = {k: np.asarray(images(k), np.float32) for k in range(first, upto + 1)} if len(sub_idx) else {}
     H, W = next(iter(stack_all.values())).shape if stack_all else (vo.intrinsics.height, vo.intrinsics.width)
     if any(im.shape != (H, W) for im in stack_all.values()):
@@ -186,16 +224,16 @@ def run_global_ba(vo: VOResult, images: Callable[[int], np.ndarray],
     dropped = np.zeros(len(pts), bool)
     dropped[sub_idx] = sv.dropped
     out = _assemble(vo, upto, T_wc, sv, sub_idx, (pix_ba + 0.5) / s - 0.5)
-    stats.update(sv.totals, n_refined=int(sv.refined.sum()),
-                 n_unrefined=int((keep[sub_idx] & ~sv.refined & ~sv.dropped).sum()),
-                 n_dropped=int(dropped.sum()), keyframes=upto + 1 - first, costs=sv.costs,
-                 seconds=time.perf_counter() - t0)
+    stats = replace(sv.totals, n_points=len(pts), n_culled=culled[0], n_judged=culled[1], n_judged_elsewhere=culled[2],
+                    n_refined=int(sv.refined.sum()), n_unrefined=int((keep[sub_idx] & ~sv.refined & ~sv.dropped).sum()),
+                    n_dropped=int(dropped.sum()), keyframes=upto + 1 - first, costs=sv.costs,
+                    seconds=time.perf_counter() - t0)
     return GlobalBAResult(out, keep, dropped, stats)
 
 
 def _cull(sub: VOResult, vo: VOResult, depth_of: Callable[[int], np.ndarray], val_loss: Mapping[int, float] | None,
-          cfg: BAConfig) -> tuple[np.ndarray, dict]:
-    """Eq. 10 on the points of ``sub``: their keep mask and the culling counts."""
+          cfg: BAConfig) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """Eq. 10 on the points of ``sub``: their keep mask and the counts (culled, judged, judged in another host)."""
     cache: dict[int, np.ndarray] = {}
 
     def depth_at(k: int, uv: np.ndarray) -> np.ndarray:
@@ -205,8 +243,7 @@ def _cull(sub: VOResult, vo: VOResult, depth_of: Callable[[int], np.ndarray], va
         return lookup_nearest(d, uv, (vo.intrinsics.width, vo.intrinsics.height))
 
     cr = cull_map_points(sub, val_loss or {}, depth_at, cfg.gamma, cfg.d_max)
-    return cr.keep, {"n_culled": int((~cr.keep).sum()), "n_judged": int(cr.judged.sum()),
-                     "n_judged_elsewhere": int(np.sum(cr.host != sub.points.host))}
+    return cr.keep, (int((~cr.keep).sum()), int(cr.judged.sum()), int(np.sum(cr.host != sub.points.host)))
 
 
 @dataclass
@@ -216,16 +253,15 @@ class _Solved:
     Attributes:
         T_wc: ``(K, 4, 4)`` every keyframe's pose after (the fixed and untouched ones bit for bit).
         rho: ``(P,)`` inverse depths after; refined, dropped: ``(P,)`` bool.
-        totals: counts summed over the problems; costs: each problem's last round's cost sequence.
+        totals: the counts summed over the problems (the :class:`BAStats` fields of the solver); costs: each
+            problem's last round's cost sequence.
     """
 
     T_wc: np.ndarray
     rho: np.ndarray
     refined: np.ndarray
     dropped: np.ndarray
-    totals: dict[str, float] = field(default_factory=lambda: {
-        k: 0 for k in ("n_targets", "n_nearby_targets", "n_diverged", "n_blocks", "n_outlier_blocks", "iterations",
-                       "accepted", "cost0", "cost", "n_parts")})
+    totals: BAStats = field(default_factory=BAStats)
     costs: list = field(default_factory=list)
 
 
@@ -255,8 +291,8 @@ def _solve_units(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, sta
         if cfg.nearby_targets:
             near_pt, near_kf = nearby_targets(scene, obs_pt, obs_kf, cfg)
             obs_pt, obs_kf, n_near = np.r_[obs_pt, near_pt], np.r_[obs_kf, near_kf], len(near_pt)
-        out.totals["n_targets"] += len(obs_pt)
-        out.totals["n_nearby_targets"] += n_near
+        out.totals.n_targets += len(obs_pt)
+        out.totals.n_nearby_targets += n_near
         for part in connected_parts(len(ks), scene.host[obs_pt], obs_kf):  # one gauge per connected map
             _solve_part(scene, obs_pt, obs_kf, part, ks, cand, cfg, (H, W), out)
     return out
@@ -292,11 +328,15 @@ def _solve_part(scene: UnitScene, obs_pt: np.ndarray, obs_kf: np.ndarray, part: 
     out.refined[pts[sane]] = True
     out.dropped[pts[gone]] = True
     out.costs.extend(x["costs"] for x in r.stats["rounds"])
-    for k, v in (("n_diverged", int((~sane & ~gone).sum())), ("n_blocks", r.stats["n_blocks"]),
-                 ("n_outlier_blocks", r.stats["n_outlier_blocks"]), ("iterations", r.stats["iterations"]),
-                 ("accepted", r.stats["accepted"]), ("cost0", r.stats["cost0"]), ("cost", r.stats["cost"]),
-                 ("n_parts", 1)):
-        out.totals[k] += v
+    t = out.totals
+    t.n_diverged += int((~sane & ~gone).sum())
+    t.n_blocks += r.stats["n_blocks"]
+    t.n_outlier_blocks += r.stats["n_outlier_blocks"]
+    t.iterations += r.stats["iterations"]
+    t.accepted += r.stats["accepted"]
+    t.cost0 += r.stats["cost0"]
+    t.cost += r.stats["cost"]
+    t.n_parts += 1
 
 
 def _assemble(vo: VOResult, upto: int, T_wc: np.ndarray, sv: _Solved, sub_idx: np.ndarray,

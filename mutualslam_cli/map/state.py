@@ -1,8 +1,9 @@
 """The map and frame records at one time: what the front end's events build (DESIGN §5).
 
-:class:`MapState` is one object for two roles. The front end owns one and changes it through its
-methods, each change journaled (:mod:`~mutualslam_cli.vo.journal`). The adaptation loop owns a
-*replica* and :meth:`MapState.apply`\\ s the same events in the same order, frame by frame, so at
+:class:`MapState` is the map's one writer: every change to the keyframes, points and frame records is one of
+its methods (the store's own mutators are private). It is one object for two roles. The front end owns one
+and changes it through those methods, each change journaled (:mod:`~mutualslam_cli.map.journal`). The
+adaptation loop owns a *replica* and :meth:`MapState.apply`\\ s the same events in the same order, frame by frame, so at
 the loop's time t its replica is the front end's map as it stood at t: the labels of a training
 step (:meth:`sparse_depth`, :meth:`pose`), the map a bridge or a global BA starts from
 (:meth:`snapshot`) — never a later state. Replayed from a cached journal it is the same, bit for bit.
@@ -10,21 +11,21 @@ step (:meth:`sparse_depth`, :meth:`pose`), the map a bridge or a global BA start
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Container
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from mutualslam_cli.geometry import project
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import FrameRef, Intrinsics
-from mutualslam_cli.vo.assemble import RunStats, build_result
-from mutualslam_cli.vo.journal import Event, Journal
-from mutualslam_cli.vo.result import VOResult
-from mutualslam_cli.vo.state import Map
-
-if TYPE_CHECKING:
-    from mutualslam_cli.vo.relocalise import RelocIndex, Relocalisation
+from mutualslam_cli.map.assemble import RunStats, build_result
+from mutualslam_cli.map.journal import Event, Journal
+from mutualslam_cli.map.records import Relocalised
+from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.sim3 import Sim3, rescaled
+from mutualslam_cli.map.store import Map
 
 
 class MapState:
@@ -36,32 +37,90 @@ class MapState:
         journal: where changes are recorded (the front end's state); ``None`` for a replica.
 
     Attributes:
-        map: keyframes and points (:class:`~mutualslam_cli.vo.state.Map`).
+        map: keyframes and points (:class:`~mutualslam_cli.map.store.Map`).
         frame_rel: tracked frame → ``(reference keyframe, T_kf,c)``; a frame follows its keyframe.
         frame_seg: ``(N,)`` segment of each frame, −1 = not tracked.
         init_methods: how each segment was initialised, in order.
-        relocalisations: one dict per accepted relocalisation.
+        relocalisations: one :class:`~mutualslam_cli.map.records.Relocalised` per accepted relocalisation.
         losses: ``(frame, why)`` of each tracking loss.
         created_at: the front end's frame when each keyframe was created (replicas only: the clock of
-            its :class:`~mutualslam_cli.vo.journal.Event`).
+            its :class:`~mutualslam_cli.map.journal.Event`).
         joined: ``{segment: onto}``: the segments a bridge joined to another (one map unit, :meth:`unit`).
     """
 
     def __init__(self, intr: Intrinsics, n_frames: int, journal: Journal | None = None) -> None:
         self.intr, self.K = intr, intr.K()
-        self.journal = journal
+        self._journal = journal
         self.map = Map(journal=journal)
         self.frame_rel: dict[int, tuple[int, np.ndarray]] = {}
         self.frame_seg = -np.ones(n_frames, np.int64)
         self.init_methods: list[str] = []
-        self.relocalisations: list[dict[str, Any]] = []
+        self.relocalisations: list[Relocalised] = []
         self.losses: list[tuple[int, str]] = []
         self.created_at: list[int] = []
         self.joined: dict[int, int] = {}
 
+    @property
+    def journal(self) -> Journal | None:
+        """Where changes are recorded (``None``: not journaled, e.g. while a checkpoint replays the past)."""
+        return self._journal
+
+    @journal.setter
+    def journal(self, journal: Journal | None) -> None:
+        self._journal = self.map.journal = journal
+
     def _emit(self, kind: str, **data: Any) -> None:
-        if self.journal is not None:
-            self.journal.emit(kind, **data)
+        if self._journal is not None:
+            self._journal.emit(kind, **data)
+
+    def fork(self) -> "MapState":
+        """A deep copy to change on the side (the map of a delayed change,
+        :class:`~mutualslam_cli.online.realtime.DeferredMap`); its journal copied too (the original untouched)."""
+        return copy.deepcopy(self)
+
+    # ------------------------------------------------------------------ the map's changes (the store's writers)
+    def add_keyframe(self, frame: int, t: float, T_wc: np.ndarray, segment: int) -> int:
+        """A keyframe made from ``frame`` (timestamp ``t`` s) at ``T_wc`` ``(4, 4)`` in ``segment``; returns its id."""
+        return self.map._add_keyframe(frame, t, T_wc, segment)
+
+    def set_poses(self, kfs: np.ndarray, T_wc: np.ndarray) -> None:
+        """Keyframes ``kfs`` ``(n,)`` take the poses ``T_wc`` ``(n, 4, 4)`` (their points' ``Xw``: :meth:`refresh`)."""
+        self.map._set_poses(kfs, T_wc)
+
+    def add_points(self, host: np.ndarray, px_h: np.ndarray, xn_h: np.ndarray, rho: np.ndarray,
+                   sigma: np.ndarray, obs: list[dict[int, np.ndarray]]) -> np.ndarray:
+        """New map points ``(n,)``: host keyframes, host pixels ``(n, 2)`` (undistorted) and normalised ``(n, 2)``,
+        inverse depths (1/map units) and their σ, observations ``{kf: (2,) px}`` (the host's included); returns
+        their ids."""
+        return self.map._add_points(host, px_h, xn_h, rho, sigma, obs)
+
+    def refresh(self, pids: np.ndarray) -> None:
+        """Recompute the world positions of points ``pids`` from their hosts' poses and their inverse depths."""
+        self.map._refresh(pids)
+
+    def observe(self, kf: int, pids: np.ndarray, px: np.ndarray) -> None:
+        """Keyframe ``kf`` observes points ``pids`` at undistorted pixels ``px`` ``(n, 2)``."""
+        self.map._observe(kf, pids, px)
+
+    def set_depths(self, pids: np.ndarray, rho: np.ndarray) -> None:
+        """Points ``pids`` take the inverse depths ``rho`` (1/map units; ``Xw``: :meth:`refresh`)."""
+        self.map._set_depths(pids, rho)
+
+    def remove_observations(self, pids: np.ndarray, kfs: np.ndarray) -> None:
+        """Keyframe ``kfs[j]`` no longer observes point ``pids[j]``."""
+        self.map._remove_observations(pids, kfs)
+
+    def remove_points(self, pids: np.ndarray) -> None:
+        """Points ``pids`` leave the map (no observation, NaN depth; their ids stay taken)."""
+        self.map._remove_points(pids)
+
+    def fuse_points(self, young: np.ndarray, old: np.ndarray) -> None:
+        """Point ``young[j]`` is point ``old[j]`` seen again: its observations go to ``old[j]``, it leaves the map."""
+        self.map._fuse_points(young, old)
+
+    def set_host_pixels(self, pids: np.ndarray, px_h: np.ndarray, xn_h: np.ndarray) -> None:
+        """Points ``pids`` move to host pixels ``px_h`` (undistorted) and ``xn_h`` (normalised), ``(n, 2)`` each."""
+        self.map._set_host_pixels(pids, px_h, xn_h)
 
     # ------------------------------------------------------------------ the front end's changes
     def track_frame(self, i: int, segment: int, ref: int, T_rel: np.ndarray) -> None:
@@ -80,21 +139,19 @@ class MapState:
         self.losses.append((frame, why))
         self._emit("lost", index=frame, why=why)
 
-    def relocalise(self, info: dict[str, Any]) -> None:
-        """A relocalisation was accepted (``frame``, ``timestamp``, ``keyframe``, ``inliers``, …)."""
-        self.relocalisations.append(dict(info))
-        self._emit("reloc", index=info["frame"], t=info["timestamp"], keyframe=info["keyframe"],
-                   inliers=info["inliers"], frames_lost=info["frames_lost"], candidates_tried=info["candidates_tried"])
+    def relocalise(self, r: Relocalised) -> None:
+        """A relocalisation was accepted."""
+        self.relocalisations.append(r)
+        self._emit("reloc", index=r.frame, t=r.timestamp, keyframe=r.keyframe, inliers=r.inliers,
+                   frames_lost=r.frames_lost, candidates_tried=r.candidates_tried)
 
     def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> np.ndarray:
         """Move ``segment`` by ``x ↦ s·R·x + t`` (keyframes, hosted points, its frames' relative
         translations ×s) into the frame and unit of segment ``onto`` (a bridge); returns the hosted points' ids."""
-        hosted = self.map.transform_segment(segment, R, t, s)
+        hosted = self.map._transform_segment(segment, Sim3(np.asarray(R, np.float64), np.asarray(t, np.float64), s))
         for i, (ref, T) in self.frame_rel.items():
             if self.frame_seg[i] == segment:
-                T = T.copy()
-                T[:3, 3] *= s
-                self.frame_rel[i] = (ref, T)
+                self.frame_rel[i] = (ref, rescaled(T, s))
         self.joined[segment] = onto
         self._emit("similarity", segment=segment, onto=onto, s=s, R=R, t=t)
         return hosted
@@ -105,9 +162,7 @@ class MapState:
         by_kf = dict(zip(np.asarray(kfs).tolist(), np.asarray(scales, float).tolist()))
         for i, (ref, T) in self.frame_rel.items():
             if ref in by_kf:
-                T = T.copy()
-                T[:3, 3] *= by_kf[ref]
-                self.frame_rel[i] = (ref, T)
+                self.frame_rel[i] = (ref, rescaled(T, by_kf[ref]))
         self._emit("rescale", kfs=kfs, scales=scales)
 
     def unit(self, segment: int) -> int:
@@ -124,30 +179,30 @@ class MapState:
         """Replay one event of the front end's journal (the same change, the same order)."""
         m, k = self.map, e.kind
         if k == "keyframe":
-            kf = m.add_keyframe(e["frame"], e["t"], e["T_wc"][0], e["segment"])
+            kf = self.add_keyframe(e["frame"], e["t"], e["T_wc"][0], e["segment"])
             if kf != e["kf"]:
                 raise ValueError(f"journal out of order: keyframe {e['kf']} replayed as {kf}")
             self.created_at.append(e.frame)
         elif k == "pose":
-            m.set_poses(e["kfs"], e["T_wc"])
+            self.set_poses(e["kfs"], e["T_wc"])
         elif k == "points":
             if e["first"] != len(m.host):
                 raise ValueError(f"journal out of order: point {e['first']} replayed as {len(m.host)}")
             cut = np.cumsum(e["obs_n"])[:-1]
             obs = [dict(zip(ks.tolist(), px)) for ks, px in zip(np.split(e["obs_kf"], cut), np.split(e["obs_px"], cut))]
-            m.add_points(e["host"], e["px_h"], e["xn_h"], e["rho"], e["sigma"], obs)
+            self.add_points(e["host"], e["px_h"], e["xn_h"], e["rho"], e["sigma"], obs)
         elif k == "observe":
-            m.observe(e["kf"], e["pids"], e["px"])
+            self.observe(e["kf"], e["pids"], e["px"])
         elif k == "depth":
-            m.set_depths(e["pids"], e["rho"])
+            self.set_depths(e["pids"], e["rho"])
         elif k == "unobserve":
-            m.remove_observations(e["pids"], e["kfs"])
+            self.remove_observations(e["pids"], e["kfs"])
         elif k == "refresh":
-            m.refresh(e["pids"])
+            self.refresh(e["pids"])
         elif k == "remove":
-            m.remove_points(e["pids"])
+            self.remove_points(e["pids"])
         elif k == "pixel":
-            m.set_host_pixels(e["pids"], e["px_h"], e["xn_h"])
+            self.set_host_pixels(e["pids"], e["px_h"], e["xn_h"])
         elif k == "similarity":
             self.transform_segment(e["segment"], e["R"], e["t"], e["s"], e["onto"])
         elif k == "rescale":
@@ -159,9 +214,8 @@ class MapState:
         elif k == "lost":
             self.lose(e["index"], e["why"])
         elif k == "reloc":
-            self.relocalise({"frame": e["index"], "timestamp": e["t"], "keyframe": e["keyframe"],
-                             "inliers": e["inliers"], "frames_lost": e["frames_lost"],
-                             "candidates_tried": e["candidates_tried"]})
+            self.relocalise(Relocalised(e["index"], e["t"], e["keyframe"], e["inliers"], e["frames_lost"],
+                                        e["candidates_tried"]))
         else:  # pragma: no cover - SCHEMA and this dispatch list the same kinds
             raise ValueError(f"unknown event kind {k!r}")
 
@@ -223,13 +277,6 @@ class MapState:
         """``(2,)`` the host pixel of map point ``pid`` (undistorted pinhole; a copy)."""
         return self.map.px_h[pid].copy()
 
-    def locate(self, index: RelocIndex, gray: np.ndarray, thr: float, seed: int = 0,
-               keyframes: list[int] | None = None, newest: int = 2,
-               witnesses: list[int] | None = None) -> Relocalisation | None:
-        """The pose of the grey image ``gray`` in this map now, by the relocaliser's keyframe ``index``
-        (:meth:`~mutualslam_cli.vo.relocalise.RelocIndex.query`: its arguments)."""
-        return index.query(gray, self.map, thr, seed=seed, keyframes=keyframes, newest=newest, witnesses=witnesses)
-
     def sparse_depth(self, kf: int) -> tuple[np.ndarray, np.ndarray]:
         """The map points keyframe ``kf`` observes now, projected into it with its pose now: pixels
         ``(M, 2)`` (VO camera) and depths ``(M,)`` (map units, > 0, inside the image) — D_sparse of Eq. 6."""
@@ -245,7 +292,7 @@ class MapState:
         return pix[ok], z[ok]
 
     def snapshot(self, frames: list[FrameRef], stats: RunStats | None = None, covisibility: bool = True) -> VOResult:
-        """The map now as a :class:`~mutualslam_cli.vo.result.VOResult` (point ids = map ids; removed and
+        """The map now as a :class:`~mutualslam_cli.map.result.VOResult` (point ids = map ids; removed and
         non-positive-depth points left out); ``stats``: the front end's counters (default: what the events say);
         ``covisibility=False`` skips the keyframe graph (a mid-run snapshot)."""
         if stats is None:
@@ -264,7 +311,7 @@ def events_from_result(vo: VOResult, n_frames: int) -> list[Event]:
     frame when it comes before that). A replica of it ends as ``vo`` (point ids renumbered in host order)."""
     journal = Journal()
     state = MapState(vo.intrinsics, n_frames, journal)
-    m, K = state.map, vo.intrinsics.K()
+    K = vo.intrinsics.K()
     pts = vo.points
     kfs = sorted(vo.keyframes, key=lambda k: (k.frame_index, k.id))
     hosted_by = {k.id: np.flatnonzero(pts.host == k.id) for k in kfs}
@@ -293,15 +340,15 @@ def events_from_result(vo: VOResult, n_frames: int) -> list[Event]:
             if kf.segment not in segments:
                 segments.add(kf.segment)
                 state.start_segment(kf.segment, f, str(vo.meta.get("mode", "oracle")))
-            local[kf.id] = m.add_keyframe(f, kf.timestamp, kf.pose, kf.segment)
+            local[kf.id] = state.add_keyframe(f, kf.timestamp, kf.pose, kf.segment)
             known = [(p, px) for p, px in seen_by.get(kf.id, []) if new_id[p] >= 0]
             if known:
-                m.observe(local[kf.id], new_id[[p for p, _ in known]], np.array([px for _, px in known]))
+                state.observe(local[kf.id], new_id[[p for p, _ in known]], np.array([px for _, px in known]))
             hosted = hosted_by[kf.id]
             if len(hosted):
                 obs = [{local[o]: px for o, px in zip(pts.observations[p].tolist(), pts.obs_pixels[p]) if o in local}
                        for p in hosted]
-                new_id[hosted] = m.add_points(np.full(len(hosted), local[kf.id]), pts.pixel[hosted],
+                new_id[hosted] = state.add_points(np.full(len(hosted), local[kf.id]), pts.pixel[hosted],
                                               (pts.pixel[hosted] - K[:2, 2]) / np.diag(K)[:2], pts.inv_depth[hosted],
                                               pts.sigma[hosted], obs)
         for g, ref, T in frames_at.get(f, []):

@@ -14,9 +14,10 @@ from typing import Any
 import numpy as np
 
 from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
-from mutualslam_cli.vo.camera import pinhole
-from mutualslam_cli.vo.result import Keyframe, MapPoints, VOResult
-from mutualslam_cli.vo.state import Map
+from mutualslam_cli.geometry import pinhole
+from mutualslam_cli.map.records import Relocalised
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.store import Map
 
 
 @dataclass(frozen=True)
@@ -36,8 +37,7 @@ class RunStats:
             when the front end ran without the network.
         ba_stats: one dict per windowed BA (``points``, ``solve_ms``, …).
         ba_threaded: whether the windowed BA ran on a worker thread.
-        relocalisations: one dict per accepted relocalisation (``frame``, ``keyframe``, ``inliers``,
-            ``frames_lost``, ``candidates_tried``).
+        relocalisations: one :class:`~mutualslam_cli.map.records.Relocalised` per accepted relocalisation.
         reloc_rejected: candidate poses the relocalisation's verification refuted.
     """
 
@@ -48,7 +48,7 @@ class RunStats:
     reprojected: int
     ba_stats: Seq[dict[str, Any]]
     ba_threaded: bool
-    relocalisations: Seq[dict[str, Any]] = ()
+    relocalisations: Seq[Relocalised] = ()
     reloc_rejected: int = 0
     reused: int = 0
     fused: int = 0
@@ -114,7 +114,7 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         "mode": "svo",
         "n_reinit": max(len(stats.init_methods) - 1, 0),
         "segments": len(stats.init_methods),
-        "relocalisations": list(stats.relocalisations),
+        "relocalisations": [r.to_json() for r in stats.relocalisations],
         "reloc_rejected": stats.reloc_rejected,
         "gaps": _gaps(frame_seg),
         "segment_starts": [{"segment": int(sg), "frame": int(i), "timestamp": float(frames[i].timestamp)}

@@ -4,7 +4,7 @@ Every front end returns a :class:`VOResult`: ``svo`` (our monocular VO), ``gt`` 
 oracle: our VO's keyframes and tracks with GT poses, points re-triangulated in metres) and
 ``gt-depth`` (GT poses and points sampled from GT depth, an upper bound). Everything is
 numpy so it crosses process boundaries cheaply. (The per-sequence cache keeps the front end's event
-journal, not this: :mod:`~mutualslam_cli.vo.journal`.)
+journal, not this: :mod:`~mutualslam_cli.map.journal`.)
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ rejected observations, a frame tracked, tracking lost, relocalised, a segment st
 changes the network's side makes: a segment joined to the map before it (a bridge, a similarity),
 a global BA's refinement (poses, depths, host pixels, removed points).
 
-:class:`~mutualslam_cli.vo.map_state.MapState` applies events; the front end's own state and a
+:class:`~mutualslam_cli.map.state.MapState` applies events; the front end's own state and a
 replica built from the same events are therefore identical at every frame, which is what lets the
 adaptation loop see the map *as it stood* at any time, and what the per-sequence cache stores
 (:func:`journal_to_arrays`, read back without pickle by :func:`journal_from_arrays`).
@@ -28,7 +28,7 @@ import numpy as np
 #: Kind → field → ``"i"`` (int scalar), ``"f"`` (float scalar), ``"s"`` (text) or the trailing shape
 #: of an array field (``()`` for a 1-D array, ``(2,)`` for ``(n, 2)``, ``(4, 4)`` for ``(n, 4, 4)``…).
 SCHEMA: dict[str, dict[str, Any]] = {
-    # the map (vo.state.Map)
+    # the map (map.store.Map)
     "keyframe": {"kf": "i", "frame": "i", "t": "f", "segment": "i", "T_wc": (4, 4)},
     "pose": {"kfs": (), "T_wc": (4, 4)},
     "points": {"first": "i", "host": (), "px_h": (2,), "xn_h": (2,), "rho": (), "sigma": (), "obs_n": (),
