@@ -88,6 +88,11 @@ class DamagedRecord(DatasetError):
     names the field and either starts over or says how to fix it, and never trusts it."""
 
 
+class NotRefreshable(MslamError):
+    """The network's converted OpenVINO graph has weights that cannot be matched to its tensors one to one
+    (:mod:`mutualslam_cli.adapt.ov_refresh`)."""
+
+
 class ConfigError(MslamError):
     """A configuration file, ``--set`` override or setting-valued argument is invalid."""
 

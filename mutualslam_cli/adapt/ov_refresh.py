@@ -35,15 +35,13 @@ import torch
 from torch import nn
 
 from mutualslam_cli.adapt.inference import _Predict, _without_telemetry, compile_for_cpu, openvino_precision
-from mutualslam_cli.errors import MslamError
+from mutualslam_cli.errors import NotRefreshable
+
+CPU = torch.device("cpu")  # OpenVINO converts and runs on the CPU
 
 #: Mean relative depth change ``mean |D − D_fp32| / D_fp32`` a bf16 prediction may have against PyTorch fp32
 #: with the same weights (measured 0.29 % OpenVINO bf16, 0.73 % PyTorch bf16 autocast on a pre-trained model).
 BF16_REL_TOL = 0.01
-
-
-class NotRefreshable(MslamError):
-    """The network's converted graph has weights that cannot be matched to its tensors one to one."""
 
 
 def _bn_pairs(net: nn.Module) -> list[tuple[str, str]]:
@@ -98,7 +96,7 @@ def _folded_copy(net: nn.Module) -> nn.Module:
     for conv, bn in _bn_pairs(q):
         c = mods[conv]
         if c.bias is None:
-            c.bias = nn.Parameter(torch.zeros(c.out_channels), requires_grad=False)
+            c.bias = nn.Parameter(torch.zeros(c.out_channels, device=c.weight.device), requires_grad=False)
         head, _, leaf = bn.rpartition(".")
         setattr(mods[head] if head else q, leaf, nn.Identity())
     with torch.no_grad():
@@ -129,7 +127,7 @@ class RefreshablePredictor:
         q = _folded_copy(net)
         used = _used_tensors(q, height, width)
         mods = dict(q.named_modules())
-        g = torch.Generator().manual_seed(0)
+        g = torch.Generator(device=CPU).manual_seed(0)
         tags: dict[bytes, str] = {}
         with torch.no_grad():  # a distinct random tag in every weight: equal weights (zero biases) stay apart
             for name in sorted(used):
@@ -137,12 +135,12 @@ class RefreshablePredictor:
                 t = getattr(mods[mod], attr, None)
                 if t is None:
                     continue
-                t.copy_(torch.randn(t.shape, generator=g))
+                t.copy_(torch.randn(t.shape, generator=g, device=CPU))
                 tags[t.detach().contiguous().numpy().tobytes()] = name
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore", torch.jit.TracerWarning)
             _without_telemetry()
-            self.model = ov.convert_model(_Predict(q), example_input=torch.rand(1, 3, height, width))
+            self.model = ov.convert_model(_Predict(q), example_input=torch.rand(1, 3, height, width, device=CPU))
         self._slots: list[tuple[object, str]] = []  # (constant node, folded tensor name)
         seen: dict[str, int] = {}
         for op in self.model.get_ops():
@@ -191,7 +189,7 @@ def _used_tensors(net: nn.Module, height: int, width: int) -> set[str]:
                for m in net.modules() if isinstance(m, nn.Conv2d)]
     try:
         with torch.no_grad():
-            net.predict(torch.zeros(1, 3, height, width))
+            net.predict(torch.zeros(1, 3, height, width, device=CPU))
     finally:
         for h in handles:
             h.remove()
