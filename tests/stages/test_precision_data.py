@@ -4,8 +4,8 @@ native bf16 (AMX or AVX512-BF16) the default run — encoder trained in fp32, th
 model's PCD (lsq) and on each quarter of the sequence, on a shared window, our VO, seed 0, one thread, at
 lr 1e-4 (configs/tuned.yaml's). Measured on AVX512-BF16: 44.3 vs 43.9, quarters within 0.5. At the paper's
 lr 1e-3 the two do not match (README "Devices": the fast path ends 7.5 / 22.9 points above fp32 on fr1_xyz /
-ICL kt2 and 3.9 below on desk_loss, a precision effect not yet explained), so that is not asserted here; nor is scheme ``replay``, whose
-single run is chaotic: changing the lr by one part in 10⁵ moves its final PCD by 6 (bf16) and 12 (fp32) points
+ICL kt2 and 3.9 below on desk_loss, a precision effect not yet explained), so that is not asserted here;
+nor is scheme ``replay``, whose single run is chaotic: changing the lr by one part in 10⁵ moves its final PCD by 6 (bf16) and 12 (fp32) points
 on this window. Skips where the CPU has no bf16 (there the default run is the fp32 run)."""
 
 from __future__ import annotations
