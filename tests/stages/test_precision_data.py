@@ -1,12 +1,13 @@
-"""The fast path is accurate, not only fast (issue 46; data, slow, ~6 min a scheme on 2 cores): on a CPU with
-native bf16 (AMX or AVX512-BF16) the default run — encoder trained in fp32, the decoder under bf16 autocast
+"""The fast path is accurate, not only fast (issue 46; data, slow, ~6 min on 2 cores): on a CPU with native bf16
+(AMX or AVX512-BF16) the default run — encoder trained in fp32, the decoder under bf16 autocast
 (``net.fast_train: decoder``) — matches the fp32 run (``net.fast=off``) within 1.5 PCD points on the final
 model's PCD (lsq) and on each quarter of the sequence, on a shared window, our VO, seed 0, one thread, at
-lr 1e-4 (configs/tuned.yaml's). Measured on AVX512-BF16: 44.3 vs 43.9, quarters within 0.5. At the paper's
-lr 1e-3 the two do not match (README "Devices": the fast path ends 7.5 / 22.9 points above fp32 on fr1_xyz /
-ICL kt2 and 3.9 below on desk_loss, a precision effect not yet explained), so that is not asserted here;
-nor is scheme ``replay``, whose single run is chaotic: changing the lr by one part in 10⁵ moves its final PCD by 6 (bf16) and 12 (fp32) points
-on this window. Skips where the CPU has no bf16 (there the default run is the fp32 run)."""
+lr 1e-4 (configs/tuned.yaml's). Measured on AVX512-BF16: 44.3 vs 43.9, quarters within 0.5.
+
+Not asserted: the paper's lr 1e-3, where the two do not match (README "Devices": the fast path ends 7.5 / 22.9
+points above fp32 on fr1_xyz / ICL kt2 and 3.9 below on desk_loss, a precision effect not yet explained); and
+scheme ``replay``, whose single run is chaotic (one part in 10⁵ on the lr moves its final PCD on this window by
+6 points in bf16 and 12 in fp32). Skips where the CPU has no bf16 (there the default run is the fp32 run)."""
 
 from __future__ import annotations
 
