@@ -4,7 +4,7 @@ viewpoints), our VO, the SLAM parts alone (``--scheme none``, loop closure on, a
 
 README "Real revisits": front end 6.78 cm (8.72 before issue 47), + BA + loops 4.20 cm on AMX, 3.86 on
 AVX512-BF16 (8.64), 15 loops closed (0), 14–15 of them within 5° of GT's relative pose and none beyond 10°,
-413–457 old points found again by the run's front end (6), local scale after BA max/min 1.39–1.44 (1.63).
+413–457 old points found again by the run's front end (6), local scale after BA max/min 1.39–1.44 (1.62 before).
 Bounds within 1.5× both ways."""
 
 from __future__ import annotations
