@@ -33,11 +33,12 @@ import os
 import signal
 import threading
 import traceback
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 from threadpoolctl import threadpool_limits
 
@@ -95,7 +96,7 @@ def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, regi
         return JobOutcome(job, "skipped" if r.skipped else "done", r.folder)
     except MslamError as e:
         return JobOutcome(job, "failed", None, str(e))
-    except Exception as e:  # noqa: BLE001 - a bug in one job must not lose the others' results
+    except Exception as e:
         return JobOutcome(job, "failed", None, f"{type(e).__name__}: {e}\n{traceback.format_exc()}")
 
 
@@ -268,7 +269,7 @@ def _dask_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str]
         for f in dask_completed(list(futs)):
             try:
                 yield f.result()
-            except Exception as e:  # noqa: BLE001 - a lost worker fails its job, not the grid
+            except Exception as e:
                 yield JobOutcome(futs[f], "failed", None, f"{type(e).__name__}: {e}")
     finally:
         client.close()

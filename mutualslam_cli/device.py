@@ -40,7 +40,8 @@ import contextlib
 import logging
 import os
 import queue
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import torch
 

@@ -28,9 +28,9 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -240,7 +240,7 @@ def _summary(table: pd.DataFrame, seq: Sequence, name: str, info: dict, cfg: Run
     if 0 < (bad := int(table[f"{MODEL}_pcd_lsq"].isna().sum())) < len(table):
         s.notes[f"depth.pcd.lsq.{MODEL}"] = (f"{bad} of {len(table)} frames have no score (no valid pixel, or no "
                                              "scale-and-shift fit) and are left out of the means")
-    s.set("depth.frames_evaluated", int(len(table)))
+    s.set("depth.frames_evaluated", len(table))
     s.set("depth.eval_stride", cfg.eval.stride)
     for k, v in info.items():
         if v is not None:

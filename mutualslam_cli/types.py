@@ -12,10 +12,11 @@ Conventions (used everywhere in mslam):
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from collections.abc import Sequence as Seq
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
-from typing import Sequence as Seq
+from typing import Any
 
 import numpy as np
 
@@ -82,7 +83,7 @@ class Intrinsics:
         """The 3×3 float64 camera matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """Intrinsics for the same camera resized to ``width`` × ``height`` pixels.
 
         Pixel centres are kept consistent: ``c' = (c + 0.5)·s − 0.5``. Distortion
@@ -129,7 +130,7 @@ class Trajectory:
         """``(N, 3)`` camera centres in the world frame."""
         return self.poses[:, :3, 3]
 
-    def subset(self, mask_or_index: np.ndarray) -> "Trajectory":
+    def subset(self, mask_or_index: np.ndarray) -> Trajectory:
         """A new trajectory with the selected rows."""
         return Trajectory(self.timestamps[mask_or_index], self.poses[mask_or_index])
 

@@ -221,7 +221,8 @@ def write_bag_from_tum(folder: Path, bag_path: Path, ros_version: int = 1, rgb: 
         with Writer1(bag_path) as w1:
             write_all(lambda t, ty: w1.add_connection(t, ty, typestore=m.ts), w1.write)
     else:
-        from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
 
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         with Writer2(bag_path, version=9, storage_plugin=plugin) as w2:

@@ -30,12 +30,14 @@ def test_paper_values():
 
 def test_overrides_parse_yaml_values():
     c = load_config(CONFIG_DIR / "smoke.yaml", ["adapt.lr=1e-4", "vo.mode=svo", "eval.save_weights=true"])
-    assert c.adapt.lr == 1e-4 and c.vo.mode == "svo" and c.eval.save_weights is True
+    assert c.adapt.lr == 1e-4
+    assert c.vo.mode == "svo"
+    assert c.eval.save_weights is True
     assert c.net.width == 96  # from smoke.yaml
 
 
 @pytest.mark.parametrize(
-    "override, message",
+    ("override", "message"),
     [
         ("adapt.lrr=1", "unknown key"),
         ("vo.mode=foo", "not one of"),
@@ -89,14 +91,18 @@ def test_experiment_section_lists_and_variants_are_checked(tmp_path):
                    CONFIG_DIR / "frontier.yaml"]
     for f in experiments:
         cfg = load_config(f)
-        assert cfg.experiment.name == f.stem and cfg.experiment.schemes and cfg.experiment.seeds == [0, 1, 2]
+        assert cfg.experiment.name == f.stem
+        assert cfg.experiment.schemes
+        assert cfg.experiment.seeds == [0, 1, 2]
         assert to_dict(cfg)["vo"] == to_dict(RunConfig())["vo"]  # everything else is the paper's
         for overrides in cfg.experiment.variants.values():
             with_settings(cfg, overrides)  # each variant is a valid config
     t5 = load_config(CONFIG_DIR / "table5_map.yaml")
     assert t5.experiment.variants["fts120_no_culling"] == ["vo.max_fts=120", "ba.culling=false"]
     v = with_settings(t5, t5.experiment.variants["fts120_no_culling"])
-    assert v.vo.max_fts == 120 and v.ba.culling is False and t5.ba.culling is True
+    assert v.vo.max_fts == 120
+    assert v.ba.culling is False
+    assert t5.ba.culling is True
     bad = tmp_path / "bad.yaml"
     bad.write_text("experiment:\n  seeds: [0, x]\n")
     with pytest.raises(ConfigError, match=r"experiment.seeds\[1\]"):
@@ -109,7 +115,7 @@ def test_experiment_section_lists_and_variants_are_checked(tmp_path):
     assert yaml.safe_load(yaml.safe_dump(to_dict(t5)))["experiment"]["variants"]["fts120"] == ["vo.max_fts=120"]
 
 
-@pytest.mark.parametrize("override, match", [
+@pytest.mark.parametrize(("override", "match"), [
     ("vo.min_tracked=3", r"vo.min_tracked = 3: expected an integer ≥ 6"),
     ("vo.grid_size=2", r"vo.grid_size = 2: expected an integer ≥ 4"),
     ("vo.inject_outliers=1.0", r"vo.inject_outliers = 1.0: expected a number in \[0, 1\)"),
@@ -126,7 +132,8 @@ def test_fast_config_changes_only_the_budget_and_the_bounds():
     changed = {f"{sec}.{k}" for sec, vals in paper.items() if isinstance(vals, dict)
                for k, v in vals.items() if fast[sec][k] != v}
     assert changed == {"adapt.freeze_stages", "adapt.val_max", "ba.window", "eval.online", "adapt.lr"}
-    assert fast["adapt"]["scheme"] == "replay+ewc" and fast["net"] == paper["net"]  # evaluated as the paper's
+    assert fast["adapt"]["scheme"] == "replay+ewc"
+    assert fast["net"] == paper["net"]
 
 
 def test_tuned_presets_name_the_data_they_were_tuned_on():
@@ -140,7 +147,9 @@ def test_tuned_presets_name_the_data_they_were_tuned_on():
     tuned, paper = to_dict(load_config(CONFIG_DIR / "tuned.yaml")), to_dict(load_config(CONFIG_DIR / "paper.yaml"))
     changed = {f"{sec}.{k}" for sec, vals in paper.items() if isinstance(vals, dict)
                for k, v in vals.items() if tuned[sec][k] != v}
-    assert changed == {"adapt.lr"} and tuned["adapt"]["lr"] == 1e-4 and paper["adapt"]["lr"] == 1e-3
+    assert changed == {"adapt.lr"}
+    assert tuned["adapt"]["lr"] == 1e-4
+    assert paper["adapt"]["lr"] == 1e-3
 
 
 def test_a_preset_without_a_tuned_on_line_is_unknown(tmp_path: Path):

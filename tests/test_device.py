@@ -16,6 +16,7 @@ import os
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -61,7 +62,7 @@ def fake_gpus(monkeypatch, n: int, capability: tuple[int, int] = (9, 0)) -> None
 def test_auto_is_the_cpu_without_cuda_and_cuda_fails_with_the_way_out(monkeypatch):
     fake_gpus(monkeypatch, 0)
     assert device.resolve_device("auto") == torch.device("cpu") == device.resolve_device("cpu")
-    with pytest.raises(ConfigError, match="CUDA is not available.*device=cpu or auto"):
+    with pytest.raises(ConfigError, match=r"CUDA is not available.*device=cpu or auto"):
         device.resolve_device("cuda")
     for bad in ("gpu", "cuda:x", "CUDA", "", "cuda:0:1"):
         with pytest.raises(ConfigError, match="expected one of auto, cpu, cuda, cuda:N"):
@@ -90,13 +91,16 @@ def test_precision_and_runtime_follow_the_device(monkeypatch):
     assert use_fast_path(cfg, cuda) is True  # tensor cores: mixed precision by default
     assert use_fast_path(load_config(None, ["net.fast=off"]), cuda) is False
     fake_gpus(monkeypatch, 1, capability=(6, 1))  # a GTX 1070: fp16 is slower than fp32 there
-    assert use_fast_path(cfg, cuda) is False and use_fast_path(load_config(None, ["net.fast=on"]), cuda) is True
+    assert use_fast_path(cfg, cuda) is False
+    assert use_fast_path(load_config(None, ["net.fast=on"]), cuda) is True
     assert device.grad_scaler(torch.device("cpu"), True) is None  # bf16 / fp32 need no loss scaling
 
 
 def test_a_result_names_its_device():
     info = device.describe_device(torch.device("cpu"))
-    assert info["device"] == "cpu" and info["device_type"] == "cpu" and info["device_name"]
+    assert info["device"] == "cpu"
+    assert info["device_type"] == "cpu"
+    assert info["device_name"]
     assert device.device_label(info).startswith("cpu · ")
     assert device.device_label({"device_type": "cuda", "device_name": "NVIDIA H100"}) == "cuda · NVIDIA H100"
     assert device.configure(torch.device("cpu")) == {}  # cuDNN flags are a CUDA matter
@@ -128,7 +132,8 @@ def test_each_pool_worker_sees_its_own_gpu():
         seen = dict(f.result() for f in [pool.submit(_visible_after_a_while) for _ in range(6)])
     finally:
         pool.shutdown()
-    assert sorted(seen.values()) == ["0", "1"] and len(seen) == 2  # two processes, one GPU each
+    assert sorted(seen.values()) == ["0", "1"]
+    assert len(seen) == 2
 
 
 class _FakeFuture:
@@ -142,7 +147,7 @@ class _FakeFuture:
 class _FakeClient:
     """Records what the grid submits to Dask; runs nothing."""
 
-    submitted: list[tuple[str, dict]] = []
+    submitted: ClassVar[list[tuple[str, dict]]] = []
 
     def __init__(self, *_a, **_k) -> None:
         pass
@@ -159,7 +164,7 @@ class _FakeClient:
 
 
 class _FakeCluster:
-    kwargs: dict = {}
+    kwargs: ClassVar[dict] = {}
 
     def __init__(self, **kw) -> None:
         _FakeCluster.kwargs = kw
@@ -168,7 +173,7 @@ class _FakeCluster:
         pass
 
 
-@pytest.mark.parametrize("spec, wanted", [("cuda", {"GPU": 1}), ("cuda:0", {"GPU": 1}), ("cpu", None),
+@pytest.mark.parametrize(("spec", "wanted"), [("cuda", {"GPU": 1}), ("cuda:0", {"GPU": 1}), ("cpu", None),
                                           ("auto", None)])
 def test_dask_jobs_ask_for_a_gpu_only_when_the_config_runs_on_cuda(monkeypatch, tmp_path, spec, wanted):
     distributed = pytest.importorskip("dask.distributed")
@@ -244,7 +249,7 @@ def _keyframes(n: int = 9, h: int = 32, w: int = 48) -> list[KeyframeSample]:
     return out
 
 
-@pytest.mark.parametrize("scheme, mode", [("replay+ewc", "prox"), ("replay+mas", "penalty"), ("replay+si", "prox"),
+@pytest.mark.parametrize(("scheme", "mode"), [("replay+ewc", "prox"), ("replay+mas", "penalty"), ("replay+si", "prox"),
                                           ("luo", "prox")])
 def test_the_adapter_threads_its_device(scheme, mode):
     """Steps, EWC's Fisher, MAS's and SI's importance, L_val: the same numbers with every stray tensor elsewhere."""
@@ -255,7 +260,8 @@ def test_the_adapter_threads_its_device(scheme, mode):
                            samples[0].K, seed=0, reg_mode=mode, device=torch.device("cpu"))
         for s in samples:
             ad.add_keyframe(s)
-        assert ad.history[-1].t == len(samples) - 1 and any(i.trained for i in ad.history)
+        assert ad.history[-1].t == len(samples) - 1
+        assert any(i.trained for i in ad.history)
         return [p.detach().sum().item() for p in ad.net.parameters()], ad.per_keyframe_val_loss()
 
     torch.manual_seed(0)
@@ -286,8 +292,10 @@ def test_a_whole_run_threads_its_device_and_records_it(runs_both_ways):
                 "dense.fscore_5cm.adapted", "adaptation.steps"):
         assert a[key] == b[key], key
     man = json.loads((threaded.folder / "manifest.json").read_text())
-    assert man["device"]["device"] == "cpu" and man["device"]["device_name"]
-    assert b["run.device"] == "cpu" and b["run.device_label"].startswith("cpu · ")
+    assert man["device"]["device"] == "cpu"
+    assert man["device"]["device_name"]
+    assert b["run.device"] == "cpu"
+    assert b["run.device_label"].startswith("cpu · ")
     assert yaml.safe_load((threaded.folder / "config.yaml").read_text())["device"] == "cpu"
 
 
@@ -303,7 +311,8 @@ def test_reports_never_average_runs_of_different_devices(runs_both_ways, tmp_pat
     runs = collect([tmp_path / "res"])
     assert sorted(runs["config"]) == ["run_device=cpu · AVX2", "run_device=cuda · NVIDIA H100"]
     depth = build_tables(runs).tables["depth"]
-    assert len(depth) == 2 and depth["seeds"].tolist() == [1, 1]
+    assert len(depth) == 2
+    assert depth["seeds"].tolist() == [1, 1]
 
 
 @pytest.mark.slow

@@ -45,9 +45,10 @@ def test_user_errors_are_mslam_errors(cls):
     assert issubclass(cls, errors.MslamError)
 
 
-@pytest.mark.parametrize("cls, base", [(errors.ShapeError, ValueError), (errors.TransitionError, RuntimeError)])
+@pytest.mark.parametrize(("cls", "base"), [(errors.ShapeError, ValueError), (errors.TransitionError, RuntimeError)])
 def test_programming_errors_are_not_mslam_errors(cls, base):
-    assert issubclass(cls, base) and not issubclass(cls, errors.MslamError)
+    assert issubclass(cls, base)
+    assert not issubclass(cls, errors.MslamError)
 
 
 def test_check_shape_raises_a_programming_error():

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -78,7 +78,8 @@ def test_gt_times_2_7_scores_100_under_lsq_and_median(far: Path, tmp_path: Path)
     preds = predict(far, tmp_path / "x2.7", lambda g: 2.7 * g)
     r = eval_depth(far, preds, "gtx2.7", "depth", out=tmp_path / "res")
     d = r.summary["depth"]
-    assert d["pcd"]["lsq"]["adapted"] == 100.0 and d["pcd"]["median"]["adapted"] == 100.0
+    assert d["pcd"]["lsq"]["adapted"] == 100.0
+    assert d["pcd"]["median"]["adapted"] == 100.0
     assert d["pcd"]["none"]["adapted"] == 0.0  # 2.7× is 170 % off without scaling: the scalings are what fixes it
     assert d["esi"]["adapted"] == pytest.approx(0.0, abs=1e-6)
     assert d["frames_evaluated"] == 6
@@ -92,7 +93,8 @@ def test_relative_inverse_scores_100_with_scale_and_shift_and_clearly_less_witho
     for scaling in ("lsq", "median", "none"):  # aligned to 1/GT: metric depth, so even unscaled is exact
         assert aligned["pcd"][scaling]["adapted"] == pytest.approx(100.0)
     plain = eval_depth(far, preds, "midas-noshift", "inverse", out=tmp_path / "res").summary["depth"]
-    assert plain["pcd"]["lsq"]["adapted"] < 50.0 and plain["pcd"]["median"]["adapted"] < 50.0
+    assert plain["pcd"]["lsq"]["adapted"] < 50.0
+    assert plain["pcd"]["median"]["adapted"] < 50.0
     assert plain["esi"]["adapted"] > 0.05 > aligned["esi"]["adapted"]
     pf = pd.read_csv(tmp_path / "res" / far.name / "midas" / "seed0" / "per_frame.csv")
     np.testing.assert_allclose(pf["adapted_align_scale"], 1 / 0.3, rtol=1e-6)  # s·x + t = 1/GT
@@ -121,7 +123,8 @@ def test_every_format_round_trips_and_scores_like_npy(far: Path, tmp_path: Path,
     fn = (lambda g: np.round(2.7 * g * 1000).astype(np.uint16)) if ext == ".png" else (lambda g: 2.7 * g)
     preds = predict(far, tmp_path / "p", fn, ext)
     s = eval_depth(far, preds, "m", scale=1e-3 if ext == ".png" else 1.0, out=tmp_path / "res").summary
-    assert s["depth"]["pcd"]["lsq"]["adapted"] == 100.0 and s["external"]["ext"] == ext[1:]
+    assert s["depth"]["pcd"]["lsq"]["adapted"] == 100.0
+    assert s["external"]["ext"] == ext[1:]
 
 
 def test_pfm_byte_order_and_orientation_as_midas_writes_it(tmp_path: Path) -> None:
@@ -142,7 +145,7 @@ def test_npz_with_several_arrays_needs_a_key_and_png_must_be_16_bit(tmp_path: Pa
         read_prediction(tmp_path / "a.npz")
     assert read_prediction(tmp_path / "a.npz", npz_key="depth").sum() == 6
     cv2.imwrite(str(tmp_path / "b.png"), np.ones((2, 3), np.uint8))
-    with pytest.raises(DatasetError, match="uint8 with 1 channel.*16-bit"):
+    with pytest.raises(DatasetError, match=r"uint8 with 1 channel.*16-bit"):
         read_prediction(tmp_path / "b.png")
     np.save(tmp_path / "c.npy", np.ones((1, 4, 5, 1)))
     assert read_prediction(tmp_path / "c.npy").shape == (4, 5)
@@ -180,7 +183,7 @@ def test_several_formats_need_ext_and_missing_frames_are_counted(far: Path, tmp_
         match_predictions(load_sequence(far), list(range(6)), prediction_files(preds, "pfm"))
 
 
-@pytest.mark.parametrize("bad, kind, message", [
+@pytest.mark.parametrize(("bad", "kind", "message"), [
     (lambda g: np.full_like(g, np.nan), "relative-inverse", "values are NaN or infinite"),
     (lambda g: -g, "depth", "values are negative"),
     (lambda g: -g, "inverse", "values are negative"),
@@ -218,7 +221,8 @@ def test_compared_at_gt_resolution_like_mslam_run(far: Path, tmp_path: Path) -> 
     preds = predict(far, tmp_path / "p", lambda g: cv2.resize(2.7 * g, (32, 24), interpolation=cv2.INTER_AREA))
     eval_depth(far, preds, "half", out=tmp_path / "res")
     pf = pd.read_csv(tmp_path / "res" / far.name / "half" / "seed0" / "per_frame.csv")
-    assert (pf["n_valid"] == 48 * 64).all() and (pf["adapted_pcd_lsq"] > 80).all()
+    assert (pf["n_valid"] == 48 * 64).all()
+    assert (pf["adapted_pcd_lsq"] > 80).all()
     ref = load_sequence(far)
     x = cv2.resize(cv2.resize(2.7 * ref.load_depth(0).astype(np.float64), (32, 24), interpolation=cv2.INTER_AREA),
                    (64, 48), interpolation=cv2.INTER_LINEAR)
@@ -245,12 +249,17 @@ def test_result_folder_reads_like_a_run(far: Path, tmp_path: Path) -> None:
     names = {p.name for p in r.folder.iterdir()}
     assert {"config.yaml", "manifest.json", "per_frame.csv", "summary.json"} <= names
     s = json.loads((r.folder / "summary.json").read_text())
-    assert s["scheme"] == "ext" and s["external"]["model"] == "ext" and s["external"]["kind"] == "depth"
-    assert s["depth"]["pcd"]["lsq"]["pretrained"] is None and "not adapted" in s["notes"]["depth.pcd.lsq.pretrained"]
-    assert s["trajectory"]["ate_rmse_m"]["vo"] is None and "depth predictions only" in s["notes"][
+    assert s["scheme"] == "ext"
+    assert s["external"]["model"] == "ext"
+    assert s["external"]["kind"] == "depth"
+    assert s["depth"]["pcd"]["lsq"]["pretrained"] is None
+    assert "not adapted" in s["notes"]["depth.pcd.lsq.pretrained"]
+    assert s["trajectory"]["ate_rmse_m"]["vo"] is None
+    assert "depth predictions only" in s["notes"][
         "trajectory.ate_rmse_m.vo"]
     pf = pd.read_csv(r.folder / "per_frame.csv")
-    assert list(pf["frame"]) == list(range(6)) and not pf["is_keyframe"].any()
+    assert list(pf["frame"]) == list(range(6))
+    assert not pf["is_keyframe"].any()
     assert pf["adapted_pcd_lsq_running"].iloc[-1] == 100.0
     assert json.loads((r.folder / "manifest.json").read_text())["external"]["predictions"] == str(preds.resolve())
     again = eval_depth(far, preds, "ext", out=tmp_path / "res")
@@ -263,7 +272,8 @@ def test_max_frames_and_eval_stride_choose_the_frames_as_in_a_run(far: Path, tmp
     (preds / "0.166667.npy").unlink()  # frame 5: not scored with max_frames 4, so not needed
     cfg = load_config(None, ["data.max_frames=4", "eval.stride=2"])
     s = eval_depth(far, preds, "m", cfg=cfg, out=tmp_path / "res").summary
-    assert s["depth"]["frames_evaluated"] == 2 and s["depth"]["eval_stride"] == 2
+    assert s["depth"]["frames_evaluated"] == 2
+    assert s["depth"]["eval_stride"] == 2
 
 
 def test_cli_eval_depth_then_report_shows_the_external_row(far: Path, tmp_path: Path) -> None:
@@ -272,7 +282,8 @@ def test_cli_eval_depth_then_report_shows_the_external_row(far: Path, tmp_path: 
     r = runner.invoke(app, ["eval-depth", str(far), str(preds), "--name", "midas", "--kind", "relative-inverse",
                             "--out", str(out)])
     assert r.exit_code == 0, r.output
-    assert r.output.count("│ 100 ") == 3 and "external, no adaptation" in r.output  # PCD lsq, median, none
+    assert r.output.count("│ 100 ") == 3
+    assert "external, no adaptation" in r.output
     r = runner.invoke(app, ["report", str(out), "--out", str(tmp_path / "report")])
     assert r.exit_code == 0, r.output
     assert r.output.count("midas (external, no adaptation)") >= 3  # Tables 1, 2 and 6
@@ -286,7 +297,8 @@ def test_cli_missing_frame_is_one_red_line(far: Path, tmp_path: Path) -> None:
     preds = predict(far, tmp_path / "p", lambda g: g)
     (preds / "0.000000.npy").unlink()
     r = runner.invoke(app, ["eval-depth", str(far), str(preds), "--name", "m", "--out", str(tmp_path / "res")])
-    assert r.exit_code == 1 and "Traceback" not in r.output
+    assert r.exit_code == 1
+    assert "Traceback" not in r.output
     assert "no prediction for frame 0 (rgb/0.000000.png" in r.output
 
 

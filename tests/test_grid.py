@@ -43,7 +43,7 @@ def _comparable(folder: Path) -> dict:
 
 
 def test_plan_grid_reads_the_experiment_and_expands_variants(setup, tmp_path):
-    tmp, seq = setup
+    _tmp, seq = setup
     cfg = load_config(CONFIG_DIR / "table5_map.yaml")
     parts = plan_grid(cfg, [str(seq)], None, None, tmp_path)
     assert [p.label for p in parts] == ["fts500", "fts500_no_culling", "fts120", "fts120_no_culling"]
@@ -52,14 +52,16 @@ def test_plan_grid_reads_the_experiment_and_expands_variants(setup, tmp_path):
                                                                      (120, False)]
     assert {(j.scheme, j.seed) for j in parts[0].jobs} == {("replay+ewc", k) for k in (0, 1, 2)}
     one = plan_grid(load_config(), [str(seq)], "none,replay", "3-4", tmp_path)
-    assert len(one) == 1 and one[0].out == tmp_path and {j.seed for j in one[0].jobs} == {3, 4}
-    with pytest.raises(ConfigError, match="unknown scheme|not a scheme|valid"):
+    assert len(one) == 1
+    assert one[0].out == tmp_path
+    assert {j.seed for j in one[0].jobs} == {3, 4}
+    with pytest.raises(ConfigError, match=r"unknown scheme|not a scheme|valid"):
         plan_grid(load_config(), [str(seq)], "nope", None, tmp_path)
     with pytest.raises(ConfigError, match="--seeds"):
         plan_grid(load_config(), [str(seq)], None, "a-b", tmp_path)
 
 
-@pytest.mark.parametrize("schemes, seeds, message", [
+@pytest.mark.parametrize(("schemes", "seeds", "message"), [
     (None, "3-1", r"^--seeds '3-1': the range is empty \(1 < 3\), so the grid would run nothing; expected e.g. 1-3$"),
     (",", None, r"^--schemes ',': names no scheme, so the grid would run nothing"),
     (" , ,", None, r"^--schemes ' , ,': names no scheme"),
@@ -69,7 +71,7 @@ def test_plan_grid_reads_the_experiment_and_expands_variants(setup, tmp_path):
     (None, "0-99999999999", r"^--seeds '0-99999999999': 100000000000 seeds; a grid runs at most 10000$"),
 ])
 def test_a_grid_that_would_run_nothing_or_twice_is_refused(setup, tmp_path, schemes, seeds, message):
-    tmp, seq = setup
+    _tmp, seq = setup
     with pytest.raises(ConfigError, match=message):
         plan_grid(load_config(), [str(seq)], schemes, seeds, tmp_path)
 
@@ -79,24 +81,28 @@ def test_cli_refuses_an_empty_grid_with_exit_1_and_keeps_typers_usage_errors_at_
 
     from mutualslam_cli.cli import app
 
-    tmp, seq = setup
+    _tmp, seq = setup
     out = tmp_path / "grid"
     for args, needle in ((["--seeds", "3-1"], "--seeds '3-1': the range is empty"),
                          (["--schemes", ","], "--schemes ',': names no scheme")):
         r = CliRunner().invoke(app, ["ablate", str(seq), "--out", str(out), *args])
         lines = [ln for ln in r.output.splitlines() if ln.strip()]
-        assert r.exit_code == 1 and len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0], r.output
-        assert "0 jobs" not in r.output and not out.exists()
+        assert r.exit_code == 1, r.output
+        assert len(lines) == 1, r.output
+        assert lines[0].startswith("error:"), r.output
+        assert needle in lines[0], r.output
+        assert "0 jobs" not in r.output
+        assert not out.exists()
     r = CliRunner().invoke(app, ["ablate", str(seq), "--out", str(out), "-j", "0"])
-    assert r.exit_code == 2 and not out.exists()  # typer's own usage check, its own exit code
+    assert r.exit_code == 2
+    assert not out.exists()
 
 
 def test_a_second_grid_on_the_same_folder_stops_at_once(setup, tmp_path):
     tmp, seq = setup
     cfg = load_config(CONFIG_DIR / "smoke.yaml", _sets(tmp))
-    with hold_lock(tmp_path, "another grid"):
-        with pytest.raises(ResultsLocked, match=str(os.getpid())):
-            run_grid(cfg, expand([str(seq)], ["none"], [0]), tmp_path)
+    with hold_lock(tmp_path, "another grid"), pytest.raises(ResultsLocked, match=str(os.getpid())):
+        run_grid(cfg, expand([str(seq)], ["none"], [0]), tmp_path)
     assert not list(tmp_path.rglob("summary.json"))
 
 
@@ -216,5 +222,7 @@ def test_ctrl_c_stops_the_workers_and_says_how_to_resume(setup, tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130, err[-2000:]
-    assert "interrupted" in err and "run the same command again" in err and "Traceback" not in err
+    assert "interrupted" in err
+    assert "run the same command again" in err
+    assert "Traceback" not in err
     assert not _gone(workers)

@@ -14,7 +14,7 @@ def _cpuinfo(flags: str) -> str:
     return block + "\n" + block.replace("processor\t: 0", "processor\t: 1")
 
 
-@pytest.mark.parametrize("flags, kind", [
+@pytest.mark.parametrize(("flags", "kind"), [
     ("avx2 avx512f avx512_bf16 amx_tile amx_bf16 amx_int8", "AMX"),
     ("avx2 avx512f avx512_vnni avx512_bf16", "AVX512-BF16"),
     ("sse4_2 avx avx2 fma", "AVX2"),
@@ -22,17 +22,22 @@ def _cpuinfo(flags: str) -> str:
 ])
 def test_cpu_kind_from_cpuinfo(flags, kind):
     info = cpu_info(_cpuinfo(flags))
-    assert info["cpu_model"] == "Some CPU" and info["cpu_kind"] == kind
+    assert info["cpu_model"] == "Some CPU"
+    assert info["cpu_kind"] == kind
     assert set(info["cpu_flags"]) <= set(flags.split())
     assert cpu_kind(None) == "unknown"
 
 
 def test_targets_follow_the_kind():
-    assert targets("AMX")["predict_ms"] == ("<=", 15.0) and targets("AMX")["finetune_ms"] == ("<=", 250.0)
-    assert targets("AVX512-BF16")["predict_ms"] == ("<=", 40.0) and targets("AVX512-BF16")["finetune_ms"][1] == 300
-    assert "finetune_ms" not in targets("AVX2") and targets("AVX2")["predict_ms"] == ("<=", 60.0)
+    assert targets("AMX")["predict_ms"] == ("<=", 15.0)
+    assert targets("AMX")["finetune_ms"] == ("<=", 250.0)
+    assert targets("AVX512-BF16")["predict_ms"] == ("<=", 40.0)
+    assert targets("AVX512-BF16")["finetune_ms"][1] == 300
+    assert "finetune_ms" not in targets("AVX2")
+    assert targets("AVX2")["predict_ms"] == ("<=", 60.0)
     assert targets("other")["vo_fps"] == (">=", 60.0)
-    assert targets("AMX")["finetune_run_ms"] == ("<=", 250.0) and targets("AVX2")["finetune_run_vs_bench"][1] == 1.1
+    assert targets("AMX")["finetune_run_ms"] == ("<=", 250.0)
+    assert targets("AVX2")["finetune_run_vs_bench"][1] == 1.1
 
 
 def test_the_step_inside_the_run_is_held_against_the_bench():
@@ -48,8 +53,10 @@ def test_the_step_inside_the_run_is_held_against_the_bench():
 
 def test_every_run_records_its_cpu():
     m = manifest(["mslam", "run"], 0, {"total_s": 1.0})
-    assert m["cpu_kind"] in ("AMX", "AVX512-BF16", "AVX2", "other", "unknown") and m["cpu_count"] >= 1
-    assert "cpu_flags" in m and "cpu_model" in m
+    assert m["cpu_kind"] in ("AMX", "AVX512-BF16", "AVX2", "other", "unknown")
+    assert m["cpu_count"] >= 1
+    assert "cpu_flags" in m
+    assert "cpu_model" in m
 
 
 def test_onednn_kernels_are_read_by_isa_and_data_type():
@@ -68,6 +75,8 @@ def test_onednn_kernels_are_read_by_isa_and_data_type():
     assert k["convolutions"] == {"brg_conv_fwd:avx512_core_amx": 1, "jit_dw:avx512_core": 1,
                                  "brg_conv_bwd:avx512_core_amx+brg_conv_fwd:avx512_core_amx": 1}
     assert k["convolution_dtypes"] == {"bf16": 2, "f32": 1}
-    assert k["convolution_ms"] == pytest.approx(4.0) and k["reorder_ms"] == pytest.approx(0.25)
+    assert k["convolution_ms"] == pytest.approx(4.0)
+    assert k["reorder_ms"] == pytest.approx(0.25)
     table = _table({"cpu_kind": "AMX", "step_kernels": k})
-    assert "avx512_core_amx ×2" in table and "f32 ×1" in table
+    assert "avx512_core_amx ×2" in table
+    assert "f32 ×1" in table

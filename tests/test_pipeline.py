@@ -54,36 +54,46 @@ def test_run_writes_complete_result(setup, default_run):
         assert k in flat
         assert flat[k] is not None or k in s["notes"], f"{k} is null without a reason"
     # Depth metrics are real numbers in percent.
-    assert 0 <= flat["depth.pcd.lsq.adapted"] <= 100 and 0 <= flat["depth.pcd.median.pretrained"] <= 100
-    assert flat["depth.eval_stride"] == 1 and flat["depth.frames_evaluated"] == 12  # every frame by default
+    assert 0 <= flat["depth.pcd.lsq.adapted"] <= 100
+    assert 0 <= flat["depth.pcd.median.pretrained"] <= 100
+    assert flat["depth.eval_stride"] == 1
+    assert flat["depth.frames_evaluated"] == 12
     # Culling + global BA ran once, at the end (ba.final=always; the smoke run's Algorithm 1 never requests it).
-    assert flat["ba.requested"] == 0 and flat["ba.runs"] == 1 and flat["timing.ba_s"] > 0
-    assert flat["ba.last.keyframes"] == flat["vo.keyframes"] and flat["ba.points_dropped"] >= 0
+    assert flat["ba.requested"] == 0
+    assert flat["ba.runs"] == 1
+    assert flat["timing.ba_s"] > 0
+    assert flat["ba.last.keyframes"] == flat["vo.keyframes"]
+    assert flat["ba.points_dropped"] >= 0
     # the BA's map: the culled one without the points the BA dropped as outliers
     assert 0 < flat["map.points.ba"] == flat["map.points.culled"] - flat["ba.last.n_dropped"] <= flat["map.points.vo"]
-    assert flat["trajectory.ate_rmse_m.ba"] is not None and flat["map.esi.ba"] is not None
+    assert flat["trajectory.ate_rmse_m.ba"] is not None
+    assert flat["map.esi.ba"] is not None
     assert len(read_tum_trajectory(f / "traj_kf_ba.txt")) == flat["vo.keyframes"]
     assert len(read_tum_trajectory(f / "traj_all_ba.txt")) == len(read_tum_trajectory(f / "traj_all.txt"))
     assert json.loads((f / "manifest.json").read_text())["ba_runs"][-1]["keyframes"] == flat["vo.keyframes"]
     # The run's time split by stage adds up to its total; the BA's share is the BA's time.
     stages = s["timing"]["stage_s"]
     assert set(stages) == {"frontend", "adaptation", "ba", "evaluation", "other"}
-    assert sum(stages.values()) == pytest.approx(flat["timing.total_s"]) and stages["ba"] == flat["timing.ba_s"]
+    assert sum(stages.values()) == pytest.approx(flat["timing.total_s"])
+    assert stages["ba"] == flat["timing.ba_s"]
     assert all(v >= 0 for v in stages.values())
     # Oracle keyframe poses are GT: ATE ~ 0 (written and re-read in TUM format).
     assert flat["trajectory.ate_rmse_m.vo"] < 1e-4
     # Table 4's credit, all frames and keyframes named apart: one segment, no merge, so the run's own map before
     # the final BA is the front end's; after BA it moved (the BA refines what the oracle got exact)
-    assert flat["trajectory.credit.frames"] == 12 and flat["trajectory.credit_kf.frames"] == flat["vo.keyframes"]
+    assert flat["trajectory.credit.frames"] == 12
+    assert flat["trajectory.credit_kf.frames"] == flat["vo.keyframes"]
     for group in ("credit", "credit_kf"):
         assert flat[f"trajectory.{group}.live"] == pytest.approx(flat[f"trajectory.{group}.vo"], abs=1e-9)
         assert flat[f"trajectory.{group}.ba"] > flat[f"trajectory.{group}.vo"]
     assert flat["trajectory.credit_kf.ba"] == pytest.approx(flat["trajectory.ate_rmse_m.ba"])  # every keyframe
     assert len(read_tum_trajectory(f / "traj_kf.txt")) == flat["vo.keyframes"]
     pf = pd.read_csv(f / "per_frame.csv")
-    assert len(pf) == 12 and {"pretrained_pcd_lsq", "adapted_pcd_lsq", "adapted_pcd_lsq_running"} <= set(pf.columns)
+    assert len(pf) == 12
+    assert {"pretrained_pcd_lsq", "adapted_pcd_lsq", "adapted_pcd_lsq_running"} <= set(pf.columns)
     kf = pd.read_csv(f / "keyframes.csv")
-    assert len(kf) == flat["vo.keyframes"] and kf["trained"].any()
+    assert len(kf) == flat["vo.keyframes"]
+    assert kf["trained"].any()
     # What generalises: the same means over the frames that are not keyframes (never trained on).
     unseen = pf[~pf["is_keyframe"]]
     assert 0 < len(unseen) < len(pf)
@@ -93,20 +103,24 @@ def test_run_writes_complete_result(setup, default_run):
         assert flat[f"depth.esi_nonkf.{model}"] == pytest.approx(unseen[f"{model}_esi"].mean())
         assert flat[f"depth.pcd.lsq.{model}"] == pytest.approx(pf[f"{model}_pcd_lsq"].mean())
     m = json.loads((f / "manifest.json").read_text())
-    assert m["seed"] == 0 and "torch" in m["versions"] and m["timings_s"]["total_s"] > 0
+    assert m["seed"] == 0
+    assert "torch" in m["versions"]
+    assert m["timings_s"]["total_s"] > 0
     # one least-squares scale per sequence, pooled over pixels, and online: the per-frame columns and their means
     for model in ("pretrained", "adapted"):
         assert pf[f"{model}_scale_seq_lsq"].nunique() == 1
         assert flat[f"depth.pcd.seq_lsq.{model}"] == pytest.approx(pf[f"{model}_pcd_seq_lsq"].mean())
         pooled = (pf[f"{model}_pcd_lsq"] * pf["n_valid"]).sum() / pf["n_valid"].sum()
         assert flat[f"depth.pcd_pooled.lsq.{model}"] == pytest.approx(pooled)
-    assert pf["online_kf"].is_monotonic_increasing and pf["online_kf"].iloc[-1] == flat["vo.keyframes"] - 1
+    assert pf["online_kf"].is_monotonic_increasing
+    assert pf["online_kf"].iloc[-1] == flat["vo.keyframes"] - 1
     assert flat["depth.pcd_online.lsq"] == pytest.approx(pf["online_pcd_lsq"].mean())
     # the last frames are scored online by the final model: the same numbers as the final evaluation's
     last = pf[pf["online_kf"] == pf["online_kf"].max()]
     assert (last["online_pcd_lsq"] - last["adapted_pcd_lsq"]).abs().max() < 1.0
     # the regulariser's measured strength, and which pose network (none: not comoda)
-    assert 0.0 <= flat["adaptation.reg.shrink.mean"] < 1.0 and flat["adaptation.pose_network"] is None
+    assert 0.0 <= flat["adaptation.reg.shrink.mean"] < 1.0
+    assert flat["adaptation.pose_network"] is None
 
 
 def test_threads_are_resolved_and_recorded(setup):
@@ -124,11 +138,15 @@ def test_final_ba_on_request_says_why_not(setup, default_run):
     tmp, seq = setup
     r = run_sequence(seq, _cfg(tmp, "ba.d_max=0.2"), out=tmp / "onreq")
     flat, notes = flatten(r.summary), r.summary["notes"]
-    assert flat["ba.requested"] == 0 and flat["ba.runs"] == 0
+    assert flat["ba.requested"] == 0
+    assert flat["ba.runs"] == 0
     for k in BA_KEYS:
-        assert flat[k] is None and "never requested global BA" in notes[k] and "τ = 0.2" in notes[k], k
+        assert flat[k] is None, k
+        assert "never requested global BA" in notes[k], k
+        assert "τ = 0.2" in notes[k], k
     v = flat["adaptation.l_val.validations"]
-    assert v > 0 and f"over {v} validations" in notes["trajectory.ate_rmse_m.ba"]
+    assert v > 0
+    assert f"over {v} validations" in notes["trajectory.ate_rmse_m.ba"]
     assert flat["adaptation.l_val.min"] <= flat["adaptation.l_val.median"]
     assert flat["adaptation.l_val.longest_below_tau"] < 3  # else Algorithm 1 would have requested
     assert not list(r.folder.glob("*_ba.*"))
@@ -146,17 +164,22 @@ def test_ba_switches(setup, default_run):
     off = run_sequence(seq, _cfg(tmp, "ba.enabled=false"), out=tmp / "off")
     flat = flatten(off.summary)
     for k in BA_KEYS:
-        assert flat[k] is None and off.summary["notes"][k] == "disabled (ba.enabled=false)"
-    assert not list(off.folder.glob("*_ba.*")) and not (off.folder / "map_culled.ply").exists()
+        assert flat[k] is None
+        assert off.summary["notes"][k] == "disabled (ba.enabled=false)"
+    assert not list(off.folder.glob("*_ba.*"))
+    assert not (off.folder / "map_culled.ply").exists()
     same = [k for k in on if not k.startswith(("timing.", "ba.", "notes")) and k not in BA_KEYS
             and not k.endswith("_ba")]
     assert {k: flat[k] for k in same} == {k: on[k] for k in same}
     # ba.culling=false: BA of the whole front-end map, culled figures null with the reason
     nc = run_sequence(seq, _cfg(tmp, "ba.culling=false", "ba.final=always"), out=tmp / "nocull")
     flat = flatten(nc.summary)
-    assert flat["map.points.culled"] is None and "ba.culling=false" in nc.summary["notes"]["map.points.culled"]
-    assert flat["map.points.ba"] == flat["map.points.vo"] - flat["ba.points_dropped"] and flat["map.esi.ba"] is not None
-    assert (nc.folder / "map_ba.ply").exists() and not (nc.folder / "map_culled.ply").exists()
+    assert flat["map.points.culled"] is None
+    assert "ba.culling=false" in nc.summary["notes"]["map.points.culled"]
+    assert flat["map.points.ba"] == flat["map.points.vo"] - flat["ba.points_dropped"]
+    assert flat["map.esi.ba"] is not None
+    assert (nc.folder / "map_ba.ply").exists()
+    assert not (nc.folder / "map_culled.ply").exists()
 
 
 def test_complete_run_is_skipped_and_deterministic(setup):
@@ -164,7 +187,8 @@ def test_complete_run_is_skipped_and_deterministic(setup):
     cfg = _cfg(tmp, "adapt.scheme=replay")
     a = run_sequence(seq, cfg, out=tmp / "det")
     again = run_sequence(seq, cfg, out=tmp / "det")
-    assert again.skipped and again.summary == a.summary
+    assert again.skipped
+    assert again.summary == a.summary
     b = run_sequence(seq, cfg, out=tmp / "det", force=True)
     assert not b.skipped
     for k in ("depth.pcd.lsq.adapted", "depth.pcd.median.adapted", "depth.esi.adapted"):
@@ -176,7 +200,8 @@ def test_scheme_none_and_report(setup):
     r = run_sequence(seq, _cfg(tmp, "adapt.scheme=none"), out=tmp / "rep")
     kf = pd.read_csv(r.folder / "keyframes.csv")  # a row per keyframe, though Algorithm 1 ticked none
     n_kf = len(np.loadtxt(r.folder / "traj_kf.txt", ndmin=2))
-    assert list(kf["kf_id"]) == list(range(n_kf)) and set(kf["not_ticked"]) == {"scheme none"}
+    assert list(kf["kf_id"]) == list(range(n_kf))
+    assert set(kf["not_ticked"]) == {"scheme none"}
     assert r.summary["adaptation"]["labels"] == "oracle"  # smoke.yaml's oracle front end re-triangulates later
     # settings the pre-trained rows do not depend on differ: the rows are still shared
     run_sequence(seq, _cfg(tmp, "adapt.scheme=recent", "eval.online=false", "eval.export_frames=1"), out=tmp / "rep")
@@ -207,7 +232,8 @@ def test_ablate_grid_resumes(setup):
     second = run_grid(cfg, jobs, tmp / "grid")
     assert sorted(o.status for o in second) == ["done", "skipped"]
     bad = run_grid(cfg, expand([str(tmp / "missing")], ["none"], [0]), tmp / "grid")
-    assert bad[0].status == "failed" and "missing" in bad[0].error
+    assert bad[0].status == "failed"
+    assert "missing" in bad[0].error
 
 
 @pytest.mark.slow  # ~20 s in CI: a hindsight-only diagnostic (vo.inject_outliers)
@@ -218,8 +244,10 @@ def test_injected_outliers_are_counted(setup, default_run):
                      out=tmp / "outl")
     flat = flatten(r.summary)
     assert flat["map.outliers.injected"] == round(0.2 * on["map.points.vo"]) > 0
-    assert flat["map.points.vo"] == on["map.points.vo"] and flat["map.esi.vo"] > on["map.esi.vo"]
-    assert 0 <= flat["map.outliers.culled"] <= 1 and 0 <= flat["map.inliers.kept"] <= 1
+    assert flat["map.points.vo"] == on["map.points.vo"]
+    assert flat["map.esi.vo"] > on["map.esi.vo"]
+    assert 0 <= flat["map.outliers.culled"] <= 1
+    assert 0 <= flat["map.inliers.kept"] <= 1
     assert 0 <= flat["map.outliers.dropped"] <= 1
     # the knob is applied to the cached front end, not part of its key
     loaded = load_sequence(seq)
@@ -227,7 +255,7 @@ def test_injected_outliers_are_counted(setup, default_run):
     assert vo_cache_key(loaded, _cfg(tmp, "vo.inject_outliers=0.2", hindsight)) == vo_cache_key(loaded, _cfg(tmp))
     nc = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", hindsight, "ba.culling=false", "ba.final=always"),
                       out=tmp / "outl_nc")
-    with pytest.raises(ConfigError, match="inject_outliers .* needs adapt.labels=hindsight"):
+    with pytest.raises(ConfigError, match=r"inject_outliers .* needs adapt.labels=hindsight"):
         _cfg(tmp, "vo.inject_outliers=0.2")
     assert nc.summary["map"]["outliers"]["culled"] is None
     assert "no culling" in nc.summary["notes"]["map.outliers.culled"]
@@ -247,5 +275,7 @@ def test_batched_evaluation_matches_frame_by_frame(setup):
         pred = make_predictor(net, cfg, False)
         tables[b], ms = evaluate_depth(loaded, {"m": lambda f, p=pred, c=calls: c.append(len(f)) or p(f)}, cfg,
                                        progress=lambda d, n: None)
-        assert sum(calls) == len(tables[b]) and max(calls) == b and ms["m"] > 0
+        assert sum(calls) == len(tables[b])
+        assert max(calls) == b
+        assert ms["m"] > 0
     pd.testing.assert_frame_equal(tables[1], tables[5], check_exact=False, rtol=1e-4, atol=1e-3)

@@ -19,9 +19,9 @@ from mutualslam_cli.adapt.warp import warp
 from mutualslam_cli.backend.culling import cull_map_points
 from mutualslam_cli.datasets.fy_sign import warp_error
 from mutualslam_cli.geometry import exp_so3 as _exp_so3
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.pixels import PIXEL_TOL, in_image, in_image_uv, lookup_nearest
 from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 def exp_so3(phi: np.ndarray) -> np.ndarray:
@@ -128,7 +128,7 @@ def test_sparse_depth_keeps_map_points_on_the_border():
 
 def test_culling_judges_map_points_on_the_border():
     """backend/culling.py: a corner point is compared with the CNN depth, not left unjudged."""
-    vo, z = _border_vo()
+    vo, _z = _border_vo()
     res = cull_map_points(vo, {0: 0.1, 1: 0.2}, lambda k, px: np.full(len(px), 1.0), 0.5, 1.5)
     assert res.judged.all()
 
@@ -142,7 +142,8 @@ def test_fy_sign_warp_counts_every_pixel_of_an_identity_warp():
     T[:3, :3], T[:3, 3] = exp_so3(np.array([0.4, -0.3, 0.2])), [0.7, -0.2, 0.3]
     K = np.array([[50.3, 0, 31.7], [0, -50.1, 23.9], [0, 0, 1]])
     err, n = warp_error(gray, depth, gray, T, T, K, step=1)
-    assert n == 48 * 64 and err < 1e-3
+    assert n == 48 * 64
+    assert err < 1e-3
 
 
 # Hand-written bounds tests: a position compared with 0 and with W−1 / H−1 / W (the rule lives in

@@ -15,8 +15,8 @@ its own ``K``).
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -68,7 +68,6 @@ def source_triplets(n: int, width: int, height: int, scenes: Sequence[str] = SOU
         out[k] = torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.save(f, out.numpy(), allow_pickle=False)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.save(f, out.numpy(), allow_pickle=False)
     return out, K

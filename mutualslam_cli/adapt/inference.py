@@ -27,7 +27,7 @@ import functools
 import logging
 import os
 import warnings
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -45,7 +45,7 @@ def openvino_available() -> bool:
     """True when the ``openvino`` package imports."""
     try:
         import openvino  # noqa: F401
-    except Exception:  # noqa: BLE001 - any import failure means "not usable"
+    except Exception:
         return False
     return True
 

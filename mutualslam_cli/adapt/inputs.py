@@ -7,8 +7,8 @@ and the same resampling (area).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -21,9 +21,9 @@ from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.device import amp_supported, module_device
 from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
-from mutualslam_cli.map.result import VOResult
 
 
 def resample(rgb: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -179,7 +179,7 @@ def photometric_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: t
 @_fp32
 def sample_depth(depth: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Bilinear depth at subpixel ``uv`` ``(B, M, 2)`` (pixel centres, border clamp) → ``(B, M)``."""
-    b, _, h, w = depth.shape
+    _b, _, h, w = depth.shape
     grid = torch.stack([2.0 * uv[..., 0] / max(w - 1, 1) - 1.0, 2.0 * uv[..., 1] / max(h - 1, 1) - 1.0], -1)
     out = F.grid_sample(depth, grid.unsqueeze(1).to(depth.dtype), mode="bilinear", padding_mode="border",
                         align_corners=True)

@@ -42,7 +42,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Callable, Literal, Mapping
+from collections.abc import Callable, Mapping
+from typing import Literal
 
 import numpy as np
 import torch

@@ -81,7 +81,8 @@ mutualslam_cli.bench.strength``).
 
 from __future__ import annotations
 
-from typing import Callable, Literal
+from collections.abc import Callable
+from typing import Literal
 
 import torch
 from torch import nn

@@ -26,7 +26,7 @@ forward pass never uses, as the encoder's ``fc``, get zeros as in the loop).
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn

@@ -39,7 +39,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from enum import Enum
-from typing import Union
 
 from mutualslam_cli.errors import ConfigError, TransitionError
 
@@ -110,7 +109,7 @@ class FineTuneDone:
     """The caller finished (or skipped) the fine-tuning requested by :data:`Action.FINE_TUNE`."""
 
 
-Event = Union[TrainingKeyframe, ValidationKeyframe, FineTuneDone]
+Event = TrainingKeyframe | ValidationKeyframe | FineTuneDone
 
 
 def is_validation_index(t: int, m: int) -> bool:

@@ -20,19 +20,19 @@ so it shares no observation with the map before it, and everything that solves p
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import cv2
 import numpy as np
 
+from mutualslam_cli.geometry import to_normalized
+from mutualslam_cli.map.result import MapPoints, VOResult
+from mutualslam_cli.map.sim3 import Sim3
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.camera import undistort_points
-from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import orb_features, orb_matches
-from mutualslam_cli.map.result import MapPoints, VOResult
-from mutualslam_cli.map.sim3 import Sim3
 
 #: Map points with a depth prediction a keyframe needs for its scale ratio.
 MIN_RATIO_POINTS = 10

@@ -13,15 +13,15 @@ network is supervised with the map's sparse depth, Eq. 7).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Callable, Mapping
 
 import numpy as np
 
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.geometry import project, se3_inv, transform
-from mutualslam_cli.pixels import in_image
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.pixels import in_image
 
 DepthLookup = Callable[[int, np.ndarray], np.ndarray]
 """``depth_at(kf_id, pixels)``: CNN depth (map units) of keyframe ``kf_id`` at ``(M, 2)``
@@ -96,7 +96,7 @@ class CullResult:
 
     @property
     def n_before(self) -> int:
-        return int(len(self.keep))
+        return len(self.keep)
 
     @property
     def n_after(self) -> int:

@@ -35,14 +35,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mutualslam_cli.backend.bridges import MIN_RATIO_POINTS
 from mutualslam_cli.config import LoopConfig
+from mutualslam_cli.map.state import MapState
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import focal_px, undistort_points
-from mutualslam_cli.map.state import MapState
 from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
-from mutualslam_cli.backend.bridges import MIN_RATIO_POINTS
-
 
 #: A loop that moves its query keyframe less than this (degrees; relative to its median point depth, and in log
 #: scale) closes nothing new (:meth:`LoopDetector.already_closed`).

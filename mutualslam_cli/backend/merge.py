@@ -26,7 +26,7 @@ A segment is merged at most once.
 from __future__ import annotations
 
 import time
-from typing import Callable, Mapping
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -38,7 +38,6 @@ from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.vo.camera import focal_px
-
 
 #: The old segments' newest keyframes a merge query tries before the appearance ranking: a segment started after a
 #: loss most often sees again what the camera saw when it lost track (TUM fr1_desk: the appearance ranking alone

@@ -20,11 +20,13 @@ times over, and tested far less.
 
 from __future__ import annotations
 
+import itertools
+
 import gtsam
 import numpy as np
 
-from mutualslam_cli.map.refinement import MapRefinement
 from mutualslam_cli.backend.loop_detector import LoopClosure
+from mutualslam_cli.map.refinement import MapRefinement
 from mutualslam_cli.map.state import MapState
 
 #: Standard deviations of an odometry edge, per tangent coordinate (rotation ×3 rad, translation ×3 map units, log
@@ -64,7 +66,7 @@ def close_loop(state: MapState, loop: LoopClosure, min_shared: int = 20, window:
     for k in kfs:
         values.insert(k, _sim3(M0[k]))
     graph.add(gtsam.NonlinearEqualitySimilarity3(loop.match, _sim3(M0[loop.match])))
-    pairs = set(zip(kfs, kfs[1:]))
+    pairs = set(itertools.pairwise(kfs))
     for a_i, a in enumerate(kfs):
         for b in kfs[a_i + 1:a_i + 1 + window]:
             if state.n_shared(a, b) >= min_shared:

@@ -13,8 +13,9 @@ of a run refines a finished map with the same :meth:`MapBA.run_ba` (:mod:`~mutua
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Mapping, Protocol
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -24,11 +25,11 @@ from mutualslam_cli.backend.ba.global_ba import GlobalBAResult, run_global_ba, w
 from mutualslam_cli.backend.records import BARun
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.map.refinement import MapRefinement
+from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.state import MapState
 from mutualslam_cli.types import FrameRef, Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
-from mutualslam_cli.map.refinement import MapRefinement
-from mutualslam_cli.map.state import MapState
-from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 

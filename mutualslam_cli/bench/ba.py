@@ -41,7 +41,8 @@ from __future__ import annotations
 
 import argparse
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -154,10 +155,7 @@ def synthetic_problem(n_kf: int = 6, n_points: int = 600, hw: tuple[int, int] = 
     # loop: 2.5 mm texels (< 1 px at 1.5 m), so the renders are smooth at the pixel scale
     size, ppm = (512, 100.0) if path == "compact" else (2048, 400.0)
     textures = [_texture(rng, size=size, cells=cells) for _ in planes]
-    if path == "compact":
-        T = np.stack([_pose(i, n_kf, extent) for i in range(n_kf)])
-    else:
-        T = _loop_poses(n_kf, extent)
+    T = np.stack([_pose(i, n_kf, extent) for i in range(n_kf)]) if path == "compact" else _loop_poses(n_kf, extent)
     imgs, deps = zip(*(render(T[i], K, hw, textures, ppm, planes) for i in range(n_kf)))
     imgs, deps = np.stack(imgs), np.stack(deps)
     per = int(np.ceil(n_points / n_kf))

@@ -10,6 +10,7 @@ are counted with their time.
 from __future__ import annotations
 
 import collections
+import contextlib
 import os
 import subprocess
 import sys
@@ -42,10 +43,8 @@ def parse_verbose(lines: list[str]) -> dict[str, Any]:
         i = f.index("exec")
         kind, name = f[i + 2], f[i + 3]
         if kind in ms:
-            try:
+            with contextlib.suppress(ValueError):  # a verbose line without a time
                 ms[kind] += float(f[-1])
-            except ValueError:
-                pass
         if kind == "convolution":
             impl[name] += 1
             src = next((x for x in f if x.startswith("src:")), "src:?")

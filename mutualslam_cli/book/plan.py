@@ -103,7 +103,7 @@ def render_synth(ref: SequenceRef, data_dir: Path) -> Path:
         tmp.rename(out)
     except MslamError:
         raise
-    except Exception as e:  # noqa: BLE001 - a renderer refusal (bad scene, size) as one line
+    except Exception as e:
         raise ConfigError(f"sequence {ref.name}: cannot render {s}: {e}") from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

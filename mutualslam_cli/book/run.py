@@ -17,9 +17,10 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from mutualslam_cli.ablate import JobOutcome, run_grid
 from mutualslam_cli.atomic import atomic_write_text
@@ -141,7 +142,7 @@ def write_book(spec: BookSpec, plan: Plan, out: Path, grids: set[str], only: lis
             "book": {"name": spec.name, "file": _relative(spec.path), "file_sha256": _sha256(spec.path),
                      "commit": git_revision(), "created_utc": dt.datetime.now(dt.timezone.utc).isoformat(
                          timespec="seconds"), "cpu_kind": cpu.get("cpu_kind"), "cpu_model": cpu.get("cpu_model"),
-                     "only": list(only or []), "runs": int(len(runs)),
+                     "only": list(only or []), "runs": len(runs),
                      "commits": sorted({str(c) for c in runs.get("book.commit", []) if c}),
                      "devices": sorted({str(c) for c in runs.get("run.device_label", []) if c == c and c})},
             "grids": describe(plan), "tables": {k: t.as_dict() for k, t in tables.items()},

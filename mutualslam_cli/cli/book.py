@@ -6,7 +6,7 @@ from __future__ import annotations
 import shutil
 import sys
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import typer
 from rich.markup import escape
@@ -18,15 +18,15 @@ from mutualslam_cli.cli.common import DataRootOpt, RegistryOpt, SetOpt, app, pro
 @app.command()
 def book(
     book_file: Path = typer.Argument(Path("configs/book.yaml"), help="The book file (default configs/book.yaml)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default: the book's, results/book)."),
-    only: Optional[list[str]] = typer.Option(None, "--only", help="Run and write only this entry (a table, figure, "
+    out: Path | None = typer.Option(None, "--out", help="Results folder (default: the book's, results/book)."),
+    only: list[str] | None = typer.Option(None, "--only", help="Run and write only this entry (a table, figure, "
                                                                   "finding or grid; repeatable)."),
     workers: int = typer.Option(1, "--workers", "-j", min=1, help="Worker processes (as mslam ablate)."),
     executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address."),
-    sets: Optional[list[str]] = SetOpt,
-    data_root: Optional[str] = DataRootOpt,
-    registry: Optional[Path] = RegistryOpt,
+    scheduler: str | None = typer.Option(None, "--scheduler", help="Dask scheduler address."),
+    sets: list[str] | None = SetOpt,
+    data_root: str | None = DataRootOpt,
+    registry: Path | None = RegistryOpt,
     dry_run: bool = typer.Option(False, "--dry-run", help="Only say what would run (jobs per grid, how many done)."),
     publish: bool = typer.Option(False, "--publish", help="Then copy book.json to results/book.json (the committed "
                                                           "copy) and rewrite the README's blocks from it."),

@@ -11,7 +11,7 @@ import logging
 import re
 import unicodedata
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import click
 import typer
@@ -71,7 +71,7 @@ def shown(text: object) -> str:
     return escape(one_line(str(text)))
 
 
-def reflowed(text: Optional[str]) -> Optional[str]:
+def reflowed(text: str | None) -> str | None:
     """A command's help as typer should get it: each paragraph (blank-line separated) on one line.
 
     Docstrings wrap at the source's line length, but typer in rich markup mode keeps a single line break
@@ -115,8 +115,8 @@ def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progr
                         handlers=[RichHandler(console=err_console, show_path=False, show_time=False)])
 
 
-def config_from(config: Optional[Path], sets: Optional[list[str]], data_root: Optional[str] = None,
-                device: Optional[str] = None) -> RunConfig:
+def config_from(config: Path | None, sets: list[str] | None, data_root: str | None = None,
+                device: str | None = None) -> RunConfig:
     """The run config of a command: ``--config`` (default the paper's), ``--set`` overrides, ``--data-root``,
     ``--device``."""
     cfg = load_config(config, sets or [])

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Optional
+from typing import Any
 
 import typer
 from rich.table import Table
@@ -38,24 +39,24 @@ class _Shared:
     """The options every ``mslam datasets`` sub-command takes, given before the sub-command
     (``mslam datasets --registry R check``) or after it (``mslam datasets check --registry R``): after wins."""
 
-    registry: Optional[Path] = None
-    data_root: Optional[str] = None
-    config: Optional[Path] = None
+    registry: Path | None = None
+    data_root: str | None = None
+    config: Path | None = None
     sets: tuple[str, ...] = ()
 
-    def over(self, registry: Optional[Path], data_root: Optional[str], config: Optional[Path],
-             sets: Optional[list[str]]) -> _Shared:
+    def over(self, registry: Path | None, data_root: str | None, config: Path | None,
+             sets: list[str] | None) -> _Shared:
         """These options with a sub-command's own on top (``--set`` adds to the list)."""
         return _Shared(registry or self.registry, data_root or self.data_root, config or self.config,
                        self.sets + tuple(sets or ()))
 
-    def data_root_of(self) -> Optional[str]:
+    def data_root_of(self) -> str | None:
         """The data root of the run config (``--config``, ``--set``, ``--data-root``)."""
         return config_from(self.config, list(self.sets), self.data_root).data.data_root
 
 
-def _shared(ctx: typer.Context, registry: Optional[Path], data_root: Optional[str], config: Optional[Path],
-            sets: Optional[list[str]]) -> _Shared:
+def _shared(ctx: typer.Context, registry: Path | None, data_root: str | None, config: Path | None,
+            sets: list[str] | None) -> _Shared:
     """The shared options of ``ctx``'s sub-command, over those given to ``mslam datasets`` itself."""
     given = ctx.obj if isinstance(ctx.obj, _Shared) else _Shared()  # a sub-context inherits its parent's obj
     return given.over(registry, data_root, config, sets)
@@ -64,10 +65,10 @@ def _shared(ctx: typer.Context, registry: Optional[Path], data_root: Optional[st
 @datasets_app.callback()
 def datasets(
     ctx: typer.Context,
-    registry: Optional[Path] = RegistryOpt,
-    data_root: Optional[str] = DataRootOpt,
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
+    registry: Path | None = RegistryOpt,
+    data_root: str | None = DataRootOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
 ) -> None:
     """The sequences of datasets.yaml: list them, check them, download the public ones.
 
@@ -81,10 +82,10 @@ def datasets(
 @datasets_app.command("list")
 def list_(
     ctx: typer.Context,
-    registry: Optional[Path] = RegistryOpt,
-    data_root: Optional[str] = DataRootOpt,
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
+    registry: Path | None = RegistryOpt,
+    data_root: str | None = DataRootOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
 ) -> None:
     """List the entries of datasets.yaml: format, whether the folder exists, intrinsics and depth scale."""
     _list(_shared(ctx, registry, data_root, config, sets))
@@ -107,13 +108,13 @@ def _list(opts: _Shared) -> None:
 @datasets_app.command()
 def check(
     ctx: typer.Context,
-    name: Optional[list[str]] = typer.Argument(None, help="datasets.yaml names or sequence folders (default: every "
+    name: list[str] | None = typer.Argument(None, help="datasets.yaml names or sequence folders (default: every "
                                                "entry whose folder exists)."),
     sample: int = SampleOpt,
-    registry: Optional[Path] = RegistryOpt,
-    data_root: Optional[str] = DataRootOpt,
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
+    registry: Path | None = RegistryOpt,
+    data_root: str | None = DataRootOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
 ) -> None:
     """Verify sequences: files, intrinsics, GT coverage, fy sign, and every RGB and depth image decoded.
 
@@ -134,22 +135,22 @@ def check(
 @datasets_app.command()
 def download(
     ctx: typer.Context,
-    name: Optional[list[str]] = typer.Argument(None, help="datasets.yaml names of entries with a `download:` block "
+    name: list[str] | None = typer.Argument(None, help="datasets.yaml names of entries with a `download:` block "
                                                "(none: the error lists them)."),
-    base_url: Optional[str] = typer.Option(None, "--base-url", help="A mirror; each URL becomes "
+    base_url: str | None = typer.Option(None, "--base-url", help="A mirror; each URL becomes "
                                            "BASE_URL/<file name> (default $MSLAM_DOWNLOAD_BASE_URL)."),
     force: bool = typer.Option(False, "--force", help="Unpack again and replace a sequence folder that mslam "
                                "unpacked, once the new one passes the check (downloaded archives are reused; the "
                                "old folder stays if anything fails; a folder mslam did not unpack is never "
                                "replaced)."),
-    max_unpack_gb: Optional[float] = typer.Option(None, "--max-unpack-gb", min=0, help="Most GB an archive may "
+    max_unpack_gb: float | None = typer.Option(None, "--max-unpack-gb", min=0, help="Most GB an archive may "
                                                   "unpack to (default 10× its size; never more than the free "
                                                   "disk)."),
     sample: int = SampleOpt,
-    registry: Optional[Path] = RegistryOpt,
-    data_root: Optional[str] = DataRootOpt,
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
+    registry: Path | None = RegistryOpt,
+    data_root: str | None = DataRootOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
 ) -> None:
     """Fetch, verify and unpack the public archives of datasets.yaml entries, then check each sequence.
 
@@ -159,7 +160,7 @@ def download(
     _download(list(name or []), sample, base_url, force, opts.registry, opts.data_root_of(), max_unpack_gb)
 
 
-def _check_and_print(target: Any, sample: int, data_root: Optional[str], registry: Optional[Path]) -> None:
+def _check_and_print(target: Any, sample: int, data_root: str | None, registry: Path | None) -> None:
     """``check_sequence`` of ``target`` (a name, folder or spec) with a decode bar, then its table."""
     from mutualslam_cli.datasets.check import check_sequence
 
@@ -211,8 +212,8 @@ def _print_report(r: Any) -> None:
     common.console.print(t)
 
 
-def _download(names: list[str], sample: int, base_url: Optional[str], force: bool, registry: Optional[Path],
-              data_root: Optional[str], max_unpack_gb: Optional[float]) -> None:
+def _download(names: list[str], sample: int, base_url: str | None, force: bool, registry: Path | None,
+              data_root: str | None, max_unpack_gb: float | None) -> None:
     """``mslam datasets download NAME…``: each sequence fetched, verified, unpacked, then checked."""
     from mutualslam_cli.datasets.download.entry import DOWNLOAD_DIR, data_root_of, downloadable_specs
     from mutualslam_cli.datasets.download.limits import UnpackLimits
@@ -228,7 +229,7 @@ def _download(names: list[str], sample: int, base_url: Optional[str], force: boo
             _print_report(report)
 
 
-def _download_one(spec: Any, folder: Path, base_url: Optional[str], force: bool, limits: Any, sample: int) -> Any:
+def _download_one(spec: Any, folder: Path, base_url: str | None, force: bool, limits: Any, sample: int) -> Any:
     """One entry's download, unpacking and check, with a bar (size, speed) per file; the bars go when it is done.
     Returns the check's report (``None``: skipped)."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
@@ -264,10 +265,10 @@ def synth(
     scene: str = typer.Option("room", "--scene", help="room | planar | far"),
     frames: int = typer.Option(120, "--frames", "-n", min=2),
     size: str = typer.Option("640x480", "--size", help="WIDTHxHEIGHT"),
-    seed: Optional[int] = typer.Option(None, "--seed", help="Default: the config's seed."),
+    seed: int | None = typer.Option(None, "--seed", help="Default: the config's seed."),
     domain: str = typer.Option("target", "--domain", help="target | source (pre-training domain)"),
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
 ) -> None:
     """Render a synthetic RGB-D sequence with exact depth and poses, in TUM layout."""
     from mutualslam_cli.datasets import synthetic
@@ -299,18 +300,18 @@ def synth(
 
 @app.command()
 def pretrain(
-    out: Optional[Path] = typer.Option(None, "--out",
+    out: Path | None = typer.Option(None, "--out",
                                        help="Folder for encoder.pth/depth.pth (default: the default model)."),
     steps: int = typer.Option(1150, "--steps", min=1, help="Training steps (the shipped model: 1150)."),
     batch_size: int = typer.Option(4, "--batch-size", min=1),
-    seed: Optional[int] = typer.Option(None, "--seed", help="Default: the config's seed."),
+    seed: int | None = typer.Option(None, "--seed", help="Default: the config's seed."),
     threads: int = typer.Option(1, "--threads", min=1, help="torch threads (results depend on it slightly)."),
-    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop early and save after this long."),
+    max_minutes: float | None = typer.Option(None, "--max-minutes", help="Stop early and save after this long."),
     quick: bool = typer.Option(False, "--quick", help="A few steps at small size (smoke test)."),
     pose: bool = typer.Option(False, "--pose", help="Train scheme comoda's pose network instead "
                               "(pose_encoder.pth/pose.pth, from the depth encoder in --out or the default)."),
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
 ) -> None:
     """Train the default depth network on the synthetic source domain (stand-in for KITTI pre-training)."""
     from mutualslam_cli.adapt import pretrain as pt
@@ -339,7 +340,7 @@ def pretrain(
 
 
 def _pretrain_pose(cfg: Any, out: Path, steps: int, batch_size: int, seed: int, threads: int,
-                   max_minutes: Optional[float], quick: bool) -> None:
+                   max_minutes: float | None, quick: bool) -> None:
     """``mslam pretrain --pose``: the pose network, initialised from the depth encoder found in ``out``."""
     from mutualslam_cli.adapt.pretrain_pose import pretrain_pose
     from mutualslam_cli.adapt.weights import default_weights_dir, load_monodepth2

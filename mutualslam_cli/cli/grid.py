@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import typer
 from rich.markup import escape
@@ -30,24 +30,24 @@ from mutualslam_cli.results.writable import check_output_folder, write_errors
 @app.command()
 def ablate(
     seqs: list[str] = typer.Argument(..., help="datasets.yaml names or sequence folders."),
-    schemes: Optional[str] = typer.Option(None, "--schemes",
+    schemes: str | None = typer.Option(None, "--schemes",
                                           help="Comma-separated scheme names (default: the config's "
                                                "experiment.schemes, else none,recent,replay,replay+ewc,"
                                                "replay+mas,replay+si)."),
-    seeds: Optional[str] = typer.Option(None, "--seeds", help="Comma-separated seeds, or a range like 0-2 "
+    seeds: str | None = typer.Option(None, "--seeds", help="Comma-separated seeds, or a range like 0-2 "
                                                               "(default: the config's experiment.seeds, else 0)."),
     workers: int = typer.Option(1, "--workers", "-j", min=1,
                                 help="Worker processes (local pool, or LocalCluster workers with --executor dask)."),
     executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler",
+    scheduler: str | None = typer.Option(None, "--scheduler",
                                             help="Dask scheduler address, e.g. tcp://host:8786 "
                                                  "(default: a LocalCluster of --workers processes)."),
-    out: Optional[Path] = ResultsOutOpt,
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
-    data_root: Optional[str] = DataRootOpt,
-    registry: Optional[Path] = RegistryOpt,
-    device: Optional[str] = DeviceOpt,
+    out: Path | None = ResultsOutOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
+    data_root: str | None = DataRootOpt,
+    registry: Path | None = RegistryOpt,
+    device: str | None = DeviceOpt,
 ) -> None:
     """The grid sequences × schemes × seeds (× the config's experiment.variants); complete runs are
     skipped, so a killed grid resumes.
@@ -98,18 +98,18 @@ def ablate(
 @app.command()
 def report(
     results: list[Path] = typer.Argument(..., help="Result folders (searched recursively for summary.json)."),
-    out: Optional[Path] = typer.Option(None, "--out",
+    out: Path | None = typer.Option(None, "--out",
                                        help="Folder for tables and plots (default <config out>/report)."),
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
-    pair: Optional[list[str]] = typer.Option(None, "--pair",
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
+    pair: list[str] | None = typer.Option(None, "--pair",
                                              help="A paired comparison 'A vs B' (repeatable): each side a scheme, "
                                                   "key=value config selectors (comma-separated) and/or @KEY, e.g. "
                                                   "'replay+ewc vs replay', 'ba.final=always vs ba.final=on_request', "
                                                   "'@depth.pcd.lsq.adapted vs @depth.pcd.lsq.pretrained'."),
     metric: str = typer.Option("depth.pcd.lsq.adapted", "--metric",
                                help="Summary key of a --pair side without @KEY."),
-    better: Optional[str] = typer.Option(None, "--better", help="higher or lower (default: lower for errors and "
+    better: str | None = typer.Option(None, "--better", help="higher or lower (default: lower for errors and "
                                                                 "times, else higher)."),
     broadcast: bool = typer.Option(False, "--broadcast", help="--pair: an arm with one seed on a sequence stands "
                                                               "for every seed there (schemes without replay)."),

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import typer
 from rich.markup import escape
@@ -99,31 +99,31 @@ def _stage_table(f: dict[str, Any]) -> Table:
 @app.command()
 def run(
     seq: str = typer.Argument(..., help="datasets.yaml name or sequence folder."),
-    scheme: Optional[str] = typer.Option(None, "--scheme", help="Adaptation scheme (default from config: replay+ewc)."),
-    vo: Optional[str] = typer.Option(
+    scheme: str | None = typer.Option(None, "--scheme", help="Adaptation scheme (default from config: replay+ewc)."),
+    vo: str | None = typer.Option(
         None, "--vo", help="svo | gt (pose oracle: our VO's tracks with GT poses) | "
                            "gt-depth (GT poses and GT sparse depth: an upper bound)."),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="Folder with Monodepth2 encoder.pth/depth.pth."),
-    seed: Optional[int] = typer.Option(None, "--seed"),
-    out: Optional[Path] = ResultsOutOpt,
+    weights: Path | None = typer.Option(None, "--weights", help="Folder with Monodepth2 encoder.pth/depth.pth."),
+    seed: int | None = typer.Option(None, "--seed"),
+    out: Path | None = ResultsOutOpt,
     force: bool = typer.Option(False, "--force", help="Recompute a complete run."),
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
-    data_root: Optional[str] = DataRootOpt,
-    registry: Optional[Path] = RegistryOpt,
-    device: Optional[str] = DeviceOpt,
-    rgb_topic: Optional[str] = typer.Option(None, "--rgb-topic", help="Bag: colour image topic (Image or "
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
+    data_root: str | None = DataRootOpt,
+    registry: Path | None = RegistryOpt,
+    device: str | None = DeviceOpt,
+    rgb_topic: str | None = typer.Option(None, "--rgb-topic", help="Bag: colour image topic (Image or "
                                             "CompressedImage; default the only non-depth image topic)."),
-    depth_topic: Optional[str] = typer.Option(None, "--depth-topic", help="Bag: depth topic (16UC1 mm or 32FC1 m; "
+    depth_topic: str | None = typer.Option(None, "--depth-topic", help="Bag: depth topic (16UC1 mm or 32FC1 m; "
                                               "default none)."),
-    camera_info_topic: Optional[str] = typer.Option(None, "--camera-info-topic", help="Bag: CameraInfo topic "
+    camera_info_topic: str | None = typer.Option(None, "--camera-info-topic", help="Bag: CameraInfo topic "
                                                     "(default the one beside the colour topic)."),
-    pose_topic: Optional[str] = typer.Option(None, "--pose-topic", help="Bag: GT poses (PoseStamped, "
+    pose_topic: str | None = typer.Option(None, "--pose-topic", help="Bag: GT poses (PoseStamped, "
                                              "TransformStamped or Odometry; camera-to-world)."),
-    gt: Optional[Path] = typer.Option(None, "--gt", help="GT trajectory file (TUM: timestamp tx ty tz qx qy qz qw)."),
-    camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file: OpenCV calibration YAML, ROS "
+    gt: Path | None = typer.Option(None, "--gt", help="GT trajectory file (TUM: timestamp tx ty tz qx qy qz qw)."),
+    camera: Path | None = typer.Option(None, "--camera", help="Camera file: OpenCV calibration YAML, ROS "
                                           "camera YAML, or a line 'fx fy cx cy \\[k1 k2 p1 p2 k3]'."),
-    fps: Optional[float] = typer.Option(None, "--fps", help="Image folder without timestamps in the file names: "
+    fps: float | None = typer.Option(None, "--fps", help="Image folder without timestamps in the file names: "
                                         "frames per second (default 30)."),
 ) -> None:
     """One sequence, one scheme: front end → adaptation → evaluation → results/<seq>/<scheme>/seed<k>/.
@@ -181,8 +181,8 @@ def run(
 @app.command()
 def fuse(
     run_dir: Path = typer.Argument(..., help="A finished run folder (<out>/<seq>/<scheme>/seed<k>) with weights/."),
-    sets: Optional[list[str]] = SetOpt,
-    registry: Optional[Path] = RegistryOpt,
+    sets: list[str] | None = SetOpt,
+    registry: Path | None = RegistryOpt,
 ) -> None:
     """Dense reconstruction of a finished run: TSDF meshes of both models' depth, scored against GT depth
     fused with GT poses (needs the run's adapted weights: --set eval.save_weights=true)."""
@@ -226,15 +226,15 @@ def eval_depth(
                              "frame by least-squares scale and shift in inverse depth)."),
     scale: float = typer.Option(1.0, "--scale", help="Multiplies every stored value (e.g. 0.0002 for 16-bit PNG "
                                 "depth at 5000 per metre)."),
-    ext: Optional[str] = typer.Option(None, "--ext", help="Read only this format when the folder holds several "
+    ext: str | None = typer.Option(None, "--ext", help="Read only this format when the folder holds several "
                                       "(MiDaS writes .pfm and .png: --ext pfm)."),
-    key: Optional[str] = typer.Option(None, "--key", help="The array inside .npz files that hold several."),
-    out: Optional[Path] = ResultsOutOpt,
+    key: str | None = typer.Option(None, "--key", help="The array inside .npz files that hold several."),
+    out: Path | None = ResultsOutOpt,
     force: bool = typer.Option(False, "--force", help="Rescore a complete result."),
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
-    data_root: Optional[str] = DataRootOpt,
-    registry: Optional[Path] = RegistryOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
+    data_root: str | None = DataRootOpt,
+    registry: Path | None = RegistryOpt,
 ) -> None:
     """Score another network's depth predictions exactly as `run` scores ours → results/<seq>/<NAME>/seed0/."""
     from mutualslam_cli.eval_depth import eval_depth as score_external
@@ -266,11 +266,11 @@ def ate(
     ref: Path = typer.Argument(..., help="Reference TUM trajectory (timestamp tx ty tz qx qy qz qw)."),
     est: Path = typer.Argument(..., help="Estimated TUM trajectory."),
     align: str = typer.Option("sim3", "--align", help="sim3 | se3 | none"),
-    max_dt: Optional[float] = typer.Option(None, "--max-dt",
+    max_dt: float | None = typer.Option(None, "--max-dt",
                                            help="Association threshold, s (default eval.ate_max_dt)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object (units in the keys) instead of a table."),
-    config: Optional[Path] = ConfigOpt,
-    sets: Optional[list[str]] = SetOpt,
+    config: Path | None = ConfigOpt,
+    sets: list[str] | None = SetOpt,
 ) -> None:
     """ATE of two TUM-format trajectories (the pipeline's own code path)."""
     import json

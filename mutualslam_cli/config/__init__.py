@@ -31,6 +31,21 @@ from mutualslam_cli.config.run import (
     with_settings,
 )
 
-__all__ = ["AdaptConfig", "BAConfig", "CONFIG_DIR", "DataConfig", "DenseConfig", "EvalConfig", "ExperimentConfig",
-           "LoopConfig", "NetConfig", "RunConfig", "VOConfig", "load_config", "to_dict", "tuned_on", "with_overrides",
-           "with_settings"]
+__all__ = [
+    "CONFIG_DIR",
+    "AdaptConfig",
+    "BAConfig",
+    "DataConfig",
+    "DenseConfig",
+    "EvalConfig",
+    "ExperimentConfig",
+    "LoopConfig",
+    "NetConfig",
+    "RunConfig",
+    "VOConfig",
+    "load_config",
+    "to_dict",
+    "tuned_on",
+    "with_overrides",
+    "with_settings",
+]

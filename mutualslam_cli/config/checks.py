@@ -20,8 +20,9 @@ import math
 import re
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 from mutualslam_cli.errors import ConfigError
 
@@ -160,7 +161,7 @@ def _dotted(record: Any, key: str) -> Any:
     return record
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _choices(cls: type) -> dict[str, tuple[Any, ...]]:
     """Field name → the values its ``Literal`` annotation allows (alone or beside another type)."""
     out = {}

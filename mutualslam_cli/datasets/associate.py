@@ -17,7 +17,7 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Union
+from typing import IO
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import interpolate_pose, pose_from_tq, rot_to_quat
 from mutualslam_cli.types import Trajectory
 
-PathOrStream = Union[str, os.PathLike, IO[str]]
+PathOrStream = str | os.PathLike | IO[str]
 
 MAX_DT = 0.02
 """Association window in seconds (TUM benchmark ``associate.py`` default): RGB↔depth pairing

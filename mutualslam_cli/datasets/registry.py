@@ -9,9 +9,10 @@ from __future__ import annotations
 import logging
 import os
 import re
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.datasets.associate import read_list_file

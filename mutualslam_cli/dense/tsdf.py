@@ -65,10 +65,10 @@ class Mesh:
     colours: np.ndarray
 
     @staticmethod
-    def empty() -> "Mesh":
+    def empty() -> Mesh:
         return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3)))
 
-    def canonical(self) -> "Mesh":
+    def canonical(self) -> Mesh:
         """The same mesh with vertices sorted by (x, y, z) and triangles by their (rotated) indices."""
         if len(self.vertices) == 0:
             return self

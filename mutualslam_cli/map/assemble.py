@@ -13,11 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
 from mutualslam_cli.geometry import pinhole
 from mutualslam_cli.map.records import Relocalised
 from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.map.store import Map
+from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
 
 
 @dataclass(frozen=True)

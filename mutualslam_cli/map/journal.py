@@ -70,7 +70,7 @@ class Event:
     def __getitem__(self, key: str) -> Any:
         return self.data[key]
 
-    def same(self, other: "Event") -> bool:
+    def same(self, other: Event) -> bool:
         """Equal kind, frame and data, arrays compared exactly (NaN equal to NaN)."""
         if self.kind != other.kind or self.frame != other.frame or self.data.keys() != other.data.keys():
             return False

@@ -50,7 +50,7 @@ class MapRefinement:
         return float(self.scale[hit[0]]) if len(hit) else 1.0
 
     @staticmethod
-    def between(before: VOResult, after: VOResult, removed: np.ndarray) -> "MapRefinement":
+    def between(before: VOResult, after: VOResult, removed: np.ndarray) -> MapRefinement:
         """What changed from ``before`` to ``after`` (same keyframes, same point ids), plus ``removed`` ids."""
         kfs = [k.id for k, a in zip(before.keyframes, after.keyframes) if not np.array_equal(k.pose, a.pose)]
         pb, pa = before.points, after.points
@@ -63,7 +63,7 @@ class MapRefinement:
                              pa.ids[changed], pa.inv_depth[changed], pa.pixel[changed],
                              np.asarray(removed, np.int64).reshape(-1))
 
-    def carried(self, state: MapState, last_kf: int) -> "MapRefinement":
+    def carried(self, state: MapState, last_kf: int) -> MapRefinement:
         """This refinement, made on the map as it stood when keyframe ``last_kf`` was the newest, for ``state``
         now: every later keyframe follows the correction of its map unit's newest keyframe at or before
         ``last_kf`` (its pose relative to that one kept, in its new unit), and the points it hosts take

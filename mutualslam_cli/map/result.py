@@ -67,7 +67,7 @@ class MapPoints:
         return len(self.ids)
 
     @staticmethod
-    def empty() -> "MapPoints":
+    def empty() -> MapPoints:
         z = np.zeros(0)
         return MapPoints(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), z, z, [], [])
 
@@ -87,7 +87,7 @@ class MapPoints:
             self.__dict__["_by_keyframe"] = index  # never stale: nothing edits ``observations`` in place
         return index.get(int(kf_id), np.zeros(0, np.int64))
 
-    def subset(self, keep: np.ndarray) -> "MapPoints":
+    def subset(self, keep: np.ndarray) -> MapPoints:
         """Rows where the boolean mask ``keep`` is true."""
         idx = np.flatnonzero(keep)
         return MapPoints(

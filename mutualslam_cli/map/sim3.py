@@ -37,12 +37,12 @@ class Sim3:
     s: float = 1.0
 
     @staticmethod
-    def identity() -> "Sim3":
+    def identity() -> Sim3:
         """``x ↦ x``."""
         return Sim3(np.eye(3), np.zeros(3), 1.0)
 
     @staticmethod
-    def onto(T_from: np.ndarray, T_to: np.ndarray, s: float) -> "Sim3":
+    def onto(T_from: np.ndarray, T_to: np.ndarray, s: float) -> Sim3:
         """The similarity of scale ``s`` that moves the pose ``T_from`` ``(4, 4)`` onto ``T_to`` ``(4, 4)``:
         ``R = R_to·R_fromᵀ``, ``t = t_to − s·R·t_from`` (a bridge: the new segment's first keyframe onto the
         pose the old segment predicts for it)."""
@@ -56,11 +56,11 @@ class Sim3:
         M[:3, 3] = self.t
         return M
 
-    def compose(self, other: "Sim3") -> "Sim3":
+    def compose(self, other: Sim3) -> Sim3:
         """``self ∘ other``: ``x ↦ s₁R₁(s₂R₂x + t₂) + t₁`` (``other`` first)."""
         return Sim3(self.R @ other.R, self.s * self.R @ other.t + self.t, self.s * other.s)
 
-    def inverse(self) -> "Sim3":
+    def inverse(self) -> Sim3:
         """``y ↦ R⁻¹(y − t)/s``."""
         Rt = self.R.T
         return Sim3(Rt, -(Rt @ self.t) / self.s, 1.0 / self.s)

@@ -18,14 +18,14 @@ from typing import Any
 import numpy as np
 
 from mutualslam_cli.geometry import project
-from mutualslam_cli.pixels import in_image
-from mutualslam_cli.types import FrameRef, Intrinsics
 from mutualslam_cli.map.assemble import RunStats, build_result
 from mutualslam_cli.map.journal import Event, Journal
 from mutualslam_cli.map.records import Relocalised
 from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.map.sim3 import Sim3, rescaled
 from mutualslam_cli.map.store import Map
+from mutualslam_cli.pixels import in_image
+from mutualslam_cli.types import FrameRef, Intrinsics
 
 
 class MapState:
@@ -73,7 +73,7 @@ class MapState:
         if self._journal is not None:
             self._journal.emit(kind, **data)
 
-    def fork(self) -> "MapState":
+    def fork(self) -> MapState:
         """A deep copy to change on the side (the map of a delayed change,
         :class:`~mutualslam_cli.online.realtime.DeferredMap`); its journal copied too (the original untouched)."""
         return copy.deepcopy(self)

@@ -30,7 +30,6 @@ then scored like any depth map.
 
 from __future__ import annotations
 
-
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 

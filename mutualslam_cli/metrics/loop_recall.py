@@ -21,8 +21,9 @@ Each stage implies the one before. GT enters here only, after the run: no decisi
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 

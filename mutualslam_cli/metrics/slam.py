@@ -11,11 +11,11 @@ import numpy as np
 from mutualslam_cli.datasets.associate import MAX_DT
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import MslamError
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.camera import distort_points
-from mutualslam_cli.map.result import VOResult
 
 
 def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = MAX_DT) -> dict[str, object]:

@@ -19,9 +19,9 @@ from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.backend.bridges import Bridge, plan_bridge
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.online.labels import depth_predictor
-from mutualslam_cli.map.state import MapState
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.online.labels import depth_predictor
 
 
 def front_end_alone(seq: Sequence, cfg: RunConfig, cache_dir: Path | None) -> tuple[VOResult, set[int]]:

@@ -33,16 +33,17 @@ from __future__ import annotations
 import bisect
 import math
 from collections import deque
-from typing import Any, Mapping, Protocol
+from collections.abc import Mapping
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
-from mutualslam_cli.online.credit import WeightsAt
-from mutualslam_cli.online.run import OnlineRun
 from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
 from mutualslam_cli.map.state import MapState
+from mutualslam_cli.online.credit import WeightsAt
+from mutualslam_cli.online.run import OnlineRun
 
 
 class RealtimeClock:
@@ -195,7 +196,8 @@ def run_realtime(loop: Loop) -> None:
     (consolidation) once the next keyframe arrived or ``max_steps`` were taken, and the next keyframes' work
     when it starts before then; the changes that work made reach the front end when it ends."""
     clock, seq, adapter = loop.clock, loop.run.seq, loop.adapter
-    assert clock is not None and adapter is not None
+    assert clock is not None
+    assert adapter is not None
     times = [seq.seconds(i) * 1000.0 for i in range(len(seq))]
     end_ms = times[-1]
     queue: deque[int] = deque()

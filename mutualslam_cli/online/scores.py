@@ -56,8 +56,8 @@ from __future__ import annotations
 import copy
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import asdict
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -69,8 +69,8 @@ from mutualslam_cli.adapt.inputs import resample, to_net_image
 from mutualslam_cli.adapt.ov_refresh import NotRefreshable, RefreshablePredictor
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.machine import cpu_info
 from mutualslam_cli.device import module_device
+from mutualslam_cli.machine import cpu_info
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.metrics.ratios import pcd_from_sketch
 from mutualslam_cli.vo.camera import Undistorter
@@ -130,7 +130,7 @@ class OnlineScorer:
         self._rows: list[dict[str, float | int]] = []
         self._sketches: list[np.ndarray | None] = []
         self._twin: torch.nn.Module | None = None  # channels-last copy of an NCHW network on the CPU
-        self._ov: RefreshablePredictor | None | bool = None  # None: not decided yet; False: the torch path
+        self._ov: RefreshablePredictor | bool | None = None  # None: not decided yet; False: the torch path
         self.seconds = 0.0
 
     def score_until(self, net: torch.nn.Module, frame_index: int, kf_id: int) -> None:

@@ -54,7 +54,7 @@ def dense_table(runs: pd.DataFrame) -> pd.DataFrame | None:
     mean of each column of :data:`COLUMNS` and :data:`RUN_COLUMNS` over the seeds that have it, and
     ``seeds`` (runs with the stage). A per-frame scaling no run of the group scored (left out of
     ``dense.scalings``, or a run from before them) has no row; ``None`` when no run has the stage."""
-    runs = dense_runs(runs.assign(config=runs["config"] if "config" in runs else ""))
+    runs = dense_runs(runs.assign(config=runs.get("config", "")))
     if runs.empty:
         return None
 

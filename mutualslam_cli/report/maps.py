@@ -211,7 +211,7 @@ def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> b
 def map_figures(runs: pd.DataFrame, out_dir: Path) -> list[Path]:
     """:func:`plot_maps` of the lowest seed of every (sequence, scheme, config) into
     ``out_dir/maps/maps_<sequence>_<scheme>[_<config>]_seed<k>.png``; returns the files written."""
-    runs = runs.assign(config=runs["config"] if "config" in runs else "",
+    runs = runs.assign(config=runs.get("config", ""),
                        _seed=pd.to_numeric(runs["seed"], errors="coerce") if "seed" in runs else np.nan)
     written = []
     for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):

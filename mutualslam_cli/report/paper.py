@@ -17,8 +17,9 @@ Tables 1–2 and rows of Table 6, labelled "NAME (external, no adaptation)".
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -45,7 +46,7 @@ class PaperTable:
 def _stat(v: pd.Series) -> tuple[float, float, int]:
     """Mean, sample std (NaN for one value) and count of the finite values."""
     v = v[np.isfinite(v.to_numpy(dtype=float))] if len(v) else v
-    n = int(len(v))
+    n = len(v)
     if n == 0:
         return float("nan"), float("nan"), 0
     return float(v.mean()), float(v.std(ddof=1)) if n > 1 else float("nan"), n

@@ -18,7 +18,7 @@ from mutualslam_cli.report.columns import numeric, slug
 def run_pictures(runs: pd.DataFrame, out_dir: Path, kind: str) -> list[Path]:
     """Copy ``<kind>.png`` of the lowest seed of each (sequence, scheme, config) of ``runs`` that has one;
     returns the files written."""
-    runs = runs.assign(config=runs["config"] if "config" in runs else "", _seed=numeric(runs, "seed"))
+    runs = runs.assign(config=runs.get("config", ""), _seed=numeric(runs, "seed"))
     written = []
     for (seq, scheme, config), g in runs.groupby(["sequence.name", "scheme", "config"], sort=True):
         for _, r in g.sort_values("_seed", na_position="last").iterrows():

@@ -185,7 +185,7 @@ def accuracy_figure(runs: pd.DataFrame) -> Any | None:
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(seqs):]:
         ax.set_visible(False)
-    what = ("line: mean over seeds, band: min–max over seeds (up to %d)" % max_seeds if max_seeds > 1
+    what = (f"line: mean over seeds, band: min–max over seeds (up to {max_seeds})" if max_seeds > 1
             else "one seed per line")
     widest = max(len(line) for label in handles for line in label.splitlines())
     ncol = legend_columns(fig, list(handles), 9, most=4 if widest < 30 else 2 if widest < 60 else 1)

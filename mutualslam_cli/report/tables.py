@@ -32,11 +32,11 @@ from mutualslam_cli.report.budget import BUDGET_TITLE, budget_table, frontier_fi
 from mutualslam_cli.report.columns import cell_text, numeric
 from mutualslam_cli.report.dense import TITLE as DENSE_TITLE
 from mutualslam_cli.report.dense import dense_figures, dense_table
-from mutualslam_cli.report.maps import map_figures
-from mutualslam_cli.report.pictures import run_pictures
-from mutualslam_cli.report.paper import paper_tables
-from mutualslam_cli.report.plots import plot_accuracy
 from mutualslam_cli.report.forgetting import FORGETTING_TABLE
+from mutualslam_cli.report.maps import map_figures
+from mutualslam_cli.report.paper import paper_tables
+from mutualslam_cli.report.pictures import run_pictures
+from mutualslam_cli.report.plots import plot_accuracy
 from mutualslam_cli.report.runs import IGNORED_CONFIG, collect, config_labels  # noqa: F401 - collect: re-exported
 from mutualslam_cli.report.slam_tables import SLAM_TABLES, shown
 from mutualslam_cli.report.trajectories import trajectory_figures
@@ -95,7 +95,7 @@ def build_tables(runs: pd.DataFrame, notes: list[str] | None = None) -> Report:
     """Mean over seeds per (sequence, scheme, config) for every table in :data:`TABLES`, the scheme
     ablation, and paper Tables 4 (``ate_ba``) and 5 (``map_ba``); ``notes``: :func:`collect`'s."""
     rep = Report(runs=runs, notes=list(notes or []))
-    runs = runs.assign(config=runs["config"] if "config" in runs else "")
+    runs = runs.assign(config=runs.get("config", ""))
     varied = bool((runs["config"] != "").any())
     g = runs.groupby(["sequence.name", "scheme", "config"], sort=True)
     for name, (title, cols) in ((n, tc) for n, tc in TABLES.items() if shown(n, runs)):

@@ -8,8 +8,9 @@ never 0. Every stage writes its own keys (:mod:`mutualslam_cli.stages`).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -67,7 +68,7 @@ class Summary:
         self.notes: dict[str, str] = {}
 
     @classmethod
-    def from_dict(cls, nested: dict[str, Any], drop_prefix: str | None = None) -> "Summary":
+    def from_dict(cls, nested: dict[str, Any], drop_prefix: str | None = None) -> Summary:
         """The builder of a written ``summary.json`` (``nested``), without the keys (and notes) that
         start with ``drop_prefix`` — a stage run again on a finished run rewrites its own keys."""
         flat = flatten(nested)

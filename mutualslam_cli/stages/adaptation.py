@@ -20,23 +20,23 @@ from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.records import LoopRecord, MergeRecord
 from mutualslam_cli.backend.refine import MapBA
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.online.credit import WeightsAt, credit_bridges, front_end_alone, segment_starts
 from mutualslam_cli.online.loop import OnlineLoop
 from mutualslam_cli.online.scores import OnlineScorer, eval_frames
 from mutualslam_cli.stages import comoda, loop_recall
 from mutualslam_cli.stages.adaptation_summary import (
-    summarise_live_reuse,
     L_VAL_KEYS,
     l_val_stats,
     summarise_bridges,
     summarise_finetuning,
+    summarise_live_reuse,
     summarise_loops,
     summarise_merges,
     summarise_no_loops,
     summarise_strength,
 )
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.vo.source import FrontEndSource
 
 

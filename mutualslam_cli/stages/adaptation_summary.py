@@ -13,13 +13,13 @@ from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.merge import SegmentMerger
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics.slam import evaluate_trajectory
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.loop_recall import POSE_KEYS, RECALL_KEYS
-from mutualslam_cli.map.result import VOResult
 
 #: The keys of :func:`l_val_stats` (``adaptation.l_val.*`` in ``summary.json``).
 L_VAL_KEYS = ("validations", "min", "median", "longest_below_tau", "map_median_depth")

@@ -8,7 +8,6 @@ adaptation loop calls at Algorithm 1's requests and after loop closures
 
 from __future__ import annotations
 
-
 import numpy as np
 import torch
 
@@ -18,6 +17,7 @@ from mutualslam_cli.backend.ba.global_ba import BAStats, window_start
 from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics.slam import (
     common_frames_ate,
     esi_of_log_errors,
@@ -33,7 +33,6 @@ from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.frontend import FrontEnd
-from mutualslam_cli.map.result import VOResult
 
 
 def no_culling_reason(cfg: RunConfig) -> str | None:

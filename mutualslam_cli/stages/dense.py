@@ -46,8 +46,8 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -60,6 +60,8 @@ from mutualslam_cli.dense.picture import dense_picture
 from mutualslam_cli.dense.scaling import PREFIX, SCALINGS
 from mutualslam_cli.device import module_device
 from mutualslam_cli.errors import GeometryError
+from mutualslam_cli.geometry import pinhole
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.adaptation import Adapted
@@ -69,8 +71,6 @@ from mutualslam_cli.stages.evaluation import eval_batch, predictors_for
 from mutualslam_cli.stages.frontend import FrontEnd
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.camera import Undistorter
-from mutualslam_cli.geometry import pinhole
-from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 

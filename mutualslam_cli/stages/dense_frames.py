@@ -16,8 +16,8 @@ from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.dense import tsdf
 from mutualslam_cli.errors import DatasetError, GeometryError
-from mutualslam_cli.types import Trajectory
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.types import Trajectory
 
 
 @dataclass

@@ -90,9 +90,8 @@ def run_stage(run: RunContext, net0: torch.nn.Module, adapted: Adapted, fast: bo
             raw = to_png_units(saved[j])
             atomic_write_with(folder / f"{stem}.png", lambda name, raw=raw: bool(cv2.imwrite(name, raw)),
                               "a 16-bit depth PNG")
-            with atomic_path(folder / f"{stem}.npy") as tmp:
-                with open(tmp, "wb") as f:
-                    np.save(f, saved[j].astype(np.float32))
+            with atomic_path(folder / f"{stem}.npy") as tmp, open(tmp, "wb") as f:
+                np.save(f, saved[j].astype(np.float32))
             valid = saved[j][np.isfinite(saved[j]) & (saved[j] > 0)]
             rows.append({"frame": i, "timestamp": seq.frames[i].timestamp, "rgb": str(seq.frames[i].rgb_path),
                          "png": f"{stem}.png", "npy": f"{stem}.npy",

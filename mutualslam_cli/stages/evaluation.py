@@ -13,9 +13,9 @@ import hashlib
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -290,7 +290,7 @@ def _summarise(summary: Summary, table: pd.DataFrame, ms: dict[str, float], sche
                 summary.set(f"depth.{key}.{model}", val, why)
     if scheme == "none":
         summary.notes["depth.pcd.lsq.adapted"] = "scheme 'none': the adapted model is the pre-trained model"
-    summary.set("depth.frames_evaluated", int(len(table)))
+    summary.set("depth.frames_evaluated", len(table))
 
 
 def _summarise_online(summary: Summary, table: pd.DataFrame, cfg: RunConfig, no_depth: str | None = None) -> None:

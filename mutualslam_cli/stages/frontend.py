@@ -18,6 +18,7 @@ import numpy as np
 
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics.slam import (
     esi_of_log_errors,
     evaluate_trajectory,
@@ -30,7 +31,6 @@ from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.faults import inject_outliers
-from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.vo.source import FrontEndSource
 
 log = logging.getLogger(__name__)

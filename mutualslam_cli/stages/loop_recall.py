@@ -9,17 +9,18 @@ keyframes it did not query): GT never reaches a decision of the run.
 from __future__ import annotations
 
 import logging
+
 import numpy as np
 import pandas as pd
 
 from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics.loop_recall import MAX_ANGLE_DEG, MAX_DIST_M, RecallRow, classify, counts, true_revisits
 from mutualslam_cli.metrics.trajectory import associate_indices
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.backend.loop_closer import LoopCloser
-from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 

@@ -19,10 +19,10 @@ import pandas as pd
 from mutualslam_cli.atomic import atomic_path, atomic_write_text
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import MslamError
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics.scale_drift import STRIDE, WINDOW, ScaleDrift, scale_drift
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 

@@ -14,9 +14,8 @@ import time
 
 import numpy as np
 
-from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.geometry import se3_inv, to_normalized
 from mutualslam_cli.vo import depth_filter as dfl
-from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.initialization import InitResult, initialize
 from mutualslam_cli.vo.state import InitReference, Tracks

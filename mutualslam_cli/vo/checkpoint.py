@@ -21,8 +21,8 @@ import numpy as np
 
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.vo.frontend import FrontEnd
 from mutualslam_cli.map.journal import Event
+from mutualslam_cli.vo.frontend import FrontEnd
 from mutualslam_cli.vo.local_ba import BAProblem
 from mutualslam_cli.vo.state import Tracks
 from mutualslam_cli.vo.tracking import build_pyramid

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -24,10 +24,10 @@ from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import backproject, project, se3_inv, transform
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.pixels import in_image, lookup_nearest
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.camera import distort_points, undistort_points
-from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 log = logging.getLogger(__name__)
 

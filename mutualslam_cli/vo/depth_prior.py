@@ -21,8 +21,8 @@ before it (:class:`ScaleCheck`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 

@@ -14,8 +14,8 @@ from dataclasses import replace
 import numpy as np
 
 from mutualslam_cli.errors import ConfigError
-from mutualslam_cli.map.state import MapState
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.state import MapState
 
 #: Depth factors of :func:`inject_outliers`: both break Eq. 10 with γ = 0.5 against the true depth.
 OUTLIER_FACTORS = (2.0, 0.4)

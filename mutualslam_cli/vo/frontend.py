@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -23,24 +23,23 @@ from mutualslam_cli.config import VOConfig
 from mutualslam_cli.config.checks import check_vo
 from mutualslam_cli.datasets.sequence import Sequence, grey_frames
 from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.geometry import scale_motion, se3_inv
+from mutualslam_cli.geometry import pinhole, scale_motion, se3_inv, to_normalized
+from mutualslam_cli.map.assemble import RunStats
+from mutualslam_cli.map.journal import Journal
+from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.state import MapState
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
-from mutualslam_cli.map.assemble import RunStats
 from mutualslam_cli.vo.bootstrap import InitMixin
-from mutualslam_cli.vo.depth_prior import KeyframeRatio, NetworkMixin, ScaleCheck
 from mutualslam_cli.vo.camera import distort_points, focal_px, undistort_points
-from mutualslam_cli.geometry import pinhole, to_normalized
+from mutualslam_cli.vo.depth_prior import KeyframeRatio, NetworkMixin, ScaleCheck
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.feedback import FeedbackMixin
-from mutualslam_cli.map.journal import Journal
-from mutualslam_cli.map.state import MapState
+from mutualslam_cli.vo.local_map import OLD_AGE, KeyframeImages, LocalMapMixin
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
-from mutualslam_cli.vo.local_map import OLD_AGE, KeyframeImages, LocalMapMixin
-from mutualslam_cli.map.result import VOResult
-from mutualslam_cli.vo.state import Tracks, TrackerState
+from mutualslam_cli.vo.state import TrackerState, Tracks
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 
 log = logging.getLogger(__name__)

@@ -166,7 +166,7 @@ def _rival_too_short(x0: np.ndarray, x1: np.ndarray, thr: float, T_best: np.ndar
     within :data:`PLAUSIBLE_COST_RATIO` of the chosen motion's has a median parallax below
     :data:`MIN_PARALLAX_DEG`, the views cannot decide yet and initialisation waits.
     """
-    X, good, _, _ = _check(x0, x1, T_best, thr)
+    X, _good, _, _ = _check(x0, x1, T_best, thr)
     c_best = _cost(x0, x1, T_best, X, thr)
     for T in hyps:
         Xh, gh, _, _ = _check(x0, x1, T, thr)
@@ -199,7 +199,7 @@ def initialize(x0: np.ndarray, x1: np.ndarray, thr: float, min_points: int = 30,
     x0 = np.asarray(x0, np.float64)
     x1 = np.asarray(x1, np.float64)
     cv2.setRNGSeed(seed)
-    H, mh = cv2.findHomography(x0, x1, cv2.RANSAC, thr, maxIters=500, confidence=0.999)
+    H, _mh = cv2.findHomography(x0, x1, cv2.RANSAC, thr, maxIters=500, confidence=0.999)
     cv2.setRNGSeed(seed)
     E, me = cv2.findEssentialMat(x0, x1, np.eye(3), cv2.RANSAC, 0.999, thr)
     sh = _score_h(H, x0, x1, thr) if H is not None else 0.0

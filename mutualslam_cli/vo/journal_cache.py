@@ -28,8 +28,8 @@ import numpy as np
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.vo.frontend import FRONTEND_VERSION
 from mutualslam_cli.map.journal import JOURNAL_VERSION, Event, journal_from_arrays, journal_to_arrays
+from mutualslam_cli.vo.frontend import FRONTEND_VERSION
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +113,7 @@ def load_entry(path: Path) -> JournalEntry | None:
             events = journal_from_arrays(z)
             cks = {int(f): {k.split(".", 1)[1]: np.asarray(z[k]) for k in z.files if k.startswith(f"ck{f}.")}
                    for f in header["checkpoints"]}
-    except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, the entry is recomputed
+    except Exception as e:
         log.warning("VO cache %s is unreadable (%s: %s); recomputing it", path, type(e).__name__, e)
         return None
     log.info("front-end journal loaded from %s (frames 0-%d of %d)", path, header["until"], header["n_frames"])

@@ -27,17 +27,17 @@ ORB-SLAM's point fusion): a point found again is observed, not made again.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
+from mutualslam_cli.map.store import Map
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.camera import distort_points
 from mutualslam_cli.vo.reproject import match_points, reproject_points
 from mutualslam_cli.vo.state import Tracks
-from mutualslam_cli.map.store import Map
 
 OLD_AGE = 15
 """A point hosted more than this many keyframes before the newest is *old*: the share of them among a frame's

@@ -13,16 +13,15 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
-from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.geometry import to_normalized
-from mutualslam_cli.vo.local_ba import BAProblem, residuals, solve
+from mutualslam_cli.geometry import se3_inv, to_normalized
 from mutualslam_cli.map.state import MapState
+from mutualslam_cli.vo.local_ba import BAProblem, residuals, solve
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from itertools import combinations
-from typing import Callable
 
 import numpy as np
 
@@ -42,9 +42,9 @@ from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import backproject, project, se3_inv
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.frontend import run_vo
-from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 log = logging.getLogger(__name__)
 

@@ -35,14 +35,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from mutualslam_cli.geometry import to_normalized
+from mutualslam_cli.map.store import Map
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import distort_points, undistort_points
-from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.vo.features import orb_features, orb_matches
 from mutualslam_cli.vo.local_map import KeyframeImages
 from mutualslam_cli.vo.reproject import reproject_points
-from mutualslam_cli.map.store import Map
 from mutualslam_cli.vo.tracking import estimate_pose, klt_track, reprojection_errors
 
 #: Thumbnail size (width, height) for the appearance ranking, pixels.

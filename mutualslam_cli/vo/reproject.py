@@ -10,16 +10,16 @@ ties keyframes further apart together in the windowed BA.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 import numpy as np
 
+from mutualslam_cli.geometry import to_normalized
+from mutualslam_cli.map.store import Map
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import distort_points, undistort_points
-from mutualslam_cli.geometry import to_normalized
-from mutualslam_cli.map.store import Map
 from mutualslam_cli.vo.tracking import klt_track
 
 

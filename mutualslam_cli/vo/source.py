@@ -18,28 +18,28 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence, grey_frames
 from mutualslam_cli.errors import CacheMismatch, DatasetError
+from mutualslam_cli.geometry import pinhole
+from mutualslam_cli.map.journal import Event
+from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
+from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.state import MapState, events_from_result
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo import checkpoint
-from mutualslam_cli.geometry import pinhole
 from mutualslam_cli.vo.depth_oracle import run_oracle
 from mutualslam_cli.vo.depth_prior import DepthHint
 from mutualslam_cli.vo.faults import corrupt_depths
-from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
 from mutualslam_cli.vo.frontend import FrontEnd
-from mutualslam_cli.map.journal import Event
 from mutualslam_cli.vo.journal_cache import CHECKPOINT_EVERY, JournalEntry, cache_path, load_entry, save_entry
-from mutualslam_cli.map.state import MapState, events_from_result
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
-from mutualslam_cli.map.result import VOResult
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-
 _SEED_KEYS = ("a", "b", "mu", "sigma2", "z_range")
 
 
@@ -47,7 +46,7 @@ class Tracks:
     obs: list[list[tuple[int, np.ndarray]]]
 
     @staticmethod
-    def empty() -> "Tracks":
+    def empty() -> Tracks:
         z2 = np.zeros((0, 2))
         return Tracks(np.zeros((0, 2), np.float32), z2, z2, np.zeros(0, np.int64), np.zeros(0, np.int64),
                       np.zeros((0, 3)), z2, {k: np.zeros(0) for k in _SEED_KEYS}, z2, np.zeros(0, bool), [])
@@ -55,14 +54,14 @@ class Tracks:
     def __len__(self) -> int:
         return len(self.pid)
 
-    def select(self, keep: np.ndarray) -> "Tracks":
+    def select(self, keep: np.ndarray) -> Tracks:
         """Rows where the bool mask (or index array) ``keep`` selects."""
         idx = np.flatnonzero(keep) if np.asarray(keep).dtype == bool else np.asarray(keep)
         return Tracks(self.raw[idx], self.px[idx], self.xn[idx], self.pid[idx], self.host[idx],
                       self.f_h[idx], self.px_h[idx], {k: v[idx] for k, v in self.seed.items()},
                       self.kf_px[idx], self.at_kf[idx], [self.obs[i] for i in idx])
 
-    def extend(self, other: "Tracks") -> "Tracks":
+    def extend(self, other: Tracks) -> Tracks:
         """Concatenation of two track sets."""
         cat = np.concatenate
         return Tracks(cat([self.raw, other.raw]).astype(np.float32), cat([self.px, other.px]),

@@ -25,7 +25,8 @@ def test_resampled_batch_keeps_the_geometry():
         ad.buffer.add(s, training=True)
     full = ad._make_batch([2, 1])
     small = resample_batch(full, 64, 32)
-    assert small["target"].shape[-2:] == (32, 64) and all(x.shape[-2:] == (32, 64) for x in small["sources"])
+    assert small["target"].shape[-2:] == (32, 64)
+    assert all(x.shape[-2:] == (32, 64) for x in small["sources"])
     cam = Intrinsics(width=96, height=64, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2]).scaled(64, 32)
     np.testing.assert_allclose(small["K"][0].numpy(), cam.K(), rtol=1e-6)
     P = torch.tensor([0.3, -0.2, 2.0])
@@ -34,7 +35,8 @@ def test_resampled_batch_keeps_the_geometry():
     moved = resample_batch({**full, "uv": uv_full.reshape(1, 1, 2).expand(2, 1, 2)}, 64, 32)["uv"][0, 0]
     torch.testing.assert_close(moved, uv_small)
     assert torch.allclose(small["target"].mean(), full["target"].mean(), atol=1e-3)  # area resampling
-    assert resample_batch(full, 0, 0) is full and resample_batch(full, 96, 64) is full
+    assert resample_batch(full, 0, 0) is full
+    assert resample_batch(full, 96, 64) is full
 
 
 def test_training_at_a_smaller_size_trains_and_validates_at_full_size():
@@ -44,8 +46,10 @@ def test_training_at_a_smaller_size_trains_and_validates_at_full_size():
     predict = ad.net.predict
     ad.net.predict = lambda x: seen.append(tuple(x.shape[-2:])) or predict(x)
     infos = [ad.add_keyframe(s) for s in SCENE[:6]]
-    assert any(i.trained for i in infos) and (32, 64) in seen
-    assert infos[5].is_validation and np.isfinite(infos[5].l_val)
+    assert any(i.trained for i in infos)
+    assert (32, 64) in seen
+    assert infos[5].is_validation
+    assert np.isfinite(infos[5].l_val)
     assert seen[-1] == (64, 96)  # L_val of the validation keyframe: the stored, full-size image
 
 
@@ -62,7 +66,8 @@ def test_frozen_stages_stay_put_and_the_rest_trains(n):
     for k, v in net.named_parameters():
         moved = not torch.equal(v, before[k])
         if any(k.startswith(f) for f in frozen):
-            assert not moved and not v.requires_grad, k
+            assert not moved, k
+            assert not v.requires_grad, k
     assert any(not torch.equal(v, before[k]) for k, v in net.named_parameters() if k.startswith("decoder."))
     assert (n < 5) == any(not torch.equal(v, before[k]) for k, v in net.named_parameters()
                           if k.startswith("encoder.encoder.layer4"))
@@ -75,9 +80,13 @@ def test_steps_given_per_keyframe():
     ad = OnlineAdapter(make_net(), AdaptConfig(scheme="replay", steps_per_keyframe=8), K)
     ad.add_keyframe(SCENE[0])
     info = ad.add_keyframe(SCENE[1], steps=3)
-    assert info.trained and info.steps == 3 and len(ad.step_ms) == 3
+    assert info.trained
+    assert info.steps == 3
+    assert len(ad.step_ms) == 3
     info = ad.add_keyframe(SCENE[2], steps=0)
-    assert not info.trained and info.steps == 0 and len(ad.step_ms) == 3
+    assert not info.trained
+    assert info.steps == 0
+    assert len(ad.step_ms) == 3
     assert ad.add_keyframe(SCENE[3]).steps == 8
     assert len(ad.batch_ms) == len(ad.consolidate_ms) == len(ad.finetune_ms) == 2  # the trained keyframes
     assert all(c <= f for c, f in zip(ad.consolidate_ms, ad.finetune_ms))
@@ -89,19 +98,23 @@ def test_realtime_clock_trains_until_the_next_keyframe_and_charges_everything():
     clock.charge(30.0)  # the tick (batch assembly): wall ms here, no step timed yet → scale 1
     assert clock.steps_until(500.0) == 5  # steps that start before the next arrival: at 30, 130, …, 430
     clock.stepped([40.0] * 5)  # 5 steps on the modelled clock, 40 ms each here
-    assert clock.now_ms == pytest.approx(530.0) and clock.scale() == pytest.approx(2.5)
+    assert clock.now_ms == pytest.approx(530.0)
+    assert clock.scale() == pytest.approx(2.5)
     clock.charge(20.0)  # consolidation: 20 ms here = 50 ms modelled
     clock.done()
     assert clock.now_ms == pytest.approx(580.0)
     assert clock.arrive(500.0) == pytest.approx(580.0)  # busy past the arrival: starts when free
     assert clock.steps_until(560.0) == 0  # the next keyframe came before it could start: only stored
     clock.done()
-    assert clock.arrive(1000.0) == 1000.0 and clock.steps_until(1000.0 + 10_000) == 20  # capped
+    assert clock.arrive(1000.0) == 1000.0
+    assert clock.steps_until(1000.0 + 10_000) == 20
     measured = RealtimeClock(step_cost_ms=None, max_steps=32)
     measured.arrive(0.0)
     assert measured.steps_until(100.0) == 1  # nothing timed yet: one step, to time it
     measured.stepped([250.0])
-    assert measured.now_ms == 250.0 and measured.scale() == 1.0 and measured.step_ms() == 250.0
+    assert measured.now_ms == 250.0
+    assert measured.scale() == 1.0
+    assert measured.step_ms() == 250.0
     measured.done()
     measured.arrive(260.0)
     assert measured.steps_until(1000.0) == 3  # starts at 260, 510, 760
@@ -119,6 +132,7 @@ def test_bad_budget_settings(bad):
 def test_l_val_over_an_even_spread_of_the_validation_keyframes():
     ad = OnlineAdapter(make_net(), AdaptConfig(scheme="replay", steps_per_keyframe=1, validate_every=2, val_max=3), K)
     infos = [ad.add_keyframe(s) for s in SCENE[:11]]
-    assert ad.buffer.validation_ids == [2, 4, 6, 8, 10] and infos[10].is_validation
+    assert ad.buffer.validation_ids == [2, 4, 6, 8, 10]
+    assert infos[10].is_validation
     assert infos[10].l_val == pytest.approx(np.mean(list(ad.per_keyframe_val_loss([2, 6, 10]).values())))
     assert infos[10].l_val != pytest.approx(np.mean(list(ad.per_keyframe_val_loss([2, 4, 6, 8, 10]).values())))

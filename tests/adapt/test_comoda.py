@@ -47,12 +47,16 @@ def test_lags_one_frame_replays_and_chains_a_trajectory(seq):
     steps = [ad.add_frame(f) for f in _frames(seq)]
     assert [s.trained for s in steps] == [False, False] + [True] * 5
     assert [s.target for s in steps[2:]] == [1, 2, 3, 4, 5]  # triplet (t−1, t, t+1) trained when t+1 arrives
-    assert steps[2].batch == [1] and steps[3].batch == [2, 1]
+    assert steps[2].batch == [1]
+    assert steps[3].batch == [2, 1]
     for s in steps[4:]:
-        assert s.batch[0] == s.target and len(s.batch) == 3
-        assert all(r < s.target for r in s.batch[1:]) and len(set(s.batch)) == 3  # past triplets, no repeats
+        assert s.batch[0] == s.target
+        assert len(s.batch) == 3
+        assert all(r < s.target for r in s.batch[1:])
+        assert len(set(s.batch)) == 3
     traj = ad.trajectory()
-    assert traj.shape == (7, 4, 4) and np.allclose(traj[0], np.eye(4))
+    assert traj.shape == (7, 4, 4)
+    assert np.allclose(traj[0], np.eye(4))
     assert not np.allclose(traj[1], traj[0])
     res = ate(Trajectory(seq.timestamps, seq.poses), Trajectory(seq.timestamps, traj), align="sim3")
     assert np.isfinite(res.rmse)
@@ -63,7 +67,8 @@ def test_source_bank_is_replayed_with_its_own_intrinsics_and_never_grows(seq):
     from mutualslam_cli.datasets.synthetic import synthetic_intrinsics
 
     bank, K_src = source_triplets(4, W, H)
-    assert bank.shape == (4, 3, 3, H, W) and bank.dtype == torch.uint8
+    assert bank.shape == (4, 3, 3, H, W)
+    assert bank.dtype == torch.uint8
     assert np.allclose(K_src.numpy(), synthetic_intrinsics(W, H).K())
     assert all(not torch.equal(bank[k, 0], bank[k, 1]) for k in range(4))  # consecutive frames, a moving camera
     assert torch.equal(source_triplets(4, W, H)[0], bank)  # fixed before the run: same seeds, same bank
@@ -73,9 +78,12 @@ def test_source_bank_is_replayed_with_its_own_intrinsics_and_never_grows(seq):
     ad = ComodaAdapter(depth, PoseNet(), cfg, seq.intrinsics.K(), seed=0, replay_bank=(bank, K_src))
     steps = [ad.add_frame(f) for f in _frames(seq)]
     for s in steps[2:]:
-        assert s.batch[0] == s.target and len(s.batch) == 4
-        assert sorted(s.batch[1:]) == sorted(set(s.batch[1:])) and all(-4 <= r <= -1 for r in s.batch[1:])
-    assert len(ad.replay) == 4 and ad.n_seen_triplets == 0  # the sequence is never stored
+        assert s.batch[0] == s.target
+        assert len(s.batch) == 4
+        assert sorted(s.batch[1:]) == sorted(set(s.batch[1:]))
+        assert all(-4 <= r <= -1 for r in s.batch[1:])
+    assert len(ad.replay) == 4
+    assert ad.n_seen_triplets == 0
     # each sample is warped with its own camera: the source K in place of the sequence's changes the loss
     trip = torch.stack([bank[0], bank[1]])
     own, _ = ad._loss(trip, K_src.expand(2, 3, 3))
@@ -96,7 +104,8 @@ def test_source_bank_is_rendered_once_per_cache_and_rerendered_when_unreadable(t
     with monkeypatch.context() as m:
         m.setattr(synthetic, "iter_render", no_render)
         again, K2 = comoda_source.source_triplets(3, W, H, cache_dir=tmp_path)
-    assert torch.equal(again, bank) and torch.equal(K2, K)
+    assert torch.equal(again, bank)
+    assert torch.equal(K2, K)
     path.write_bytes(b"not an array")
     assert torch.equal(comoda_source.source_triplets(3, W, H, cache_dir=tmp_path)[0], bank)
 
@@ -106,7 +115,8 @@ def test_no_replay_and_capacity_bound(seq):
     assert all(len(s.batch) <= 1 for s in (ad.add_frame(f) for f in _frames(seq)))
     ad = _adapter(seq, comoda_replay_capacity=2, comoda_replay_per_step=3)
     steps = [ad.add_frame(f) for f in _frames(seq)]
-    assert len(ad.replay) == 2 and ad.n_seen_triplets == 5
+    assert len(ad.replay) == 2
+    assert ad.n_seen_triplets == 5
     assert max(len(s.batch) for s in steps) == 3  # current + both stored
 
 
@@ -125,7 +135,8 @@ def test_deterministic_for_a_seed(seq):
     a, b = _adapter(seq, seed=3), _adapter(seq, seed=3)
     for f in _frames(seq)[:5]:
         la, lb = a.add_frame(f), b.add_frame(f)
-        assert la.loss == lb.loss and la.batch == lb.batch
+        assert la.loss == lb.loss
+        assert la.batch == lb.batch
     assert np.array_equal(a.trajectory(), b.trajectory())
 
 
@@ -133,7 +144,8 @@ def test_motion_gate_skips_static_triplets(seq):
     still = [_frames(seq)[0]] * 4
     ad = _adapter(seq, comoda_min_motion=0.01)
     steps = [ad.add_frame(f) for f in still]
-    assert [s.static for s in steps] == [False, False, True, True] and not any(s.trained for s in steps)
+    assert [s.static for s in steps] == [False, False, True, True]
+    assert not any(s.trained for s in steps)
     assert ad.replay == []
     ad = _adapter(seq, comoda_min_motion=0.0)
     assert [ad.add_frame(f).trained for f in still] == [False, False, True, True]
@@ -153,7 +165,8 @@ def test_automask_and_min_reprojection_with_true_geometry(seq):
     # a static camera: identity reprojection is exact, the auto-mask removes every pixel
     T_any = torch.from_numpy(se3_inv(seq.poses[4]) @ seq.poses[3]).float()[None]
     loss0, mask0 = automasked_min_reprojection(f[3:4], [f[3:4], f[3:4]], depth[3:4] * 2, K, [T_any] * 2)
-    assert not bool(mask0.any()) and float(loss0) < 1e-4
+    assert not bool(mask0.any())
+    assert float(loss0) < 1e-4
 
 
 def test_se3_inverse():
@@ -161,7 +174,7 @@ def test_se3_inverse():
     assert torch.allclose(se3_inv_torch(T) @ T, torch.eye(4)[None], atol=1e-5)
 
 
-@pytest.mark.parametrize("key, value", [("comoda_lr", 0.0), ("comoda_steps_per_frame", 0),
+@pytest.mark.parametrize(("key", "value"), [("comoda_lr", 0.0), ("comoda_steps_per_frame", 0),
                                         ("comoda_replay_per_step", -1), ("comoda_replay_capacity", 0),
                                         ("comoda_smoothness", -1.0), ("comoda_min_motion", -0.1),
                                         ("comoda_replay_from", "future")])
@@ -173,13 +186,14 @@ def test_bad_settings_fail_naming_the_key(seq, key, value):
 def test_pose_net_default_and_files(tmp_path, caplog):
     depth = DepthNet()
     net, source = make_pose_net(depth, AdaptConfig(), default_dir=str(tmp_path))
-    assert "pose encoder initialised from the depth encoder" in caplog.text and source.startswith("random")
+    assert "pose encoder initialised from the depth encoder" in caplog.text
+    assert source.startswith("random")
     w = depth.encoder.state_dict()["encoder.conv1.weight"]
     assert torch.allclose(net.encoder.state_dict()["encoder.conv1.weight"], torch.cat([w, w], 1) / 2)
     save_pose(net, tmp_path / "p")
     again, _ = make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "p")), default_dir=str(tmp_path))
     assert torch.equal(again.decoder.net[3].weight, net.decoder.net[3].weight)
-    with pytest.raises(ConfigError, match="pose_encoder.pth"):
+    with pytest.raises(ConfigError, match=r"pose_encoder.pth"):
         make_pose_net(depth, AdaptConfig(comoda_pose_weights=str(tmp_path / "none")))
 
 
@@ -194,11 +208,13 @@ def test_run_sequence_reports_a_posenet_ate(tmp_path):
     root = make_tum_dir(tmp_path, n=6, width=W, height=H)
     cfg = load_config(CONFIG_DIR / "smoke.yaml", ["adapt.scheme=comoda", "ba.enabled=false"])
     s = run_sequence(str(root), cfg, out=tmp_path / "res").summary
-    assert np.isfinite(s["trajectory"]["ate_rmse_m"]["posenet"]) and s["timing"]["finetune_ms"] > 0
+    assert np.isfinite(s["trajectory"]["ate_rmse_m"]["posenet"])
+    assert s["timing"]["finetune_ms"] > 0
     assert s["depth"]["pcd"]["lsq"]["adapted"] is not None
     folder = tmp_path / "res" / root.name / "comoda" / "seed0"
     rows = pd.read_csv(folder / "frames.csv")
-    assert len(rows) == 6 and rows["trained"].sum() == 4
+    assert len(rows) == 6
+    assert rows["trained"].sum() == 4
     assert len((folder / "traj_posenet.txt").read_text().splitlines()) == 7  # header + 6 poses
     s = run_sequence(str(root), load_config(CONFIG_DIR / "smoke.yaml", ["adapt.scheme=none", "ba.enabled=false"]),
                      out=tmp_path / "res").summary
@@ -210,7 +226,9 @@ def test_bench_comoda_step_runs_a_full_batch():
     from mutualslam_cli.bench.finetune import bench_comoda_step
 
     out = bench_comoda_step(W, H, repeats=1, warmup=0, replay=2)
-    assert out["batch"] == 3 and out["ms"] > 0 and len(out["times_ms"]) == 1
+    assert out["batch"] == 3
+    assert out["ms"] > 0
+    assert len(out["times_ms"]) == 1
 
 
 class _OraclePose(torch.nn.Module):

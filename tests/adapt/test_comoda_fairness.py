@@ -51,12 +51,14 @@ def test_pose_net_comes_from_the_depth_weights_folder_when_it_has_pose_files(tmp
     depth = DepthNet()
     net, source = make_pose_net(depth, AdaptConfig(), default_dir=empty_default, weights_dir=str(weights))
     _assert_equals_files(net, weights)
-    assert source == str(weights.resolve()) and not net.training
+    assert source == str(weights.resolve())
+    assert not net.training
     assert str(weights.resolve()) in caplog.text
     # no pose files beside the depth weights (and none in the default folder): random, and said so
     no_pose = _weights_folder(tmp_path / "np", seed=2, pose=False)
     net2, source2 = make_pose_net(depth, AdaptConfig(), default_dir=empty_default, weights_dir=str(no_pose))
-    assert source2 == RANDOM_POSE and source2.startswith("random")
+    assert source2 == RANDOM_POSE
+    assert source2.startswith("random")
     w = depth.encoder.state_dict()["encoder.conv1.weight"]
     assert torch.allclose(net2.encoder.state_dict()["encoder.conv1.weight"], torch.cat([w, w], 1) / 2)
     # ... but the default folder's pose files when it has them
@@ -115,4 +117,5 @@ def test_updates_leave_batchnorm_untouched_in_both_networks():
         changed = [name for name, v in _other_params(n).items() if not torch.equal(v, other0[k][name])]
         assert "encoder.encoder.conv1.weight" in changed, (k, changed[:5])
         assert len(changed) > 10, (k, len(changed))
-    assert not depth.training and not pose.training
+    assert not depth.training
+    assert not pose.training

@@ -38,7 +38,8 @@ def test_openvino_matches_pytorch_and_copies_the_weights():
     x = torch.rand(3, 3, 64, 96)
     ref = predict_depth(net, x, fast=False)
     got = inference.openvino_predictor(net, 96, 64, threads=1)(x)
-    assert got.shape == ref.shape == (3, 64, 96) and got.dtype == np.float32
+    assert got.shape == ref.shape == (3, 64, 96)
+    assert got.dtype == np.float32
     tol = 0.03 if fast_path_supported() else 1e-4  # bf16 inference where the CPU has it
     assert np.median(np.abs(got / ref - 1)) < tol
     with torch.no_grad():  # the compiled model holds the weights of its conversion
@@ -93,7 +94,8 @@ def test_fake_quantised_network_keeps_the_listed_layers_and_rounds_the_others():
     convs = {n for n, m in q.named_modules() if isinstance(m, torch.nn.Conv2d)}
     quant = {n for n, m in q.named_modules() if type(m).__name__ == "_QuantConv"}
     kept = {n for n in convs if not any(n.startswith(q_ + ".") for q_ in quant)} & set(ranges)
-    assert kept == {n for n in ranges if n.startswith(KEEP_FP32)} and len(quant) == len(ranges) - len(kept) > 18
+    assert kept == {n for n in ranges if n.startswith(KEEP_FP32)}
+    assert len(quant) == len(ranges) - len(kept) > 18
     # the kept names are what KEEP_FP32's comment says
     dec = net.decoder
     assert "encoder.encoder.conv1" in kept

@@ -68,7 +68,8 @@ def _pair(h=48, w=64, fy_sign=1.0):
 def test_warp_gt_geometry_reconstructs_target(fy_sign):
     It, Is, Dt, K, T = _pair(fy_sign=fy_sign)
     warped, valid = warp(Is, Dt, K, T)
-    assert valid.dtype == torch.bool and 0.5 < float(valid.float().mean()) < 1.0  # some pixels leave the view
+    assert valid.dtype == torch.bool
+    assert 0.5 < float(valid.float().mean()) < 1.0
     pe_gt = float(photometric_error(It, warped)[valid].mean())
     T_bad = T.clone()
     T_bad[0, :3, 3] += torch.tensor([0.04, 0.03, 0.0])
@@ -86,7 +87,8 @@ def test_warp_identity_and_validity():
     depth = torch.rand(2, 1, 8, 10) + 1
     K = torch.tensor([[8.0, 0, 4.5], [0, 8.0, 3.5], [0, 0, 1]]).expand(2, 3, 3)
     warped, valid = warp(src, depth, K, torch.eye(4).expand(2, 4, 4))
-    assert torch.allclose(warped, src, atol=1e-5) and bool(valid.all())
+    assert torch.allclose(warped, src, atol=1e-5)
+    assert bool(valid.all())
     behind = torch.eye(4).expand(2, 4, 4).clone()
     behind[:, 2, 3] = -5.0  # every point ends up behind the source camera
     assert not bool(warp(src, depth, K, behind)[1].any())
@@ -109,7 +111,8 @@ def test_ssim_properties():
     x = torch.rand(1, 3, 12, 12, generator=g)
     assert float(ssim(x, x).max()) < 1e-6
     d = ssim(x, torch.rand(1, 3, 12, 12, generator=g))
-    assert d.shape == x.shape and 0.2 < float(d.mean()) <= 1.0
+    assert d.shape == x.shape
+    assert 0.2 < float(d.mean()) <= 1.0
 
 
 def test_sparse_loss_values_and_empty_mask():
@@ -120,9 +123,11 @@ def test_sparse_loss_values_and_empty_mask():
     # image 0: |1/2 − 1/4| = 0.25; image 1: |1/2 − 1/2| = 0 → mean over images 0.125
     assert float(sparse_depth_loss(depth, uv, d, mask).detach()) == pytest.approx(0.125)
     empty = sparse_depth_loss(depth, uv, d, torch.zeros_like(mask))
-    assert float(empty) == 0.0 and empty.requires_grad
+    assert float(empty) == 0.0
+    assert empty.requires_grad
     empty.backward()
-    assert torch.isfinite(depth.grad).all() and float(depth.grad.abs().sum()) == 0.0
+    assert torch.isfinite(depth.grad).all()
+    assert float(depth.grad.abs().sum()) == 0.0
 
 
 def test_sparse_loss_bilinear_subpixel():

@@ -38,7 +38,8 @@ def deg(a: float) -> float:
 def test_pure_horizontal_translation_is_a_pair_either_side():
     for tx in (0.1, -0.1, 3.0):
         ratio, rot = stereo_measures(pose(), pose((tx, 0, 0)))
-        assert ratio == pytest.approx(1.0) and rot == pytest.approx(0.0, abs=1e-6)
+        assert ratio == pytest.approx(1.0)
+        assert rot == pytest.approx(0.0, abs=1e-6)
         assert is_stereo_pair(pose(), pose((tx, 0, 0)))
 
 
@@ -55,7 +56,8 @@ def test_translation_is_judged_in_the_target_camera_frame():
     To = Tt.copy()
     To[:3, 3] = Tt[:3, 3] + R @ np.array([0.2, 0.0, 0.0])
     ratio, rot = stereo_measures(Tt, To)
-    assert ratio == pytest.approx(1.0) and rot == pytest.approx(0.0, abs=1e-6)
+    assert ratio == pytest.approx(1.0)
+    assert rot == pytest.approx(0.0, abs=1e-6)
     # The same world displacement along the world x axis is not along the camera's x axis.
     Tw = Tt.copy()
     Tw[:3, 3] = Tt[:3, 3] + np.array([0.2, 0.0, 0.0])
@@ -98,7 +100,8 @@ def sample(k: int, t=(0.0, 0.0, 0.0), rotvec=(0.0, 0.0, 0.0)) -> KeyframeSample:
 
 
 def test_registry_and_settings():
-    assert "luo" in SCHEMES and get_scheme("luo").regularizer is None
+    assert "luo" in SCHEMES
+    assert get_scheme("luo").regularizer is None
     assert get_scheme("luo").make_regularizer(torch.nn.Linear(2, 2), AdaptConfig()) is None
     with pytest.raises(ConfigError) as e:
         get_scheme("lou")
@@ -120,7 +123,8 @@ def test_only_recent_targets_no_replay_no_random_draws():
         for tgt in batch:
             assert set(sch.sources(b, tgt)) <= set(b.recent(3)) - {tgt}
     assert sch.sources(b, 10) == []  # an old keyframe is nobody's target or source any more
-    assert sch.sources(b, 29) == [28, 27] and sch.sources(b, 28) == [29, 27]  # nearest first, newer on a tie
+    assert sch.sources(b, 29) == [28, 27]
+    assert sch.sources(b, 28) == [29, 27]
 
 
 def test_partners_window_and_validation_keyframes():
@@ -132,9 +136,12 @@ def test_partners_window_and_validation_keyframes():
     b.add(sample(4, (0.1, 0, 0.0)), training=True)  # x-pair with 0 only (to 3: (0, 0, −0.2))
     three, four = get_scheme("luo"), get_scheme("luo", AdaptConfig(luo_window=4))
     assert b.recent(4) == [4, 3, 1, 0]
-    assert three.sources(b, 4) == [] and three.select(b, 4, np.random.default_rng(0)) == []
-    assert four.sources(b, 4) == [0] and four.select(b, 4, np.random.default_rng(0)) == [4]
-    assert three.sources(b, 3) == [] and get_scheme("recent").sources(b, 3) == [1, 4]  # Eq. 3 neighbours
+    assert three.sources(b, 4) == []
+    assert three.select(b, 4, np.random.default_rng(0)) == []
+    assert four.sources(b, 4) == [0]
+    assert four.select(b, 4, np.random.default_rng(0)) == [4]
+    assert three.sources(b, 3) == []
+    assert get_scheme("recent").sources(b, 3) == [1, 4]
     b.add(sample(5, (0.1, 0, 0.2), (0, deg(3.0), 0)), training=True)  # 3's place, yawed 3°
     assert three.sources(b, 5) == []  # no baseline to 3, forward to 4
 
@@ -191,18 +198,24 @@ def test_luo_adapter_trains_on_stereo_pairs_and_records_them():
     # Targets: the recent two that have a partner; 3 finds none and trains nothing.
     assert {h.kf_id: h.batch for h in hist if h.trained} == {1: [1, 0], 2: [1], 4: [4, 3], 6: [4], 7: [7, 6],
                                                               8: [7], 9: [9, 8]}
-    assert not hist[3].trained and not hist[0].trained
-    assert [h.kf_id for h in hist if h.is_validation] == [5] and hist[5].l_val is not None  # Alg. 1 unchanged
+    assert not hist[3].trained
+    assert not hist[0].trained
+    assert [h.kf_id for h in hist if h.is_validation] == [5]
+    assert hist[5].l_val is not None
     for h in hist:
         if h.trained:
-            assert all(math.isfinite(v) for v in h.loss.values()) and h.loss["penalty"] == 0.0
-    assert ad.regularizer is None and len(ad.finetune_ms) == 7
+            assert all(math.isfinite(v) for v in h.loss.values())
+            assert h.loss["penalty"] == 0.0
+    assert ad.regularizer is None
+    assert len(ad.finetune_ms) == 7
     assert not torch.equal(flat(ad.net), flat(make_net()))
     # The batch warps each target from its partner (relative pose T_t2s = T_cw(src) · T_wc(tgt)).
     assert ad._make_batch([4, 3]) is None  # out of the window of the 3 most recent by now
     early = adapt("luo", MIXED[:5])
     b = early._make_batch([4, 3])
-    assert b is not None and b["ids"] == [4, 3] and len(b["sources"]) == 1
+    assert b is not None
+    assert b["ids"] == [4, 3]
+    assert len(b["sources"]) == 1
     assert torch.equal(b["sources"][0][0], early.buffer.get(3).image)
     assert torch.equal(b["sources"][0][1], early.buffer.get(4).image)
     np.testing.assert_allclose(b["T_t2s"][0][0].numpy(), se3_inv(pose(PATH[3])) @ pose(PATH[4]), atol=1e-6)

@@ -55,7 +55,8 @@ def test_decoder_keys_match_monodepth2():
     sd = dec.state_dict()
     keys = list(sd)
     assert len(keys) == 28
-    assert keys[:3] == DEC_FIRST and keys[-3:] == DEC_LAST
+    assert keys[:3] == DEC_FIRST
+    assert keys[-3:] == DEC_LAST
     assert tuple(sd["decoder.0.conv.conv.weight"].shape) == (256, 512, 3, 3)   # upconv(4, 0)
     assert tuple(sd["decoder.1.conv.conv.weight"].shape) == (256, 512, 3, 3)   # upconv(4, 1): 256 + 256 skip
     assert tuple(sd["decoder.7.conv.conv.weight"].shape) == (32, 96, 3, 3)     # upconv(1, 1): 32 + 64 skip
@@ -72,12 +73,15 @@ def test_forward_shapes_and_range():
         out = net.forward_scales(x)
     assert sorted(out) == [0, 1, 2, 3]
     for s, d in out.items():
-        assert d.shape == (2, 1, 64 >> s, 96 >> s) and d.dtype == torch.float32
-        assert float(d.min()) > 0 and float(d.max()) < 1
+        assert d.shape == (2, 1, 64 >> s, 96 >> s)
+        assert d.dtype == torch.float32
+        assert float(d.min()) > 0
+        assert float(d.max()) < 1
     with torch.no_grad():
         depth = net.predict(x)
         assert torch.allclose(net(x), out[0])
-    assert float(depth.min()) >= 0.1 - 1e-6 and float(depth.max()) <= 100 + 1e-3
+    assert float(depth.min()) >= 0.1 - 1e-6
+    assert float(depth.max()) <= 100 + 1e-3
 
 
 def test_bad_input_shape_raises():
@@ -113,7 +117,8 @@ def test_predict_depth_layouts():
     img = np.random.default_rng(0).integers(0, 255, (64, 96, 3), dtype=np.uint8)
     a = predict_depth(net, img)
     b = predict_depth(net, torch.from_numpy(img).permute(2, 0, 1)[None].float() / 255)
-    assert a.shape == (1, 64, 96) and a.dtype == np.float32
+    assert a.shape == (1, 64, 96)
+    assert a.dtype == np.float32
     np.testing.assert_allclose(a, b, rtol=1e-5)
     assert net.training  # mode restored
 

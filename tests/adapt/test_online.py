@@ -113,20 +113,27 @@ def test_every_scheme_runs(scheme):  # every keyframe-driven scheme; comoda is f
     for h in hist:
         assert h.state == "IDLE"
         if h.is_validation:
-            assert not h.trained and h.l_val is not None and math.isfinite(h.l_val)
+            assert not h.trained
+            assert h.l_val is not None
+            assert math.isfinite(h.l_val)
     trained = [h for h in hist if h.trained]
     if scheme == "none":
-        assert trained == [] and ad.finetune_ms == []
+        assert trained == []
+        assert ad.finetune_ms == []
         return
     assert not hist[0].trained  # first keyframe has no photometric neighbour
     steps = AdaptConfig().steps_per_keyframe
-    assert len(trained) == 9 and len(ad.finetune_ms) == 9 and len(ad.step_ms) == 9 * steps
+    assert len(trained) == 9
+    assert len(ad.finetune_ms) == 9
+    assert len(ad.step_ms) == 9 * steps
     for h in trained:
-        assert h.batch[0] == h.kf_id and all(math.isfinite(v) for v in h.loss.values())
+        assert h.batch[0] == h.kf_id
+        assert all(math.isfinite(v) for v in h.loss.values())
         assert set(h.loss) >= {"photo", "sparse", "smooth", "total", "penalty"}
         assert not any(b in (5, 10) for b in h.batch)  # validation keyframes never trained on
         if scheme.startswith("replay") and h.kf_id >= 2:
-            assert len(h.batch) == 2 and h.batch[1] < h.kf_id
+            assert len(h.batch) == 2
+            assert h.batch[1] < h.kf_id
         # luo = recent here: every step of SCENE is sideways (|t_x| / ‖t‖ > 0.92, no rotation), a stereo pair
         if scheme in ("recent", "ewc", "luo") and h.kf_id >= 2:
             assert h.batch[1] == max(k for k in range(h.kf_id) if k not in (5, 10))
@@ -158,7 +165,8 @@ def test_global_ba_callback_when_expected():
     assert calls == [4, 8]
     assert [h.kf_id for h in ad.history if h.run_global_ba] == [4, 8]
     never = run("replay", n=11, on_ba=lambda i: calls.append(-1), validate_every=2, patience=2, tau_val=1e-9)
-    assert -1 not in calls and all(h.n_converged == 0 for h in never.history)
+    assert -1 not in calls
+    assert all(h.n_converged == 0 for h in never.history)
 
 
 @pytest.mark.parametrize("real", [True])
@@ -210,7 +218,8 @@ def test_real_depthnet_fast_path_runs():
     ad = OnlineAdapter(make_net(real=True), AdaptConfig(scheme="replay+ewc", steps_per_keyframe=1), K, fast=True)
     for s in SCENE[:3]:
         info = ad.add_keyframe(s)
-    assert info.trained and all(math.isfinite(v) for v in info.loss.values())
+    assert info.trained
+    assert all(math.isfinite(v) for v in info.loss.values())
 
 
 def test_bad_settings_are_config_errors():

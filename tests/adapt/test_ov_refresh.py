@@ -68,5 +68,6 @@ def test_a_refresh_predicts_with_the_new_weights_as_a_new_conversion_would():
     ref = predict_depth(net, x)
     assert np.abs(before / ref - 1).mean() > 10 * tol  # the old compilation is far from the new model
     rp.refresh(net)
-    assert len(rp.refresh_s) == 1 and rp.refresh_s[0] > 0
+    assert len(rp.refresh_s) == 1
+    assert rp.refresh_s[0] > 0
     assert np.abs(rp(x) / ref - 1).mean() < tol

@@ -60,7 +60,7 @@ def test_save_load_round_trip_same_output(tmp_path):
         assert torch.equal(net(a, b), again(a, b))
 
 
-@pytest.mark.parametrize("mutate, needle", [
+@pytest.mark.parametrize(("mutate", "needle"), [
     (lambda e, d: d.__setitem__("convs.pose_0.weight", d.pop("net.1.weight")), "net.1.weight"),
     (lambda e, d: e.__setitem__("encoder.conv1.weight", torch.zeros(64, 3, 7, 7)), "encoder.conv1.weight"),
     (lambda e, d: d.__setitem__("net.3.weight", torch.zeros(7, 256, 1, 1)), "net.3.weight"),
@@ -75,7 +75,7 @@ def test_wrong_key_or_shape_fails_naming_it(tmp_path, mutate, needle):
 def test_missing_file_fails(tmp_path):
     _released_style(tmp_path)
     (tmp_path / "pose.pth").unlink()
-    with pytest.raises(ConfigError, match="pose.pth"):
+    with pytest.raises(ConfigError, match=r"pose.pth"):
         load_pose(tmp_path)
 
 
@@ -88,7 +88,8 @@ def test_rodrigues_closed_form():
     assert torch.allclose(rot_from_axisangle(torch.zeros(1, 3))[0], torch.eye(3))
     T = pose_matrix(torch.tensor([[0.1, -0.2, 0.05]]), torch.tensor([[1.0, 2.0, 3.0]]))[0]
     assert torch.allclose(T[:3, :3] @ T[:3, :3].T, torch.eye(3), atol=1e-6)
-    assert torch.equal(T[:3, 3], torch.tensor([1.0, 2.0, 3.0])) and torch.equal(T[3], torch.tensor([0.0, 0, 0, 1]))
+    assert torch.equal(T[:3, 3], torch.tensor([1.0, 2.0, 3.0]))
+    assert torch.equal(T[3], torch.tensor([0.0, 0, 0, 1]))
 
 
 def test_decoder_scale_and_first_prediction():
@@ -117,8 +118,10 @@ def test_pretrain_pose_fits_relative_poses_and_writes_loadable_files(tmp_path):
     from mutualslam_cli.adapt.pretrain_pose import pose_batch, pose_loss, pretrain_pose
 
     first, second, T = pose_batch("room", 0, 2, 64, 64)
-    assert first.shape == (2, 3, 64, 64) and torch.equal(first[1], second[0])
-    assert float(pose_loss(T, T)) == 0.0 and float(pose_loss(torch.eye(4).expand(2, 4, 4), T)) > 0
+    assert first.shape == (2, 3, 64, 64)
+    assert torch.equal(first[1], second[0])
+    assert float(pose_loss(T, T)) == 0.0
+    assert float(pose_loss(torch.eye(4).expand(2, 4, 4), T)) > 0
     rec = pretrain_pose(tmp_path, steps=12, width=64, height=64, batch_size=2, lr=1e-3, refresh=False)
     # measured: 0.028 → 0.005
     losses = [c["loss"] for c in rec["loss_curve"]]
@@ -139,7 +142,9 @@ def test_cli_pretrain_pose_writes_half_precision_weights_initialised_from_the_de
     r = CliRunner().invoke(app, ["pretrain", "--pose", "--quick", "--out", str(tmp_path), "--max-minutes", "5"])
     assert r.exit_code == 0, r.output
     rec = json.loads((tmp_path / "pretrain_pose.json").read_text())
-    assert rec["init_from_depth_encoder"] and rec["half"] and rec["steps_done"] == 3
+    assert rec["init_from_depth_encoder"]
+    assert rec["half"]
+    assert rec["steps_done"] == 3
     raw = torch.load(tmp_path / "pose_encoder.pth", map_location="cpu")
     assert {v.dtype for v in raw.values() if torch.is_tensor(v) and v.is_floating_point()} == {torch.float16}
     assert torch.isfinite(load_pose(tmp_path)(torch.rand(1, 3, 32, 64), torch.rand(1, 3, 32, 64))).all()

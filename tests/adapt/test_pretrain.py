@@ -55,13 +55,18 @@ def test_pretrain_quick_saves_reloadable_files(tmp_path):
     rec = pretrain(tmp_path / "m", steps=3, seed=1, progress=lambda i: calls.append((i["step"], i["steps"])), **QUICK)
     assert calls == [(1, 3), (2, 3), (3, 3)]
     saved = json.loads((tmp_path / "m" / "pretrain.json").read_text())
-    assert saved["steps"] == 3 and saved["seed"] == 1 and saved["complete"] is True
+    assert saved["steps"] == 3
+    assert saved["seed"] == 1
+    assert saved["complete"] is True
     assert [c["step"] for c in saved["loss_curve"]] == [1, 2, 3]
-    assert all(np.isfinite(c["loss"]) for c in saved["loss_curve"]) and rec["s_per_step"] > 0
+    assert all(np.isfinite(c["loss"]) for c in saved["loss_curve"])
+    assert rec["s_per_step"] > 0
     assert saved["n_sequences"] == 1 + 2  # one 2-frame sequence fills the pool, refreshed after steps 1, 2
     assert rec["time_s"] >= saved["train_s"]
     enc = torch.load(tmp_path / "m" / "encoder.pth", weights_only=True)
-    assert enc["encoder.conv1.weight"].dtype == torch.float16 and enc["height"] == 64 and enc["width"] == 128
+    assert enc["encoder.conv1.weight"].dtype == torch.float16
+    assert enc["height"] == 64
+    assert enc["width"] == 128
     net = load_monodepth2(tmp_path / "m")  # strict: every key present with the right shape
     assert set(net.state_dict()) == set(DepthNet().state_dict())
     # deterministic: the same seed gives the same weights

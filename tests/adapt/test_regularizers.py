@@ -211,7 +211,9 @@ def test_prox_step_by_hand():
     assert float(grad.abs().max()) < 1e-9
     # the strength it records: the share of the displacement from θ* the step took back
     shrink = 1.0 - float((m.w.detach() - star).norm() / (x - star).norm())
-    assert len(ewc.shrinks) == 1 and ewc.shrinks[0] == pytest.approx(shrink, rel=1e-12) and 0.0 < shrink < 1.0
+    assert len(ewc.shrinks) == 1
+    assert ewc.shrinks[0] == pytest.approx(shrink, rel=1e-12)
+    assert 0.0 < shrink < 1.0
 
 
 class Vector(nn.Module):
@@ -277,7 +279,7 @@ def test_penalty_zero_at_anchor(scheme):
 
 
 @pytest.mark.parametrize("mode", ["prox", "penalty"])
-@pytest.mark.parametrize("scheme,base", [("replay+ewc", "replay"), ("replay+mas", "replay"),
+@pytest.mark.parametrize(("scheme", "base"), [("replay+ewc", "replay"), ("replay+mas", "replay"),
                                          ("replay+si", "replay"), ("ewc", "recent")])
 def test_regularizer_changes_trajectory_default_config(scheme, base, mode):
     a, b = run(scheme, mode=mode), run(base)

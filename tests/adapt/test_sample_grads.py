@@ -37,7 +37,7 @@ def in_one_pass(net, params, batch, scale=None):
     return per_sample_grads(plan(net, params), params, losses, scale)
 
 
-@pytest.mark.parametrize("frozen, scale", [(0, None), (3, None), (0, 1024.0)])
+@pytest.mark.parametrize(("frozen", "scale"), [(0, None), (3, None), (0, 1024.0)])
 def test_one_pass_gives_each_keyframe_its_own_gradient(frozen, scale):
     torch.manual_seed(0)
     net = DepthNet().eval()
@@ -50,11 +50,13 @@ def test_one_pass_gives_each_keyframe_its_own_gradient(frozen, scale):
     assert len(got) == 2
     for k in range(2):
         for p, a, b in zip(params, want[k], got[k]):
-            assert b.shape == p.shape and b.dtype == p.dtype
+            assert b.shape == p.shape
+            assert b.dtype == p.dtype
             torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5 * float(a.abs().max()) + 1e-12)
     # the two keyframes' gradients are not the same thing (each has its own loss)
     flat = [torch.cat([g.flatten() for g in got[k]]) for k in range(2)]
-    assert flat[0].abs().max() > 0 and not torch.allclose(flat[0], flat[1], rtol=1e-2)
+    assert flat[0].abs().max() > 0
+    assert not torch.allclose(flat[0], flat[1], rtol=1e-2)
     # and their sum is the gradient of the summed losses: nothing is lost or counted twice
     both = torch.autograd.grad(sum(_loss(net, batch, net.predict(batch["target"])[b:b + 1], b) for b in range(2)),
                                params, allow_unused=True)
@@ -80,10 +82,11 @@ def test_layers_it_cannot_split_send_the_caller_to_the_loop():
 
 def test_ewc_fisher_is_the_same_either_way(monkeypatch):
     """EWC's accumulated Fisher after a few keyframes: one pass per batch = one pass per keyframe."""
+    import numpy as np
+
     from mutualslam_cli.adapt import online
     from mutualslam_cli.adapt.buffer import KeyframeSample
     from mutualslam_cli.config import AdaptConfig
-    import numpy as np
 
     g = torch.Generator(device="cpu").manual_seed(0)
     K = torch.tensor([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]])

@@ -29,10 +29,12 @@ def test_registry_names_and_unknown():
     assert set(SCHEMES) == {"none", "recent", "replay", "ewc", "replay+ewc", "replay+mas", "replay+si", "luo", "comoda"}
     with pytest.raises(ConfigError) as e:
         get_scheme("replay+foo")
-    assert "replay+ewc" in str(e.value) and "'luo'" in str(e.value) and "replay+foo" in str(e.value)
+    assert "replay+ewc" in str(e.value)
+    assert "'luo'" in str(e.value)
+    assert "replay+foo" in str(e.value)
 
 
-@pytest.mark.parametrize("name,reg", [("none", None), ("recent", None), ("replay", None), ("ewc", "ewc"),
+@pytest.mark.parametrize(("name", "reg"), [("none", None), ("recent", None), ("replay", None), ("ewc", "ewc"),
                                       ("replay+ewc", "ewc"), ("replay+mas", "mas"), ("replay+si", "si"),
                                       ("luo", None)])
 def test_scheme_regularizer(name, reg):
@@ -95,7 +97,8 @@ def test_capacity_never_exceeded_and_reservoir_uniform(cap):
         hits.update(x for x in b._train_res.items)
     # reservoir over ids 0..37: roughly uniform inclusion
     freq = np.array([hits[k] for k in range(38)]) / (300 * (cap - 2))
-    assert freq.max() < 3 / 38 and freq.min() > 0.2 / 38
+    assert freq.max() < 3 / 38
+    assert freq.min() > 0.2 / 38
 
 
 def test_capacity_replay_sources_kept():
@@ -114,14 +117,16 @@ def test_update_poses_and_sparse_feed_back():
     T = np.eye(4)
     T[0, 3] = 1.5
     assert b.update_poses({2: T, 99: T}) == 1
-    assert np.array_equal(b.get(2).pose, T) and np.array_equal(b.get(1).pose, np.eye(4))
+    assert np.array_equal(b.get(2).pose, T)
+    assert np.array_equal(b.get(1).pose, np.eye(4))
     assert np.array_equal(b.pose(2), T)  # the pose alone (scheme luo's pair rule reads it)
     b.pose(2)[0, 3] = 9.0  # a copy: the stored pose is untouched
     assert b.pose(2)[0, 3] == 1.5
     with pytest.raises(KeyframeError):
         b.pose(99)
     assert b.update_sparse({3: (torch.ones(5, 2), torch.full((5,), 7.0))}) == 1
-    assert b.get(3).uv.shape == (5, 2) and float(b.get(3).depth[0]) == 7.0
+    assert b.get(3).uv.shape == (5, 2)
+    assert float(b.get(3).depth[0]) == 7.0
     with pytest.raises(ShapeError):
         b.update_poses({1: np.eye(3)})
     with pytest.raises(ShapeError):

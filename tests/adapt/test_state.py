@@ -50,7 +50,7 @@ TABLE = [
 ]
 
 
-@pytest.mark.parametrize("state,event,expected,actions", TABLE)
+@pytest.mark.parametrize(("state", "event", "expected", "actions"), TABLE)
 def test_transition_table(state, event, expected, actions):
     if expected is TransitionError:
         with pytest.raises(TransitionError):
@@ -71,7 +71,8 @@ def _drive(l_vals: dict[int, float], n_kf: int, params: FsmParams) -> tuple[list
     s = FsmState()
     trained, validated, ba = [], [], []
     for t in range(n_kf):
-        assert s.t == t and s.mode is Mode.IDLE
+        assert s.t == t
+        assert s.mode is Mode.IDLE
         if is_validation_index(t, params.m):
             s, acts = step(s, ValidationKeyframe(l_vals.get(t, 0.0)), params)
             validated.append(t)
@@ -79,7 +80,8 @@ def _drive(l_vals: dict[int, float], n_kf: int, params: FsmParams) -> tuple[list
                 ba.append(t)
         else:
             s, acts = step(s, TrainingKeyframe(), params)
-            assert acts == (Action.FINE_TUNE,) and s.mode is Mode.FINE_TUNE
+            assert acts == (Action.FINE_TUNE,)
+            assert s.mode is Mode.FINE_TUNE
             trained.append(t)
             s, acts = step(s, FineTuneDone(), params)
             assert acts == ()
@@ -110,4 +112,5 @@ def test_params_reject_bad_m():
 def test_transition_error_is_a_bug_not_a_user_error():
     """Lives in errors.py, still importable from adapt.state, and keeps its traceback in the CLI."""
     assert TransitionError is errors.TransitionError
-    assert issubclass(TransitionError, RuntimeError) and not issubclass(TransitionError, errors.MslamError)
+    assert issubclass(TransitionError, RuntimeError)
+    assert not issubclass(TransitionError, errors.MslamError)

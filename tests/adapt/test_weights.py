@@ -58,7 +58,9 @@ def test_save_roundtrip_keys_and_output(tmp_path, net):
     dec = torch.load(tmp_path / "depth.pth", weights_only=True)
     assert set(enc) == set(net.encoder.state_dict()) | {"height", "width", "use_stereo"}
     assert set(dec) == set(net.decoder.state_dict())
-    assert enc["height"] == 192 and enc["width"] == 640 and enc["use_stereo"] is False
+    assert enc["height"] == 192
+    assert enc["width"] == 640
+    assert enc["use_stereo"] is False
     loaded = load_monodepth2(tmp_path, max_depth=50.0)
     assert loaded.max_depth == 50.0
     for k, v in net.state_dict().items():
@@ -77,7 +79,7 @@ def test_half_storage_converts_back(tmp_path, net):
     assert float(rel) < 1e-2
 
 
-@pytest.mark.parametrize("case, pattern", [
+@pytest.mark.parametrize(("case", "pattern"), [
     (dict(drop="encoder.layer2.1.conv1.weight"), r"encoder\.pth.*missing keys: encoder\.layer2\.1\.conv1\.weight"),
     (dict(rename=("decoder.3.conv.conv.bias", "decoder.3.conv.bias")),
      r"depth\.pth.*missing keys: decoder\.3\.conv\.conv\.bias; unexpected keys: decoder\.3\.conv\.bias"),
@@ -104,10 +106,10 @@ def test_tolerated_absences(tmp_path, net):
 
 
 def test_missing_and_garbage_files(tmp_path, net):
-    with pytest.raises(ConfigError, match="encoder.pth: file not found"):
+    with pytest.raises(ConfigError, match=r"encoder.pth: file not found"):
         load_monodepth2(tmp_path)
     (tmp_path / "encoder.pth").write_text("not a checkpoint")
-    with pytest.raises(ConfigError, match="encoder.pth: cannot read"):
+    with pytest.raises(ConfigError, match=r"encoder.pth: cannot read"):
         load_monodepth2(tmp_path)
 
 

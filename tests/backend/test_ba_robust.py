@@ -11,11 +11,11 @@ import pytest
 
 from mutualslam_cli.backend.ba.global_ba import run_global_ba
 from mutualslam_cli.backend.ba.photometric import PhotoBAProblem, solve
+from mutualslam_cli.backend.refine import ba_images
 from mutualslam_cli.bench import ba as bench
 from mutualslam_cli.config import BAConfig, RunConfig, VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.metrics.trajectory import ate
-from mutualslam_cli.backend.refine import ba_images
 from mutualslam_cli.stages.frontend import run_frontend
 
 #: Settings without DSO's outlier handling (the BA before it): Huber at ~25 grey levels, no
@@ -44,7 +44,7 @@ def _occlude(prob: PhotoBAProblem, share: float, rng: np.random.Generator) -> tu
     targets in the target image; returns the problem and the occluded blocks."""
     images = prob.images.copy()
     m = rng.choice(len(prob.obs_pt), int(share * len(prob.obs_pt)), replace=False)
-    H, W = images.shape[1:]
+    _H, _W = images.shape[1:]
     for (u, v), k in zip(np.rint(_project(prob, m)).astype(int), prob.obs_kf[m]):
         y0, x0 = max(v - 4, 0), max(u - 4, 0)
         patch = images[k, y0:v + 5, x0:u + 5]
@@ -59,7 +59,8 @@ def test_occluded_targets_leave_the_poses_where_they_are(small):
     start = bench.perturb(occluded, np.random.default_rng(1), **bench.BENCH_PERTURBATION)
     res = solve(start, iterations=10)
     acc = bench.accuracy(small, res.T_cw, res.inv_depth)
-    assert acc["centre_mm_max"] < 1.0 and acc["rot_deg_max"] < 0.02
+    assert acc["centre_mm_max"] < 1.0
+    assert acc["rot_deg_max"] < 0.02
     assert res.stats["n_outlier_blocks"] >= 0.8 * len(m)
     for r in res.stats["rounds"]:  # the cost never increases over accepted steps
         assert np.all(np.diff(r["costs"]) <= 0)
@@ -88,11 +89,13 @@ def test_point_on_a_depth_edge_is_dropped_not_averaged():
                                obs_kf=np.r_[prob.obs_kf, np.tile(targets, 20)])
     res = solve(prob, iterations=6)
     dropped = res.stats["dropped"]
-    assert dropped[P:].mean() >= 0.5 and dropped[:P].mean() < 0.02
+    assert dropped[P:].mean() >= 0.5
+    assert dropped[:P].mean() < 0.02
     # an edge point that stays (six of its nine pixels on the front panel) is at the front surface
     # (within 2 %; the panels here are 2.0/2.4 m in front of a wall at 3.0 m), not in between
     kept = ~dropped[P:]
-    assert kept.any() and np.all(np.abs(res.inv_depth[P:][kept] * front[kept] - 1) < 0.02)
+    assert kept.any()
+    assert np.all(np.abs(res.inv_depth[P:][kept] * front[kept] - 1) < 0.02)
     c = lambda T: np.einsum("kji,kj->ki", T[:, :3, :3], -T[:, :3, 3])  # noqa: E731
     moved = np.linalg.norm(c(res.T_cw) - c(prob.T_cw), axis=1).max()
     naive = solve(prob, iterations=6, **NAIVE)
@@ -108,5 +111,6 @@ def test_ba_started_from_gt_poses_stays_on_icl(shared_data: Path, tmp_path: Path
     seq = load_sequence(shared_data / "icl_lr_kt2")
     vo, _ = run_frontend(seq, RunConfig(vo=VOConfig(mode="gt")), cache_dir=tmp_path)
     r = run_global_ba(vo, ba_images(seq, vo), None, None, BAConfig(), cull=False)
-    assert r.stats.n_refined > 0.8 * len(vo.points) and r.stats.accepted >= 1
+    assert r.stats.n_refined > 0.8 * len(vo.points)
+    assert r.stats.accepted >= 1
     assert ate(vo.traj_kf, r.vo.traj_kf).rmse < 1e-3

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 from synth import make_tum_dir, plant_tracking_failures
 
+from mutualslam_cli.backend.bridges import Bridge, bridge_segment, bridged, plan_bridge
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import exp_so3, scale_motion
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.metrics.trajectory import ate, ate_segments
+from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.camera import Undistorter
 from mutualslam_cli.vo.frontend import run_vo
-from mutualslam_cli.backend.bridges import Bridge, bridge_segment, bridged, plan_bridge
-from mutualslam_cli.types import Intrinsics, Trajectory
-from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 @pytest.fixture(scope="module")
@@ -48,8 +48,12 @@ def test_an_exact_network_continues_the_scale_within_5_percent(two_segments):
     moved, b = bridge_segment(vo, first, gt_depth, seq.load_gray, seq.intrinsics)
     t0, t1 = _scales(seq, moved)
     assert abs(t1 / t0 - 1) < 0.05, (t0, t1)
-    assert b.segment == 1 and b.onto == 0 and b.n_new >= 10 and b.n_prev >= 10
-    assert b.rotation_from == "images" and b.last_frame < b.frame
+    assert b.segment == 1
+    assert b.onto == 0
+    assert b.n_new >= 10
+    assert b.n_prev >= 10
+    assert b.rotation_from == "images"
+    assert b.last_frame < b.frame
     # one map: a single Sim(3) now fits both segments far better than before the bridge
     assert ate(seq.gt, moved.traj_kf).rmse < 0.3 * ate(seq.gt, vo.traj_kf).rmse
     # the old segment did not move; the moved one's points follow their hosts
@@ -91,7 +95,10 @@ def test_ratios_spread_too_wide_leave_the_segment_apart_and_say_why(two_segments
 
     first = next(k.id for k in vo.keyframes if k.segment == 1)
     b = plan_bridge(vo, first, noisy, seq.load_gray, seq.intrinsics)
-    assert b is not None and "spread too wide" in b.refused and b.segment == 1 and b.onto == 0
+    assert b is not None
+    assert "spread too wide" in b.refused
+    assert b.segment == 1
+    assert b.onto == 0
     assert bridge_segment(vo, first, noisy, seq.load_gray, seq.intrinsics) is None
     assert bridged(vo, [b]) is vo  # a refused bridge joins nothing
 
@@ -108,6 +115,8 @@ def test_units_follow_the_bridges_that_were_made():
     vo = VOResult(kfs, pts, Intrinsics(100.0, 100.0, 32.0, 24.0, 64, 48), Trajectory(np.zeros(0), np.zeros((0, 4, 4))),
                   np.full(5, -1))
     units = bridged(vo, [made_(1, 0), made_(3, 2), made_(4, 3, refused="spread")]).unit_of_segment()
-    assert units[0] == units[1] != units[2] == units[3] != units[4] and units[4] == 4
+    assert units[0] == units[1] != units[2] == units[3] != units[4]
+    assert units[4] == 4
     units = bridged(vo, [made_(1, 0), made_(3, 2), made_(2, 1)]).unit_of_segment()
-    assert len(set(units[s] for s in range(4))) == 1 and units[4] == 4
+    assert len(set(units[s] for s in range(4))) == 1
+    assert units[4] == 4

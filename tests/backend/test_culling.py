@@ -7,8 +7,8 @@ import pytest
 
 from mutualslam_cli.backend.culling import choose_hosts, correct, cull_map_points
 from mutualslam_cli.errors import ConfigError, ShapeError
-from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.types import Intrinsics, Trajectory
 
 INTR = Intrinsics(100.0, 100.0, 50.0, 40.0, 100, 80)
 

@@ -13,9 +13,9 @@ from mutualslam_cli.bench.ba import perturb, synthetic_problem
 from mutualslam_cli.config import BAConfig, VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import se3_inv
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.depth_oracle import run_oracle
-from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 HW = (180, 240)
 CFG = BAConfig(d_max=10.0, nearby_targets=False)  # the plane scene lies at 2–3 m: inside the CNN's "effective range";
@@ -64,16 +64,21 @@ def test_recovers_poses_and_inverse_depths(scene):
         assert np.linalg.norm(a.pose[:3, :3] @ b[:3, :3] - np.eye(3)) < 2e-4
     np.testing.assert_array_equal(r.vo.keyframes[0].pose, se3_inv(prob.T_cw[0]))  # gauge
     moved = r.vo.points.inv_depth != start.inv_depth
-    assert moved.sum() == st.n_refined and st.n_refined + st.n_unrefined == len(prob.host)
+    assert moved.sum() == st.n_refined
+    assert st.n_refined + st.n_unrefined == len(prob.host)
     err = np.abs(r.vo.points.inv_depth / prob.inv_depth - 1)
-    assert np.quantile(err[moved], 0.95) < 5e-3 and np.median(err[moved]) < 1e-3
+    assert np.quantile(err[moved], 0.95) < 5e-3
+    assert np.median(err[moved]) < 1e-3
     # points without a valid target are kept as they are, and counted
     np.testing.assert_array_equal(r.vo.points.inv_depth[~moved], start.inv_depth[~moved])
     assert 0 < st.n_unrefined < 0.05 * len(prob.host)
-    assert st.n_culled == 0 and r.keep.all() and st.n_judged == len(prob.host)
+    assert st.n_culled == 0
+    assert r.keep.all()
+    assert st.n_judged == len(prob.host)
     for costs in st.costs:  # the cost never increases over accepted steps
         assert np.all(np.diff(costs) <= 0)
-    assert st.cost < 1e-3 * st.cost0 and st.accepted >= 1
+    assert st.cost < 1e-3 * st.cost0
+    assert st.accepted >= 1
 
 
 def test_culling_removes_gross_outliers_and_keeps_inliers(scene):
@@ -92,10 +97,14 @@ def test_culling_removes_gross_outliers_and_keeps_inliers(scene):
     assert len(kept.points) == r.keep.sum()
     assert centre_err(r.vo, prob).max() < 1e-3  # outliers gone: the BA converges as without them
     no = run(as_vo(start), prob, deps, cull=False)  # BA without culling culls nothing ...
-    assert no.keep.all() and no.stats.n_culled == 0 and no.stats.n_judged == 0
+    assert no.keep.all()
+    assert no.stats.n_culled == 0
+    assert no.stats.n_judged == 0
     # ... but drops most outliers itself: their blocks are outliers to the photometric test
-    assert no.dropped[bad].mean() > 0.5 and no.dropped[~bad].mean() < 0.05
-    assert no.stats.n_dropped == no.dropped.sum() and len(no.kept().points) == len(prob.host) - no.dropped.sum()
+    assert no.dropped[bad].mean() > 0.5
+    assert no.dropped[~bad].mean() < 0.05
+    assert no.stats.n_dropped == no.dropped.sum()
+    assert len(no.kept().points) == len(prob.host) - no.dropped.sum()
     # an inverse depth the BA would change by more than ×2 keeps its value before BA, counted
     change = np.abs(np.log(no.vo.points.inv_depth / start.inv_depth))
     assert change.max() < np.log(gba.MAX_CHANGE)
@@ -113,7 +122,8 @@ def test_culls_in_the_best_validated_keyframe_and_keeps_front_end_hosts(scene):
     r = run(vo, prob, wrong, cfg, val_loss=val)
     assert r.stats.n_judged_elsewhere == np.sum(best != vo.points.host) > 100
     judged_in_3 = best == 3
-    assert judged_in_3.sum() > 50 and r.keep[judged_in_3].all()  # right depth there: kept
+    assert judged_in_3.sum() > 50
+    assert r.keep[judged_in_3].all()
     assert (~r.keep[~judged_in_3 & (best != 3)]).mean() > 0.9  # judged against a x3 depth: culled
     # the BA parameters stay with the front end's host: same hosts, pixels, inverse depths (0 iterations)
     np.testing.assert_array_equal(r.vo.points.host, vo.points.host)
@@ -135,7 +145,8 @@ def test_partial_ba_later_keyframes_and_frames_follow(scene):
     r = run(vo, prob, deps, upto=3)
     assert r.stats.keyframes == 4
     # 4 keyframes whose extent (the scale anchor) the perturbation did not keep: 10 mm → < 4 mm
-    assert centre_err(vo0, prob)[1:4].min() > 9e-3 and centre_err(r.vo, prob)[:4].max() < 4e-3
+    assert centre_err(vo0, prob)[1:4].min() > 9e-3
+    assert centre_err(r.vo, prob)[:4].max() < 4e-3
     T3_old, T3_new = vo.keyframes[3].pose, r.vo.keyframes[3].pose
     for k in (4, 5):  # T_new = T_ref_new · T_ref_old⁻¹ · T, ref = keyframe 3
         np.testing.assert_allclose(r.vo.keyframes[k].pose, T3_new @ np.linalg.inv(T3_old) @ vo.keyframes[k].pose,
@@ -171,7 +182,10 @@ def test_a_window_refines_only_the_newest_keyframes(scene):
     images, depths = set(), set()
     r = gba.run_global_ba(vo, lambda k: images.add(k) or prob.images[k], lambda k: depths.add(k) or deps[k], None,
                           dataclasses.replace(CFG, window=3), cull=True)
-    assert r.stats.keyframes == 3 and images == {3, 4, 5} and depths and depths <= {3, 4, 5}
+    assert r.stats.keyframes == 3
+    assert images == {3, 4, 5}
+    assert depths
+    assert depths <= {3, 4, 5}
     for k in range(4):
         np.testing.assert_array_equal(r.vo.keyframes[k].pose, vo.keyframes[k].pose)
     assert all(not np.array_equal(r.vo.keyframes[k].pose, vo.keyframes[k].pose) for k in (4, 5))
@@ -186,7 +200,8 @@ def test_points_observed_in_a_keyframe_match_a_scan(scene):
     for k in range(len(vo.keyframes)):
         scan = np.flatnonzero([k in o for o in vo.points.observations])
         np.testing.assert_array_equal(vo.points.observed_in(k), scan)
-    assert len(vo.points.observed_in(99)) == 0 and len(MapPoints.empty().observed_in(0)) == 0
+    assert len(vo.points.observed_in(99)) == 0
+    assert len(MapPoints.empty().observed_in(0)) == 0
 
 
 def test_ba_images_keep_only_the_newest_with_a_window(tmp_path):
@@ -202,7 +217,8 @@ def test_ba_images_keep_only_the_newest_with_a_window(tmp_path):
     load(2), load(1)  # cached
     assert len(calls) == 3
     load(0)  # evicted: read again, same pixels
-    assert len(calls) == 4 and np.array_equal(load(0), first[0])
+    assert len(calls) == 4
+    assert np.array_equal(load(0), first[0])
 
 
 def test_a_bridge_links_two_segments_into_one_problem(scene):
@@ -219,7 +235,8 @@ def test_a_bridge_links_two_segments_into_one_problem(scene):
     segs = np.array([0, 0, 0, 1, 1, 1])
     apart = run(as_vo(start, segments=segs), prob, deps, cull=False)
     joined = run(as_vo(start, segments=segs), prob, deps, cull=False, units={0: 0, 1: 0})
-    assert apart.stats.n_parts == 2 and joined.stats.n_parts == 1
+    assert apart.stats.n_parts == 2
+    assert joined.stats.n_parts == 1
     assert centre_err(apart.vo, prob)[3] > 0.015  # the second segment's gauge kept the bridge's error
     assert centre_err(joined.vo, prob)[1:].max() < 5e-3 < 0.25 * centre_err(apart.vo, prob)[3]
     np.testing.assert_array_equal(joined.vo.keyframes[0].pose, se3_inv(start.T_cw[0]))  # one gauge: keyframe 0

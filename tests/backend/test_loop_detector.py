@@ -6,14 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mutualslam_cli.backend.loop_detector import DEPTH_SPREAD_FACTOR, LoopDetector, depth_agrees
 from mutualslam_cli.config import LoopConfig
 from mutualslam_cli.datasets.synthetic.scenes import camera_pose
 from mutualslam_cli.datasets.synthetic.sequences import FPS, _setup, synthetic_intrinsics
-from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.geometry import to_normalized
-from mutualslam_cli.vo.features import detect_grid
-from mutualslam_cli.backend.loop_detector import DEPTH_SPREAD_FACTOR, LoopDetector, depth_agrees
+from mutualslam_cli.geometry import se3_inv, to_normalized
 from mutualslam_cli.map.state import MapState
+from mutualslam_cli.vo.features import detect_grid
 
 W, H = 320, 240
 THR = 2.0 / 250.0
@@ -64,11 +63,13 @@ def test_a_place_seen_before_is_found_with_its_pose_and_scale(frames):
     q = st.n_keyframes - 1
     d = _detector(st, frames, LoopConfig(min_gap=1))
     loop = d.query(st, q, frames[1273][0], frames[1273][1])  # an exact "network": GT depth
-    assert loop is not None and st.map.kf_frame[loop.match] in (45, 60, 75)
+    assert loop is not None
+    assert st.map.kf_frame[loop.match] in (45, 60, 75)
     pos_err = np.linalg.norm(se3_inv(loop.T_cw)[:3, 3] - frames[1273][2][:3, 3])
     assert pos_err < 0.02  # the loop pose is the true pose in the old (metric) map
     assert loop.scale == pytest.approx(1 / 1.25, rel=0.03)  # old units per unit of the drifted map
-    assert loop.spread < 0.05 and loop.inliers >= 40
+    assert loop.spread < 0.05
+    assert loop.inliers >= 40
 
 
 def test_a_look_alike_place_is_rejected(frames):
@@ -80,7 +81,8 @@ def test_a_look_alike_place_is_rejected(frames):
     d.index.add_keyframe(0, frames[1270][0])  # the look-alike: another place's points, this place's image
     assert d.index.candidates(frames[1273][0], [0, 1, 2], newest=0)[0] == 0
     assert d.query(st, q, frames[1273][0], frames[1273][1]) is None
-    assert sum(d.rejected.values()) >= 1 and d.tried >= 1
+    assert sum(d.rejected.values()) >= 1
+    assert d.tried >= 1
 
 
 def test_the_loop_scale_pairs_nearby_points_so_a_biased_network_cancels():
@@ -102,7 +104,8 @@ def test_the_loop_scale_pairs_nearby_points_so_a_biased_network_cancels():
     uv_new, z_m = points(150, False)
     z_new = 2.0 * z_m  # the drifted unit: old units per new unit = 0.5
     s, err = _local_scale(px_old, z_old, uv_new, z_new, depth, size)
-    assert abs(s / 0.5 - 1) < 0.03 and err < 0.02
+    assert abs(s / 0.5 - 1) < 0.03
+    assert err < 0.02
     # no old point with a new one near: not measurable
     assert _local_scale(px_old[px_old[:, 0] < 100], z_old[px_old[:, 0] < 100], uv_new[uv_new[:, 0] > 250],
                         z_new[uv_new[:, 0] > 250], depth, size) is None
@@ -125,21 +128,28 @@ def test_each_query_records_its_candidates_and_what_became_of_them(frames):
     d = _detector(st, frames, LoopConfig(min_gap=1, n_candidates=3))
     loop = d.query(st, q, frames[1273][0], frames[1273][1])
     rec = d.queries[-1]
-    assert rec["kf"] == q and rec["pool"].tolist() == [0, 1, 2, 3, 4]
-    assert len(rec["candidates"]) == 3 and set(rec["candidates"]) <= set(range(5))
+    assert rec["kf"] == q
+    assert rec["pool"].tolist() == [0, 1, 2, 3, 4]
+    assert len(rec["candidates"]) == 3
+    assert set(rec["candidates"]) <= set(range(5))
     tried = list(rec["geometry"])
     assert tried == rec["candidates"][: len(tried)]  # verified in the order proposed, until one passed
-    assert rec["geometry"][tried[-1]] == PASSED and all(rec["geometry"][k] in (REFUTED, NO_MATCH) for k in tried[:-1])
-    assert rec["verified"] == loop.match == tried[-1] and rec["outcome"] == "loop"
-    assert d.already_closed(st, loop) is False and d.queries[-1]["outcome"] == "loop"
+    assert rec["geometry"][tried[-1]] == PASSED
+    assert all(rec["geometry"][k] in (REFUTED, NO_MATCH) for k in tried[:-1])
+    assert rec["verified"] == loop.match == tried[-1]
+    assert rec["outcome"] == "loop"
+    assert d.already_closed(st, loop) is False
+    assert d.queries[-1]["outcome"] == "loop"
     # the look-alike: refused by geometry, recorded so
     st2 = _map(frames, [300, 315, 330], 1273, unit=1.0, offset=np.eye(4))
     d2 = _detector(st2, frames, LoopConfig(min_gap=1))
     d2.index.add_keyframe(0, frames[1270][0])
     assert d2.query(st2, st2.n_keyframes - 1, frames[1273][0], frames[1273][1]) is None
     rec2 = d2.queries[-1]
-    assert rec2["candidates"][0] == 0 and rec2["verified"] is None
-    assert rec2["geometry"][0] in (REFUTED, NO_MATCH) and PASSED not in rec2["geometry"].values()
+    assert rec2["candidates"][0] == 0
+    assert rec2["verified"] is None
+    assert rec2["geometry"][0] in (REFUTED, NO_MATCH)
+    assert PASSED not in rec2["geometry"].values()
     assert rec2["outcome"].startswith("geometry")
 
 
@@ -153,12 +163,14 @@ def test_a_noisy_network_does_not_refuse_a_true_loop(frames):
     noisy = frames[1273][1] * np.exp(np.random.default_rng(0).normal(0, 0.35, frames[1273][1].shape))
     d = _detector(st, frames, LoopConfig(min_gap=1))
     loop = d.query(st, q, frames[1273][0], noisy)
-    assert loop is not None and loop.spread > LoopConfig().max_depth_spread
+    assert loop is not None
+    assert loop.spread > LoopConfig().max_depth_spread
     assert d.queries[-1]["spread_new"] * DEPTH_SPREAD_FACTOR >= loop.spread
 
 
 def test_depth_agreement_is_against_the_networks_own_noise():
-    assert depth_agrees(0.2, 0.0, 0.25) and depth_agrees(0.4, 0.3, 0.25)
+    assert depth_agrees(0.2, 0.0, 0.25)
+    assert depth_agrees(0.4, 0.3, 0.25)
     assert not depth_agrees(0.5, 0.3, 0.25)  # 1.67 × the network's own spread: the pose's depths do not follow
     assert not depth_agrees(0.3, 0.1, 0.25)
 
@@ -176,12 +188,14 @@ def test_a_true_loop_is_witnessed_by_the_old_map_not_by_the_drifted_new_one(fram
     pool = [0, 1, 2, 3, 4]  # the old visit: keyframes 5–8 are within min_gap of the query
     d = _detector(st, frames, LoopConfig(min_gap=5))
     loop = d.query(st, q, frames[1273][0], np.full_like(frames[1273][1], 5.0))  # a useless "network": flat
-    assert loop is not None and st.map.kf_frame[loop.match] in (45, 60, 75)
+    assert loop is not None
+    assert st.map.kf_frame[loop.match] in (45, 60, 75)
     T_true = se3_inv(frames[1273][2])
     assert set(d.index._witnesses(T_true, loop.match, st.map, (H, W), pool)) <= set(pool) - {loop.match}
     assert set(d.index._witnesses(T_true, loop.match, st.map, (H, W))) & {5, 6, 7, 8}  # the old rule took new ones
     assert np.linalg.norm(se3_inv(loop.T_cw)[:3, 3] - frames[1273][2][:3, 3]) < 0.02
-    assert d.queries[-1]["scale_from"] == "map" and loop.scale == pytest.approx(1 / 1.25, rel=0.03)
+    assert d.queries[-1]["scale_from"] == "map"
+    assert loop.scale == pytest.approx(1 / 1.25, rel=0.03)
 
 
 def test_the_maps_own_scale_pairs_points_on_one_pixel():
@@ -191,7 +205,8 @@ def test_the_maps_own_scale_pairs_points_on_one_pixel():
     uv = rng.uniform(0, 300, (60, 2))
     z = rng.uniform(1.0, 4.0, 60)
     s, err = paired_scale(uv + rng.normal(0, 0.5, uv.shape), 0.8 * z, uv, z)  # old units per new: 0.8
-    assert s == pytest.approx(0.8, rel=1e-6) and err < 1e-6
+    assert s == pytest.approx(0.8, rel=1e-6)
+    assert err < 1e-6
     wrong = z.copy()
     wrong[:15] *= 3.0  # a quarter of the pairs are other points: the median holds
     assert paired_scale(uv, 0.8 * wrong, uv, z)[0] == pytest.approx(0.8, rel=1e-6)

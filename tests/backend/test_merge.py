@@ -3,19 +3,18 @@ moves whole by the measured Sim(3); one a bridge already joined is corrected as 
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from mutualslam_cli.backend.loop_detector import LoopClosure
+from mutualslam_cli.backend.merge import SegmentMerger, merge_similarity
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.geometry import exp_so3, se3_inv
-from mutualslam_cli.backend.merge import SegmentMerger, merge_similarity
-from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.map.state import MapState
+from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.relocalise import HeldImages
 
 INTR = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
@@ -91,12 +90,14 @@ def test_a_segment_of_its_own_moves_whole_onto_the_old_map_once():
     assert [a[0] for a in mg.asked] == [3, 4]  # segment 0 is the map: only the new segment's keyframes ask
     assert mg.asked[0][1] == [0, 1, 2]  # … and only about the keyframes before the segment
     np.testing.assert_allclose(state.pose(4), se3_inv(T_o), atol=1e-9)
-    assert state.unit(1) == 0 and mg.merges[0].how == "similarity"
+    assert state.unit(1) == 0
+    assert mg.merges[0].how == "similarity"
     # the hosted points moved with their keyframes, their distances from them ×2
     assert np.linalg.norm(state.map.Xw[1] - state.pose(4)[:3, 3]) == pytest.approx(
         2.0 * np.linalg.norm(X0[1] - _T_wc(0.4, [0.05, 0, 0])[:3, 3]))
     mg.after_keyframe(4, depth_of, lambda ids: {})
-    assert len(mg.asked) == 2 and len(mg.merges) == 1  # merged: not asked again
+    assert len(mg.asked) == 2
+    assert len(mg.merges) == 1
 
 
 def test_after_a_merge_every_reader_sees_one_unit():
@@ -112,7 +113,8 @@ def test_after_a_merge_every_reader_sees_one_unit():
     for kf in range(5):
         mg.after_keyframe(kf, lambda kf: np.ones((8, 8)), lambda ids: {})
     vo = state.snapshot([FrameRef(i, float(i), Path(f"{i}.png"), None) for i in range(50)])
-    assert state.unit(1) == 0 and vo.unit_of_segment() == {0: 0, 1: 0}
+    assert state.unit(1) == 0
+    assert vo.unit_of_segment() == {0: 0, 1: 0}
     assert set(point_units(vo, vo.unit_of_segment()).tolist()) == {0}
 
 
@@ -127,5 +129,6 @@ def test_a_bridged_segment_is_corrected_as_a_loop():
     before = state.pose(3).copy()
     for kf in range(5):
         mg.after_keyframe(kf, lambda kf: np.ones((8, 8)), lambda ids: {})
-    assert calls == [4] and mg.merges[0].how == "pose graph + BA"
+    assert calls == [4]
+    assert mg.merges[0].how == "pose graph + BA"
     np.testing.assert_array_equal(state.pose(3), before)  # not moved rigidly: the loop's pose graph does it

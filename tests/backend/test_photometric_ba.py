@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mutualslam_cli.backend.ba import photometric as ph
 from mutualslam_cli.backend.ba import lm, pyramid
+from mutualslam_cli.backend.ba import photometric as ph
 from mutualslam_cli.backend.ba.residuals import DSO_PATTERN
 from mutualslam_cli.bench.ba import perturb, synthetic_problem
 from mutualslam_cli.errors import ConfigError, ShapeError
@@ -65,7 +65,8 @@ def test_zero_residual_at_truth(scene):
     # only the bilinear interpolation error of the rendered images remains, but for the few
     # pattern pixels that reach across a depth edge (the pattern spans 5×5 pixels)
     a = np.abs(r[valid])
-    assert np.median(a) < 2e-4 and np.mean(a < 3e-3) > 0.99
+    assert np.median(a) < 2e-4
+    assert np.mean(a < 3e-3) > 0.99
 
 
 def test_schur_step_equals_dense_solve(scene):
@@ -133,9 +134,11 @@ def test_solve_recovers_poses_depths_affine_and_scale(scene):
     np.testing.assert_array_equal(res.T_cw[0], start.T_cw[0])
     np.testing.assert_array_equal(res.affine[0], start.affine[0])
     lv = res.stats["rounds"]  # the coarse level's round, then the rounds at full resolution
-    assert [x["level"] for x in lv] == [1, 0, 0] and lv[0]["shape"] == (60, 80)
+    assert [x["level"] for x in lv] == [1, 0, 0]
+    assert lv[0]["shape"] == (60, 80)
     for x in lv:  # cost non-increasing within each round (rounds' active blocks and levels differ)
-        assert np.all(np.diff(x["costs"]) <= 0) and x["accepted"] >= 1
+        assert np.all(np.diff(x["costs"]) <= 0)
+        assert x["accepted"] >= 1
     assert lv[-1]["costs"] == res.stats["costs"]
     assert res.stats["cost"] < 0.01 * res.stats["cost0"]
     assert res.stats["iterations"] == sum(x["iterations"] for x in lv)
@@ -150,12 +153,15 @@ def test_single_level_is_unchanged(scene):
                                 rho_rel=0.03))
     res = ph.solve(start, iterations=20)
     st = res.stats
-    assert st["accepted"] >= 1 and st["cost"] < 1e-3 * st["cost0"]
-    assert np.all(np.diff(st["costs"]) <= 0) and [x["level"] for x in st["rounds"]] == [0, 0]
+    assert st["accepted"] >= 1
+    assert st["cost"] < 1e-3 * st["cost0"]
+    assert np.all(np.diff(st["costs"]) <= 0)
+    assert [x["level"] for x in st["rounds"]] == [0, 0]
     same = ph.solve(start, iterations=20, levels=2, coarse_iterations=0)
     for a, b in ((res.T_cw, same.T_cw), (res.affine, same.affine), (res.inv_depth, same.inv_depth)):
         np.testing.assert_array_equal(a, b)
-    assert same.stats["costs"] == st["costs"] and same.stats["cost0"] == st["cost0"]
+    assert same.stats["costs"] == st["costs"]
+    assert same.stats["cost0"] == st["cost0"]
 
 
 def test_pyramid_downsampling_and_intrinsics_agree(scene):
@@ -191,7 +197,7 @@ def test_fixed_keyframes_stay_put(scene):
     assert not np.allclose(res.T_cw[4], start.T_cw[4])
 
 
-@pytest.mark.parametrize("change, err, match", [
+@pytest.mark.parametrize(("change", "err", "match"), [
     (lambda p: dict(pixel=p.pixel[:-1]), ShapeError, "pixel"),
     (lambda p: dict(T_cw=p.T_cw[:-1]), ShapeError, "T_cw"),
     (lambda p: dict(obs_kf=np.r_[p.host[p.obs_pt[:1]], p.obs_kf[1:]]), ConfigError, "equals the host"),

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
+from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.geometry import exp_so3
-from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.map.refinement import apply_refinement
-from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.map.state import MapState
+from mutualslam_cli.types import Intrinsics
 
 INTR = Intrinsics(250.0, 250.0, 160.0, 120.0, 320, 240)
 
@@ -30,7 +32,7 @@ def _drifted(gt: list[np.ndarray], step_scale: float) -> tuple[list[np.ndarray],
     """The odometry of ``gt`` with a rotation bias per step and a unit that shrinks by ``step_scale`` per step."""
     bias = exp_so3(np.array([[0.0, 0.004, 0.002]]))[0]
     poses, units, unit = [gt[0].copy()], [1.0], 1.0
-    for a, b in zip(gt, gt[1:]):
+    for a, b in itertools.pairwise(gt):
         rel = np.linalg.inv(a) @ b
         rel[:3, :3] = bias @ rel[:3, :3]
         unit *= step_scale
@@ -59,7 +61,9 @@ def test_a_loop_spreads_its_correction_over_the_keyframes_it_closes():
     r = close_loop(st, loop)
     err0 = np.array([np.linalg.norm(p[:3, 3] - g[:3, 3]) for p, g in zip(poses, gt)])
     err1 = np.array([np.linalg.norm(p[:3, 3] - g[:3, 3]) for p, g in zip(r.T_wc, gt)])
-    assert err0.max() > 0.5 and err1.max() < 0.15 * err0.max() and err1.mean() < 0.15 * err0.mean()
+    assert err0.max() > 0.5
+    assert err1.max() < 0.15 * err0.max()
+    assert err1.mean() < 0.15 * err0.mean()
     np.testing.assert_allclose(r.T_wc[0], poses[0], atol=1e-9)  # the old end stays
     assert abs(r.scale[-1] * units[39] - 1) < 0.05  # the drifted unit restored
     # the refinement moves the map: poses, the points' depths by their host's unit, the frames with their keyframe
@@ -112,7 +116,8 @@ def test_a_loop_the_map_already_agrees_with_is_not_closed_again():
     det = LoopDetector(INTR, 0.01)
     same = LoopClosure(query=39, match=0, T_cw=np.linalg.inv(gt[39]), scale=1.0, inliers=100, spread=0.1,
                        n_new=50, n_old=50)
-    assert det.already_closed(st, same) and det.rejected == {"already closed": 1}
+    assert det.already_closed(st, same)
+    assert det.rejected == {"already closed": 1}
     turned = gt[39].copy()
     turned[:3, :3] = turned[:3, :3] @ exp_so3(np.array([[0.0, 0.05, 0.0]]))[0]  # 2.9 degrees off
     assert not det.already_closed(st, LoopClosure(**{**same.__dict__, "T_cw": np.linalg.inv(turned)}))

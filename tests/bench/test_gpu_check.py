@@ -4,7 +4,6 @@ run path exercised on the CPU (the 'GPU side' told device=cpu, the bench stubbed
 from __future__ import annotations
 
 import pytest
-
 import torch
 
 from mutualslam_cli.bench import gpu_check
@@ -15,7 +14,8 @@ def test_without_cuda_it_says_why_and_passes(monkeypatch, capsys):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert gpu_check.main([]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("gpu-check: skipped, no CUDA device:") and torch.__version__ in out
+    assert out.startswith("gpu-check: skipped, no CUDA device:")
+    assert torch.__version__ in out
 
 
 def test_the_comparison_wants_the_same_keyframes_and_pcd_within_a_point():
@@ -38,4 +38,6 @@ def test_the_script_runs_a_window_on_both_sides_and_checks_them(tiny_run, monkey
                          "--set", f"net.weights={tmp / 'weights'}", "--out", str(tmp / "gpu_check")])
     out = capsys.readouterr().out
     assert rc == 0, out
-    assert "same keyframes: ok" in out and "PCD lsq within 1 point: ok" in out and "fine-tuning step: 1.0 ms" in out
+    assert "same keyframes: ok" in out
+    assert "PCD lsq within 1 point: ok" in out
+    assert "fine-tuning step: 1.0 ms" in out

@@ -27,6 +27,8 @@ def test_coefficients_rescaled_until_each_shrinks_like_ewc(monkeypatch, tmp_path
     assert res["target"] == 0.05
     for scheme, key in strength.CALIBRATED.items():
         r = res[scheme]
-        assert r["key"] == key and r["shrink"] == pytest.approx(0.05, rel=0.1)
-        assert len(r["runs"]) <= 5 and float(f"{r['value']:.2g}") == r["value"]
+        assert r["key"] == key
+        assert r["shrink"] == pytest.approx(0.05, rel=0.1)
+        assert len(r["runs"]) <= 5
+        assert float(f"{r['value']:.2g}") == r["value"]
     assert calls[0] == ("replay+ewc", [])  # the paper's EWC first, with its own constants

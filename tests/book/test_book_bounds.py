@@ -26,7 +26,7 @@ def test_the_committed_book_has_bounds():
     assert read_book(BOOK_JSON)["bounds"]
 
 
-@pytest.mark.parametrize("book_file, bound", _bounds())
+@pytest.mark.parametrize(("book_file", "bound"), _bounds())
 def test_a_headline_figure_is_reproduced_within_its_bound(book_file, bound, tmp_path, request):
     if "data" in request.node.keywords:
         request.getfixturevalue("shared_data")  # skips where the shared windows are absent

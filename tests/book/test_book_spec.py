@@ -27,12 +27,14 @@ def _book(tmp_path: Path, edit) -> Path:
 
 def test_the_smoke_book_reads():
     spec = load_book(SMOKE)
-    assert spec.name == "smoke" and set(spec.grids) == {"schemes", "slam"}
+    assert spec.name == "smoke"
+    assert set(spec.grids) == {"schemes", "slam"}
     assert spec.grids["slam"].variants["parts"] == ("ba.enabled=false",)
-    assert spec.grids_for(["table4"]) == ["slam"] and spec.grids_for(["T3"]) == ["schemes"]
+    assert spec.grids_for(["table4"]) == ["slam"]
+    assert spec.grids_for(["T3"]) == ["schemes"]
 
 
-@pytest.mark.parametrize("edit, match", [
+@pytest.mark.parametrize(("edit", "match"), [
     (lambda d: d["grids"]["schemes"].update(colour="red"), "unknown key"),
     (lambda d: d["tables"]["table1"]["columns"][0].update(scheme="replay"), "not run by grid schemes"),
     (lambda d: d["tables"]["table4"]["columns"][0].update(variant="nope"), "variant 'nope'"),
@@ -52,7 +54,7 @@ def test_only_names_an_entry(tmp_path):
         load_book(SMOKE).grids_for(["table9"])
 
 
-@pytest.mark.parametrize("preset, sequence", [("configs/tuned.yaml", "tum_fr1_xyz"),
+@pytest.mark.parametrize(("preset", "sequence"), [("configs/tuned.yaml", "tum_fr1_xyz"),
                                               ("configs/fast.yaml", "icl_lr_kt2")])
 def test_a_tuned_preset_is_refused_on_its_tuning_data(tmp_path, preset, sequence):
     def edit(d):
@@ -99,6 +101,7 @@ def test_the_full_book_reads_and_reports_no_preset_on_its_tuning_data():
     assert {"T1", "T3", "T4", "T5", "F4"} <= set(spec.findings)
     assert "tum_fr1_xyz" not in {s.name for s in spec.grids["tuned"].sequences}
     assert [s.name for s in spec.grids["fast"].sequences] == ["redkitchen_7scenes"]
-    assert len(spec.bounds) >= 10 and any(b.ci for b in spec.bounds)
+    assert len(spec.bounds) >= 10
+    assert any(b.ci for b in spec.bounds)
     t4 = [c.label for c in spec.tables["table4"].columns]
     assert t4 == ["front end", "+ bridges", "+ merges", "+ culling + BA", "+ loops"]

@@ -36,10 +36,12 @@ def test_a_hand_edited_figure_is_found_and_rendering_restores_it(book, tmp_path)
     assert render_file(readme, BOOK_JSON, check=True) == [name]
     assert render_file(readme, BOOK_JSON) == [name]
     after = readme.read_text()
-    assert render_block(name, book) in after and after.endswith("text after\n")
+    assert render_block(name, book) in after
+    assert after.endswith("text after\n")
     assert render_file(readme, BOOK_JSON, check=True) == []
     edited = after.replace(book["tables"][name]["rows"][0]["cells"][0]["text"], "99.9", 1)
-    assert edited != after and stale_blocks(edited, book) == [name]
+    assert edited != after
+    assert stale_blocks(edited, book) == [name]
 
 
 def test_a_block_renders_the_books_cells_and_their_provenance(book):
@@ -47,11 +49,13 @@ def test_a_block_renders_the_books_cells_and_their_provenance(book):
     t = copy.deepcopy(book)
     t["tables"][name]["rows"][0]["cells"][0]["text"] = "12.3 ± 4.5"
     out = render_block(name, t)
-    assert "12.3 ± 4.5" in out and t["tables"][name]["title"] in out
-    assert f"`{book['book']['name']}`" in out and book["book"]["file"] in out  # which book made it
+    assert "12.3 ± 4.5" in out
+    assert t["tables"][name]["title"] in out
+    assert f"`{book['book']['name']}`" in out
+    assert book["book"]["file"] in out
 
 
-@pytest.mark.parametrize("text, match", [
+@pytest.mark.parametrize(("text", "match"), [
     ("<!-- book:nope -->\nx\n<!-- /book:nope -->\n", "no table 'nope'"),
     ("<!-- book:figure:nope -->\nx\n<!-- /book:figure:nope -->\n", "no figure 'nope'"),
     ("<!-- book:table1 -->\nx\n", "has no <!-- /book:table1 -->"),

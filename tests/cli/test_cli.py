@@ -35,7 +35,8 @@ def tum_dir(tmp_path: Path) -> Path:
 def test_check_good_folder(tum_dir: Path):
     r = runner.invoke(app, ["datasets", "check", str(tum_dir)])
     assert r.exit_code == 0, r.output
-    assert "6" in r.output and "100.0 %" in r.output
+    assert "6" in r.output
+    assert "100.0 %" in r.output
 
 
 def test_missing_rgb_txt(tum_dir: Path):
@@ -83,12 +84,15 @@ def test_datasets_sub_commands_have_their_own_help():
         return r.output
 
     out = shown("datasets", "download")
-    assert "datasets download" in out and "Fetch, verify and unpack" in out
+    assert "datasets download" in out
+    assert "Fetch, verify and unpack" in out
     for opt in ("--base-url", "--force", "--max-unpack-gb", "--sample", "--registry", "--data-root", "--config",
                 "--set"):
         assert opt in out, opt
     out = shown("datasets", "check")
-    assert "--sample" in out and "--registry" in out and "--base-url" not in out
+    assert "--sample" in out
+    assert "--registry" in out
+    assert "--base-url" not in out
     out = shown("datasets")
     for sub in ("list", "check", "download"):
         assert f"│ {sub} " in out, (sub, out)
@@ -129,9 +133,11 @@ def test_ate_command(tmp_path: Path):
     (tmp_path / "est.txt").write_text("\n".join(est) + "\n")
     r = runner.invoke(app, ["ate", str(tmp_path / "ref.txt"), str(tmp_path / "est.txt")])
     assert r.exit_code == 0, r.output
-    assert "0.000000" in r.output and "0.500000" in r.output  # rmse 0 after Sim(3), scale 1/2
+    assert "0.000000" in r.output
+    assert "0.500000" in r.output
     r = runner.invoke(app, ["ate", str(tmp_path / "ref.txt"), str(tmp_path / "est.txt"), "--align", "none"])
-    assert r.exit_code == 0 and "0.000000 " not in r.output.split("none")[1][:40]
+    assert r.exit_code == 0
+    assert "0.000000 " not in r.output.split("none")[1][:40]
     r = runner.invoke(app, ["ate", str(tmp_path / "ref.txt"), str(tmp_path / "missing.txt")])
     _one_line_error(r, "missing.txt")
 
@@ -161,10 +167,15 @@ def test_ate_json_prints_the_table_numbers(tmp_path: Path):
     assert [str(d["pairs"]), d["align"]] + [f"{d[k]:.6f}" for k in ("scale", "ate_rmse_m", "ate_mean_m",
                                                                      "ate_median_m", "ate_max_m")] \
         == [c.strip() for c in cells]
-    assert d["pairs"] == 30 and d["ate_rmse_m"] > 0.001 and d["scale"] == pytest.approx(2.0, rel=0.05)
-    assert d["max_dt_s"] == 0.02 and d["ref"] == ref
+    assert d["pairs"] == 30
+    assert d["ate_rmse_m"] > 0.001
+    assert d["scale"] == pytest.approx(2.0, rel=0.05)
+    assert d["max_dt_s"] == 0.02
+    assert d["ref"] == ref
     none = json.loads(runner.invoke(app, ["ate", ref, est, "--json", "--align", "none"]).stdout)
-    assert none["align"] == "none" and none["scale"] == 1.0 and none["ate_rmse_m"] > d["ate_rmse_m"]
+    assert none["align"] == "none"
+    assert none["scale"] == 1.0
+    assert none["ate_rmse_m"] > d["ate_rmse_m"]
 
 
 def _wide_runs(root: Path) -> None:
@@ -262,7 +273,8 @@ def test_boundary_lets_bugs_through(exc, tum_dir: Path, tmp_path: Path, monkeypa
 
     monkeypatch.setattr("mutualslam_cli.pipeline.run_sequence", fail)
     r = runner.invoke(app, ["run", str(tum_dir), "--out", str(tmp_path / "res")])
-    assert isinstance(r.exception, type(exc)) and r.exit_code != 0
+    assert isinstance(r.exception, type(exc))
+    assert r.exit_code != 0
 
 
 def test_every_command_is_behind_the_one_boundary():
@@ -283,4 +295,5 @@ def test_shape_error_in_a_command_keeps_its_traceback(tum_dir: Path, tmp_path: P
     r = runner.invoke(app, ["run", str(tum_dir), "--out", str(tmp_path / "res")])
     assert isinstance(r.exception, ShapeError), r.output
     assert not r.output.lstrip().startswith("error:")
-    assert r.exc_info is not None and r.exc_info[2] is not None  # the traceback is kept
+    assert r.exc_info is not None
+    assert r.exc_info[2] is not None

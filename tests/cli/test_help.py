@@ -4,6 +4,7 @@ a line."""
 from __future__ import annotations
 
 import inspect
+import itertools
 import re
 from typing import Any
 
@@ -65,7 +66,7 @@ def _early_breaks(paragraph: list[str], avail: int) -> list[str]:
     """Line pairs where the next line's first word would have fit on the line before it: a hard break that the
     terminal did not choose (a greedy wrap at ``avail`` columns never leaves one)."""
     bad = []
-    for line, nxt in zip(paragraph, paragraph[1:]):
+    for line, nxt in itertools.pairwise(paragraph):
         word = nxt.split()[0]
         if cell_len(line) + 1 + cell_len(word) <= avail:
             bad.append(f"{line!r} / {nxt!r}")

@@ -38,7 +38,7 @@ def test_every_number_of_every_section_has_its_range_beside_it():
     assert not missing, f"fields without a range: {missing}"
 
 
-@pytest.mark.parametrize("override, message", [
+@pytest.mark.parametrize(("override", "message"), [
     ("adapt.lr=.inf", "adapt.lr = inf: expected a finite number > 0"),
     ("adapt.lr=-.inf", "adapt.lr = -inf: expected a finite number > 0"),
     ("adapt.lr=1e999", "adapt.lr = inf: expected a finite number > 0"),
@@ -92,9 +92,8 @@ def test_records_built_in_code_are_checked_by_the_same_rules():
 
 
 def test_every_shipped_config_is_inside_the_ranges():
-    from mutualslam_cli.config import CONFIG_DIR
-
     from mutualslam_cli.book.spec import load_book
+    from mutualslam_cli.config import CONFIG_DIR
 
     for f in sorted(CONFIG_DIR.glob("*.yaml")):
         if f.name.startswith("book"):  # a results book (mslam book), not a run config: its own reader
@@ -110,7 +109,7 @@ def tum_dir(tmp_path: Path) -> Path:
     return make_tum_dir(tmp_path, scene="room", n=6, width=64, height=48)
 
 
-@pytest.mark.parametrize("args, needle", [
+@pytest.mark.parametrize(("args", "needle"), [
     (["--set", "adapt.lr=.inf"], "adapt.lr = inf: expected a finite number > 0"),
     (["--set", "seed=-1"], "seed = -1: expected an integer in [0, 4294967295]"),
     (["--seed", "18446744073709551616"], "seed = 18446744073709551616"),
@@ -120,7 +119,9 @@ def test_cli_refuses_in_one_line_before_any_work(tum_dir: Path, tmp_path: Path, 
     out = tmp_path / "res"
     r = runner.invoke(app, ["run", str(tum_dir), "--out", str(out), *args])
     assert r.exit_code == 1, r.output
-    assert "Traceback" not in r.output and r.exception is None or isinstance(r.exception, SystemExit)
+    assert ("Traceback" not in r.output and r.exception is None) or isinstance(r.exception, SystemExit)
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0], r.output
+    assert len(lines) == 1, r.output
+    assert lines[0].startswith("error:"), r.output
+    assert needle in lines[0], r.output
     assert not out.exists()  # nothing written: refused before any work

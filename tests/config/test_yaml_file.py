@@ -52,7 +52,8 @@ def test_an_alias_bomb_is_refused_at_once(tmp_path: Path):
     with pytest.raises(ConfigError) as e:
         load_config(f)
     assert time.perf_counter() - t < 2.0
-    assert str(e.value).startswith(f"{f}:") and f"more than {ALIAS_BUDGET} aliases" in str(e.value)
+    assert str(e.value).startswith(f"{f}:")
+    assert f"more than {ALIAS_BUDGET} aliases" in str(e.value)
     assert parse_yaml("a: &a 1\nb: [*a, *a]\n", "t") == {"a": 1, "b": [1, 1]}  # a few aliases are fine
 
 
@@ -62,7 +63,7 @@ def test_an_alias_bomb_in_a_set_value_is_refused():
         load_config(None, [f"experiment.seeds={bomb}"])
 
 
-@pytest.mark.parametrize("text, what", [("- 1\n- 2\n", "list"), ("42\n", "int"), ("just words\n", "str")])
+@pytest.mark.parametrize(("text", "what"), [("- 1\n- 2\n", "list"), ("42\n", "int"), ("just words\n", "str")])
 def test_a_top_level_that_is_not_a_mapping_is_refused(tmp_path: Path, text, what):
     f = tmp_path / "c.yaml"
     f.write_text(text)
@@ -114,7 +115,7 @@ def test_the_reader_raises_the_callers_error_class(tmp_path: Path):
         read_yaml_mapping(f, DatasetError)
 
 
-@pytest.mark.parametrize("make, needle", [
+@pytest.mark.parametrize(("make", "needle"), [
     (lambda d: d, "is a folder, not a YAML config file"),
     (lambda d: (d / "b.yaml").write_text(BOMB) and d / "b.yaml", "aliases"),
     (lambda d: (d / "d.yaml").write_text("seed: 1\nseed: 2\n") and d / "d.yaml", "key 'seed' is given twice"),
@@ -127,8 +128,10 @@ def test_cli_names_the_file_in_one_line(tmp_path: Path, make, needle):
     out = tmp_path / "res"
     r = runner.invoke(app, ["run", str(tmp_path / "no-such-seq"), "--config", str(path), "--out", str(out)])
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
-    assert r.exit_code == 1 and len(lines) == 1, r.output
-    assert lines[0].startswith(f"error: {path}") and needle in lines[0], r.output
+    assert r.exit_code == 1, r.output
+    assert len(lines) == 1, r.output
+    assert lines[0].startswith(f"error: {path}"), r.output
+    assert needle in lines[0], r.output
     assert not out.exists()
 
 

@@ -51,7 +51,7 @@ class Server:
         srv = self
 
         class Handler(BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 - http.server's name
+            def do_GET(self) -> None:
                 rng, if_range = self.headers.get("Range"), self.headers.get("If-Range")
                 srv.requests.append((self.path, rng))
                 srv.if_ranges.append(if_range)
@@ -195,7 +195,8 @@ def one_line_error(result: Any, *needles: str) -> str:
     assert "Traceback" not in result.output
     lines = [ln for ln in result.output.splitlines() if ln.strip()]  # notes (e.g. "SHA-256 recorded") may precede
     errors = [ln for ln in lines if ln.startswith("error:")]
-    assert len(errors) == 1 and lines[-1] == errors[0], result.output
+    assert len(errors) == 1, result.output
+    assert lines[-1] == errors[0], result.output
     for n in needles:
         assert n in errors[0], (n, result.output)
     return errors[0]

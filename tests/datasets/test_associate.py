@@ -55,7 +55,8 @@ def test_associate_unique_on_random_streams(rng):
     b = np.sort(rng.uniform(0, 3, 90))
     pairs = associate(a, b, max_dt=0.02)
     ia, ib = zip(*pairs)
-    assert len(set(ia)) == len(ia) and len(set(ib)) == len(ib)
+    assert len(set(ia)) == len(ia)
+    assert len(set(ib)) == len(ib)
     assert all(abs(a[i] - b[j]) <= 0.02 for i, j in pairs)
     assert list(ia) == sorted(ia)  # sorted by the first stream's timestamp
 
@@ -72,7 +73,8 @@ def test_associate_window_keeps_a_pair_exactly_max_dt_apart():
     assert associate([1.0], [1.03125], max_dt=0.03125) == [(0, 0)]  # exact binary fractions
     assert associate([1.03125], [1.0], max_dt=0.03125) == [(0, 0)]
     assert associate([1.0], [1.03125 + 1e-9], max_dt=0.03125) == []
-    assert stamps_match(-0.03125, 0.03125) and not stamps_match(0.0312501, 0.03125)
+    assert stamps_match(-0.03125, 0.03125)
+    assert not stamps_match(0.0312501, 0.03125)
     assert MAX_DT == 0.02
 
 
@@ -165,8 +167,10 @@ def test_poses_at_exact_samples_and_midpoint_slerp():
 def test_poses_at_gap_and_outside_span_give_none():
     gt = Trajectory([0.0, 0.11, 0.5], np.stack([np.eye(4)] * 3))
     p = poses_at(gt, [-0.01, 0.055, 0.3, 0.51], max_gap=0.1)
-    assert p[0] is None and p[3] is None  # outside the GT span
+    assert p[0] is None
+    assert p[3] is None
     assert p[1] is not None  # 0.11 s hole: both samples within 0.1 s of the image
     assert p[2] is None  # 0.39 s hole
     exact = poses_at(gt, [0.11, 0.2], max_gap=0.0)  # ICL frame numbers: exact only
-    assert exact[0] is not None and exact[1] is None
+    assert exact[0] is not None
+    assert exact[1] is None

@@ -44,7 +44,7 @@ def test_opencv4_yaml_header(tmp_path: Path) -> None:
     assert read_camera_file(p) == WANT
 
 
-@pytest.mark.parametrize("dist, want", [
+@pytest.mark.parametrize(("dist", "want"), [
     (np.array([[0.25], [-0.75], [0.002], [-0.001]]), (0.25, -0.75, 0.002, -0.001, 0.0)),  # 4×1: k3 = 0
     (np.array([[0.25, -0.75, 0.002, -0.001, 0.5, 0.1, 0.2, 0.3]]), D5),                   # 1×8: first 5
     (np.zeros((1, 5)), None),                                                              # all zero
@@ -76,7 +76,7 @@ def test_kalibr_camchain(tmp_path: Path) -> None:
     assert read_camera_file(p) == Intrinsics(525.5, 524.25, 319.75, 239.5, 640, 480, (0.25, -0.75, 0.002, -0.001, 0))
 
 
-@pytest.mark.parametrize("text, want", [
+@pytest.mark.parametrize(("text", "want"), [
     ("525.5 524.25 319.75 239.5\n", Intrinsics(525.5, 524.25, 319.75, 239.5, 0, 0, None)),
     ("# fx fy cx cy k1 k2 p1 p2 k3\n525.5 524.25 319.75 239.5 0.25 -0.75 0.002 -0.001 0.5  # phone\n",
      Intrinsics(525.5, 524.25, 319.75, 239.5, 0, 0, D5)),
@@ -94,7 +94,7 @@ def _bad_opencv_2x3(p: Path) -> None:
     _filestorage(p, {"camera_matrix": K[:2]})
 
 
-@pytest.mark.parametrize("name, content, fault", [
+@pytest.mark.parametrize(("name", "content", "fault"), [
     ("k23.yaml", _bad_opencv_2x3, "camera_matrix is 2×3; expected 3×3"),
     ("ros23.yaml", "camera_matrix: {rows: 2, cols: 3, data: [1, 0, 2, 0, 1, 2]}\n", "camera_matrix is 2×3"),
     ("three.txt", "525 524 319\n", "3 numbers; expected 4"),
@@ -120,7 +120,9 @@ def test_bad_files_one_line(tmp_path: Path, name: str, content, fault: str) -> N
     with pytest.raises(DatasetError) as e:
         read_camera_file(p)
     msg = str(e.value)
-    assert "\n" not in msg and str(p) in msg and fault in msg, msg
+    assert "\n" not in msg, msg
+    assert str(p) in msg, msg
+    assert fault in msg, msg
     assert "expected an OpenCV calibration YAML/XML" in msg
 
 

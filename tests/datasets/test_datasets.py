@@ -107,20 +107,24 @@ def spec_yaml(tmp_path: Path, entries: dict) -> Path:
 def test_tum_folder_loads_with_family_intrinsics_and_gt(tmp_path):
     root = write_tum_dir(tmp_path / "rgbd_dataset_freiburg1_test")
     seq = load_sequence(root)
-    assert len(seq) == 6 and seq.meta["format"] == "tum"
-    assert seq.intrinsics.fx == 517.3 and seq.intrinsics.dist[0] == 0.2624
+    assert len(seq) == 6
+    assert seq.meta["format"] == "tum"
+    assert seq.intrinsics.fx == 517.3
+    assert seq.intrinsics.dist[0] == 0.2624
     assert (seq.intrinsics.width, seq.intrinsics.height) == (W, H)
     assert seq.meta["association"]["pairs"] == 6
     np.testing.assert_allclose(seq.frames[3].pose, POSES[3], atol=1e-12)
     d = seq.load_depth(2)
-    assert d.dtype == np.float32 and 1.5 < np.median(d) < 2.5
+    assert d.dtype == np.float32
+    assert 1.5 < np.median(d) < 2.5
 
 
 def test_intrinsics_txt_overrides_family_and_gives_synthetic(tmp_path):
     root = write_tum_dir(tmp_path / "synth_fr1", intrinsics_txt=True)
     assert detect_format(root) == "synthetic"
     seq = load_sequence(root)
-    assert seq.intrinsics.fx == F and seq.meta["intrinsics_source"] == "intrinsics.txt"
+    assert seq.intrinsics.fx == F
+    assert seq.meta["intrinsics_source"] == "intrinsics.txt"
 
 
 def test_lab_folder_without_gt_has_no_poses(tmp_path):
@@ -128,9 +132,12 @@ def test_lab_folder_without_gt_has_no_poses(tmp_path):
     (root / "intrinsics.txt").unlink()
     reg = spec_yaml(tmp_path, {"lab1": {"root": str(root), "format": "lab", "intrinsics": [F, F, 31.5, 23.5]}})
     seq = load_sequence("lab1", registry_path=reg)
-    assert len(seq) == 6 and not seq.has_gt_poses and seq.gt is None
+    assert len(seq) == 6
+    assert not seq.has_gt_poses
+    assert seq.gt is None
     rep = check_sequence(seq)
-    assert rep.frames_with_gt == 0 and any("no GT poses" in w for w in rep.warnings)
+    assert rep.frames_with_gt == 0
+    assert any("no GT poses" in w for w in rep.warnings)
 
 
 def test_lab_without_intrinsics_raises(tmp_path):
@@ -204,9 +211,12 @@ def test_wrong_depth_scale_warns(tmp_path):
     root = write_tum_dir(tmp_path / "seq_fr1")
     reg = spec_yaml(tmp_path, {"s": {"root": str(root), "format": "tum", "depth_scale": 50}})
     rep = check_sequence("s", registry_path=reg)
-    assert rep.median_depth_m > 100 and any("depth_scale 50" in w for w in rep.warnings)
+    assert rep.median_depth_m > 100
+    assert any("depth_scale 50" in w for w in rep.warnings)
     ok = check_sequence(root)
-    assert ok.warnings == [] and ok.gt_coverage_pct == 100.0 and ok.frames_with_depth == 6
+    assert ok.warnings == []
+    assert ok.gt_coverage_pct == 100.0
+    assert ok.frames_with_depth == 6
 
 
 # ----------------------------------------------------------------------------- every image decoded
@@ -218,10 +228,14 @@ def test_check_decodes_every_image_and_reports_each(tmp_path):
     root = write_tum_dir(tmp_path / "seq_fr1")
     calls = []
     rep = check_sequence(load_sequence(root), progress=lambda stage, info: calls.append((stage, dict(info))))
-    assert rep.ok and rep.images_decoded == 12 and rep.frames_decoded == 6
+    assert rep.ok
+    assert rep.images_decoded == 12
+    assert rep.frames_decoded == 6
     every = {str(p) for kind in ("rgb", "depth") for p in (root / kind).iterdir()}
-    assert {c[1]["file"] for c in calls} == every and len(calls) == 12
-    assert [c[1]["done"] for c in calls] == list(range(1, 13)) and {c[1]["total"] for c in calls} == {12}
+    assert {c[1]["file"] for c in calls} == every
+    assert len(calls) == 12
+    assert [c[1]["done"] for c in calls] == list(range(1, 13))
+    assert {c[1]["total"] for c in calls} == {12}
     assert {c[0] for c in calls} == {"decode"}
 
 
@@ -268,7 +282,9 @@ def test_sampled_check_decodes_only_the_sampled_frames(tmp_path):
     victim.write_bytes(victim.read_bytes()[:-100])
     files = []
     rep = check_sequence(load_sequence(root), sample=2, progress=lambda stage, info: files.append(info["file"]))
-    assert rep.images_decoded == 4 and rep.frames_decoded == 2 and len(files) == 4
+    assert rep.images_decoded == 4
+    assert rep.frames_decoded == 2
+    assert len(files) == 4
     assert str(victim) not in files
     with pytest.raises(DatasetError, match=victim.name):
         check_sequence(load_sequence(root), sample=0)
@@ -277,12 +293,16 @@ def test_sampled_check_decodes_only_the_sampled_frames(tmp_path):
 def test_png_and_jpeg_structure():
     img = np.arange(48 * 64 * 3, dtype=np.uint8).reshape(48, 64, 3)
     png = cv2.imencode(".png", img)[1].tobytes()
-    assert png_problem(png) is None and png_problem(png + b"trailing bytes") is None
-    assert "no IEND" in png_problem(png[:-12]) and "needs" in png_problem(png[:-13])
+    assert png_problem(png) is None
+    assert png_problem(png + b"trailing bytes") is None
+    assert "no IEND" in png_problem(png[:-12])
+    assert "needs" in png_problem(png[:-13])
     assert "not a PNG" in png_problem(b"GIF89a" + png[6:])
     jpg = cv2.imencode(".jpg", img)[1].tobytes()
-    assert jpeg_problem(jpg) is None and jpeg_problem(jpg + b"\x00" * 8) is None
-    assert "truncated JPEG" in jpeg_problem(jpg[:-10]) and "not a JPEG" in jpeg_problem(png)
+    assert jpeg_problem(jpg) is None
+    assert jpeg_problem(jpg + b"\x00" * 8) is None
+    assert "truncated JPEG" in jpeg_problem(jpg[:-10])
+    assert "not a JPEG" in jpeg_problem(png)
 
 
 # ----------------------------------------------------------------------------- ICL-NUIM
@@ -291,7 +311,8 @@ def test_fy_sign_decided_from_data(tmp_path, true_sign):
     root = write_icl_dir(tmp_path / f"icl{true_sign}", fy=true_sign * F)
     reg = spec_yaml(tmp_path, {"i": {"root": str(root), "format": "icl", "intrinsics": [F, F, 31.5, 23.5]}})
     seq = load_sequence("i", registry_path=reg)
-    assert seq.meta["fy_sign"] == true_sign and seq.intrinsics.fy == true_sign * F
+    assert seq.meta["fy_sign"] == true_sign
+    assert seq.intrinsics.fy == true_sign * F
     err = seq.meta["fy_sign_errors"]
     right, wrong = ("-", "+") if true_sign < 0 else ("+", "-")
     assert err[right] < 0.5 * err[wrong]
@@ -301,10 +322,12 @@ def test_fy_sign_decided_from_data(tmp_path, true_sign):
 def test_icl_first_frame_has_no_gt_and_exact_frame_match(tmp_path):
     root = write_icl_dir(tmp_path / "living_room_traj0_frei_png", gt_from=1)
     seq = load_sequence(root)
-    assert seq.meta["format"] == "icl" and [f.timestamp for f in seq.frames] == [0, 1, 2, 3, 4, 5]
+    assert seq.meta["format"] == "icl"
+    assert [f.timestamp for f in seq.frames] == [0, 1, 2, 3, 4, 5]
     assert seq.frames[0].pose is None
     np.testing.assert_allclose(seq.frames[4].pose, POSES[4], atol=1e-12)
-    assert seq.intrinsics.fx == 481.2 and abs(seq.intrinsics.fy) == 480.0
+    assert seq.intrinsics.fx == 481.2
+    assert abs(seq.intrinsics.fy) == 480.0
 
 
 def test_icl_without_gt_falls_back_to_spec_sign(tmp_path):
@@ -313,7 +336,9 @@ def test_icl_without_gt_falls_back_to_spec_sign(tmp_path):
     for sign in (1, -1):
         reg = spec_yaml(tmp_path, {"i": {"root": str(root), "format": "icl", "intrinsics": [F, sign * F, 31.5, 23.5]}})
         seq = load_sequence("i", registry_path=reg)
-        assert not seq.has_gt_poses and seq.meta["fy_sign"] == sign and seq.meta["fy_sign_errors"] is None
+        assert not seq.has_gt_poses
+        assert seq.meta["fy_sign"] == sign
+        assert seq.meta["fy_sign_errors"] is None
         assert seq.meta["fy_sign_source"].startswith("fallback")
     assert load_sequence(root).meta["fy_sign"] == -1  # no spec: ICL default -480
 
@@ -351,7 +376,8 @@ def test_icl_native_loop_ray_depth_and_povray_cameras(tmp_path):
     assert detect_format(root) == "icl_loop"
     reg = spec_yaml(tmp_path, {"n": {"root": str(root), "format": "icl_loop", "intrinsics": [F, -F, 31.5, 23.5]}})
     seq = load_sequence("n", registry_path=reg)
-    assert len(seq) == 6 and seq.meta["fy_sign"] == -1
+    assert len(seq) == 6
+    assert seq.meta["fy_sign"] == -1
     T_up = POSES[3] @ np.diag([1.0, -1.0, 1.0, 1.0])
     T_up[:3, 0] *= -1
     np.testing.assert_allclose(seq.frames[3].pose, T_up, atol=1e-6)
@@ -407,7 +433,9 @@ def test_stride_and_max_frames_reindex(tmp_path):
 def test_bench_loader_counts_frames(tmp_path):
     seq = load_sequence(write_tum_dir(tmp_path / "seq_fr1"))
     out = bench_loader(seq, n=4)
-    assert out["frames"] == 4 and out["fps"] > 0 and out["seconds"] > 0
+    assert out["frames"] == 4
+    assert out["fps"] > 0
+    assert out["seconds"] > 0
 
 
 # ----------------------------------------------------------------------------- datasets.yaml
@@ -419,13 +447,18 @@ def test_registry_entry_well_formed(name):
     spec = get_spec(name)
     entry = ENTRIES[name]
     assert spec.format in FORMATS
-    assert spec.intrinsics is not None and len(entry["intrinsics"]) == 4
-    assert spec.intrinsics.fx > 100 and 100 < abs(spec.intrinsics.fy) < 1000
-    assert 0 < spec.intrinsics.cx < 700 and 0 < spec.intrinsics.cy < 500
+    assert spec.intrinsics is not None
+    assert len(entry["intrinsics"]) == 4
+    assert spec.intrinsics.fx > 100
+    assert 100 < abs(spec.intrinsics.fy) < 1000
+    assert 0 < spec.intrinsics.cx < 700
+    assert 0 < spec.intrinsics.cy < 500
     assert spec.depth_scale in (1000.0, 5000.0)
-    assert spec.gt_file and (spec.gt_file == "groundtruth.txt" or spec.gt_file.endswith(".gt.freiburg"))
+    assert spec.gt_file
+    assert (spec.gt_file == "groundtruth.txt" or spec.gt_file.endswith(".gt.freiburg"))
     if spec.format == "icl":
-        assert spec.extra.get("fy_sign") == "auto" and spec.intrinsics.fx == 481.2
+        assert spec.extra.get("fy_sign") == "auto"
+        assert spec.intrinsics.fx == 481.2
     if "fr1" in name:
         assert spec.intrinsics.dist == (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
     if name.startswith("fr3_"):

@@ -31,11 +31,15 @@ def test_fr1_xyz_association_and_full_gt_coverage(shared_data):
                                        "max_dt": 0.02}
     assert len(seq) == 99
     rep = check_sequence(seq)
-    assert rep.gt_coverage_pct == 100.0 and rep.frames_with_depth == 99
-    assert rep.warnings == [] and 0.5 < rep.median_depth_m < 2.0
-    assert rep.intrinsics[:4] == [517.3, 516.5, 318.6, 255.3] and rep.intrinsics[4] == 0.2624
+    assert rep.gt_coverage_pct == 100.0
+    assert rep.frames_with_depth == 99
+    assert rep.warnings == []
+    assert 0.5 < rep.median_depth_m < 2.0
+    assert rep.intrinsics[:4] == [517.3, 516.5, 318.6, 255.3]
+    assert rep.intrinsics[4] == 0.2624
     times = np.array([f.timestamp for f in seq.frames])
-    assert np.all(np.diff(times) > 0) and 3.0 < rep.time_span_s < 3.4
+    assert np.all(np.diff(times) > 0)
+    assert 3.0 < rep.time_span_s < 3.4
 
 
 def test_fr1_xyz_gt_bridges_the_011s_hole(shared_data):
@@ -51,26 +55,34 @@ def test_fr1_xyz_gt_bridges_the_011s_hole(shared_data):
 
 def test_redkitchen_300_frames_mm_depth(shared_data):
     seq = load_sequence("redkitchen_7scenes")
-    assert len(seq) == 300 and seq.depth_scale == 1000.0
+    assert len(seq) == 300
+    assert seq.depth_scale == 1000.0
     rep = check_sequence(seq)
-    assert rep.gt_coverage_pct == 100.0 and rep.warnings == []
+    assert rep.gt_coverage_pct == 100.0
+    assert rep.warnings == []
     assert rep.intrinsics == [585.0, 585.0, 320.0, 240.0]
     assert 0.5 < rep.median_depth_m < 4.0
 
 
 def test_icl_lr_kt2_120_frames_and_fy_sign_negative(shared_data):
     seq = load_sequence("icl_lr_kt2")
-    assert len(seq) == 120 and [f.timestamp for f in seq.frames][:2] == [114.0, 115.0]
-    assert seq.meta["fy_sign"] == -1 and seq.intrinsics.fy == -480.0
+    assert len(seq) == 120
+    assert [f.timestamp for f in seq.frames][:2] == [114.0, 115.0]
+    assert seq.meta["fy_sign"] == -1
+    assert seq.intrinsics.fy == -480.0
     err = seq.meta["fy_sign_errors"]
     assert err["-"] < 0.5 * err["+"]
     rep = check_sequence(seq)
-    assert rep.gt_coverage_pct == 100.0 and rep.fy_sign == -1 and 1.0 < rep.median_depth_m < 6.0
+    assert rep.gt_coverage_pct == 100.0
+    assert rep.fy_sign == -1
+    assert 1.0 < rep.median_depth_m < 6.0
 
 
 def test_icl_lr_kt2_folder_autodetected(shared_data):
     seq = load_sequence(shared_data / "icl_lr_kt2", max_frames=20)
-    assert seq.meta["format"] == "icl" and len(seq) == 20 and seq.meta["fy_sign"] == -1
+    assert seq.meta["format"] == "icl"
+    assert len(seq) == 20
+    assert seq.meta["fy_sign"] == -1
 
 
 def test_desk_9f_all_frames(shared_data):

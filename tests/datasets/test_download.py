@@ -38,8 +38,8 @@ from dl_server import (
 )
 
 from mutualslam_cli.cli import app
-from mutualslam_cli.datasets.download import entry as dl
 from mutualslam_cli.datasets import load_sequence
+from mutualslam_cli.datasets.download import entry as dl
 from mutualslam_cli.datasets.download import unpack as up
 from mutualslam_cli.datasets.download.limits import Budget
 from mutualslam_cli.geometry import pose_from_tq
@@ -65,16 +65,23 @@ def test_tum_archive_complete(tmp_path, server, tum_src):
     archive = serve_tum(server, tum_src)
     r = download(reg, data, "fr3_test")
     assert r.exit_code == 0, r.output
-    assert "GT coverage" in r.output and "100.0 %" in r.output and "recorded" in r.output
+    assert "GT coverage" in r.output
+    assert "100.0 %" in r.output
+    assert "recorded" in r.output
     seq = load_sequence("fr3_test", data_root=data, registry_path=reg)
-    assert len(seq) == 6 and all(f.pose is not None for f in seq.frames)
+    assert len(seq) == 6
+    assert all(f.pose is not None for f in seq.frames)
     assert (data / "_downloads" / TGZ).read_bytes() == archive
     sums = json.loads((data / "_downloads" / "checksums.json").read_text())
-    assert sums[TGZ]["sha256"] == sha(archive) and sums[TGZ]["bytes"] == len(archive)
-    assert leftovers(data / "TUM") == [] and not list((data / "_downloads").glob("*.part"))
+    assert sums[TGZ]["sha256"] == sha(archive)
+    assert sums[TGZ]["bytes"] == len(archive)
+    assert leftovers(data / "TUM") == []
+    assert not list((data / "_downloads").glob("*.part"))
     n = len(server.requests)
     r = download(reg, data, "fr3_test")  # a complete folder is skipped, and still checked
-    assert r.exit_code == 0 and "already exists" in r.output and "GT coverage" in r.output, r.output
+    assert r.exit_code == 0, r.output
+    assert "already exists" in r.output, r.output
+    assert "GT coverage" in r.output, r.output
     assert len(server.requests) == n
 
 
@@ -87,12 +94,15 @@ def test_icl_archive_and_gt_file(tmp_path, server, tum_src, top):
     r = download(reg, data, "icl_test")
     assert r.exit_code == 0, r.output
     root = data / "ICL-NUIM" / "living_room_traj9_frei_png"
-    assert (root / ICL_GT).read_bytes() == gt and (root / "associations.txt").is_file()
+    assert (root / ICL_GT).read_bytes() == gt
+    assert (root / "associations.txt").is_file()
     assert root.stat().st_mode & 0o777 != 0o700  # the usual permissions, not those of a private temporary folder
     seq = load_sequence("icl_test", data_root=data, registry_path=reg)
-    assert len(seq) == 6 and all(f.pose is not None for f in seq.frames)
+    assert len(seq) == 6
+    assert all(f.pose is not None for f in seq.frames)
     sums = json.loads((data / "_downloads" / "checksums.json").read_text())
-    assert sums[ICL]["sha256"] == sha(server.files[ICL]) and sums[ICL_GT]["sha256"] == sha(gt)
+    assert sums[ICL]["sha256"] == sha(server.files[ICL])
+    assert sums[ICL_GT]["sha256"] == sha(gt)
     assert leftovers(root.parent) == []
 
 
@@ -117,10 +127,12 @@ def test_7scenes_scene_zip_converted_to_tum(tmp_path, server, tum_src):
     r = download(reg, data, "seven_test")
     assert r.exit_code == 0, r.output
     seq = load_sequence("seven_test", data_root=data, registry_path=reg)
-    assert len(seq) == 6 and seq.frames[1].timestamp == pytest.approx(1 / 30, abs=1e-6)
+    assert len(seq) == 6
+    assert seq.frames[1].timestamp == pytest.approx(1 / 30, abs=1e-6)
     np.testing.assert_allclose(seq.frames[2].pose, poses[2], atol=1e-6)
     d0 = seq.load_depth(0)
-    assert np.all(d0[0, :5] == 0) and 0.5 < np.median(d0[d0 > 0]) < 20
+    assert np.all(d0[0, :5] == 0)
+    assert 0.5 < np.median(d0[d0 > 0]) < 20
 
 
 # ----------------------------------------------------------------------------- failures
@@ -134,11 +146,14 @@ def test_resume_after_cut_connection(tmp_path, server, tum_src):
     r = download(reg, data, "fr3_test")
     one_line_error(r, "download of", TGZ, "interrupted at", "run the command again to resume")
     part = data / "_downloads" / f"{TGZ}.part"
-    assert part.stat().st_size == half and not (data / "TUM").exists()
+    assert part.stat().st_size == half
+    assert not (data / "TUM").exists()
     r = download(reg, data, "fr3_test")
     assert r.exit_code == 0, r.output
-    assert f"bytes={half}-" in server.ranges() and "resumed at" in r.output
-    assert (data / "_downloads" / TGZ).read_bytes() == archive and not part.exists()
+    assert f"bytes={half}-" in server.ranges()
+    assert "resumed at" in r.output
+    assert (data / "_downloads" / TGZ).read_bytes() == archive
+    assert not part.exists()
     assert len(load_sequence("fr3_test", data_root=data, registry_path=reg)) == 6
 
 
@@ -150,12 +165,16 @@ def test_complete_part_and_force(tmp_path, server, tum_src):
     (data / "_downloads" / f"{TGZ}.partinfo").write_text(json.dumps(  # as the first request recorded it
         {"url": server.url(TGZ), "etag": server.etag(TGZ), "last_modified": None, "total": len(archive)}))
     assert download(reg, data, "fr3_test").exit_code == 0
-    assert server.ranges() == [f"bytes={len(archive)}-"] and server.if_ranges == [server.etag(TGZ)]
+    assert server.ranges() == [f"bytes={len(archive)}-"]
+    assert server.if_ranges == [server.etag(TGZ)]
     root = data / "TUM" / "rgbd_dataset_freiburg3_test"
     (root / "stray.txt").write_text("x")
     r = download(reg, data, "fr3_test", extra=("--force",))
-    assert r.exit_code == 0 and "using the file downloaded before" in r.output, r.output
-    assert not (root / "stray.txt").exists() and (root / "rgb.txt").is_file() and leftovers(root.parent) == []
+    assert r.exit_code == 0, r.output
+    assert "using the file downloaded before" in r.output, r.output
+    assert not (root / "stray.txt").exists()
+    assert (root / "rgb.txt").is_file()
+    assert leftovers(root.parent) == []
 
 
 def test_server_ignoring_range_starts_over(tmp_path, server, tum_src):
@@ -168,7 +187,8 @@ def test_server_ignoring_range_starts_over(tmp_path, server, tum_src):
     server.ignore_range = True  # answers 200: the .part must be rewritten, not appended to
     r = download(reg, data, "fr3_test")
     assert r.exit_code == 0, r.output
-    assert server.ranges() and (data / "_downloads" / TGZ).read_bytes() == archive
+    assert server.ranges()
+    assert (data / "_downloads" / TGZ).read_bytes() == archive
 
 
 def test_corrupted_against_recorded_checksum(tmp_path, server, tum_src):
@@ -183,7 +203,8 @@ def test_corrupted_against_recorded_checksum(tmp_path, server, tum_src):
     r = download(reg, data, "fr3_test")
     line = one_line_error(r, TGZ, "does not match", sha(archive), "recorded", "removed the file")
     assert sha(bytes(bad)) in line
-    assert downloads(data) == ["checksums.json"] and list((data / "TUM").iterdir()) == []
+    assert downloads(data) == ["checksums.json"]
+    assert list((data / "TUM").iterdir()) == []
 
 
 def test_corrupted_against_published_checksum(tmp_path, server, tum_src):
@@ -192,7 +213,8 @@ def test_corrupted_against_published_checksum(tmp_path, server, tum_src):
     serve_tum(server, tum_src)
     r = download(reg, data, "fr3_test")
     one_line_error(r, TGZ, "does not match the published", published, "removed the file")
-    assert [n for n in downloads(data) if n.startswith(TGZ)] == [] and not (data / "TUM").exists()
+    assert [n for n in downloads(data) if n.startswith(TGZ)] == []
+    assert not (data / "TUM").exists()
     sums = data / "_downloads" / "checksums.json"
     assert not sums.exists() or TGZ not in json.loads(sums.read_text())
 
@@ -203,8 +225,10 @@ def test_truncated_archive(tmp_path, server, tum_src):
     server.files[TGZ] = archive[: int(len(archive) * 0.6)]  # served whole, with a matching Content-Length
     r = download(reg, data, "fr3_test")
     one_line_error(r, str(data / "_downloads" / TGZ), "truncated or corrupt archive", "removed it")
-    assert not (data / "TUM" / "rgbd_dataset_freiburg3_test").exists() and leftovers(data / "TUM") == []
-    assert not (data / "_downloads" / TGZ).exists() and not (data / "_downloads" / "checksums.json").exists()
+    assert not (data / "TUM" / "rgbd_dataset_freiburg3_test").exists()
+    assert leftovers(data / "TUM") == []
+    assert not (data / "_downloads" / TGZ).exists()
+    assert not (data / "_downloads" / "checksums.json").exists()
     server.files[TGZ] = archive  # the publisher's good file downloads fine afterwards
     assert download(reg, data, "fr3_test").exit_code == 0
 
@@ -216,8 +240,10 @@ def test_path_traversal_member_rejected(tmp_path, server, tum_src, evil):
     server.files[TGZ] = tgz(members[:3] + [(evil, b"gotcha")] + members[3:])
     r = download(reg, data, "fr3_test")
     one_line_error(r, TGZ, repr(evil), "absolute path or '..'", "refused")
-    assert not (data / "TUM" / "rgbd_dataset_freiburg3_test").exists() and leftovers(data / "TUM") == []
-    assert not list(tmp_path.rglob("evil.txt")) and not Path("/tmp/mslam_evil.txt").exists()
+    assert not (data / "TUM" / "rgbd_dataset_freiburg3_test").exists()
+    assert leftovers(data / "TUM") == []
+    assert not list(tmp_path.rglob("evil.txt"))
+    assert not Path("/tmp/mslam_evil.txt").exists()
 
 
 def test_disk_full_while_unpacking(tmp_path, server, tum_src, monkeypatch):
@@ -235,11 +261,13 @@ def test_disk_full_while_unpacking(tmp_path, server, tum_src, monkeypatch):
     monkeypatch.setattr(Budget, "copy", full_disk)
     r = download(reg, data, "fr3_test")
     one_line_error(r, "no space left on device while unpacking", TGZ, "removed the temporary folder")
-    assert not (data / "TUM" / "rgbd_dataset_freiburg3_test").exists() and leftovers(data / "TUM") == []
+    assert not (data / "TUM" / "rgbd_dataset_freiburg3_test").exists()
+    assert leftovers(data / "TUM") == []
     assert (data / "_downloads" / TGZ).is_file()  # the archive is fine: kept for the next try
     monkeypatch.undo()
     r = download(reg, data, "fr3_test")
-    assert r.exit_code == 0 and "using the file downloaded before" in r.output, r.output
+    assert r.exit_code == 0, r.output
+    assert "using the file downloaded before" in r.output, r.output
 
 
 def test_unknown_or_undownloadable_names(tmp_path, server, tum_src):
@@ -271,14 +299,18 @@ def test_listing_and_check_unchanged(tmp_path, server, tum_src):
     reg, data = registry(tmp_path, server, tum_src)
     for words in (["datasets"], ["datasets", "list"]):  # `mslam datasets` alone still lists
         r = runner.invoke(app, [*words, "--registry", str(reg), "--data-root", str(data)])
-        assert r.exit_code == 0 and "fr3_test" in r.output, r.output
+        assert r.exit_code == 0, r.output
+        assert "fr3_test" in r.output, r.output
     r = runner.invoke(app, ["datasets", "--registry", str(reg), "--data-root", str(data), "list"])
-    assert r.exit_code == 0 and "fr3_test" in r.output, r.output  # options before the sub-command apply to it
+    assert r.exit_code == 0, r.output  # options before the sub-command apply to it
+    assert "fr3_test" in r.output, r.output
     r = runner.invoke(app, ["datasets", "check", str(tum_src), str(tum_src), "--sample", "2"])
-    assert r.exit_code == 0 and r.output.count("GT coverage") == 2, r.output
+    assert r.exit_code == 0, r.output
+    assert r.output.count("GT coverage") == 2, r.output
     one_line_error(runner.invoke(app, ["datasets", "check", str(tmp_path / "nope")]), "nope")
     r = runner.invoke(app, ["datasets", "a", "b"])
-    assert r.exit_code == 2 and "No such command 'a'" in r.output, r.output
+    assert r.exit_code == 2, r.output
+    assert "No such command 'a'" in r.output, r.output
 
 
 def test_safe_relpath():

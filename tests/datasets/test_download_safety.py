@@ -48,7 +48,7 @@ def _outside(tmp_path: Path) -> list[Path]:
 # ----------------------------------------------------------------------------- names from outside
 
 
-@pytest.mark.parametrize("evil, why", [
+@pytest.mark.parametrize(("evil", "why"), [
     ("..%2F..%2Fevil.tgz", "is a path"),                # ../../evil.tgz: out of _downloads and the data root
     ("ABS", "is a path"),                               # an absolute path, percent-encoded (into tmp_path/outside)
     ("%2E%2E", "is a path"),                            # ".."
@@ -66,11 +66,12 @@ def test_unsafe_url_file_names_refused(tmp_path, server, tum_src, evil, why):
     r = download(reg, data, "fr3_test")
     one_line_error(r, server.url(f"x/{evil}"), "file name", why, "refused, nothing written")
     assert server.requests == []  # refused before any request
-    assert not (data / "_downloads").exists() and not (data / "TUM").exists()
+    assert not (data / "_downloads").exists()
+    assert not (data / "TUM").exists()
     assert _outside(tmp_path) == []
 
 
-@pytest.mark.parametrize("field, value", [("gt_name", "../../evil.freiburg"), ("gt_name", "ABS"),
+@pytest.mark.parametrize(("field", "value"), [("gt_name", "../../evil.freiburg"), ("gt_name", "ABS"),
                                           ("sequence", "../../seq-01")])
 def test_unsafe_registry_names_refused(tmp_path, server, tum_src, field, value):
     name = "icl_test" if field == "gt_name" else "seven_test"
@@ -84,14 +85,16 @@ def test_unsafe_registry_names_refused(tmp_path, server, tum_src, field, value):
     r = download(reg, data, name)
     one_line_error(r, f"entry '{name}'", "gt" if field == "gt_name" else "sequence", "file name", repr(value),
                    "refused")
-    assert server.requests == [] and not data.exists()
+    assert server.requests == []
+    assert not data.exists()
     assert _outside(tmp_path) == []
 
 
 def test_repository_registry_urls_are_https_with_safe_names():
     reg = yaml.safe_load(DEFAULT_REGISTRY.read_text())["datasets"]
     urls = [u for e in reg.values() if "download" in e for k, u in e["download"].items() if k in ("archive", "gt")]
-    assert urls and all(u.startswith("https://") for u in urls), [u for u in urls if not u.startswith("https://")]
+    assert urls, [u for u in urls if not u.startswith("https://")]
+    assert all(u.startswith("https://") for u in urls), [u for u in urls if not u.startswith("https://")]
     names = [n for n, e in reg.items() if "download" in e]
     assert len(downloadable_specs(names)) == len(names)  # every URL's file name, gt: and sequence: pass the rule
 
@@ -132,16 +135,18 @@ def _version_b(server: Server, tum_src: Path) -> bytes:
 
 @pytest.mark.parametrize("server_honours_if_range", [True, False])
 def test_part_of_another_version_starts_over(tmp_path, server, tum_src, server_honours_if_range):
-    reg, data, a = _cut_download(tmp_path, server, tum_src)
+    reg, data, _a = _cut_download(tmp_path, server, tum_src)
     etag_a = server.etag(TGZ)
     b = _version_b(server, tum_src)
     server.ignore_if_range = not server_honours_if_range  # then it sends 206 of B: the client must compare ETags
     r = download(reg, data, "fr3_test")
     assert r.exit_code == 0, r.output
     assert server.if_ranges[-2 if not server_honours_if_range else -1] == etag_a  # the resume carried If-Range
-    assert "changed since it was partly downloaded" in r.output and "resumed at" not in r.output
+    assert "changed since it was partly downloaded" in r.output
+    assert "resumed at" not in r.output
     assert (data / "_downloads" / TGZ).read_bytes() == b  # B whole, not A's head spliced onto B's tail
-    assert downloads(data) == ["checksums.json", TGZ] and leftovers(data / "TUM") == []
+    assert downloads(data) == ["checksums.json", TGZ]
+    assert leftovers(data / "TUM") == []
 
 
 def test_part_without_a_record_is_not_resumed(tmp_path, server, tum_src):
@@ -151,7 +156,8 @@ def test_part_without_a_record_is_not_resumed(tmp_path, server, tum_src):
     (data / "_downloads" / f"{TGZ}.part").write_bytes(b"bytes another tool left behind " * 40)
     r = download(reg, data, "fr3_test")
     assert r.exit_code == 0, r.output
-    assert server.ranges() == [] and "no record of which version" in r.output
+    assert server.ranges() == []
+    assert "no record of which version" in r.output
     assert (data / "_downloads" / TGZ).read_bytes() == archive
 
 
@@ -162,7 +168,8 @@ def test_server_without_validators_is_not_resumed(tmp_path, server, tum_src):
     one_line_error(download(reg, data, "fr3_test"), "interrupted", "cannot be resumed safely")
     r = download(reg, data, "fr3_test")
     assert r.exit_code == 0, r.output
-    assert server.ranges() == [] and (data / "_downloads" / TGZ).read_bytes() == archive
+    assert server.ranges() == []
+    assert (data / "_downloads" / TGZ).read_bytes() == archive
 
 
 def test_changed_file_is_named_as_such(tmp_path, server, tum_src):
@@ -178,7 +185,8 @@ def test_changed_file_is_named_as_such(tmp_path, server, tum_src):
     r = download(reg, data, "fr3_test", extra=("--force",))
     one_line_error(r, TGZ, "does not match", sha(a), "the publisher's file changed", f"size {len(a)} → {len(b)}",
                    "ETag", "delete the entry")
-    assert tree(data / TUM_ROOT) == old and leftovers(data / "TUM") == []  # the old sequence is untouched
+    assert tree(data / TUM_ROOT) == old
+    assert leftovers(data / "TUM") == []
     assert downloads(data) == ["checksums.json"]
 
 
@@ -196,7 +204,9 @@ def test_second_process_on_the_same_file_refused(tmp_path, server, tum_src):
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # another open file: what a second process holds
         r = download(reg, data, "fr3_test")
         one_line_error(r, TGZ, "another mslam process", "pid 4242 on lab-pc", "nothing was touched")
-        assert server.requests == [] and downloads(data) == [] and not (data / "TUM").exists()
+        assert server.requests == []
+        assert downloads(data) == []
+        assert not (data / "TUM").exists()
     finally:
         os.close(fd)
     assert download(reg, data, "fr3_test").exit_code == 0  # released: the next command works
@@ -211,4 +221,5 @@ def test_checksum_records_of_two_processes_are_merged(tmp_path):
     one.put("a.tgz", "aa", 1, Entity("https://x/a.tgz", '"e1"'))
     two.put("b.tgz", "bb", 2, Entity("https://x/b.tgz"))
     data = json.loads(path.read_text())
-    assert sorted(data) == ["a.tgz", "b.tgz"] and data["a.tgz"]["etag"] == '"e1"'
+    assert sorted(data) == ["a.tgz", "b.tgz"]
+    assert data["a.tgz"]["etag"] == '"e1"'

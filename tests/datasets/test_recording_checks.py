@@ -59,10 +59,12 @@ def _camera(tmp_path: Path, tum: Path, size: tuple[int, int] | None = None) -> P
 
 def _one_line_error(result, *needles: str) -> str:
     assert result.exit_code == 1, result.output
-    assert "Traceback" not in result.output and "cv2.error" not in result.output, result.output
+    assert "Traceback" not in result.output, result.output
+    assert "cv2.error" not in result.output, result.output
     lines = [ln for ln in result.output.splitlines() if ln.strip()]
     errors = [ln for ln in lines if ln.startswith("error:")]
-    assert len(errors) == 1 and lines[-1] == errors[0], result.output
+    assert len(errors) == 1, result.output
+    assert lines[-1] == errors[0], result.output
     for n in needles:
         assert n in errors[0], (n, result.output)
     return errors[0]
@@ -92,8 +94,10 @@ def test_image_folder_bad_frame_named_before_the_run(tmp_path, tum, bad):
     opts = RecordingOptions(camera=_camera(tmp_path, tum), cache=tmp_path / "cache")
     with pytest.raises(DatasetError) as e:
         open_recording(folder, opts)
-    assert "\n" not in str(e.value) and all(n in str(e.value) for n in needles), str(e.value)
-    assert not list((tmp_path / "cache").glob("*/source.json")) and not list((tmp_path / "cache").glob(".*"))
+    assert "\n" not in str(e.value), str(e.value)
+    assert all(n in str(e.value) for n in needles), str(e.value)
+    assert not list((tmp_path / "cache").glob("*/source.json"))
+    assert not list((tmp_path / "cache").glob(".*"))
 
 
 def test_image_folder_mixed_sizes_from_the_command_line(tmp_path, tum):

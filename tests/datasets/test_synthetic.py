@@ -45,7 +45,9 @@ def test_deterministic_per_seed_and_different_across_seeds():
     synthetic._setup.cache_clear()  # textures are re-synthesised, not reused from the cache
     b = make_sequence("room", n=3, seed=3)
     c = make_sequence("room", n=3, seed=4)
-    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth) and np.array_equal(a.poses, b.poses)
+    assert np.array_equal(a.rgb, b.rgb)
+    assert np.array_equal(a.depth, b.depth)
+    assert np.array_equal(a.poses, b.poses)
     assert not np.array_equal(a.rgb, c.rgb)
     assert not np.allclose(a.poses, c.poses)
 
@@ -53,10 +55,13 @@ def test_deterministic_per_seed_and_different_across_seeds():
 def test_iter_render_matches_render_sequence():
     seq = make_sequence("far", n=4, seed=1)
     for i, rgb, depth, pose in synthetic.iter_render("far", 4, 64, 48, 1, "target"):
-        assert np.array_equal(rgb, seq.rgb[i]) and np.array_equal(depth, seq.depth[i])
+        assert np.array_equal(rgb, seq.rgb[i])
+        assert np.array_equal(depth, seq.depth[i])
         assert np.array_equal(pose, seq.poses[i])
-    assert seq.rgb.shape == (4, 48, 64, 3) and seq.rgb.dtype == np.uint8
-    assert seq.depth.dtype == np.float32 and seq.poses.dtype == np.float64
+    assert seq.rgb.shape == (4, 48, 64, 3)
+    assert seq.rgb.dtype == np.uint8
+    assert seq.depth.dtype == np.float32
+    assert seq.poses.dtype == np.float64
     np.testing.assert_allclose(seq.timestamps, np.arange(4) / 30.0)
 
 
@@ -65,7 +70,8 @@ def test_iter_render_matches_render_sequence():
 def test_depth_positive_and_points_lie_on_scene_surfaces(scene, domain):
     """Back-projected z-depth must land exactly on a box face (z-depth, not ray length)."""
     seq = make_sequence(scene, n=3, width=80, height=60, seed=2, domain=domain)
-    assert np.all(seq.depth > 0) and np.all(np.isfinite(seq.depth))
+    assert np.all(seq.depth > 0)
+    assert np.all(np.isfinite(seq.depth))
     boxes = build_scene(scene, 2, domain).boxes
     K = seq.intrinsics.K()
     v, u = np.mgrid[0:60, 0:80].astype(np.float64)
@@ -106,7 +112,8 @@ def test_poses_are_rigid_and_motion_is_handheld_like(scene, domain):
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
     np.testing.assert_array_equal(T[:, 3], np.broadcast_to([0, 0, 0, 1.0], (len(T), 4)))
     speed = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1) * 30.0
-    assert 0.1 < speed.mean() < 0.6 and speed.max() < 1.0, (speed.mean(), speed.max())
+    assert 0.1 < speed.mean() < 0.6, (speed.mean(), speed.max())
+    assert speed.max() < 1.0, (speed.mean(), speed.max())
     rel = np.einsum("nji,njk->nik", R[:-1], R[1:])
     ang = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)) * 30.0
     assert np.rad2deg(ang.max()) < 60.0  # deg/s: a calm handheld camera
@@ -129,7 +136,8 @@ def test_write_tum_files_parse_and_depth_roundtrips(tmp_path):
         rgb = cv2.imread(str(root / rows["rgb.txt"][i][1]), cv2.IMREAD_COLOR)
         assert np.array_equal(cv2.cvtColor(rgb, cv2.COLOR_BGR2RGB), seq.rgb[i])
         raw = cv2.imread(str(root / rows["depth.txt"][i][1]), cv2.IMREAD_UNCHANGED)
-        assert raw.dtype == np.uint16 and raw.shape == (48, 64)
+        assert raw.dtype == np.uint16
+        assert raw.shape == (48, 64)
         assert np.all(np.abs(raw / 5000.0 - seq.depth[i]) <= 1 / 5000.0)
         vals = np.array([float(x) for x in rows["groundtruth.txt"][i]])
         assert vals[0] == pytest.approx(i / 30.0, abs=1e-6)
@@ -168,7 +176,8 @@ def test_textures_give_many_corners_at_640x480(scene):
     seq = synthetic.render_sequence(scene, 1, 640, 480, seed=0)
     grey = cv2.cvtColor(seq.rgb[0], cv2.COLOR_RGB2GRAY)
     corners = cv2.goodFeaturesToTrack(grey, maxCorners=2000, qualityLevel=0.01, minDistance=7)
-    assert corners is not None and len(corners) >= 200, f"{scene}: {0 if corners is None else len(corners)} corners"
+    assert corners is not None, f"{scene}: {0 if corners is None else len(corners)} corners"
+    assert len(corners) >= 200, f"{scene}: {0 if corners is None else len(corners)} corners"
 
 
 def test_unknown_scene_and_domain_raise_config_error():
@@ -186,7 +195,8 @@ def test_source_domain_differs_from_target(scene):
         src = make_sequence(scene, n=2, width=64, height=48, seed=seed, domain="source")
         # Palette: the target is warm (red > blue), the source cool (blue > red).
         t_mean, s_mean = tgt.rgb.reshape(-1, 3).mean(0), src.rgb.reshape(-1, 3).mean(0)
-        assert t_mean[0] > t_mean[2] and s_mean[2] > s_mean[0], (seed, t_mean, s_mean)
+        assert t_mean[0] > t_mean[2], (seed, t_mean, s_mean)
+        assert s_mean[2] > s_mean[0], (seed, t_mean, s_mean)
         far["target"].append(np.percentile(tgt.depth, 90))
         far["source"].append(np.percentile(src.depth, 90))
     # Depth range: the far end of the depth distribution differs by more than 25 %.
@@ -196,4 +206,5 @@ def test_source_domain_differs_from_target(scene):
 
 def test_bench_render_reports_speed():
     r = synthetic.bench_render(64, 48, n=3)
-    assert r["fps"] > 0 and r["ms_per_frame"] == pytest.approx(1000.0 / r["fps"])
+    assert r["fps"] > 0
+    assert r["ms_per_frame"] == pytest.approx(1000.0 / r["fps"])

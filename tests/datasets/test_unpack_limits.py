@@ -55,9 +55,11 @@ def _serve(server, tum_src, tmp_path, data: bytes, name: str = TGZ):
 
 
 def _nothing_unpacked(tmp_path: Path, data: Path) -> None:
-    assert not (data / TUM_ROOT).exists() and leftovers(data / "TUM") == []
+    assert not (data / TUM_ROOT).exists()
+    assert leftovers(data / "TUM") == []
     outside = [p for p in tmp_path.rglob("*") if not p.is_relative_to(tmp_path / "data") and p.name != "datasets.yaml"]
-    assert outside == [] and not Path("/tmp/mslam_evil").exists()
+    assert outside == []
+    assert not Path("/tmp/mslam_evil").exists()
 
 
 # ----------------------------------------------------------------------------- bombs
@@ -80,7 +82,7 @@ def test_zip_bomb_refused_before_writing(tmp_path, server, tum_src):
     _nothing_unpacked(tmp_path, data)
 
 
-@pytest.mark.parametrize("max_gb, needles", [(None, ("past", "10× the archive's")),
+@pytest.mark.parametrize(("max_gb", "needles"), [(None, ("past", "10× the archive's")),
                                              ("5", ("expands", "limit is 100×"))])
 def test_tar_bomb_refused(tmp_path, server, tum_src, max_gb, needles):
     reg, data = _serve(server, tum_src, tmp_path, _tar(tum_members(tum_src)
@@ -127,7 +129,7 @@ def test_too_many_members(tmp_path, server, tum_src, monkeypatch):
 TOP = "rgbd_dataset_freiburg3_test/"
 
 
-@pytest.mark.parametrize("member, needles", [
+@pytest.mark.parametrize(("member", "needles"), [
     (_link(TOP + "rgb", "/tmp/mslam_evil", tarfile.SYMTYPE), ("symbolic link", "/tmp/mslam_evil")),
     (_link(TOP + "passwd", "/etc/passwd", tarfile.LNKTYPE), ("hard link", "/etc/passwd")),
     (_link(TOP + "fifo", "", tarfile.FIFOTYPE), ("special file",)),
@@ -180,7 +182,8 @@ def test_failed_force_restores_the_old_folder(tmp_path, server, tum_src, monkeyp
 
     monkeypatch.setattr(os, "rename", failing)
     r = download(reg, data, "fr3_test", extra=("--force",))
-    assert tree(root) == before and leftovers(root.parent) == []
+    assert tree(root) == before
+    assert leftovers(root.parent) == []
     one_line_error(r, "cannot unpack", "Permission denied", "is unchanged")
 
 
@@ -197,6 +200,9 @@ def test_killed_force_is_finished_by_the_next_command(tmp_path, server, tum_src)
     (root.parent / f".{root.name}.unpack-4242-abcd" / "rgb").mkdir(parents=True)  # ... with a half-unpacked new one
     n = len(server.requests)
     r = download(reg, data, "fr3_test")
-    assert r.exit_code == 0 and "restored the folder an interrupted --force had moved" in r.output, r.output
-    assert "download skipped" in r.output and len(server.requests) == n
-    assert tree(root) == before and leftovers(root.parent) == []
+    assert r.exit_code == 0, r.output
+    assert "restored the folder an interrupted --force had moved" in r.output, r.output
+    assert "download skipped" in r.output
+    assert len(server.requests) == n
+    assert tree(root) == before
+    assert leftovers(root.parent) == []

@@ -12,10 +12,10 @@ from synth import make_tum_dir
 
 from mutualslam_cli.datasets.recordings import video as video_mod
 from mutualslam_cli.datasets.recordings.recording import RecordingOptions, open_recording
+from mutualslam_cli.datasets.recordings.video import natural_key
 from mutualslam_cli.datasets.registry import load_spec
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.datasets.tum import read_intrinsics_txt
-from mutualslam_cli.datasets.recordings.video import natural_key
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import Intrinsics
 
@@ -64,7 +64,7 @@ def _open(path: Path, tmp: Path, **kw) -> Sequence:
     return seq
 
 
-@pytest.mark.parametrize("fourcc, suffix, codec", [("mp4v", ".mp4", "FMP4"), ("MJPG", ".avi", "MJPG")])
+@pytest.mark.parametrize(("fourcc", "suffix", "codec"), [("mp4v", ".mp4", "FMP4"), ("MJPG", ".avi", "MJPG")])
 def test_video_round_trip_and_cache(tmp_path: Path, tum: Path, originals: list[np.ndarray], monkeypatch,
                                     fourcc: str, suffix: str, codec: str) -> None:
     vid = _write_video(tmp_path / f"walk{suffix}", fourcc, originals)
@@ -73,13 +73,19 @@ def test_video_round_trip_and_cache(tmp_path: Path, tum: Path, originals: list[n
     assert len(seq) == N
     np.testing.assert_allclose([f.timestamp for f in seq.frames], np.arange(N) / FPS, atol=1e-3)
     assert seq.intrinsics == Intrinsics(K.fx, K.fy, K.cx, K.cy, W, H, None)
-    assert not seq.has_depth and not seq.has_gt_poses and seq.gt is None
+    assert not seq.has_depth
+    assert not seq.has_gt_poses
+    assert seq.gt is None
     diffs = np.array([[np.abs(seq.load_rgb(i).astype(float) - o).mean() for o in originals] for i in range(N)])
     assert diffs.diagonal().max() < MAX_MEAN_DIFF, diffs.diagonal()
     assert (diffs.argmin(axis=1) == np.arange(N)).all()  # right order, RGB not BGR
     meta = seq.meta["recording"]
-    assert meta["video_frames"] == N and meta["codec"] == codec and meta["fps"] == FPS
-    assert meta["times"].startswith("container") and meta["fps_used"] is None and meta["notes"] == []
+    assert meta["video_frames"] == N
+    assert meta["codec"] == codec
+    assert meta["fps"] == FPS
+    assert meta["times"].startswith("container")
+    assert meta["fps_used"] is None
+    assert meta["notes"] == []
 
     # cached: a second open neither decodes nor rewrites
     source = open_recording(vid, RecordingOptions(camera=cam, cache=tmp_path / "cache")).root / "source.json"
@@ -96,7 +102,9 @@ def test_video_round_trip_and_cache(tmp_path: Path, tum: Path, originals: list[n
     # an edited camera file converts anew
     cam.write_text(f"{K.fx * 2!r} {K.fy * 2!r} {K.cx!r} {K.cy!r}\n")
     seq2 = _open(vid, tmp_path, camera=cam)
-    assert seq2.root != seq.root and seq2.intrinsics.fx == K.fx * 2 and len(seq2) == N
+    assert seq2.root != seq.root
+    assert seq2.intrinsics.fx == K.fx * 2
+    assert len(seq2) == N
 
 
 def test_video_fps_option_overrides_container(tmp_path: Path, tum: Path, originals: list[np.ndarray]) -> None:
@@ -111,7 +119,8 @@ def test_video_without_camera_file(tmp_path: Path, originals: list[np.ndarray]) 
     vid = _write_video(tmp_path / "nocam.avi", "MJPG", originals[:2])
     with pytest.raises(DatasetError, match="no intrinsics") as e:
         _open(vid, tmp_path)
-    assert "\n" not in str(e.value) and str(vid) in str(e.value)
+    assert "\n" not in str(e.value)
+    assert str(vid) in str(e.value)
 
 
 @pytest.mark.parametrize("make", ["random", "empty_writer"])
@@ -127,7 +136,9 @@ def test_unreadable_video(tmp_path: Path, tum: Path, make: str) -> None:
     with pytest.raises(DatasetError) as e:
         _open(vid, tmp_path, camera=cam)
     msg = str(e.value)
-    assert "\n" not in msg and str(vid) in msg and ("cannot open" in msg or "no frame" in msg), msg
+    assert "\n" not in msg, msg
+    assert str(vid) in msg, msg
+    assert ("cannot open" in msg or "no frame" in msg), msg
     assert not list((tmp_path / "cache").glob("*/source.json"))  # nothing half-converted is left to read
 
 
@@ -154,7 +165,7 @@ class _FakeWriter:
         self.rgb.append((t, image))
 
 
-@pytest.mark.parametrize("times_ms, want, how", [
+@pytest.mark.parametrize(("times_ms", "want", "how"), [
     ([0, 0, 0, 0], [0, 0.04, 0.08, 0.12], "frame index / 25 fps"),           # no container times
     ([0, 40, 40, 120], [0, 0.04, 0.08, 0.12], "container"),                   # one repaired
     ([0, 50, 90, 200], [0, 0.05, 0.09, 0.2], "container"),                    # variable rate kept
@@ -165,7 +176,8 @@ def test_container_time_fallbacks(times_ms: list[float], want: list[float], how:
     meta = video_mod._decode(Path("fake.mp4"), _FakeCap(times_ms), RecordingOptions(), w)  # type: ignore[arg-type]
     np.testing.assert_allclose([t for t, _ in w.rgb], want, atol=1e-9)
     assert [int(img[0, 0, 0]) for _, img in w.rgb] == list(range(len(times_ms)))  # in order, none dropped
-    assert meta["times"].startswith(how) and meta["video_frames"] == len(times_ms)
+    assert meta["times"].startswith(how)
+    assert meta["video_frames"] == len(times_ms)
     assert meta["times_repaired"] == (1 if times_ms == [0, 40, 40, 120] else 0)
 
 
@@ -173,9 +185,11 @@ def test_image_folder_with_tum_stamps(tmp_path: Path, tum: Path, originals: list
     cam, _ = _camera(tmp_path, tum)
     seq = _open(tum / "rgb", tmp_path, camera=cam)
     stamps = sorted(float(p.stem) for p in (tum / "rgb").glob("*.png"))
-    assert len(seq) == N and [f.timestamp for f in seq.frames] == pytest.approx(stamps, abs=1e-6)
+    assert len(seq) == N
+    assert [f.timestamp for f in seq.frames] == pytest.approx(stamps, abs=1e-6)
     assert seq.meta["recording"]["times"] == "file names (seconds)"
-    assert (seq.intrinsics.width, seq.intrinsics.height) == (W, H) and not seq.has_depth
+    assert (seq.intrinsics.width, seq.intrinsics.height) == (W, H)
+    assert not seq.has_depth
     assert all(Path(f.rgb_path).parent == (tum / "rgb").resolve() for f in seq.frames)  # images stay
     assert all((seq.load_rgb(i) == originals[i]).all() for i in (0, N - 1))
 

@@ -16,10 +16,10 @@ from typer.testing import CliRunner
 from mutualslam_cli.cli import app
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.dense import tsdf
-from mutualslam_cli.errors import ConfigError, GeometryError
 from mutualslam_cli.dense.picture import fit_view, look_from_cameras
-from mutualslam_cli.results.summary import flatten
+from mutualslam_cli.errors import ConfigError, GeometryError
 from mutualslam_cli.pipeline import fuse_run
+from mutualslam_cli.results.summary import flatten
 from mutualslam_cli.stages.dense import DENSE_KEYS
 
 VOXEL = 0.02
@@ -42,7 +42,8 @@ def test_score_points_closed_form():
     pred = ref[jj.ravel() < 10]
     r = tsdf.score_points(pred, ref)
     p_exp, r_exp = 1.0, 13 / 100
-    assert r.precision == p_exp and r.recall == pytest.approx(r_exp, abs=1e-12)
+    assert r.precision == p_exp
+    assert r.recall == pytest.approx(r_exp, abs=1e-12)
     assert r.fscore == pytest.approx(2 * p_exp * r_exp / (p_exp + r_exp), abs=1e-12)  # harmonic, not arithmetic
     assert r.accuracy_m == 0.0
     d = np.maximum(np.arange(100) - 9, 0) * s  # per column, the same for every row
@@ -66,13 +67,19 @@ def _fuse_gt(seq, vol: tsdf.TSDFVolume) -> tsdf.Mesh:
 def test_gt_depth_fused_with_gt_poses_scores_perfectly_against_itself():
     seq = make_sequence("room", n=6, width=128, height=96)
     mesh = _fuse_gt(seq, _volume())
-    assert len(mesh.triangles) > 1000 and mesh.colours.max() <= 1.0 and mesh.colours.std() > 0  # coloured
+    assert len(mesh.triangles) > 1000
+    assert mesh.colours.max() <= 1.0
+    assert mesh.colours.std() > 0
     s = tsdf.score_surfaces(mesh, mesh, VOXEL)
-    assert s.fscore == 1.0 and s.precision == 1.0 and s.recall == 1.0
-    assert s.accuracy_m == 0.0 and s.completeness_m == 0.0
+    assert s.fscore == 1.0
+    assert s.precision == 1.0
+    assert s.recall == 1.0
+    assert s.accuracy_m == 0.0
+    assert s.completeness_m == 0.0
     # the same inputs give the same mesh, to the bit
     again = _fuse_gt(seq, _volume())
-    assert np.array_equal(again.vertices, mesh.vertices) and np.array_equal(again.triangles, mesh.triangles)
+    assert np.array_equal(again.vertices, mesh.vertices)
+    assert np.array_equal(again.triangles, mesh.triangles)
 
 
 # Floor + wall seen by one camera (x right, y down, z forward): floor y = H_FLOOR, wall z = D_WALL.
@@ -154,7 +161,9 @@ def test_negative_fy_fuses_the_same_surfaces():
     local = mesh.vertices - CAM
     on_floor = np.abs(local[:, 1] - H_FLOOR) < VOXEL
     on_wall = np.abs(local[:, 2] - D_WALL) < VOXEL
-    assert len(local) > 1000 and np.mean(on_floor | on_wall) > 0.99 and on_floor.mean() > 0.1
+    assert len(local) > 1000
+    assert np.mean(on_floor | on_wall) > 0.99
+    assert on_floor.mean() > 0.1
     pos = _fuse_one(*_floor_wall_depth(fy_sign=1.0))
     assert tsdf.score_surfaces(mesh, pos, VOXEL).fscore == 1.0
 
@@ -166,9 +175,12 @@ def test_block_cap_bounds_the_grid():
     cap = probe.blocks + 20  # room for the first frame, not for all six
     vol = _volume(block_count=cap)
     kinds = [vol.integrate(seq.depth[i], seq.intrinsics.K(), seq.poses[i], seq.rgb[i]) for i in range(len(seq))]
-    assert vol.blocks <= cap and vol.grid.hashmap().capacity() == cap  # never rehashed to a larger map
-    assert kinds[0] == "full" and set(kinds[1:]) <= {"full", "existing_only", "skipped"}
-    assert vol.frames["existing_only"] + vol.frames["skipped"] > 0 and len(vol.mesh().triangles) > 0
+    assert vol.blocks <= cap
+    assert vol.grid.hashmap().capacity() == cap
+    assert kinds[0] == "full"
+    assert set(kinds[1:]) <= {"full", "existing_only", "skipped"}
+    assert vol.frames["existing_only"] + vol.frames["skipped"] > 0
+    assert len(vol.mesh().triangles) > 0
     assert tsdf.block_memory_bytes(8, 40000) == 40000 * 512 * 20
 
 
@@ -189,24 +201,27 @@ def test_render_mesh_draws_the_surface():
     eye, target, up = look_from_cameras(T[None], np.median(mesh.vertices, axis=0))
     eye, target = fit_view(mesh.vertices, eye, target, up, 70.0, 72 / 96)
     img = tsdf.render_mesh(mesh, eye, target, up, 96, 72, threads=1)
-    assert img.shape == (72, 96, 3) and img.dtype == np.uint8
+    assert img.shape == (72, 96, 3)
+    assert img.dtype == np.uint8
     surface = np.any(img != 255, axis=-1)
-    assert 0.5 < surface.mean() < 1.0 and len(np.unique(img[surface].sum(-1))) > 5  # fills the view; shaded
+    assert 0.5 < surface.mean() < 1.0
+    assert len(np.unique(img[surface].sum(-1))) > 5
     # upright: seen from the camera itself, the floor alone (y = +H_FLOOR, below it) is drawn in the lower half
     on_floor = np.abs(mesh.vertices[:, 1] - CAM[1] - H_FLOOR) < VOXEL
     floor = tsdf.Mesh(mesh.vertices, mesh.triangles[on_floor[mesh.triangles].all(axis=1)], mesh.colours)
     seen = np.any(tsdf.render_mesh(floor, CAM, CAM + [0, 0, 1], np.array([0, -1.0, 0]), 96, 72) != 255, axis=-1)
     rows = np.nonzero(seen)[0]
-    assert len(rows) > 100 and rows.min() > 36
+    assert len(rows) > 100
+    assert rows.min() > 36
     blank = tsdf.render_mesh(tsdf.Mesh.empty(), eye, target, up, 96, 72)
     assert (blank == 255).all()
 
 
 def test_dense_config_is_validated():
     assert load_config(overrides=["dense.enabled=true"]).dense.enabled
-    with pytest.raises(ConfigError, match="dense.voxel_size"):
+    with pytest.raises(ConfigError, match=r"dense.voxel_size"):
         load_config(overrides=["dense.voxel_size=0"])
-    with pytest.raises(ConfigError, match="dense.depth_min"):
+    with pytest.raises(ConfigError, match=r"dense.depth_min"):
         load_config(overrides=["dense.depth_min=5"])
 
 
@@ -233,21 +248,24 @@ def test_run_with_dense_stage_writes_meshes_picture_and_scores(dense_run):
     flat = flatten(r.summary)
     for key in DENSE_KEYS:
         assert isinstance(flat[key], float), (key, r.summary["notes"].get(key))
-    assert 0 <= flat["dense.fscore_5cm.adapted"] <= 1 and flat["dense.accuracy_m.pretrained"] > 0
+    assert 0 <= flat["dense.fscore_5cm.adapted"] <= 1
+    assert flat["dense.accuracy_m.pretrained"] > 0
     # the oracle front end (gt-depth) has GT poses and a metric map: the Sim(3) is the identity
     assert flat["dense.sim3_scale"] == pytest.approx(1.0, abs=1e-6)
     assert flat["dense.frames"] == flat["vo.keyframes"] == flat["dense.frames_reference"]
     for name in ("pretrained", "adapted", "gt"):
         mesh = o3d.io.read_triangle_mesh(str(r.folder / f"mesh_{name}.ply"))
-        assert len(mesh.triangles) > 0 and mesh.has_vertex_colors(), name
+        assert len(mesh.triangles) > 0, name
+        assert mesh.has_vertex_colors(), name
     assert (r.folder / "dense.png").stat().st_size > 10_000
     stages = r.summary["timing"]["stage_s"]
-    assert stages["dense"] > 0 and sum(stages.values()) == pytest.approx(flat["timing.total_s"])
+    assert stages["dense"] > 0
+    assert sum(stages.values()) == pytest.approx(flat["timing.total_s"])
     assert not list(r.folder.glob(".dense-*"))  # the prediction files are gone
 
 
 def test_fuse_on_the_finished_run_gives_the_same_scores(dense_run, tmp_path):
-    tmp, _, r = dense_run
+    _tmp, _, r = dense_run
     root = tmp_path / "copy"
     shutil.copytree(r.folder.parents[2], root)
     folder = root / r.folder.relative_to(r.folder.parents[2])
@@ -260,7 +278,8 @@ def test_fuse_on_the_finished_run_gives_the_same_scores(dense_run, tmp_path):
     # the CLI prints the table
     cli = CliRunner().invoke(app, ["fuse", str(folder)])
     assert cli.exit_code == 0, cli.output
-    assert "F-score @5cm" in cli.output and f"{flat['dense.fscore_5cm.adapted']:.4f}" in cli.output
+    assert "F-score @5cm" in cli.output
+    assert f"{flat['dense.fscore_5cm.adapted']:.4f}" in cli.output
 
 
 def test_fuse_every_frame(dense_run, tmp_path):
@@ -269,14 +288,16 @@ def test_fuse_every_frame(dense_run, tmp_path):
     root = tmp_path / "every"
     shutil.copytree(r.folder.parents[2], root)
     s = flatten(fuse_run(root / r.folder.relative_to(r.folder.parents[2]), ["dense.every=1"]))
-    assert s["dense.frames"] == 12 and s["dense.source"].startswith("every k-th frame (k = 1)")
-    assert all(isinstance(s[k], float) for k in DENSE_KEYS) and s["dense.sim3_scale"] == pytest.approx(1.0, abs=1e-6)
+    assert s["dense.frames"] == 12
+    assert s["dense.source"].startswith("every k-th frame (k = 1)")
+    assert all(isinstance(s[k], float) for k in DENSE_KEYS)
+    assert s["dense.sim3_scale"] == pytest.approx(1.0, abs=1e-6)
 
 
 def test_sequence_without_gt_depth_gives_null_scores_with_the_reason(dense_run, tmp_path):
     from mutualslam_cli.datasets.registry import load_sequence
 
-    tmp, seq_dir, r = dense_run
+    _tmp, seq_dir, r = dense_run
     root = tmp_path / "nodepth"
     shutil.copytree(r.folder.parents[2], root)
     folder = root / r.folder.relative_to(r.folder.parents[2])
@@ -285,9 +306,11 @@ def test_sequence_without_gt_depth_gives_null_scores_with_the_reason(dense_run, 
     s = fuse_run(folder, seq=seq)
     flat = flatten(s)
     for key in DENSE_KEYS:
-        assert flat[key] is None and "no GT depth" in s["notes"][key], key
+        assert flat[key] is None, key
+        assert "no GT depth" in s["notes"][key], key
     # the predictions are still fused (metric by the Sim(3) to the GT poses); there is no reference mesh
-    assert (folder / "mesh_adapted.ply").is_file() and not (folder / "mesh_gt.ply").exists()  # the old one is gone
+    assert (folder / "mesh_adapted.ply").is_file()
+    assert not (folder / "mesh_gt.ply").exists()
     assert flat["dense.frames_reference"] == 0
     assert (folder / "dense.png").is_file()
 
@@ -297,9 +320,12 @@ def test_fuse_without_weights_is_one_line(dense_run, tmp_path):
     folder = tmp_path / "run"
     shutil.copytree(r.folder, folder, ignore=shutil.ignore_patterns("weights"))
     out = CliRunner().invoke(app, ["fuse", str(folder)])
-    assert out.exit_code == 1 and "Traceback" not in out.output
+    assert out.exit_code == 1
+    assert "Traceback" not in out.output
     text = " ".join(out.output.split())
-    assert text.startswith("error:") and str(folder) in text and "eval.save_weights=true" in text
+    assert text.startswith("error:")
+    assert str(folder) in text
+    assert "eval.save_weights=true" in text
 
 
 def test_report_shows_the_dense_table(dense_run, tmp_path):
@@ -315,7 +341,8 @@ def test_report_shows_the_dense_table(dense_run, tmp_path):
     for row, p in ((1, "frame_scale"), (2, "gt_scale")):
         assert t.iloc[row]["F@5cm pre"] == pytest.approx(r.summary["dense"][p]["fscore_5cm"]["pretrained"])
         assert t.iloc[row]["fallback frames"] == r.summary["dense"][p]["fallback_frames"]["adapted"]
-    assert "oracle" in rep.titles["dense"] and "one scale per model and sequence" in rep.titles["dense"]
+    assert "oracle" in rep.titles["dense"]
+    assert "one scale per model and sequence" in rep.titles["dense"]
     files = write_report(rep, tmp_path / "rep")
     assert any(p.parent.name == "dense" and p.suffix == ".png" for p in files)
     assert "dense/dense_" in (tmp_path / "rep" / "report.md").read_text()
@@ -358,7 +385,7 @@ def test_per_frame_scalings_tell_scale_jitter_from_shape(dense_run, tmp_path, mo
     # (±40 %: scale jitter), the adapted one with one factor for the whole sequence. One scale per sequence
     # fixes the adapted one only; each frame's own scale from the oracle front end's exact sparse points
     # (gt-depth), and each frame scaled to GT, fix both: what is left is the network-resolution shape.
-    tmp, seq_dir, r = dense_run
+    _tmp, seq_dir, r = dense_run
     jitter = np.exp(np.random.default_rng(3).uniform(-0.4, 0.4, 12))
     _gt_predictors(monkeypatch, seq_dir, {"pretrained": jitter, "adapted": np.full(12, 1.7)})
     root = tmp_path / "scalings"
@@ -367,9 +394,11 @@ def test_per_frame_scalings_tell_scale_jitter_from_shape(dense_run, tmp_path, mo
     s = flatten(fuse_run(folder))
     F = {p: {m: s[f"dense.{p}fscore_5cm.{m}"] for m in ("pretrained", "adapted")}
          for p in ("", "frame_scale.", "gt_scale.")}
-    assert F[""]["adapted"] > 0.9 and F[""]["pretrained"] < 0.5  # the jitter is punished at one scale
+    assert F[""]["adapted"] > 0.9
+    assert F[""]["pretrained"] < 0.5
     for p in ("frame_scale.", "gt_scale."):
-        assert F[p]["pretrained"] > 0.9 and F[p]["adapted"] > 0.9, p
+        assert F[p]["pretrained"] > 0.9, p
+        assert F[p]["adapted"] > 0.9, p
         assert F[p]["pretrained"] == pytest.approx(F[p]["adapted"], abs=0.02), p  # the same shape
         assert s[f"dense.{p}fallback_frames.pretrained"] == 0
     # the per-frame factors found are the inverse of the ones planted (up to the shape at 96 × 64)
@@ -390,10 +419,12 @@ def test_per_frame_scalings_tell_scale_jitter_from_shape(dense_run, tmp_path, mo
     _gt_predictors(monkeypatch, seq_dir, {"pretrained": jitter, "adapted": np.full(12, 1.7)})
     e = fuse_run(folder, ["dense.every=1", "dense.scalings=[sequence, frame]"])
     f = flatten(e)
-    assert f["dense.frames"] == 12 and f["dense.frame_scale.fallback_frames.pretrained"] == 12 - 6
+    assert f["dense.frames"] == 12
+    assert f["dense.frame_scale.fallback_frames.pretrained"] == 12 - 6
     assert f["dense.frame_scale.fscore_5cm.pretrained"] > f["dense.fscore_5cm.pretrained"]
     for key in ("dense.gt_scale.fscore_5cm.adapted", "dense.gt_scale.fallback_frames.pretrained"):
-        assert f[key] is None and "dense.scalings leaves out 'gt'" in e["notes"][key]
+        assert f[key] is None
+        assert "dense.scalings leaves out 'gt'" in e["notes"][key]
 
 
 def test_fuse_prints_every_scaling_it_scored(dense_run, tmp_path):

@@ -33,21 +33,24 @@ def test_gt_factor_is_the_median_ratio_over_valid_pixels():
 def test_fallback_and_spread():
     own = np.array([2.0, np.nan, 0.5, -1.0, 1.0])
     f, n = scaling.with_fallback(own, 3.0)
-    assert n == 2 and f.tolist() == [2.0, 3.0, 0.5, 3.0, 1.0]
+    assert n == 2
+    assert f.tolist() == [2.0, 3.0, 0.5, 3.0, 1.0]
     assert scaling.with_fallback(own, None) == (None, 2)
     f, n = scaling.with_fallback(np.array([1.0, 2.0]), None)  # nothing missing: no fallback needed
-    assert n == 0 and f.tolist() == [1.0, 2.0]
+    assert n == 0
+    assert f.tolist() == [1.0, 2.0]
     # spread: std of ln over the frames with their own factor
     assert scaling.log_spread(own) == pytest.approx(np.std(np.log([2.0, 0.5, 1.0])))
     assert np.isnan(scaling.log_spread(np.array([1.0, np.nan])))
-    assert scaling.median_factor(own) == 1.0 and np.isnan(scaling.median_factor(np.array([np.nan])))
+    assert scaling.median_factor(own) == 1.0
+    assert np.isnan(scaling.median_factor(np.array([np.nan])))
 
 
 def test_scalings_setting():
     assert load_config().dense.scalings == ["sequence", "frame", "gt"]  # all three by default
     assert load_config(overrides=["dense.scalings=[sequence, gt]"]).dense.scalings == ["sequence", "gt"]
     for bad in ("[gt]", "[sequence, sequence]"):
-        with pytest.raises(ConfigError, match="dense.scalings"):
+        with pytest.raises(ConfigError, match=r"dense.scalings"):
             load_config(overrides=[f"dense.scalings={bad}"])
     with pytest.raises(ConfigError, match=r"dense.scalings\[1\]"):
         load_config(overrides=["dense.scalings=[sequence, keyframe]"])

@@ -69,4 +69,5 @@ def test_the_map_states_writers_journal_and_replay_bit_for_bit():
     assert [e.kind for e in st.journal.events] == ["keyframe", "keyframe", "points", "observe", "depth", "refresh",
                                                     "unobserve", "remove"]
     np.testing.assert_array_equal(replica.map.Xw, st.map.Xw)
-    assert replica.map.obs[pids[0]].keys() == st.map.obs[pids[0]].keys() and not replica.map.obs[pids[1]]
+    assert replica.map.obs[pids[0]].keys() == st.map.obs[pids[0]].keys()
+    assert not replica.map.obs[pids[1]]

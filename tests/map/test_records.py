@@ -16,7 +16,10 @@ BA_RUN_ROW = ["kf_id", "n_points", "n_culled", "n_judged", "n_judged_elsewhere",
 def test_a_ba_run_row_keeps_the_manifests_keys_and_leaves_the_costs_out():
     row = BARun(7, BAStats(n_points=10, n_culled=2, costs=[[1.0, 0.5]], seconds=0.25)).to_json()
     assert list(row) == BA_RUN_ROW
-    assert row["kf_id"] == 7 and row["n_culled"] == 2 and row["seconds"] == 0.25 and row["cost0"] == 0
+    assert row["kf_id"] == 7
+    assert row["n_culled"] == 2
+    assert row["seconds"] == 0.25
+    assert row["cost0"] == 0
 
 
 def test_a_relocalisation_row_is_the_dict_the_result_always_held():

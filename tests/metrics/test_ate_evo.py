@@ -98,7 +98,7 @@ def test_ate_equals_evo_api(tum_pair: tuple[Path, Path], align: str) -> None:
         assert abs(getattr(ours, key) - theirs[key]) < TOL_M, key
     # at 30 Hz vs 100 Hz every estimate has its own nearest GT pose, so TUM's greedy one-to-one
     # association picks the same pairs (it differs from evo only where a pose would serve twice)
-    i_ref, i_est = associate_indices(read_tum(ref_file).timestamps, read_tum(est_file).timestamps, 0.02, "unique")
+    _i_ref, i_est = associate_indices(read_tum(ref_file).timestamps, read_tum(est_file).timestamps, 0.02, "unique")
     np.testing.assert_array_equal(read_tum(est_file).timestamps[i_est], ours.est_timestamps)
     if theirs["T"] is not None:
         np.testing.assert_allclose(ours.transform, theirs["T"], atol=1e-9)
@@ -153,5 +153,6 @@ def test_nearest_association_equals_evo_matching(seed: int) -> None:
         else:
             short_idx, long_idx = evo_sync.matching_time_indices(b, a, 0.02)
             theirs = (long_idx, short_idx)
-        assert ours[0].tolist() == list(theirs[0]) and ours[1].tolist() == list(theirs[1])
+        assert ours[0].tolist() == list(theirs[0])
+        assert ours[1].tolist() == list(theirs[1])
         assert len(ours[0]) > 10

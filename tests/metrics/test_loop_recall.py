@@ -42,7 +42,8 @@ def test_a_second_lap_revisits_the_first_and_nothing_else_does():
     assert set(rev) == set(range(48, 100))
     assert [p.kf for p in rev[49]] == [0, 1]
     for j, ps in ((j, ps) for j, ps in rev.items() if j >= 50):
-        assert ps[0].kf == j - 50 and ps[0].dist_m == pytest.approx(0.0, abs=1e-9)  # the same place, nearest first
+        assert ps[0].kf == j - 50
+        assert ps[0].dist_m == pytest.approx(0.0, abs=1e-9)
         assert all(p.dist_m <= 0.30 and p.angle_deg <= 30.0 and j - p.kf >= 30 for p in ps)
         assert [p.dist_m for p in ps] == sorted(p.dist_m for p in ps)
     # the neighbours 2 keyframes away are 25 cm and 14.4° apart: partners; 3 away (38 cm): not
@@ -86,7 +87,9 @@ def test_each_query_reaches_its_stage_with_the_reason_it_stopped():
     assert stage == {40: (True, True, True), 41: (False, False, False), 42: (True, False, False),
                      43: (True, True, False), 44: (False, False, False), 45: (True, False, False),
                      46: (True, True, False), 47: (False, False, False), 48: (True, True, False)}
-    assert rows[40].reason == "" and rows[40].closed_kf == 11 and rows[40].partner == 10
+    assert rows[40].reason == ""
+    assert rows[40].closed_kf == 11
+    assert rows[40].partner == 10
     assert rows[41].reason == "appearance: no true partner among the 3 best candidates"
     assert rows[42].reason == "geometry: refuted by verification"
     assert rows[43].reason == "scale uncertain"
@@ -97,7 +100,8 @@ def test_each_query_reaches_its_stage_with_the_reason_it_stopped():
     assert rows[48].reason == "verified, not closed"
     c = counts(list(rows.values()))
     assert (c["revisits"], c["found"], c["verified"], c["closed"], c["refused"]) == (9, 6, 4, 1, 8)
-    assert sum(c["reasons"].values()) == 8 and c["reasons"]["scale uncertain"] == 1
+    assert sum(c["reasons"].values()) == 8
+    assert c["reasons"]["scale uncertain"] == 1
     assert rows[41].record()["candidates"] == "3 4 5"
 
 

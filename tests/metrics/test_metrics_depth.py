@@ -13,14 +13,14 @@ from mutualslam_cli.metrics.depth import (
     abs_rel,
     align_inverse_depth,
     depth_frame_metrics,
-    pooled_mean,
-    sequence_lsq_scale,
     depth_stats,
     esi,
     percent_correct,
+    pooled_mean,
     resize_to,
     running_mean,
     scale_factor,
+    sequence_lsq_scale,
     valid_mask,
 )
 from mutualslam_cli.metrics.ratios import pcd_from_sketch
@@ -43,8 +43,12 @@ def test_valid_mask_edges(gt: np.ndarray) -> None:
     pred = np.ones_like(g)
     pred[3, 0], pred[3, 1], pred[3, 2] = 0.0, np.nan, -2.0
     m = valid_mask(g, 10.0, pred)
-    assert m.dtype == bool and m.shape == g.shape
-    assert not m[0, :5].any() and not m[1, :3].any() and not m[2, :3].any() and not m[3, :3].any()
+    assert m.dtype == bool
+    assert m.shape == g.shape
+    assert not m[0, :5].any()
+    assert not m[1, :3].any()
+    assert not m[2, :3].any()
+    assert not m[3, :3].any()
     assert m[2, 3]
     assert m.sum() == g.size - 5 - 3 - 3 - 3
     assert valid_mask(g, 10.0)[3, :3].all()  # without pred only GT matters
@@ -86,7 +90,8 @@ def test_lsq_scale_equals_analytic(gt: np.ndarray) -> None:
     assert s == pytest.approx(s_np, rel=1e-12)
     # it is the minimiser: nearby scales do worse
     cost = lambda x: np.sum((x * p - g) ** 2)  # noqa: E731
-    assert cost(s) < cost(s * 1.001) and cost(s) < cost(s * 0.999)
+    assert cost(s) < cost(s * 1.001)
+    assert cost(s) < cost(s * 0.999)
     assert scale_factor(pred, gt, m, "median") == pytest.approx(np.median(g) / np.median(p))
     assert scale_factor(pred, gt, m, "none") == 1.0
 
@@ -106,7 +111,8 @@ def test_empty_mask_gives_nan_not_zero(gt: np.ndarray) -> None:
     assert np.isnan(esi(np.zeros(5), np.zeros(5)))
     assert np.isnan(abs_rel(gt, gt, empty))
     row = depth_frame_metrics(far, far)
-    assert row["n_valid"] == 0 and row["sum_pg"] == row["sum_pp"] == 0.0
+    assert row["n_valid"] == 0
+    assert row["sum_pg"] == row["sum_pp"] == 0.0
     assert all(np.isnan(v) for k, v in row.items() if k not in ("n_valid", "sum_pg", "sum_pp"))
 
 
@@ -149,10 +155,12 @@ def test_esi_mask_and_shape_checks(gt: np.ndarray) -> None:
 def test_resize_to_gt_resolution() -> None:
     small = np.arange(12, dtype=np.float32).reshape(3, 4) + 1.0
     big = resize_to(small, (6, 8))
-    assert big.shape == (6, 8) and big.dtype == np.float64
+    assert big.shape == (6, 8)
+    assert big.dtype == np.float64
     # bilinear with pixel centres: a constant-gradient map stays a gradient, means agree
     assert big.mean() == pytest.approx(small.mean(), rel=1e-6)
-    assert big[0, 0] == pytest.approx(1.0) and big[-1, -1] == pytest.approx(12.0)
+    assert big[0, 0] == pytest.approx(1.0)
+    assert big[-1, -1] == pytest.approx(12.0)
     np.testing.assert_array_equal(resize_to(small, (3, 4)), small)
 
 
@@ -178,9 +186,13 @@ def test_accepts_torch_tensors(gt: np.ndarray) -> None:
 def test_depth_frame_metrics_row(gt: np.ndarray) -> None:
     row = depth_frame_metrics(1.2 * gt, gt, max_depth=10.0, threshold=0.1)
     assert set(row) == set(DepthStats.__dataclass_fields__) - {"sketch"}
-    assert row["pcd_none"] == 0.0 and row["pcd_median"] == 100.0 and row["pcd_lsq"] == 100.0
-    assert row["scale_median"] == pytest.approx(1 / 1.2) and row["scale_lsq"] == pytest.approx(1 / 1.2)
-    assert row["abs_rel"] == pytest.approx(0.0, abs=1e-12) and row["esi"] < 1e-12
+    assert row["pcd_none"] == 0.0
+    assert row["pcd_median"] == 100.0
+    assert row["pcd_lsq"] == 100.0
+    assert row["scale_median"] == pytest.approx(1 / 1.2)
+    assert row["scale_lsq"] == pytest.approx(1 / 1.2)
+    assert row["abs_rel"] == pytest.approx(0.0, abs=1e-12)
+    assert row["esi"] < 1e-12
     assert row["n_valid"] == valid_mask(gt, 10.0).sum()
     row2 = depth_frame_metrics(1.3 * gt, gt, max_depth=5.0)
     assert row2["n_valid"] == valid_mask(gt, 5.0).sum() < row["n_valid"]
@@ -269,7 +281,8 @@ def test_depth_stats_depth_dependent_error_matches_reference() -> None:
     assert len({round(ref[k], 6) for k in ("pcd_lsq", "pcd_median", "pcd_none")}) == 3
     m = valid_mask(gt, 10.0, pred)
     d = np.log(pred[m] / gt[m])
-    assert abs(ref["esi"] - abs(d.mean())) > 0.01 and abs(ref["esi"] - np.sqrt(np.mean(d ** 2))) > 0.01
+    assert abs(ref["esi"] - abs(d.mean())) > 0.01
+    assert abs(ref["esi"] - np.sqrt(np.mean(d ** 2))) > 0.01
     row = depth_frame_metrics(pred, gt)
     _assert_row(row, ref)
     # depth_stats (the dataclass) and the dict row the pipeline writes are the same numbers
@@ -293,7 +306,8 @@ def test_depth_frame_metrics_resizes_prediction_to_gt_first() -> None:
     small_t = torch.from_numpy(small).float()[None, None]  # as the network returns it
     up = cv2.resize(small_t[0, 0].numpy().astype(np.float64), (32, 24), interpolation=cv2.INTER_LINEAR)
     ref = _ref_stats(up, gt)
-    assert ref["_margin"] > 1e-6 and abs(ref["scale_lsq"] - ref["scale_median"]) > 0.05
+    assert ref["_margin"] > 1e-6
+    assert abs(ref["scale_lsq"] - ref["scale_median"]) > 0.05
     nearest = _ref_stats(cv2.resize(small, (32, 24), interpolation=cv2.INTER_NEAREST), gt)
     assert abs(nearest["pcd_median"] - ref["pcd_median"]) > 1.0  # the case tells the interpolations apart
     assert len({round(ref[k], 6) for k in ("pcd_lsq", "pcd_median", "pcd_none")}) == 3
@@ -305,7 +319,7 @@ def test_depth_frame_metrics_resizes_prediction_to_gt_first() -> None:
 # ----------------------------------------------------------------------------- scale-and-shift alignment
 
 
-@pytest.mark.parametrize("s_true, t_true", [(0.3, 0.05), (2.0, -0.1), (-1.5, 3.0)])
+@pytest.mark.parametrize(("s_true", "t_true"), [(0.3, 0.05), (2.0, -0.1), (-1.5, 3.0)])
 def test_align_inverse_depth_recovers_an_affine_map_of_inverse_depth(gt: np.ndarray, s_true: float,
                                                                      t_true: float) -> None:
     """x = s·(1/D*) + t on every pixel → the fit inverts it exactly: D = D*, scale 1/s, shift −t/s."""
@@ -314,7 +328,8 @@ def test_align_inverse_depth_recovers_an_affine_map_of_inverse_depth(gt: np.ndar
     depth, s, t = align_inverse_depth(x, gt)
     m = valid_mask(gt, 10.0)
     np.testing.assert_allclose(depth[m], gt[m], rtol=1e-9)
-    assert s == pytest.approx(1.0 / s_true, rel=1e-9) and t == pytest.approx(-t_true / s_true, rel=1e-9, abs=1e-12)
+    assert s == pytest.approx(1.0 / s_true, rel=1e-9)
+    assert t == pytest.approx(-t_true / s_true, rel=1e-9, abs=1e-12)
     assert percent_correct(depth, gt, "none") == 100.0
 
 
@@ -324,7 +339,8 @@ def test_align_inverse_depth_fits_in_inverse_depth_not_in_depth() -> None:
     x = np.array([[1.0, 0.0], [0.0, 1.0]])  # y = 1/D* = [1, .5, .25, .2]
     # centred normal equations: x̄ = .5, ȳ = .4875, Σ(x−x̄)² = 1, Σ(x−x̄)(y−ȳ) = .5·(1 + .2 − .5 − .25) = .225
     depth, s, t = align_inverse_depth(x, gt)
-    assert s == pytest.approx(0.225) and t == pytest.approx(0.4875 - 0.225 * 0.5)
+    assert s == pytest.approx(0.225)
+    assert t == pytest.approx(0.4875 - 0.225 * 0.5)
     np.testing.assert_allclose(depth, 1.0 / (0.225 * x + 0.375))
 
 
@@ -337,8 +353,10 @@ def test_align_inverse_depth_caps_depth_and_ignores_pixels_beyond_max_depth(gt: 
     gt2 = gt.copy()
     gt2[5, 5] = 0.0
     depth, s, t = align_inverse_depth(x, gt2, max_depth=10.0)
-    assert s == pytest.approx(1.0, rel=1e-9) and t == pytest.approx(0.0, abs=1e-9)
-    assert depth[5, 5] == pytest.approx(10.0) and np.isnan(depth[6, 6])
+    assert s == pytest.approx(1.0, rel=1e-9)
+    assert t == pytest.approx(0.0, abs=1e-9)
+    assert depth[5, 5] == pytest.approx(10.0)
+    assert np.isnan(depth[6, 6])
     assert depth[1, 0] == pytest.approx(1.0 / 50.0)
 
 
@@ -347,7 +365,9 @@ def test_align_inverse_depth_degenerate_is_nan_not_zero(gt: np.ndarray) -> None:
     one_pixel = np.where(np.arange(gt.size).reshape(gt.shape) == 40, 1.0, np.nan)
     for x in (np.full_like(gt, 0.7), np.full_like(gt, 0.3), one_pixel):
         depth, s, t = align_inverse_depth(x, gt)
-        assert np.isnan(s) and np.isnan(t) and np.isnan(depth).all()
+        assert np.isnan(s)
+        assert np.isnan(t)
+        assert np.isnan(depth).all()
 
 
 # ---- sequence-level least squares from per-frame sketches, pooled means ------------------------------
@@ -377,7 +397,8 @@ def test_sequence_scale_and_sketch_match_the_exact_pooled_fit() -> None:
         assert pcd_from_sketch(st.sketch, st.scale_lsq, PCD_THRESHOLD) == pytest.approx(st.pcd_lsq, abs=0.1)
     # frames at 0.8 and 1.3 are far from one common scale: their seq_lsq PCD drops, per-frame lsq does not
     assert pcd_from_sketch(stats[2].sketch, s, PCD_THRESHOLD) < stats[2].pcd_lsq - 20
-    assert np.isnan(pcd_from_sketch(None, s, PCD_THRESHOLD)) and np.isnan(sequence_lsq_scale([np.nan], [np.nan]))
+    assert np.isnan(pcd_from_sketch(None, s, PCD_THRESHOLD))
+    assert np.isnan(sequence_lsq_scale([np.nan], [np.nan]))
     assert depth_stats(frames[0][0], frames[0][1]).sketch is None
 
 

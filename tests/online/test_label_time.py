@@ -9,12 +9,12 @@ import torch
 from test_online_loop import H, ScriptedSource, TinyNet, W, _cfg, _map_at, oracle  # noqa: F401
 
 from mutualslam_cli.adapt.online import OnlineAdapter
-from mutualslam_cli.online.labels import MapLabels
-from mutualslam_cli.online.loop import OnlineLoop
-from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.geometry import pinhole
 from mutualslam_cli.map.journal import Event
 from mutualslam_cli.map.state import MapState
+from mutualslam_cli.online.labels import MapLabels
+from mutualslam_cli.online.loop import OnlineLoop
+from mutualslam_cli.stages.context import RunContext
 
 
 def _moved_script(seq, events):
@@ -32,7 +32,7 @@ def fingerprint(net: torch.nn.Module) -> float:
 
 
 def test_map_labels_read_at_t_and_at_t_plus_k_are_the_two_maps(oracle):  # noqa: F811
-    seq, vo, events = oracle
+    seq, _vo, events = oracle
     script = _moved_script(seq, events)
     state = MapState(pinhole(seq.intrinsics), len(seq))
     labels = MapLabels(state, W, H)
@@ -52,7 +52,7 @@ def test_map_labels_read_at_t_and_at_t_plus_k_are_the_two_maps(oracle):  # noqa:
 def test_l_val_uses_the_labels_of_its_time(oracle, monkeypatch, tmp_path):  # noqa: F811
     """Validation keyframes 2 (frame 4) and 4 (frame 8), L_val over every validation keyframe: keyframe 2's
     sparse depths in L_val at frame 4 are the map of frame 4, at frame 8 the map of frame 8 (moved at 5)."""
-    seq, vo, events = oracle
+    seq, _vo, events = oracle
     script = _moved_script(seq, events)
     source = ScriptedSource(seq, script)
     seen: list[tuple[int, list[int], list[np.ndarray]]] = []  # (frame, ids, each val_fn call's depths)
@@ -80,7 +80,8 @@ def test_l_val_uses_the_labels_of_its_time(oracle, monkeypatch, tmp_path):  # no
                       TinyNet(), False)
     loop.run_loop()
     by_frame = {f: dict(zip(ids, calls)) for f, ids, calls in seen}
-    assert 2 in by_frame[4] and 2 in by_frame[8]
+    assert 2 in by_frame[4]
+    assert 2 in by_frame[8]
     for f in (4, 8):
         for k, d in by_frame[f].items():
             np.testing.assert_allclose(d, source.labels_at[f][k], rtol=1e-6)
@@ -93,7 +94,7 @@ def test_each_online_score_comes_from_the_weights_of_its_time(oracle, monkeypatc
     right after k's training — the weights themselves, compared by a fingerprint taken when each keyframe's
     training ended. A keyframe's own frame is scored before the model trains on it (until 2026-12 it was scored
     after: this test failed on that rule at every keyframe's frame)."""
-    seq, vo, events = oracle
+    seq, _vo, events = oracle
 
     class Scores:
         def __init__(self) -> None:

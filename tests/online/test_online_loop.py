@@ -14,13 +14,13 @@ from mutualslam_cli.adapt import losses
 from mutualslam_cli.backend.ba.global_ba import GlobalBAResult
 from mutualslam_cli.config import RunConfig, VOConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.geometry import pinhole
+from mutualslam_cli.map.journal import Event
+from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
+from mutualslam_cli.map.state import MapState, events_from_result
 from mutualslam_cli.online.loop import OnlineLoop
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.geometry import pinhole
 from mutualslam_cli.vo.depth_oracle import run_oracle
-from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
-from mutualslam_cli.map.journal import Event
-from mutualslam_cli.map.state import MapState, events_from_result
 
 W, H = 96, 64
 
@@ -127,7 +127,7 @@ def test_a_step_trains_on_the_map_as_it_stood(oracle, monkeypatch, tmp_path, hin
     """Keyframe 2 (created at frame 4) is trained on at once; at frame 5 the points it hosts move to 1.5×
     their depth; keyframe 3's batch (3, 2) replays it with the map of frame 6, the new depths in it. Hindsight
     labels are the final map's at both — labels from the future, which the causal loop never reads."""
-    seq, vo, events = oracle
+    seq, _vo, events = oracle
     before = _map_at(seq, events, 4)
     hosted = np.array(sorted(p for p in before.map.kf_points[2] if before.map.host[p] == 2), np.int64)
     assert len(hosted) >= 10
@@ -153,7 +153,8 @@ class FakeBA:
         self.calls = []
 
     def run_ba(self, v, kf_id, depth_of, val_loss, bridges=None):
-        assert depth_of(kf_id).shape == (H, W) and set(val_loss) == set(range(kf_id + 1))
+        assert depth_of(kf_id).shape == (H, W)
+        assert set(val_loss) == set(range(kf_id + 1))
         self.calls.append(kf_id)
         pts = v.points
         inv = np.where(pts.host <= kf_id, pts.inv_depth / 1.1, pts.inv_depth)
@@ -167,12 +168,14 @@ class FakeBA:
 
 
 def test_a_global_ba_reaches_later_batches_and_not_earlier_ones(oracle, monkeypatch, tmp_path):
-    seq, vo, events = oracle
+    seq, _vo, events = oracle
     calls = _spy(monkeypatch)
     cfg = _cfg(validate_every=3, patience=1, tau_val=1e9)  # one request: validation keyframe t = 3
     source, ba = ScriptedSource(seq, events), FakeBA(seq.frames)
     loop = _run(seq, source, cfg, tmp_path, ba)
-    assert ba.calls == [3] and [r["kf_id"] for r in loop.rows if r["run_global_ba"]] == [3] and "ba_s" in loop.rows[3]
+    assert ba.calls == [3]
+    assert [r["kf_id"] for r in loop.rows if r["run_global_ba"]] == [3]
+    assert "ba_s" in loop.rows[3]
     assert [f for f, _ in source.refined] == [6]  # at keyframe 3's creation frame
     got = _labels(calls, loop)
     created = source.state.created_at
@@ -191,7 +194,7 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
     from mutualslam_cli.backend.bridges import Bridge
     from mutualslam_cli.online import loop as online_loop
 
-    seq, vo, events = oracle
+    seq, _vo, events = oracle
     script = []
     for e in events:  # the same stream, with a new tracking segment from frame 6
         if e.kind in ("keyframe", "frame") and e.frame >= 6:
@@ -207,9 +210,13 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
     calls = _spy(monkeypatch)
     loop = _run(seq, ScriptedSource(seq, script), _cfg(scheme="replay", validate_every=2), tmp_path)
     second = [k for k in range(loop.state.n_keyframes) if loop.state.segment(k) == 1]
-    assert refused == [second[0]] and loop.refused and not loop.bridges
-    assert loop.other_unit == second and second
+    assert refused == [second[0]]
+    assert loop.refused
+    assert not loop.bridges
+    assert loop.other_unit == second
+    assert second
     assert {r["kf_id"] for r in loop.rows}.isdisjoint(second)
     got = _labels(calls, loop)
-    assert got and all(k not in second for _, k in got)  # no batch holds them
+    assert got
+    assert all(k not in second for _, k in got)
     assert set(loop.adapter.buffer.all_ids).isdisjoint(second)  # nor are they stored for replay or L_val

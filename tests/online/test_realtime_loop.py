@@ -22,7 +22,8 @@ def batch_labels(calls, loop) -> dict[tuple[int, int], np.ndarray]:
         group = calls[i:i + int(r["steps"])]
         i += len(group)
         for d, mask in group[1:]:  # every step of a keyframe trains on the one batch assembled at its tick
-            assert torch.equal(d, group[0][0]) and torch.equal(mask, group[0][1])
+            assert torch.equal(d, group[0][0])
+            assert torch.equal(mask, group[0][1])
         for b, k in enumerate(int(x) for x in str(r["batch"]).split()):
             out[(int(r["kf_id"]), k)] = group[0][0][b][group[0][1][b]].numpy()
     assert i == len(calls)
@@ -71,7 +72,7 @@ def test_every_effect_takes_hold_when_its_charged_work_ends(oracle, monkeypatch,
     BA runs 6.1–8.6; kf 4 arrives at 8 while the loop is busy and starts at 8.6 — with the refined map, which reaches
     the front end then, before frame 9 — and takes steps 8.7–9.2, 9.2–9.7 and 9.7–10.2 (the last started before
     kf 5 arrives at 10); kf 5 starts at 10.2 and trains until the last frame (11): steps 10.3–10.8 and 10.8–11.3."""
-    seq, vo, events = oracle
+    seq, _vo, events = oracle
     dt = 1000.0 * (seq.seconds(1) - seq.seconds(0))
     times = [seq.seconds(i) * 1000.0 for i in range(len(seq))]
     assert np.allclose(np.diff(times), dt, atol=1e-2)  # 30 frames/s, stamps rounded to the µs
@@ -106,7 +107,8 @@ def test_every_effect_takes_hold_when_its_charged_work_ends(oracle, monkeypatch,
         assert (r["rt_start_ms"] - t0) / dt == pytest.approx(start, abs=1e-3), kf
         assert (r["rt_end_ms"] - t0) / dt == pytest.approx(end, abs=1e-3), kf
         assert int(r.get("steps") or 0) == steps, kf
-    assert ba.calls == [3] and rows[3]["run_global_ba"]
+    assert ba.calls == [3]
+    assert rows[3]["run_global_ba"]
     # the BA's refinement: made on the map of frame 6, in the front end from frame 9 on (it ended at 8.6)
     assert [f for f, _ in source.refined] == [8]
     pre, post = source.labels_at[8][2], source.labels_at[9][2]

@@ -110,7 +110,6 @@ def test_online_scores_go_through_openvino_with_each_models_weights_within_bf16_
     from mutualslam_cli.adapt.depthnet import DepthNet, predict_depth
     from mutualslam_cli.adapt.inputs import resample
     from mutualslam_cli.adapt.ov_refresh import BF16_REL_TOL
-
     from mutualslam_cli.online import scores as online_eval
 
     monkeypatch.setattr(online_eval, "cpu_info", lambda: {"cpu_kind": "AMX"})  # the kind that takes this path
@@ -140,7 +139,8 @@ def test_online_scores_go_through_openvino_with_each_models_weights_within_bf16_
                 m.running_var.mul_(0.7)
     table = sc.finish(net, 0)
     fp32(range(3, 7))
-    assert isinstance(sc._ov, ov_refresh.RefreshablePredictor) and len(sc._ov.refresh_s) == 1
+    assert isinstance(sc._ov, ov_refresh.RefreshablePredictor)
+    assert len(sc._ov.refresh_s) == 1
     assert sc.refresh_seconds > 0
     depth, ref = np.concatenate(got), np.concatenate(refs)
     rel = np.abs(depth / ref - 1).mean(axis=(1, 2))

@@ -84,7 +84,9 @@ def test_the_check_sees_text_outside_the_canvas(saved: Saved, tmp_path: Path):
     fig = plots.pyplot().figure(figsize=(3, 2))
     fig.text(0.5, 0.5, "a caption far wider than a figure three inches wide can ever hold", ha="center")
     plots.save_png(fig, tmp_path / "x.png")
-    assert len(saved.figures) == 1 and saved.outside() and "far wider" in saved.outside()[0]
+    assert len(saved.figures) == 1
+    assert saved.outside()
+    assert "far wider" in saved.outside()[0]
 
 
 # --------------------------------------------------------------------------- run folders
@@ -163,7 +165,8 @@ def test_trajectories(saved: Saved, tmp_path: Path, rng: np.random.Generator):
     late = gt.poses[:3].copy()  # keyframes outside GT's time span: a problem line under the row's title
     write_tum_trajectory(folder / "traj_kf.txt", type(gt)(gt.timestamps[:3] + 1000.0, late))
     files, notes = trajectories.trajectory_figures(collect([tmp_path / "runs"]), tmp_path / "out")
-    assert len(files) == 1 and not notes
+    assert len(files) == 1
+    assert not notes
     _check(saved, 1)
 
 

@@ -70,16 +70,22 @@ def test_table4_credits_each_part_on_seeds_paired(roots):
     nc, c = t[t["config"] == "ba.culling=False"], t[t["config"] == "ba.culling=True"]
     assert list(c["Sequence"]) == ["seqA", "seqB", "seqC", "Average (2 of 3)"]
     a = c.iloc[0]  # seeds 0 and 1 have every column; seed 2 (no BA) is left out of every column alike
-    assert a["VO"] == pytest.approx(0.025) and a["+ culling + BA"] == pytest.approx(0.015) and a["n"] == 2
+    assert a["VO"] == pytest.approx(0.025)
+    assert a["+ culling + BA"] == pytest.approx(0.015)
+    assert a["n"] == 2
     assert a["bridged"] == pytest.approx(0.025)
     sc = c.iloc[2]  # no seed with a BA: its BA cell is missing, the others over every seed
-    assert sc["VO"] == pytest.approx(0.01) and np.isnan(sc["+ culling + BA"]) and sc["n"] == 1
+    assert sc["VO"] == pytest.approx(0.01)
+    assert np.isnan(sc["+ culling + BA"])
+    assert sc["n"] == 1
     avg = c.iloc[3]
-    assert avg["VO"] == pytest.approx((0.025 + 0.05) / 2) and avg["+ culling + BA"] == pytest.approx(0.0375)
+    assert avg["VO"] == pytest.approx((0.025 + 0.05) / 2)
+    assert avg["+ culling + BA"] == pytest.approx(0.0375)
     assert nc.iloc[0]["+ culling + BA"] == pytest.approx(0.015)
     # best (lower) in bold in LaTeX: seqA with BA, seqB without
     rows = {r.split(" & ")[0]: r for r in _latex(rep, "ate_ba").splitlines() if " & " in r}
-    assert r"\textbf{0.015}" in rows["seqA"] and r"\textbf{0.05}" in rows["seqB"]
+    assert r"\textbf{0.015}" in rows["seqA"]
+    assert r"\textbf{0.05}" in rows["seqB"]
     assert r"\textbf{0.025}" not in rows["seqA"]
     assert "—" in to_markdown(t)  # missing shown as missing
 
@@ -97,20 +103,30 @@ def test_table5_map_points_and_esi(roots):
     assert list(t.columns) == ["BA", "MP culling", "max_fts", "seqA points", "seqA e_si", "seqB points",
                                "seqB e_si", "n"]
     rows = {(r["BA"], r["MP culling"]): r for _, r in t.iterrows()}
-    assert set(t["max_fts"]) == {"500"} and len(t) == 4
+    assert set(t["max_fts"]) == {"500"}
+    assert len(t) == 4
     vo = rows[("", "")]  # seqA seed 0 counted once although two runs share its front end
-    assert vo["seqA points"] == 1100 and vo["seqA e_si"] == pytest.approx(0.55) and vo["n"] == "2/1"
-    assert rows[("", "✓")]["seqA points"] == 700 and rows[("", "✓")]["seqB e_si"] == pytest.approx(0.55)
+    assert vo["seqA points"] == 1100
+    assert vo["seqA e_si"] == pytest.approx(0.55)
+    assert vo["n"] == "2/1"
+    assert rows[("", "✓")]["seqA points"] == 700
+    assert rows[("", "✓")]["seqB e_si"] == pytest.approx(0.55)
     ba_only = rows[("✓", "")]
-    assert ba_only["seqA points"] == 1000 and ba_only["seqA e_si"] == pytest.approx(0.45)
-    assert np.isnan(ba_only["seqB points"]) and ba_only["n"] == "1/0"
+    assert ba_only["seqA points"] == 1000
+    assert ba_only["seqA e_si"] == pytest.approx(0.45)
+    assert np.isnan(ba_only["seqB points"])
+    assert ba_only["n"] == "1/0"
     both = rows[("✓", "✓")]
-    assert both["seqA e_si"] == pytest.approx(0.35) and both["seqB points"] == 300 and np.isnan(both["seqB e_si"])
+    assert both["seqA e_si"] == pytest.approx(0.35)
+    assert both["seqB points"] == 300
+    assert np.isnan(both["seqB e_si"])
     md = to_markdown(t)
     line = next(ln for ln in md.splitlines() if ln.startswith("| ✓ |  |"))
-    assert line.count("—") == 2 and " 0 " not in line  # missing shown as missing, never 0
+    assert line.count("—") == 2
+    assert " 0 " not in line
     tex = _latex(rep, "map_ba")
-    assert r"\checkmark" in tex and "--" in tex
+    assert r"\checkmark" in tex
+    assert "--" in tex
 
 
 def test_table5_blocks_per_max_fts_and_missing_config(tmp_path: Path, roots):
@@ -118,14 +134,17 @@ def test_table5_blocks_per_max_fts_and_missing_config(tmp_path: Path, roots):
     _run(other, "seqA", 0, True, _vals(0.02, 0.01, (700, 0.6), (400, 0.5), (400, 0.45)), max_fts=120)
     t = build_tables(collect([*roots, other])).tables["map_ba"]
     assert list(t["max_fts"]) == ["120"] * 4 + ["500"] * 4
-    assert t.iloc[0]["seqA points"] == 700 and np.isnan(t.iloc[0]["seqB points"])
+    assert t.iloc[0]["seqA points"] == 700
+    assert np.isnan(t.iloc[0]["seqB points"])
     damaged = roots[0] / "seqA" / "replay+ewc" / "seed0"
     (damaged / "config.yaml").write_text("vo: [unclosed\n")
     notes: list[str] = []
     runs = collect(list(roots), notes)  # the damaged run is skipped with its reason, the others reported
-    assert str(damaged) not in set(runs["folder"]) and len(runs) == 3
-    assert len(notes) == 1 and notes[0].startswith(f"skipped, damaged: {damaged / 'config.yaml'}:2: not valid YAML")
-    with pytest.raises(DatasetError, match="config.yaml"):
+    assert str(damaged) not in set(runs["folder"])
+    assert len(runs) == 3
+    assert len(notes) == 1
+    assert notes[0].startswith(f"skipped, damaged: {damaged / 'config.yaml'}:2: not valid YAML")
+    with pytest.raises(DatasetError, match=r"config.yaml"):
         collect([damaged])  # nothing left to report
 
 
@@ -150,7 +169,8 @@ def test_map_figure_is_written_and_listed(roots, tmp_path: Path):
     for f in maps:
         assert (out / "maps" / f).stat().st_size > 10_000
         assert f"(maps/{f})" in (out / "report.md").read_text()
-    assert "Paper Table 4" in (out / "report.md").read_text() and (out / "map_ba.tex").is_file()
+    assert "Paper Table 4" in (out / "report.md").read_text()
+    assert (out / "map_ba.tex").is_file()
     assert yaml.safe_load((folder / "config.yaml").read_text())["ba"]["culling"] is True
 
 
@@ -161,7 +181,9 @@ def test_table4_average_without_any_ba(tmp_path: Path):
     _run(tmp_path, "seqB", 0, True, _vals(0.04, None, (10, 0.1), None, None))
     t = build_tables(collect([tmp_path])).tables["ate_ba"]
     avg = t.iloc[-1]
-    assert avg["Sequence"] == "Average" and avg["VO"] == pytest.approx(0.03) and np.isnan(avg["+ culling + BA"])
+    assert avg["Sequence"] == "Average"
+    assert avg["VO"] == pytest.approx(0.03)
+    assert np.isnan(avg["+ culling + BA"])
     assert "| Average | 0.03 | 0.03 | — |  |" in to_markdown(t)
 
 
@@ -185,5 +207,7 @@ def test_table4_takes_loop_closure_from_the_loop_runs_of_the_same_config_paired_
     assert "config" not in t  # loop.enabled makes a column, not a block
     assert list(t.columns) == ["Sequence", "VO", "bridged", "+ culling + BA", "+ loop closure", "n"]
     a = t.iloc[0]  # seed 2 had no loop-closure value: every column over seeds 0 and 1
-    assert a["n"] == 2 and a["VO"] == pytest.approx(0.04) and a["+ culling + BA"] == pytest.approx(0.03)
+    assert a["n"] == 2
+    assert a["VO"] == pytest.approx(0.04)
+    assert a["+ culling + BA"] == pytest.approx(0.03)
     assert a["+ loop closure"] == pytest.approx(0.01)

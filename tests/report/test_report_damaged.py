@@ -46,7 +46,8 @@ def tree(tmp_path: Path) -> Path:
 def test_damaged_runs_are_skipped_with_their_reason_and_the_rest_reported(tree: Path):
     notes: list[str] = []
     runs = collect([tree], notes)
-    assert sorted(runs["scheme"]) == ["none", "replay+ewc"] and set(runs["sequence.name"]) == {"room"}
+    assert sorted(runs["scheme"]) == ["none", "replay+ewc"]
+    assert set(runs["sequence.name"]) == {"room"}
     assert sorted(notes) == sorted([
         f"skipped, damaged: {run_dir(tree, 'listed', 'none', 0) / 'summary.json'}: a JSON list, not an object of "
         "metrics (the summary of mslam run)",
@@ -68,7 +69,8 @@ def test_staging_folders_and_the_cache_are_never_reported(tmp_path: Path, tree: 
     (tree / "_cache" / "x").mkdir(parents=True)
     (tree / "_cache" / "x" / "summary.json").write_text("{}")
     runs = collect([tree])
-    assert len(runs) == 2 and not any(".staging" in f or "_cache" in f for f in runs["folder"])
+    assert len(runs) == 2
+    assert not any(".staging" in f or "_cache" in f for f in runs["folder"])
 
 
 def test_non_finite_values_are_empty_cells_with_the_reason_in_the_notes(tmp_path: Path, tree: Path):
@@ -81,16 +83,19 @@ def test_non_finite_values_are_empty_cells_with_the_reason_in_the_notes(tmp_path
     rep = build_tables(collect([tree], notes), notes)
     write_report(rep, tmp_path / "rep")
     runtime = (tmp_path / "rep" / "runtime.csv").read_text()
-    assert "inf" not in runtime.lower() and "nan" not in runtime.lower()
+    assert "inf" not in runtime.lower()
+    assert "nan" not in runtime.lower()
     table = pd.read_csv(tmp_path / "rep" / "runtime.csv")
     row = table[table["scheme"] == "none"].iloc[0]
-    assert pd.isna(row["depth ms"]) and table[table["scheme"] == "replay+ewc"].iloc[0]["depth ms"] == 14.0
+    assert pd.isna(row["depth ms"])
+    assert table[table["scheme"] == "replay+ewc"].iloc[0]["depth ms"] == 14.0
     depth = pd.read_csv(tmp_path / "rep" / "depth.csv")
     assert pd.isna(depth[depth["scheme"] == "none"].iloc[0]["PCD lsq adapt"])
     md = (tmp_path / "rep" / "report.md").read_text()
     for key, value in (("timing.depth_ms", "inf"), ("depth.pcd.lsq.adapted", "nan")):
         line = f"{bad}: {key} is {value}, not a finite number; its cells are left empty"
-        assert line in notes and f"- {line}" in md
+        assert line in notes
+        assert f"- {line}" in md
 
 
 def test_a_table_value_that_overflows_is_an_empty_cell_with_a_note(tmp_path: Path):
@@ -109,16 +114,22 @@ def test_a_table_value_that_overflows_is_an_empty_cell_with_a_note(tmp_path: Pat
 def test_cli_reports_the_good_runs_lists_the_damaged_and_exits_0(tree: Path, tmp_path: Path):
     r = runner.invoke(app, ["report", str(tree), "--out", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
-    assert "Traceback" not in r.output and (tmp_path / "rep" / "depth.csv").is_file()
+    assert "Traceback" not in r.output
+    assert (tmp_path / "rep" / "depth.csv").is_file()
     skipped = [ln for ln in r.stderr.splitlines() if ln.startswith("note: skipped, damaged:")]
-    assert len(skipped) == 3 and any("torn" in ln and "not valid JSON" in ln for ln in skipped)
-    assert "40" in r.stdout and "(3 notes in report.md)" in r.stdout
+    assert len(skipped) == 3
+    assert any("torn" in ln and "not valid JSON" in ln for ln in skipped)
+    assert "40" in r.stdout
+    assert "(3 notes in report.md)" in r.stdout
 
 
 def test_cli_exits_1_when_nothing_could_be_reported(tmp_path: Path, tree: Path):
     r = runner.invoke(app, ["report", str(run_dir(tree, "torn", "none", 0)), "--out", str(tmp_path / "rep")])
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
-    assert r.exit_code == 1 and len(lines) == 1 and lines[0].startswith("error:") and "not valid JSON" in lines[0]
+    assert r.exit_code == 1
+    assert len(lines) == 1
+    assert lines[0].startswith("error:")
+    assert "not valid JSON" in lines[0]
     assert not (tmp_path / "rep").exists()
 
 
@@ -126,7 +137,8 @@ def test_cli_refuses_an_out_that_is_a_file_before_any_work(tree: Path, tmp_path:
     f = tmp_path / "report.txt"
     f.write_text("keep me\n")
     r = runner.invoke(app, ["report", str(tree), "--out", str(f)])
-    assert r.exit_code == 1 and r.output.splitlines() == [
+    assert r.exit_code == 1
+    assert r.output.splitlines() == [
         f"error: {f}: is a file, not a folder for the report; choose another --out (a folder, created when missing)"]
     assert f.read_text() == "keep me\n"  # and no table was printed before the refusal
 

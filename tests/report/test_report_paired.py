@@ -31,7 +31,8 @@ def test_sign_test_is_the_exact_two_sided_binomial():
     assert sign_test(6, 0) == pytest.approx(2 / 64)
     assert sign_test(5, 0) == pytest.approx(2 / 32)  # 5 of 5 is not enough at 0.05
     assert sign_test(0, 6) == sign_test(6, 0)
-    assert sign_test(3, 3) == 1.0 and sign_test(0, 0) == 1.0
+    assert sign_test(3, 3) == 1.0
+    assert sign_test(0, 0) == 1.0
     assert sign_test(10, 2) == pytest.approx(2 * sum(math.comb(12, i) for i in range(3)) / 2 ** 12)
 
 
@@ -39,7 +40,9 @@ def test_bootstrap_ci_is_seeded_and_brackets_the_mean():
     d = np.array([1.0, 2.0, 3.0, 4.0, 10.0])
     assert bootstrap_ci(d, seed=3) == bootstrap_ci(d, seed=3)
     lo, hi = bootstrap_ci(d)
-    assert lo < d.mean() < hi and lo >= d.min() and hi <= d.max()
+    assert lo < d.mean() < hi
+    assert lo >= d.min()
+    assert hi <= d.max()
     assert all(math.isnan(x) for x in bootstrap_ci(np.array([1.0])))
 
 
@@ -50,7 +53,7 @@ def _pairs(diffs, seqs=None) -> pd.DataFrame:
     return pd.DataFrame({"sequence": seqs, "seed": 0, "a": b + diffs, "b": b, "diff": diffs, "broadcast": False})
 
 
-@pytest.mark.parametrize("diffs, better, want", [
+@pytest.mark.parametrize(("diffs", "better", "want"), [
     ([1, 2, 1.5, 3, 0.5, 2, 1, 2.5], "higher", HOLDS),
     ([-1, -2, -1.5, -3, -0.5, -2, -1, -2.5], "higher", DOES_NOT_HOLD),
     ([-1, -2, -1.5, -3, -0.5, -2, -1, -2.5], "lower", HOLDS),       # an ATE that fell: a better
@@ -61,7 +64,8 @@ def _pairs(diffs, seqs=None) -> pd.DataFrame:
 def test_the_verdict_rule(diffs, better, want):
     r = paired_stats(_pairs(diffs), better)
     assert r.verdict == want, r
-    assert r.n == len(diffs) and r.wins + r.ties + r.losses == r.n
+    assert r.n == len(diffs)
+    assert r.wins + r.ties + r.losses == r.n
 
 
 def test_identical_runs_count_once_and_the_counts_follow_the_direction():
@@ -97,10 +101,12 @@ def test_pairs_are_made_within_the_settings_the_arms_share():
     assert (p["diff"] == 1.0 + p["seed"]).all()
     a, b = parse_pair("replay@depth.pcd.lsq.adapted vs replay@depth.pcd.lsq.pretrained", "x")
     p = pair_runs(_runs(), a, b)
-    assert len(p) == 12 and (p["folder_a"] == p["folder_b"]).all()  # two keys of one run
+    assert len(p) == 12
+    assert (p["folder_a"] == p["folder_b"]).all()
     a, b = parse_pair("replay+ewc,threads=2 vs replay,threads=1", "depth.pcd.lsq.adapted")
     p = pair_runs(_runs(), a, b)
-    assert len(p) == 6 and (p["diff"] == 11.0 + p["seed"]).all()  # the settings named apart are what differs
+    assert len(p) == 6
+    assert (p["diff"] == 11.0 + p["seed"]).all()
 
 
 def test_a_single_seed_stands_for_every_seed_only_when_asked():
@@ -109,7 +115,8 @@ def test_a_single_seed_stands_for_every_seed_only_when_asked():
     a, b = parse_pair("replay+ewc vs replay", "depth.pcd.lsq.adapted")
     assert len(pair_runs(runs, a, b)) == 4
     p = pair_runs(runs, a, b, broadcast=True)
-    assert len(p) == 12 and p["broadcast"].sum() == 8
+    assert len(p) == 12
+    assert p["broadcast"].sum() == 8
     assert paired_stats(p, "higher").broadcast == 8
 
 
@@ -120,8 +127,10 @@ def test_malformed_pairs_are_one_line(text):
 
 
 def test_the_direction_of_a_key():
-    assert better_of("trajectory.credit.ba") == "lower" and better_of("map.esi.ba") == "lower"
-    assert better_of("depth.pcd.lsq.adapted") == "higher" and better_of("timing.total_s") == "lower"
+    assert better_of("trajectory.credit.ba") == "lower"
+    assert better_of("map.esi.ba") == "lower"
+    assert better_of("depth.pcd.lsq.adapted") == "higher"
+    assert better_of("timing.total_s") == "lower"
 
 
 def _write_runs(root, n_seq=3, n_seed=3):
@@ -144,11 +153,14 @@ def test_report_pair_writes_the_paired_table_and_every_pair(tmp_path):
     assert r.exit_code == 0, r.output
     t = pd.read_csv(tmp_path / "rep" / "paired.csv")
     total = t[t["sequence"] == "all"].iloc[0]
-    assert total["N"] == 9 >= MIN_PAIRS and total["wins / ties / losses"] == "9 / 0 / 0"
-    assert total["verdict"] == HOLDS and total["mean a − b"] == pytest.approx(3.0)
+    assert total["N"] == 9 >= MIN_PAIRS
+    assert total["wins / ties / losses"] == "9 / 0 / 0"
+    assert total["verdict"] == HOLDS
+    assert total["mean a − b"] == pytest.approx(3.0)
     assert total["sign p"] == pytest.approx(2 / 2 ** 9)
     pairs = pd.read_csv(tmp_path / "rep" / "paired_pairs.csv")
-    assert len(pairs) == 9 and set(pairs["diff"]) == {2.0, 3.0, 4.0}
+    assert len(pairs) == 9
+    assert set(pairs["diff"]) == {2.0, 3.0, 4.0}
     assert "Paired comparisons" in (tmp_path / "rep" / "report.md").read_text()
 
 
@@ -156,4 +168,5 @@ def test_report_pair_without_a_pair_is_one_line(tmp_path):
     _write_runs(tmp_path / "res", n_seq=1, n_seed=1)
     r = CliRunner().invoke(app, ["report", str(tmp_path / "res"), "--out", str(tmp_path / "rep"),
                                  "--pair", "recent vs replay"])
-    assert r.exit_code == 1 and "no pair of runs" in r.output
+    assert r.exit_code == 1
+    assert "no pair of runs" in r.output

@@ -19,7 +19,7 @@ from mutualslam_cli.report.paper import (
 )
 
 
-@pytest.mark.parametrize("ours, theirs", [
+@pytest.mark.parametrize(("ours", "theirs"), [
     ("icl_lr_kt2", "ICL/living2"), ("living_room_kt0", "ICL/living0"), ("icl_of_kt1", "ICL/office1"),
     ("tum_fr3_long_office_household", "TUM/seq1"), ("rgbd_dataset_freiburg3_nostructure_texture_near_withloop",
                                                     "TUM/seq2"),
@@ -53,10 +53,12 @@ def test_table1_mean_std_average_bold_and_paper_column():
     assert d.loc["icl_lr_kt2 (ICL/living2)", "paper: Ours"] == "25.16"
     assert d.loc["tum_fr1_xyz", "paper: Ours"] == "—"
     assert d.loc["Average", "Ours"] == "46.00"  # mean of the sequence means (41, 51)
-    assert (0, "Ours") in t.bold and (2, "Ours") in t.bold
+    assert (0, "Ours") in t.bold
+    assert (2, "Ours") in t.bold
     n = t.numeric.set_index("sequence")
     assert n.loc["tum_fr1_xyz", "Ours mean"] == pytest.approx(51.0)
-    assert n.loc["tum_fr1_xyz", "Ours std"] == pytest.approx(1.0) and n.loc["tum_fr1_xyz", "Ours n"] == 3
+    assert n.loc["tum_fr1_xyz", "Ours std"] == pytest.approx(1.0)
+    assert n.loc["tum_fr1_xyz", "Ours n"] == 3
 
 
 def test_missing_values_are_dashes_not_zeros_and_lower_is_better_for_ate():
@@ -69,7 +71,8 @@ def test_missing_values_are_dashes_not_zeros_and_lower_is_better_for_ate():
     assert (1, "With BA") in t.bold  # lower ATE is better
     r = _runs().drop(columns="trajectory.credit.ba")
     d = table4(r).display.set_index("Sequence")
-    assert set(d["With BA"]) == {"—"} and d.loc["tum_fr1_xyz", "VO"] == "0.0233 ± 0.0058"  # every seed
+    assert set(d["With BA"]) == {"—"}
+    assert d.loc["tum_fr1_xyz", "VO"] == "0.0233 ± 0.0058"
 
 
 def test_table3_has_a_column_per_present_scheme_and_table6_methods_as_rows():
@@ -93,24 +96,29 @@ def test_table5_rows_from_culling_variants_and_max_fts():
     d = t.display
     assert list(zip(d["BA"], d["MP culling"], d["max_fts"])) == [
         ("", "", "120"), ("✓", "✓", "120"), ("", "", "500"), ("✓", "", "500"), ("✓", "✓", "500")]
-    assert d.iloc[3]["tum_fr1_xyz e_si"] == "0.210 ± 0.000" and d.iloc[4]["tum_fr1_xyz points"] == "90 ± 0"
+    assert d.iloc[3]["tum_fr1_xyz e_si"] == "0.210 ± 0.000"
+    assert d.iloc[4]["tum_fr1_xyz points"] == "90 ± 0"
 
 
 def test_paper_tables_skip_tables_without_values_and_split_config_groups():
     r = _runs().drop(columns=[f"trajectory.credit.{k}" for k in ("vo", "bridged", "ba")])
     names = [t.name for t in paper_tables(r)]
-    assert "table4_ate_ba" not in names and {"table1_pcd", "table3_schemes", "table6_esi"} <= set(names)
+    assert "table4_ate_ba" not in names
+    assert {"table1_pcd", "table3_schemes", "table6_esi"} <= set(names)
     r2 = pd.concat([r, r.assign(config="adapt.lr=0.0001")])
     titles = [t.title for t in paper_tables(r2) if t.name.startswith("table1_pcd")]
-    assert len(titles) == 2 and any("adapt.lr=0.0001" in x for x in titles)
-    assert cell(float("nan"), 0.0, 0, 2) == "—" and cell(1.0, float("nan"), 1, 1) == "1.0"
+    assert len(titles) == 2
+    assert any("adapt.lr=0.0001" in x for x in titles)
+    assert cell(float("nan"), 0.0, 0, 2) == "—"
+    assert cell(1.0, float("nan"), 1, 1) == "1.0"
 
 
 def test_average_over_the_sequences_that_have_a_value_says_so():
     r = _runs()
     r.loc[r["sequence.name"] == "tum_fr1_xyz", "trajectory.credit.vo"] = None
     d = table4(r).display
-    assert d.iloc[-1]["Sequence"] == "Average (1 of 2 sequences)" and d.iloc[-1]["VO"] == "0.0200"
+    assert d.iloc[-1]["Sequence"] == "Average (1 of 2 sequences)"
+    assert d.iloc[-1]["VO"] == "0.0200"
     assert table1(_runs()).display.iloc[-1]["Sequence"] == "Average"
 
 
@@ -139,8 +147,10 @@ def test_external_models_are_columns_of_tables_1_and_2_and_rows_of_table_6():
                               "midas (external, no adaptation)"]
     assert d6.loc["midas (external, no adaptation)", "tum_fr1_xyz"] == "0.100"
     assert d6.loc["dpt (external, no adaptation)", "lab1 (Lab1)"] == "0.050"
-    assert d6.loc["dpt (external, no adaptation)", "paper: Lab1"] == "—" and d6.loc["Ours", "paper: Lab1"] == "0.235"
-    assert (2, "lab1 (Lab1)") in t6.bold and (3, "tum_fr1_xyz") in t6.bold  # the lowest e_si of each column
+    assert d6.loc["dpt (external, no adaptation)", "paper: Lab1"] == "—"
+    assert d6.loc["Ours", "paper: Lab1"] == "0.235"
+    assert (2, "lab1 (Lab1)") in t6.bold
+    assert (3, "tum_fr1_xyz") in t6.bold
     assert "midas" not in " ".join(table3(r).display.columns)  # not an adaptation scheme
 
 
@@ -180,9 +190,12 @@ def test_scalings_table_shows_each_scaling_beside_both_paper_tables():
     t = table1_scalings(r)
     assert {"Pre-trained lsq/sequence", "Ours lsq/sequence", "Pre-trained median/frame",
             "paper: T1 pre-trained", "paper: T2 pre-trained"} <= set(t.display.columns)
-    assert "scale per sequence" in t.title and "median" in t.title
+    assert "scale per sequence" in t.title
+    assert "median" in t.title
     row = t.display.iloc[0]
-    assert row["Pre-trained lsq/sequence"].startswith("11.00") and row["Ours lsq/sequence"].startswith("33.00")
+    assert row["Pre-trained lsq/sequence"].startswith("11.00")
+    assert row["Ours lsq/sequence"].startswith("33.00")
     assert row["Ours online lsq/frame"] == "—"  # no run has online scores: shown as absent, never 0
     icl = t.display[t.display["Sequence"].str.contains("icl_lr_kt2")].iloc[0]
-    assert icl["paper: T1 pre-trained"] == "13.51" and icl["paper: T2 pre-trained"] == "21.61"  # ICL/living2
+    assert icl["paper: T1 pre-trained"] == "13.51"
+    assert icl["paper: T2 pre-trained"] == "21.61"

@@ -76,7 +76,8 @@ def test_accuracy_one_panel_per_sequence_one_line_per_scheme(tmp_path: Path):
     legend = fig.legends[0]
     assert "min–max over seeds" in legend.get_title().get_text()
     assert {t.get_text() for t in legend.get_texts()} == {"pre-trained", "recent", "replay+ewc"}
-    assert axes[0].get_xlabel() == "frame" and "PCD (%)" in axes[0].get_ylabel()
+    assert axes[0].get_xlabel() == "frame"
+    assert "PCD (%)" in axes[0].get_ylabel()
 
 
 def test_accuracy_is_drawn_from_the_online_scores_when_the_run_has_them(tmp_path: Path):
@@ -97,7 +98,8 @@ def test_accuracy_is_drawn_from_the_online_scores_when_the_run_has_them(tmp_path
 def test_scheme_colours_are_fixed():
     assert rp.scheme_colour("replay") == rp.SCHEME_COLOURS["replay"]
     c = rp.scheme_colour("my+scheme")
-    assert c in rp.EXTRA_COLOURS and rp.scheme_colour("my+scheme") == c
+    assert c in rp.EXTRA_COLOURS
+    assert rp.scheme_colour("my+scheme") == c
     assert len(set(rp.SCHEME_COLOURS.values())) == len(rp.SCHEME_COLOURS)
 
 
@@ -133,11 +135,13 @@ def test_track_row_aligns_each_file_like_the_pipeline(seq_dir: Path, tmp_path: P
     write_tum_trajectory(folder / "traj_kf.txt", _sim3(gt.subset(np.arange(0, 12, 3)), 2.0, rng))
     write_tum_trajectory(folder / "traj_all_ba.txt", _sim3(gt, 0.5, rng, noise=0.002))
     row = tp.track_row(folder, gt, 0.02, "replay · seed 0")
-    assert set(row.stages) == {"vo", "ba"} and not row.problems
-    t, p = row.stages["vo"]
+    assert set(row.stages) == {"vo", "ba"}
+    assert not row.problems
+    _t, p = row.stages["vo"]
     np.testing.assert_allclose(p, gt.positions, atol=1e-5)  # an exact Sim(3) copy aligns back onto GT
     assert row.ate_text[0] == "VO 0.0000 / 0.0000"
-    assert row.ate_text[1].startswith("after BA — / 0.00") and row.ate_text[1] != "after BA — / 0.0000"
+    assert row.ate_text[1].startswith("after BA — / 0.00")
+    assert row.ate_text[1] != "after BA — / 0.0000"
     np.testing.assert_array_equal(row.gt_t, gt.timestamps)
 
 
@@ -150,7 +154,9 @@ def test_trajectory_figure_one_row_per_run(seq_dir: Path, tmp_path: Path, rng):
     write_tum_trajectory(folder / "traj_all_ba.txt", _sim3(gt, 0.4, rng))  # replay+ewc seed 1 only
     runs = collect([tmp_path / "runs"])
     files, notes = tp.trajectory_figures(runs, tmp_path / "out")
-    assert notes == [] and [f.name for f in files] == ["trajectories_synth.png"] and files[0].is_file()
+    assert notes == []
+    assert [f.name for f in files] == ["trajectories_synth.png"]
+    assert files[0].is_file()
     folders = [Path(f) for f in runs["folder"]]
     rows = [tp.track_row(f, gt, 0.02) for f in folders]
     fig = tp.trajectory_figure(rows, "synth", tp.vertical_axis(gt.poses[:, :3, :3]), "time (s)")
@@ -160,7 +166,9 @@ def test_trajectory_figure_one_row_per_run(seq_dir: Path, tmp_path: Path, rng):
     assert sum(with_ba) == 2
     assert gids == [{"gt", "vo", "ba"} if b else {"gt", "vo"} for b in with_ba]
     top, height = fig.axes[:2]
-    assert top.get_aspect() == 1.0 and top.get_xlabel().endswith("(m)") and height.get_ylabel().endswith("(m)")
+    assert top.get_aspect() == 1.0
+    assert top.get_xlabel().endswith("(m)")
+    assert height.get_ylabel().endswith("(m)")
     assert {t.get_text() for t in fig.legends[0].get_texts()} >= {"GT reference", "VO (Sim(3)-aligned)",
                                                                    "after global BA (Sim(3)-aligned)"}
 
@@ -181,7 +189,9 @@ def test_missing_gt_is_one_line_in_the_report(tmp_path: Path):
     files = write_report(rep, tmp_path / "out")
     md = (tmp_path / "out" / "report.md").read_text()
     notes = [ln for ln in md.splitlines() if ln.startswith("Trajectories of nowhere_seq")]
-    assert len(notes) == 1 and "GT poses not found" in notes[0] and "nowhere_seq" in notes[0]
+    assert len(notes) == 1
+    assert "GT poses not found" in notes[0]
+    assert "nowhere_seq" in notes[0]
     assert not (tmp_path / "out" / "trajectories").exists()
     assert (tmp_path / "out" / "accuracy_over_frames.png") in files
     assert "![accuracy_over_frames](accuracy_over_frames.png)" in md
@@ -197,7 +207,7 @@ def test_report_links_the_trajectory_figures(seq_dir: Path, tmp_path: Path, rng)
     assert (tmp_path / "out" / "trajectories" / "trajectories_synth.png").is_file()
 
 
-@pytest.mark.parametrize("world_up, expected", [((0, 0, 1), (2, 1.0)), ((0, -1, 0), (1, -1.0))])
+@pytest.mark.parametrize(("world_up", "expected"), [((0, 0, 1), (2, 1.0)), ((0, -1, 0), (1, -1.0))])
 def test_vertical_axis(world_up, expected, rng):
     """Cameras with zero roll, any heading and pitch: camera y (down) is −up, camera x horizontal."""
     up = np.asarray(world_up, dtype=float)

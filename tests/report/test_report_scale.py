@@ -45,17 +45,21 @@ def test_scale_drift_table_and_figure(tmp_path: Path):
     rep = build_tables(collect([tmp_path / "r"]))
     t = rep.tables["scale_drift"]
     row = t.iloc[0]
-    assert row["scale max/min VO"] == pytest.approx(1.5) and row["local ATE VO"] == pytest.approx(0.02)
+    assert row["scale max/min VO"] == pytest.approx(1.5)
+    assert row["local ATE VO"] == pytest.approx(0.02)
     assert row["global ATE VO"] == pytest.approx(0.06)
     assert row["scale max/min BA"] == pytest.approx(1.1)  # the seed without a BA map is left out, not 0
-    assert np.isnan(row["local ATE BA"]) and "—" in to_markdown(t)
+    assert np.isnan(row["local ATE BA"])
+    assert "—" in to_markdown(t)
     assert rep.tables["trajectory"].iloc[0]["scale max/min VO"] == pytest.approx(1.5)
     assert "loop_recall" not in rep.tables  # no run has loop recall
     files = write_report(rep, tmp_path / "out")
     names = {p.relative_to(tmp_path / "out").as_posix() for p in files}
-    assert "scale_drift.md" in names and "scale_drift/scale_drift_seqA_none_seed0.png" in names
+    assert "scale_drift.md" in names
+    assert "scale_drift/scale_drift_seqA_none_seed0.png" in names
     md = (tmp_path / "out" / "report.md").read_text()
-    assert "Scale drift" in md and "](scale_drift/scale_drift_seqA_none_seed0.png)" in md
+    assert "Scale drift" in md
+    assert "](scale_drift/scale_drift_seqA_none_seed0.png)" in md
 
 
 def test_loop_recall_table_when_a_run_has_it(tmp_path: Path):

@@ -36,7 +36,8 @@ def holder(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", HOLDER, str(folder)], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
     try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "locked"
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "locked"
         yield folder, proc
     finally:
         if proc.poll() is None:
@@ -49,11 +50,11 @@ def holder(tmp_path):
 
 def test_second_holder_gets_one_line_with_the_pid(holder):
     folder, proc = holder
-    with pytest.raises(ResultsLocked) as info:
-        with hold_lock(folder, "mslam run"):
-            pytest.fail("the lock was taken twice")
+    with pytest.raises(ResultsLocked) as info, hold_lock(folder, "mslam run"):
+        pytest.fail("the lock was taken twice")
     msg = str(info.value)
-    assert isinstance(info.value, MslamError) and "\n" not in msg
+    assert isinstance(info.value, MslamError)
+    assert "\n" not in msg
     for needle in (str(folder), f"pid {proc.pid}", "test holder", os.uname().nodename, "Wait for it to finish"):
         assert needle in msg, (needle, msg)
     assert read_holder(folder)["pid"] == proc.pid  # the failed attempt did not overwrite the holder's note
@@ -65,7 +66,8 @@ def test_lock_is_free_at_once_after_the_holder_is_killed(holder):
     proc.wait(timeout=600)
     assert (folder / LOCK_NAME).is_file()  # the file stays behind ...
     with hold_lock(folder, "mslam run"):  # ... and does not block
-        assert read_holder(folder)["pid"] == os.getpid() and read_holder(folder)["what"] == "mslam run"
+        assert read_holder(folder)["pid"] == os.getpid()
+        assert read_holder(folder)["what"] == "mslam run"
 
 
 def test_leftover_lock_file_does_not_block(tmp_path):
@@ -78,12 +80,10 @@ def test_leftover_lock_file_does_not_block(tmp_path):
 
 def test_not_reentrant_and_released_on_error(tmp_path):
     folder = tmp_path / "a" / "b"  # created when missing
-    with pytest.raises(RuntimeError, match="boom"):
-        with hold_lock(folder, "outer"):
-            with pytest.raises(ResultsLocked, match=f"pid {os.getpid()}"):
-                with hold_lock(folder, "inner"):
-                    pass
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError, match="boom"), hold_lock(folder, "outer"):  # noqa: PT012
+        with pytest.raises(ResultsLocked, match=f"pid {os.getpid()}"), hold_lock(folder, "inner"):
+            pass
+        raise RuntimeError("boom")
     with hold_lock(folder, "again"):  # released by the exception
         pass
 
@@ -92,7 +92,8 @@ def test_lock_file_does_not_make_a_folder_complete(tmp_path):
     folder = tmp_path / "run"
     with hold_lock(folder, "mslam run"):
         assert not is_complete(folder)
-    assert (folder / LOCK_NAME).is_file() and not is_complete(folder)
+    assert (folder / LOCK_NAME).is_file()
+    assert not is_complete(folder)
     write_json(folder / "summary.json", {"done": True})
     with hold_lock(folder, "mslam run"):
         assert is_complete(folder)
@@ -122,9 +123,12 @@ def test_run_sequence_on_a_locked_folder_touches_nothing(locked_run, tmp_path):
 
 
 def test_cli_run_on_a_locked_folder_is_one_red_line(locked_run, tmp_path):
-    seq, _, folder = locked_run
+    seq, _, _folder = locked_run
     r = CliRunner().invoke(app, ["run", str(seq), "--config", str(CONFIG_DIR / "smoke.yaml"),
                                  "--out", str(tmp_path / "res")])
-    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    assert r.exit_code == 1, r.output
+    assert "Traceback" not in r.output, r.output
     text = " ".join(r.output.split())
-    assert text.startswith("error:") and f"pid {os.getpid()}" in text and "is locked by" in text, r.output
+    assert text.startswith("error:"), r.output
+    assert f"pid {os.getpid()}" in text, r.output
+    assert "is locked by" in text, r.output

@@ -20,13 +20,15 @@ def test_summary_absent_values_are_null_with_reason():
     s.set("map.esi.vo", float("nan"), "no map point has GT depth")
     d = s.to_dict()
     assert d["depth"]["pcd"]["lsq"]["adapted"] == 71.5
-    assert d["map"]["esi"]["vo"] is None and d["notes"]["map.esi.vo"] == "no map point has GT depth"
+    assert d["map"]["esi"]["vo"] is None
+    assert d["notes"]["map.esi.vo"] == "no map point has GT depth"
     # Every required key exists; the unset ones are null with a reason, never 0.
     flat = flatten(d)
     for k in SUMMARY_KEYS:
         assert k in flat
         if k not in ("depth.pcd.lsq.adapted",):
-            assert flat[k] is None and k in d["notes"]
+            assert flat[k] is None
+            assert k in d["notes"]
 
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path: Path, monkeypatch):
@@ -37,7 +39,7 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path: Path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(atomic.os, "replace", boom)
-    with pytest.raises(OSError):
+    with pytest.raises(OSError, match="disk full"):
         write_json(p, {"a": 2})
     assert json.loads(p.read_text()) == {"a": 1}
     assert [f.name for f in tmp_path.iterdir()] == ["summary.json"]  # no temp file left behind
@@ -52,8 +54,10 @@ def test_json_is_plain(tmp_path: Path):
 
 def test_manifest_records_versions_and_seed():
     m = manifest(["mslam", "run", "x"], 7, {"total_s": 1.0})
-    assert m["seed"] == 7 and m["command"][1] == "run"
-    assert "torch" in m["versions"] and "numpy" in m["versions"]
+    assert m["seed"] == 7
+    assert m["command"][1] == "run"
+    assert "torch" in m["versions"]
+    assert "numpy" in m["versions"]
 
 
 def test_run_dir_layout(tmp_path: Path):
@@ -86,8 +90,8 @@ def _fake_map():
     2 m everywhere except a hole (0) at the last point's pixel."""
     from types import SimpleNamespace
 
-    from mutualslam_cli.types import Intrinsics, Trajectory
     from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
+    from mutualslam_cli.types import Intrinsics, Trajectory
 
     intr = Intrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
     depth = np.full((24, 32), 2.0)
@@ -111,7 +115,8 @@ def test_map_log_depth_errors_and_esi_are_one_computation():
     np.testing.assert_allclose(d[:3], [0.6, -0.6, 0.0], atol=1e-12)
     assert np.isnan(d[3])
     e, n = map_esi(seq, vo)
-    assert n == 3 and e == pytest.approx(esi(1 / vo.points.inv_depth[:3], np.full(3, 2.0)))
+    assert n == 3
+    assert e == pytest.approx(esi(1 / vo.points.inv_depth[:3], np.full(3, 2.0)))
     keep = np.array([True, False, True, True])
     np.testing.assert_array_equal(map_log_depth_errors(seq, vo, keep), d[keep])
 
@@ -152,13 +157,14 @@ def test_map_ply_empty_and_old_and_bad(tmp_path: Path):
                    "property float z\nend_header\n1 2 3\n4 5 6\n")
     p, c, e = read_ply(old)
     np.testing.assert_allclose(p, [[1, 2, 3], [4, 5, 6]])
-    assert c is None and e is None
+    assert c is None
+    assert e is None
     write_ply(tmp_path / "grey.ply", p)  # without errors: every point "no GT"
     assert read_ply(tmp_path / "grey.ply")[2] is None
     (tmp_path / "bad.ply").write_text("not a ply\n")
-    with pytest.raises(DatasetError, match="bad.ply"):
+    with pytest.raises(DatasetError, match=r"bad.ply"):
         read_ply(tmp_path / "bad.ply")
-    with pytest.raises(DatasetError, match="missing.ply"):
+    with pytest.raises(DatasetError, match=r"missing.ply"):
         read_ply(tmp_path / "missing.ply")
 
 
@@ -167,8 +173,10 @@ def test_atomic_write_with_a_failing_writer_keeps_the_old_file(tmp_path: Path):
 
     target = tmp_path / "mesh.ply"
     target.write_text("old")
-    with pytest.raises(OSError, match="mesh.ply: could not write the mesh"):
+    with pytest.raises(OSError, match=r"mesh.ply: could not write the mesh"):
         atomic_write_with(target, lambda name: False, "mesh")
-    assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["mesh.ply"]
+    assert target.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh.ply"]
     atomic_write_with(target, lambda name: Path(name).write_text("new") > 0 and name.endswith(".ply"), "mesh")
-    assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["mesh.ply"]
+    assert target.read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh.ply"]

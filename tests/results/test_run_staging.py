@@ -72,7 +72,8 @@ def test_a_write_error_mid_run_is_one_line_and_keeps_the_old_run(seq_and_run, mo
         run_sequence(seq, _cfg(tmp, "adapt.steps_per_keyframe=3"), out=out, force=True)
     assert str(e.value) == (f"{out}: cannot write: No space left on device; free space there (or choose another "
                             "--out) and run again; the previous run in it is as it was")
-    assert digest(folder) == before and _siblings(folder) == [".seed0.lock", "seed0"]
+    assert digest(folder) == before
+    assert _siblings(folder) == [".seed0.lock", "seed0"]
 
 
 def test_a_failed_first_run_leaves_no_run_folder(seq_and_run):
@@ -84,16 +85,19 @@ def test_a_failed_first_run_leaves_no_run_folder(seq_and_run):
     finally:
         frame.write_bytes(data)
     folder = run_dir(out, seq.name, "replay+ewc", 7)
-    assert not folder.exists() and ".seed7.lock" in _siblings(folder)
+    assert not folder.exists()
+    assert ".seed7.lock" in _siblings(folder)
     assert not [n for n in _siblings(folder) if n.startswith(".seed7.staging")]
 
 
 def test_a_forced_run_that_completes_replaces_the_old_one(seq_and_run):
-    tmp, seq, out, folder = seq_and_run
+    tmp, seq, out, _folder = seq_and_run
     r = run_sequence(seq, _cfg(tmp, "seed=3"), out=out)
     before = digest(r.folder)
     again = run_sequence(seq, _cfg(tmp, "seed=3", "adapt.steps_per_keyframe=3"), out=out, force=True)
-    assert again.folder == r.folder and is_complete(r.folder) and digest(r.folder) != before
+    assert again.folder == r.folder
+    assert is_complete(r.folder)
+    assert digest(r.folder) != before
     assert "steps_per_keyframe: 3" in (r.folder / "config.yaml").read_text()
     assert [n for n in _siblings(r.folder) if "seed3" in n] == [".seed3.lock", "seed3"]
 
@@ -105,7 +109,8 @@ def test_cli_out_that_is_a_file_is_one_line_before_any_work(seq_and_run, tmp_pat
     r = CliRunner().invoke(app, ["run", str(seq), "--config", str(CONFIG_DIR / "smoke.yaml"), "--out", str(f),
                                  "--set", f"net.weights={tmp / 'weights'}"])
     lines = [ln for ln in r.output.splitlines()]
-    assert r.exit_code == 1 and lines == [f"error: {f}: is a file, not a folder for the results; choose another "
+    assert r.exit_code == 1, r.output
+    assert lines == [f"error: {f}: is a file, not a folder for the results; choose another "
                                           "--out (a folder, created when missing)"], r.output
     assert f.read_text() == "not a folder\n"
 
@@ -120,9 +125,12 @@ def test_a_failed_grid_job_leaves_no_run_folder_and_a_rerun_completes(seq_and_ru
         first = run_grid(_cfg(tmp), expand([str(seq)], ["none"], [0]), out)
     finally:
         frame.write_bytes(data)
-    assert [o.status for o in first] == ["failed"] and "truncated PNG" in first[0].error
+    assert [o.status for o in first] == ["failed"]
+    assert "truncated PNG" in first[0].error
     folder = run_dir(out, seq.name, "none", 0)
-    assert not folder.exists() and _siblings(folder) == [".seed0.lock"]
+    assert not folder.exists()
+    assert _siblings(folder) == [".seed0.lock"]
     second = run_grid(_cfg(tmp), expand([str(seq)], ["none"], [0]), out)
-    assert [o.status for o in second] == ["done"] and is_complete(folder)
+    assert [o.status for o in second] == ["done"]
+    assert is_complete(folder)
     assert [o.status for o in run_grid(_cfg(tmp), expand([str(seq)], ["none"], [0]), out)] == ["skipped"]

@@ -34,7 +34,9 @@ def old_run(tmp_path: Path) -> Path:
 
 def test_a_completed_block_replaces_the_folder_whole(old_run: Path):
     with staged(old_run) as tmp:
-        assert tmp.parent == old_run.parent and tmp.name.startswith(".seed0.staging-") and not any(tmp.iterdir())
+        assert tmp.parent == old_run.parent
+        assert tmp.name.startswith(".seed0.staging-")
+        assert not any(tmp.iterdir())
         (tmp / "config.yaml").write_text("new config\n")
         assert (old_run / "config.yaml").read_text() == "old config\n"  # nothing changes before the end
     assert digest(old_run) == {"config.yaml": hashlib.sha256(b"new config\n").hexdigest()}
@@ -44,21 +46,20 @@ def test_a_completed_block_replaces_the_folder_whole(old_run: Path):
 
 def test_a_failed_block_leaves_the_folder_byte_identical(old_run: Path):
     before = digest(old_run)
-    with pytest.raises(RuntimeError, match="a stage failed"):
-        with staged(old_run) as tmp:
-            (tmp / "config.yaml").write_text("new config\n")
-            (tmp / "summary.json").write_text('{"new": 1}\n')
-            raise RuntimeError("a stage failed")
+    with pytest.raises(RuntimeError, match="a stage failed"), staged(old_run) as tmp:  # noqa: PT012
+        (tmp / "config.yaml").write_text("new config\n")
+        (tmp / "summary.json").write_text('{"new": 1}\n')
+        raise RuntimeError("a stage failed")
     assert digest(old_run) == before
     assert sorted(p.name for p in old_run.parent.iterdir()) == ["seed0"]
 
 
 def test_a_first_run_makes_the_folder_only_when_it_completes(tmp_path: Path):
     folder = tmp_path / "seq" / "none" / "seed0"
-    with pytest.raises(KeyboardInterrupt):
-        with staged(folder):
-            raise KeyboardInterrupt
-    assert not folder.exists() and list(folder.parent.iterdir()) == []
+    with pytest.raises(KeyboardInterrupt), staged(folder):
+        raise KeyboardInterrupt
+    assert not folder.exists()
+    assert list(folder.parent.iterdir()) == []
     with staged(folder) as tmp:
         (tmp / "summary.json").write_text("{}\n")
         assert not folder.exists()
@@ -73,18 +74,20 @@ def test_what_a_killed_process_left_is_removed_by_the_next_run(old_run: Path):
     other = old_run.parent / ".seed1.staging-alive"  # another run folder's: not ours to remove
     other.mkdir()
     with staged(old_run):
-        assert not dead.exists() and not (old_run.parent / ".seed0.old-dead").exists() and other.exists()
-    assert digest(old_run) == {} and other.exists()  # the new (empty) run took the folder's place
+        assert not dead.exists()
+        assert not (old_run.parent / ".seed0.old-dead").exists()
+        assert other.exists()
+    assert digest(old_run) == {}
+    assert other.exists()
 
 
 def test_from_current_adds_to_the_run_and_a_failure_keeps_it(old_run: Path):
     before = digest(old_run)
-    with pytest.raises(ValueError):
-        with staged(old_run, from_current=True) as tmp:
-            assert digest(tmp) == before
-            (tmp / "summary.json").write_text('{"dense": 1}\n')  # written in place: the original is a copy's source
-            (tmp / "depth" / "a.npy").unlink()
-            raise ValueError
+    with pytest.raises(ValueError, match="a stage failed"), staged(old_run, from_current=True) as tmp:  # noqa: PT012
+        assert digest(tmp) == before
+        (tmp / "summary.json").write_text('{"dense": 1}\n')  # written in place: the original is a copy's source
+        (tmp / "depth" / "a.npy").unlink()
+        raise ValueError("a stage failed")
     assert digest(old_run) == before
     with staged(old_run, from_current=True) as tmp:
         (tmp / "mesh.ply").write_text("ply\n")
@@ -95,7 +98,8 @@ def test_without_an_atomic_exchange_two_renames_replace_the_folder(old_run: Path
     monkeypatch.setattr(staging, "_exchange", lambda a, b: False)
     with staged(old_run) as tmp:
         (tmp / "summary.json").write_text('{"new": 1}\n')
-    assert (old_run / "summary.json").read_text() == '{"new": 1}\n' and not (old_run / "config.yaml").exists()
+    assert (old_run / "summary.json").read_text() == '{"new": 1}\n'
+    assert not (old_run / "config.yaml").exists()
     assert sorted(p.name for p in old_run.parent.iterdir()) == ["seed0"]
 
 
@@ -139,21 +143,19 @@ def test_an_out_that_cannot_be_written_is_refused(tmp_path: Path, monkeypatch):
 
 def test_write_errors_name_the_path_and_what_to_do(tmp_path: Path, monkeypatch):
     root = tmp_path / "res"
-    with pytest.raises(OutputError) as e:
-        with writable.write_errors(root, "nothing of this run was kept"):
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # a write(2) on a full disk: no file name
+    with pytest.raises(OutputError) as e, writable.write_errors(root, "nothing of this run was kept"):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # a write(2) on a full disk: no file name
     assert str(e.value) == (f"{root}: cannot write: No space left on device; free space there (or choose another "
                             "--out) and run again; nothing of this run was kept")
-    with pytest.raises(OutputError, match=r"seed0/x.csv: cannot write: Permission denied; make it writable"):
-        with writable.write_errors(root):
-            raise PermissionError(errno.EACCES, "Permission denied", str(root / "seq" / "seed0" / "x.csv"))
-    with pytest.raises(PermissionError):  # a file outside the results (a dataset): not a write error of ours
-        with writable.write_errors(root):
-            raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "data" / "rgb.txt"))
-    with pytest.raises(RuntimeError, match="a bug"):  # not a write error while the disk has room
-        with writable.write_errors(root):
-            raise RuntimeError("a bug")
+    with pytest.raises(OutputError, match=r"seed0/x.csv: cannot write: Permission denied; make it writable"), \
+            writable.write_errors(root):
+        raise PermissionError(errno.EACCES, "Permission denied", str(root / "seq" / "seed0" / "x.csv"))
+    # a file outside the results (a dataset): not a write error of ours
+    with pytest.raises(PermissionError), writable.write_errors(root):
+        raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "data" / "rgb.txt"))
+    with pytest.raises(RuntimeError, match="a bug"), writable.write_errors(root):  # not a write error: disk has room
+        raise RuntimeError("a bug")
     monkeypatch.setattr(shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10 << 20, 10 << 20, 4096))
-    with pytest.raises(OutputError, match=r"cannot write: the disk is full: 307200 requested and 24544 written"):
-        with writable.write_errors(root):
-            raise OSError("307200 requested and 24544 written")  # numpy's short write: no errno, no path
+    with pytest.raises(OutputError, match=r"cannot write: the disk is full: 307200 requested and 24544 written"), \
+            writable.write_errors(root):
+        raise OSError("307200 requested and 24544 written")  # numpy's short write: no errno, no path

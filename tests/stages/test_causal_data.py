@@ -19,7 +19,8 @@ def test_the_default_run_adapts_causally_as_the_readme_says(shared_data, tmp_pat
     cfg = load_config(CONFIG_DIR / "tuned.yaml", ["threads=1", "seed=0"])
     r = run_sequence(shared_data / "icl_lr_kt2", cfg, out=tmp_path, command=["test"])
     s = flatten(r.summary)
-    assert s["adaptation.labels"] == "causal" and s["scheme"] == "replay+ewc"
+    assert s["adaptation.labels"] == "causal"
+    assert s["scheme"] == "replay+ewc"
     assert s["depth.pcd.lsq.pretrained"] == pytest.approx(22.55, abs=0.1)  # the same network, the same frames
     assert 48.05 / 1.5 <= s["depth.pcd.lsq.adapted"] <= 48.05 * 1.5
     assert 31.50 / 1.5 <= s["depth.pcd_online.lsq"] <= 31.50 * 1.5

@@ -12,8 +12,13 @@ from synth import make_tum_dir
 
 from mutualslam_cli.adapt.depthnet import DepthNet
 from mutualslam_cli.adapt.networks import PoseNet
-from mutualslam_cli.adapt.weights import (POSE_DECODER_FILE, POSE_ENCODER_FILE, load_monodepth2, save_monodepth2,
-                                          save_pose)
+from mutualslam_cli.adapt.weights import (
+    POSE_DECODER_FILE,
+    POSE_ENCODER_FILE,
+    load_monodepth2,
+    save_monodepth2,
+    save_pose,
+)
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.stages import comoda as stage
@@ -80,7 +85,8 @@ def test_pose_network_from_net_weights_and_named_in_the_summary(seq_dir, tmp_pat
     bare = _folder(tmp_path / "bare", seed=2, pose=False)
     run = _run(seq_dir, tmp_path / "b", bare)
     value = run.summary.to_dict()["adaptation"]["pose_network"]
-    assert value.startswith("random") and "depth encoder" in value
+    assert value.startswith("random")
+    assert "depth encoder" in value
     # adapt.comoda_pose_weights still wins over net.weights
     explicit = _folder(tmp_path / "explicit", seed=3, pose=True)
     run = _run(seq_dir, tmp_path / "c", weights, [f"adapt.comoda_pose_weights={explicit}"])

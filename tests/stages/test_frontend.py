@@ -14,11 +14,11 @@ from synth import make_tum_dir
 
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.stages.frontend import run_frontend
 from mutualslam_cli.map.journal import JOURNAL_VERSION, journal_from_arrays, journal_to_arrays
-from mutualslam_cli.vo.journal_cache import CHECKPOINT_EVERY, cache_path, load_entry, vo_cache_key
-from mutualslam_cli.map.state import MapState
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.state import MapState
+from mutualslam_cli.stages.frontend import run_frontend
+from mutualslam_cli.vo.journal_cache import CHECKPOINT_EVERY, cache_path, load_entry, vo_cache_key
 from mutualslam_cli.vo.source import FrontEndSource
 
 
@@ -35,7 +35,8 @@ def seq(tmp_path_factory):
 def results(seq) -> dict[str, VOResult]:
     """Real front-end results of every mode (``gt`` carries the svo meta nested in its own)."""
     out = {mode: run_frontend(seq, _cfg(mode))[0] for mode in ("svo", "gt", "gt-depth")}
-    assert len(out["svo"].keyframes) >= 2 and len(out["svo"].points) > 50  # the sequence is tracked
+    assert len(out["svo"].keyframes) >= 2
+    assert len(out["svo"].points) > 50
     return out
 
 
@@ -43,22 +44,26 @@ def assert_same(a, b, where: str = "vo") -> None:
     """Equal values and types, recursively: arrays by dtype, shape and content (NaN equal to NaN)."""
     if isinstance(a, np.ndarray):
         assert isinstance(b, np.ndarray), where
-        assert a.dtype == b.dtype and a.shape == b.shape, f"{where}: {a.dtype}{a.shape} vs {b.dtype}{b.shape}"
+        assert a.dtype == b.dtype, f"{where}: {a.dtype}{a.shape} vs {b.dtype}{b.shape}"
+        assert a.shape == b.shape, f"{where}: {a.dtype}{a.shape} vs {b.dtype}{b.shape}"
         assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), where
     elif dataclasses.is_dataclass(a):
         assert type(a) is type(b), where
         for f in dataclasses.fields(a):
             assert_same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
     elif isinstance(a, dict):
-        assert isinstance(b, dict) and list(a) == list(b), f"{where}: keys {list(a)} vs {list(b)}"
+        assert isinstance(b, dict), f"{where}: keys {list(a)} vs {list(b)}"
+        assert list(a) == list(b), f"{where}: keys {list(a)} vs {list(b)}"
         for k in a:
             assert_same(a[k], b[k], f"{where}[{k!r}]")
     elif isinstance(a, (list, tuple)):
-        assert type(a) is type(b) and len(a) == len(b), f"{where}: {a!r} vs {b!r}"
+        assert type(a) is type(b), f"{where}: {a!r} vs {b!r}"
+        assert len(a) == len(b), f"{where}: {a!r} vs {b!r}"
         for i, (x, y) in enumerate(zip(a, b)):
             assert_same(x, y, f"{where}[{i}]")
     elif isinstance(a, float) and np.isnan(a):
-        assert isinstance(b, float) and np.isnan(b), where
+        assert isinstance(b, float), where
+        assert np.isnan(b), where
     else:  # numbers may come back as Python numbers instead of numpy scalars
         assert a == b, f"{where}: {a!r} vs {b!r}"
         assert isinstance(a, (bool, np.bool_)) == isinstance(b, (bool, np.bool_)), f"{where}: {a!r} vs {b!r}"
@@ -76,7 +81,8 @@ def test_journal_round_trip_and_replay_give_the_front_end_bit_for_bit(seq, resul
     events = source.pure
     assert {e.kind for e in events} >= {"keyframe", "points", "frame"}
     back = journal_from_arrays(journal_to_arrays(events))
-    assert len(back) == len(events) and all(a.same(b) for a, b in zip(events, back))
+    assert len(back) == len(events)
+    assert all(a.same(b) for a, b in zip(events, back))
     replica = MapState(source.state.intr, len(seq))
     for e in back:
         replica.apply(e)
@@ -93,17 +99,21 @@ def test_entry_is_data_only(seq, tmp_path, mode):
     path = cache_path(tmp_path, seq, _cfg(mode))
     with np.load(path, allow_pickle=False) as z:  # every member loads without pickle
         kinds = {k: z[k].dtype.kind for k in z.files}
-    assert "O" not in kinds.values() and kinds["header"] == "u"
+    assert "O" not in kinds.values()
+    assert kinds["header"] == "u"
     resumable = mode == "svo" and len(vo.keyframes) >= CHECKPOINT_EVERY  # our VO's resumption points
     assert any(k.startswith("ck") for k in kinds) == resumable
     assert not list(tmp_path.glob(".*.tmp"))  # the atomic writer left no temporary file
     entry = load_entry(path)
-    assert entry is not None and entry.complete and entry.meta["mode"] == ("svo" if mode == "svo" else "gt")
+    assert entry is not None
+    assert entry.complete
+    assert entry.meta["mode"] == ("svo" if mode == "svo" else "gt")
 
 
 def test_second_run_replays_the_journal(seq, results, tmp_path):
     vo, cached = run_frontend(seq, _cfg("svo"), cache_dir=tmp_path)
-    assert not cached and cache_path(tmp_path, seq, _cfg("svo")).name.endswith(".journal.npz")
+    assert not cached
+    assert cache_path(tmp_path, seq, _cfg("svo")).name.endswith(".journal.npz")
     again, cached = run_frontend(seq, _cfg("svo"), cache_dir=tmp_path)
     assert cached
     assert_same(vo, again)  # the journal replayed is the front end's map, bit for bit
@@ -146,7 +156,7 @@ def _disagreeing(path: Path) -> None:
     _rewrite(path, change)
 
 
-@pytest.mark.parametrize("spoil, why", [
+@pytest.mark.parametrize(("spoil", "why"), [
     (lambda p: p.write_bytes(b"not an archive at all"), "BadZipFile|pickled|not an|Failed"),
     (lambda p: p.write_bytes(p.read_bytes()[: p.stat().st_size // 2]), ""),
     (_wrong_version, "version 999"),
@@ -163,7 +173,9 @@ def test_invalid_entry_is_recomputed_and_replaced(seq, results, tmp_path, caplog
         vo, cached = run_frontend(seq, cfg, cache_dir=tmp_path)
     assert not cached
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert len(warned) == 1 and str(path) in warned[0] and "recomputing" in warned[0], warned
+    assert len(warned) == 1, warned
+    assert str(path) in warned[0], warned
+    assert "recomputing" in warned[0], warned
     assert why == "" or any(w in warned[0] for w in why.split("|")), warned[0]
     assert load_entry(path) is not None  # overwritten with a valid entry
     again, cached = run_frontend(seq, cfg, cache_dir=tmp_path)
@@ -197,10 +209,13 @@ def test_old_pkl_entry_is_never_unpickled(seq, results, tmp_path, monkeypatch):
     monkeypatch.setattr(pickle, "loads", refuse)
     monkeypatch.setattr(pickle, "Unpickler", refuse)
     _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # no journal yet: recomputed, the .pkl ignored
-    assert not cached and not marker.exists()
-    assert cache_path(tmp_path, seq, cfg).is_file() and old.is_file()
+    assert not cached
+    assert not marker.exists()
+    assert cache_path(tmp_path, seq, cfg).is_file()
+    assert old.is_file()
     _, cached = run_frontend(seq, cfg, cache_dir=tmp_path)  # then the journal is used
-    assert cached and not marker.exists()
+    assert cached
+    assert not marker.exists()
 
 
 def test_a_grid_prepares_the_journal_its_jobs_read(seq, tmp_path):
@@ -216,4 +231,5 @@ def test_a_grid_prepares_the_journal_its_jobs_read(seq, tmp_path):
     prepare_frontends(with_overrides(cfg, threads=0), [str(seq.root)], [0], str(tmp_path), threads=1)
     job_cfg = use_threads(with_overrides(cfg, threads=1))
     entry = load_entry(cache_path(tmp_path / "_cache" / "vo", seq, job_cfg))
-    assert entry is not None and entry.complete
+    assert entry is not None
+    assert entry.complete

@@ -13,12 +13,12 @@ from synth import make_tum_dir
 
 from mutualslam_cli.config import load_config
 from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.results.summary import Summary, flatten
 from mutualslam_cli.stages import loop_recall
-from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.adaptation_summary import summarise_no_loops
+from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 N = 80  # keyframes: two laps of 40 on a 1 m circle (15.7 cm apart)
 
@@ -73,17 +73,24 @@ def test_recall_counts_reasons_and_table(seq, tmp_path):
     flat = flatten(s)
     # the second lap (40..79) revisits the first; 39 (the first lap's end) is 1 step from 0 but only 39 apart ≥ 30
     assert flat["loop.recall.revisits"] == len(rows) == 41
-    assert flat["loop.recall.closed"] == 1 and flat["loop.recall.found"] == 1 + 10
+    assert flat["loop.recall.closed"] == 1
+    assert flat["loop.recall.found"] == 1 + 10
     assert flat["loop.recall.verified"] == 1 + 5
     assert flat["loop.recall.refused"] == 40
     notes = s["notes"]["loop.recall.refused"]
     assert "not queried: within loop.min_gap (30) keyframes of the loop closed at keyframe 40: 29" in notes
-    assert "scale uncertain: 5" in notes and "geometry: refuted by verification: 5" in notes
+    assert "scale uncertain: 5" in notes
+    assert "geometry: refuted by verification: 5" in notes
     table = pd.read_csv(tmp_path / "loop_recall.csv")
-    assert list(table.columns) == list(loop_recall.COLUMNS) and len(table) == 41
+    assert list(table.columns) == list(loop_recall.COLUMNS)
+    assert len(table) == 41
     r40 = table[table["kf"] == 40].iloc[0]
-    assert r40["partner"] == 0 and r40["closed"] and r40["dist_m"] < 1e-6 and r40["frame"] == 40
-    assert (table["dist_m"] <= 0.30).all() and (table["angle_deg"] <= 30).all()
+    assert r40["partner"] == 0
+    assert r40["closed"]
+    assert r40["dist_m"] < 1e-6
+    assert r40["frame"] == 40
+    assert (table["dist_m"] <= 0.30).all()
+    assert (table["angle_deg"] <= 30).all()
 
 
 def test_absent_without_gt_or_without_loop_closure(seq, tmp_path):
@@ -92,13 +99,15 @@ def test_absent_without_gt_or_without_loop_closure(seq, tmp_path):
     assert loop_recall.run_stage(run, _closer(), _vo(seq)) is None
     s = run.summary.to_dict(required=())
     for k in loop_recall.RECALL_KEYS:
-        assert flatten(s)[k] is None and s["notes"][k] == "sequence has no GT poses"
+        assert flatten(s)[k] is None
+        assert s["notes"][k] == "sequence has no GT poses"
     assert not (tmp_path / "loop_recall.csv").exists()
     off = Summary()
     summarise_no_loops(off, "loop.enabled=false (the paper: no loop closure)")
     d = off.to_dict(required=())
     for k in loop_recall.RECALL_KEYS:
-        assert flatten(d)[k] is None and d["notes"][k].startswith("loop.enabled=false")
+        assert flatten(d)[k] is None
+        assert d["notes"][k].startswith("loop.enabled=false")
 
 
 def test_a_run_with_loop_closure_and_gt_writes_its_recall(tiny_run, tmp_path):
@@ -106,10 +115,10 @@ def test_a_run_with_loop_closure_and_gt_writes_its_recall(tiny_run, tmp_path):
     table is written; the scale drift of its few keyframes is null with the reason."""
     import json
 
+    from synth import make_tum_dir
+
     from mutualslam_cli.config import CONFIG_DIR
     from mutualslam_cli.pipeline import run_sequence
-
-    from synth import make_tum_dir
 
     tmp, _ = tiny_run
     seq_dir = make_tum_dir(tmp_path / "seq", scene="room", n=24, width=320, height=240)

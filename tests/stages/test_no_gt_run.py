@@ -42,11 +42,14 @@ def test_every_gt_metric_is_null_with_its_reason(no_gt_run):
     s = json.loads((r.folder / "summary.json").read_text())
     flat = flatten(s)
     for k in GT_KEYS:
-        assert flat[k] is None and s["notes"].get(k), f"{k}: {flat[k]!r} without a reason"
+        assert flat[k] is None, f"{k}: {flat[k]!r} without a reason"
+        assert s["notes"].get(k), f"{k}: {flat[k]!r} without a reason"
     assert s["notes"]["depth.pcd.lsq.adapted"] == "the sequence has no depth images (no GT depth)"
     assert s["notes"]["trajectory.ate_rmse_m.vo"] == "sequence has no GT poses"
     # what does not need GT is there
-    assert flat["vo.keyframes"] >= 2 and flat["map.points.vo"] > 0 and flat["adaptation.keyframes_trained"] >= 1
+    assert flat["vo.keyframes"] >= 2
+    assert flat["map.points.vo"] > 0
+    assert flat["adaptation.keyframes_trained"] >= 1
     for name in ("traj_kf.txt", "traj_all.txt", "map_vo.ply", "keyframes.csv", "depth.png"):
         assert (r.folder / name).is_file(), name
 
@@ -55,11 +58,14 @@ def test_depth_of_chosen_frames_saved_as_tum_png_and_npy(no_gt_run):
     r, _ = no_gt_run
     index = pd.read_csv(r.folder / "depth" / "index.csv")
     assert list(index["frame"]) == chosen_frames(24, 4) == [0, 8, 15, 23]
-    assert set(index["model"]) == {"adapted"} and not index["has_gt_depth"].any()
+    assert set(index["model"]) == {"adapted"}
+    assert not index["has_gt_depth"].any()
     for row in index.itertuples():
         png = cv2.imread(str(r.folder / "depth" / row.png), cv2.IMREAD_UNCHANGED)
         npy = np.load(r.folder / "depth" / row.npy)
-        assert png.dtype == np.uint16 and png.shape == npy.shape == (240, 320) and npy.dtype == np.float32
+        assert png.dtype == np.uint16
+        assert png.shape == npy.shape == (240, 320)
+        assert npy.dtype == np.float32
         ok = (npy > 0) & (npy * PNG_SCALE < 65535)
         assert ok.mean() > 0.99
         np.testing.assert_allclose(png[ok] / PNG_SCALE, npy[ok], atol=0.5 / PNG_SCALE + 1e-7)
@@ -73,7 +79,8 @@ def test_report_shows_what_it_can(no_gt_run, tmp_path):
     assert any(n.startswith("trajectories/") for n in names)  # drawn as estimated, not aligned
     assert any(n.startswith("depth/depth_") for n in names)  # pre-trained vs adapted
     md = (tmp_path / "report.md").read_text()
-    assert "as estimated, not aligned" in md and "sequence has no GT poses" in md
+    assert "as estimated, not aligned" in md
+    assert "sequence has no GT poses" in md
 
 
 def test_png_units_mark_what_cannot_be_stored():
@@ -81,4 +88,5 @@ def test_png_units_mark_what_cannot_be_stored():
     raw = to_png_units(d)
     assert raw.dtype == np.uint16
     assert raw.tolist() == [[5000, 0, 0], [0, 0, 0]]  # 14 units is beyond 65535 / 5000
-    assert chosen_frames(3, 5) == [0, 1, 2] and chosen_frames(10, 0) == []
+    assert chosen_frames(3, 5) == [0, 1, 2]
+    assert chosen_frames(10, 0) == []

@@ -78,19 +78,24 @@ def test_a_lost_front_end_is_bridged_then_and_goes_on_in_that_unit(lost, causal)
     tmp, root = lost
     r, seen, loop = causal
     flat = flatten(r.summary)
-    assert flat["adaptation.labels"] == "causal" and flat["vo.segments"] == 2
-    assert flat["vo.bridges"] >= 1 and flat["ba.runs"] >= 1 and flat["ba.requested"] >= 1
+    assert flat["adaptation.labels"] == "causal"
+    assert flat["vo.segments"] == 2
+    assert flat["vo.bridges"] >= 1
+    assert flat["ba.runs"] >= 1
+    assert flat["ba.requested"] >= 1
     for name in ("traj_kf_bridged.txt", "traj_all_bridged.txt", "traj_kf.txt", "traj_kf_ba.txt"):
         assert (r.folder / name).is_file(), name
     # the bridge was made when the segment appeared, by the network as adapted up to then
     (b,) = seen
     state = loop.state
     first = next(k for k in range(state.n_keyframes) if state.segment(k) == 1)
-    assert b["kf"] == first and b["frame"] == state.created_at[first] < len(load_sequence(root)) - 1
+    assert b["kf"] == first
+    assert b["frame"] == state.created_at[first] < len(load_sequence(root)) - 1
     np.testing.assert_array_equal(b["depth_of"], b["now"])
     rows = pd.read_csv(r.folder / "keyframes.csv")
     before = rows[rows["kf_id"] < first]["steps"].sum()
-    assert b["steps"] == before and 0 < before < rows["steps"].sum()  # not the final network
+    assert b["steps"] == before
+    assert 0 < before < rows["steps"].sum()
     # the front end went on in the bridged unit: segment 1's later keyframes lie s times as far from its first
     # keyframe as in the front end run alone (tracking, seeds and their promotion all in the new unit)
     s = json.loads((r.folder / "manifest.json").read_text())["bridges"][0]["scale"]
@@ -126,12 +131,15 @@ def test_a_cached_run_is_the_uncached_run(lost, causal):
     r, _, _ = causal
     seq = load_sequence(root)
     entry = load_entry(cache_path(tmp / "a" / "_cache" / "vo", seq, _cfg(tmp)))
-    assert entry is not None and entry.complete and entry.checkpoints
+    assert entry is not None
+    assert entry.complete
+    assert entry.checkpoints
     first = tmp / "first"
     shutil.copytree(r.folder, first)
     again = run_sequence(root, _cfg(tmp), out=tmp / "a", command=["test"], force=True)
     a, b = flatten(r.summary), flatten(again.summary)
-    assert a["vo.frames_from_cache"] == 0 and min(entry.checkpoints) < b["vo.frames_from_cache"] < len(seq)
+    assert a["vo.frames_from_cache"] == 0
+    assert min(entry.checkpoints) < b["vo.frames_from_cache"] < len(seq)
     skip = ("timing.", "vo.from_cache", "vo.frames_from_cache", "notes.timing")
     differ = [k for k in a if not k.startswith(skip) and a[k] != b.get(k)
               and not (isinstance(a[k], float) and np.isnan(a[k]) and np.isnan(b[k]))]
@@ -179,4 +187,6 @@ def test_the_bridged_credit_is_the_front_end_alone_and_its_own_bridges(lost, cau
     b = plan_bridge(src.state.snapshot(seq.frames, covisibility=False), kf, depth_predictor(net, load, False),
                     seq.load_gray, seq.intrinsics)
     src.close()
-    assert b.scale == pytest.approx(credit["scale"], rel=1e-9) and b.R == credit["R"] and b.t == credit["t"]
+    assert b.scale == pytest.approx(credit["scale"], rel=1e-9)
+    assert credit["R"] == b.R
+    assert b.t == credit["t"]

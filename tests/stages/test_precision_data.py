@@ -24,11 +24,14 @@ pytestmark = [pytest.mark.data, pytest.mark.slow,
 KEYS = ["depth.pcd.lsq.adapted"] + [f"depth.quarter_pcd_lsq.adapted.q{q}" for q in (1, 2, 3, 4)]
 
 
-def test_the_default_bf16_path_learns_what_fp32_learns(shared_data, tmp_path, scheme: str = "replay+ewc"):
+SCHEME = "replay+ewc"
+
+
+def test_the_default_bf16_path_learns_what_fp32_learns(shared_data, tmp_path):
     seq = shared_data / "tum_fr1_xyz"
     runs = {}
     for name, sets in (("default", []), ("fp32", ["net.fast=off"])):
-        cfg = load_config(None, ["threads=1", "seed=0", f"adapt.scheme={scheme}", "adapt.lr=1e-4", *sets])
+        cfg = load_config(None, ["threads=1", "seed=0", f"adapt.scheme={SCHEME}", "adapt.lr=1e-4", *sets])
         runs[name] = flatten(run_sequence(seq, cfg, out=tmp_path / name, command=["test"]).summary)
     print({k: (round(runs["default"][k], 2), round(runs["fp32"][k], 2)) for k in KEYS})
     for k in KEYS:

@@ -12,11 +12,11 @@ from synth import make_tum_dir
 
 from mutualslam_cli.config import load_config
 from mutualslam_cli.datasets.registry import load_sequence
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.results.summary import flatten
 from mutualslam_cli.stages import scale_drift
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.types import Trajectory
-from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 def _vo(seq, unit_of_frame: np.ndarray, segment_of_frame: np.ndarray | None = None) -> VOResult:
@@ -62,7 +62,8 @@ def test_each_map_gets_its_keys_a_table_and_a_figure(seq, tmp_path):
     assert vo_rows["relative_scale"].max() == pytest.approx(out["vo"].max)
     assert (vo_rows["end_kf"] - vo_rows["start_kf"] == 14).all()
     png = (tmp_path / "scale_drift.png").read_bytes()
-    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(png) > 10_000
 
 
 def test_windows_stay_within_a_segment(seq, tmp_path):
@@ -71,7 +72,8 @@ def test_windows_stay_within_a_segment(seq, tmp_path):
     unit = np.where(seg == 1, 0.25, 1.0)  # the second segment in a unit of its own
     out = scale_drift.run_stage(run, {"vo": _vo(seq, unit, seg)})
     r = out["vo"]
-    assert r.n_crossing == 14 and np.max(r.local_rmse) < 1e-6
+    assert r.n_crossing == 14
+    assert np.max(r.local_rmse) < 1e-6
     assert r.max_over_min == pytest.approx(1.0, abs=1e-6)  # each segment against its own unit
     table = pd.read_csv(tmp_path / "scale_drift.csv")
     assert set(table["segment"]) == {0, 1}
@@ -85,10 +87,13 @@ def test_absent_with_reasons_never_zero(seq, tmp_path):
     s = run.summary.to_dict(required=())
     flat = flatten(s)
     for k in scale_drift.keys("vo"):
-        assert flat[k] is None and s["notes"][k] == "sequence has no GT poses"
+        assert flat[k] is None
+        assert s["notes"][k] == "sequence has no GT poses"
     for k in scale_drift.keys("ba"):
-        assert flat[k] is None and s["notes"][k] == "disabled (ba.enabled=false)"
-    assert not (tmp_path / "scale_drift.csv").exists() and not (tmp_path / "scale_drift.png").exists()
+        assert flat[k] is None
+        assert s["notes"][k] == "disabled (ba.enabled=false)"
+    assert not (tmp_path / "scale_drift.csv").exists()
+    assert not (tmp_path / "scale_drift.png").exists()
     short = _run(seq, tmp_path)
     few = _vo(seq, np.ones(len(seq)))
     few = VOResult(few.keyframes[:10], few.points, few.intrinsics, few.traj_all, few.frame_segment)

@@ -30,13 +30,15 @@ def test_the_scale_check_sees_the_map_drift_the_network_does_not(rng):
     z = truth[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)]
     for kf, s in enumerate([1.0, 1.0, 1.0, 1.3]):  # the map's unit: 1 m, then 1.3 m per metre (drift)
         rec = check.keyframe(kf, 10 * kf, 0, uv, s * z)
-    assert rec.ratio == pytest.approx(2.6, rel=1e-6) and rec.ref == pytest.approx(2.0)
+    assert rec.ratio == pytest.approx(2.6, rel=1e-6)
+    assert rec.ref == pytest.approx(2.0)
     assert rec.drift == pytest.approx(1.3)
     assert check.keyframe(9, 90, 1, uv, z).ref != check.keyframe(10, 91, 1, uv, z).ref  # another unit: its own
     assert check.summary()["drift_max"] == pytest.approx(1.3)
     # too few points with a prediction: no check, nothing recorded
     n = len(check.checks)
-    assert check.keyframe(11, 92, 0, uv[:5], z[:5]) is None and len(check.checks) == n
+    assert check.keyframe(11, 92, 0, uv[:5], z[:5]) is None
+    assert len(check.checks) == n
 
 
 def test_depth_seeds_start_at_the_networks_depth_in_the_maps_unit(rng):
@@ -47,7 +49,8 @@ def test_depth_seeds_start_at_the_networks_depth_in_the_maps_unit(rng):
     z = truth[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)]
     rec = check.keyframe(0, 0, 0, uv, z)
     assert rec.ratio == pytest.approx(4.0, rel=0.05)
-    assert rec.rel_sigma == pytest.approx(0.2, rel=0.25) and rec.rel_sigma >= MIN_REL_SIGMA
+    assert rec.rel_sigma == pytest.approx(0.2, rel=0.25)
+    assert rec.rel_sigma >= MIN_REL_SIGMA
     px = np.array([[10.0, 20.0], [40.0, 5.0]])
     f_z = np.array([0.9, 0.8])
     mu, sigma2 = check.seeds(rec, px, f_z)
@@ -109,10 +112,12 @@ def test_the_front_end_asks_the_network_only_about_its_keyframes_as_they_come(se
     vo = source.result()
     source.close()
     if not on:
-        assert asked == [] and source.changed_at is None  # the paper's front end: never asks, cached whole
+        assert asked == []
+        assert source.changed_at is None
         return
     kf_frames = [k.frame_index for k in vo.keyframes]
-    assert asked and all(f == now for f, now in asked)  # causal: only the frame being processed
+    assert asked
+    assert all(f == now for f, now in asked)
     assert {f for f, _ in asked} <= set(kf_frames)
     assert source.changed_at == asked[0][0] - 1  # the journal is the network-free front end up to there
     assert vo.meta["scale_check"]["checks"] >= 1

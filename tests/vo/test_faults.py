@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
+from mutualslam_cli.map.state import MapState
 from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
 from mutualslam_cli.vo.faults import corrupt_depths, inject_outliers
-from mutualslam_cli.map.state import MapState
-from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 
 
 def test_inject_outliers_is_seeded_and_only_scales_depths():
@@ -22,7 +22,9 @@ def test_inject_outliers_is_seeded_and_only_scales_depths():
                   Intrinsics(50, 50, 25, 25, 50, 50), Trajectory(np.array([0.0, 0.1]), np.stack([np.eye(4)] * 2)),
                   np.zeros(2, np.int64))
     out, ids = inject_outliers(vo, 0.1, seed=3)
-    assert len(ids) == 20 and len(np.unique(ids)) == 20 and np.isin(ids, pts.ids).all()
+    assert len(ids) == 20
+    assert len(np.unique(ids)) == 20
+    assert np.isin(ids, pts.ids).all()
     bad = np.isin(pts.ids, ids)
     factor = pts.inv_depth / out.points.inv_depth  # depth multiplier
     np.testing.assert_allclose(np.sort(np.unique(np.round(factor[bad], 12))), [0.4, 2.0])

@@ -63,9 +63,11 @@ def test_old_points_in_view_are_looked_for_from_the_closest_viewpoint():
     m = st.map
     lm = _query(m)
     got = dict(zip(lm.pids.tolist(), lm.source.tolist()))
-    assert got[p["old"]] == 0 and got[p["both"]] == 0  # kf 0 saw them from where the frame is; kf 1 from ~60° away
+    assert got[p["old"]] == 0
+    assert got[p["both"]] == 0
     assert p["oblique"] not in got  # seen only from ~60° away: a patch KLT cannot match
-    assert p["behind"] not in got and p["recent"] not in got  # behind the camera / outside the image
+    assert p["behind"] not in got
+    assert p["recent"] not in got
     assert lm.old[lm.pids == p["old"]].all()
 
 
@@ -96,7 +98,9 @@ def test_at_most_max_sources_old_keyframes_are_decoded():
 def test_keyframe_images_are_decoded_once_and_kept_few():
     loads = []
     imgs = KeyframeImages(lambda f: loads.append(f) or np.full((2, 2), f, np.uint8), size=2)
-    assert imgs.get(3)[0, 0] == 3 and imgs.get(3)[0, 0] == 3 and loads == [3]
+    assert imgs.get(3)[0, 0] == 3
+    assert imgs.get(3)[0, 0] == 3
+    assert loads == [3]
     imgs.get(4), imgs.get(5), imgs.get(3)
     assert loads == [3, 4, 5, 3]  # 3 was dropped when 5 came (two kept)
 
@@ -150,8 +154,10 @@ def test_warped_klt_finds_an_old_point_from_another_viewpoint_where_plain_klt_dr
                           retry=False)
     err = np.linalg.norm(raw[ok] - proj[inside][ok], axis=1)
     err2 = np.linalg.norm(raw2[ok2] - proj[inside][ok2], axis=1)
-    assert len(P) > 40 and ok.mean() > 0.8
-    assert np.median(err) < 0.3 and np.median(err2) > 2.5 * np.median(err)
+    assert len(P) > 40
+    assert ok.mean() > 0.8
+    assert np.median(err) < 0.3
+    assert np.median(err2) > 2.5 * np.median(err)
 
 
 def test_a_young_point_that_is_an_old_one_seen_again_is_fused_into_it():
@@ -171,8 +177,12 @@ def test_a_young_point_that_is_an_old_one_seen_again_is_fused_into_it():
     pc = lambda i: m.Xw[i] @ T_cw[:3, :3].T + T_cw[:3, 3]  # noqa: E731
     raw = np.array([pc(i)[:2] / pc(i)[2] * 300.0 + [160.0, 120.0] for i in (young, far)])
     y, o = duplicates(m, T_cw, K, np.arange(len(m.kf_frame)), 2, np.array([young, far]), raw, lambda px: px)
-    assert y.tolist() == [young] and o.tolist() == [p["old"]]
+    assert y.tolist() == [young]
+    assert o.tolist() == [p["old"]]
     st.fuse_points(y, o)
-    assert set(m.obs[p["old"]]) == {0, 5, 6} and not m.obs[young] and np.isnan(m.Xw[young]).all()
-    assert p["old"] in m.kf_points[5] and young not in m.kf_points[5]
+    assert set(m.obs[p["old"]]) == {0, 5, 6}
+    assert not m.obs[young]
+    assert np.isnan(m.Xw[young]).all()
+    assert p["old"] in m.kf_points[5]
+    assert young not in m.kf_points[5]
     assert [e.kind for e in m.journal.events[-3:]] == ["observe", "observe", "remove"]

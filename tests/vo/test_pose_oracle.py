@@ -13,9 +13,9 @@ from synth import make_tum_dir
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import project, se3_inv, transform
+from mutualslam_cli.map.result import MapPoints
 from mutualslam_cli.vo.frontend import run_vo
 from mutualslam_cli.vo.pose_oracle import REASONS, retriangulate, run_pose_oracle
-from mutualslam_cli.map.result import MapPoints
 
 W, H = 640, 480
 
@@ -33,7 +33,8 @@ def _labels(vo) -> np.ndarray:
 
 def test_gt_poses_metric_depth_and_svo_density(room):
     seq, svo, po = room
-    assert po.meta["mode"] == "gt" and po.meta["vo_meta"]["mode"] == "svo"
+    assert po.meta["mode"] == "gt"
+    assert po.meta["vo_meta"]["mode"] == "svo"
     assert len(po.keyframes) == len(svo.keyframes)
     for kf in po.keyframes:
         np.testing.assert_allclose(kf.pose, seq.frames[kf.frame_index].pose, atol=1e-12)
@@ -46,14 +47,18 @@ def test_gt_poses_metric_depth_and_svo_density(room):
         px = np.round(P.pixel[m]).astype(int)
         rel.append(np.abs(1.0 / P.inv_depth[m] / D[px[:, 1], px[:, 0]] - 1.0))
     rel = np.concatenate(rel)
-    assert np.median(rel) < 0.02 and np.percentile(rel, 90) < 0.05
+    assert np.median(rel) < 0.02
+    assert np.percentile(rel, 90) < 0.05
     # labels per keyframe: svo's points minus the rejected ones
     n_po, n_svo = _labels(po), _labels(svo)
-    assert np.all(n_po <= n_svo) and np.all(n_po >= 0.5 * n_svo)
+    assert np.all(n_po <= n_svo)
+    assert np.all(n_po >= 0.5 * n_svo)
     pts = po.meta["points"]
-    assert pts["vo"] == len(svo.points) and pts["triangulated"] == len(P)
+    assert pts["vo"] == len(svo.points)
+    assert pts["triangulated"] == len(P)
     assert pts["triangulated"] + sum(pts["rejected"].values()) == pts["vo"]
-    assert np.all(P.sigma > 0) and np.all(np.isfinite(P.sigma))
+    assert np.all(P.sigma > 0)
+    assert np.all(np.isfinite(P.sigma))
 
 
 def test_result_contract(room):
@@ -62,10 +67,12 @@ def test_result_contract(room):
     assert [k.id for k in po.keyframes] == list(range(len(po.keyframes)))
     assert np.array_equal(P.ids, np.arange(len(P)))
     for i in range(len(P)):
-        assert len(P.observations[i]) >= 2 and P.host[i] in P.observations[i]
+        assert len(P.observations[i]) >= 2
+        assert P.host[i] in P.observations[i]
         j = int(np.flatnonzero(P.observations[i] == P.host[i])[0])
         np.testing.assert_array_equal(P.obs_pixels[i][j], P.pixel[i])
-    assert po.frame_segment.shape == (len(seq),) and set(np.unique(po.frame_segment)) <= {-1, 0}
+    assert po.frame_segment.shape == (len(seq),)
+    assert set(np.unique(po.frame_segment)) <= {-1, 0}
     assert len(po.traj_all) == int(np.sum(po.frame_segment >= 0)) == int(np.sum(svo.frame_segment >= 0))
     gt = np.stack([seq.frames[i].pose for i in np.flatnonzero(po.frame_segment >= 0)])
     np.testing.assert_allclose(po.traj_all.poses, gt)
@@ -134,19 +141,22 @@ def test_single_inconsistent_behind_and_low_parallax_points_are_rejected(rng):
     pix.append(np.stack([x0, far]))
     kept, stats = retriangulate(_points(obs, pix), poses, K)
     assert stats["rejected"] == dict(zip(REASONS, (1, 1, 1, 1)))
-    assert stats["rms_gate_px"] == 2.0 and stats["rms_median_px"] < 1e-6
+    assert stats["rms_gate_px"] == 2.0
+    assert stats["rms_median_px"] < 1e-6
     assert len(kept) == n_good
     np.testing.assert_allclose(1.0 / kept.inv_depth, Xw[:, 2], rtol=1e-9)
     # a gate looser than the bad track's error keeps it
     loose, stats = retriangulate(_points(obs, pix), poses, K, max_rms_px=50.0)
-    assert len(loose) == n_good + 1 and stats["rejected"]["reprojection"] == 0
+    assert len(loose) == n_good + 1
+    assert stats["rejected"]["reprojection"] == 0
 
 
 def test_noisy_tracks_refined_by_gauss_newton(rng):
     K, poses, Xw, obs, pix = _scene(rng)
     noisy = [p + np.r_[[[0.0, 0.0]], rng.normal(0, 0.3, (3, 2))] for p in pix]  # host exact
     kept, stats = retriangulate(_points(obs, noisy), poses, K)
-    assert len(kept) == len(obs) and 0 < stats["rms_median_px"] < 1.0
+    assert len(kept) == len(obs)
+    assert 0 < stats["rms_median_px"] < 1.0
     assert np.median(np.abs(1.0 / kept.inv_depth / Xw[:, 2] - 1)) < 0.02
 
 

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from synth import make_sequence
 
-from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.geometry import to_normalized
-from mutualslam_cli.vo.features import detect_grid
-from mutualslam_cli.vo.relocalise import RelocIndex
+from mutualslam_cli.geometry import se3_inv, to_normalized
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.map.store import Map
-from synth import make_sequence
+from mutualslam_cli.vo.features import detect_grid
+from mutualslam_cli.vo.relocalise import RelocIndex
 
 W, H = 320, 240
 THR = 2.0 / 250.0  # 2 px at the synthetic camera's focal length (~250 px at 320 px wide)
@@ -56,8 +55,11 @@ def test_relocalisation_recovers_the_pose_of_an_unseen_frame(room, query):
     r = index.query(_gray(room.rgb[query]), m, THR, seed=query)
     assert r is not None
     dt, dr = _pose_error(r.T_cw, room.poses[query])
-    assert dt < 0.01 and dr < 0.5, (dt, dr)
-    assert r.inliers >= index.settings.min_inliers and len(r.pids) == r.inliers and r.raw.shape == (r.inliers, 2)
+    assert dt < 0.01, (dt, dr)
+    assert dr < 0.5, (dt, dr)
+    assert r.inliers >= index.settings.min_inliers
+    assert len(r.pids) == r.inliers
+    assert r.raw.shape == (r.inliers, 2)
     assert index.rejected == 0
 
 
@@ -76,7 +78,8 @@ def test_a_planted_wrong_candidate_is_rejected(room):
     assert index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[1]) is None
     m2, honest = _map(room, [0, 30])
     r = honest.query(_gray(room.rgb[31]), m2, THR, seed=0, keyframes=[1])  # the same query, honest candidate
-    assert r is not None and _pose_error(r.T_cw, room.poses[31])[0] < 0.01
+    assert r is not None
+    assert _pose_error(r.T_cw, room.poses[31])[0] < 0.01
 
 
 def test_a_wrong_candidate_no_other_keyframe_can_witness_is_refused(room):
@@ -92,7 +95,8 @@ def test_a_wrong_candidate_no_other_keyframe_can_witness_is_refused(room):
     assert index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[0]) is None
     assert index.rejected == 1
     r = _map(room, [30, 34])[1].query(_gray(room.rgb[31]), _map(room, [30, 34])[0], THR, seed=0, keyframes=[0])
-    assert r is not None and _pose_error(r.T_cw, room.poses[31])[0] < 0.01  # and confirms an honest one
+    assert r is not None
+    assert _pose_error(r.T_cw, room.poses[31])[0] < 0.01
 
 
 def test_the_halves_are_halves_of_the_inliers(room, monkeypatch):
@@ -111,7 +115,8 @@ def test_the_halves_are_halves_of_the_inliers(room, monkeypatch):
     r = index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[1])
     assert r is not None
     first, halves = sizes[0], sizes[1:3]  # the PnP on every match, then one pose per half
-    assert sum(halves) == r.inliers <= first and abs(halves[0] - halves[1]) <= 1
+    assert sum(halves) == r.inliers <= first
+    assert abs(halves[0] - halves[1]) <= 1
 
 
 def test_images_decoded_again_relocalise_as_held_ones_and_are_not_kept(room):
@@ -126,7 +131,9 @@ def test_images_decoded_again_relocalise_as_held_ones_and_are_not_kept(room):
     assert all(v is None for v in lazy.images._held.values())  # ids only
     a = held.query(_gray(room.rgb[31]), m, THR, seed=0)
     b = lazy.query(_gray(room.rgb[31]), m, THR, seed=0)
-    assert a is not None and b is not None and decoded
+    assert a is not None
+    assert b is not None
+    assert decoded
     np.testing.assert_array_equal(a.T_cw, b.T_cw)
     np.testing.assert_array_equal(a.pids, b.pids)
     with pytest.raises(TypeError):

@@ -54,13 +54,15 @@ def test_exact_recovery_noise_free_room(room_result):
 def test_result_contract(room_result):
     seq, r = room_result
     assert [k.id for k in r.keyframes] == list(range(len(r.keyframes)))
-    assert len(r.keyframes) >= 3 and len(r.points) > 100
+    assert len(r.keyframes) >= 3
+    assert len(r.points) > 100
     assert r.frame_segment.shape == (len(seq),)
     assert len(r.traj_all) == int(np.sum(r.frame_segment >= 0))
     assert np.all(np.diff(r.traj_all.timestamps) > 0)
     assert r.intrinsics.dist is None
     P = r.points
-    assert np.all(P.inv_depth > 0) and np.all(np.isfinite(P.sigma))
+    assert np.all(P.inv_depth > 0)
+    assert np.all(np.isfinite(P.sigma))
     for i in range(len(P)):
         assert P.host[i] in P.observations[i]
         assert P.obs_pixels[i].shape == (len(P.observations[i]), 2)
@@ -79,11 +81,12 @@ def test_result_contract(room_result):
             assert r.covisibility[b][a] == c > 0
     for stage in ("decode", "track", "pose", "filter", "keyframe", "local_ba"):
         assert r.meta["timing"][stage] >= 0.0
-    assert r.meta["n_reinit"] == 0 and r.meta["gaps"] == []
+    assert r.meta["n_reinit"] == 0
+    assert r.meta["gaps"] == []
 
 
 def test_deterministic_for_fixed_seed(room_dir, room_result):
-    seq, r1 = room_result
+    _seq, r1 = room_result
     r2 = run_vo(load_sequence(room_dir), VOConfig(), seed=0)
     np.testing.assert_array_equal(r1.traj_all.poses, r2.traj_all.poses)
     np.testing.assert_array_equal(r1.points.inv_depth, r2.points.inv_depth)
@@ -134,18 +137,24 @@ def test_blackout_relocalises_or_reinitialises_and_reports_gap(room_dir, tmp_pat
         cv2.imwrite(str(seq.frames[i].rgb_path), np.zeros((H, W, 3), np.uint8))
     calls = []
     r = run_vo(load_sequence(black), VOConfig(relocalise=relocalise), seed=0, progress=calls.append)
-    assert len(calls) == len(seq) and calls[-1]["n_frames"] == len(seq)
+    assert len(calls) == len(seq)
+    assert calls[-1]["n_frames"] == len(seq)
     assert {c["state"] for c in calls} >= {"init", "tracking"}
     assert 0.5 < r.tracked_fraction < 1.0
     assert np.all(r.frame_segment[25:30] == -1)
     assert any(g[0] <= 25 and g[1] >= 29 for g in r.meta["gaps"])
     segs = {k.segment for k in r.keyframes}
     if relocalise:
-        assert r.meta["n_reinit"] == 0 and segs == {0} and r.frame_segment[-1] == 0
+        assert r.meta["n_reinit"] == 0
+        assert segs == {0}
+        assert r.frame_segment[-1] == 0
         (rel,) = r.meta["relocalisations"]
-        assert rel["frame"] == 30 and rel["frames_lost"] == 5 and rel["inliers"] >= 40
+        assert rel["frame"] == 30
+        assert rel["frames_lost"] == 5
+        assert rel["inliers"] >= 40
     else:
-        assert r.meta["n_reinit"] >= 1 and not r.meta["relocalisations"]
+        assert r.meta["n_reinit"] >= 1
+        assert not r.meta["relocalisations"]
         assert r.frame_segment[-1] == r.meta["n_reinit"]  # tracked again, in a new segment
         assert segs == set(range(r.meta["n_reinit"] + 1))
 
@@ -156,7 +165,9 @@ def test_all_black_sequence_is_untracked_not_an_error(tmp_path):
     for f in seq.frames:
         cv2.imwrite(str(f.rgb_path), np.zeros((48, 64, 3), np.uint8))
     r = run_vo(load_sequence(root), VOConfig(), seed=0)
-    assert r.tracked_fraction == 0.0 and len(r.keyframes) == 0 and len(r.points) == 0
+    assert r.tracked_fraction == 0.0
+    assert len(r.keyframes) == 0
+    assert len(r.points) == 0
     assert r.meta["gaps"] == [[0, 5]]
 
 
@@ -170,7 +181,7 @@ def test_config_changes_take_effect(room_dir):
     assert max(per_kf) <= 150
 
 
-@pytest.mark.parametrize("field,value", [("grid_size", 0), ("max_fts", 5), ("kf_min_tracked_ratio", 1.5),
+@pytest.mark.parametrize(("field", "value"), [("grid_size", 0), ("max_fts", 5), ("kf_min_tracked_ratio", 1.5),
                                          ("ransac_threshold_px", 0.0)])
 def test_bad_config_raises_config_error(room_dir, field, value):
     bad = dataclasses.replace(VOConfig(), **{field: value})

@@ -7,11 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from mutualslam_cli.geometry import exp_so3, se3_inv
+from mutualslam_cli.geometry import exp_so3, se3_inv, to_normalized, to_pixels
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.camera import distort_points, undistort_points
-from mutualslam_cli.geometry import to_normalized, to_pixels
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.initialization import initialize
 from mutualslam_cli.vo.local_ba import BAProblem, residuals, solve
@@ -104,7 +103,8 @@ def test_pose_from_matches_with_outliers(rng):
     T_est, inl = estimate_pose(X, xn, [np.eye(4)], 2.0 / 500, seed=0)
     assert T_est is not None
     assert np.linalg.norm(T_est[:3, 3] - T[:3, 3]) < 5e-3
-    assert inl[40:].mean() > 0.95 and inl[:40].mean() < 0.2
+    assert inl[40:].mean() > 0.95
+    assert inl[:40].mean() < 0.2
 
 
 def _two_views(rng, planar: bool):
@@ -129,7 +129,8 @@ def test_two_view_initialisation(rng, planar):
     assert np.median(res.points0[:, 2]) == pytest.approx(1.0)  # map scaled to median depth 1
     s = np.median(X[res.index, 2])
     rel = np.linalg.norm(res.points0 * s - X[res.index], axis=1) / X[res.index, 2]
-    assert np.median(rel) < 0.02 and np.max(rel) < 0.1
+    assert np.median(rel) < 0.02
+    assert np.max(rel) < 0.1
     np.testing.assert_allclose(res.T_10[:3, 3] * s, T1[:3, 3], atol=0.02)
 
 
@@ -218,7 +219,7 @@ def test_ba_jacobians_match_finite_differences(rng):
         np.testing.assert_allclose(J_p[m], num, atol=1e-6)
 
 
-@pytest.mark.parametrize("baseline, expect_wait", [(0.04, True), (0.5, False)])
+@pytest.mark.parametrize(("baseline", "expect_wait"), [(0.04, True), (0.5, False)])
 def test_init_waits_while_a_low_parallax_motion_fits_as_well(rng, baseline, expect_wait):
     """Forward motion: with a short baseline the true motion has < 1° parallax, so a rival
     (any hypothesis fitting as well) cannot be ruled out and initialisation must wait."""
@@ -263,4 +264,5 @@ def test_undistorter_depth_lands_in_the_pinhole_geometry():
     rgb = (np.random.default_rng(0).random((480, 640, 3)) * 255).astype(np.uint8)
     np.testing.assert_array_equal(und.image(rgb), cv2.undistort(rgb, intr.K(), np.array(intr.dist)))
     plain = Undistorter(Intrinsics(500, 500, 320, 240, 640, 480, None))
-    assert plain.depth(raw) is raw and plain.image(rgb) is rgb
+    assert plain.depth(raw) is raw
+    assert plain.image(rgb) is rgb

@@ -9,7 +9,7 @@ ELU, keys ``decoder.<n>.conv.conv.{weight,bias}``), then ``dispconv(s)`` for s i
 
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import torch
 import torch.nn.functional as F

@@ -9,7 +9,8 @@ batch (paper §III-B: "averaged across the most recent keyframe and a randomly s
 
 from __future__ import annotations
 
-from typing import Callable, ClassVar
+from collections.abc import Callable
+from typing import ClassVar
 
 import numpy as np
 import torch

@@ -54,12 +54,11 @@ Choices the paper leaves open (written down here):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
-from typing import Callable, Mapping
 
 import numpy as np
 
-from mutualslam_cli.backend.culling import cull_map_points
 from mutualslam_cli.backend.ba.photometric import solve
 from mutualslam_cli.backend.ba.targets import (
     MARGIN,
@@ -69,13 +68,14 @@ from mutualslam_cli.backend.ba.targets import (
     nearby_targets,
     pattern_of,
 )
+from mutualslam_cli.backend.culling import cull_map_points
 from mutualslam_cli.config import BAConfig
 from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.pixels import in_image, lookup_nearest
-from mutualslam_cli.types import Trajectory
 from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.map.sim3 import follow
+from mutualslam_cli.pixels import in_image, lookup_nearest
+from mutualslam_cli.types import Trajectory
 
 #: Largest factor by which the BA may change a point's inverse depth; beyond it the point keeps
 #: its value before BA (an under-constrained depth, e.g. one short-baseline target). The same

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -47,8 +47,16 @@ from mutualslam_cli.errors import ConfigError
 log = logging.getLogger(__name__)
 
 # the parts the BA tests reach as ``photometric.<name>`` stay importable from here
-__all__ = ["PhotoBAProblem", "PhotoBAResult", "PatchData", "apply_step", "normal_equations", "residuals", "solve",
-           "validate"]
+__all__ = [
+    "PatchData",
+    "PhotoBAProblem",
+    "PhotoBAResult",
+    "apply_step",
+    "normal_equations",
+    "residuals",
+    "solve",
+    "validate",
+]
 
 #: Huber threshold and outlier threshold of a residual, intensity in [0, 1] (5 and 12 grey levels; DSO: 9 and 12).
 HUBER_DELTA, OUTLIER_DELTA = 5.0 / 255.0, 12.0 / 255.0
@@ -167,6 +175,6 @@ def solve(prob: PhotoBAProblem, iterations: int = 10, huber_delta: float = HUBER
              "cost": robust_cost(d0, res_out.values, res_out.counted, final, huber_delta),
              "costs": per_round[-1]["costs"], "rounds": per_round, "iterations": rounds_.iterations,
              "accepted": sum(r["accepted"] for r in per_round),
-             "n_blocks": int(len(final)), "n_outlier_blocks": int((~final).sum()), "n_dropped": int(dropped.sum()),
+             "n_blocks": len(final), "n_outlier_blocks": int((~final).sum()), "n_dropped": int(dropped.sum()),
              "dropped": dropped, "seconds": time.perf_counter() - t0}
     return PhotoBAResult(T, ab, rho, stats)

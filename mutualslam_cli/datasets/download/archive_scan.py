@@ -19,8 +19,9 @@ headers alone:
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Callable
+from typing import IO
 
 from mutualslam_cli.datasets.download.limits import MAX_HEADER_BYTES
 from mutualslam_cli.errors import ArchiveTooLarge

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from mutualslam_cli.atomic import atomic_write_text
+from mutualslam_cli.datasets.download.fetch import Entity
 from mutualslam_cli.datasets.download.files import (
     COUNT,
     OPTIONAL_TEXT,
@@ -37,7 +38,6 @@ from mutualslam_cli.datasets.download.files import (
     read_text_no_follow,
 )
 from mutualslam_cli.datasets.download.lock import locked_update
-from mutualslam_cli.datasets.download.fetch import Entity
 from mutualslam_cli.errors import DamagedRecord, DatasetError
 
 CHECKSUMS_FILE = "checksums.json"

@@ -42,16 +42,15 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from mutualslam_cli.datasets.check import CheckProgress, CheckReport, check_sequence
 from mutualslam_cli.datasets.download.checksums import ALGORITHMS, CHECKSUMS_FILE, ChecksumStore, verify
-from mutualslam_cli.datasets.download.lock import download_lock
 from mutualslam_cli.datasets.download.fetch import TIMEOUT_S, DownloadProgress, Entity, fetch
 from mutualslam_cli.datasets.download.limits import UnpackLimits
-from mutualslam_cli.datasets.registry import DEFAULT_REGISTRY, list_datasets
+from mutualslam_cli.datasets.download.lock import download_lock
 from mutualslam_cli.datasets.download.safe_names import check_name, path_inside, url_file_name
 from mutualslam_cli.datasets.download.unpack import (
     install_archive,
@@ -60,12 +59,27 @@ from mutualslam_cli.datasets.download.unpack import (
     not_unpacked_by_mslam,
     recover_leftovers,
 )
+from mutualslam_cli.datasets.registry import DEFAULT_REGISTRY, list_datasets
 from mutualslam_cli.errors import CorruptArchive, DatasetError
 from mutualslam_cli.types import SequenceSpec
 
-__all__ = ["BASE_URL_ENV", "CHECKSUMS_FILE", "DOWNLOAD_DIR", "DownloadBlock", "DownloadProgress", "DownloadResult",
-           "FetchedFile", "TIMEOUT_S", "data_root_of", "download_block", "download_sequence", "downloadable_specs",
-           "file_url", "get_file", "url_file_name"]
+__all__ = [
+    "BASE_URL_ENV",
+    "CHECKSUMS_FILE",
+    "DOWNLOAD_DIR",
+    "TIMEOUT_S",
+    "DownloadBlock",
+    "DownloadProgress",
+    "DownloadResult",
+    "FetchedFile",
+    "data_root_of",
+    "download_block",
+    "download_sequence",
+    "downloadable_specs",
+    "file_url",
+    "get_file",
+    "url_file_name",
+]
 
 DOWNLOAD_DIR = "_downloads"
 """Folder in the data root that holds the downloaded files and ``checksums.json``."""

@@ -30,9 +30,10 @@ import re
 import urllib.error
 import urllib.parse
 import urllib.request
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.download.files import (

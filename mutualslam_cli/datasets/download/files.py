@@ -22,8 +22,9 @@ import errno
 import json
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from mutualslam_cli.errors import DamagedRecord
 

@@ -27,9 +27,10 @@ how to change it; the caller removes what was written. Sizes in bytes; messages 
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Callable
+from typing import IO
 
 from mutualslam_cli.errors import ArchiveTooLarge
 

@@ -26,10 +26,10 @@ import json
 import logging
 import os
 import socket
+from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from datetime import datetime
 from pathlib import Path
-from typing import Iterator
 
 from mutualslam_cli.datasets.download.files import (
     COUNT,

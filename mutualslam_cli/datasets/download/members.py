@@ -19,9 +19,9 @@ import stat
 import tarfile
 import zipfile
 import zlib
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
-from typing import Iterator
 
 from mutualslam_cli.datasets.download.archive_scan import zip_declared_members
 from mutualslam_cli.datasets.download.limits import Budget

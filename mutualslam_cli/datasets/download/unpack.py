@@ -34,8 +34,9 @@ import secrets
 import shutil
 import tarfile
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Callable
+from typing import IO
 
 from mutualslam_cli.datasets.download.archive_scan import scan_tar
 from mutualslam_cli.datasets.download.limits import MAX_HEADER_BYTES, Budget, UnpackLimits

@@ -91,7 +91,7 @@ def _read_filestorage(path: Path) -> dict[str, Any]:
         if not fs.isOpened():
             raise CameraFileError("OpenCV cannot open it")
         root = fs.root()
-        return {k: _fs_value(fs.getNode(k)) for k in root.keys()}
+        return {k: _fs_value(fs.getNode(k)) for k in root.keys()}  # noqa: SIM118 (a cv2.FileNode: keys() is its API, `in` is not)
     finally:
         fs.release()
 
@@ -102,7 +102,7 @@ def _fs_value(node: Any) -> Any:
         if "dt" in keys and "data" in keys:
             try:
                 return np.asarray(node.mat(), dtype=np.float64)
-            except Exception:  # noqa: BLE001 - a malformed matrix: read its parts below
+            except Exception:
                 pass
         return {k: _fs_value(node.getNode(k)) for k in keys}
     if node.isSeq():
@@ -122,7 +122,7 @@ def _yaml_mapping(text: str) -> dict[str, Any] | None:
     import yaml
 
     try:
-        data = yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader
+        data = yaml.load(text, Loader=StrictLoader)
     except (yaml.YAMLError, RecursionError) as e:
         if is_refusal(e):
             raise CameraFileError(f"line {e.problem_mark.line + 1}: {e.problem}") from None  # type: ignore[attr-defined]

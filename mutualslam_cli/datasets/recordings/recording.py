@@ -19,9 +19,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
 
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.recordings.conversion import (
@@ -36,8 +36,15 @@ from mutualslam_cli.datasets.recordings.conversion import (
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import SequenceSpec
 
-__all__ = ["RecordingOptions", "TumWriter", "conversion_folder", "open_recording", "recording_kind",
-           "spec_of_conversion", "IMAGE_SUFFIXES"]
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "RecordingOptions",
+    "TumWriter",
+    "conversion_folder",
+    "open_recording",
+    "recording_kind",
+    "spec_of_conversion",
+]
 
 def recording_kind(path: str | os.PathLike, opts: RecordingOptions | None = None) -> str | None:
     """``"bag"``, ``"video"``, ``"images"`` or ``None`` (a sequence folder or a registry name).
@@ -56,9 +63,9 @@ def recording_kind(path: str | os.PathLike, opts: RecordingOptions | None = None
     if p.is_dir():
         if (p / "metadata.yaml").is_file() and any(q.suffix in (".db3", ".mcap") for q in p.iterdir()):
             return "bag"
-        if not (p / "rgb.txt").is_file() and not (p / "associations.txt").is_file():
-            if any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir()) and opts is not None and opts.camera:
-                return "images"
+        if (not (p / "rgb.txt").is_file() and not (p / "associations.txt").is_file()
+                and any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir()) and opts is not None and opts.camera):
+            return "images"
     return None
 
 

@@ -26,9 +26,10 @@ from __future__ import annotations
 import functools
 import logging
 import time
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Literal
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -43,8 +44,15 @@ from mutualslam_cli.types import Intrinsics, Trajectory, check_shape
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SCENES", "SyntheticSequence", "render_sequence", "iter_render", "write_tum", "bench_render",
-           "synthetic_intrinsics"]
+__all__ = [
+    "SCENES",
+    "SyntheticSequence",
+    "bench_render",
+    "iter_render",
+    "render_sequence",
+    "synthetic_intrinsics",
+    "write_tum",
+]
 
 FPS = 30.0
 DEPTH_SCALE = 5000.0
