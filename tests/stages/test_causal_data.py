@@ -21,7 +21,8 @@ def test_the_default_run_adapts_causally_as_the_readme_says(shared_data, tmp_pat
     s = flatten(r.summary)
     assert s["adaptation.labels"] == "causal"
     assert s["scheme"] == "replay+ewc"
-    assert s["depth.pcd.lsq.pretrained"] == pytest.approx(22.55, abs=0.1)  # the same network, the same frames
+    # the same network, the same frames; the CPU's kernels move it a little (22.55 on bf16 CPUs, 22.37 on AVX2 only)
+    assert s["depth.pcd.lsq.pretrained"] == pytest.approx(22.55, abs=0.3)
     assert 48.05 / 1.5 <= s["depth.pcd.lsq.adapted"] <= 48.05 * 1.5
     assert 31.50 / 1.5 <= s["depth.pcd_online.lsq"] <= 31.50 * 1.5
     assert s["depth.pcd.lsq.adapted"] > s["depth.pcd_online.lsq"] > s["depth.pcd.lsq.pretrained"]
