@@ -12,7 +12,8 @@ from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.summary import flatten
 
-pytestmark = pytest.mark.data
+# slow: a whole adapted run of the window, 6.5 min on an AVX2-only CPU (one thread) -- beyond what CI can hold.
+pytestmark = [pytest.mark.data, pytest.mark.slow]
 
 
 def test_the_default_run_adapts_causally_as_the_readme_says(shared_data, tmp_path):
