@@ -96,7 +96,7 @@ def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, regi
         return JobOutcome(job, "skipped" if r.skipped else "done", r.folder)
     except MslamError as e:
         return JobOutcome(job, "failed", None, str(e))
-    except Exception as e:
+    except Exception as e:  # a bug in one job must not lose the others' results
         return JobOutcome(job, "failed", None, f"{type(e).__name__}: {e}\n{traceback.format_exc()}")
 
 
@@ -269,7 +269,7 @@ def _dask_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str]
         for f in dask_completed(list(futs)):
             try:
                 yield f.result()
-            except Exception as e:
+            except Exception as e:  # a lost worker fails its job, not the grid
                 yield JobOutcome(futs[f], "failed", None, f"{type(e).__name__}: {e}")
     finally:
         client.close()

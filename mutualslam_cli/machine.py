@@ -49,5 +49,5 @@ def memory_gb() -> float | None:
         import psutil
 
         return round(psutil.virtual_memory().total / 1024**3, 2)
-    except Exception:
+    except Exception:  # a missing figure is recorded as such
         return None

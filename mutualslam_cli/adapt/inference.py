@@ -45,7 +45,7 @@ def openvino_available() -> bool:
     """True when the ``openvino`` package imports."""
     try:
         import openvino  # noqa: F401
-    except Exception:
+    except Exception:  # any import failure means "not usable"
         return False
     return True
 

@@ -103,7 +103,7 @@ def render_synth(ref: SequenceRef, data_dir: Path) -> Path:
         tmp.rename(out)
     except MslamError:
         raise
-    except Exception as e:
+    except Exception as e:  # a renderer refusal (bad scene, size) as one line
         raise ConfigError(f"sequence {ref.name}: cannot render {s}: {e}") from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -95,7 +95,7 @@ def parse_yaml(text: str, where: str, error: type[MslamError] = ConfigError) -> 
         error: not valid YAML, a duplicate key, too many aliases (``"<where>:<line>: <reason>"``).
     """
     try:
-        return yaml.load(text, Loader=StrictLoader)
+        return yaml.load(text, Loader=StrictLoader)  # StrictLoader is a SafeLoader
     except yaml.YAMLError as e:
         line, reason = _problem(e)
         raise error(f"{where}{line}: {reason}") from None

@@ -224,7 +224,7 @@ def check_all(names: list[str] | None = None, registry_path: str | os.PathLike |
     for spec in specs:
         try:
             out.append(check_sequence(spec, sample=sample))
-        except Exception as e:
+        except Exception as e:  # reported per entry by the caller
             out.append(e)
     return out
 

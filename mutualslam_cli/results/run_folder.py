@@ -68,7 +68,7 @@ def versions() -> dict[str, str]:
     for mod in ("numpy", "torch", "cv2", "open3d", "pandas"):
         try:
             out[mod] = __import__(mod).__version__
-        except Exception:
+        except Exception:  # a missing optional library is simply not listed
             continue
     return out
 

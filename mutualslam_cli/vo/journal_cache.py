@@ -113,7 +113,7 @@ def load_entry(path: Path) -> JournalEntry | None:
             events = journal_from_arrays(z)
             cks = {int(f): {k.split(".", 1)[1]: np.asarray(z[k]) for k in z.files if k.startswith(f"ck{f}.")}
                    for f in header["checkpoints"]}
-    except Exception as e:
+    except Exception as e:  # whatever is wrong with the file, the entry is recomputed
         log.warning("VO cache %s is unreadable (%s: %s); recomputing it", path, type(e).__name__, e)
         return None
     log.info("front-end journal loaded from %s (frames 0-%d of %d)", path, header["until"], header["n_frames"])

@@ -51,7 +51,7 @@ class Server:
         srv = self
 
         class Handler(BaseHTTPRequestHandler):
-            def do_GET(self) -> None:
+            def do_GET(self) -> None:  # http.server's name
                 rng, if_range = self.headers.get("Range"), self.headers.get("If-Range")
                 srv.requests.append((self.path, rng))
                 srv.if_ranges.append(if_range)

@@ -102,7 +102,7 @@ def _fs_value(node: Any) -> Any:
         if "dt" in keys and "data" in keys:
             try:
                 return np.asarray(node.mat(), dtype=np.float64)
-            except Exception:
+            except Exception:  # a malformed matrix: read its parts below
                 pass
         return {k: _fs_value(node.getNode(k)) for k in keys}
     if node.isSeq():
@@ -122,7 +122,7 @@ def _yaml_mapping(text: str) -> dict[str, Any] | None:
     import yaml
 
     try:
-        data = yaml.load(text, Loader=StrictLoader)
+        data = yaml.load(text, Loader=StrictLoader)  # a SafeLoader
     except (yaml.YAMLError, RecursionError) as e:
         if is_refusal(e):
             raise CameraFileError(f"line {e.problem_mark.line + 1}: {e.problem}") from None  # type: ignore[attr-defined]
