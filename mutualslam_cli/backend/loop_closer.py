@@ -28,33 +28,49 @@ from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.backend.records import LoopRecord
 from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
-from mutualslam_cli.config import RunConfig
+from mutualslam_cli.config import LoopConfig, VOConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.vo.camera import focal_px
 
 log = logging.getLogger(__name__)
 
 
+def place_detector(seq: Sequence, vo: VOConfig, loop: LoopConfig, source: MapTarget) -> LoopDetector:
+    """The run's place recognition: a :class:`~mutualslam_cli.backend.loop_detector.LoopDetector` over ``seq``'s
+    keyframes as ``source`` holds them (images decoded again when asked), its PnP threshold the front end's
+    (``vo.ransac_threshold_px``), its other thresholds ``loop``'s. The loop closer takes it; the merger takes
+    :meth:`~mutualslam_cli.backend.loop_detector.LoopDetector.sharing` of it (one keyframe index for both)."""
+    return LoopDetector(seq.intrinsics, vo.ransac_threshold_px / focal_px(seq.intrinsics), loop,
+                        load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
+
+
+def close_on_graph(source: MapTarget, loop: LoopClosure) -> None:
+    """Close a verified ``loop`` by the Sim(3) pose graph alone on ``source``'s map: the work in flight settled
+    first, so the graph starts from the map as it stands."""
+    source.settle()
+    source.refine(close_loop(source.state, loop))
+
+
 class LoopCloser:
     """Place recognition and loop closure over one run's keyframes (module docstring).
 
     Args:
-        seq: the sequence (keyframe images); cfg: the run's config (``loop``, ``vo``, ``seed``).
+        seq: the sequence (keyframe images); loop: the run's ``loop`` section (``cooldown``); seed: the run's seed
+            (each query's RANSAC draws ``seed + kf``).
         source: where the map is (:class:`~mutualslam_cli.backend.refine.MapTarget`): its ``state`` is the map now;
             ``settle`` / ``refine`` change it.
         ba: the run's culling + BA, ``None`` without BA: the pose graph alone.
+        detector: the run's place recognition (:func:`place_detector`).
 
     Attributes:
         loops: one record per loop closed (``manifest.json``'s ``loops``).
         skipped: ``{kf: why}`` of the keyframes kept but not queried (loop recall's reasons).
     """
 
-    def __init__(self, seq: Sequence, cfg: RunConfig, source: MapTarget, ba: MapBA | None) -> None:
-        self.seq, self.cfg, self.source, self.ba = seq, cfg, source, ba
-        lc = cfg.loop
-        self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
-                                     lc,
-                                     load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
+    def __init__(self, seq: Sequence, loop: LoopConfig, seed: int, source: MapTarget, ba: MapBA | None,
+                 detector: LoopDetector) -> None:
+        self.seq, self.settings, self.seed, self.source, self.ba = seq, loop, seed, source, ba
+        self.detector = detector
         self.loops: list[LoopRecord] = []
         self.skipped: dict[int, str] = {}
         self._last = -(10 ** 9)  # the query keyframe of the last loop closed
@@ -71,11 +87,11 @@ class LoopCloser:
         state = self.source.state
         gray = self.seq.load_gray(state.frame_of(kf))
         self.detector.add(kf, gray)
-        if kf - self._last < self.cfg.loop.cooldown:
-            self.skipped[kf] = (f"not queried: within loop.cooldown ({self.cfg.loop.cooldown}) keyframes of the loop "
+        if kf - self._last < self.settings.cooldown:
+            self.skipped[kf] = (f"not queried: within loop.cooldown ({self.settings.cooldown}) keyframes of the loop "
                                 f"closed at keyframe {self._last}")
             return time.perf_counter() - t
-        loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf)
+        loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.seed + kf)
         if loop is None:
             return time.perf_counter() - t
         if self.detector.already_closed(state, loop):  # e.g. the front end relocalised there: nothing to correct
@@ -91,8 +107,7 @@ class LoopCloser:
         robust BA; returns its record. Also a merge's way within one map unit (:mod:`~mutualslam_cli.backend.merge`)."""
         kf, state = loop.query, self.source.state
         self._last = kf  # whoever asked (a loop, a merge): no other loop within loop.cooldown keyframes of it
-        self.source.settle()
-        self.source.refine(close_loop(state, loop))
+        close_on_graph(self.source, loop)
         nearby = None
         if self.ba is not None:  # the robust BA over the closed map: the loop's two ends now tie by nearby targets
             t_ba = time.perf_counter()

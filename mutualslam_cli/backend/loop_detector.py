@@ -181,6 +181,7 @@ class LoopDetector:
             ``enabled`` is the caller's business); default: its defaults.
         load: keyframe id → its grey image decoded again (the index then holds no image:
             :class:`~mutualslam_cli.vo.relocalise.HeldImages`).
+        index: a keyframe index to share (:meth:`sharing`), built with these thresholds; default: one of its own.
 
     Attributes:
         index: per keyframe its grey image, thumbnail and ORB features (:class:`RelocIndex`).
@@ -193,15 +194,21 @@ class LoopDetector:
     """
 
     def __init__(self, intr: Intrinsics, thr: float, settings: LoopConfig | None = None,
-                 load: Callable[[int], np.ndarray] | None = None) -> None:
+                 load: Callable[[int], np.ndarray] | None = None, index: RelocIndex | None = None) -> None:
         self.intr, self.K, self.thr = intr, intr.K(), thr
         self.settings = settings or LoopConfig()
         factor = self.settings.inlier_px / focal_px(intr) / thr  # the loop's inlier threshold over the front end's
-        self.index = RelocIndex(intr, RelocSettings(n_candidates=self.settings.n_candidates, inlier_factor=factor,
-                                                    witness_ratio=self.settings.witness_ratio), load)
+        self.index = index if index is not None else RelocIndex(
+            intr, RelocSettings(n_candidates=self.settings.n_candidates, inlier_factor=factor,
+                                witness_ratio=self.settings.witness_ratio), load)
         self.tried = 0
         self.rejected: dict[str, int] = {}
         self.queries: list[dict] = []
+
+    def sharing(self) -> LoopDetector:
+        """A detector of the same camera and thresholds over this one's keyframe index (one ORB extraction per
+        keyframe for all), with records of its own (``tried``, ``rejected``, ``queries``)."""
+        return LoopDetector(self.intr, self.thr, self.settings, index=self.index)
 
     def add(self, kf: int, gray: np.ndarray) -> None:
         """Keep keyframe ``kf``'s ``(H, W)`` uint8 grey image for later queries (once: the index may be shared)."""

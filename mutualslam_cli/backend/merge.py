@@ -30,14 +30,11 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from mutualslam_cli.backend.loop_closer import LoopCloser
+from mutualslam_cli.backend.loop_closer import LoopCloser, close_on_graph
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
-from mutualslam_cli.backend.pose_graph import close_loop
 from mutualslam_cli.backend.records import MergeRecord
 from mutualslam_cli.backend.refine import MapTarget
-from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
-from mutualslam_cli.vo.camera import focal_px
 
 #: The old segments' newest keyframes a merge query tries before the appearance ranking: a segment started after a
 #: loss most often sees again what the camera saw when it lost track (TUM fr1_desk: the appearance ranking alone
@@ -58,25 +55,23 @@ class SegmentMerger:
     """Merges of one run's segments (module docstring).
 
     Args:
-        seq: the sequence (keyframe images); cfg: the run's config (``loop`` thresholds, ``vo``, ``seed``).
+        seq: the sequence (keyframe images); seed: the run's seed (each query's RANSAC draws ``seed + kf``).
         source: where the map is (:class:`~mutualslam_cli.backend.refine.MapTarget`): its ``state`` is the map now;
             ``transform_segment`` moves a segment.
-        closer: the run's loop closure (``loop.enabled``): its keyframe index is shared, and a merge within one map
-            unit is closed its way (pose graph + BA); ``None``: an index of its own, the pose graph alone.
+        detector: its place recognition, with records of its own
+            (:meth:`~mutualslam_cli.backend.loop_detector.LoopDetector.sharing` of the loop closer's, so one
+            keyframe index serves both; :func:`~mutualslam_cli.backend.loop_closer.place_detector` without one).
+        closer: the run's loop closure (``loop.enabled``): a merge within one map unit is closed its way (pose
+            graph + BA); ``None``: the pose graph alone.
 
     Attributes:
         merges: one record per merge (``segment``, ``onto``, ``query``, ``match``, ``scale``, ``inliers``, …).
         tried: keyframes queried.
     """
 
-    def __init__(self, seq: Sequence, cfg: RunConfig, source: MapTarget, closer: LoopCloser | None = None) -> None:
-        self.seq, self.cfg, self.source, self.closer = seq, cfg, source, closer
-        lc = cfg.loop
-        self.detector = LoopDetector(seq.intrinsics, cfg.vo.ransac_threshold_px / focal_px(seq.intrinsics),
-                                     lc,
-                                     load=lambda kf: seq.load_gray(source.state.frame_of(kf)))
-        if closer is not None:  # one keyframe index for both: one ORB extraction per keyframe
-            self.detector.index = closer.detector.index
+    def __init__(self, seq: Sequence, seed: int, source: MapTarget, detector: LoopDetector,
+                 closer: LoopCloser | None = None) -> None:
+        self.seq, self.seed, self.source, self.detector, self.closer = seq, seed, source, detector, closer
         self.merges: list[MergeRecord] = []
         self.tried = 0
         self._merged: set[int] = set()
@@ -103,7 +98,7 @@ class SegmentMerger:
             return time.perf_counter() - t
         gray = self.seq.load_gray(state.frame_of(kf)) if gray is None else gray
         self.tried += 1
-        loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.cfg.seed + kf, pool=pool,
+        loop = self.detector.query(state, kf, gray, depth_of(kf), seed=self.seed + kf, pool=pool,
                                    newest=MERGE_NEWEST)
         if loop is None:
             return time.perf_counter() - t
@@ -117,8 +112,7 @@ class SegmentMerger:
                 rec = MergeRecord(loop, **where, how="pose graph + BA",
                                   closed=self.closer.close(loop, depth_of, val_loss))
             else:
-                self.source.settle()
-                self.source.refine(close_loop(state, loop))
+                close_on_graph(self.source, loop)
                 rec = MergeRecord(loop, **where, how="pose graph")
         else:  # a segment in a unit of its own (its bridge refused): moved onto the old map whole
             self.source.settle()  # the windowed BA in flight first: the keyframe's pose as it now stands

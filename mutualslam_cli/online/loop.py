@@ -33,7 +33,7 @@ from mutualslam_cli.adapt.depthnet import predict_depth, prepare
 from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.backend.bridges import Bridge, plan_bridge
-from mutualslam_cli.backend.loop_closer import LoopCloser
+from mutualslam_cli.backend.loop_closer import LoopCloser, place_detector
 from mutualslam_cli.backend.merge import SegmentMerger
 from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
 from mutualslam_cli.online.credit import WeightsAt
@@ -93,8 +93,11 @@ class OnlineLoop:
             cost = cfg.adapt.step_cost_ms
             self.clock = RealtimeClock(None if cost == "measured" else float(cost), cfg.adapt.max_steps)
             self.writer = DeferredMap(source)
-        self.closer = LoopCloser(run.seq, cfg, self.writer, ba) if cfg.loop.enabled else None
-        self.merger = (SegmentMerger(run.seq, cfg, self.writer, self.closer)
+        places = place_detector(run.seq, cfg.vo, cfg.loop, self.writer)  # one keyframe index for closer and merger
+        self.closer = (LoopCloser(run.seq, cfg.loop, cfg.seed, self.writer, ba, places) if cfg.loop.enabled
+                       else None)
+        self.merger = (SegmentMerger(run.seq, cfg.seed, self.writer,
+                                     places if self.closer is None else places.sharing(), self.closer)
                        if cfg.vo.merge_segments and cfg.vo.mode == "svo" else None)
         if cfg.vo.depth_seeds or cfg.vo.scale_prior:  # the front end asks the network of now at its keyframes
             frame_image = keyframe_images(run.seq, lambda f: f, w, h)  # by frame: not in the map yet when asked

@@ -9,13 +9,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from mutualslam_cli.backend.loop_closer import place_detector
 from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.backend.merge import SegmentMerger, merge_similarity
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.geometry import exp_so3, se3_inv
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.relocalise import HeldImages
 
 INTR = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
 
@@ -56,7 +56,8 @@ class Source:
 
 def _merger(state: MapState, loop: LoopClosure | None, closer=None) -> SegmentMerger:
     seq = SimpleNamespace(intrinsics=INTR, load_gray=lambda f: np.zeros((240, 320), np.uint8))
-    mg = SegmentMerger(seq, RunConfig(), Source(state), closer)
+    cfg, source = RunConfig(), Source(state)
+    mg = SegmentMerger(seq, cfg.seed, source, place_detector(seq, cfg.vo, cfg.loop, source), closer)
     mg.detector.add = lambda kf, gray: mg.detector.index.images.add(kf, gray)
     asked = []
 
@@ -123,8 +124,7 @@ def test_a_bridged_segment_is_corrected_as_a_loop():
     state.transform_segment(1, np.eye(3), np.array([0.3, 0, 0]), 1.0, 0)  # a bridge joined it to segment 0
     loop = LoopClosure(4, 1, se3_inv(_T_wc(0.7, [0.3, 0.2, 0.1])), 1.2, 100, 0.1, 50, 50)
     calls = []
-    closer = SimpleNamespace(detector=SimpleNamespace(index=SimpleNamespace(images=HeldImages())),
-                             close=lambda lp, d, v: calls.append(lp.query) or {"ba_nearby_targets": 3})
+    closer = SimpleNamespace(close=lambda lp, d, v: calls.append(lp.query) or {"ba_nearby_targets": 3})
     mg = _merger(state, loop, closer)
     before = state.pose(3).copy()
     for kf in range(5):
