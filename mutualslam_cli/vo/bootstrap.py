@@ -17,6 +17,7 @@ import numpy as np
 from mutualslam_cli.geometry import se3_inv, to_normalized
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.features import detect_grid
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 from mutualslam_cli.vo.initialization import InitResult, initialize
 from mutualslam_cli.vo.state import InitReference, Tracks
 from mutualslam_cli.vo.tracking import estimate_pose, klt_track
@@ -31,7 +32,7 @@ MAX_INIT_FRAMES = 150
 """A reference frame that has not initialised after this many frames is replaced (bounded memory)."""
 
 
-class InitMixin:
+class InitMixin(FrontEndBase):
     """Methods of the front end (``_Frontend``) that bring up a new tracking segment."""
 
     def _start_ref(self, i: int, gray: np.ndarray) -> None:

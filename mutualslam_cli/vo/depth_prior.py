@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mutualslam_cli.pixels import lookup_nearest
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 
 MIN_RATIO_POINTS = 20
 """Fewer points with a positive prediction in a keyframe: no ratio (no check, no seeds from it)."""
@@ -144,7 +145,7 @@ class ScaleCheck:
                 "drift_min": float(dr.min()) if len(dr) else None}
 
 
-class NetworkMixin:
+class NetworkMixin(FrontEndBase):
     """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that ask the network: its
     :attr:`scale` (:class:`ScaleCheck`, ``None`` until :meth:`use_network`) and the windowed BA's prior."""
 

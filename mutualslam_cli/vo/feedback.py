@@ -16,9 +16,10 @@ import numpy as np
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
 from mutualslam_cli.map.sim3 import Sim3, follow, rescaled
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 
 
-class FeedbackMixin:
+class FeedbackMixin(FrontEndBase):
     """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that take the network
     side's changes between two frames."""
 

@@ -36,6 +36,7 @@ from mutualslam_cli.map.store import Map
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.camera import distort_points
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 from mutualslam_cli.vo.reproject import match_points, reproject_points
 from mutualslam_cli.vo.state import Tracks
 
@@ -273,7 +274,7 @@ def duplicates(m: Map, T_cw: np.ndarray, K: np.ndarray, kfs: np.ndarray, young_b
     return np.array(pair_y, np.int64), np.array(pair_o, np.int64)
 
 
-class LocalMapMixin:
+class LocalMapMixin(FrontEndBase):
     """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that re-attach lost map points:
     the newest keyframes' always, with ``vo.reuse_map`` the whole map unit's in view (:func:`local_map`)."""
 
