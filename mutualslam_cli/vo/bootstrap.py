@@ -48,6 +48,7 @@ class InitMixin(FrontEndBase):
         if stale or prev_pyr is None:
             self._start_ref(i, gray)
             return
+        assert ref is not None  # not stale
         t0 = time.perf_counter()
         raw, ok = klt_track(prev_pyr, pyr, ref.raw, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px)
         self.st.timing["track"] += time.perf_counter() - t0
@@ -71,6 +72,7 @@ class InitMixin(FrontEndBase):
                    x1: np.ndarray) -> None:
         """Create the two first keyframes and the initial map of a new segment."""
         ref = self.st.ref
+        assert ref is not None  # called by _init_step with its reference
         self.st.segment += 1
         self.state_map.start_segment(self.st.segment, ref.frame, res.method)
         sm = self.state_map

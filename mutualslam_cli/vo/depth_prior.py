@@ -160,6 +160,7 @@ class NetworkMixin(FrontEndBase):
 
     def _prior_rho(self, pids: np.ndarray) -> np.ndarray:
         """Prior inverse depths ``(P,)`` of points ``pids`` from their hosts' network depth (NaN: none)."""
+        assert self.scale is not None  # the windowed BA's prior_of only after use_network
         m, out = self.state_map.map, np.full(len(pids), np.nan)
         host = np.array([m.host[p] for p in pids.tolist()], np.int64)
         unit = self.state_map.unit(self.st.segment)
