@@ -58,9 +58,9 @@ class FeedbackMixin(FrontEndBase):
             st.vel = rescaled(st.vel, s)
         if r.scale is not None and len(st.tracks):
             seeds = np.flatnonzero(st.tracks.pid < 0)
-            s = np.array([r.scale_of(int(h)) for h in st.tracks.host[seeds]])
-            st.tracks.seed["mu"][seeds] /= s  # inverse distances along the host bearings
-            st.tracks.seed["sigma2"][seeds] /= s * s
-            st.tracks.seed["z_range"][seeds] /= s
+            scales = np.array([r.scale_of(int(h)) for h in st.tracks.host[seeds]])
+            st.tracks.seed["mu"][seeds] /= scales  # inverse distances along the host bearings
+            st.tracks.seed["sigma2"][seeds] /= scales * scales
+            st.tracks.seed["z_range"][seeds] /= scales
         if len(r.removed) and len(st.tracks):
             st.tracks = st.tracks.select(~np.isin(st.tracks.pid, r.removed))

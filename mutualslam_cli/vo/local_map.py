@@ -345,8 +345,8 @@ class LocalMapMixin(FrontEndBase):
                 tr = self._fuse_duplicates(tr, gray, T_cw, kfs)
             lm = local_map(m, T_cw, self.K, (self.intr.width, self.intr.height), kfs, window, set(self.st.kf_imgs),
                            tr.pid[tr.pid >= 0], tr.raw, lambda px: distort_points(px, self.intr), cfg.grid_size)
-            new = ~lm.old
-            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids[new], lm.source[new], self.intr,
+            recent = ~lm.old
+            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids[recent], lm.source[recent], self.intr,
                                      cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px, self.thr)
             if lm.old.any():  # old points: their depth, made from other viewpoints, misses by more (REUSE_GATE_PX)
                 p_old, r_old = match_points(m, self._image_of, gray, T_cw, lm.pids[lm.old], lm.source[lm.old],
