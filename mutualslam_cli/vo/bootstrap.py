@@ -17,6 +17,7 @@ import numpy as np
 from mutualslam_cli.geometry import se3_inv, to_normalized
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.features import detect_grid
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 from mutualslam_cli.vo.initialization import InitResult, initialize
 from mutualslam_cli.vo.state import InitReference, Tracks
 from mutualslam_cli.vo.tracking import estimate_pose, klt_track
@@ -31,7 +32,7 @@ MAX_INIT_FRAMES = 150
 """A reference frame that has not initialised after this many frames is replaced (bounded memory)."""
 
 
-class InitMixin:
+class InitMixin(FrontEndBase):
     """Methods of the front end (``_Frontend``) that bring up a new tracking segment."""
 
     def _start_ref(self, i: int, gray: np.ndarray) -> None:
@@ -47,6 +48,7 @@ class InitMixin:
         if stale or prev_pyr is None:
             self._start_ref(i, gray)
             return
+        assert ref is not None  # not stale
         t0 = time.perf_counter()
         raw, ok = klt_track(prev_pyr, pyr, ref.raw, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px)
         self.st.timing["track"] += time.perf_counter() - t0
@@ -70,6 +72,7 @@ class InitMixin:
                    x1: np.ndarray) -> None:
         """Create the two first keyframes and the initial map of a new segment."""
         ref = self.st.ref
+        assert ref is not None  # called by _init_step with its reference
         self.st.segment += 1
         self.state_map.start_segment(self.st.segment, ref.frame, res.method)
         sm = self.state_map

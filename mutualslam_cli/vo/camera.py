@@ -85,12 +85,14 @@ class Undistorter:
         """``(H, W, 3)`` uint8 raw → ``(H, W, 3)`` uint8 pinhole (bilinear)."""
         if not self.active:
             return rgb
-        maps = self._map(*rgb.shape[:2], cv2.CV_16SC2)  # the tables cv2.undistort uses
+        h, w = rgb.shape[:2]
+        maps = self._map(h, w, cv2.CV_16SC2)  # the tables cv2.undistort uses
         return cv2.remap(rgb, *maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
     def depth(self, depth: np.ndarray) -> np.ndarray:
         """``(H, W)`` float depth (m, 0 = missing) raw → pinhole (nearest raw pixel)."""
         if not self.active:
             return depth
-        maps = self._map(*depth.shape[:2], cv2.CV_32FC1)  # float tables: the exact nearest pixel
+        h, w = depth.shape[:2]
+        maps = self._map(h, w, cv2.CV_32FC1)  # float tables: the exact nearest pixel
         return cv2.remap(depth, *maps, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)

@@ -102,11 +102,12 @@ def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: 
     tr.obs = [[(int(k), p) for k, p in zip(ks.tolist(), px)] for ks, px in zip(kfs, pxs)]
     st.tracks = tr
     if "job.kf" in ckpt:
-        prob = BAProblem(**{f.name: np.array(ckpt[f"job.prob.{f.name}"]) for f in fields(BAProblem)
+        # every field as saved, an array: prior_w (a float) comes back 0-d and is made a float below
+        prob = BAProblem(**{f.name: np.array(ckpt[f"job.prob.{f.name}"]) for f in fields(BAProblem)  # type: ignore[arg-type]
                             if f"job.prob.{f.name}" in ckpt})
         prob.prior_w = float(prob.prior_w)
         fe.mapper.resume(int(ckpt["job.kf"][0]), [int(k) for k in ckpt["job.kfs"]], np.array(ckpt["job.free"]),
-                         [int(p) for p in ckpt["job.pids"]], [tuple(map(int, o)) for o in ckpt["job.o_id"]], prob)
+                         [int(p) for p in ckpt["job.pids"]], [(int(p), int(k)) for p, k in ckpt["job.o_id"]], prob)
     st.prev_pyr = build_pyramid(seq.load_gray(st.frame), cfg.klt_window, cfg.klt_levels)
     fe.journal.frame = st.frame
     return fe

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mutualslam_cli.pixels import lookup_nearest
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 
 MIN_RATIO_POINTS = 20
 """Fewer points with a positive prediction in a keyframe: no ratio (no check, no seeds from it)."""
@@ -144,7 +145,7 @@ class ScaleCheck:
                 "drift_min": float(dr.min()) if len(dr) else None}
 
 
-class NetworkMixin:
+class NetworkMixin(FrontEndBase):
     """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that ask the network: its
     :attr:`scale` (:class:`ScaleCheck`, ``None`` until :meth:`use_network`) and the windowed BA's prior."""
 
@@ -159,6 +160,7 @@ class NetworkMixin:
 
     def _prior_rho(self, pids: np.ndarray) -> np.ndarray:
         """Prior inverse depths ``(P,)`` of points ``pids`` from their hosts' network depth (NaN: none)."""
+        assert self.scale is not None  # the windowed BA's prior_of only after use_network
         m, out = self.state_map.map, np.full(len(pids), np.nan)
         host = np.array([m.host[p] for p in pids.tolist()], np.int64)
         unit = self.state_map.unit(self.st.segment)

@@ -72,7 +72,7 @@ ORB_MAX_HAMMING, ORB_RATIO = 64, 0.8
 def orb_features(gray: np.ndarray, n: int = 1000) -> tuple[np.ndarray, np.ndarray]:
     """ORB keypoints and descriptors of a grey image (Rublee et al. 2011): ``(N, 2)`` float64 raw
     pixels and ``(N, 32)`` uint8 descriptors (``N`` may be 0)."""
-    kps, desc = cv2.ORB_create(nfeatures=n).detectAndCompute(gray, None)
+    kps, desc = cv2.ORB.create(nfeatures=n).detectAndCompute(gray, None)
     if desc is None:
         return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
     return np.array([k.pt for k in kps], np.float64), desc

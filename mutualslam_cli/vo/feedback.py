@@ -16,9 +16,10 @@ import numpy as np
 from mutualslam_cli.geometry import se3_inv
 from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
 from mutualslam_cli.map.sim3 import Sim3, follow, rescaled
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 
 
-class FeedbackMixin:
+class FeedbackMixin(FrontEndBase):
     """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that take the network
     side's changes between two frames."""
 
@@ -57,9 +58,9 @@ class FeedbackMixin:
             st.vel = rescaled(st.vel, s)
         if r.scale is not None and len(st.tracks):
             seeds = np.flatnonzero(st.tracks.pid < 0)
-            s = np.array([r.scale_of(int(h)) for h in st.tracks.host[seeds]])
-            st.tracks.seed["mu"][seeds] /= s  # inverse distances along the host bearings
-            st.tracks.seed["sigma2"][seeds] /= s * s
-            st.tracks.seed["z_range"][seeds] /= s
+            scales = np.array([r.scale_of(int(h)) for h in st.tracks.host[seeds]])
+            st.tracks.seed["mu"][seeds] /= scales  # inverse distances along the host bearings
+            st.tracks.seed["sigma2"][seeds] /= scales * scales
+            st.tracks.seed["z_range"][seeds] /= scales
         if len(r.removed) and len(st.tracks):
             st.tracks = st.tracks.select(~np.isin(st.tracks.pid, r.removed))

@@ -252,6 +252,7 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
             new.px_h = new.px.copy()
             new.seed = dfl.new_seeds(n, prior)
             if self.cfg.depth_seeds and ratio is not None:
+                assert self.scale is not None  # a ratio comes from _check_scale, which needs it
                 mu, sigma2 = self.scale.seeds(ratio, new.px, new.f_h[:, 2])
                 ok = np.isfinite(mu) & (mu > 0)
                 new.seed["mu"][ok], new.seed["sigma2"][ok] = mu[ok], sigma2[ok]

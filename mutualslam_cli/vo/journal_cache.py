@@ -96,7 +96,7 @@ def save_entry(path: Path, entry: JournalEntry) -> None:
         arrays.update({f"ck{frame}.{k}": v for k, v in ck.items()})
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:  # a file object: np.savez would append ".npz" to a name
-        np.savez(f, **arrays)
+        np.savez(f, **arrays)  # type: ignore[arg-type]  # mypy: a key of the dict could be savez's allow_pickle
         f.flush()
         os.fsync(f.fileno())
 

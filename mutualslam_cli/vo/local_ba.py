@@ -140,7 +140,7 @@ def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np
         w = np.where(e < huber, 1.0, huber / np.maximum(e, 1e-12)) * front  # IRLS Huber weights
         # camera Jacobian of every residual over the free poses (dense: F ≤ core_kfs), then
         # H_cc = Jcᵀ W Jc, H_cp and the point blocks accumulated per point with bincount
-        Jc = np.zeros((M, 2, F, 6))
+        Jc: np.ndarray = np.zeros((M, 2, F, 6))
         for Ja, ca in ((Jt, ct), (Jh, ch)):
             ma = np.flatnonzero(ca >= 0)
             Jc[ma, :, ca[ma], :] = Ja[ma]  # host ≠ target: the two never share a block

@@ -36,6 +36,7 @@ from mutualslam_cli.map.store import Map
 from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.camera import distort_points
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 from mutualslam_cli.vo.reproject import match_points, reproject_points
 from mutualslam_cli.vo.state import Tracks
 
@@ -273,7 +274,7 @@ def duplicates(m: Map, T_cw: np.ndarray, K: np.ndarray, kfs: np.ndarray, young_b
     return np.array(pair_y, np.int64), np.array(pair_o, np.int64)
 
 
-class LocalMapMixin:
+class LocalMapMixin(FrontEndBase):
     """Methods of the front end (:class:`~mutualslam_cli.vo.frontend.FrontEnd`) that re-attach lost map points:
     the newest keyframes' always, with ``vo.reuse_map`` the whole map unit's in view (:func:`local_map`)."""
 
@@ -344,8 +345,8 @@ class LocalMapMixin:
                 tr = self._fuse_duplicates(tr, gray, T_cw, kfs)
             lm = local_map(m, T_cw, self.K, (self.intr.width, self.intr.height), kfs, window, set(self.st.kf_imgs),
                            tr.pid[tr.pid >= 0], tr.raw, lambda px: distort_points(px, self.intr), cfg.grid_size)
-            new = ~lm.old
-            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids[new], lm.source[new], self.intr,
+            recent = ~lm.old
+            pids, raw = match_points(m, self._image_of, gray, T_cw, lm.pids[recent], lm.source[recent], self.intr,
                                      cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px, self.thr)
             if lm.old.any():  # old points: their depth, made from other viewpoints, misses by more (REUSE_GATE_PX)
                 p_old, r_old = match_points(m, self._image_of, gray, T_cw, lm.pids[lm.old], lm.source[lm.old],

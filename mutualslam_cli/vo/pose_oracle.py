@@ -35,6 +35,7 @@ import logging
 import time
 from collections.abc import Callable
 from itertools import combinations
+from typing import cast
 
 import numpy as np
 
@@ -146,7 +147,7 @@ def retriangulate(points: MapPoints, poses_wc: np.ndarray, K: np.ndarray,
     rho = np.where(bad == 0, rho, 1.0)
     # Gauss–Newton on rho: Y = R f_h + rho t ∝ the point in the observing camera
     Rf = np.einsum("eij,ej->ei", R, f_h[p_e])
-    H = np.zeros(n)
+    H: np.ndarray = np.zeros(n)
     for _ in range(GN_ITERS):
         r, J, Y = _residuals(Rf, t, rho[p_e], uv_e, K)
         H = np.bincount(p_e, (J ** 2).sum(1), minlength=n)
@@ -243,7 +244,8 @@ def run_pose_oracle(seq: Sequence, cfg: VOConfig, seed: int = 0,
     seg = np.array([0 if s >= 0 and f.pose is not None else -1 for s, f in zip(vo.frame_segment, seq.frames)])
     idx = np.flatnonzero(seg >= 0)
     traj = Trajectory(np.array([seq.frames[i].timestamp for i in idx]),
-                      np.stack([seq.frames[i].pose for i in idx]) if len(idx) else np.zeros((0, 4, 4)))
+                      np.stack([cast(np.ndarray, seq.frames[i].pose) for i in idx])  # idx: frames with a pose
+                      if len(idx) else np.zeros((0, 4, 4)))
     elapsed = time.perf_counter() - t0
     meta = {
         "mode": "gt", "oracle": "pose", "vo_meta": vo.meta,

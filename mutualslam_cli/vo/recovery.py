@@ -10,12 +10,13 @@ import numpy as np
 
 from mutualslam_cli.map.records import Relocalised
 from mutualslam_cli.vo import depth_filter as dfl
+from mutualslam_cli.vo.frontend_base import FrontEndBase
 from mutualslam_cli.vo.state import Tracks
 
 log = logging.getLogger("mutualslam_cli.vo.frontend")
 
 
-class RecoveryMixin:
+class RecoveryMixin(FrontEndBase):
     """Methods of the front end (``_Frontend``) for a lost frame."""
 
     def _lost(self, i: int, gray: np.ndarray, why: str) -> None:

@@ -134,7 +134,11 @@ class HeldImages(Mapping[int, np.ndarray]):
     def __getitem__(self, kf: int) -> np.ndarray:
         if kf not in self._held:
             raise KeyError(kf)
-        return self._held[kf] if self._lru is None else self._lru.get(kf)
+        if self._lru is not None:
+            return self._lru.get(kf)
+        img = self._held[kf]
+        assert img is not None  # without a loader every image is held
+        return img
 
     def __iter__(self) -> Iterator[int]:
         return iter(self._held)
@@ -171,10 +175,10 @@ class RelocIndex:
         """The ``newest`` of ``keyframes`` (a lost frame is most likely near them), then the others by thumbnail
         similarity to ``gray``; at most ``n_candidates``."""
         ks = [k for k in keyframes if k in self.thumbs]
-        newest = sorted(ks)[len(ks) - newest:][::-1] if newest else []
+        first = sorted(ks)[len(ks) - newest:][::-1] if newest else []
         t = _thumb(gray)
-        rest = sorted((k for k in ks if k not in newest), key=lambda k: -float(self.thumbs[k] @ t))
-        return (newest + rest)[: self.settings.n_candidates]
+        rest = sorted((k for k in ks if k not in first), key=lambda k: -float(self.thumbs[k] @ t))
+        return (first + rest)[: self.settings.n_candidates]
 
     def query(self, gray: np.ndarray, m: Map, thr: float, seed: int = 0,
               keyframes: list[int] | None = None, newest: int = 2,

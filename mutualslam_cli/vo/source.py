@@ -222,7 +222,7 @@ class FrontEndSource:
         if self.live is not None and self.live.mapper.pool is not None:
             self.live.mapper.close()
         if self._frames is not None:
-            self._frames.close()
+            self._frames.close()  # type: ignore[attr-defined]  # grey_frames' generator, typed as an Iterator there
         if self.path is None or self.cfg.vo.mode != "svo":
             return
         until = self.frame if self.changed_at is None else self.changed_at
@@ -281,6 +281,7 @@ class FrontEndSource:
         cks = [f for f in (e.checkpoints if e is not None else {}) if f <= upto]
         if cks:
             c = max(cks)
+            assert e is not None  # the checkpoints are the entry's
             fe = checkpoint.restore(self.seq, self.cfg.vo, self.cfg.seed, e.events[:self._bounds[c + 1]],
                                     e.checkpoints[c])
             start = c + 1
@@ -292,6 +293,7 @@ class FrontEndSource:
         self.live = fe
         self._frames = grey_frames(self.seq, start)
         for i in range(start, upto + 1):  # again, silently: the state has these events already
+            assert e is not None  # without a live front end the frames so far were replayed from the entry
             self._step(fe, i)
             got = fe.journal.events[self._live_pos:]
             want = e.events[self._bounds[i]:self._bounds[i + 1]]
@@ -305,8 +307,8 @@ class FrontEndSource:
 
     def _oracle_entry(self) -> JournalEntry:
         """The oracle front end's whole result as a journal (cached like ours)."""
-        seq, cfg = self.seq, self.cfg
-        cb = (lambda info: self.progress("vo", info)) if self.progress else None
+        seq, cfg, progress = self.seq, self.cfg, self.progress
+        cb = (lambda info: progress("vo", info)) if progress else None
         if cfg.vo.mode == "gt":  # pose oracle: our VO's tracks (cached like any svo run) re-triangulated with GT poses
             ours = FrontEndSource(seq, replace(cfg, vo=replace(cfg.vo, mode="svo")),
                                   self.path.parent if self.path is not None else None, self.progress)

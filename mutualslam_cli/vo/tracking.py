@@ -235,10 +235,10 @@ def estimate_pose(
             break
     if frac < RANSAC_TRIGGER:
         cv2.setRNGSeed(seed)
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        ok, rvec, tvec, ransac_inl = cv2.solvePnPRansac(
             Xw.astype(np.float64), xn.astype(np.float64), np.eye(3), None,
             iterationsCount=100, reprojectionError=thr, confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
-        if ok and inl is not None and len(inl) >= 6:
+        if ok and ransac_inl is not None and len(ransac_inl) >= 6:
             T = np.eye(4)
             T[:3, :3] = cv2.Rodrigues(rvec)[0]
             T[:3, 3] = tvec.reshape(3)
