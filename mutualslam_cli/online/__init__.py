@@ -9,6 +9,6 @@ each frame with the model of its time (:mod:`.scores`), and Table 4's bridged cr
 May import the ground floor, the domain (``vo``, ``adapt``, ``datasets``, ``metrics``) and the back end; writes no
 file and no summary key (the stages do), so the stages, the front doors and the CLI import it, never the other way.
 
-Entry points: :class:`~.loop.OnlineLoop` (``run_loop()``), :func:`~.realtime.run_realtime`,
+Entry points: :class:`~.loop.OnlineLoop` (``run_loop()``), :class:`~.realtime.RealtimeSchedule`,
 :class:`~.scores.OnlineScorer`, :func:`~.credit.front_end_alone`, :func:`~.credit.credit_bridges`.
 """

@@ -23,7 +23,7 @@ are made to that map only.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
@@ -38,7 +38,7 @@ from mutualslam_cli.backend.merge import SegmentMerger
 from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
 from mutualslam_cli.online.credit import WeightsAt
 from mutualslam_cli.online.labels import DepthOf, MapLabels, depth_predictor
-from mutualslam_cli.online.realtime import DeferredMap, RealtimeClock, run_realtime
+from mutualslam_cli.online.realtime import DeferredMap, RealtimeClock, RealtimeSchedule
 from mutualslam_cli.online.run import OnlineRun
 from mutualslam_cli.online.scores import OnlineScorer
 from mutualslam_cli.vo.source import FrontEndSource
@@ -115,23 +115,27 @@ class OnlineLoop:
 
     # ------------------------------------------------------------------ Algorithm 1
     def run_loop(self) -> None:
-        """Every frame in order; each keyframe it created through Algorithm 1 (module docstring); realtime: on
-        the sequence's clock (:func:`~mutualslam_cli.online.realtime.run_realtime`)."""
-        if self.clock is not None:
-            run_realtime(self)
-            return
+        """Every frame in order, each keyframe it created through Algorithm 1 (module docstring) on the schedule of
+        ``adapt.schedule``: in order (:meth:`in_order`), or on the sequence's clock
+        (:class:`~mutualslam_cli.online.realtime.RealtimeSchedule`); each keyframe reported when its work ends."""
+        schedule = RealtimeSchedule(self) if self.clock is not None else self.in_order
         t0 = time.perf_counter()
         for frame, keyframes in self.source.timeline():
-            self.weights_at.at_frame(frame, self.net)
-            for kf in keyframes:
-                # the frames up to and including the keyframe's own: the model of their time, before it learns
-                # from this one (test-time adaptation's rule: a frame is scored before the model trains on it)
-                self.score_before(self.state.created_at[kf] + 1, kf - 1)
-                self.keyframe_work(kf)
-                if self.adapter is not None:
-                    self._train(self.cfg.adapt.steps_per_keyframe)
-                    self.trained_kf = kf
+            self.weights_at.at_frame(frame, self.net)  # the weights the front end has at this frame
+            for kf in schedule(frame, keyframes):
                 self._report(kf, t0)
+
+    def in_order(self, frame: int, keyframes: list[int]) -> Iterator[int]:
+        """The causal schedule: each of ``frame``'s new keyframes' whole work before the next; yields each as done."""
+        for kf in keyframes:
+            # the frames up to and including the keyframe's own: the model of their time, before it learns
+            # from this one (test-time adaptation's rule: a frame is scored before the model trains on it)
+            self.score_before(self.state.created_at[kf] + 1, kf - 1)
+            self.keyframe_work(kf)
+            if self.adapter is not None:
+                self._train(self.cfg.adapt.steps_per_keyframe)
+                self.trained_kf = kf
+            yield kf
 
     def keyframe_work(self, kf: int) -> None:
         """Keyframe ``kf``'s work before its optimiser steps, with the map and the network of now."""

@@ -15,7 +15,7 @@ regulariser's consolidation (EWC's Fisher, MAS's importance) — then takes the 
   stale keyframe is only stored, as the paper's "get latest keyframe" loop would skip it); the last
   keyframe until the sequence's last frame.
 
-**Every effect takes hold when its charged work ends** (:func:`run_realtime`): a step's weights from
+**Every effect takes hold when its charged work ends** (:class:`RealtimeSchedule`): a step's weights from
 the frame at or after its end — for the front end's asks (``vo.depth_seeds``), the online scores and
 the loop's own later work alike (a frame is scored by the weights of the last step that ended before
 it); a bridge's, merge's, BA's or loop's change of the map reaches the live front end and every later
@@ -168,7 +168,7 @@ class DeferredMap:
 
 
 class Loop(Protocol):
-    """What :func:`run_realtime` drives: :class:`~mutualslam_cli.online.loop.OnlineLoop`."""
+    """What :class:`RealtimeSchedule` drives: :class:`~mutualslam_cli.online.loop.OnlineLoop`."""
 
     run: OnlineRun
     source: Any  # FrontEndSource, or a scripted one in tests
@@ -188,70 +188,77 @@ class Loop(Protocol):
     def step_row(self, info: StepInfo) -> dict[str, Any]: ...
 
 
-def run_realtime(loop: Loop) -> None:
-    """Algorithm 1's loop on the sequence's clock over ``loop``'s front end (module docstring).
+class RealtimeSchedule:
+    """Algorithm 1's loop on the sequence's clock over ``loop``'s front end (module docstring): called once a frame
+    by the loop's skeleton (:meth:`~mutualslam_cli.online.loop.OnlineLoop.run_loop`).
 
     Between two frames the loop does the work that fits before the next one: the current keyframe's steps that
     end by then (each frame before a step's end is scored with the weights before it), the end of its training
     (consolidation) once the next keyframe arrived or ``max_steps`` were taken, and the next keyframes' work
     when it starts before then; the changes that work made reach the front end when it ends."""
-    clock, seq, adapter = loop.clock, loop.run.seq, loop.adapter
-    assert clock is not None
-    assert adapter is not None
-    times = [seq.seconds(i) * 1000.0 for i in range(len(seq))]
-    end_ms = times[-1]
-    queue: deque[int] = deque()
-    writer: DeferredMap = loop.writer
-    taken = 0  # steps the pending keyframe took
 
-    def arrival(kf: int) -> float:
-        return times[loop.state.created_at[kf]]
+    def __init__(self, loop: Loop) -> None:
+        assert loop.clock is not None
+        assert loop.adapter is not None
+        self.loop, self.clock, self.adapter = loop, loop.clock, loop.adapter
+        seq = loop.run.seq
+        self.times = [seq.seconds(i) * 1000.0 for i in range(len(seq))]
+        self.end_ms = self.times[-1]
+        self.queue: deque[int] = deque()
+        self.writer: DeferredMap = loop.writer
+        self.taken = 0  # steps the pending keyframe took
+        self._done: list[int] = []  # keyframes whose work ended in this frame's window
 
-    def work(until: float) -> None:
-        nonlocal taken
+    def __call__(self, frame: int, keyframes: list[int]) -> list[int]:
+        """Frame ``frame`` came with its new ``keyframes``: the work that fits before the next frame; returns the
+        keyframes whose work (steps and consolidation included) ended by then, in order."""
+        self._done = []
+        self.queue.extend(keyframes)
+        until = self.times[frame + 1] if frame + 1 < len(self.times) else math.inf
+        self._work(min(until, self.end_ms) if until != math.inf else math.inf)
+        self.writer.apply_due(until)  # the front end takes the next frame with every change that ended by then
+        return self._done
+
+    def _arrival(self, kf: int) -> float:
+        return self.times[self.loop.state.created_at[kf]]
+
+    def _work(self, until: float) -> None:
+        loop, clock, adapter, queue = self.loop, self.clock, self.adapter, self.queue
         while True:
             if adapter.pending is not None:
                 kf = adapter.pending.kf_id
-                next_arrival = arrival(queue[0]) if queue else math.inf
-                if taken < clock.max_steps and clock.now_ms < min(next_arrival, end_ms):
+                next_arrival = self._arrival(queue[0]) if queue else math.inf
+                if self.taken < clock.max_steps and clock.now_ms < min(next_arrival, self.end_ms):
                     cost = clock.step_ms()
                     if clock.now_ms + cost > until:  # it ends after the next frame: its weights are not seen there
                         return
-                    loop.score_before(bisect.bisect_left(times, clock.now_ms + cost), kf_of_weights())
+                    loop.score_before(bisect.bisect_left(self.times, clock.now_ms + cost), loop.trained_kf)
                     n = len(adapter.step_ms)
                     adapter.step_pending()
                     clock.stepped(adapter.step_ms[n:])
                     loop.trained_kf = kf
-                    taken += 1
+                    self.taken += 1
                     continue
-                if taken < clock.max_steps and not queue and clock.now_ms < end_ms:
+                if self.taken < clock.max_steps and not queue and clock.now_ms < self.end_ms:
                     return  # the next keyframe may still come: the training goes on
                 n = len(adapter.consolidate_ms)
                 info = adapter.end_pending()
                 clock.charge(sum(adapter.consolidate_ms[n:]), "consolidate")
-                loop.row_of[kf].update(loop.step_row(info), steps=taken, rt_end_ms=clock.now_ms)
+                loop.row_of[kf].update(loop.step_row(info), steps=self.taken, rt_end_ms=clock.now_ms)
                 clock.done()
-                taken = 0
+                self._done.append(kf)
+                self.taken = 0
                 continue
             if not queue:
                 return
-            start = max(clock.free_ms, arrival(queue[0]))
+            start = max(clock.free_ms, self._arrival(queue[0]))
             if start >= until:  # its work starts after the next frame: the map of then
                 return
             kf = queue.popleft()
-            clock.arrive(arrival(kf))
-            writer.apply_due(clock.now_ms)  # what ended before this work starts is in the map it reads
+            clock.arrive(self._arrival(kf))
+            self.writer.apply_due(clock.now_ms)  # what ended before this work starts is in the map it reads
             loop.keyframe_work(kf)
             if adapter.pending is None:  # a validation keyframe, or nothing to train: its work is over
                 loop.row_of.get(kf, {}).update(rt_end_ms=clock.now_ms)
                 clock.done()
-
-    def kf_of_weights() -> int:
-        return loop.trained_kf
-
-    for frame, keyframes in loop.source.timeline():
-        loop.weights_at.at_frame(frame, loop.net)  # the weights the front end has at this frame
-        queue.extend(keyframes)
-        until = times[frame + 1] if frame + 1 < len(times) else math.inf
-        work(min(until, end_ms) if until != math.inf else math.inf)
-        writer.apply_due(until)  # the front end takes the next frame with every change that ended by then
+                self._done.append(kf)

@@ -82,7 +82,11 @@ def test_every_effect_takes_hold_when_its_charged_work_ends(oracle, monkeypatch,
                          adapt={"schedule": "realtime", "step_cost_ms": 0.5 * dt, "max_steps": 3})
     source, ba = WatchedSource(seq, events), FakeBA(seq.frames)
     torch.manual_seed(0)
-    loop = OnlineLoop(RunContext(seq, cfg, tmp_path, tmp_path), source, TinyNet(), False, ba, scorer=Scores())
+    reported: list[tuple[int, float]] = []  # (keyframe, the clock when reported)
+    run = RunContext(seq, cfg, tmp_path, tmp_path,
+                     progress=lambda stage, i: reported.append((i["done"] - 1, loop.clock.now_ms))
+                     if stage == "adapt" else None)
+    loop = OnlineLoop(run, source, TinyNet(), False, ba, scorer=Scores())
     source.net = loop.net
     loop.clock = RealtimeClock(0.5 * dt, 3, fixed_ms={"tick": 0.1 * dt, "ba": 2.5 * dt, "consolidate": 0.0,
                                                              "merge": 0.0, "loop": 0.0, "bridge": 0.0})
@@ -107,6 +111,10 @@ def test_every_effect_takes_hold_when_its_charged_work_ends(oracle, monkeypatch,
         assert (r["rt_start_ms"] - t0) / dt == pytest.approx(start, abs=1e-3), kf
         assert (r["rt_end_ms"] - t0) / dt == pytest.approx(end, abs=1e-3), kf
         assert int(r.get("steps") or 0) == steps, kf
+    # the adaptation's progress: each keyframe once, in order, when its work ended (the realtime loop reported none)
+    assert [kf for kf, _ in reported] == list(range(6))
+    for kf, now in reported[:-1]:  # the last one's training runs on to the last frame
+        assert now >= rows[kf]["rt_end_ms"], kf
     assert ba.calls == [3]
     assert rows[3]["run_global_ba"]
     # the BA's refinement: made on the map of frame 6, in the front end from frame 9 on (it ended at 8.6)
