@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
 
 import torch
 
@@ -39,22 +38,10 @@ from mutualslam_cli.backend.refine import MapBA, MapTarget, refine_map
 from mutualslam_cli.online.credit import WeightsAt
 from mutualslam_cli.online.labels import DepthOf, MapLabels, depth_predictor
 from mutualslam_cli.online.realtime import DeferredMap, RealtimeClock, RealtimeSchedule
+from mutualslam_cli.online.rows import KeyframeRow
 from mutualslam_cli.online.run import OnlineRun
 from mutualslam_cli.online.scores import OnlineScorer
 from mutualslam_cli.vo.source import FrontEndSource
-
-
-def step_row(info: StepInfo) -> dict[str, Any]:
-    """A flat CSV row from the adapter's step info (loss parts as ``loss_<part>`` columns)."""
-    row: dict[str, Any] = {}
-    for k, v in dict(vars(info)).items():
-        if isinstance(v, dict):
-            row.update({f"{k}_{p}": x for p, x in v.items()})
-        elif isinstance(v, (list, tuple)):
-            row[k] = " ".join(map(str, v))
-        else:
-            row[k] = v.value if hasattr(v, "value") else v
-    return row
 
 
 class OnlineLoop:
@@ -102,16 +89,15 @@ class OnlineLoop:
         if cfg.vo.depth_seeds or cfg.vo.scale_prior:  # the front end asks the network of now at its keyframes
             frame_image = keyframe_images(run.seq, lambda f: f, w, h)  # by frame: not in the map yet when asked
             source.use_network(lambda f: predict_depth(self.net, frame_image(f)[None], fast)[0])
-        self.rows: list[dict[str, Any]] = []
+        self.rows: list[KeyframeRow] = []  # the ticked keyframes' rows, in tick order
         self.bridges: list[Bridge] = []
         self.refused: list[Bridge] = []
         self.net_unit: int | None = None  # the map unit the network is trained in (its first keyframe's)
         self.other_unit: list[int] = []  # keyframes of segments kept apart: not trained on, not validated
         self.trained_kf = -1  # the keyframe whose steps made the weights now (-1: pre-trained)
         self.weights_at = WeightsAt(set())  # the weights at the frames where the credit bridges are planned
-        self.row_of: dict[int, dict[str, Any]] = {}
+        self.row_of: dict[int, KeyframeRow] = {}
         self._segments: set[int] = set()
-        self._extra: dict[int, dict[str, float]] = {}  # seconds spent on a keyframe before its row exists
 
     # ------------------------------------------------------------------ Algorithm 1
     def run_loop(self) -> None:
@@ -140,7 +126,7 @@ class OnlineLoop:
     def keyframe_work(self, kf: int) -> None:
         """Keyframe ``kf``'s work before its optimiser steps, with the map and the network of now."""
         if self.clock is not None:
-            self._extra.setdefault(kf, {})["rt_start_ms"] = self.clock.now_ms
+            self.row(kf).rt_start_ms = self.clock.now_ms
         self._join_segment(kf)                          # a new segment: the network of now bridges it
         if self.merger is not None:                     # a segment found in the map before it: merged
             self._backend("merge_s", kf, lambda: self.merger.after_keyframe(kf, self._depth_of(), self._val_loss))
@@ -164,21 +150,18 @@ class OnlineLoop:
             uv=torch.zeros(0, 2, device="cpu"), depth=torch.zeros(0, device="cpu"), segment=self.state.segment(kf)))
         if self.clock is not None:  # the keyframe image's decode included
             self.clock.charge(1000.0 * (time.perf_counter() - t), "tick")
-        row = step_row(info)
-        row["n_sparse"] = len(self.state.sparse_depth(kf)[1])
-        row.update(self._extra.pop(kf, {}))
+        row = self.row(kf)
+        row.took(info)
+        row.n_sparse = len(self.state.sparse_depth(kf)[1])
         self.rows.append(row)
-        self.row_of[kf] = row
         return info
-
-    step_row = staticmethod(step_row)
 
     def _train(self, steps: int) -> None:
         """The pending batch's ``steps`` optimiser steps and its consolidation; its row updated."""
         if self.adapter is None or self.adapter.pending is None:
             return
         info = self.adapter.train_pending(steps)
-        self.row_of[info.kf_id].update(step_row(info))
+        self.row_of[info.kf_id].took(info)
 
     def _join_segment(self, kf: int) -> None:
         """The first keyframe of a new segment: join it to the map before it (``vo.bridge_segments``)."""
@@ -207,14 +190,22 @@ class OnlineLoop:
         refine_map(self.writer, kf, self.ba, self._depth_of(), self._val_loss)
         self._busy("ba_s", kf, time.perf_counter() - t)
 
-    def keyframe_rows(self) -> list[dict[str, Any]]:
+    def row(self, kf: int) -> KeyframeRow:
+        """Keyframe ``kf``'s row, made on first use (work on it may come before its tick: a merge, a bridge)."""
+        if kf not in self.row_of:
+            self.row_of[kf] = KeyframeRow(kf)
+        return self.row_of[kf]
+
+    def keyframe_rows(self) -> list[KeyframeRow]:
         """``keyframes.csv``: a row per keyframe — Algorithm 1's, and for keyframes it did not tick (scheme
         ``none``, a segment kept apart) the work done on them (bridge, merge, loop seconds)."""
         why = "a segment no bridge joined" if self.adapter is not None else "scheme none"
-        rows = {**{k: {"kf_id": k, "not_ticked": why, **v} for k, v in self._extra.items()}, **self.row_of}
-        for k in range(self.state.n_keyframes):
-            rows.setdefault(k, {"kf_id": k, "not_ticked": why})
-        return [rows[k] for k in sorted(rows)]
+        rows = [self.row_of.get(k) or KeyframeRow(k) for k in range(self.state.n_keyframes)]
+        rows += [r for k, r in sorted(self.row_of.items()) if k >= self.state.n_keyframes]
+        for r in rows:
+            if r.info is None:
+                r.not_ticked = why
+        return rows
 
     # ------------------------------------------------------------------ helpers
     def _val_loss(self, ids: list[int]) -> dict[int, float]:
@@ -226,8 +217,7 @@ class OnlineLoop:
     def _busy(self, key: str, kf: int, seconds: float) -> None:
         """``seconds`` of work on keyframe ``kf`` (a bridge, a BA): into its row and onto the clock, where the
         map changes it made take hold when it ends."""
-        row = self.row_of[kf] if kf in self.row_of else self._extra.setdefault(kf, {})
-        row[key] = row.get(key, 0.0) + seconds
+        self.row(kf).add_seconds(key, seconds)
         if self.clock is not None:
             self.clock.charge(1000.0 * seconds, key[:-2])
             self.writer.finish(self.clock.now_ms)
@@ -248,5 +238,5 @@ class OnlineLoop:
 
     def _report(self, kf: int, t0: float) -> None:
         if self.run.progress is not None:
-            row = self.row_of.get(kf, {"kf_id": kf})
+            row = self.row_of[kf].to_row() if kf in self.row_of else {"kf_id": kf}
             self.run.progress("adapt", {"done": kf + 1, "total": None, **row, "elapsed_s": time.perf_counter() - t0})

@@ -39,10 +39,11 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
+from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.online.credit import WeightsAt
+from mutualslam_cli.online.rows import KeyframeRow
 from mutualslam_cli.online.run import OnlineRun
 
 
@@ -177,7 +178,7 @@ class Loop(Protocol):
     adapter: OnlineAdapter | None
     clock: RealtimeClock | None
     writer: DeferredMap
-    row_of: dict[int, dict[str, Any]]
+    row_of: dict[int, KeyframeRow]
     trained_kf: int
     weights_at: WeightsAt
 
@@ -185,7 +186,7 @@ class Loop(Protocol):
 
     def score_before(self, frame: int, kf: int) -> None: ...
 
-    def step_row(self, info: StepInfo) -> dict[str, Any]: ...
+    def row(self, kf: int) -> KeyframeRow: ...
 
 
 class RealtimeSchedule:
@@ -244,7 +245,9 @@ class RealtimeSchedule:
                 n = len(adapter.consolidate_ms)
                 info = adapter.end_pending()
                 clock.charge(sum(adapter.consolidate_ms[n:]), "consolidate")
-                loop.row_of[kf].update(loop.step_row(info), steps=self.taken, rt_end_ms=clock.now_ms)
+                row = loop.row_of[kf]
+                row.took(info)
+                row.steps, row.rt_end_ms = self.taken, clock.now_ms
                 clock.done()
                 self._done.append(kf)
                 self.taken = 0
@@ -259,6 +262,6 @@ class RealtimeSchedule:
             self.writer.apply_due(clock.now_ms)  # what ended before this work starts is in the map it reads
             loop.keyframe_work(kf)
             if adapter.pending is None:  # a validation keyframe, or nothing to train: its work is over
-                loop.row_of.get(kf, {}).update(rt_end_ms=clock.now_ms)
+                loop.row(kf).rt_end_ms = clock.now_ms
                 clock.done()
                 self._done.append(kf)

@@ -23,6 +23,7 @@ from mutualslam_cli.backend.refine import MapBA
 from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.online.credit import WeightsAt, credit_bridges, front_end_alone, segment_starts
 from mutualslam_cli.online.loop import OnlineLoop
+from mutualslam_cli.online.rows import keyframes_table
 from mutualslam_cli.online.scores import OnlineScorer, eval_frames
 from mutualslam_cli.stages import comoda, loop_recall
 from mutualslam_cli.stages.adaptation_summary import (
@@ -135,7 +136,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
                 run.predictors[("adapted", id(loop.net))] = shared
             adapted = Adapted(net=loop.net, adapter=adapter, map=final, frontend=pure, bridged=None, source=source,
                               injected=injected,
-                              requested=sum(bool(r.get("run_global_ba")) for r in rows), bridges=loop.bridges,
+                              requested=sum(r.run_global_ba for r in rows), bridges=loop.bridges,
                               refused=loop.refused, l_val=l_val_stats(rows, cfg.adapt.tau_val, final), online=online)
             online_s = scorer.seconds if scorer is not None else 0.0
             refresh_s = scorer.refresh_seconds if scorer is not None else 0.0
@@ -169,7 +170,8 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
         adapted.bridged, adapted.credit = credit_bridges(seq, cfg, run.cache / "vo", loop.net, fast,
                                                          loop.weights_at)
     fe_s = source.seconds + fe_alone_s + time.perf_counter() - t_fe
-    ba_s = float(sum(r.get("ba_s", 0.0) for r in rows))  # Algorithm 1's BAs, inside the loop
+    # Algorithm 1's BAs inside the loop, on every keyframe (also the loop closures' of keyframes it did not tick)
+    ba_s = float(sum(r.seconds.get("ba_s", 0.0) for r in kf_rows))
     run.add_time("frontend", fe_s)
     run.add_time("adaptation", time.perf_counter() - t - ba_s - online_s - fe_s)
     run.add_time("ba", ba_s)
@@ -179,7 +181,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
     summary.set("timing.online_refresh_s", refresh_s or None,  # of it: new weights into the OpenVINO predictor
                 "no online scores through OpenVINO (the torch path, eval.online false, or no GT depth)")
     if kf_rows:
-        atomic_write_text(run.folder / "keyframes.csv", pd.DataFrame(kf_rows).to_csv(index=False))
+        atomic_write_text(run.folder / "keyframes.csv", keyframes_table(kf_rows).to_csv(index=False))
     summarise_bridges(run, adapted.bridged, adapted.bridges, adapted.credit)
     check = adapted.map.meta.get("scale_check") if adapted.map is not None else None
     for k in ("checks", "drift_max", "drift_min"):  # the network's view of the map's scale, keyframe by keyframe

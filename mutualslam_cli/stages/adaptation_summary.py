@@ -15,6 +15,7 @@ from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.merge import SegmentMerger
 from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics.slam import evaluate_trajectory
+from mutualslam_cli.online.rows import KeyframeRow
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.results.summary import Summary
 from mutualslam_cli.stages.ate_keys import set_ate
@@ -25,14 +26,14 @@ from mutualslam_cli.stages.loop_recall import POSE_KEYS, RECALL_KEYS
 L_VAL_KEYS = ("validations", "min", "median", "longest_below_tau", "map_median_depth")
 
 
-def l_val_stats(rows: list[dict[str, Any]], tau: float, vo: VOResult) -> dict[str, Any]:
+def l_val_stats(rows: list[KeyframeRow], tau: float, vo: VOResult) -> dict[str, Any]:
     """Algorithm 1's validations from the keyframe rows: ``validations`` (with an L_val), ``min``,
     ``median`` (L_val, Eq. 9, inverse map units), ``longest_below_tau`` (most consecutive ones below τ)
     and ``map_median_depth`` (median depth of the map points in their hosts, map units). The front end
     sets the median depth of its first map to 1, as SVO does, so τ means here what it means in the
     paper as long as that unit holds; ``L_val × map_median_depth`` is the scale-free form."""
-    vals = [float(r["l_val"]) for r in rows if r.get("is_validation") and r.get("l_val") is not None
-            and np.isfinite(float(r["l_val"]))]
+    vals = [float(r.info.l_val) for r in rows if r.info is not None and r.is_validation and r.info.l_val is not None
+            and np.isfinite(float(r.info.l_val))]
     run = best = 0
     for v in vals:
         run = run + 1 if v < tau else 0
@@ -96,7 +97,7 @@ def summarise_strength(summary: Summary, adapter: OnlineAdapter | None) -> None:
 
 
 def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter | None,
-                         kf_rows: list[dict[str, Any]]) -> None:
+                         kf_rows: list[KeyframeRow]) -> None:
     """``timing.finetune_ms`` (median per optimiser step), ``timing.finetune_kf_ms`` (per keyframe, the steps
     included) and of it ``timing.finetune_batch_ms`` (assembling the batch) and ``timing.finetune_consolidate_ms``
     (the regulariser's end of batch: EWC's per-keyframe Fisher, MAS's importance), their sums over the run
@@ -114,16 +115,17 @@ def summarise_finetuning(summary: Summary, scheme: str, adapter: OnlineAdapter |
     for key, ms in (("finetune_steps_s", "step_ms"), ("finetune_consolidate_s", "consolidate_ms")):
         values = getattr(adapter, ms) if adapter is not None else []
         summary.set(f"timing.{key}", float(np.sum(values)) / 1000.0 if values else None, why)
-    val = [float(r.get("ms") or 0.0) for r in kf_rows if r.get("is_validation")]  # a validation tick is its L_val
+    # a validation tick is its L_val
+    val = [float(r.info.ms or 0.0) for r in kf_rows if r.info is not None and r.is_validation]
     summary.set("timing.l_val_s", sum(val) / 1000.0 if val else None, "no validation keyframe")
     steps, cons = (getattr(adapter, k) if adapter is not None else [] for k in ("step_ms", "consolidate_ms"))
     summary.set("timing.consolidate_vs_step", float(np.median(cons) / np.median(steps)) if steps and cons else None,
                 why)
-    summary.set("adaptation.keyframes_trained", sum(bool(r.get("trained")) for r in kf_rows))
-    summary.set("adaptation.steps", int(sum(int(r.get("steps") or 0) for r in kf_rows)))
+    summary.set("adaptation.keyframes_trained", sum(r.trained for r in kf_rows))
+    summary.set("adaptation.steps", int(sum(r.n_steps for r in kf_rows)))
     if scheme == "luo":
-        training = [r for r in kf_rows if not r.get("is_validation")]
-        summary.set("adaptation.luo_keyframes_with_partner", sum(bool(str(r.get("sources") or "").strip())
+        training = [r for r in kf_rows if not r.is_validation]
+        summary.set("adaptation.luo_keyframes_with_partner", sum(r.info is not None and bool(r.info.sources)
                                                                  for r in training))
         summary.set("adaptation.training_keyframes", len(training))
 

@@ -16,7 +16,7 @@ from mutualslam_cli.adapt.schemes.luo import is_stereo_pair, stereo_measures
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.geometry import exp_so3, se3_inv
-from mutualslam_cli.online.loop import step_row
+from mutualslam_cli.online.rows import step_columns
 
 torch.set_num_threads(1)
 
@@ -194,7 +194,7 @@ def test_luo_adapter_trains_on_stereo_pairs_and_records_them():
     hist = ad.history
     assert [h.sources for h in hist] == [[], [0], [], [], [3], [], [], [6], [], [8]]
     assert sum(bool(h.sources) for h in hist) == 4  # keyframes that found a stereo partner
-    assert [step_row(h)["sources"] for h in hist][:5] == ["", "0", "", "", "3"]
+    assert [step_columns(h)["sources"] for h in hist][:5] == ["", "0", "", "", "3"]
     # Targets: the recent two that have a partner; 3 finds none and trains nothing.
     assert {h.kf_id: h.batch for h in hist if h.trained} == {1: [1, 0], 2: [1], 4: [4, 3], 6: [4], 7: [7, 6],
                                                               8: [7], 9: [9, 8]}

@@ -105,7 +105,7 @@ def _run(seq, source, cfg, tmp_path, ba=None) -> OnlineLoop:
 
 def _labels(calls, loop) -> dict[tuple[int, int], np.ndarray]:
     """``(trained keyframe, keyframe in its batch) → the sparse depths it trained on``."""
-    trained = [r for r in loop.rows if r.get("trained")]
+    trained = [r.to_row() for r in loop.rows if r.trained]
     assert len(trained) == len(calls)
     out = {}
     for r, (d, mask) in zip(trained, calls):
@@ -174,8 +174,8 @@ def test_a_global_ba_reaches_later_batches_and_not_earlier_ones(oracle, monkeypa
     source, ba = ScriptedSource(seq, events), FakeBA(seq.frames)
     loop = _run(seq, source, cfg, tmp_path, ba)
     assert ba.calls == [3]
-    assert [r["kf_id"] for r in loop.rows if r["run_global_ba"]] == [3]
-    assert "ba_s" in loop.rows[3]
+    assert [r.kf_id for r in loop.rows if r.run_global_ba] == [3]
+    assert "ba_s" in loop.rows[3].seconds
     assert [f for f, _ in source.refined] == [6]  # at keyframe 3's creation frame
     got = _labels(calls, loop)
     created = source.state.created_at
@@ -215,7 +215,7 @@ def test_a_segment_no_bridge_joins_is_never_trained_on(oracle, monkeypatch, tmp_
     assert not loop.bridges
     assert loop.other_unit == second
     assert second
-    assert {r["kf_id"] for r in loop.rows}.isdisjoint(second)
+    assert {r.kf_id for r in loop.rows}.isdisjoint(second)
     got = _labels(calls, loop)
     assert got
     assert all(k not in second for _, k in got)

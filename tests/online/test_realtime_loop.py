@@ -18,7 +18,7 @@ from mutualslam_cli.stages.context import RunContext
 def batch_labels(calls, loop) -> dict[tuple[int, int], np.ndarray]:
     """``(trained keyframe, keyframe in its batch) → the sparse depths of its steps`` (one batch, many steps)."""
     out, i = {}, 0
-    for r in (r for r in loop.rows if r.get("trained")):
+    for r in (r.to_row() for r in loop.rows if r.trained):
         group = calls[i:i + int(r["steps"])]
         i += len(group)
         for d, mask in group[1:]:  # every step of a keyframe trains on the one batch assembled at its tick
@@ -103,7 +103,7 @@ def test_every_effect_takes_hold_when_its_charged_work_ends(oracle, monkeypatch,
     loop.scorer.score_until(loop.net, len(seq), loop.trained_kf)
 
     # the clock, keyframe by keyframe (dt after the first frame)
-    rows = {int(r["kf_id"]): r for r in loop.rows}
+    rows = {r.kf_id: r.to_row() for r in loop.rows}
     want = {0: (0.0, 0.1, 0), 1: (2.0, 3.6, 3), 2: (4.0, 5.6, 3), 3: (6.0, 8.6, 0), 4: (8.6, 10.2, 3),
             5: (10.2, 11.3, 2)}  # keyframe: (work starts, ends, steps)
     for kf, (start, end, steps) in want.items():
