@@ -43,7 +43,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import torch
@@ -52,7 +52,7 @@ from torch import nn
 from mutualslam_cli.adapt import losses
 from mutualslam_cli.adapt.batch import TrainingBatch, make_batch, resample_batch
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample, LabelSource
-from mutualslam_cli.adapt.depthnet import fast_context, freeze_encoder_stages, make_adam
+from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, freeze_encoder_stages, make_adam, predictor
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
 from mutualslam_cli.adapt.sample_grads import per_sample_grads, plan
 from mutualslam_cli.adapt.schemes import get_scheme
@@ -127,7 +127,7 @@ class OnlineAdapter:
         self._opened: tuple[float, int] | None = None  # step_pending: the pending batch's start and steps so far
         self.rng = np.random.default_rng(seed)
         if cfg.freeze_stages:
-            freeze_encoder_stages(net, cfg.freeze_stages)
+            freeze_encoder_stages(cast(DepthNet, net), cfg.freeze_stages)  # stages to freeze: a DepthNet's
         self.params = trainable(net)
         self.optimizer = make_adam(self.params, lr=cfg.lr) if self.scheme.trains else None
         self.scaler = grad_scaler(self.device, self.fast)  # fp16 autocast only (a GPU without bf16)
@@ -275,7 +275,7 @@ class OnlineAdapter:
     def _predict(self, x: torch.Tensor) -> torch.Tensor:
         """Forward pass of ``x`` (on :attr:`device`), mixed precision when ``fast``; float32 depth ``(B, 1, H, W)``."""
         with fast_context(self.fast, self.device):
-            return self.net.predict(x).float()
+            return predictor(self.net)(x).float()
 
     def _l_val(self, kf_id: int) -> float:
         """Alg. 1's L_val: mean per-keyframe L_sparse over the validation set (see module docstring)."""
@@ -320,9 +320,9 @@ class OnlineAdapter:
         out = []
         for b in range(len(batch.ids)):
             loss = self._one_loss(batch, self._predict(batch.target[b:b + 1]), b)
-            grads = torch.autograd.grad(loss if scale is None else loss * scale, self.params, allow_unused=True)
+            kf_grads = torch.autograd.grad(loss if scale is None else loss * scale, self.params, allow_unused=True)
             out.append([torch.zeros_like(p) if g is None else g.detach() if scale is None else g.detach() / scale
-                        for p, g in zip(self.params, grads)])
+                        for p, g in zip(self.params, kf_grads)])
         return out
 
     def _begin_fine_tune(self, kf_id: int, info: StepInfo) -> TrainingBatch | None:
@@ -342,9 +342,10 @@ class OnlineAdapter:
 
     def _step(self, batch: TrainingBatch, info: StepInfo, first: bool) -> None:
         """One Adam step on the batch's L_train, the regulariser's proximal step or penalty with it."""
-        reg, cfg, scaler = self.regularizer, self.cfg, self.scaler
+        reg, cfg, scaler, opt = self.regularizer, self.cfg, self.scaler, self.optimizer
+        assert opt is not None  # _begin_fine_tune gives no batch to a scheme without one
         ts = time.perf_counter()
-        self.optimizer.zero_grad(set_to_none=True)
+        opt.zero_grad(set_to_none=True)
         depth = self._predict(batch.target)
         loss, parts = self.loss_fn(depth, batch.target, batch.sources, batch.K, batch.T_t2s,
                                    batch.uv, batch.d, batch.mask, cfg.lambda_sparse,
@@ -353,26 +354,26 @@ class OnlineAdapter:
             loss.backward()
         else:  # fp16: scaled backward, then the true gradients in .grad for the regulariser and Adam
             scaler.scale(loss).backward()
-            scaler.unscale_(self.optimizer)
+            scaler.unscale_(opt)
         penalty = reg is not None and reg.mode == "penalty"
         # ∇L_train for the regulariser's importance; a copy only when the penalty's backward adds to .grad
         grads = [] if reg is None else [(p.grad.detach().clone() if penalty else p.grad.detach())
                                         if p.grad is not None else torch.zeros_like(p) for p in self.params]
-        if penalty:
+        if penalty and reg is not None:
             pen = reg.penalty(self.net)  # Eq. 1 / Eq. 19 regulariser at the current θ
             if pen.requires_grad:
                 pen.backward()  # coupled: ∇(L_train + penalty) through Adam
         stepped = True
         if scaler is None:
-            self.optimizer.step()
+            opt.step()
         else:  # a step with an inf/NaN gradient is skipped (and the scale lowered): so is its prox
             scale = scaler.get_scale()
-            scaler.step(self.optimizer)
+            scaler.step(opt)
             scaler.update()
             stepped = scaler.get_scale() >= scale
         if reg is not None and stepped:
             if reg.mode == "prox":
-                reg.prox(self.net, self.optimizer)  # decoupled: proximal step of the penalty in Adam's metric
+                reg.prox(self.net, opt)  # decoupled: proximal step of the penalty in Adam's metric
             reg.after_step(self.net, grads)
         if first:
             info.loss = {k: float(v) for k, v in parts.items()}
