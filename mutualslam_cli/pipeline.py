@@ -141,6 +141,7 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> tuple[di
     net0 = load_network(cfg, fast, run.device)  # the pre-trained model
     ba = BAStage(run)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
     adapted = adaptation.run_stage(run, net0, fast, ba.map_ba if cfg.ba.enabled else None)  # front end + Algorithm 1
+    assert adapted.frontend is not None  # always set: the front end's own result (stages/adaptation.py)
     fe = frontend.run_stage(run, adapted.frontend, adapted.source.replayed, adapted.injected)  # its own map
     ba.finish(adapted, fe, fast)
     scale_drift.run_stage(run, {"vo": fe.vo, "ba": ba.final}, {"ba": ba.why_no_final})  # local vs global Sim(3)
@@ -191,7 +192,9 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         cfg = use_threads(cfg)
         device = resolve_device(cfg.device)
         configure(device, cfg.deterministic)
-        seq = open_sequence(seq if seq is not None else root, cfg, registry)
+        where = seq if seq is not None else root
+        assert where is not None  # neither a sequence nor a root raised DatasetError above
+        seq = open_sequence(where, cfg, registry)
         vo, _, _ = frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)
         fast = use_fast_path(cfg, device)
         nets = {"pretrained": load_network(cfg, fast, device),

@@ -60,7 +60,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from mutualslam_cli.adapt.depthnet import fast_context
+from mutualslam_cli.adapt.depthnet import fast_context, predictor
 from mutualslam_cli.adapt.losses import photometric_error, smoothness_loss
 from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.adapt.warp import warp
@@ -282,7 +282,7 @@ class ComodaAdapter:
         f = triplets.float() / 255.0
         prev, tgt, nxt = f[:, 0], f[:, 1], f[:, 2]
         with fast_context(self.fast, self.device):
-            depth = self.net.predict(tgt)
+            depth = predictor(self.net)(tgt)
             T_prev2t = self.pose_net(prev, tgt)        # T_{t−1→t}
             T_t2next = self.pose_net(tgt, nxt)         # T_{t→t+1}
         photo, mask = automasked_min_reprojection(tgt, [prev, nxt], depth, K,

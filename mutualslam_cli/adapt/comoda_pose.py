@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import cast
 
 from torch import nn
 
+from mutualslam_cli.adapt.networks import ResnetEncoder
 from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.adapt.weights import default_weights_dir, has_pose_files, load_pose
 from mutualslam_cli.config import AdaptConfig
@@ -65,5 +67,5 @@ def make_pose_net(depth_net: nn.Module, cfg: AdaptConfig, default_dir: str | Pat
     log.warning("comoda: no pose_encoder.pth/pose.pth in %s; pose encoder initialised from the depth "
                 "encoder, decoder random (set adapt.comoda_pose_weights to load Monodepth2's)", where)
     net = PoseNet()
-    net.encoder.init_from_single_image(depth_net.encoder)
+    net.encoder.init_from_single_image(cast(ResnetEncoder, depth_net.encoder))  # a DepthNet's encoder
     return net.eval(), RANDOM_POSE

@@ -25,7 +25,8 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from typing import cast
 
 import numpy as np
 import torch
@@ -69,6 +70,10 @@ class DepthNet(nn.Module):
         scales: output scales of :meth:`forward_scales`.
         num_layers: ResNet depth (18 for the released models).
     """
+
+    #: The size the loaded weights were trained at (:func:`~mutualslam_cli.adapt.weights.load_depthnet` sets them).
+    feed_height: int | None
+    feed_width: int | None
 
     def __init__(self, min_depth: float = 0.1, max_depth: float = 100.0, scales: Iterable[int] = (0,),
                  num_layers: int = 18):
@@ -195,7 +200,8 @@ def prepare(net: DepthNet, fast: bool, channels_last: bool | None = None,
     cl = bool(fast) if channels_last is None else bool(channels_last)
     if device is not None:
         net.to(torch.device(device))
-    net.to(memory_format=torch.channels_last if cl else torch.contiguous_format)
+    # torch's stubs lack Module.to(memory_format=), which it has at run time
+    net.to(memory_format=torch.channels_last if cl else torch.contiguous_format)  # type: ignore[call-overload]
     net.channels_last = cl
     if isinstance(net, DepthNet):
         net.bf16_encoder = bool(bf16_encoder)
@@ -217,12 +223,13 @@ def _to_batch(images: np.ndarray | torch.Tensor, device: torch.device) -> torch.
     return t.float().contiguous()
 
 
-def predict_depth(net: DepthNet, images: np.ndarray | torch.Tensor, fast: bool = False) -> np.ndarray:
+def predict_depth(net: nn.Module, images: np.ndarray | torch.Tensor, fast: bool = False) -> np.ndarray:
     """Inference helper: depth maps as numpy, no gradient, eval mode restored afterwards.
 
     Args:
-        net: the network (its H×W must be multiples of 32; the caller resizes); it runs where its
-            parameters are, the images are sent there (as uint8 when given so: 4× less to transfer).
+        net: a :class:`DepthNet` or any module with its ``predict`` (its H×W must be multiples of 32; the
+            caller resizes); it runs where its parameters are, the images are sent there (as uint8 when given
+            so: 4× less to transfer).
         images: ``(B, 3, H, W)`` / ``(B, H, W, 3)`` / ``(H, W, 3)``, uint8 (0–255) or float in [0, 1].
         fast: mixed precision (see :func:`fast_context`).
 
@@ -235,13 +242,13 @@ def predict_depth(net: DepthNet, images: np.ndarray | torch.Tensor, fast: bool =
     net.eval()
     try:
         with torch.no_grad(), fast_context(fast, device):
-            depth = net.predict(x)
+            depth = predictor(net)(x)
     finally:
         net.train(was_training)
     return depth[:, 0].float().cpu().numpy()
 
 
-def make_adam(params: Iterable[torch.nn.Parameter], lr: float = 1e-3, **kwargs) -> torch.optim.Adam:
+def make_adam(params: Iterable[torch.Tensor], lr: float = 1e-3, **kwargs) -> torch.optim.Adam:
     """Adam with the fused kernel (CPU or CUDA, where the parameters are) when available (≈4× faster step
     for the 15 M parameters on the CPU).
 
@@ -252,6 +259,12 @@ def make_adam(params: Iterable[torch.nn.Parameter], lr: float = 1e-3, **kwargs) 
         return torch.optim.Adam(params, lr=lr, fused=True, **kwargs)
     except (RuntimeError, TypeError, ValueError):
         return torch.optim.Adam(params, lr=lr, **kwargs)
+
+
+def predictor(net: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``net.predict``: ``(B, 3, H, W)`` RGB in [0, 1] → ``(B, 1, H, W)`` depth, of a :class:`DepthNet` or any
+    module with that method (typed: ``nn.Module`` attribute lookup gives a tensor or a module)."""
+    return cast(Callable[[torch.Tensor], torch.Tensor], net.predict)
 
 
 #: The encoder's stages in forward order (:class:`~mutualslam_cli.adapt.networks.resnet_encoder.ResnetEncoder`).

@@ -28,11 +28,12 @@ import logging
 import os
 import warnings
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
 
-from mutualslam_cli.adapt.depthnet import fast_path_supported
+from mutualslam_cli.adapt.depthnet import fast_path_supported, predictor
 from mutualslam_cli.adapt.quantize import calibrate, fake_quantized
 from mutualslam_cli.device import module_device
 from mutualslam_cli.errors import ConfigError
@@ -77,7 +78,7 @@ class _Predict(torch.nn.Module):
         self.net = net
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net.predict(x)
+        return predictor(self.net)(x)
 
 
 def _without_telemetry() -> None:
@@ -102,7 +103,7 @@ def openvino_precision(int8: bool) -> str:
     return "f32" if int8 or not fast_path_supported() else "bf16"
 
 
-def compile_for_cpu(model: object, threads: int, precision: str) -> object:
+def compile_for_cpu(model: Any, threads: int, precision: str) -> Any:
     """Compile an ``openvino.Model`` for the CPU with ``threads`` inference threads and ``precision``
     (:func:`openvino_precision`), latency hint; returns the compiled model (callable on numpy inputs)."""
     import openvino as ov

@@ -78,7 +78,7 @@ def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool,
         raise ConfigError("net.runtime=openvino-int8 needs calibration frames")
     if runtime.startswith("openvino"):
         calib = (torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in calibration])
-                 if runtime == "openvino-int8" else None)
+                 if runtime == "openvino-int8" and calibration else None)  # int8: calibration checked above
         run = openvino_predictor(net, cfg.net.width, cfg.net.height, calibration=calib)
 
         def predict(frames: list[np.ndarray]) -> np.ndarray:

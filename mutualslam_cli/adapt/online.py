@@ -43,16 +43,16 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import torch
 from torch import nn
 
 from mutualslam_cli.adapt import losses
-from mutualslam_cli.adapt.batch import make_batch, resample_batch
+from mutualslam_cli.adapt.batch import TrainingBatch, make_batch, resample_batch
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample, LabelSource
-from mutualslam_cli.adapt.depthnet import fast_context, freeze_encoder_stages, make_adam
+from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, freeze_encoder_stages, make_adam, predictor
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
 from mutualslam_cli.adapt.sample_grads import per_sample_grads, plan
 from mutualslam_cli.adapt.schemes import get_scheme
@@ -123,11 +123,11 @@ class OnlineAdapter:
         self.loss_fn, self.val_fn, self.val_scope = loss_fn, val_fn, val_scope
         self.scheme = get_scheme(cfg.scheme, cfg)
         self.buffer = KeyframeBuffer(cfg.replay_capacity, seed=seed + 1, labels=labels)
-        self._pending: tuple[StepInfo, dict[str, object], float] | None = None  # a batch waiting for its steps
+        self._pending: tuple[StepInfo, TrainingBatch, float] | None = None  # a batch waiting for its steps
         self._opened: tuple[float, int] | None = None  # step_pending: the pending batch's start and steps so far
         self.rng = np.random.default_rng(seed)
         if cfg.freeze_stages:
-            freeze_encoder_stages(net, cfg.freeze_stages)
+            freeze_encoder_stages(cast(DepthNet, net), cfg.freeze_stages)  # stages to freeze: a DepthNet's
         self.params = trainable(net)
         self.optimizer = make_adam(self.params, lr=cfg.lr) if self.scheme.trains else None
         self.scaler = grad_scaler(self.device, self.fast)  # fp16 autocast only (a GPU without bf16)
@@ -275,7 +275,7 @@ class OnlineAdapter:
     def _predict(self, x: torch.Tensor) -> torch.Tensor:
         """Forward pass of ``x`` (on :attr:`device`), mixed precision when ``fast``; float32 depth ``(B, 1, H, W)``."""
         with fast_context(self.fast, self.device):
-            return self.net.predict(x).float()
+            return predictor(self.net)(x).float()
 
     def _l_val(self, kf_id: int) -> float:
         """Alg. 1's L_val: mean per-keyframe L_sparse over the validation set (see module docstring)."""
@@ -285,21 +285,21 @@ class OnlineAdapter:
         vals = [v for v in self.per_keyframe_val_loss(ids).values() if not math.isnan(v)]
         return float(np.mean(vals)) if vals else float("nan")
 
-    def _make_batch(self, ids: list[int]) -> dict[str, object] | None:
+    def _make_batch(self, ids: list[int]) -> TrainingBatch | None:
         """The batch of ``ids`` on :attr:`device` (:func:`~mutualslam_cli.adapt.batch.make_batch`), at training size."""
         batch = make_batch(self.buffer, self.scheme, ids, self.device)
         cfg = self.cfg
         return None if batch is None else resample_batch(batch, cfg.train_width, cfg.train_height)
 
-    def _one_loss(self, batch: dict[str, object], depth: torch.Tensor, b: int) -> torch.Tensor:
+    def _one_loss(self, batch: TrainingBatch, depth: torch.Tensor, b: int) -> torch.Tensor:
         """Keyframe ``b``'s own L_train from its depth ``(1, 1, H, W)`` and its slice of ``batch``."""
         cfg, one = self.cfg, slice(b, b + 1)
-        loss, _ = self.loss_fn(depth, batch["target"][one], [s[one] for s in batch["sources"]], batch["K"][one],
-                               [t[one] for t in batch["T_t2s"]], batch["uv"][one], batch["d"][one],
-                               batch["mask"][one], cfg.lambda_sparse, cfg.lambda_smooth, cfg.alpha)
+        loss, _ = self.loss_fn(depth, batch.target[one], [s[one] for s in batch.sources], batch.K[one],
+                               [t[one] for t in batch.T_t2s], batch.uv[one], batch.d[one],
+                               batch.mask[one], cfg.lambda_sparse, cfg.lambda_smooth, cfg.alpha)
         return loss
 
-    def _sample_grads(self, batch: dict[str, object]) -> list[list[torch.Tensor]]:
+    def _sample_grads(self, batch: TrainingBatch) -> list[list[torch.Tensor]]:
         """Per batch keyframe, the gradients of its own L_train at the current parameters (EWC's Fisher, Eq. 2).
 
         One batched forward and backward pass split by keyframe (:mod:`~mutualslam_cli.adapt.sample_grads`:
@@ -310,22 +310,22 @@ class OnlineAdapter:
             self._layers = plan(self.net, self.params) or []
         if self._layers:
             def losses() -> list[torch.Tensor]:
-                depth = self._predict(batch["target"])
-                return [self._one_loss(batch, depth[b:b + 1], b) for b in range(len(batch["ids"]))]
+                depth = self._predict(batch.target)
+                return [self._one_loss(batch, depth[b:b + 1], b) for b in range(len(batch.ids))]
 
             grads = per_sample_grads(self._layers, self.params, losses, scale)
             if grads is not None:
                 return grads
             self._layers = []  # a layer it cannot split: one keyframe at a time from now on
         out = []
-        for b in range(len(batch["ids"])):
-            loss = self._one_loss(batch, self._predict(batch["target"][b:b + 1]), b)
-            grads = torch.autograd.grad(loss if scale is None else loss * scale, self.params, allow_unused=True)
+        for b in range(len(batch.ids)):
+            loss = self._one_loss(batch, self._predict(batch.target[b:b + 1]), b)
+            kf_grads = torch.autograd.grad(loss if scale is None else loss * scale, self.params, allow_unused=True)
             out.append([torch.zeros_like(p) if g is None else g.detach() if scale is None else g.detach() / scale
-                        for p, g in zip(self.params, grads)])
+                        for p, g in zip(self.params, kf_grads)])
         return out
 
-    def _begin_fine_tune(self, kf_id: int, info: StepInfo) -> dict[str, object] | None:
+    def _begin_fine_tune(self, kf_id: int, info: StepInfo) -> TrainingBatch | None:
         """Keyframe ``kf_id``'s batch (the scheme's selection, labels as they stand now); ``None``: nothing to train."""
         if not self.scheme.trains or self.optimizer is None:
             return None
@@ -340,46 +340,47 @@ class OnlineAdapter:
             self.regularizer.before_batch(self.net)
         return t0
 
-    def _step(self, batch: dict[str, object], info: StepInfo, first: bool) -> None:
+    def _step(self, batch: TrainingBatch, info: StepInfo, first: bool) -> None:
         """One Adam step on the batch's L_train, the regulariser's proximal step or penalty with it."""
-        reg, cfg, scaler = self.regularizer, self.cfg, self.scaler
+        reg, cfg, scaler, opt = self.regularizer, self.cfg, self.scaler, self.optimizer
+        assert opt is not None  # _begin_fine_tune gives no batch to a scheme without one
         ts = time.perf_counter()
-        self.optimizer.zero_grad(set_to_none=True)
-        depth = self._predict(batch["target"])
-        loss, parts = self.loss_fn(depth, batch["target"], batch["sources"], batch["K"], batch["T_t2s"],
-                                   batch["uv"], batch["d"], batch["mask"], cfg.lambda_sparse,
+        opt.zero_grad(set_to_none=True)
+        depth = self._predict(batch.target)
+        loss, parts = self.loss_fn(depth, batch.target, batch.sources, batch.K, batch.T_t2s,
+                                   batch.uv, batch.d, batch.mask, cfg.lambda_sparse,
                                    cfg.lambda_smooth, cfg.alpha)
         if scaler is None:
             loss.backward()
         else:  # fp16: scaled backward, then the true gradients in .grad for the regulariser and Adam
             scaler.scale(loss).backward()
-            scaler.unscale_(self.optimizer)
+            scaler.unscale_(opt)
         penalty = reg is not None and reg.mode == "penalty"
         # ∇L_train for the regulariser's importance; a copy only when the penalty's backward adds to .grad
         grads = [] if reg is None else [(p.grad.detach().clone() if penalty else p.grad.detach())
                                         if p.grad is not None else torch.zeros_like(p) for p in self.params]
-        if penalty:
+        if penalty and reg is not None:
             pen = reg.penalty(self.net)  # Eq. 1 / Eq. 19 regulariser at the current θ
             if pen.requires_grad:
                 pen.backward()  # coupled: ∇(L_train + penalty) through Adam
         stepped = True
         if scaler is None:
-            self.optimizer.step()
+            opt.step()
         else:  # a step with an inf/NaN gradient is skipped (and the scale lowered): so is its prox
             scale = scaler.get_scale()
-            scaler.step(self.optimizer)
+            scaler.step(opt)
             scaler.update()
             stepped = scaler.get_scale() >= scale
         if reg is not None and stepped:
             if reg.mode == "prox":
-                reg.prox(self.net, self.optimizer)  # decoupled: proximal step of the penalty in Adam's metric
+                reg.prox(self.net, opt)  # decoupled: proximal step of the penalty in Adam's metric
             reg.after_step(self.net, grads)
         if first:
             info.loss = {k: float(v) for k, v in parts.items()}
         synchronize(self.device)  # CUDA runs ahead of the host: the step is over when the device is done
         self.step_ms.append(1000.0 * (time.perf_counter() - ts))
 
-    def _close_batch(self, batch: dict[str, object], info: StepInfo, steps: int, t0: float, batch_ms: float) -> None:
+    def _close_batch(self, batch: TrainingBatch, info: StepInfo, steps: int, t0: float, batch_ms: float) -> None:
         """After a batch's last step: the regulariser's consolidation (Alg. 2 line 7) and the keyframe's record."""
         reg, pen_val = self.regularizer, 0.0
         tc = time.perf_counter()
@@ -387,11 +388,11 @@ class OnlineAdapter:
             with torch.no_grad():
                 pen_val = float(reg.penalty(self.net))  # distance from θ* left at the end of the batch
             per_kf = self._sample_grads(batch) if reg.needs_sample_grads else None
-            reg.after_batch(self.net, batch["target"][:1], per_kf)  # consolidate (Alg. 2 line 7)
+            reg.after_batch(self.net, batch.target[:1], per_kf)  # consolidate (Alg. 2 line 7)
         synchronize(self.device)
         self.consolidate_ms.append(1000.0 * (time.perf_counter() - tc))
         info.loss["penalty"] = pen_val
         info.trained = True
         info.steps = steps
-        info.batch = list(batch["ids"])
+        info.batch = list(batch.ids)
         self.finetune_ms.append(1000.0 * (time.perf_counter() - t0) + batch_ms)

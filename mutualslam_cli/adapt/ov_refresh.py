@@ -29,11 +29,13 @@ from __future__ import annotations
 import copy
 import time
 import warnings
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
+from mutualslam_cli.adapt.depthnet import predictor
 from mutualslam_cli.adapt.inference import _Predict, _without_telemetry, compile_for_cpu, openvino_precision
 from mutualslam_cli.errors import NotRefreshable
 
@@ -91,7 +93,8 @@ def _folded_copy(net: nn.Module) -> nn.Module:
     """A CPU copy of ``net`` (eval mode) whose BatchNorms are folded into their convolutions (identity there)."""
     tensors = folded_tensors(net)
     q = copy.deepcopy(net).cpu().float().eval().requires_grad_(False)
-    q.to(memory_format=torch.contiguous_format)
+    # torch's stubs lack Module.to(memory_format=), which it has at run time
+    q.to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]
     mods = dict(q.named_modules())
     for conv, bn in _bn_pairs(q):
         c = mods[conv]
@@ -141,15 +144,15 @@ class RefreshablePredictor:
             warnings.simplefilter("ignore", torch.jit.TracerWarning)
             _without_telemetry()
             self.model = ov.convert_model(_Predict(q), example_input=torch.rand(1, 3, height, width, device=CPU))
-        self._slots: list[tuple[object, str]] = []  # (constant node, folded tensor name)
+        self._slots: list[tuple[Any, str]] = []  # (openvino constant node, folded tensor name)
         seen: dict[str, int] = {}
         for op in self.model.get_ops():
             if op.get_type_name() != "Constant" or op.get_element_type() != ov.Type.f32:
                 continue
-            name = tags.get(np.ascontiguousarray(op.get_data()).tobytes())
-            if name is not None:
-                seen[name] = seen.get(name, 0) + 1
-                self._slots.append((op, name))
+            tag = tags.get(np.ascontiguousarray(op.get_data()).tobytes())
+            if tag is not None:
+                seen[tag] = seen.get(tag, 0) + 1
+                self._slots.append((op, tag))
         bad = sorted(n for n in tags.values() if seen.get(n) != 1)
         if bad:
             raise NotRefreshable(f"{len(bad)} weights without exactly one constant in the converted graph: {bad[:4]}")
@@ -189,7 +192,7 @@ def _used_tensors(net: nn.Module, height: int, width: int) -> set[str]:
                for m in net.modules() if isinstance(m, nn.Conv2d)]
     try:
         with torch.no_grad():
-            net.predict(torch.zeros(1, 3, height, width, device=CPU))
+            predictor(net)(torch.zeros(1, 3, height, width, device=CPU))
     finally:
         for h in handles:
             h.remove()

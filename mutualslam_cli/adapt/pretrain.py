@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -60,7 +60,7 @@ class FramePool:
 
 
 def render_pool(scenes: Sequence[str], seeds: Sequence[int], n_frames: int, stride: int, width: int, height: int,
-                domain: str = "source") -> FramePool:
+                domain: Literal["target", "source"] = "source") -> FramePool:
     """Render every ``stride``-th frame of ``n_frames`` for each (scene, seed) at ``width``×``height``."""
     rgbs, depths = [], []
     for scene in scenes:
@@ -301,7 +301,7 @@ def _evaluate(net: DepthNet, seed: int, width: int, height: int, n_frames: int, 
 
 def evaluate_pcd(net: DepthNet, width: int, height: int, n_frames: int,
                  scenes: Sequence[str] = ("room", "planar", "far"),
-                 fast: bool = False, domain: str = "target", seeds: Sequence[int] = (0,),
+                 fast: bool = False, domain: Literal["target", "source"] = "target", seeds: Sequence[int] = (0,),
                  stride: int = 5) -> dict[str, float]:
     """Mean per-frame PCD (median scaling, DESIGN §7) on synthetic sequences, per scene and overall.
 

@@ -38,11 +38,12 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
 
+from mutualslam_cli.adapt.networks import ResnetEncoder
 from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.adapt.weights import save_pose
 from mutualslam_cli.atomic import atomic_write_text
@@ -107,7 +108,7 @@ def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192
     torch.manual_seed(seed)
     net = PoseNet()
     if init is not None:
-        net.encoder.init_from_single_image(init.encoder)
+        net.encoder.init_from_single_image(cast(ResnetEncoder, init.encoder))  # a DepthNet's encoder
     net.train()  # BatchNorm in training mode, as Monodepth2 trains (statistics learnt from the source domain)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     curve, t0 = [], time.perf_counter()

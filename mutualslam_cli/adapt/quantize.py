@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from mutualslam_cli.adapt.depthnet import predictor
 from mutualslam_cli.errors import ShapeError
 
 #: Convolutions (module-name prefixes of :class:`~mutualslam_cli.adapt.depthnet.DepthNet`) kept in fp32:
@@ -67,7 +68,7 @@ def calibrate(net: nn.Module, images: torch.Tensor) -> dict[str, tuple[float, fl
         net.eval()
         with torch.no_grad():
             for i in range(images.shape[0]):  # one frame at a time: memory flat in N
-                net.predict(images[i:i + 1].float())
+                predictor(net)(images[i:i + 1].float())
     finally:
         net.train(was_training)
         for h in handles:
@@ -77,6 +78,9 @@ def calibrate(net: nn.Module, images: torch.Tensor) -> dict[str, tuple[float, fl
 
 class _QuantConv(nn.Module):
     """A convolution with fake-quantised input (uint8, per tensor) and weights (int8, per channel)."""
+
+    w_scale: torch.Tensor  # buffers, registered in __init__
+    w_zero: torch.Tensor
 
     def __init__(self, conv: nn.Conv2d, lo: float, hi: float):
         super().__init__()

@@ -30,6 +30,7 @@ from collections.abc import Callable
 
 import torch
 from torch import nn
+from torch.nn.grad import conv2d_weight
 
 #: Layer types whose parameters' per-keyframe gradients are computed here.
 LAYERS = (nn.Conv2d, nn.BatchNorm2d)
@@ -106,11 +107,14 @@ def _layer_grads(m: nn.Module, x: torch.Tensor, g: torch.Tensor) -> dict[str, to
     out: dict[str, torch.Tensor] = {}
     if isinstance(m, nn.Conv2d):
         if m.weight.requires_grad:
-            out["weight"] = torch.nn.grad.conv2d_weight(x.to(g.dtype), m.weight.shape, g, m.stride, m.padding,
-                                                        m.dilation, m.groups)
+            out["weight"] = conv2d_weight(x.to(g.dtype), m.weight.shape, g, m.stride, m.padding, m.dilation,
+                                          m.groups)
         if m.bias is not None and m.bias.requires_grad:
             out["bias"] = g.float().sum((0, 2, 3))
     else:  # BatchNorm2d in eval mode: y = γ·x̂ + β with the running statistics
+        assert isinstance(m, nn.BatchNorm2d)  # plan() keeps only LAYERS
+        assert m.running_mean is not None  # plan() refuses a BatchNorm without running statistics
+        assert m.running_var is not None
         g32 = g.float()
         if m.weight is not None and m.weight.requires_grad:
             xhat = (x.float() - m.running_mean[None, :, None, None]) * torch.rsqrt(m.running_var + m.eps)[None, :, None,

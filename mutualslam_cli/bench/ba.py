@@ -159,7 +159,7 @@ def synthetic_problem(n_kf: int = 6, n_points: int = 600, hw: tuple[int, int] = 
     imgs, deps = zip(*(render(T[i], K, hw, textures, ppm, planes) for i in range(n_kf)))
     imgs, deps = np.stack(imgs), np.stack(deps)
     per = int(np.ceil(n_points / n_kf))
-    host, pix, rho = [], [], []
+    hosts, pixs, rhos = [], [], []
     for k in range(n_kf):  # textured pixels away from the border
         gy, gx = np.gradient(imgs[k])
         g = np.hypot(gx, gy)
@@ -170,11 +170,11 @@ def synthetic_problem(n_kf: int = 6, n_points: int = 600, hw: tuple[int, int] = 
         cand = np.flatnonzero(g > np.quantile(g, 0.5))
         sel = rng.choice(cand, size=min(per, len(cand)), replace=False)
         vv, uu = np.unravel_index(sel, g.shape)
-        host.append(np.full(len(sel), k))
-        pix.append(np.stack([uu, vv], 1).astype(float))
-        rho.append(1.0 / deps[k][vv, uu])
-    host, pix, rho = np.concatenate(host)[:n_points], np.concatenate(pix)[:n_points], \
-        np.concatenate(rho)[:n_points]
+        hosts.append(np.full(len(sel), k))
+        pixs.append(np.stack([uu, vv], 1).astype(float))
+        rhos.append(1.0 / deps[k][vv, uu])
+    host, pix, rho = np.concatenate(hosts)[:n_points], np.concatenate(pixs)[:n_points], \
+        np.concatenate(rhos)[:n_points]
     # targets: nearest keyframes (by index or centre) where the point projects inside, unoccluded
     Kinv = np.linalg.inv(K)
     dmin = np.stack([cv2.erode(z, np.ones((7, 7))) for z in deps])
@@ -188,7 +188,7 @@ def synthetic_problem(n_kf: int = 6, n_points: int = 600, hw: tuple[int, int] = 
         # between the panels (1.7 m away) is no neighbour a front end would link
         rank = np.argsort(np.linalg.norm(c[:, None] - c[None], axis=2), axis=1,
                           kind="stable")[:, 1:2 * max_targets + 1]
-    obs_pt, obs_kf, count = [], [], np.zeros(len(host), int)
+    obs_pts, obs_kfs, count = [], [], np.zeros(len(host), int)
     for j in range(rank.shape[1]):
         tk = rank[host, j]
         ok = (tk >= 0) & (tk < n_kf) & (count < max_targets)
@@ -201,10 +201,10 @@ def synthetic_problem(n_kf: int = 6, n_points: int = 600, hw: tuple[int, int] = 
         ui, vi = np.clip(np.round(u).astype(int), 0, W - 1), np.clip(np.round(v).astype(int), 0, H - 1)
         inside &= dmin[tk[idx], vi, ui] > 0.98 * X[:, 2]  # whole patch on the visible surface
         idx = idx[inside]
-        obs_pt.append(idx)
-        obs_kf.append(tk[idx])
+        obs_pts.append(idx)
+        obs_kfs.append(tk[idx])
         count[idx] += 1
-    obs_pt, obs_kf = np.concatenate(obs_pt), np.concatenate(obs_kf)
+    obs_pt, obs_kf = np.concatenate(obs_pts), np.concatenate(obs_kfs)
     prob = PhotoBAProblem(imgs, K, T, np.zeros((n_kf, 2)), host, pix, rho, obs_pt, obs_kf)
     return prob, deps
 
@@ -271,7 +271,7 @@ def accuracy(truth: PhotoBAProblem, T_cw: np.ndarray, inv_depth: np.ndarray) -> 
             "rho_rel_median": float(np.median(rel)), "rho_rel_p95": float(np.quantile(rel, 0.95))}
 
 
-def problem_info(prob: PhotoBAProblem) -> dict[str, float]:
+def problem_info(prob: PhotoBAProblem) -> dict[str, Any]:
     """Size and geometry of a problem: keyframes, points, observations, residuals (3×3 patch),
     image ``H×W``, keyframe spacing (cm, min/median), host–target baseline (cm, median/max),
     parallax ``f·baseline·ρ`` (px, median/p10) and the mean number of targets per point."""

@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from mutualslam_cli.adapt.batch import TrainingBatch
 from mutualslam_cli.adapt.comoda import ComodaAdapter
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, fast_path_supported, make_adam, prepare
 from mutualslam_cli.adapt.inference import openvino_predictor
@@ -96,7 +97,7 @@ def bench_inference_openvino(width: int = 640, height: int = 192, repeats: int =
 
 
 def make_step_batch(width: int, height: int, n_points: int = 500, seed: int = 0,
-                    device: torch.device | str = CPU) -> dict[str, Any]:
+                    device: torch.device | str = CPU) -> TrainingBatch:
     """A realistic fine-tuning batch on ``device``: 2 targets (recent + replayed), 2 neighbours each, sparse points."""
     g = torch.Generator(device=CPU).manual_seed(seed)
     b, dev = 2, torch.device(device)
@@ -106,27 +107,28 @@ def make_step_batch(width: int, height: int, n_points: int = 500, seed: int = 0,
     T1[:3, 3] = torch.tensor([0.05, 0.0, 0.01], device=dev)
     T2[:3, 3] = torch.tensor([-0.05, 0.01, -0.01], device=dev)
     uv = _rand(b, n_points, 2, generator=g, device=dev) * torch.tensor([width - 1.0, height - 1.0], device=dev)
-    return {
-        "target": _rand(b, 3, height, width, generator=g, device=dev),
-        "sources": [_rand(b, 3, height, width, generator=g, device=dev) for _ in range(2)],
-        "K": K.expand(b, 3, 3).clone(),
-        "T_t2s": [T1.expand(b, 4, 4).clone(), T2.expand(b, 4, 4).clone()],
-        "uv": uv,
-        "d": 0.5 + 2.0 * _rand(b, n_points, generator=g, device=dev),
-        "mask": torch.ones(b, n_points, dtype=torch.bool, device=dev),
-    }
+    return TrainingBatch(  # keyword order = the old dict's: the same random draws in the same order
+        ids=list(range(b)),
+        target=_rand(b, 3, height, width, generator=g, device=dev),
+        sources=[_rand(b, 3, height, width, generator=g, device=dev) for _ in range(2)],
+        K=K.expand(b, 3, 3).clone(),
+        T_t2s=[T1.expand(b, 4, 4).clone(), T2.expand(b, 4, 4).clone()],
+        uv=uv,
+        d=0.5 + 2.0 * _rand(b, n_points, generator=g, device=dev),
+        mask=torch.ones(b, n_points, dtype=torch.bool, device=dev),
+    )
 
 
-def finetune_step(net: DepthNet, opt: torch.optim.Optimizer, batch: dict[str, Any], fast: bool,
+def finetune_step(net: DepthNet, opt: torch.optim.Optimizer, batch: TrainingBatch, fast: bool,
                   lambda_sparse: float = 0.1, lambda_smooth: float = 0.1,
                   scaler: torch.amp.GradScaler | None = None) -> dict[str, float]:
     """One Adam step of Eq. 8: network forward under :func:`fast_context` (on the network's device), loss in
     fp32; ``scaler``: fp16 loss scaling (a GPU without bf16)."""
     opt.zero_grad(set_to_none=True)
     with fast_context(fast, module_device(net)):
-        depth = net.predict(batch["target"])
-    loss, parts = train_loss(depth, batch["target"], batch["sources"], batch["K"], batch["T_t2s"],
-                             batch["uv"], batch["d"], batch["mask"], lambda_sparse, lambda_smooth)
+        depth = net.predict(batch.target)
+    loss, parts = train_loss(depth, batch.target, batch.sources, batch.K, batch.T_t2s,
+                             batch.uv, batch.d, batch.mask, lambda_sparse, lambda_smooth)
     if scaler is None:
         loss.backward()
         opt.step()

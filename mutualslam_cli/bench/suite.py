@@ -274,8 +274,8 @@ def _table(res: dict[str, Any]) -> str:
                      f"baseline median {p['baseline_cm_median']:.1f} cm, parallax median "
                      f"{p['parallax_px_median']:.0f} px; start {p['perturbation']}; runs (s): {runs}\n")
         lines.append(report(res))
-    runs = {int(k.split("_")[2]): v for k, v in res.items() if k.startswith("run_timing_")}
-    for n, t in sorted(runs.items()):
+    timings = {int(k.split("_")[2]): v for k, v in res.items() if k.startswith("run_timing_")}
+    for n, t in sorted(timings.items()):
         if t.get("ba_share") is not None:
             lines.append(f"\nmslam run ({n} frames, --vo gt-depth): total {t['total_s']:.1f} s, "
                          f"global BA {t['ba_s']:.1f} s ({100 * t['ba_share']:.0f} %)")
@@ -284,7 +284,7 @@ def _table(res: dict[str, Any]) -> str:
                      f"{' '.join(res['cpu_flags'])}")
     k = res.get("step_kernels") or {}
     if k.get("convolutions"):
-        isa = collections.Counter()
+        isa: collections.Counter[str] = collections.Counter()
         for name, n in k["convolutions"].items():
             isa[name.split(":")[-1]] += n
         lines.append("\noneDNN kernels of one fast-path step: convolutions by ISA "

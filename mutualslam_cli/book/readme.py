@@ -79,7 +79,8 @@ def render_block(name: str, book: dict[str, Any]) -> str:
             for c in f["comparisons"]:
                 commits |= set(c.get("commits", []))
                 devices |= set(c.get("devices", []))
-        rule = next(iter(book.get("findings", {}).values()), {}).get("rule", "")
+        first: dict[str, Any] = next(iter(book.get("findings", {}).values()), {})
+        rule = first.get("rule", "")
         return (_md_table(["finding", "verdict", "comparison (a vs b)", "wins / N", "mean ± std of a − b", "sign p",
                            "95 % CI", "comparison"], rows)
                 + f"\n<sub>Rule: {rule}.</sub>\n" + _caption(book, commits, devices))

@@ -185,7 +185,8 @@ class _Reader:
     def __init__(self, path: Path, where: str, data: Any) -> None:
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: {where}: expected a mapping, got {data!r}")
-        self.path, self.where, self.data, self.used = path, where, data, set()
+        self.path, self.where, self.data = path, where, data
+        self.used: set[str] = set()
 
     def fail(self, msg: str) -> ConfigError:
         return ConfigError(f"{self.path}: {self.where}: {msg}")
@@ -356,13 +357,13 @@ def load_book(path: str | Path) -> BookSpec:
     bounds = []
     for i, d in enumerate(top.get("bounds", list, [])):
         r = _Reader(path, f"bounds[{i}]", d)
-        b = BoundSpec(r.get("table", str), r.get("row", str), r.get("column", str), r.get("seed", int, 0),
-                      float(r.get("factor", (int, float), 1.5)), r.get("ci", bool, False))
+        bound = BoundSpec(r.get("table", str), r.get("row", str), r.get("column", str), r.get("seed", int, 0),
+                          float(r.get("factor", (int, float), 1.5)), r.get("ci", bool, False))
         r.done()
-        if b.table not in tables or b.column not in {c.label for c in tables[b.table].columns}:
-            raise r.fail(f"no column {b.column!r} in table {b.table!r}")
-        if b.factor <= 1:
-            raise r.fail(f"factor {b.factor}: expected > 1")
-        bounds.append(b)
+        if bound.table not in tables or bound.column not in {c.label for c in tables[bound.table].columns}:
+            raise r.fail(f"no column {bound.column!r} in table {bound.table!r}")
+        if bound.factor <= 1:
+            raise r.fail(f"factor {bound.factor}: expected > 1")
+        bounds.append(bound)
     top.done()
     return BookSpec(path, name, preset, out, grids, sets, tables, figures, findings, tuple(bounds))

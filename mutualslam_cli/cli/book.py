@@ -69,12 +69,12 @@ def book(
         def planned(plan: Any) -> None:
             bar.update(task, total=total_jobs(plan))
 
-        def done(o: Any) -> None:
+        def job_done(o: Any) -> None:
             bar.update(task, advance=1, info=f"{Path(o.job.sequence).name} {o.job.scheme} seed{o.job.seed}: {o.status}")
 
         try:
             res = run_book(spec, root, list(only or []) or None, workers, executor, scheduler, reg, data_root,
-                           list(sets or []), sys.argv, on_plan=planned, on_done=done)
+                           list(sets or []), sys.argv, on_plan=planned, on_done=job_done)
         except KeyboardInterrupt:
             bar.stop()
             common.err_console.print("[yellow]interrupted[/]: complete runs stay; run the same command again to "

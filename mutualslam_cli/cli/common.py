@@ -13,7 +13,6 @@ import unicodedata
 from pathlib import Path
 from typing import Any
 
-import click
 import typer
 from rich.console import Console, ConsoleDimensions
 from rich.logging import RichHandler
@@ -97,7 +96,7 @@ class Commands(TyperGroup):
         for command in self.commands.values():
             command.help = reflowed(command.help)
 
-    def invoke(self, ctx: click.Context) -> Any:
+    def invoke(self, ctx: Any) -> Any:  # the Context of typer's click: typer >= 0.2x vendors one (typer._click)
         try:
             return super().invoke(ctx)
         except MslamError as e:

@@ -6,7 +6,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, cast
 
 import typer
 from rich.table import Table
@@ -284,7 +284,7 @@ def synth(
         raise ConfigError(f"--domain {domain!r}: expected target or source")
     with progress_bar() as p:
         task = p.add_task(f"render {scene}", total=frames, info="")
-        it = synthetic.iter_render(scene, frames, w, h, seed, domain)
+        it = synthetic.iter_render(scene, frames, w, h, seed, cast(Literal["target", "source"], domain))  # checked
 
         def tracked():
             for item in it:

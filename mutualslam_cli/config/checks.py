@@ -188,7 +188,8 @@ def check_config(record: Any, where: str = "") -> None:
         if dataclasses.is_dataclass(value):
             check_config(value, pre + f.name)
             continue
-        choices = _choices(type(record)).get(f.name)
+        cls: type = type(record)
+        choices = _choices(cls).get(f.name)
         if choices is not None and value not in choices:
             raise ConfigError(f"{pre}{f.name} = {value!r}: expected one of {list(choices)}")
         rule = f.metadata.get(RULE)

@@ -97,7 +97,7 @@ def build(cls: type, data: Any, where: str) -> Any:
             continue
         tp = hints[f.name]
         key = f"{where}.{f.name}" if where else f.name
-        if dataclasses.is_dataclass(tp):
+        if isinstance(tp, type) and dataclasses.is_dataclass(tp):  # a nested record's hint is its class
             kwargs[f.name] = build(tp, {} if data[f.name] is None else data[f.name], key)
         else:
             kwargs[f.name] = coerce(data[f.name], tp, key)

@@ -99,8 +99,9 @@ def with_settings(cfg: RunConfig, overrides: list[str]) -> RunConfig:
     return out
 
 
-def with_overrides(cfg: RunConfig, **sections: dict[str, Any]) -> RunConfig:
-    """Return ``cfg`` with some fields replaced: ``with_overrides(cfg, adapt={"scheme": "none"})``."""
+def with_overrides(cfg: RunConfig, **sections: Any) -> RunConfig:
+    """Return ``cfg`` with some fields replaced: ``with_overrides(cfg, adapt={"scheme": "none"})`` updates a
+    section's fields, ``seed=0`` sets a top-level value."""
     data = to_dict(cfg)
     for sec, vals in sections.items():
         if isinstance(vals, dict):

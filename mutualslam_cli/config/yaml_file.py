@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 import stat
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import yaml
 
@@ -35,7 +35,7 @@ def refusal(reason: str, mark: Any) -> yaml.MarkedYAMLError:
     return yaml.MarkedYAMLError(problem=reason, problem_mark=mark, note=REFUSED)
 
 
-def is_refusal(e: BaseException) -> bool:
+def is_refusal(e: BaseException) -> TypeGuard[yaml.MarkedYAMLError]:
     """Whether ``e`` is a refusal of :class:`StrictLoader` (a key given twice, too many aliases)."""
     return isinstance(e, yaml.MarkedYAMLError) and e.note == REFUSED
 

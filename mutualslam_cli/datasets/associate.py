@@ -17,7 +17,7 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, overload
 
 import numpy as np
 
@@ -33,6 +33,10 @@ MAX_DT = 0.02
 (:func:`associate`) and the default of the ATE's estimate↔reference association
 (:mod:`mutualslam_cli.metrics.trajectory`)."""
 
+@overload
+def stamps_match(dt: np.ndarray, max_dt: float) -> np.ndarray: ...
+@overload
+def stamps_match(dt: float, max_dt: float) -> bool: ...
 def stamps_match(dt: np.ndarray | float, max_dt: float) -> np.ndarray | bool:
     """The package's one association window: ``|dt| ≤ max_dt``, ``dt`` in seconds, any shape.
 

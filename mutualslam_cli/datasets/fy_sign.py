@@ -76,12 +76,13 @@ def decide_fy_sign(seq: Sequence, n_pairs: int = 3, gap: int = 5, step: int = 4)
     gap = max(1, min(gap, len(cand) - 1))
     starts = np.unique(np.linspace(0, len(cand) - 1 - gap, n_pairs).round().astype(int))
     K0 = seq.intrinsics.K()
-    errs = {"+": [], "-": []}
+    errs: dict[str, list[float]] = {"+": [], "-": []}
     for s in starts:
         i, j = cand[s], cand[s + gap]
         if pos[i] + gap != pos[j]:
             continue
         gi, gj, di = seq.load_gray(i), seq.load_gray(j), seq.load_depth(i)
+        assert di is not None  # cand: frames with a depth file
         for key, sgn in (("+", 1.0), ("-", -1.0)):
             K = K0.copy()
             K[1, 1] = sgn * abs(K0[1, 1])

@@ -173,14 +173,16 @@ def load_icl_loop(spec: SequenceSpec) -> Sequence:
     spec = _gt_file_icl(spec)
     gt, gt_name = load_gt(spec, default=None)
     unit = float(spec.extra.get("depth_unit_m", 1.0))
+    poses: list[np.ndarray | None]
     if gt is not None:
         poses = attach_gt(times, gt, gt_name, root, max_gap=0.0)
     elif all(p.with_suffix(".txt").is_file() for p in rgb):
-        poses = [read_povray_camera(p.with_suffix(".txt")) for p in rgb]
-        for T in poses:
+        cams = [read_povray_camera(p.with_suffix(".txt")) for p in rgb]
+        for T in cams:
             T[:3, 3] *= unit
         gt_name = "scene_*.txt (POV-Ray cameras)"
-        gt = Trajectory(times, np.stack(poses))
+        gt = Trajectory(times, np.stack(cams))
+        poses = list(cams)  # the same arrays
     else:
         poses = [None] * len(rgb)
     intr = _icl_intrinsics(spec, image_size(rgb[0]))

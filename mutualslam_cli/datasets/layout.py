@@ -7,6 +7,7 @@ frame list of a :class:`~mutualslam_cli.datasets.sequence.Sequence`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -74,7 +75,7 @@ def attach_gt(
 
 
 def make_frames(
-    times: np.ndarray, rgb: list[Path], depth: list[Path | None], poses: list[np.ndarray | None]
+    times: np.ndarray, rgb: Sequence[Path], depth: Sequence[Path | None], poses: Sequence[np.ndarray | None]
 ) -> list[FrameRef]:
     """FrameRefs in time order."""
     order = np.argsort(times, kind="stable")

@@ -79,7 +79,8 @@ def spec_from_entry(name: str, entry: dict[str, Any], registry_file: Path,
         try:
             if len(k) != 4 or len(size) != 2 or (dist is not None and len(dist) not in (4, 5, 8)):
                 raise ValueError
-            intr = Intrinsics(*(float(x) for x in k), int(size[0]), int(size[1]),
+            fx, fy, cx, cy = (float(x) for x in k)  # 4 numbers, checked above
+            intr = Intrinsics(fx, fy, cx, cy, int(size[0]), int(size[1]),
                               tuple(float(x) for x in dist) if dist is not None else None)
         except (TypeError, ValueError):
             raise DatasetError(f"{where}: expected 'intrinsics: [fx, fy, cx, cy]' (+ optional 'size: [w, h]', "

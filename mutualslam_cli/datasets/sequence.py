@@ -141,6 +141,7 @@ def grey_frames(seq: Sequence, start: int = 0) -> Iterator[tuple[int, np.ndarray
     try:
         nxt = pool.submit(seq.load_gray, start) if start < n else None
         for i in range(start, n):
+            assert nxt is not None  # submitted before the loop (start < n) and at each turn below
             gray = nxt.result()
             if i + 1 < n:
                 nxt = pool.submit(seq.load_gray, i + 1)

@@ -44,6 +44,12 @@ MESH_ALBEDO = (0.78, 0.80, 0.84)
 BACKGROUND = (1.0, 1.0, 1.0)
 
 
+def _open3d() -> Any:
+    """``open3d``, imported on first use, untyped (why: :func:`mutualslam_cli.results.map_ply.open3d`)."""
+    import open3d as o3d
+    return o3d
+
+
 def block_memory_bytes(block_resolution: int, block_count: int) -> int:
     """Bytes the voxel values of a grid of ``block_count`` blocks of ``block_resolution³`` voxels take
     (:data:`VOXEL_BYTES` per voxel; the hash map's keys and buckets add < 0.1 %)."""
@@ -114,7 +120,7 @@ class TSDFVolume:
 
     def __init__(self, voxel_size: float, trunc_voxels: float, depth_min: float, depth_max: float,
                  block_resolution: int, block_count: int) -> None:
-        import open3d as o3d
+        o3d = _open3d()
 
         c = o3d.core
         self._o3d = o3d
@@ -228,7 +234,7 @@ def apply_sim3(T_wc: np.ndarray, R: np.ndarray, t: np.ndarray, s: float) -> np.n
 def write_mesh(path: Path, mesh: Mesh) -> None:
     """Binary PLY of ``mesh`` with vertex colours, written with open3d to a temporary name and renamed.
     An empty mesh is written as a header-only ASCII PLY (open3d refuses to write it)."""
-    import open3d as o3d
+    o3d = _open3d()
 
     path = Path(path)
     if len(mesh.vertices) == 0:
@@ -248,7 +254,7 @@ def read_mesh(path: Path) -> Mesh:
     Raises:
         DatasetError: the file is missing or open3d cannot read it.
     """
-    import open3d as o3d
+    o3d = _open3d()
 
     path = Path(path)
     if not path.is_file():
@@ -285,7 +291,7 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 def nearest_distances(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """``(N,)`` distance (m) from each point of ``src`` ``(N, 3)`` to its nearest point of ``dst`` ``(M, 3)``
     (open3d's KD-tree, ``compute_point_cloud_distance``)."""
-    import open3d as o3d
+    o3d = _open3d()
 
     a = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(src, np.float64).reshape(-1, 3)))
     b = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(dst, np.float64).reshape(-1, 3)))
@@ -364,7 +370,7 @@ def render_mesh(mesh: Mesh, eye: np.ndarray, target: np.ndarray, up: np.ndarray,
     Returns:
         ``(height, width, 3)`` uint8 RGB.
     """
-    import open3d as o3d
+    o3d = _open3d()
 
     img = np.tile(np.asarray(BACKGROUND), (height, width, 1))
     if len(mesh.triangles):

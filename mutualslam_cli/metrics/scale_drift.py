@@ -183,8 +183,8 @@ def scale_drift(
     if not rows:
         raise GeometryError(f"no window of {window} keyframes within one segment could be aligned "
                             f"({n_cross} cross a segment boundary, {n_degen} degenerate)")
-    start, end, t0, sid, rel, loc, ref = (np.array(c) for c in zip(*rows))
+    start, end, t0, seg_ids, rel, loc, refs = (np.array(c) for c in zip(*rows))
     return ScaleDrift(window, stride, float(s_glob), _rmse(p_ref, aligned), len(i_ref), start.astype(np.int64),
-                      end.astype(np.int64), t0.astype(np.float64), sid.astype(np.int64), rel.astype(np.float64),
-                      loc.astype(np.float64), ref.astype(np.float64), n_cross, n_degen,
+                      end.astype(np.int64), t0.astype(np.float64), seg_ids.astype(np.int64), rel.astype(np.float64),
+                      loc.astype(np.float64), refs.astype(np.float64), n_cross, n_degen,
                       len(ref_scale) > 1)

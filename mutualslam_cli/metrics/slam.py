@@ -6,6 +6,8 @@ Used by the stages that make a trajectory or a map (front end, BA)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from mutualslam_cli.datasets.associate import MAX_DT
@@ -18,7 +20,7 @@ from mutualslam_cli.types import Trajectory
 from mutualslam_cli.vo.camera import distort_points
 
 
-def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = MAX_DT) -> dict[str, object]:
+def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = MAX_DT) -> dict[str, Any]:
     """ATE of the keyframes and of all tracked frames against the stored GT.
 
     The headline is one Sim(3) over the whole trajectory (evo's ``-as``, as ORB-SLAM3, DPVO and
@@ -30,9 +32,9 @@ def evaluate_trajectory(seq: Sequence, vo: VOResult, max_dt: float = MAX_DT) -> 
         ``{"kf": AteResult|None, "all": AteResult|None, "kf_per_segment": SegmentedAteResult|None,
         "all_per_segment": …, "segments": int, "notes": {key: why a value is None}}``.
     """
-    out: dict[str, object] = {"kf": None, "all": None, "kf_per_segment": None, "all_per_segment": None,
-                              "notes": {}}
-    notes: dict[str, str] = out["notes"]  # type: ignore[assignment]
+    out: dict[str, Any] = {"kf": None, "all": None, "kf_per_segment": None, "all_per_segment": None,
+                           "notes": {}}
+    notes: dict[str, str] = out["notes"]
     kf_seg = np.array([k.segment for k in vo.keyframes])
     out["segments"] = len(np.unique(kf_seg))
     if seq.gt is None or len(seq.gt) == 0:

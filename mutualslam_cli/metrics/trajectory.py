@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, TypedDict
 
 import numpy as np
 
@@ -182,7 +182,18 @@ class AteResult:
         return {k: getattr(self, k) for k in keys}
 
 
-def _stats(errors: np.ndarray) -> dict[str, float]:
+class _Stats(TypedDict):
+    """The six figures of :func:`_stats` (metres), as keyword arguments of the result records."""
+
+    rmse: float
+    mean: float
+    median: float
+    max: float
+    min: float
+    std: float
+
+
+def _stats(errors: np.ndarray) -> _Stats:
     """RMSE, mean, median, max, min, std of translational errors (Sturm et al. 2012, eq. 3)."""
     if len(errors) == 0:
         nan = float("nan")

@@ -148,7 +148,8 @@ def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> b
     basis = _view_basis(folder)
     maps = {f: map_ply.read_ply(folder / f) for f, _, _ in PANELS if (folder / f).is_file()}
     panels = [(f, st, lab) for f, st, lab in PANELS if f in maps]
-    notes = flat.get("notes") if isinstance(flat.get("notes"), dict) else {}
+    raw_notes = flat.get("notes")
+    notes = raw_notes if isinstance(raw_notes, dict) else {}
     absent = [f"no {f}: {notes.get(f'map.points.{st}') or 'not written by this run'}"
               for f, st, _ in PANELS if f not in maps]
     culled = "map_culled.ply" in maps or _get(flat, "map.points.culled") is not None

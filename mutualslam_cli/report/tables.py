@@ -198,10 +198,10 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
     t = pd.DataFrame(rows, columns=["Sequence", "scheme", "config", *cols, "n"])
     bold = set()
     for i, x in t.iterrows():
-        have = [c for c in cols if np.isfinite(x[c])]
-        if len(have) > 1:
-            best = min(x[c] for c in have)
-            bold |= {(int(i), c) for c in have if cell_text(x[c]) == cell_text(best)}
+        present = [c for c in cols if np.isfinite(x[c])]
+        if len(present) > 1:
+            best = min(x[c] for c in present)
+            bold |= {(int(i), c) for c in present if cell_text(x[c]) == cell_text(best)}
     schemes = sorted(runs["scheme"].unique())
     t = t.drop(columns=[c for c, keep in (("scheme", len(schemes) > 1), ("config", (runs["config"] != "").any()))
                         if not keep])

@@ -217,7 +217,7 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
     h, v = [i for i in range(3) if i != k]
     fig = plt.figure(figsize=(12.0, 3.5 * len(rows) + 1.0), layout="constrained")
     subs = np.atleast_1d(fig.subfigures(len(rows), 1))
-    handles = {}
+    handles: dict[str, Any] = {}  # legend label → its first matplotlib artist
     for sf, row in zip(subs, rows):
         top, height = sf.subplots(1, 2, width_ratios=[1.0, 1.9])
         ate_line = ("ATE RMSE (m), keyframes / all frames: " + ", ".join(row.ate_text)) if row.ate_text else ""
@@ -238,12 +238,14 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
         est = row.stages.get("bridged") or row.stages.get("vo")
         for t_event, kind in row.events if est is not None and len(est[0]) else []:
             label, colour, marker = EVENT_STYLE[kind]
+            assert est is not None  # the loop runs only then
             p = est[1][int(np.argmin(np.abs(est[0] - t_event)))]
             (mark,) = top.plot(p[h], p[v], marker, color=colour, ms=7, mew=1.6, zorder=4, gid=f"event-{kind}")
             height.axvline(t_event - t0, color=colour, lw=0.9, ls=":", zorder=1, gid=f"event-{kind}")
             handles.setdefault(label, mark)
         closed = row.stages.get("ba") or est
         for t_new, t_old in row.loops if closed is not None and len(closed[0]) else []:  # loop edges
+            assert closed is not None  # the loop runs only then
             a, b = (closed[1][int(np.argmin(np.abs(closed[0] - x)))] for x in (t_new, t_old))
             (edge,) = top.plot([a[h], b[h]], [a[v], b[v]], "-", color=LOOP_COLOUR, lw=1.2, zorder=5, gid="loop")
             height.axvline(t_new - t0, color=LOOP_COLOUR, lw=0.9, ls="-.", zorder=1, gid="loop")

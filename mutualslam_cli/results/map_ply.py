@@ -11,6 +11,7 @@ rides along as the scalar vertex property ``log_depth_error`` (NaN without GT).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +26,14 @@ ERROR_NEAR = (0.13, 0.40, 0.80)
 ERROR_ZERO = (0.62, 0.62, 0.62)
 ERROR_FAR = (0.80, 0.13, 0.13)
 NO_GT = (0.86, 0.86, 0.86)
+
+
+def open3d() -> Any:
+    """The ``open3d`` module, imported on first use (heavy: ~1 s), untyped: its pybind stubs miss the defaults
+    of ``core.Tensor(array, dtype=, device=)`` and type paths as ``os.PathLike`` where a ``str`` is taken."""
+    import open3d as o3d
+
+    return o3d
 
 
 def error_colours(log_errors: np.ndarray, saturation: float = ERROR_SATURATION) -> np.ndarray:
@@ -65,7 +74,7 @@ def write_ply(path: Path, points: np.ndarray, log_errors: np.ndarray | None = No
         points: ``(P, 3)`` world positions.
         log_errors: optional ``(P,)`` per-point ``log z − log z*``.
     """
-    import open3d as o3d  # heavy (1 s): only when a map is written
+    o3d = open3d()  # heavy (1 s): only when a map is written
 
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if log_errors is not None and len(log_errors) != len(points):
@@ -104,7 +113,7 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | No
         raise DatasetError(f"{path}: not a PLY point cloud (expected a 'ply' header with 'element vertex N')")
     if int(n) == 0:
         return np.zeros((0, 3)), None, None
-    import open3d as o3d
+    o3d = open3d()
 
     pc = o3d.t.io.read_point_cloud(str(path))
     if "positions" not in pc.point or len(pc.point.positions) != int(n):

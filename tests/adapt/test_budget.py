@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -25,16 +27,16 @@ def test_resampled_batch_keeps_the_geometry():
         ad.buffer.add(s, training=True)
     full = ad._make_batch([2, 1])
     small = resample_batch(full, 64, 32)
-    assert small["target"].shape[-2:] == (32, 64)
-    assert all(x.shape[-2:] == (32, 64) for x in small["sources"])
+    assert small.target.shape[-2:] == (32, 64)
+    assert all(x.shape[-2:] == (32, 64) for x in small.sources)
     cam = Intrinsics(width=96, height=64, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2]).scaled(64, 32)
-    np.testing.assert_allclose(small["K"][0].numpy(), cam.K(), rtol=1e-6)
+    np.testing.assert_allclose(small.K[0].numpy(), cam.K(), rtol=1e-6)
     P = torch.tensor([0.3, -0.2, 2.0])
-    uv_full = (full["K"][0] @ P)[:2] / P[2]
-    uv_small = (small["K"][0] @ P)[:2] / P[2]
-    moved = resample_batch({**full, "uv": uv_full.reshape(1, 1, 2).expand(2, 1, 2)}, 64, 32)["uv"][0, 0]
+    uv_full = (full.K[0] @ P)[:2] / P[2]
+    uv_small = (small.K[0] @ P)[:2] / P[2]
+    moved = resample_batch(replace(full, uv=uv_full.reshape(1, 1, 2).expand(2, 1, 2)), 64, 32).uv[0, 0]
     torch.testing.assert_close(moved, uv_small)
-    assert torch.allclose(small["target"].mean(), full["target"].mean(), atol=1e-3)  # area resampling
+    assert torch.allclose(small.target.mean(), full.target.mean(), atol=1e-3)  # area resampling
     assert resample_batch(full, 0, 0) is full
     assert resample_batch(full, 96, 64) is full
 

@@ -214,11 +214,11 @@ def test_luo_adapter_trains_on_stereo_pairs_and_records_them():
     early = adapt("luo", MIXED[:5])
     b = early._make_batch([4, 3])
     assert b is not None
-    assert b["ids"] == [4, 3]
-    assert len(b["sources"]) == 1
-    assert torch.equal(b["sources"][0][0], early.buffer.get(3).image)
-    assert torch.equal(b["sources"][0][1], early.buffer.get(4).image)
-    np.testing.assert_allclose(b["T_t2s"][0][0].numpy(), se3_inv(pose(PATH[3])) @ pose(PATH[4]), atol=1e-6)
+    assert b.ids == [4, 3]
+    assert len(b.sources) == 1
+    assert torch.equal(b.sources[0][0], early.buffer.get(3).image)
+    assert torch.equal(b.sources[0][1], early.buffer.get(4).image)
+    np.testing.assert_allclose(b.T_t2s[0][0].numpy(), se3_inv(pose(PATH[3])) @ pose(PATH[4]), atol=1e-6)
 
 
 def test_luo_settings_reach_the_adapter():

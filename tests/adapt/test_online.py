@@ -202,16 +202,16 @@ def test_per_keyframe_val_loss_matches_sparse_loss():
 def test_batch_sources_and_pose_feedback():
     ad = run("replay", n=4)
     b = ad._make_batch([3, 1])
-    assert len(b["sources"]) == 2  # keyframe 1 has neighbours 0 and 2
-    assert torch.equal(b["sources"][0][0], b["sources"][1][0])  # newest: only i−1, repeated
-    T_old = b["T_t2s"][0][0].clone()
+    assert len(b.sources) == 2  # keyframe 1 has neighbours 0 and 2
+    assert torch.equal(b.sources[0][0], b.sources[1][0])  # newest: only i−1, repeated
+    T_old = b.T_t2s[0][0].clone()
     moved = SCENE[2].pose.copy()
     moved[0, 3] += 0.5
     assert ad.update_poses({2: moved, 77: moved}) == 1
     b2 = ad._make_batch([3, 1])
-    np.testing.assert_allclose(b2["T_t2s"][0][0].numpy(), (se3_inv(moved) @ SCENE[3].pose).astype(np.float32),
+    np.testing.assert_allclose(b2.T_t2s[0][0].numpy(), (se3_inv(moved) @ SCENE[3].pose).astype(np.float32),
                                atol=1e-6)
-    assert not torch.equal(T_old, b2["T_t2s"][0][0])
+    assert not torch.equal(T_old, b2.T_t2s[0][0])
 
 
 def test_real_depthnet_fast_path_runs():

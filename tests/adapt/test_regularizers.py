@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch import nn
 
+from mutualslam_cli.adapt.batch import TrainingBatch
 from mutualslam_cli.adapt.buffer import KeyframeSample
 from mutualslam_cli.adapt.depthnet import make_adam
 from mutualslam_cli.adapt.online import OnlineAdapter
@@ -123,10 +124,10 @@ def test_ewc_fisher_of_per_keyframe_gradients_where_the_mean_gradient_is_zero():
 
     net = Direct()
     ad = OnlineAdapter(net, cfg, torch.eye(3), loss_fn=loss_fn, val_fn=val_fn)
-    batch = {"ids": [0, 1], "target": tgt.reshape(2, 1, 1, 4), "sources": [tgt.reshape(2, 1, 1, 4)],
-             "K": torch.eye(3).expand(2, 3, 3), "T_t2s": [torch.eye(4).expand(2, 4, 4)],
-             "uv": torch.zeros(2, 1, 2), "d": torch.zeros(2, 1), "mask": torch.zeros(2, 1, dtype=torch.bool)}
-    mean_grad = torch.autograd.grad(loss_fn(net.predict(batch["target"]), batch["target"])[0], [net.w])[0]
+    batch = TrainingBatch(ids=[0, 1], target=tgt.reshape(2, 1, 1, 4), sources=[tgt.reshape(2, 1, 1, 4)],
+                          K=torch.eye(3).expand(2, 3, 3), T_t2s=[torch.eye(4).expand(2, 4, 4)],
+                          uv=torch.zeros(2, 1, 2), d=torch.zeros(2, 1), mask=torch.zeros(2, 1, dtype=torch.bool))
+    mean_grad = torch.autograd.grad(loss_fn(net.predict(batch.target), batch.target)[0], [net.w])[0]
     assert float(mean_grad.abs().max()) == 0.0
     grads = ad._sample_grads(batch)
     ewc = ad.regularizer

@@ -16,14 +16,14 @@ W, H = 96, 64
 
 def _loss(net, batch, depth, b):
     one = slice(b, b + 1)
-    return train_loss(depth, batch["target"][one], [s[one] for s in batch["sources"]], batch["K"][one],
-                      [t[one] for t in batch["T_t2s"]], batch["uv"][one], batch["d"][one], batch["mask"][one])[0]
+    return train_loss(depth, batch.target[one], [s[one] for s in batch.sources], batch.K[one],
+                      [t[one] for t in batch.T_t2s], batch.uv[one], batch.d[one], batch.mask[one])[0]
 
 
 def one_at_a_time(net, params, batch):
     out = []
-    for b in range(batch["target"].shape[0]):
-        loss = _loss(net, batch, net.predict(batch["target"][b:b + 1]), b)
+    for b in range(batch.target.shape[0]):
+        loss = _loss(net, batch, net.predict(batch.target[b:b + 1]), b)
         grads = torch.autograd.grad(loss, params, allow_unused=True)
         out.append([torch.zeros_like(p) if g is None else g for p, g in zip(params, grads)])
     return out
@@ -31,7 +31,7 @@ def one_at_a_time(net, params, batch):
 
 def in_one_pass(net, params, batch, scale=None):
     def losses():
-        depth = net.predict(batch["target"])
+        depth = net.predict(batch.target)
         return [_loss(net, batch, depth[b:b + 1], b) for b in range(depth.shape[0])]
 
     return per_sample_grads(plan(net, params), params, losses, scale)
@@ -44,8 +44,8 @@ def test_one_pass_gives_each_keyframe_its_own_gradient(frozen, scale):
     freeze_encoder_stages(net, frozen)
     params = trainable(net)
     batch = make_step_batch(W, H, n_points=40, seed=1)
-    batch["uv"][1, 20:] = 0.0  # keyframes differ in their sparse points too
-    batch["mask"][1, 20:] = False
+    batch.uv[1, 20:] = 0.0  # keyframes differ in their sparse points too
+    batch.mask[1, 20:] = False
     want, got = one_at_a_time(net, params, batch), in_one_pass(net, params, batch, scale)
     assert len(got) == 2
     for k in range(2):
@@ -58,7 +58,7 @@ def test_one_pass_gives_each_keyframe_its_own_gradient(frozen, scale):
     assert flat[0].abs().max() > 0
     assert not torch.allclose(flat[0], flat[1], rtol=1e-2)
     # and their sum is the gradient of the summed losses: nothing is lost or counted twice
-    both = torch.autograd.grad(sum(_loss(net, batch, net.predict(batch["target"])[b:b + 1], b) for b in range(2)),
+    both = torch.autograd.grad(sum(_loss(net, batch, net.predict(batch.target)[b:b + 1], b) for b in range(2)),
                                params, allow_unused=True)
     for a, b0, b1 in zip(both, got[0], got[1]):
         if a is not None:

@@ -246,7 +246,8 @@ def fetch(url: str, dest: Path, progress: DownloadProgress | None = None, timeou
     resp, start, ent, note = _begin(url, part, info, timeout)
     if resp is None:
         return Fetched(start, start, ent, note)
-    done, total, buf = start, ent.total, b""
+    done, total = start, ent.total
+    buf: bytes | None = b""  # None: the connection failed mid-transfer
     flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if start else os.O_TRUNC)
     with resp, os.fdopen(open_no_follow(part, flags), "ab" if start else "wb") as f:
         while True:

@@ -115,6 +115,6 @@ def read_record(path: Path, schema: Schema) -> dict[str, Any] | None:
         return None
     try:
         data = json.loads(text)
-    except ValueError as e:
+    except json.JSONDecodeError as e:  # what json.loads of a str raises (a ValueError)
         raise DamagedRecord(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
     return check_record(data, schema, str(path))

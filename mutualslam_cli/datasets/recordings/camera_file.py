@@ -125,7 +125,7 @@ def _yaml_mapping(text: str) -> dict[str, Any] | None:
         data = yaml.load(text, Loader=StrictLoader)  # a SafeLoader
     except (yaml.YAMLError, RecursionError) as e:
         if is_refusal(e):
-            raise CameraFileError(f"line {e.problem_mark.line + 1}: {e.problem}") from None  # type: ignore[attr-defined]
+            raise CameraFileError(f"line {e.problem_mark.line + 1}: {e.problem}") from None
         return None
     return data if isinstance(data, dict) else None
 
@@ -226,7 +226,8 @@ def _from_kalibr(cam: dict[str, Any]) -> Intrinsics:
     res = _numbers("resolution", cam["resolution"]).ravel() if cam.get("resolution") is not None else np.zeros(2)
     if res.size != 2 or np.any(res < 0) or np.any(res != np.round(res)):
         raise CameraFileError("resolution must be [width, height] in whole pixels")
-    return _checked(*(float(x) for x in v), int(res[0]), int(res[1]), dist)
+    fx, fy, cx, cy = (float(x) for x in v)  # 4 numbers, checked above
+    return _checked(fx, fy, cx, cy, int(res[0]), int(res[1]), dist)
 
 
 # --- plain text ---------------------------------------------------------------------------------------------------

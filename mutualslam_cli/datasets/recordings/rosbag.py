@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -72,7 +72,7 @@ def _raw_pixels(msg: Any, where: str, dtype: str, channels: int) -> np.ndarray:
         raise DatasetError(f"{where}: {msg.encoding} image {w}×{h} with step {step} has {data.size} bytes; "
                            f"expected step ≥ {row} and height×step = {h * step} bytes")
     rows = np.ascontiguousarray(data[: h * step].reshape(h, step)[:, :row])
-    order = ">" if int(msg.is_bigendian) else "<"
+    order: Literal[">", "<"] = ">" if int(msg.is_bigendian) else "<"
     arr = rows.view(np.dtype(dtype).newbyteorder(order)).reshape(h, w, channels)
     return arr.astype(np.dtype(dtype).newbyteorder("="), copy=False)
 

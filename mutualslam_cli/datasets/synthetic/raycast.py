@@ -167,7 +167,7 @@ class Renderer:
         dn = np.abs(np.where(ax0, d[0], np.where(ax2, d[2], d[1])))
         dn *= self.rnorm
         np.maximum(dn, np.float32(1e-6), out=dn)
-        foot = depth * sc
+        foot: np.ndarray = depth * sc
         foot /= np.sqrt(dn, out=dn)
         foot *= np.float32(1.0 / self.f_pix)
         # Mip level l0 ∈ {0, 1, 2} and its scale s0 = 2^-l0; blend weight linear in the
