@@ -185,8 +185,8 @@ def plan_bridge(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarra
     tracked = np.flatnonzero(vo.frame_segment >= 0)
     pos = {int(f): n for n, f in enumerate(tracked)}
     first_frame = kfs[first_kf].frame_index
-    last = max((f for f in tracked if f < first_frame and vo.frame_segment[f] == prev.segment),
-               default=prev.frame_index)
+    last = int(max((f for f in tracked if f < first_frame and vo.frame_segment[f] == prev.segment),
+                   default=prev.frame_index))
     T_last = vo.traj_all.poses[pos[last]] if last in pos else prev.pose
     R_rel = rotation_between(gray_of_frame(int(last)), gray_of_frame(first_frame), vo, intr_raw)
     P = T_last.copy()

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -103,8 +104,8 @@ class SegmentMerger:
         if loop is None:
             return time.perf_counter() - t
         onto = state.segment(loop.match)
-        where = dict(segment=int(seg), onto=int(onto), frame=int(state.frame_of(kf)),
-                     timestamp=float(state.time_of(kf)))
+        where: dict[str, Any] = dict(segment=int(seg), onto=int(onto), frame=int(state.frame_of(kf)),
+                                     timestamp=float(state.time_of(kf)))
         if state.unit(seg) == state.unit(onto):  # bridged into that map already: the measured loop corrects it
             if self.detector.already_closed(state, loop):
                 return time.perf_counter() - t

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 
+from mutualslam_cli.adapt.depthnet import DepthNet
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.backend.bridges import Bridge
@@ -65,10 +65,10 @@ class Adapted:
             (:mod:`~mutualslam_cli.online.scores`); ``None`` when not computed.
     """
 
-    net: torch.nn.Module
+    net: DepthNet
     adapter: OnlineAdapter | None
     map: VOResult
-    frontend: VOResult | None
+    frontend: VOResult
     bridged: VOResult | None
     source: FrontEndSource
     injected: np.ndarray
@@ -91,7 +91,7 @@ class Adapted:
                 f"{v['validations']} validations)")
 
 
-def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | None = None) -> Adapted:
+def run_stage(run: RunContext, net0: DepthNet, fast: bool, ba: MapBA | None = None) -> Adapted:
     """The front end and the adaptation of a copy of ``net0``, on one clock: ``keyframes.csv`` and the keys
     ``timing.finetune_*``, ``adaptation.*``, ``vo.bridges`` (scheme ``comoda``: its own outputs).
 
@@ -182,6 +182,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, fast: bool, ba: MapBA | No
                 "no online scores through OpenVINO (the torch path, eval.online false, or no GT depth)")
     if kf_rows:
         atomic_write_text(run.folder / "keyframes.csv", keyframes_table(kf_rows).to_csv(index=False))
+    assert adapted.bridged is not None  # comoda: the front end's own map; else credit_bridges' above
     summarise_bridges(run, adapted.bridged, adapted.bridges, adapted.credit)
     check = adapted.map.meta.get("scale_check") if adapted.map is not None else None
     for k in ("checks", "drift_max", "drift_min"):  # the network's view of the map's scale, keyframe by keyframe

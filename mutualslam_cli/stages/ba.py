@@ -110,8 +110,8 @@ class BAStage:
                                                 if adapted.adapter is not None else
                                                 f"scheme {cfg.adapt.scheme!r} runs no Algorithm 1")
         self.final, self.why_no_final = vo_ba, why or ""
-        if vo_ba is None:
-            self._absent(why)
+        if vo_ba is None:  # no final BA: why says why (set on each branch that leaves vo_ba None)
+            self._absent(self.why_no_final)
         else:
             self._write(vo_ba, fe, adapted)
         self._credit(fe, adapted, vo_ba, why)
@@ -134,7 +134,8 @@ class BAStage:
             ates, n, no = common_frames_ate(self.run.seq, maps, self.run.cfg.eval.ate_max_dt, keyframes=kf)
             summary.set(f"trajectory.{group}.frames", n)
             for k, v in ates.items():
-                summary.set(f"trajectory.{group}.{k}", v, no or (why if k == "ba" else "not computed"))
+                why_k = why if k == "ba" and why is not None else "not computed"
+                summary.set(f"trajectory.{group}.{k}", v, no or why_k)
 
     def _absent(self, why: str) -> None:
         summary = self.run.summary

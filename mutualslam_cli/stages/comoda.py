@@ -23,12 +23,11 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 
 from mutualslam_cli.adapt.comoda import ComodaAdapter, FrameStep
 from mutualslam_cli.adapt.comoda_pose import make_pose_net
 from mutualslam_cli.adapt.comoda_source import source_triplets
-from mutualslam_cli.adapt.depthnet import prepare
+from mutualslam_cli.adapt.depthnet import DepthNet, prepare
 from mutualslam_cli.adapt.inputs import to_net_image
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.associate import write_tum_trajectory
@@ -67,7 +66,7 @@ def posenet_ate(seq: Sequence, traj: Trajectory, max_dt: float) -> tuple[float |
         return None, str(e)
 
 
-def run_stage(run: RunContext, net: torch.nn.Module, fast: bool) -> torch.nn.Module:
+def run_stage(run: RunContext, net: DepthNet, fast: bool) -> DepthNet:
     """Adapt ``net`` on every frame of the sequence with the CoMoDa-style adapter; write its outputs.
 
     Args:
@@ -113,4 +112,4 @@ def run_stage(run: RunContext, net: torch.nn.Module, fast: bool) -> torch.nn.Mod
         summary.absent(key, "scheme 'comoda' updates per frame, without keyframe batches or a regulariser")
     value, reason = posenet_ate(seq, traj, cfg.eval.ate_max_dt)
     summary.set(POSENET_ATE_KEY, value, reason)
-    return adapter.net
+    return net  # adapter.net is this network, trained in place

@@ -83,7 +83,8 @@ def use_threads(cfg: RunConfig) -> RunConfig:
     once, used alike by torch, OpenCV and BLAS (:func:`~mutualslam_cli.pipeline.run_sequence`), and
     recorded in ``config.yaml`` like any setting.
     """
-    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())
+    # with_overrides takes plain values too (config/run.py annotates its **sections as dicts only)
+    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())  # type: ignore[arg-type]
     torch.set_num_threads(cfg.threads)
     cv2.setNumThreads(cfg.threads)
     return cfg

@@ -147,7 +147,8 @@ def _run(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Mod
     fused, sim_scales, note = select_frames(seq, vo, folder, dc.every, cfg.eval.ate_max_dt)
     if not fused:
         raise GeometryError(f"no frame to fuse ({note})")
-    models = [m for m in MODELS if nets.get(m) is not None]
+    present = {m: net for m in MODELS if (net := nets.get(m)) is not None}
+    models = list(present)
     scalings = [s for s in SCALINGS if s in dc.scalings]
     seg_count = {s: sum(f.segment == s for f in fused) for s in sim_scales}
     summary.set("dense.sim3_scale", sim_scales[max(seg_count, key=lambda s: (seg_count[s], -s))])
@@ -167,7 +168,7 @@ def _run(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Mod
 
     meshes: dict[str, tsdf.Mesh] = {}
     with tempfile.TemporaryDirectory(prefix=".dense-", dir=folder) as tmp:
-        preds, rgbs, scales, own = _predict(Path(tmp), seq, vo, fused, {m: nets[m] for m in models}, cfg, fast, tick)
+        preds, rgbs, scales, own = _predict(Path(tmp), seq, vo, fused, present, cfg, fast, tick)
         ref, own["gt"] = _reference(folder, seq, fused, preds, n_ref > 0, "gt" in scalings, cfg, summary, tick)
         if ref is not None:
             meshes["gt"] = ref
@@ -311,9 +312,9 @@ def _predict(tmp: Path, seq: Sequence, vo: VOResult, fused: list[FusedFrame], ne
                 tick("predict")
     scales = {}
     for m in nets:
-        r = np.array(ratios[m], np.float64).reshape(-1, 2)
-        metric = r[np.isfinite(r[:, 1]), 1]
-        scales[m] = (float(np.median(r[:, 0])) if len(r) else None, float(np.median(metric)) if len(metric) else None)
+        rs = np.array(ratios[m], np.float64).reshape(-1, 2)
+        metric = rs[np.isfinite(rs[:, 1]), 1]
+        scales[m] = (float(np.median(rs[:, 0])) if len(rs) else None, float(np.median(metric)) if len(metric) else None)
     return preds, rgbs, scales, {"frame": own}
 
 
@@ -323,7 +324,7 @@ def _score(mesh: tsdf.Mesh | None, ref: tsdf.Mesh | None, s: str, m: str, cfg: R
     (all null with ``why``, or with the scoring error, when there is nothing to score)."""
     if why is None and (mesh is None or ref is None):
         why = "no mesh to score"
-    if why is None:
+    if why is None and mesh is not None and ref is not None:  # both there (else why is set above)
         try:
             r = tsdf.score_surfaces(mesh, ref, cfg.dense.voxel_size)
         except GeometryError as e:
@@ -343,7 +344,7 @@ def _picture(path: Path, meshes: dict[str, tsdf.Mesh], fused: list[FusedFrame], 
              summary: Summary, cfg: RunConfig) -> None:
     """``dense.png`` (:func:`~mutualslam_cli.dense.picture.dense_picture`) from the GT poses of the fused frames."""
     if meshes:
-        gt = [seq.frames[f.frame].pose for f in fused if seq.frames[f.frame].pose is not None]
+        gt = [pose for f in fused if (pose := seq.frames[f.frame].pose) is not None]
         scores = {m: {k: summary.values.get(f"dense.{k}.{m}") for k in ("fscore_5cm", "accuracy_m", "completeness_m")}
                   for m in meshes}
         dense_picture(path, meshes, np.stack(gt) if gt else np.stack([f.T_metric for f in fused]), scores,

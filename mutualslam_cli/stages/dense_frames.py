@@ -49,6 +49,13 @@ def _segments_of(seq: Sequence, vo: VOResult, traj: Trajectory) -> tuple[np.ndar
     return idx, seg
 
 
+def _gt(seq: Sequence) -> Trajectory:
+    """The sequence's GT poses; GeometryError without (the dense stage checks first)."""
+    if seq.gt is None:
+        raise GeometryError("sequence has no GT poses: no Sim(3) to bring the run into metres")
+    return seq.gt
+
+
 def select_frames(seq: Sequence, vo: VOResult, folder: Path, every: int,
                   max_dt: float) -> tuple[list[FusedFrame], dict[int, float], str]:
     """The frames to fuse with their metric poses, the Sim(3) scale of each aligned segment, and a note
@@ -73,7 +80,7 @@ def select_frames(seq: Sequence, vo: VOResult, folder: Path, every: int,
             raise DatasetError(f"{folder}: no traj_all.txt (the poses of every tracked frame)")
         idx, seg = _segments_of(seq, vo, traj)
         keep = (seg >= 0) & (idx % every == 0)
-    sims = tsdf.sim3_per_segment(seq.gt, traj, seg, max_dt)
+    sims = tsdf.sim3_per_segment(_gt(seq), traj, seg, max_dt)
     if not sims:
         raise GeometryError(f"no tracking segment has 3 {'keyframes' if every == 0 else 'frames'} associated with "
                             "GT poses: no Sim(3) to metres")
@@ -92,4 +99,4 @@ def front_end_scales(seq: Sequence, vo: VOResult, cfg: RunConfig) -> dict[int, f
     else:
         traj = vo.traj_all
         seg = _segments_of(seq, vo, traj)[1]
-    return {s: v[2] for s, v in tsdf.sim3_per_segment(seq.gt, traj, seg, cfg.eval.ate_max_dt).items()}
+    return {s: v[2] for s, v in tsdf.sim3_per_segment(_gt(seq), traj, seg, cfg.eval.ate_max_dt).items()}

@@ -19,6 +19,7 @@ inverse depth in one colour map (GT depth in a fourth column when the frame has 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -55,13 +56,19 @@ def to_png_units(depth: np.ndarray) -> np.ndarray:
     return raw.astype(np.uint16)
 
 
+def _png_writer(raw: np.ndarray) -> Callable[[str], bool]:
+    """The writer :func:`~mutualslam_cli.atomic.atomic_write_with` calls with the temporary name: ``raw`` as a PNG."""
+    return lambda name: bool(cv2.imwrite(name, raw))
+
+
 def predict_frames(seq: Sequence, frames: list[int], nets: dict[str, torch.nn.Module], run: RunContext,
                    fast: bool) -> tuple[list[np.ndarray], dict[str, list[np.ndarray]], list[np.ndarray | None]]:
     """The pinhole frames ``(H, W, 3)`` uint8, each model's depth resized to ``(H, W)`` float32 (network
     units), and the GT depth ``(H, W)`` metres (or ``None``) of ``frames``."""
     und = Undistorter(seq.intrinsics)
     rgbs = [und.image(seq.load_rgb(i)) for i in frames]
-    gts = [None if seq.frames[i].depth_path is None else und.depth(seq.load_depth(i)) for i in frames]
+    gts = [None if seq.frames[i].depth_path is None or (raw := seq.load_depth(i)) is None else und.depth(raw)
+           for i in frames]
     out: dict[str, list[np.ndarray]] = {}
     for name, predict in predictors_for(seq, nets, run.cfg, fast, run.predictors).items():
         out[name] = [cv2.resize(np.asarray(d, np.float32), (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_LINEAR)
@@ -88,8 +95,7 @@ def run_stage(run: RunContext, net0: torch.nn.Module, adapted: Adapted, fast: bo
         for j, i in enumerate(frames):
             stem = f"{i:06d}"
             raw = to_png_units(saved[j])
-            atomic_write_with(folder / f"{stem}.png", lambda name, raw=raw: bool(cv2.imwrite(name, raw)),
-                              "a 16-bit depth PNG")
+            atomic_write_with(folder / f"{stem}.png", _png_writer(raw), "a 16-bit depth PNG")
             with atomic_path(folder / f"{stem}.npy") as tmp, open(tmp, "wb") as f:
                 np.save(f, saved[j].astype(np.float32))
             valid = saved[j][np.isfinite(saved[j]) & (saved[j] > 0)]
@@ -142,8 +148,9 @@ def depth_picture(path: Path, rgbs: list[np.ndarray], depth: dict[str, list[np.n
                 ax.imshow(rgbs[r])
                 ax.set_title(f"frame {i} · {times[r]:.3f} s", fontsize=8)
             elif col == "gt":
-                ax.imshow(inverse_depth_colours(gts[r]) if gts[r] is not None else np.zeros((h, w, 3)))
-                ax.set_title("GT depth" if gts[r] is not None else "no GT depth", fontsize=8)
+                g = gts[r]
+                ax.imshow(inverse_depth_colours(g) if g is not None else np.zeros((h, w, 3)))
+                ax.set_title("GT depth" if g is not None else "no GT depth", fontsize=8)
             else:
                 d = depth[col][r]
                 ax.imshow(inverse_depth_colours(d))

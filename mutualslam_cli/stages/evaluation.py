@@ -107,7 +107,9 @@ def evaluate_depth(seq: Sequence, predictors: dict[str, Predictor], cfg: RunConf
                 preds[name].extend(predict(rgbs[b0:b0 + bs]))
                 times[name].append((time.perf_counter() - t0) * 1e3 / len(rgbs[b0:b0 + bs]))  # per frame
         for j, i in enumerate(chunk):
-            gt = und.depth(seq.load_depth(i))
+            raw_gt = seq.load_depth(i)
+            assert raw_gt is not None  # eval_frames: frames with a depth image only
+            gt = und.depth(raw_gt)
             row: dict[str, float | int | bool] = {"frame": i, "timestamp": seq.frames[i].timestamp,
                                                    "is_keyframe": bool(keyframe_frames and i in keyframe_frames)}
             for name in predictors:
@@ -203,7 +205,9 @@ def evaluate_models(seq: Sequence, net0: torch.nn.Module, net: torch.nn.Module |
     cached = pd.read_csv(path) if path is not None and path.is_file() else None
     predictors = predictors_for(seq, {k: m for k, m in (("pretrained", net0 if cached is None else None),
                                                           ("adapted", net)) if m is not None}, cfg, fast, memo)
+    ms: dict[str, float]
     if not predictors:  # scheme none with a cached pre-trained evaluation
+        assert cached is not None  # net0 is left out only when its rows are cached
         table, ms = cached.copy(), {}
     else:
         table, ms = evaluate_depth(seq, predictors, cfg, kf_frames, progress, eval_batch(cfg, device))

@@ -69,12 +69,13 @@ def summarise_forgetting(summary: Summary, table: pd.DataFrame, n_frames: int, s
     trained = scheme not in ("none",)
     for ref in ("online", "pretrained"):
         key = f"depth.bwt.vs_{ref}"
+        final, before = first["adapted"], first[ref]
         if not trained:
             summary.absent(key, f"scheme {scheme!r} does not adapt the model")
-        elif first["adapted"] is None or first[ref] is None:
+        elif final is None or before is None:
             summary.absent(key, no_depth or f"no {ref} and final score on the first quarter")
         else:
-            summary.set(key, first["adapted"] - first[ref])
+            summary.set(key, final - before)
     vs_pre = summary.values.get("depth.bwt.vs_pretrained")
     if vs_pre is not None and vs_pre < 0:
         summary.notes["depth.bwt.vs_pretrained"] = (

@@ -282,7 +282,7 @@ def _solve_units(sub: VOResult, sub_obs: list[np.ndarray], keep: np.ndarray, sta
         cand = np.flatnonzero(keep & (loc[host] >= 0) & in_image(pix, W, H, MARGIN + 2))
         if len(ks) < 2 or not len(cand):
             continue
-        scene = UnitScene(np.stack([stack_all[k] for k in ks]), K, np.stack([se3_inv(T_wc[k]) for k in ks]),
+        scene = UnitScene(np.stack([stack_all[int(k)] for k in ks]), K, np.stack([se3_inv(T_wc[k]) for k in ks]),
                           np.zeros((len(ks), 2)), loc[host[cand]], pix[cand], rho[cand],
                           [loc[sub_obs[i]][loc[sub_obs[i]] >= 0] for i in cand],
                           np.array([sub.keyframes[k].segment for k in ks]))
@@ -314,8 +314,10 @@ def _solve_part(scene: UnitScene, obs_pt: np.ndarray, obs_kf: np.ndarray, part: 
     free[np.unique(np.r_[obs_kf, scene.host[used]])] = True
     free[part[0]] = False
     # the scale: that of the part's first segment (the one the others were bridged onto), so a bridge's can move
-    joined = len(np.unique(scene.segment)) > 1
-    anchor = (scene.segment == scene.segment[part[0]]) & np.isin(np.arange(len(free)), part) if joined else None
+    segment = scene.segment
+    assert segment is not None  # _solve_units gives every scene its keyframes' segments
+    joined = len(np.unique(segment)) > 1
+    anchor = (segment == segment[part[0]]) & np.isin(np.arange(len(free)), part) if joined else None
     H, W = hw
     r = solve(scene.problem(remap[obs_pt], obs_kf, used, free, anchor), iterations=cfg.iterations,
               huber_delta=cfg.huber_grey / 255, outlier_delta=cfg.outlier_grey / 255, pattern=pattern_of(cfg),

@@ -87,6 +87,8 @@ def normal_equations(d: PatchData, T: np.ndarray, ab: np.ndarray, rho: np.ndarra
     P = len(rho)
     res = residuals(d, T, ab, rho, jac=True) if res is None else res
     r, valid, Jc, Jp = res.values, res.valid, res.d_cameras, res.d_inv_depth
+    assert Jc is not None, "normal_equations needs residuals(..., jac=True)"
+    assert Jp is not None, "normal_equations needs residuals(..., jac=True)"
     a = np.abs(r)
     w = np.where(a < huber_delta, 1.0, huber_delta / np.maximum(a, 1e-12)) * valid * d.wg[d.p]  # IRLS
     if active is not None:

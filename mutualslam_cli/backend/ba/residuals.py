@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -127,7 +128,8 @@ class Residuals:
 
     def where(self, blocks: np.ndarray, other: Residuals) -> Residuals:
         """Per block, ``other``'s entries where ``blocks`` ``(M,)`` is true, this one's elsewhere."""
-        def pick(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+        # field by field, arrays and optional arrays alike: Any, as the fields are of two types
+        def pick(a: Any, b: Any) -> Any:
             return None if a is None else np.where(blocks.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
 
         return Residuals(*(pick(getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self)))

@@ -45,7 +45,7 @@ class BlockStructure:
         Dv = np.concatenate([B[:, :NP, :NP], B[:, NP:, NP:]]).reshape(len(kf), -1)
         D = np.bincount((kf[:, None] * NP * NP + np.arange(NP * NP)).ravel(), Dv.ravel(),
                         minlength=nk * NP * NP).reshape(nk, NP, NP)
-        H = np.zeros((nk, NP, nk, NP))
+        H: np.ndarray = np.zeros((nk, NP, nk, NP))  # (K, 8, K, 8), then (8K, 8K)
         H[self.ph, :, self.pt, :] = B[:, :NP, NP:]  # (h, t) cross blocks, unique per pair
         H = H.reshape(nk * NP, nk * NP)
         H = H + H.T
