@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from mutualslam_cli.adapt import weights
-from mutualslam_cli.adapt.depthnet import fast_path_supported, predict_depth, prepare
+from mutualslam_cli.adapt.depthnet import DepthNet, fast_path_supported, predict_depth, prepare
 from mutualslam_cli.adapt.inference import openvino_predictor, resolve_runtime
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
@@ -91,7 +91,7 @@ def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool,
     return predict
 
 
-def load_network(cfg: RunConfig, fast: bool = False, device: torch.device | str = "cpu") -> torch.nn.Module:
+def load_network(cfg: RunConfig, fast: bool = False, device: torch.device | str = "cpu") -> DepthNet:
     """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default, on
     ``device``, in the memory layout of the chosen path (:func:`~mutualslam_cli.adapt.depthnet.prepare`:
     channels-last with ``fast``, as the adapted model is; an unprepared model under bf16 autocast was 1.27×
@@ -102,7 +102,7 @@ def load_network(cfg: RunConfig, fast: bool = False, device: torch.device | str 
 
 
 def load_saved_network(folder: Path, cfg: RunConfig, fast: bool = False,
-                       device: torch.device | str = "cpu") -> torch.nn.Module:
+                       device: torch.device | str = "cpu") -> DepthNet:
     """A model saved in ``folder`` (Monodepth2 files, e.g. a run's adapted ``weights/``), prepared as
     :func:`load_network` prepares the pre-trained one."""
     net = weights.load_monodepth2(folder, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth)

@@ -39,7 +39,8 @@ def front_end_alone(seq: Sequence, cfg: RunConfig, cache_dir: Path | None) -> tu
 
 def segment_starts(state: MapState) -> set[int]:
     """Frames at which ``state``'s front end created the first keyframe of a segment, the first segment's aside."""
-    seen, out = set(), set()
+    seen: set[int] = set()
+    out: set[int] = set()
     for k in range(state.n_keyframes):
         seg = state.segment(k)
         if seg not in seen:

@@ -28,7 +28,7 @@ from collections.abc import Callable, Iterator
 import torch
 
 from mutualslam_cli.adapt.buffer import KeyframeSample
-from mutualslam_cli.adapt.depthnet import predict_depth, prepare
+from mutualslam_cli.adapt.depthnet import DepthNet, predict_depth, prepare
 from mutualslam_cli.adapt.inputs import keyframe_images
 from mutualslam_cli.adapt.online import OnlineAdapter, StepInfo
 from mutualslam_cli.backend.bridges import Bridge, plan_bridge
@@ -60,7 +60,7 @@ class OnlineLoop:
             bridge refused (its segment stays apart, and the network is not trained on it: one unit).
     """
 
-    def __init__(self, run: OnlineRun, source: FrontEndSource, net: torch.nn.Module, fast: bool,
+    def __init__(self, run: OnlineRun, source: FrontEndSource, net: DepthNet, fast: bool,
                  ba: MapBA | None = None, scorer: OnlineScorer | None = None) -> None:
         cfg = run.cfg
         self.run, self.source, self.state, self.cfg, self.fast = run, source, source.state, cfg, fast
@@ -128,13 +128,14 @@ class OnlineLoop:
         if self.clock is not None:
             self.row(kf).rt_start_ms = self.clock.now_ms
         self._join_segment(kf)                          # a new segment: the network of now bridges it
-        if self.merger is not None:                     # a segment found in the map before it: merged
-            self._backend("merge_s", kf, lambda: self.merger.after_keyframe(kf, self._depth_of(), self._val_loss))
+        merger, closer = self.merger, self.closer
+        if merger is not None:                          # a segment found in the map before it: merged
+            self._backend("merge_s", kf, lambda: merger.after_keyframe(kf, self._depth_of(), self._val_loss))
         info = self._tick(kf)                           # validate, or assemble the batch (labels of now)
         if info is not None and info.run_global_ba:
             self._global_ba(kf)                         # cull + BA; the refined map goes back to the front end
-        if self.closer is not None:                     # a place seen before: close the loop (loop.enabled)
-            self._backend("loop_s", kf, lambda: self.closer.after_keyframe(kf, self._depth_of(), self._val_loss))
+        if closer is not None:                          # a place seen before: close the loop (loop.enabled)
+            self._backend("loop_s", kf, lambda: closer.after_keyframe(kf, self._depth_of(), self._val_loss))
 
     def _tick(self, kf: int) -> StepInfo | None:
         if self.adapter is None:
@@ -161,6 +162,7 @@ class OnlineLoop:
         if self.adapter is None or self.adapter.pending is None:
             return
         info = self.adapter.train_pending(steps)
+        assert info is not None  # a batch was pending
         self.row_of[info.kf_id].took(info)
 
     def _join_segment(self, kf: int) -> None:
@@ -220,6 +222,7 @@ class OnlineLoop:
         self.row(kf).add_seconds(key, seconds)
         if self.clock is not None:
             self.clock.charge(1000.0 * seconds, key[:-2])
+            assert isinstance(self.writer, DeferredMap)  # the realtime schedule's
             self.writer.finish(self.clock.now_ms)
 
     def _backend(self, key: str, kf: int, work: Callable[[], float]) -> None:

@@ -37,9 +37,10 @@ from collections.abc import Mapping
 from typing import Any, Protocol
 
 import numpy as np
-import torch
 
+from mutualslam_cli.adapt.depthnet import DepthNet
 from mutualslam_cli.adapt.online import OnlineAdapter
+from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.online.credit import WeightsAt
@@ -73,13 +74,13 @@ class RealtimeClock:
 
     def scale(self) -> float:
         """Modelled ms per ms of wall time here (1 when measured, or before any step was timed)."""
-        if self.measured or not self.measured_steps:
+        if self.step_cost_ms is None or not self.measured_steps:  # measured, or nothing timed yet
             return 1.0
         return float(self.step_cost_ms) / float(np.median(self.measured_steps))
 
     def step_ms(self) -> float:
         """What one step costs on the clock (measured: the median step so far; 0 before the first)."""
-        if not self.measured:
+        if self.step_cost_ms is not None:  # not measured
             return float(self.step_cost_ms)
         return float(np.median(self.measured_steps)) if self.measured_steps else 0.0
 
@@ -104,7 +105,7 @@ class RealtimeClock:
     def stepped(self, wall_ms: list[float]) -> None:
         """The steps just taken (their wall times here) go on the clock."""
         self.measured_steps.extend(wall_ms)
-        self.now_ms += sum(wall_ms) if self.measured else len(wall_ms) * float(self.step_cost_ms)
+        self.now_ms += sum(wall_ms) if self.step_cost_ms is None else len(wall_ms) * float(self.step_cost_ms)
 
     def done(self) -> None:
         """The current keyframe's work is over."""
@@ -174,10 +175,10 @@ class Loop(Protocol):
     run: OnlineRun
     source: Any  # FrontEndSource, or a scripted one in tests
     state: MapState
-    net: torch.nn.Module
+    net: DepthNet
     adapter: OnlineAdapter | None
     clock: RealtimeClock | None
-    writer: DeferredMap
+    writer: MapTarget
     row_of: dict[int, KeyframeRow]
     trained_kf: int
     weights_at: WeightsAt
@@ -206,6 +207,7 @@ class RealtimeSchedule:
         self.times = [seq.seconds(i) * 1000.0 for i in range(len(seq))]
         self.end_ms = self.times[-1]
         self.queue: deque[int] = deque()
+        assert isinstance(loop.writer, DeferredMap)  # the realtime loop's map changes wait for their work's end
         self.writer: DeferredMap = loop.writer
         self.taken = 0  # steps the pending keyframe took
         self._done: list[int] = []  # keyframes whose work ended in this frame's window
@@ -244,6 +246,7 @@ class RealtimeSchedule:
                     return  # the next keyframe may still come: the training goes on
                 n = len(adapter.consolidate_ms)
                 info = adapter.end_pending()
+                assert info is not None  # a batch was pending
                 clock.charge(sum(adapter.consolidate_ms[n:]), "consolidate")
                 row = loop.row_of[kf]
                 row.took(info)

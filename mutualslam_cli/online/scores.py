@@ -58,6 +58,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import asdict
+from typing import Literal
 
 import numpy as np
 import pandas as pd
@@ -130,7 +131,7 @@ class OnlineScorer:
         self._rows: list[dict[str, float | int]] = []
         self._sketches: list[np.ndarray | None] = []
         self._twin: torch.nn.Module | None = None  # channels-last copy of an NCHW network on the CPU
-        self._ov: RefreshablePredictor | bool | None = None  # None: not decided yet; False: the torch path
+        self._ov: RefreshablePredictor | Literal[False] | None = None  # None: not decided yet; False: the torch path
         self.seconds = 0.0
 
     def score_until(self, net: torch.nn.Module, frame_index: int, kf_id: int) -> None:
@@ -151,7 +152,9 @@ class OnlineScorer:
             small = np.stack([resample(self._und.image(self.seq.load_rgb(i)), cfg.net.width, cfg.net.height)
                               for i in chunk])  # (B, h, w, 3) uint8: what goes to the network's device
             for i, depth in zip(chunk, predict(small)):
-                stats = asdict(dm.depth_stats(depth, self._und.depth(self.seq.load_depth(i)), cfg.eval.max_depth,
+                gt = self.seq.load_depth(i)
+                assert gt is not None  # eval_frames: frames with a depth image only
+                stats = asdict(dm.depth_stats(depth, self._und.depth(gt), cfg.eval.max_depth,
                                            cfg.eval.pcd_threshold, sketch=True))
                 self._sketches.append(stats.pop("sketch"))
                 self._rows.append({"frame": i, "online_kf": kf_id, **{f"online_{k}": stats[k] for k in COLUMNS}})

@@ -84,7 +84,7 @@ def use_threads(cfg: RunConfig) -> RunConfig:
     recorded in ``config.yaml`` like any setting.
     """
     # with_overrides takes plain values too (config/run.py annotates its **sections as dicts only)
-    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())  # type: ignore[arg-type]
+    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())
     torch.set_num_threads(cfg.threads)
     cv2.setNumThreads(cfg.threads)
     return cfg

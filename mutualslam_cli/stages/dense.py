@@ -46,7 +46,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import cv2
@@ -104,7 +104,7 @@ def run_stage(run: RunContext, fe: FrontEnd, net0: torch.nn.Module, adapted: Ada
                   run.cfg, fast, run.summary, run.progress)
 
 
-def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Module | None], cfg: RunConfig,
+def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: Mapping[str, torch.nn.Module | None], cfg: RunConfig,
               fast: bool, summary: Summary, progress: Progress | None = None) -> None:
     """Fuse, score and draw (module docstring); writes ``mesh_{pretrained,adapted,gt}.ply`` and
     ``dense.png`` into ``folder`` and the ``dense.*`` keys into ``summary``.
@@ -139,7 +139,7 @@ def run_dense(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.n
              summary.values.get("dense.fscore_5cm.adapted"), summary.values["dense.time_s"])
 
 
-def _run(folder: Path, seq: Sequence, vo: VOResult, nets: dict[str, torch.nn.Module | None], cfg: RunConfig,
+def _run(folder: Path, seq: Sequence, vo: VOResult, nets: Mapping[str, torch.nn.Module | None], cfg: RunConfig,
          fast: bool, summary: Summary, progress: Progress | None) -> None:
     dc = cfg.dense
     if seq.gt is None or len(seq.gt) == 0:
