@@ -137,8 +137,8 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> tuple[di
     write_yaml(run.folder / "config.yaml", to_dict(cfg))
     run.device_info = {**describe_device(run.device), **configure(run.device, cfg.deterministic)}
     log.info("depth network on %s (%s)", run.device, run.device_info["device_name"])
-    fast = use_fast_path(cfg, run.device)
-    net0 = load_network(cfg, fast, run.device)  # the pre-trained model
+    fast = use_fast_path(cfg.net, run.device)
+    net0 = load_network(cfg.net, fast, run.device)  # the pre-trained model
     ba = BAStage(run)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
     adapted = adaptation.run_stage(run, net0, fast, ba.map_ba if cfg.ba.enabled else None)  # front end + Algorithm 1
     assert adapted.frontend is not None  # always set: the front end's own result (stages/adaptation.py)
@@ -196,9 +196,9 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         assert where is not None  # neither a sequence nor a root raised DatasetError above
         seq = open_sequence(where, cfg, registry)
         vo, _, _ = frontend.load_frontend(seq, cfg, folder.parents[2] / "_cache" / "vo", progress)
-        fast = use_fast_path(cfg, device)
-        nets = {"pretrained": load_network(cfg, fast, device),
-                "adapted": load_saved_network(wdir, cfg, fast, device) if adapted else None}
+        fast = use_fast_path(cfg.net, device)
+        nets = {"pretrained": load_network(cfg.net, fast, device),
+                "adapted": load_saved_network(wdir, cfg.net, fast, device) if adapted else None}
         summary = Summary.from_dict(old, drop_prefix="dense.")
         dense.run_dense(stage, seq, vo, nets, cfg, fast, summary, progress)
         data = to_dict(cfg)

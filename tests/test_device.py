@@ -88,11 +88,11 @@ def test_precision_and_runtime_follow_the_device(monkeypatch):
     assert resolve_runtime("auto", "auto", cuda) == resolve_runtime("auto", "off", "cpu") == "torch"
     assert resolve_runtime("torch", "auto", cuda) == "torch"
     fake_gpus(monkeypatch, 1, capability=(8, 0))
-    assert use_fast_path(cfg, cuda) is True  # tensor cores: mixed precision by default
-    assert use_fast_path(load_config(None, ["net.fast=off"]), cuda) is False
+    assert use_fast_path(cfg.net, cuda) is True  # tensor cores: mixed precision by default
+    assert use_fast_path(load_config(None, ["net.fast=off"]).net, cuda) is False
     fake_gpus(monkeypatch, 1, capability=(6, 1))  # a GTX 1070: fp16 is slower than fp32 there
-    assert use_fast_path(cfg, cuda) is False
-    assert use_fast_path(load_config(None, ["net.fast=on"]), cuda) is True
+    assert use_fast_path(cfg.net, cuda) is False
+    assert use_fast_path(load_config(None, ["net.fast=on"]).net, cuda) is True
     assert device.grad_scaler(torch.device("cpu"), True) is None  # bf16 / fp32 need no loss scaling
 
 

@@ -270,9 +270,9 @@ def test_batched_evaluation_matches_frame_by_frame(setup):
     tables = {}
     for b in (1, 5):  # 12 frames: batches of 5, 5 and 2
         cfg = _cfg(tmp, f"eval.batch={b}")
-        net = load_network(cfg)
+        net = load_network(cfg.net)
         calls = []
-        pred = make_predictor(net, cfg, False)
+        pred = make_predictor(net, cfg.net, False)
         tables[b], ms = evaluate_depth(loaded, {"m": lambda f, p=pred, c=calls: c.append(len(f)) or p(f)}, cfg,
                                        progress=lambda d, n: None)
         assert sum(calls) == len(tables[b])

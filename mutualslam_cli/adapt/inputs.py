@@ -17,7 +17,7 @@ import torch
 from mutualslam_cli.adapt import weights
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_path_supported, predict_depth, prepare
 from mutualslam_cli.adapt.inference import openvino_predictor, resolve_runtime
-from mutualslam_cli.config import RunConfig
+from mutualslam_cli.config import NetConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.device import amp_supported, module_device
 from mutualslam_cli.errors import ConfigError
@@ -66,53 +66,54 @@ def keyframe_images(seq: Sequence, keyframes: VOResult | Callable[[int], int], w
     return load
 
 
-def make_predictor(net: torch.nn.Module, cfg: RunConfig, fast: bool,
+def make_predictor(net: torch.nn.Module, settings: NetConfig, fast: bool,
                    calibration: list[np.ndarray] | None = None) -> Callable[[list[np.ndarray]], np.ndarray]:
     """Batched predictor for evaluation: ``B`` frames ``(H, W, 3)`` uint8 (pinhole geometry) → ``(B, h, w)``
-    float32 depth at network resolution (map units), in the runtime ``net.runtime`` resolves to for the
-    network's device (:func:`~mutualslam_cli.adapt.inference.resolve_runtime`; OpenVINO copies the weights
-    now; the torch path runs on the network's device, resampled frames sent there as uint8).
+    float32 depth at network resolution (map units), in the runtime ``settings.runtime`` (the run's ``net``
+    section) resolves to for the network's device (:func:`~mutualslam_cli.adapt.inference.resolve_runtime`;
+    OpenVINO copies the weights now; the torch path runs on the network's device, resampled frames sent there as uint8).
     ``calibration``: frames of the same kind for the int8 runtime's activation ranges (required there)."""
-    runtime = resolve_runtime(cfg.net.runtime, cfg.net.fast, module_device(net))
+    runtime = resolve_runtime(settings.runtime, settings.fast, module_device(net))
     if runtime == "openvino-int8" and not calibration:
         raise ConfigError("net.runtime=openvino-int8 needs calibration frames")
     if runtime.startswith("openvino"):
-        calib = (torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in calibration])
+        calib = (torch.stack([to_net_image(rgb, settings.width, settings.height) for rgb in calibration])
                  if runtime == "openvino-int8" and calibration else None)  # int8: calibration checked above
-        run = openvino_predictor(net, cfg.net.width, cfg.net.height, calibration=calib)
+        run = openvino_predictor(net, settings.width, settings.height, calibration=calib)
 
         def predict(frames: list[np.ndarray]) -> np.ndarray:
-            return run(torch.stack([to_net_image(rgb, cfg.net.width, cfg.net.height) for rgb in frames]))
+            return run(torch.stack([to_net_image(rgb, settings.width, settings.height) for rgb in frames]))
     else:
         def predict(frames: list[np.ndarray]) -> np.ndarray:
-            small = np.stack([resample(rgb, cfg.net.width, cfg.net.height) for rgb in frames])  # (B, h, w, 3) uint8
+            small = np.stack([resample(rgb, settings.width, settings.height) for rgb in frames])  # (B, h, w, 3) uint8
             return predict_depth(net, small, fast=fast)
 
     return predict
 
 
-def load_network(cfg: RunConfig, fast: bool = False, device: torch.device | str = "cpu") -> DepthNet:
-    """The pre-trained model: ``net.weights`` (Monodepth2 files) or the ``mslam pretrain`` default, on
-    ``device``, in the memory layout of the chosen path (:func:`~mutualslam_cli.adapt.depthnet.prepare`:
-    channels-last with ``fast``, as the adapted model is; an unprepared model under bf16 autocast was 1.27×
-    slower)."""
-    kw = {"min_depth": cfg.net.min_depth, "max_depth": cfg.net.max_depth}
-    net = weights.load_monodepth2(Path(cfg.net.weights), **kw) if cfg.net.weights else weights.load_default(**kw)
+def load_network(settings: NetConfig, fast: bool = False, device: torch.device | str = "cpu") -> DepthNet:
+    """The pre-trained model of the run's ``net`` section (``settings``): ``weights`` (Monodepth2 files) or the
+    ``mslam pretrain`` default, on ``device``, in the memory layout of the chosen path
+    (:func:`~mutualslam_cli.adapt.depthnet.prepare`: channels-last with ``fast``, as the adapted model is; an
+    unprepared model under bf16 autocast was 1.27× slower)."""
+    kw = {"min_depth": settings.min_depth, "max_depth": settings.max_depth}
+    net = weights.load_monodepth2(Path(settings.weights), **kw) if settings.weights else weights.load_default(**kw)
     return prepare(net, fast, device=device)
 
 
-def load_saved_network(folder: Path, cfg: RunConfig, fast: bool = False,
+def load_saved_network(folder: Path, settings: NetConfig, fast: bool = False,
                        device: torch.device | str = "cpu") -> DepthNet:
     """A model saved in ``folder`` (Monodepth2 files, e.g. a run's adapted ``weights/``), prepared as
     :func:`load_network` prepares the pre-trained one."""
-    net = weights.load_monodepth2(folder, min_depth=cfg.net.min_depth, max_depth=cfg.net.max_depth)
+    net = weights.load_monodepth2(folder, min_depth=settings.min_depth, max_depth=settings.max_depth)
     return prepare(net, fast, device=device)
 
 
-def use_fast_path(cfg: RunConfig, device: torch.device | str = "cpu") -> bool:
-    """Resolve ``net.fast``: ``auto`` → bf16 where the CPU supports it; on a CUDA device mixed precision
-    (bf16 or fp16) where the GPU has tensor cores (:func:`~mutualslam_cli.device.amp_supported`)."""
+def use_fast_path(settings: NetConfig, device: torch.device | str = "cpu") -> bool:
+    """Resolve the ``net`` section's ``fast`` (``settings``): ``auto`` → bf16 where the CPU supports it; on a CUDA
+    device mixed precision (bf16 or fp16) where the GPU has tensor cores
+    (:func:`~mutualslam_cli.device.amp_supported`)."""
     device = torch.device(device)
     if device.type == "cuda":
-        return cfg.net.fast == "on" or (cfg.net.fast == "auto" and amp_supported(device))
-    return cfg.net.fast == "on" or (cfg.net.fast == "auto" and fast_path_supported())
+        return settings.fast == "on" or (settings.fast == "auto" and amp_supported(device))
+    return settings.fast == "on" or (settings.fast == "auto" and fast_path_supported())

@@ -53,7 +53,7 @@ def no_cuda_reason() -> str | None:
 
 def bench_gpu(device: torch.device, repeats: int = 20) -> dict[str, Any]:
     """Median fine-tuning step and prediction on ``device`` in the precision a run would use there."""
-    fast = use_fast_path(load_config(), device)
+    fast = use_fast_path(load_config().net, device)
     step = bench_finetune_step(640, 192, repeats, fast, warmup=5, device=device)["ms"]
     predict = bench_inference(640, 192, 2 * repeats, fast, warmup=5, device=device)["ms"]
     return {"step_ms": step, "predict_ms": predict, "mixed_precision": fast}

@@ -163,7 +163,7 @@ def predictors_for(seq: Sequence, nets: dict[str, torch.nn.Module], cfg: RunConf
         int8 = any(resolve_runtime(cfg.net.runtime, cfg.net.fast, module_device(net)) == "openvino-int8"
                    for net in todo.values())
         calib = calibration_frames(seq) if int8 else None
-        memo.update({(name, id(net)): make_predictor(net, cfg, fast, calib) for name, net in todo.items()})
+        memo.update({(name, id(net)): make_predictor(net, cfg.net, fast, calib) for name, net in todo.items()})
     return {name: memo[(name, id(net))] for name, net in nets.items()}
 
 

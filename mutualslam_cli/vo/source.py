@@ -49,7 +49,9 @@ class FrontEndSource:
 
     Args:
         seq: the sequence.
-        cfg: the run's config (``vo``, ``seed``).
+        cfg: the run's config: ``vo`` and ``seed`` run the front end; its journal is keyed by those, ``data`` and
+            ``threads`` as well (:func:`~mutualslam_cli.vo.journal_cache.vo_cache_key`), so the whole config, not a
+            section.
         cache_dir: where journals are kept (``None``: no cache).
         progress: ``progress("vo", info)`` after each frame.
         live_feedback: changes reach the live front end (causal labels, our VO); else the state only.

@@ -134,4 +134,4 @@ def test_int8_runtime_needs_calibration_frames():
     if not inference.openvino_available():
         pytest.skip("openvino not installed")
     with pytest.raises(ConfigError, match="calibration"):
-        make_predictor(DepthNet(), cfg, False)
+        make_predictor(DepthNet(), cfg.net, False)
