@@ -78,13 +78,10 @@ class Bridge:
     t: list[float] | None = None
     refused: str = ""
 
-    def similarity(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """``(R (3, 3), t (3,), s)`` of the move ``x ↦ s·R·x + t`` applied to the segment."""
-        return np.array(self.R, float), np.array(self.t, float), self.scale
-
     def sim3(self) -> Sim3:
-        """The move applied to the segment as a :class:`~mutualslam_cli.map.sim3.Sim3`."""
-        return Sim3(*self.similarity())
+        """The move ``x ↦ s·R·x + t`` applied to the segment (:class:`~mutualslam_cli.map.sim3.Sim3`: ``R``
+        ``(3, 3)``, ``t`` ``(3,)`` float arrays, ``s`` its ``scale``)."""
+        return Sim3(np.array(self.R, float), np.array(self.t, float), self.scale)
 
 
 def depth_ratio(vo: VOResult, kf_id: int, depth: np.ndarray,
@@ -208,24 +205,23 @@ def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.nda
     b = plan_bridge(vo, first_kf, depth_of, gray_of_frame, intr_raw, points_w)
     if b is None or b.refused:
         return None
-    R, t, s = b.similarity()
-    return move_segment(vo, b.segment, R, t, s, onto=b.onto), b
+    return move_segment(vo, b.segment, b.sim3(), onto=b.onto), b
 
 
 def bridged(vo: VOResult, bridges: list[Bridge]) -> VOResult:
     """``vo`` (each segment in its own unit) with the bridges a run made applied in order: the front end joined,
     and nothing else (refused ones skipped)."""
     for b in (b for b in bridges if not b.refused):
-        vo = move_segment(vo, int(b.segment), np.array(b.R, float), np.array(b.t, float), float(b.scale),
-                          onto=int(b.onto))
+        vo = move_segment(vo, int(b.segment), b.sim3(), onto=int(b.onto))
     return vo
 
 
-def move_segment(vo: VOResult, seg: int, R: np.ndarray, t: np.ndarray, s: float, onto: int | None = None) -> VOResult:
-    """``vo`` with segment ``seg`` moved by the similarity ``x ↦ s·R·x + t``: keyframe and frame poses
+def move_segment(vo: VOResult, seg: int, S: Sim3, onto: int | None = None) -> VOResult:
+    """``vo`` with segment ``seg`` moved by the similarity ``S`` (``x ↦ s·R·x + t``): keyframe and frame poses
     ``T_wc ↦ [R·R_wc | s·R·t_wc + t]``, inverse depths ÷ ``s`` (points follow their hosts); with ``onto``, into
     that segment's map unit (:attr:`VOResult.units`)."""
-    S = Sim3(np.asarray(R, np.float64), np.asarray(t, np.float64), s)
+    S = S.as_float64()
+    s = S.s
     kfs = [replace(k, pose=S.apply_pose(k.pose)) if k.segment == seg else k for k in vo.keyframes]
     in_seg = np.array([k.segment == seg for k in vo.keyframes])
     pts = vo.points

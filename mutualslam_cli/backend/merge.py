@@ -36,6 +36,7 @@ from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
 from mutualslam_cli.backend.records import MergeRecord
 from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.map.sim3 import Sim3
 
 #: The old segments' newest keyframes a merge query tries before the appearance ranking: a segment started after a
 #: loss most often sees again what the camera saw when it lost track (TUM fr1_desk: the appearance ranking alone
@@ -43,13 +44,13 @@ from mutualslam_cli.datasets.sequence import Sequence
 MERGE_NEWEST = 2
 
 
-def merge_similarity(T_new: np.ndarray, loop: LoopClosure) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, s)`` of the similarity that moves the query keyframe from its pose ``T_new`` ``(4, 4)`` (world to
+def merge_similarity(T_new: np.ndarray, loop: LoopClosure) -> Sim3:
+    """The similarity ``x ↦ s·R·x + t`` that moves the query keyframe from its pose ``T_new`` ``(4, 4)`` (world to
     camera, its segment's frame) to the verified ``loop.T_cw`` in the old map, its unit scaled by ``loop.scale``."""
     R_o, t_o = loop.T_cw[:3, :3], loop.T_cw[:3, 3]
     R_n, t_n = T_new[:3, :3], T_new[:3, 3]
     s = float(loop.scale)
-    return R_o.T @ R_n, R_o.T @ (s * t_n - t_o), s
+    return Sim3(R_o.T @ R_n, R_o.T @ (s * t_n - t_o), s)
 
 
 class SegmentMerger:
@@ -117,8 +118,7 @@ class SegmentMerger:
                 rec = MergeRecord(loop, **where, how="pose graph")
         else:  # a segment in a unit of its own (its bridge refused): moved onto the old map whole
             self.source.settle()  # the windowed BA in flight first: the keyframe's pose as it now stands
-            R, t_, s = merge_similarity(state.pose_cw(kf), loop)
-            self.source.transform_segment(seg, R, t_, s, onto)
+            self.source.transform_segment(seg, merge_similarity(state.pose_cw(kf), loop), onto)
             rec = MergeRecord(loop, **where, how="similarity")
         self._merged.add(seg)
         self.merges.append(rec)

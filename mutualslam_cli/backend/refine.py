@@ -27,6 +27,7 @@ from mutualslam_cli.config import BAConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.map.refinement import MapRefinement
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.sim3 import Sim3
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.types import FrameRef, Intrinsics
 from mutualslam_cli.vo.camera import Undistorter
@@ -48,8 +49,8 @@ class MapTarget(Protocol):
         """Make the map whole (the front end's pending windowed BA) before it is read for a change."""
         ...
 
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> None:
-        """Join ``segment`` to segment ``onto`` by ``x ↦ s·R·x + t`` (a bridge, a merge)."""
+    def transform_segment(self, segment: int, S: Sim3, onto: int) -> None:
+        """Join ``segment`` to segment ``onto`` by the similarity ``S`` (a bridge, a merge)."""
         ...
 
     def refine(self, r: MapRefinement) -> None:

@@ -49,6 +49,10 @@ class Sim3:
         R = T_to[:3, :3] @ T_from[:3, :3].T
         return Sim3(R, T_to[:3, 3] - s * R @ T_from[:3, 3], float(s))
 
+    def as_float64(self) -> Sim3:
+        """This similarity with ``R`` and ``t`` as float64 arrays (what the map's arrays are moved by)."""
+        return Sim3(np.asarray(self.R, np.float64), np.asarray(self.t, np.float64), self.s)
+
     def matrix(self) -> np.ndarray:
         """``(4, 4)`` ``[s·R | t]``."""
         M = np.eye(4)

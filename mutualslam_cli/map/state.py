@@ -145,15 +145,15 @@ class MapState:
         self._emit("reloc", index=r.frame, t=r.timestamp, keyframe=r.keyframe, inliers=r.inliers,
                    frames_lost=r.frames_lost, candidates_tried=r.candidates_tried)
 
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> np.ndarray:
-        """Move ``segment`` by ``x ↦ s·R·x + t`` (keyframes, hosted points, its frames' relative
+    def transform_segment(self, segment: int, S: Sim3, onto: int) -> np.ndarray:
+        """Move ``segment`` by the similarity ``S`` (``x ↦ s·R·x + t``: keyframes, hosted points, its frames' relative
         translations ×s) into the frame and unit of segment ``onto`` (a bridge); returns the hosted points' ids."""
-        hosted = self.map._transform_segment(segment, Sim3(np.asarray(R, np.float64), np.asarray(t, np.float64), s))
+        hosted = self.map._transform_segment(segment, S.as_float64())
         for i, (ref, T) in self.frame_rel.items():
             if self.frame_seg[i] == segment:
-                self.frame_rel[i] = (ref, rescaled(T, s))
+                self.frame_rel[i] = (ref, rescaled(T, S.s))
         self.joined[segment] = onto
-        self._emit("similarity", segment=segment, onto=onto, s=s, R=R, t=t)
+        self._emit("similarity", segment=segment, onto=onto, s=S.s, R=S.R, t=S.t)
         return hosted
 
     def rescale_frames(self, kfs: np.ndarray, scales: np.ndarray) -> None:
@@ -204,7 +204,7 @@ class MapState:
         elif k == "pixel":
             self.set_host_pixels(e["pids"], e["px_h"], e["xn_h"])
         elif k == "similarity":
-            self.transform_segment(e["segment"], e["R"], e["t"], e["s"], e["onto"])
+            self.transform_segment(e["segment"], Sim3(e["R"], e["t"], e["s"]), e["onto"])
         elif k == "rescale":
             self.rescale_frames(e["kfs"], e["scales"])
         elif k == "frame":

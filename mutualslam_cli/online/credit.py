@@ -96,7 +96,7 @@ def credit_bridges(seq: Sequence, cfg: RunConfig, cache_dir: Path | None, net: t
                 snap = source.state.snapshot(seq.frames, covisibility=False)
                 b = plan_bridge(snap, kf, depth_predictor(twin, load, fast), seq.load_gray, seq.intrinsics)
                 if b is not None and not b.refused:
-                    source.transform_segment(b.segment, *b.similarity(), b.onto)
+                    source.transform_segment(b.segment, b.sim3(), b.onto)
                 if b is not None:
                     records.append(b)
         return source.result(), records

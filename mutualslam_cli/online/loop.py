@@ -180,7 +180,7 @@ class OnlineLoop:
         if b is not None and b.refused:
             self.refused.append(b)
         elif b is not None:
-            self.writer.transform_segment(b.segment, *b.similarity(), b.onto)
+            self.writer.transform_segment(b.segment, b.sim3(), b.onto)
             self.bridges.append(b)
         self._busy("bridge_s", kf, time.perf_counter() - t)
 

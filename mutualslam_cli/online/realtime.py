@@ -42,6 +42,7 @@ from mutualslam_cli.adapt.depthnet import DepthNet
 from mutualslam_cli.adapt.online import OnlineAdapter
 from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
+from mutualslam_cli.map.sim3 import Sim3
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.online.credit import WeightsAt
 from mutualslam_cli.online.rows import KeyframeRow
@@ -143,9 +144,9 @@ class DeferredMap:
             self._last_kf = self._copy.n_keyframes - 1
         return self._copy
 
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> None:
-        self._shadow().transform_segment(segment, R, t, s, onto)
-        self._ops.append(("transform_segment", (segment, R, t, s, onto)))
+    def transform_segment(self, segment: int, S: Sim3, onto: int) -> None:
+        self._shadow().transform_segment(segment, S, onto)
+        self._ops.append(("transform_segment", (segment, S, onto)))
 
     def refine(self, r: MapRefinement) -> None:
         apply_refinement(self._shadow(), r)

@@ -27,15 +27,15 @@ class FeedbackMixin(FrontEndBase):
         """Apply the pending windowed BA now, so the map is whole before it is read or changed."""
         self._collect_ba()
 
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> None:
-        """Move ``segment`` by ``x ↦ s·R·x + t`` into segment ``onto``'s frame and unit (a bridge) and go on
-        tracking in them."""
+    def transform_segment(self, segment: int, S: Sim3, onto: int) -> None:
+        """Move ``segment`` by the similarity ``S`` (``x ↦ s·R·x + t``) into segment ``onto``'s frame and unit (a
+        bridge) and go on tracking in them."""
         self.settle()
-        self.state_map.transform_segment(segment, R, t, s, onto)
+        self.state_map.transform_segment(segment, S, onto)
         if segment != self.st.segment or self.st.mode != "tracking":
             return
-        S = Sim3(np.asarray(R, np.float64), np.asarray(t, np.float64), s)
-        self.st.T_cw = se3_inv(S.apply_pose(se3_inv(self.st.T_cw)))
+        s = S.s
+        self.st.T_cw = se3_inv(S.as_float64().apply_pose(se3_inv(self.st.T_cw)))
         self.st.vel = rescaled(self.st.vel, s)  # a motion between two camera frames: its translation in the new unit
         tr = self.st.tracks
         in_seg = np.array([sg == segment for sg in self.state_map.map.kf_segment], bool)

@@ -31,6 +31,7 @@ from mutualslam_cli.geometry import pinhole
 from mutualslam_cli.map.journal import Event
 from mutualslam_cli.map.refinement import MapRefinement, apply_refinement
 from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.sim3 import Sim3
 from mutualslam_cli.map.state import MapState, events_from_result
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo import checkpoint
@@ -180,14 +181,14 @@ class FrontEndSource:
             self._change().settle()
             self._drain()
 
-    def transform_segment(self, segment: int, R: np.ndarray, t: np.ndarray, s: float, onto: int) -> None:
-        """Join ``segment`` to segment ``onto`` by ``x ↦ s·R·x + t`` (a bridge), now."""
+    def transform_segment(self, segment: int, S: Sim3, onto: int) -> None:
+        """Join ``segment`` to segment ``onto`` by the similarity ``S`` (a bridge, a merge), now."""
         if self.live_feedback:
             fe = self._change()
-            fe.transform_segment(segment, R, t, s, onto)
+            fe.transform_segment(segment, S, onto)
             self._drain()
         else:
-            self.state.transform_segment(segment, R, t, s, onto)
+            self.state.transform_segment(segment, S, onto)
 
     def refine(self, r: MapRefinement) -> None:
         """A global BA's refinement of the map, now."""

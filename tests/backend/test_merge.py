@@ -14,6 +14,7 @@ from mutualslam_cli.backend.loop_detector import LoopClosure
 from mutualslam_cli.backend.merge import SegmentMerger, merge_similarity
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.geometry import exp_so3, se3_inv
+from mutualslam_cli.map.sim3 import Sim3
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.types import Intrinsics
 
@@ -47,8 +48,8 @@ class Source:
     def settle(self):
         self.settled += 1
 
-    def transform_segment(self, segment, R, t, s, onto):
-        self.state.transform_segment(segment, R, t, s, onto)
+    def transform_segment(self, segment, S, onto):
+        self.state.transform_segment(segment, S, onto)
 
     def refine(self, r):
         self.refined.append(r)
@@ -73,7 +74,8 @@ def _merger(state: MapState, loop: LoopClosure | None, closer=None) -> SegmentMe
 def test_the_similarity_puts_the_query_keyframe_on_the_verified_pose():
     T_new = se3_inv(_T_wc(0.3, [0.4, -0.1, 0.2]))
     T_o = se3_inv(_T_wc(-0.5, [2.0, 1.0, -1.0]))
-    R, t, s = merge_similarity(T_new, LoopClosure(4, 1, T_o, 2.5, 100, 0.1, 50, 50))
+    S = merge_similarity(T_new, LoopClosure(4, 1, T_o, 2.5, 100, 0.1, 50, 50))
+    R, t, s = S.R, S.t, S.s
     T_wc = se3_inv(T_new)
     moved = np.eye(4)
     moved[:3, :3], moved[:3, 3] = R @ T_wc[:3, :3], s * R @ T_wc[:3, 3] + t
@@ -121,7 +123,7 @@ def test_after_a_merge_every_reader_sees_one_unit():
 
 def test_a_bridged_segment_is_corrected_as_a_loop():
     state = _state()
-    state.transform_segment(1, np.eye(3), np.array([0.3, 0, 0]), 1.0, 0)  # a bridge joined it to segment 0
+    state.transform_segment(1, Sim3(np.eye(3), np.array([0.3, 0, 0]), 1.0), 0)  # a bridge joined it to segment 0
     loop = LoopClosure(4, 1, se3_inv(_T_wc(0.7, [0.3, 0.2, 0.1])), 1.2, 100, 0.1, 50, 50)
     calls = []
     closer = SimpleNamespace(close=lambda lp, d, v: calls.append(lp.query) or {"ba_nearby_targets": 3})

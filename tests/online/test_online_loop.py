@@ -62,8 +62,8 @@ class ScriptedSource:
     def settle(self) -> None:
         pass
 
-    def transform_segment(self, segment, R, t, s, onto) -> None:
-        self.state.transform_segment(segment, R, t, s, onto)
+    def transform_segment(self, segment, S, onto) -> None:
+        self.state.transform_segment(segment, S, onto)
 
     def refine(self, r: MapRefinement) -> None:
         self.refined.append((self.frame, r))
