@@ -41,12 +41,12 @@ test-all: install
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 bench: install
-	$(PY) -m mutualslam_cli.bench --memory --whole-run --grid
+	$(MSLAM) bench suite --memory --whole-run --grid
 
 # The CUDA path against the CPU on a machine with an NVIDIA GPU (≤ 5 min): step and prediction times,
 # a 100-frame shared window on cuda and on cpu (same keyframes, PCD within 1 point). Skips without CUDA.
 gpu-check: install
-	$(PY) -m mutualslam_cli.bench.gpu_check
+	$(MSLAM) bench gpu-check
 
 # The results book (configs/book.yaml): every experiment the README reports, resumable (run it again after a kill),
 # then results/book/ and, with --publish, results/book.json (committed) and the README's blocks rendered from it.

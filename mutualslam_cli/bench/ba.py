@@ -1,6 +1,6 @@
 """Synthetic photometric-BA problems and the global-BA benchmark (DESIGN §10).
 
-``python -m mutualslam_cli.bench.ba`` (and the ``ba`` section of ``make bench``,
+``mslam bench ba`` (:func:`ba_bench`; and the ``ba`` section of ``make bench``,
 :func:`bench_ba`) times :func:`~mutualslam_cli.backend.ba.photometric.solve` with 10 LM iterations on
 100 keyframes × 10 000 points (≤ 5 targets, 3×3 patch; design target ≤ 5 s) and reports what it
 recovers, before and after: keyframe centre error (mm, max and RMS; also the map's scale error
@@ -39,7 +39,6 @@ and the classification per round.
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 from typing import Any
@@ -345,22 +344,15 @@ def report(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--iterations", type=int, default=10)
-    ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--levels", type=int, default=1, help="pyramid levels (1: full resolution)")
-    ap.add_argument("--coarse-iterations", type=int, default=5)
-    a = ap.parse_args()
-    r = bench_ba(a.runs, a.iterations, a.levels, a.coarse_iterations, log=print)
+def ba_bench(iterations: int = 10, runs: int = 3, levels: int = 1, coarse_iterations: int = 5) -> dict[str, Any]:
+    """:func:`bench_ba` with a line per run, the problem, the median time (s) and :func:`report` printed to
+    stdout; returns :func:`bench_ba`'s result. ``levels``: pyramid levels (1: full resolution)."""
+    r = bench_ba(runs, iterations, levels, coarse_iterations, log=print)
     p = r["ba_problem"]
     print(f"built {p['keyframes']} keyframes {p['image']}, {p['points']} points, {p['observations']} "
           f"observations in {r['ba_build_s']:.1f} s; spacing {p['spacing_cm_median']:.1f} cm, baseline "
           f"median {p['baseline_cm_median']:.1f} cm, parallax median {p['parallax_px_median']:.1f} px")
-    print(f"median {r['ba_s']:.2f} s over {a.runs} runs (levels {a.levels}, {a.iterations} "
+    print(f"median {r['ba_s']:.2f} s over {runs} runs (levels {levels}, {iterations} "
           f"full-resolution iterations)\n")
     print(report(r))
-
-
-if __name__ == "__main__":
-    main()
+    return r

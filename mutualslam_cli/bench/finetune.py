@@ -3,14 +3,13 @@
 Timings are medians of wall-clock milliseconds after warm-up; they depend on the load of
 the machine, so treat them as indicative. ``device`` (default the CPU) says where the network runs:
 the inputs are drawn on the CPU with a seeded generator and sent there, and a CUDA device is waited for
-before each time is read (``make gpu-check`` runs these on the GPU).
+before each time is read (``make gpu-check`` runs these on the GPU). ``mslam bench finetune [--threads 1]``
+prints :func:`compare` as JSON.
 """
 
 from __future__ import annotations
 
-import json
 import statistics
-import sys
 import time
 from dataclasses import replace
 from typing import Any
@@ -234,6 +233,3 @@ def bf16_depth_difference(width: int = 640, height: int = 192, net: DepthNet | N
     return {"median": float(rel.median()), "p99": float(torch.quantile(rel[:100000], 0.99)),
             "max": float(rel.max())}
 
-
-if __name__ == "__main__":  # python -m mutualslam_cli.bench.finetune [threads]
-    print(json.dumps(compare(threads=int(sys.argv[1]) if len(sys.argv) > 1 else 1), indent=1))

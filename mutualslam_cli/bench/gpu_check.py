@@ -1,6 +1,6 @@
 """``make gpu-check``: the CUDA path on a machine with an NVIDIA GPU, checked against the CPU (DESIGN §10).
 
-Usage: ``python -m mutualslam_cli.bench.gpu_check [--sequence tum_fr1_xyz] [--out DIR] [--skip-cpu]``.
+Usage: ``mslam bench gpu-check [--sequence tum_fr1_xyz] [--out DIR] [--skip-cpu]`` (:func:`gpu_check`).
 
 Without CUDA it says why and exits 0 (CI and CPU-only machines). With it, in about five minutes:
 
@@ -17,11 +17,10 @@ A whole 900-frame sequence in ≤ 90 s (the third target) needs a longer sequenc
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import tempfile
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -84,39 +83,43 @@ def _fmt(v: Any, nd: int = 1) -> str:
     return "—" if v is None else f"{v:.{nd}f}" if isinstance(v, float) else str(v)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sequence", default="tum_fr1_xyz", help="a shared window of 100 frames (datasets.yaml name)")
-    ap.add_argument("--out", default=None, help="results folder (default: a temporary one)")
-    ap.add_argument("--skip-cpu", action="store_true", help="only the GPU side (no comparison)")
-    ap.add_argument("--device", default="cuda", help="the GPU side's device (tests run the script with cpu)")
-    ap.add_argument("--config", type=Path, default=CONFIG_DIR / "paper.yaml")
-    ap.add_argument("--set", dest="sets", action="append", default=[], help="key=value (repeatable)")
-    a = ap.parse_args(argv)
+def gpu_check(sequence: str = "tum_fr1_xyz", out: Path | str | None = None, skip_cpu: bool = False,
+              device: str = "cuda", config: Path = CONFIG_DIR / "paper.yaml", sets: Iterable[str] = ()) -> int:
+    """The check of the module docstring, printed to stdout; the exit status: 0 when every check passes or
+    there is no CUDA (it says why), 1 when a check fails or the window cannot run.
+
+    Args:
+        sequence: a shared window of 100 frames (datasets.yaml name or sequence folder).
+        out: results folder (``None``: a temporary one).
+        skip_cpu: only the GPU side (no comparison).
+        device: the GPU side's device (tests run it with ``cpu``).
+        config: the run config of both windows.
+        sets: ``key=value`` overrides of ``config``.
+    """
     reason = no_cuda_reason()
     if reason is not None:
         print(f"gpu-check: skipped, no CUDA device: {reason}")
         return 0
-    device = resolve_device(a.device)
-    info = describe_device(device)
+    dev = resolve_device(device)
+    info = describe_device(dev)
     print(f"gpu-check on {info['device_name']} ({info['device_memory_gb']} GiB, CUDA {info['cuda_version']}, "
           f"cuDNN {info['cudnn_version']}, compute capability {info.get('compute_capability')})")
-    bench = bench_gpu(device)
+    bench = bench_gpu(dev)
     ok = True
     for key, (limit, what) in GPU_TARGETS.items():
         passed = bench[key] <= limit
         print(f"  {what}: {bench[key]:.1f} ms (target ≤ {limit:g} ms, mixed precision {bench['mixed_precision']})"
               f" {'ok' if passed else 'ABOVE TARGET'}")
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(a.out or tmp)
+        folder = Path(out or tmp)
         try:
-            runs = {"cuda": run_window(a.sequence, a.device, out / "cuda", a.config, a.sets)}
-            if not a.skip_cpu:
-                runs["cpu"] = run_window(a.sequence, "cpu", out / "cpu", a.config, a.sets)
+            runs = {"cuda": run_window(sequence, device, folder / "cuda", config, list(sets))}
+            if not skip_cpu:
+                runs["cpu"] = run_window(sequence, "cpu", folder / "cpu", config, list(sets))
         except MslamError as e:
-            print(f"gpu-check: the {a.sequence} window could not run: {e}")
+            print(f"gpu-check: the {sequence} window could not run: {e}")
             return 1
-    print(f"\n{a.sequence}, configs/paper.yaml, replay+ewc:")
+    print(f"\n{sequence}, configs/paper.yaml, replay+ewc:")
     print(f"  {'device':<6} {'total s':>8} {'step ms':>8} {'predict ms':>10} {'PCD lsq':>8} {'keyframes':>9}")
     for name, r in runs.items():
         f = r["summary"]
@@ -130,6 +133,3 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"bench": bench, **{f"{k}_total_s": r["summary"].get("timing.total_s") for k, r in runs.items()}}))
     return 0 if ok else 1
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -12,16 +12,15 @@ batch's Adam displacement the proximal step takes back. Procedure:
 
 The sequence is a rendered synthetic room in the target domain (not one of the evaluation
 windows; no GT is read, only the optimiser's behaviour). GT depth and poses are not used; the front
-end is our VO. Run it with::
+end is our VO. Run it with (:func:`run_strength`)::
 
-    python -m mutualslam_cli.bench.strength --out results/strength [--frames 200] [--seed 3]
+    mslam bench strength --out results/strength [--frames 200] [--seed 3]
 
 It prints one line per run and writes ``strength.json`` with the chosen coefficients.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 from typing import Any
@@ -69,24 +68,20 @@ def calibrate(seq: Path, out: Path, tol: float = 0.1, max_runs: int = 5) -> dict
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", type=Path, default=Path("results/strength"))
-    ap.add_argument("--sequence", type=Path, default=None, help="default: a rendered synthetic room")
-    ap.add_argument("--frames", type=int, default=200)
-    ap.add_argument("--seed", type=int, default=3)
-    a = ap.parse_args(argv)
-    seq = a.sequence
+def run_strength(out: Path = Path("results/strength"), sequence: Path | None = None, frames: int = 200,
+                 seed: int = 3) -> dict[str, Any]:
+    """The whole procedure: renders the room (``frames`` frames, 640×480, rendering seed ``seed``) into
+    ``out/room<frames>-seed<seed>`` unless ``sequence`` is given or it is there already, :func:`calibrate`s on it
+    under ``out``, writes ``out/strength.json`` and prints the chosen coefficients; returns :func:`calibrate`'s
+    result."""
+    out = Path(out)
+    seq = sequence
     if seq is None:
-        seq = a.out / f"room{a.frames}-seed{a.seed}"
+        seq = out / f"room{frames}-seed{seed}"
         if not (seq / "rgb.txt").is_file():
-            synthetic.write_tum(synthetic.iter_render("room", a.frames, 640, 480, a.seed, "target"), seq)
-    result = calibrate(seq, a.out)
-    (a.out / "strength.json").write_text(json.dumps(result, indent=2))
+            synthetic.write_tum(synthetic.iter_render("room", frames, 640, 480, seed, "target"), seq)
+    result = calibrate(seq, out)
+    (out / "strength.json").write_text(json.dumps(result, indent=2))
     print(json.dumps({k: (v if k == "target" else {"key": v["key"], "value": v["value"], "shrink": v["shrink"]})
                       for k, v in result.items()}, indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    return result

@@ -1,7 +1,7 @@
 """``make bench``: the speed figures of DESIGN §10, medians measured in one run.
 
-Usage: ``python -m mutualslam_cli.bench [--quick] [--memory] [--whole-run] [--grid | --only-grid]
-[--out results/bench.json]``.
+Usage: ``mslam bench suite [--quick] [--memory] [--whole-run] [--grid | --only-grid] [--threads N]
+[--out results/bench.json]`` (:func:`run_suite`; ``make bench`` is ``mslam bench suite --memory --whole-run --grid``).
 
 Sections: synthetic rendering, loader and VO front end, depth network, global photometric BA
 (:func:`mutualslam_cli.bench.ba.bench_ba`: time of 10 LM iterations on 100 keyframes × 10 000
@@ -18,7 +18,6 @@ stdout (a Markdown table) and to a JSON file.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import json
 import os
@@ -298,34 +297,44 @@ def _table(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer repeats")
-    ap.add_argument("--memory", action="store_true", help="also measure peak memory of `mslam run` (minutes)")
-    ap.add_argument("--grid", action="store_true", help="also time a 4-job grid with 1 and 2 workers (minutes)")
-    ap.add_argument("--only-grid", action="store_true", help="only the grid timing")
-    ap.add_argument("--whole-run", action="store_true",
-                    help="also time a whole default `mslam run tum_fr1_xyz`, split by stage (minutes)")
-    ap.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch threads for the network")
-    ap.add_argument("--out", default="results/bench.json")
-    a = ap.parse_args(argv)
-    torch.set_num_threads(a.threads)
+def run_suite(quick: bool = False, memory: bool = False, grid: bool = False, only_grid: bool = False,
+              whole_run: bool = False, threads: int | None = None,
+              out: Path | str = Path("results/bench.json")) -> dict[str, Any]:
+    """The whole suite: each section's figures, its table's last line to stderr as it completes, then the
+    Markdown table to stdout and every figure to ``out`` (JSON).
+
+    Args:
+        quick: fewer repeats.
+        memory: also the peak memory (GB) of ``mslam run`` on 60 and 120 synthetic frames and the BA's share
+            of its wall time (minutes).
+        grid: also the wall time (s) of a 4-job grid with 1 and 2 workers (minutes).
+        only_grid: only the grid timing (no other section).
+        whole_run: also a whole default ``mslam run tum_fr1_xyz``, split by stage per frame (minutes).
+        threads: torch threads for the network (``None``: ``os.cpu_count()``).
+        out: the JSON file written (its folder is made).
+
+    Returns:
+        Every figure: result key → value (ms, s, frames/s, GB or ×, as the key says), the machine's
+        :func:`~mutualslam_cli.machine.cpu_info` and the yardstick (:func:`reference_ms`) at start and end.
+    """
+    threads = threads if threads is not None else os.cpu_count() or 1
+    torch.set_num_threads(threads)
     res: dict[str, Any] = {**cpu_info(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "reference_ms_start": reference_ms()}
-    parts = [] if a.only_grid else [lambda: _render(a.quick), lambda: _loader_and_vo(a.quick),
-                                     lambda: _network(a.quick, a.threads), lambda: _ba(a.quick)]
-    for part in parts + ([_grid] if a.grid or a.only_grid else []):
+    parts = [] if only_grid else [lambda: _render(quick), lambda: _loader_and_vo(quick),
+                                  lambda: _network(quick, threads), lambda: _ba(quick)]
+    for part in parts + ([_grid] if grid or only_grid else []):
         res.update(part())
         print(_table(res).splitlines()[-1], file=sys.stderr, flush=True)
-    if a.whole_run:
-        res.update(bench_whole_run("tum_fr1_xyz", a.threads))
-    if a.memory:
-        res.update(_memory(60, a.threads))
+    if whole_run:
+        res.update(bench_whole_run("tum_fr1_xyz", threads))
+    if memory:
+        res.update(_memory(60, threads))
         res.update(step_in_run(res))
     res["self_peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
     res["reference_ms_end"] = reference_ms()
     print(_table(res))
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=2, default=str) + "\n")
-    print(f"\nwritten to {a.out}")
-    return 0
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(res, indent=2, default=str) + "\n")
+    print(f"\nwritten to {out}")
+    return res

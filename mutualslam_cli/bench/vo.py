@@ -1,13 +1,13 @@
 """Speed and accuracy benchmark of the VO front end (DESIGN §10: ≥ 60 frames/s at 640×480, decode
 included).
 
-Usage: ``python -m mutualslam_cli.bench.vo NAME_OR_PATH...``.
+Usage: ``mslam bench vo [NAME_OR_PATH...]`` (:func:`vo_table`).
 """
 
 from __future__ import annotations
 
 import statistics
-import sys
+from collections.abc import Iterable
 from typing import Any
 
 from mutualslam_cli.config import VOConfig
@@ -71,9 +71,15 @@ def vo_accuracy(seq: Sequence, vo: Any) -> dict[str, Any]:
     }
 
 
-def main(argv: list[str] | None = None) -> None:
-    """``python -m mutualslam_cli.bench.vo NAME_OR_PATH...``: the accuracy/speed table (Markdown)."""
-    names = list(sys.argv[1:] if argv is None else argv) or ["tum_fr1_xyz", "icl_lr_kt2", "redkitchen_7scenes"]
+#: The sequences of :func:`vo_table` when none is named.
+VO_TABLE_SEQUENCES = ("tum_fr1_xyz", "icl_lr_kt2", "redkitchen_7scenes")
+
+
+def vo_table(names: Iterable[str] = ()) -> None:
+    """The accuracy/speed table (Markdown, to stdout) of the front end on each sequence (datasets.yaml name or
+    folder; none: :data:`VO_TABLE_SEQUENCES`): tracked %, keyframes, map points, ATE (cm, keyframes and all
+    frames), the map's e_si and frames/s (median of 3 runs)."""
+    names = list(names) or list(VO_TABLE_SEQUENCES)
     print("| sequence | frames | tracked % | keyframes | map points | ATE kf [cm] | ATE all [cm] | e_si map | fps |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name in names:
@@ -85,6 +91,3 @@ def main(argv: list[str] | None = None) -> None:
         print(f"| {seq.name} | {acc['frames']} | {100 * acc['tracked']:.1f} | {acc['keyframes']} | {acc['points']} "
               f"| {cm(acc['ate_kf'])} | {cm(acc['ate_all'])} | {acc['esi']:.3f} | {fps:.1f} |")
 
-
-if __name__ == "__main__":
-    main()

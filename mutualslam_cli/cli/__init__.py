@@ -5,7 +5,7 @@ modules registers their commands on it. The command modules import the library i
 command: ``mslam --help`` and a typo stay instant instead of importing torch first (seconds).
 """
 
-from mutualslam_cli.cli import book, data, grid, run  # noqa: F401 - register the commands
+from mutualslam_cli.cli import bench, book, data, grid, run  # noqa: F401 - register the commands
 from mutualslam_cli.cli.common import app
 
 __all__ = ["app"]
