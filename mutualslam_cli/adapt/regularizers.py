@@ -75,8 +75,7 @@ each run measures what its regulariser does: after every proximal step the *shri
 ``1 − ‖θ − θ*‖₂ / ‖x − θ*‖₂`` — the share of the batch's Adam displacement the regulariser took
 back (0: inert, 1: frozen) — kept in :attr:`Regularizer.shrinks` and summarised as
 ``adaptation.reg.shrink.{mean,median}`` in ``summary.json``. The default coefficients are set so
-the three regularisers shrink alike (README, "Regulariser strength"; ``python -m
-mutualslam_cli.bench.strength``).
+the three regularisers shrink alike (README, "Regulariser strength"; ``mslam bench strength``).
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ class RunStats:
             keyframes, ``vo.reuse_map``).
         old_share: mean over tracked frames of the share of their tracked map points first seen more than
             :data:`~mutualslam_cli.vo.frontend.OLD_AGE_KFS` keyframes before the newest (``None``: none tracked).
-        scale_check: the network's scale check (:meth:`~mutualslam_cli.vo.depth_prior.ScaleCheck.summary`), ``None``
+        scale_check: the network's scale check (:meth:`~mutualslam_cli.vo.scale_check.ScaleCheck.summary`), ``None``
             when the front end ran without the network.
         ba_stats: one dict per windowed BA (``points``, ``solve_ms``, …).
         ba_threaded: whether the windowed BA ran on a worker thread.

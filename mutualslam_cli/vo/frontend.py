@@ -32,13 +32,15 @@ from mutualslam_cli.pixels import in_image
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.bootstrap import InitMixin
 from mutualslam_cli.vo.camera import distort_points, focal_px, undistort_points
-from mutualslam_cli.vo.depth_prior import KeyframeRatio, NetworkMixin, ScaleCheck
+from mutualslam_cli.vo.depth_prior import NetworkMixin
 from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.feedback import FeedbackMixin
-from mutualslam_cli.vo.local_map import OLD_AGE, KeyframeImages, LocalMapMixin
+from mutualslam_cli.vo.keyframe_images import KeyframeImages
+from mutualslam_cli.vo.local_map import OLD_AGE, LocalMapMixin
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
+from mutualslam_cli.vo.scale_check import KeyframeRatio, ScaleCheck
 from mutualslam_cli.vo.state import TrackerState, Tracks
 from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
 

@@ -18,10 +18,10 @@ if TYPE_CHECKING:
     from mutualslam_cli.map.journal import Journal
     from mutualslam_cli.map.state import MapState
     from mutualslam_cli.types import Intrinsics
-    from mutualslam_cli.vo.depth_prior import KeyframeRatio, ScaleCheck
-    from mutualslam_cli.vo.local_map import KeyframeImages
+    from mutualslam_cli.vo.keyframe_images import KeyframeImages
     from mutualslam_cli.vo.mapper import Mapper
     from mutualslam_cli.vo.relocalise import RelocIndex
+    from mutualslam_cli.vo.scale_check import KeyframeRatio, ScaleCheck
     from mutualslam_cli.vo.state import TrackerState
 
 

@@ -26,7 +26,6 @@ ORB-SLAM's point fusion): a point found again is observed, not made again.
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -54,9 +53,6 @@ MAX_SCALE_CHANGE = 1.4
 MAX_SOURCES = 4
 """Old keyframes (outside the held images) matched from per call: bounds the decoding per keyframe."""
 
-IMAGE_CACHE = 8
-"""Decoded old keyframe images kept (least recently used dropped)."""
-
 BORDER_PX = 8
 """Candidates this close to the image border are not matched (KLT's window would leave the image)."""
 
@@ -76,32 +72,6 @@ SAME_PX = 2.0
 
 FUSE_DEPTH = 0.15
 """… with depths in the frame within this relative difference."""
-
-
-class KeyframeImages:
-    """Grey images of old keyframes, decoded from the sequence on demand and kept in a small LRU.
-
-    Args:
-        load: ``load(frame)`` → ``(H, W)`` uint8 grey image of a frame (the sequence's ``load_gray``).
-        size: images kept.
-    """
-
-    def __init__(self, load: Callable[[int], np.ndarray], size: int = IMAGE_CACHE) -> None:
-        self.load, self.size = load, size
-        self._lru: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.decoded = 0
-
-    def get(self, frame: int) -> np.ndarray:
-        """The grey image of ``frame``."""
-        if frame in self._lru:
-            self._lru.move_to_end(frame)
-            return self._lru[frame]
-        img = self.load(frame)
-        self.decoded += 1
-        self._lru[frame] = img
-        while len(self._lru) > self.size:
-            self._lru.popitem(last=False)
-        return img
 
 
 @dataclass

@@ -41,7 +41,7 @@ from mutualslam_cli.pixels import in_image
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import distort_points, undistort_points
 from mutualslam_cli.vo.features import orb_features, orb_matches
-from mutualslam_cli.vo.local_map import KeyframeImages
+from mutualslam_cli.vo.keyframe_images import KeyframeImages
 from mutualslam_cli.vo.reproject import reproject_points
 from mutualslam_cli.vo.tracking import estimate_pose, klt_track, reprojection_errors
 

@@ -36,11 +36,11 @@ from mutualslam_cli.map.state import MapState, events_from_result
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo import checkpoint
 from mutualslam_cli.vo.depth_oracle import run_oracle
-from mutualslam_cli.vo.depth_prior import DepthHint
 from mutualslam_cli.vo.faults import corrupt_depths
 from mutualslam_cli.vo.frontend import FrontEnd
 from mutualslam_cli.vo.journal_cache import CHECKPOINT_EVERY, JournalEntry, cache_path, load_entry, save_entry
 from mutualslam_cli.vo.pose_oracle import run_pose_oracle
+from mutualslam_cli.vo.scale_check import DepthHint
 
 log = logging.getLogger(__name__)
 

@@ -12,8 +12,8 @@ from synth import make_tum_dir
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.geometry import se3_inv
-from mutualslam_cli.vo.depth_prior import MIN_REL_SIGMA, ScaleCheck
 from mutualslam_cli.vo.local_ba import BAProblem, solve
+from mutualslam_cli.vo.scale_check import MIN_REL_SIGMA, ScaleCheck
 from mutualslam_cli.vo.source import FrontEndSource
 
 SIZE = (64, 48)

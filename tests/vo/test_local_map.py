@@ -7,7 +7,8 @@ import numpy as np
 from mutualslam_cli.geometry import exp_so3, se3_inv
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.types import Intrinsics
-from mutualslam_cli.vo.local_map import MAX_SOURCES, KeyframeImages, local_map
+from mutualslam_cli.vo.keyframe_images import KeyframeImages
+from mutualslam_cli.vo.local_map import MAX_SOURCES, local_map
 
 K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
 SIZE = (320, 240)
