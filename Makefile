@@ -6,6 +6,9 @@ PIP := $(VENV)/bin/pip
 MSLAM := $(VENV)/bin/mslam
 DEMO_DIR ?= results/demo
 PYTEST_ARGS ?=
+# `make test` spreads the tests over this many processes (pytest-xdist): on the 2-core CI machines 1.65x faster than
+# one (6 min 23 s -> 3 min 52 s on an AVX512-BF16 EPYC); 1 = in this process, as `make test-all` runs.
+TEST_WORKERS ?= 2
 
 .PHONY: install demo test test-all bench gpu-check lint typecheck clean weights book book-smoke
 
@@ -35,7 +38,7 @@ demo: install
 # CI: lint and type check, then everything but `slow` (tests marked `data` run when ../shared/data exists, else
 # skip); the docstrings' examples run as tests too (tests/test_doctests.py).
 test: install lint typecheck
-	$(PY) -m pytest -q -m "not slow and not gpu" $(PYTEST_ARGS)
+	$(PY) -m pytest -q -m "not slow and not gpu" $(if $(filter-out 1,$(TEST_WORKERS)),-n $(TEST_WORKERS)) $(PYTEST_ARGS)
 
 test-all: install
 	$(PY) -m pytest -q $(PYTEST_ARGS)

@@ -8,6 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# pytest-xdist's workers (`make test` runs two) inherit COLUMNS=80 and LINES=24 from it, not from a terminal: the CLI's
+# console would take them as the user's width and wrap its tables at 80 columns, where a captured one-process run sees
+# a pipe (cli/common.PIPED_WIDTH). Dropped before any test imports the CLI, so both see a pipe.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _name in ("COLUMNS", "LINES"):
+        os.environ.pop(_name, None)
+
 # Tolerances in one place (STYLE §4): dtype -> (rtol, atol).
 TOL = {np.float32: (1e-4, 1e-5), np.float64: (1e-7, 1e-9)}
 
