@@ -7,7 +7,7 @@ so memory stays flat in sequence length.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -133,7 +133,7 @@ class Sequence:
             yield f, self.load_rgb(i), (self.load_depth(i) if with_depth else None)
 
 
-def grey_frames(seq: Sequence, start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
+def grey_frames(seq: Sequence, start: int = 0) -> Generator[tuple[int, np.ndarray], None, None]:
     """``(i, grey image)`` for frames ``start…`` in order; frame i+1 is decoded on a second thread while
     the caller works on frame i."""
     n = len(seq)

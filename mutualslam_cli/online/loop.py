@@ -203,7 +203,6 @@ class OnlineLoop:
         ``none``, a segment kept apart) the work done on them (bridge, merge, loop seconds)."""
         why = "a segment no bridge joined" if self.adapter is not None else "scheme none"
         rows = [self.row_of.get(k) or KeyframeRow(k) for k in range(self.state.n_keyframes)]
-        rows += [r for k, r in sorted(self.row_of.items()) if k >= self.state.n_keyframes]
         for r in rows:
             if r.info is None:
                 r.not_ticked = why

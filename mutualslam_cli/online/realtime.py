@@ -69,10 +69,6 @@ class RealtimeClock:
         self.now_ms = self.free_ms = -math.inf
         self.measured_steps: list[float] = []
 
-    @property
-    def measured(self) -> bool:
-        return self.step_cost_ms is None
-
     def scale(self) -> float:
         """Modelled ms per ms of wall time here (1 when measured, or before any step was timed)."""
         if self.step_cost_ms is None or not self.measured_steps:  # measured, or nothing timed yet

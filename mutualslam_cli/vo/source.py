@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -84,7 +84,7 @@ class FrontEndSource:
             frames = np.array([e.frame for e in self.entry.events], np.int64)
             self._bounds = np.searchsorted(frames, np.arange(self.n + 1), side="left")
         self.live: FrontEnd | None = None
-        self._frames: Iterator[tuple[int, np.ndarray]] | None = None
+        self._frames: Generator[tuple[int, np.ndarray], None, None] | None = None
         self._live_pos = 0
         self.pure: list[Event] = []
         self.pure_ckpts: dict[int, dict[str, np.ndarray]] = {}
@@ -225,7 +225,7 @@ class FrontEndSource:
         if self.live is not None and self.live.mapper.pool is not None:
             self.live.mapper.close()
         if self._frames is not None:
-            self._frames.close()  # type: ignore[attr-defined]  # grey_frames' generator, typed as an Iterator there
+            self._frames.close()
         if self.path is None or self.cfg.vo.mode != "svo":
             return
         until = self.frame if self.changed_at is None else self.changed_at
