@@ -39,6 +39,7 @@ Choices the paper leaves open (documented here, DESIGN §5):
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -53,8 +54,8 @@ from mutualslam_cli.adapt import losses
 from mutualslam_cli.adapt.batch import TrainingBatch, make_batch, resample_batch
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample, LabelSource
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, freeze_encoder_stages, make_adam, predictor
+from mutualslam_cli.adapt.keyframe_grads import KeyframeGrads
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
-from mutualslam_cli.adapt.sample_grads import per_sample_grads, plan
 from mutualslam_cli.adapt.schemes import get_scheme
 from mutualslam_cli.adapt.state import (
     Action,
@@ -131,7 +132,8 @@ class OnlineAdapter:
         self.params = trainable(net)
         self.optimizer = make_adam(self.params, lr=cfg.lr) if self.scheme.trains else None
         self.scaler = grad_scaler(self.device, self.fast)  # fp16 autocast only (a GPU without bf16)
-        self._layers: list[nn.Module] | None = None  # EWC's per-keyframe gradients in one pass (sample_grads.plan)
+        self.kf_grads = KeyframeGrads(net, self.params, self._predict, self._one_loss,  # for EWC's Fisher
+                                      from_last_step=cfg.fisher_at == "last_step")
         self.regularizer: Regularizer | None = self.scheme.make_regularizer(net, cfg, self._predict, reg_mode)
         self.fsm_params = FsmParams(cfg.validate_every, cfg.patience, cfg.tau_val)
         self.fsm = FsmState()
@@ -299,32 +301,6 @@ class OnlineAdapter:
                                batch.mask[one], cfg.lambda_sparse, cfg.lambda_smooth, cfg.alpha)
         return loss
 
-    def _sample_grads(self, batch: TrainingBatch) -> list[list[torch.Tensor]]:
-        """Per batch keyframe, the gradients of its own L_train at the current parameters (EWC's Fisher, Eq. 2).
-
-        One batched forward and backward pass split by keyframe (:mod:`~mutualslam_cli.adapt.sample_grads`:
-        at most one optimiser step's work); a network that module does not cover takes one pass of batch 1
-        per keyframe. Under fp16 the loss is scaled as the step's is and the gradients unscaled."""
-        scale = None if self.scaler is None else float(self.scaler.get_scale())
-        if self._layers is None:
-            self._layers = plan(self.net, self.params) or []
-        if self._layers:
-            def losses() -> list[torch.Tensor]:
-                depth = self._predict(batch.target)
-                return [self._one_loss(batch, depth[b:b + 1], b) for b in range(len(batch.ids))]
-
-            grads = per_sample_grads(self._layers, self.params, losses, scale)
-            if grads is not None:
-                return grads
-            self._layers = []  # a layer it cannot split: one keyframe at a time from now on
-        out = []
-        for b in range(len(batch.ids)):
-            loss = self._one_loss(batch, self._predict(batch.target[b:b + 1]), b)
-            kf_grads = torch.autograd.grad(loss if scale is None else loss * scale, self.params, allow_unused=True)
-            out.append([torch.zeros_like(p) if g is None else g.detach() if scale is None else g.detach() / scale
-                        for p, g in zip(self.params, kf_grads)])
-        return out
-
     def _begin_fine_tune(self, kf_id: int, info: StepInfo) -> TrainingBatch | None:
         """Keyframe ``kf_id``'s batch (the scheme's selection, labels as they stand now); ``None``: nothing to train."""
         if not self.scheme.trains or self.optimizer is None:
@@ -346,7 +322,10 @@ class OnlineAdapter:
         assert opt is not None  # _begin_fine_tune gives no batch to a scheme without one
         ts = time.perf_counter()
         opt.zero_grad(set_to_none=True)
-        depth = self._predict(batch.target)
+        capture = self.kf_grads.step_capture() if self.regularizer is not None and \
+            self.regularizer.needs_sample_grads else None
+        with capture.recording() if capture is not None else contextlib.nullcontext():
+            depth = self._predict(batch.target)
         loss, parts = self.loss_fn(depth, batch.target, batch.sources, batch.K, batch.T_t2s,
                                    batch.uv, batch.d, batch.mask, cfg.lambda_sparse,
                                    cfg.lambda_smooth, cfg.alpha)
@@ -354,6 +333,9 @@ class OnlineAdapter:
             loss.backward()
         else:  # fp16: scaled backward, then the true gradients in .grad for the regulariser and Adam
             scaler.scale(loss).backward()
+        if capture is not None:
+            capture.after_backward(self.params, None if scaler is None else float(scaler.get_scale()))
+        if scaler is not None:
             scaler.unscale_(opt)
         penalty = reg is not None and reg.mode == "penalty"
         # ∇L_train for the regulariser's importance; a copy only when the penalty's backward adds to .grad
@@ -371,6 +353,8 @@ class OnlineAdapter:
             scaler.step(opt)
             scaler.update()
             stepped = scaler.get_scale() >= scale
+        if capture is not None and not stepped:
+            capture.clear()  # an inf/NaN gradient: no Fisher from it
         if reg is not None and stepped:
             if reg.mode == "prox":
                 reg.prox(self.net, opt)  # decoupled: proximal step of the penalty in Adam's metric
@@ -387,7 +371,8 @@ class OnlineAdapter:
         if reg is not None:
             with torch.no_grad():
                 pen_val = float(reg.penalty(self.net))  # distance from θ* left at the end of the batch
-            per_kf = self._sample_grads(batch) if reg.needs_sample_grads else None
+            scale = None if self.scaler is None else float(self.scaler.get_scale())
+            per_kf = self.kf_grads.of_batch(batch, steps, scale) if reg.needs_sample_grads else None
             reg.after_batch(self.net, batch.target[:1], per_kf)  # consolidate (Alg. 2 line 7)
         synchronize(self.device)
         self.consolidate_ms.append(1000.0 * (time.perf_counter() - tc))

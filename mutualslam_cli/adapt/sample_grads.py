@@ -22,11 +22,24 @@ The arithmetic is that of one step's backward split by keyframe, so the Fisher c
 training mode or a convolution with a non-zero padding mode (:func:`plan` says ``None``), or another kind
 of trainable layer that the loss reaches (:func:`per_sample_grads` says ``None``; trainable parameters the
 forward pass never uses, as the encoder's ``fc``, get zeros as in the loop).
+
+**From the batch's last step** (:class:`StepCapture`, what :class:`~mutualslam_cli.adapt.online.OnlineAdapter`
+does for EWC with ``adapt.fisher_at: last_step`` when a batch took ≥ 2 steps): the optimiser step's own
+forward and backward passes already hold ``x`` and ``∂L/∂y`` of every covered layer, so the Fisher needs only
+part 3 above: the passes of 1. and 2. are not run again. The step's loss is the mean over the batch's images
+of each term (:mod:`~mutualslam_cli.adapt.losses`), so ``B · ∂L/∂y_k = ∂L_k/∂y_k`` whenever every image counts
+in every term's mean; an image without a sparse point does not (the sparse term then averages fewer images),
+and the caller takes the separate pass (:meth:`StepCapture.per_sample` says ``None``; an image with no pixel
+valid in any source would do the same to the photometric term: not checked, as positive depth between
+neighbouring keyframes always leaves some). The one difference is where the gradients are taken: at the
+parameters the last step started from, one Adam step before those the batch reached (README, "EWC's Fisher
+from the last step", for its cost and its effect on PCD).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import nn
@@ -87,10 +100,16 @@ def per_sample_grads(layers: list[nn.Module], params: list[torch.Tensor], losses
     if any(g is not None for g in found[len(outs):]):
         return None
     gouts = found[:len(outs)]
-    n = len(per_kf)
+    return _split([(m, x, g) for (m, x, _), g in zip(kept, gouts)], params, len(per_kf), scale)
+
+
+def _split(kept: list[tuple[nn.Module, torch.Tensor, torch.Tensor | None]], params: list[torch.Tensor], n: int,
+           scale: float | None) -> list[list[torch.Tensor]]:
+    """Part 3 of the module docstring: ``n`` per-keyframe gradient lists from each layer's ``(layer, x, g)``
+    (``g``: the output gradient, ``None`` where the loss did not reach the layer; divided by ``scale``)."""
     index = {id(p): i for i, p in enumerate(params)}
     grads = [[torch.zeros_like(p) for p in params] for _ in range(n)]
-    for (m, x, _), g in zip(kept, gouts):
+    for m, x, g in kept:
         if g is None:
             continue
         g = g if scale is None else g / scale
@@ -100,6 +119,67 @@ def per_sample_grads(layers: list[nn.Module], params: list[torch.Tensor], losses
                 if id(p) in index:
                     grads[k][index[id(p)]].add_(value.to(p.dtype))
     return grads
+
+
+class StepCapture:
+    """Each covered layer's input and output gradient from one optimiser step's passes (module docstring,
+    "From the batch's last step").
+
+    Args:
+        layers: :func:`plan` of the network for the trainable parameters.
+    """
+
+    def __init__(self, layers: list[nn.Module]) -> None:
+        self.layers = layers
+        self._kept: list[tuple[nn.Module, torch.Tensor, list[torch.Tensor]]] = []
+        self._reached_other = True  # until after_backward() says otherwise
+        self.scale: float | None = None
+
+    @contextlib.contextmanager
+    def recording(self) -> Iterator[None]:
+        """Around the step's forward pass: keeps each layer's input, and hooks its output for the gradient
+        the step's backward pass will give it (received as it was before any in-place operation after it)."""
+        self._kept, self._reached_other = [], True
+
+        def keep(module: nn.Module, args: tuple[torch.Tensor, ...], out: torch.Tensor) -> None:
+            got: list[torch.Tensor] = []
+            if out.requires_grad:
+                out.register_hook(got.append)
+            self._kept.append((module, args[0].detach(), got))
+
+        handles = [m.register_forward_hook(keep) for m in self.layers]
+        try:
+            yield
+        finally:
+            for h in handles:
+                h.remove()
+
+    def per_sample(self, params: list[torch.Tensor], n: int,
+                   every_image_counts: bool = True) -> list[list[torch.Tensor]] | None:
+        """Each of the ``n`` keyframes' gradient of its own loss, from the step's passes of ``B · L`` (``L``:
+        the step's mean loss, taken at the loss scale :meth:`after_backward` was given).
+
+        Returns ``None`` (the caller takes the separate pass) when nothing was recorded, when not every image
+        counts in every term's mean (``every_image_counts``), or when the step's backward pass reached a
+        trainable parameter outside the covered layers (its per-keyframe parts are unknown).
+        """
+        if not self._kept or not every_image_counts or self._reached_other:
+            return None
+        kept = [(m, x, got[0] if got else None) for m, x, got in self._kept]
+        self._kept = []
+        return _split(kept, params, n, (1.0 if self.scale is None else self.scale) / n)  # B · ∂L/∂y_k = ∂L_k/∂y_k
+
+    def after_backward(self, params: list[torch.Tensor], scale: float | None = None) -> None:
+        """Right after the step's backward pass of its loss (before any penalty's), with its fp16 loss
+        ``scale``: notes whether it reached a trainable parameter outside the covered layers (the encoder's
+        unused ``fc`` is not reached)."""
+        covered = {id(p) for m in self.layers for p in m.parameters(recurse=False)}
+        self._reached_other = any(p.grad is not None and id(p) not in covered for p in params)
+        self.scale = scale
+
+    def clear(self) -> None:
+        """Drop what was recorded (the inputs and gradients of a whole pass: activation-sized)."""
+        self._kept = []
 
 
 def _layer_grads(m: nn.Module, x: torch.Tensor, g: torch.Tensor) -> dict[str, torch.Tensor]:

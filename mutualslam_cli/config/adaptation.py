@@ -94,6 +94,10 @@ class AdaptConfig:
     """θ*: parameters after the previous batch (paper; = start of this batch) or one batch earlier (lagged)."""
     reg_mode: Literal["prox", "penalty"] = "prox"
     """How EWC/MAS/SI enter the update: a proximal step after each Adam step, or added to the loss."""
+    fisher_at: Literal["end", "last_step"] = "end"
+    """Where EWC's per-keyframe gradients are taken: at the parameters the batch reached (``end``, the paper's
+    Alg. 2; one more forward/backward pass, ~1.1 steps) or from the batch's last step's own passes, one Adam step
+    earlier (``last_step``: ~0.4 steps; a different Fisher, README "EWC's Fisher from the last step")."""
     val_scope: Literal["all", "current"] = "all"
     """L_val over all validation keyframes so far, or only the arriving one."""
     val_max: int = setting(0, at_least(0, "0 = every one"))
