@@ -131,6 +131,7 @@ class StepCapture:
 
     def __init__(self, layers: list[nn.Module]) -> None:
         self.layers = layers
+        self._covered = {id(p) for m in layers for p in m.parameters(recurse=False)}
         self._kept: list[tuple[nn.Module, torch.Tensor, list[torch.Tensor]]] = []
         self._reached_other = True  # until after_backward() says otherwise
         self.scale: float | None = None
@@ -173,8 +174,7 @@ class StepCapture:
         """Right after the step's backward pass of its loss (before any penalty's), with its fp16 loss
         ``scale``: notes whether it reached a trainable parameter outside the covered layers (the encoder's
         unused ``fc`` is not reached)."""
-        covered = {id(p) for m in self.layers for p in m.parameters(recurse=False)}
-        self._reached_other = any(p.grad is not None and id(p) not in covered for p in params)
+        self._reached_other = any(p.grad is not None and id(p) not in self._covered for p in params)
         self.scale = scale
 
     def clear(self) -> None:
