@@ -11,6 +11,8 @@ import pytest
 import torch
 import yaml
 
+from mutualslam_cli.adapt.depthnet import DepthNet
+from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.datasets.registry import load_sequence
@@ -193,6 +195,19 @@ def test_complete_run_is_skipped_and_deterministic(setup):
     assert not b.skipped
     for k in ("depth.pcd.lsq.adapted", "depth.pcd.median.adapted", "depth.esi.adapted"):
         assert flatten(a.summary)[k] == flatten(b.summary)[k], k
+
+
+def test_pretrained_rows_shared_across_seeds_without_fc(setup):
+    """Weights without the encoder's unused fc (as the default model's file) leave it at a random init that follows
+    the seed; the pre-trained rows' cache key must not see it (it did: one cache file per seed)."""
+    tmp, seq = setup
+    torch.manual_seed(0)
+    save_monodepth2(DepthNet(), tmp / "weights_nofc", 64, 96, drop_fc=True)
+    runs = [run_sequence(seq, _cfg(tmp, "adapt.scheme=none", f"seed={s}", f"net.weights={tmp / 'weights_nofc'}"),
+                         out=tmp / "seeds") for s in (0, 1)]
+    assert len(list((tmp / "seeds" / "_cache" / "pretrained").glob("*.csv"))) == 1
+    a, b = (flatten(r.summary)["depth.pcd.lsq.pretrained"] for r in runs)
+    assert a == b
 
 
 def test_scheme_none_and_report(setup):

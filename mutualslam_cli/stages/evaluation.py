@@ -23,7 +23,7 @@ import torch
 
 from mutualslam_cli.adapt.inference import resolve_runtime
 from mutualslam_cli.adapt.inputs import make_predictor
-from mutualslam_cli.adapt.weights import save_monodepth2
+from mutualslam_cli.adapt.weights import FC_KEYS, save_monodepth2
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
@@ -168,9 +168,15 @@ def predictors_for(seq: Sequence, nets: dict[str, torch.nn.Module], cfg: RunConf
 
 
 def model_digest(net: torch.nn.Module) -> str:
-    """Short SHA-1 of a model's state dict (names and values): the identity of its weights."""
+    """Short SHA-1 of a model's state dict (names and values): the identity of the weights its depth depends on.
+
+    The encoder's ``fc`` is left out: depth never reads it, and a file without it (the default model's) leaves it
+    at its random initialisation, which follows the run's seed — with it the pre-trained rows were cached per seed.
+    """
     h = hashlib.sha1()
     for k, v in net.state_dict().items():  # on the CPU: the same digest whatever the device
+        if k.removeprefix("encoder.") in FC_KEYS:  # DepthNet's keys: encoder.<the encoder file's key>
+            continue
         h.update(k.encode())
         h.update(v.detach().cpu().contiguous().numpy().tobytes())
     return h.hexdigest()[:16]
