@@ -8,14 +8,18 @@ channels-last 64 ms, OpenVINO fp32 83 ms, **OpenVINO bf16 40 ms**; mean relative
 against PyTorch fp32 0.28 % (bf16), 4e-6 (fp32). Training keeps PyTorch (the network changes at
 every step, so there is nothing to convert once).
 
-On CPUs without bf16 (most users' AVX2 machines) the OpenVINO path is int8: the network is
-fake-quantised after calibration on a few frames (:mod:`mutualslam_cli.adapt.quantize`) and
-OpenVINO runs those convolutions on int8 kernels. Here (AVX512, VNNI): 31.8 ms against 103 ms
-for PyTorch fp32; DESIGN §10's AVX2-only probe measured OpenVINO int8 at 2.66× PyTorch fp32.
+On CPUs without bf16 (most users' AVX2 machines) ``auto`` is OpenVINO in fp32: the same depth as PyTorch
+fp32 (4e-8 relative), 100 ms a frame against 130 through PyTorch on an AVX2-only EPYC (2 threads). The int8
+path (``net.runtime: openvino-int8``: the network fake-quantised after calibration on a few frames,
+:mod:`mutualslam_cli.adapt.quantize`, its convolutions on int8 kernels; 72 ms there) was ``auto``'s choice
+there until its error was measured on *adapted* models (its bound was set on pre-trained ones): the same
+adapted model's PCD (lsq / median / first quarter) through int8 against fp32 moved by −6.2 / +2.9 / −18.0
+points (AVX2-only, tum_fr1_xyz, replay+ewc, seed 0) and +0.9 / +2.2 / −1.8 (AVX512-BF16, the same window),
+where OpenVINO fp32 and bf16 stay within 0.05. A speed-up that changes the table's figures is not one.
 
 ``net.runtime``: ``auto`` (OpenVINO when it is installed, the network runs on the CPU and ``net.fast``
-is not ``off``: bf16 where the CPU has it, else int8; on a CUDA device the torch path on the GPU),
-``torch``, ``openvino`` (bf16 where the CPU has it, else fp32) or ``openvino-int8`` (an error when
+is not ``off``: bf16 where the CPU has it, else fp32; on a CUDA device the torch path on the GPU),
+``torch``, ``openvino`` (the same choice of precision) or ``openvino-int8`` (an error when
 OpenVINO is not installed). ``net.fast: off`` with ``auto`` keeps
 the exact fp32 eager PyTorch path.
 """
@@ -65,9 +69,7 @@ def resolve_runtime(runtime: str, fast_mode: str, device: torch.device | str = "
         return "torch"
     if not openvino_available():
         raise ConfigError(f"net.runtime={runtime}: the openvino package is not installed (pip install openvino)")
-    if runtime == "auto":
-        return "openvino" if fast_path_supported() else "openvino-int8"
-    return runtime
+    return "openvino" if runtime == "auto" else runtime  # bf16 or fp32 (module docstring: int8 only when asked)
 
 
 class _Predict(torch.nn.Module):

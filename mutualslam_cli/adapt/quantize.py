@@ -1,7 +1,8 @@
 """Post-training int8 quantisation of the depth network for OpenVINO (CPUs without bf16).
 
-Most users' CPUs have AVX2 but no bf16 (DESIGN §10). There the evaluation runs the frozen
-network in int8 through OpenVINO: every convolution's input gets a per-tensor asymmetric
+Most users' CPUs have AVX2 but no bf16 (DESIGN §10). ``net.runtime: openvino-int8`` runs the frozen
+network in int8 through OpenVINO there (not ``auto``'s choice: it moves an adapted model's PCD by 1–18 points,
+:mod:`~mutualslam_cli.adapt.inference`): every convolution's input gets a per-tensor asymmetric
 ``uint8`` fake-quantiser whose range is calibrated on a few frames, and its weights a
 per-output-channel symmetric ``int8`` one (``scale_c = max|W_c| / 127``). ``openvino.convert_model``
 turns both into ``FakeQuantize`` operations and OpenVINO's low-precision transformations run

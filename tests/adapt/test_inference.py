@@ -15,9 +15,10 @@ from mutualslam_cli.errors import ConfigError
 def test_runtime_resolution(monkeypatch, bf16):
     monkeypatch.setattr(inference, "openvino_available", lambda: True)
     monkeypatch.setattr(inference, "fast_path_supported", lambda: bf16)
-    auto = "openvino" if bf16 else "openvino-int8"  # int8 where the CPU has no bf16 (AVX2)
-    assert inference.resolve_runtime("auto", "auto") == auto
-    assert inference.resolve_runtime("auto", "on") == auto
+    # OpenVINO in bf16 or fp32, never int8 unless asked: int8 moves an adapted model's PCD by points
+    assert inference.resolve_runtime("auto", "auto") == "openvino"
+    assert inference.resolve_runtime("auto", "on") == "openvino"
+    assert inference.openvino_precision(int8=False) == ("bf16" if bf16 else "f32")
     assert inference.resolve_runtime("auto", "off") == "torch"  # net.fast off keeps fp32 eager PyTorch
     assert inference.resolve_runtime("torch", "auto") == "torch"
     assert inference.resolve_runtime("openvino", "off") == "openvino"
