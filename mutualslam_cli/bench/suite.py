@@ -218,7 +218,7 @@ ROWS = (
     ("fine-tuning step fp32 (ms)", "finetune_fp32_ms", None),
     ("fine-tuning step fast path (ms)", "finetune_fast_ms", "finetune_ms"),
     ("prediction speed-up fast/fp32 (×)", "predict_speedup", None),
-    ("depth prediction, evaluation runtime OpenVINO, bf16 or fp32 without bf16 (ms)", "predict_openvino_ms", "predict_ms"),
+    ("depth prediction, evaluation runtime OpenVINO, bf16 or fp32 (ms)", "predict_openvino_ms", "predict_ms"),
     ("prediction speed-up OpenVINO/fp32 (×)", "predict_openvino_speedup", "predict_openvino_speedup"),
     ("depth prediction, OpenVINO int8, only when asked (ms)", "predict_openvino_int8_ms", None),
     ("prediction speed-up OpenVINO int8/fp32 (×)", "predict_openvino_int8_speedup", "predict_openvino_int8_speedup"),
