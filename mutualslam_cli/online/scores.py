@@ -24,7 +24,8 @@ through PyTorch, issue 51) it pays on the first frame of a model. On AMD EPYC wi
 does not: alternated runs of tum_fr1_xyz (replay+ewc, 1 thread, loaded host; 16 models, ~6 frames each)
 took 22.6 s of online scoring through OpenVINO (6.1 s of it refreshes, ~5 s the first conversion) against
 15.3 s through PyTorch bf16 autocast, the evaluation's saved conversion (2 s) included — so there, and on
-GPUs, int8 CPUs (the activation ranges would need a new calibration per model) or with
+GPUs, CPUs without bf16 (OpenVINO fp32 there: 100 ms a frame against 130 through PyTorch, a refresh 120–130 ms,
+so at ~6 frames a model it saves nothing; an int8 runtime would need a new calibration per model) or with
 ``net.runtime=torch``, prediction is the torch path of the training loop (mixed precision with ``fast``) on
 the network's device. Either path's depth is within
 :data:`~mutualslam_cli.adapt.ov_refresh.BF16_REL_TOL` of fp32 with the same weights
