@@ -17,7 +17,7 @@ def test_paper_yaml_equals_dataclass_defaults():
 
 
 def test_paper_values():
-    c = load_config()
+    c = load_config(CONFIG_DIR / "paper.yaml")
     assert (c.adapt.lambda_sparse, c.adapt.lambda_smooth, c.adapt.alpha) == (0.1, 0.1, 0.85)
     assert (c.adapt.lr, c.adapt.steps_per_keyframe) == (1e-3, 8)  # the paper's lr; steps: the paper is silent
     assert (c.adapt.ewc_beta, c.adapt.ewc_max_f) == (5e7, 1e-3)
@@ -150,6 +150,21 @@ def test_tuned_presets_name_the_data_they_were_tuned_on():
     assert changed == {"adapt.lr"}
     assert tuned["adapt"]["lr"] == 1e-4
     assert paper["adapt"]["lr"] == 1e-3
+
+
+def test_the_default_is_the_papers_method_made_robust_and_names_what_chose_it():
+    """Without --config a command reads configs/default.yaml: the paper's values but for the scale alignment and the
+    trust region (README "Adapting without picking a rate"), chosen on two shared windows its header names."""
+    from mutualslam_cli.config import DEFAULT_CONFIG, tuned_on
+
+    assert DEFAULT_CONFIG == CONFIG_DIR / "default.yaml"
+    default, paper = to_dict(load_config()), to_dict(load_config(CONFIG_DIR / "paper.yaml"))
+    changed = {f"{sec}.{k}": vals[k] for sec, vals in default.items() if isinstance(vals, dict)
+               for k in vals if paper[sec][k] != vals[k]}
+    assert changed == {"adapt.scale": "align_batch", "adapt.trust": 3e-3}
+    assert (paper["adapt"]["scale"], paper["adapt"]["trust"], paper["adapt"]["average"]) == ("learn", 0.0, 0.0)
+    assert paper["adapt"]["encoder_lr"] == 1.0
+    assert tuned_on(DEFAULT_CONFIG) == ["tum_fr1_xyz", "icl_lr_kt2"]
 
 
 def test_a_preset_without_a_tuned_on_line_is_unknown(tmp_path: Path):

@@ -26,7 +26,7 @@ import contextlib
 import functools
 import logging
 from collections.abc import Callable, Iterable, Iterator
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -74,6 +74,7 @@ class DepthNet(nn.Module):
     #: The size the loaded weights were trained at (:func:`~mutualslam_cli.adapt.weights.load_depthnet` sets them).
     feed_height: int | None
     feed_width: int | None
+    unit: torch.Tensor
 
     def __init__(self, min_depth: float = 0.1, max_depth: float = 100.0, scales: Iterable[int] = (0,),
                  num_layers: int = 18):
@@ -88,6 +89,9 @@ class DepthNet(nn.Module):
         with torch.device("cpu"):  # built on the CPU (where weights are loaded); :func:`prepare` moves it
             self.encoder = ResnetEncoder(num_layers)
             self.decoder = DepthDecoder(self.encoder.num_ch_enc, scales=range(4))
+        # map units per unit of the network's depth (adapt.scale = align keeps it; 1 otherwise): a constant, not a
+        # weight, and not saved with them
+        self.register_buffer("unit", torch.ones(()), persistent=False)
         self.channels_last = False
         self.bf16_encoder = False  # :func:`prepare`: encoder gradients under mixed precision too (module docstring)
 
@@ -128,8 +132,8 @@ class DepthNet(nn.Module):
         return self.forward_scales(x, (0,))[0]
 
     def predict(self, x: torch.Tensor) -> torch.Tensor:
-        """Differentiable depth ``(B, 1, H, W)`` = ``disp_to_depth(forward(x))[1]``."""
-        return disp_to_depth(self.forward(x), self.min_depth, self.max_depth)[1]
+        """Differentiable depth ``(B, 1, H, W)`` = ``disp_to_depth(forward(x))[1]`` times :attr:`unit`."""
+        return disp_to_depth(self.forward(x), self.min_depth, self.max_depth)[1] * self.unit
 
 
 @functools.lru_cache(maxsize=1)
@@ -248,17 +252,18 @@ def predict_depth(net: nn.Module, images: np.ndarray | torch.Tensor, fast: bool 
     return depth[:, 0].float().cpu().numpy()
 
 
-def make_adam(params: Iterable[torch.Tensor], lr: float = 1e-3, **kwargs) -> torch.optim.Adam:
+def make_adam(params: Iterable[torch.Tensor] | Iterable[dict[str, Any]], lr: float = 1e-3,
+              **kwargs) -> torch.optim.Adam:
     """Adam with the fused kernel (CPU or CUDA, where the parameters are) when available (≈4× faster step
-    for the 15 M parameters on the CPU).
+    for the 15 M parameters on the CPU). ``params``: tensors, or parameter groups (dicts with their own ``lr``).
 
     Same update rule as ``torch.optim.Adam``; falls back to the default implementation.
     """
-    params = list(params)
+    groups: list[Any] = list(params)
     try:
-        return torch.optim.Adam(params, lr=lr, fused=True, **kwargs)
+        return torch.optim.Adam(groups, lr=lr, fused=True, **kwargs)
     except (RuntimeError, TypeError, ValueError):
-        return torch.optim.Adam(params, lr=lr, **kwargs)
+        return torch.optim.Adam(groups, lr=lr, **kwargs)
 
 
 def predictor(net: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:

@@ -216,6 +216,35 @@ def sparse_depth_loss(depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, ma
 
 
 @_fp32
+def label_scale(depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, mask: torch.Tensor,
+                pooled: bool = False) -> torch.Tensor:
+    """Per image, the median over its map points of ``D_sparse / D``: the map's units per unit of predicted depth.
+
+    ``adapt.scale: align`` multiplies each image's predicted depth by it before L_train and L_val, so the losses
+    ask the network for the depth's shape in the map's units without asking it to move its own scale to the map's
+    arbitrary one (README "Adapting without picking a rate"). The factor keeps its gradient: ``D·s`` is then
+    exactly invariant to the network's global scale, which no loss can push. (Detached, the losses still pull
+    on that scale and the alignment undoes every answer: the scale ran away until the sigmoid saturated and
+    the gradients vanished, measured on tum_fr1_xyz.)
+
+    Args:
+        depth: ``(B, 1, H, W)`` predicted depth. uv, d, mask: the map points, see :func:`sparse_depth_loss`.
+
+    Returns:
+        ``(B,)`` float32, differentiable in ``depth``; 1 for an image without a valid map point.
+    """
+    if uv.shape[1] == 0:
+        return torch.ones(depth.shape[0], dtype=torch.float32, device=depth.device)
+    pred = sample_depth(_f(depth).float(), _f(uv).float())
+    valid = mask.bool() & (d > 0)
+    one = torch.ones((), dtype=torch.float32, device=depth.device)
+    if pooled and bool(valid.any()):  # one scale for the whole batch: the images' relative scales are learnt
+        return (d[valid].float() / pred[valid].clamp_min(1e-6)).median().expand(depth.shape[0])
+    return torch.stack([(d[b][valid[b]].float() / pred[b][valid[b]].clamp_min(1e-6)).median()
+                        if bool(valid[b].any()) else one for b in range(depth.shape[0])])
+
+
+@_fp32
 def smoothness_loss(depth: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     """Edge-aware smoothness L_smooth (Eq. 7) on **mean-normalised inverse depth**.
 

@@ -54,9 +54,11 @@ from mutualslam_cli.adapt import losses
 from mutualslam_cli.adapt.batch import TrainingBatch, make_batch, resample_batch
 from mutualslam_cli.adapt.buffer import KeyframeBuffer, KeyframeSample, LabelSource
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, freeze_encoder_stages, make_adam, predictor
+from mutualslam_cli.adapt.health import HealthMonitor
 from mutualslam_cli.adapt.keyframe_grads import KeyframeGrads
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
 from mutualslam_cli.adapt.schemes import get_scheme
+from mutualslam_cli.adapt.stabilise import TrustRegion, WeightAverage, param_groups
 from mutualslam_cli.adapt.state import (
     Action,
     FineTuneDone,
@@ -130,7 +132,14 @@ class OnlineAdapter:
         if cfg.freeze_stages:
             freeze_encoder_stages(cast(DepthNet, net), cfg.freeze_stages)  # stages to freeze: a DepthNet's
         self.params = trainable(net)
-        self.optimizer = make_adam(self.params, lr=cfg.lr) if self.scheme.trains else None
+        self.optimizer = make_adam(param_groups(net, self.params, cfg.lr, cfg.encoder_lr), lr=cfg.lr) \
+            if self.scheme.trains else None
+        # adapt/stabilise.py: the step's trust region and the predicting weight average (off in the paper)
+        self.trust = TrustRegion(self.params, cfg.trust) if cfg.trust > 0 and self.scheme.trains else None
+        self.average = WeightAverage(self.params, cfg.average) if cfg.average > 0 and self.scheme.trains else None
+        self.health = HealthMonitor(net) if self.scheme.trains else None
+        self._calibrated = False
+        self._unit_factor: float | None = None  # adapt.scale = align: the newest keyframe's map units per net unit
         self.scaler = grad_scaler(self.device, self.fast)  # fp16 autocast only (a GPU without bf16)
         self.kf_grads = KeyframeGrads(net, self.params, self._predict, self._one_loss,  # for EWC's Fisher
                                       from_last_step=cfg.fisher_at == "last_step")
@@ -269,7 +278,8 @@ class OnlineAdapter:
                     vals.append(torch.full((), float("nan"), dtype=torch.float64, device=dev))
                     continue
                 mask = torch.ones(1, s.uv.shape[0], dtype=torch.bool, device=dev)
-                vals.append(self.val_fn(depth[b:b + 1], s.uv[None].to(dev), s.depth[None].to(dev), mask).double())
+                one = self._aligned(depth[b:b + 1], s.uv[None].to(dev), s.depth[None].to(dev), mask)
+                vals.append(self.val_fn(one, s.uv[None].to(dev), s.depth[None].to(dev), mask).double())
             out.update(zip((s.kf_id for s in samples), torch.stack(vals).tolist()))  # one copy back per chunk
         return out
 
@@ -278,6 +288,23 @@ class OnlineAdapter:
         """Forward pass of ``x`` (on :attr:`device`), mixed precision when ``fast``; float32 depth ``(B, 1, H, W)``."""
         with fast_context(self.fast, self.device):
             return predictor(self.net)(x).float()
+
+    def _aligned(self, depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, mask: torch.Tensor,
+                 newest: bool = False) -> torch.Tensor:
+        """``depth`` ``(B, 1, H, W)`` scaled to each image's map points when ``adapt.scale`` is ``align`` (else as it
+        is); ``newest``: the batch's first step, whose scale of the newest image the network's :attr:`unit`
+        takes at the batch's end."""
+        if self.cfg.scale == "learn":
+            return depth
+        if self.cfg.scale == "calibrate":  # the map's units once, from the first keyframe trained on; then learnt
+            if newest and not self._calibrated:
+                self._unit_factor = float(losses.label_scale(depth[:1], uv[:1], d[:1], mask[:1])[0])
+                self._calibrated = True
+            return depth if self._unit_factor is None else depth * self._unit_factor  # folded into unit at the end
+        s = losses.label_scale(depth, uv, d, mask, pooled=self.cfg.scale == "align_batch")
+        if newest:
+            self._unit_factor = float(s[0])
+        return depth * s.view(-1, 1, 1, 1)
 
     def _l_val(self, kf_id: int) -> float:
         """Alg. 1's L_val: mean per-keyframe L_sparse over the validation set (see module docstring)."""
@@ -296,6 +323,7 @@ class OnlineAdapter:
     def _one_loss(self, batch: TrainingBatch, depth: torch.Tensor, b: int) -> torch.Tensor:
         """Keyframe ``b``'s own L_train from its depth ``(1, 1, H, W)`` and its slice of ``batch``."""
         cfg, one = self.cfg, slice(b, b + 1)
+        depth = self._aligned(depth, batch.uv[one], batch.d[one], batch.mask[one])
         loss, _ = self.loss_fn(depth, batch.target[one], [s[one] for s in batch.sources], batch.K[one],
                                [t[one] for t in batch.T_t2s], batch.uv[one], batch.d[one],
                                batch.mask[one], cfg.lambda_sparse, cfg.lambda_smooth, cfg.alpha)
@@ -312,6 +340,8 @@ class OnlineAdapter:
         """Before a batch's first step: θ* for the regulariser (Alg. 2 line 4: θ_cpy = θ); returns its start."""
         self.batch_ms.append(batch_ms)
         t0 = time.perf_counter()
+        if self.average is not None:
+            self.average.to_trained()  # train on from the optimiser's own weights, not the average
         if self.regularizer is not None:
             self.regularizer.before_batch(self.net)
         return t0
@@ -326,6 +356,9 @@ class OnlineAdapter:
             self.regularizer.needs_sample_grads else None
         with capture.recording() if capture is not None else contextlib.nullcontext():
             depth = self._predict(batch.target)
+        if first and self.health is not None:  # the first step sees the weights the keyframe arrived with
+            info.health = self.health.of_prediction(depth[:1], batch.uv[:1], batch.d[:1], batch.mask[:1])
+        depth = self._aligned(depth, batch.uv, batch.d, batch.mask, newest=first)
         loss, parts = self.loss_fn(depth, batch.target, batch.sources, batch.K, batch.T_t2s,
                                    batch.uv, batch.d, batch.mask, cfg.lambda_sparse,
                                    cfg.lambda_smooth, cfg.alpha)
@@ -341,11 +374,15 @@ class OnlineAdapter:
         # ∇L_train for the regulariser's importance; a copy only when the penalty's backward adds to .grad
         grads = [] if reg is None else [(p.grad.detach().clone() if penalty else p.grad.detach())
                                         if p.grad is not None else torch.zeros_like(p) for p in self.params]
+        if first and self.health is not None:
+            info.health.update(self.health.of_gradients())
         if penalty and reg is not None:
             pen = reg.penalty(self.net)  # Eq. 1 / Eq. 19 regulariser at the current θ
             if pen.requires_grad:
                 pen.backward()  # coupled: ∇(L_train + penalty) through Adam
         stepped = True
+        if self.trust is not None:
+            self.trust.before()
         if scaler is None:
             opt.step()
         else:  # a step with an inf/NaN gradient is skipped (and the scale lowered): so is its prox
@@ -353,6 +390,8 @@ class OnlineAdapter:
             scaler.step(opt)
             scaler.update()
             stepped = scaler.get_scale() >= scale
+        if self.trust is not None:
+            self.trust.after()
         if capture is not None and not stepped:
             capture.clear()  # an inf/NaN gradient: no Fisher from it
         if reg is not None and stepped:
@@ -374,6 +413,14 @@ class OnlineAdapter:
             scale = None if self.scaler is None else float(self.scaler.get_scale())
             per_kf = self.kf_grads.of_batch(batch, steps, scale) if reg.needs_sample_grads else None
             reg.after_batch(self.net, batch.target[:1], per_kf)  # consolidate (Alg. 2 line 7)
+        if self.health is not None:
+            info.health.update(self.health.of_weights())
+        unit = getattr(self.net, "unit", None)
+        if self._unit_factor is not None and isinstance(unit, torch.Tensor):
+            unit.mul_(self._unit_factor)  # the network's depth in the map's units of its newest keyframe
+        self._unit_factor = None
+        if self.average is not None:
+            self.average.to_average()  # the averaged weights predict until the next batch
         synchronize(self.device)
         self.consolidate_ms.append(1000.0 * (time.perf_counter() - tc))
         info.loss["penalty"] = pen_val

@@ -25,6 +25,7 @@ class StepInfo:
         n_converged: Alg. 1's counter after the tick.
         run_global_ba: Alg. 1 requested global BA on this tick.
         ms: wall time of the tick, milliseconds.
+        health: what the batch did to the network (:mod:`~mutualslam_cli.adapt.health`; empty if not trained).
     """
 
     kf_id: int
@@ -40,3 +41,4 @@ class StepInfo:
     n_converged: int = 0
     run_global_ba: bool = False
     ms: float = 0.0
+    health: dict[str, float] = field(default_factory=dict)

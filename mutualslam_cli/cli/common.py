@@ -42,7 +42,8 @@ class _Console(Console):
 console = _Console(stderr=False)
 err_console = _Console(stderr=True)
 
-ConfigOpt = typer.Option(None, "--config", "-c", help="YAML config (default configs/paper.yaml).")
+ConfigOpt = typer.Option(None, "--config", "-c",
+                         help="YAML config (default configs/default.yaml; the paper's values: configs/paper.yaml).")
 SetOpt = typer.Option(None, "--set", "-s", help="Override one field: section.key=value (repeatable).")
 DataRootOpt = typer.Option(None, "--data-root", help="Root of relative datasets.yaml paths (default $MSLAM_DATA).")
 RegistryOpt = typer.Option(None, "--registry", help="Another datasets.yaml.")

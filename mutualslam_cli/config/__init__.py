@@ -23,6 +23,7 @@ from mutualslam_cli.config.frontend import VOConfig
 from mutualslam_cli.config.presets import tuned_on
 from mutualslam_cli.config.run import (
     CONFIG_DIR,
+    DEFAULT_CONFIG,
     DataConfig,
     RunConfig,
     load_config,
@@ -33,6 +34,7 @@ from mutualslam_cli.config.run import (
 
 __all__ = [
     "CONFIG_DIR",
+    "DEFAULT_CONFIG",
     "AdaptConfig",
     "BAConfig",
     "DataConfig",

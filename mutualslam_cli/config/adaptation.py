@@ -91,6 +91,21 @@ class AdaptConfig:
     """Fine-tuning height (multiple of 32, ≤ net.height; 0 = net.height)."""
     freeze_stages: int = setting(0, between(0, 5, "encoder stages"))
     """Leading encoder stages kept fixed (0–5: conv1+bn1, layer1, …, layer4): no gradient, no backward."""
+    scale: Literal["learn", "align", "align_batch", "calibrate"] = "learn"
+    """``learn`` (the paper): the network learns the map's units from L_sparse and L_photo, whatever they are;
+    ``align``: each image's predicted depth is scaled to its map points (median ratio, no gradient) before the
+    losses, so training asks for the depth's shape only, and the network carries the map's units as a factor
+    (:func:`~mutualslam_cli.adapt.losses.label_scale`; README "Adapting without picking a rate")."""
+    encoder_lr: float = setting(1.0, above(0))
+    """The encoder's learning rate as a fraction of ``lr`` (1 = the paper: one rate for the whole network). The
+    encoder holds the pre-trained features every later layer reads; a smaller share keeps them while the decoder
+    adapts (README "Adapting without picking a rate")."""
+    trust: float = setting(0.0, at_least(0, "0 = off"))
+    """Trust region of one optimiser step: each parameter tensor moves by at most ``trust·‖θ‖`` (0 = off, the
+    paper). Adam moves every weight by about ``lr`` whatever its size; this bounds the relative change instead."""
+    average: float = setting(0.0, Range(lo=0.0, hi=0.999, unit="0 = off"))
+    """Weight average: after each batch the network that predicts (L_val, culling, evaluation) is
+    ``a·previous + (1 − a)·trained`` while training goes on from the trained weights (0 = off, the paper)."""
     anchor: Literal["previous_batch", "batch_start", "lagged"] = "previous_batch"
     """θ*: parameters after the previous batch (paper; = start of this batch) or one batch earlier (lagged)."""
     reg_mode: Literal["prox", "penalty"] = "prox"

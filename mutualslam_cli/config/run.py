@@ -21,6 +21,9 @@ from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
+#: The preset a command reads without ``--config``: the paper's method made robust (its header says what chose it).
+#: ``configs/paper.yaml`` holds the paper's values, which are the dataclass defaults.
+DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
 
 
 @dataclass(frozen=True)
@@ -76,14 +79,15 @@ def to_dict(cfg: Any) -> dict[str, Any]:
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> RunConfig:
-    """Load a YAML config (default ``configs/paper.yaml``), apply ``--set`` overrides, validate.
+    """Load a YAML config (default :data:`DEFAULT_CONFIG`, ``configs/default.yaml``), apply ``--set`` overrides,
+    validate.
 
     Raises:
         ConfigError: one line naming the file or the key: a file that is missing, not a file, not UTF-8, not
             valid YAML, with a key given twice or too many aliases (:mod:`~mutualslam_cli.config.yaml_file`); an
             unknown key, a wrong type, a value out of its range (:mod:`~mutualslam_cli.config.checks`).
     """
-    path = Path(path) if path is not None else CONFIG_DIR / "paper.yaml"
+    path = Path(path) if path is not None else DEFAULT_CONFIG
     data: dict[str, Any] = {}
     if path != CONFIG_DIR / "paper.yaml" or path.exists():
         data = read_yaml_mapping(path, ConfigError, "YAML config file")

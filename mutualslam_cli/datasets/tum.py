@@ -126,7 +126,8 @@ def load_tum(spec: SequenceSpec) -> Sequence:
     Args:
         spec: the resolved registry entry or folder spec. ``extra`` keys: ``max_dt`` (s),
             ``max_gt_gap`` (s), ``fy_sign`` (``auto`` runs
-            :func:`~mutualslam_cli.datasets.fy_sign.decide_fy_sign`).
+            :func:`~mutualslam_cli.datasets.fy_sign.decide_fy_sign`), ``all_frames`` (true: keep the RGB frames
+            without a depth partner, depth-less; the depth metrics score the frames that have one).
 
     Returns:
         The associated :class:`Sequence` (frames carry GT poses at image time or ``None``).
@@ -139,6 +140,8 @@ def load_tum(spec: SequenceSpec) -> Sequence:
     if not root.is_dir():
         raise DatasetError(f"{root}: sequence folder not found (registry entry '{spec.name}')")
     max_dt = float(spec.extra.get("max_dt", MAX_DT))
+    if not isinstance(spec.extra.get("all_frames", False), bool):
+        raise DatasetError(f"{spec.name}: all_frames = {spec.extra['all_frames']!r}: expected true or false")
     meta: dict[str, Any] = {"format": spec.format}
     rgb_txt, depth_txt = root / "rgb.txt", root / "depth.txt"
     if rgb_txt.is_file() and (depth_txt.is_file() or spec.format in ("lab", "synthetic")):
@@ -148,8 +151,12 @@ def load_tum(spec: SequenceSpec) -> Sequence:
             pairs = associate(rgb_l.timestamps, depth_l.timestamps, max_dt=max_dt)
             ri = [i for i, _ in pairs]
             di = [j for _, j in pairs]
-            rgb = check_files(root, rgb_l, [rgb_l.paths[i] for i in ri], ri)
             depth: list[Path | None] = list(check_files(root, depth_l, [depth_l.paths[j] for j in di], di))
+            if spec.extra.get("all_frames") is True:  # every RGB frame, depth where it has a partner
+                partner = dict(zip(ri, depth))
+                ri = list(range(len(rgb_l)))
+                depth = [partner.get(i) for i in ri]
+            rgb = check_files(root, rgb_l, [rgb_l.paths[i] for i in ri], ri)
             times = rgb_l.timestamps[ri]
             meta["association"] = {"source": "rgb.txt+depth.txt", "rgb": len(rgb_l), "depth": len(depth_l),
                                    "pairs": len(pairs), "max_dt": max_dt}

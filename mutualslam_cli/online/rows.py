@@ -18,7 +18,7 @@ from mutualslam_cli.adapt.step_info import StepInfo
 WORK_SECONDS = ("bridge_s", "merge_s", "ba_s", "loop_s")
 
 #: ``keyframes.csv``'s columns in order; the loss parts (``loss_<part>``, :func:`step_columns`) follow ``ms``.
-COLUMNS = ("kf_id", "not_ticked", *(f.name for f in fields(StepInfo) if f.name not in ("kf_id", "loss")),
+COLUMNS = ("kf_id", "not_ticked", *(f.name for f in fields(StepInfo) if f.name not in ("kf_id", "loss", "health")),
            "n_sparse", *WORK_SECONDS, "rt_start_ms", "rt_end_ms")
 
 

@@ -127,6 +127,23 @@ def test_intrinsics_txt_overrides_family_and_gives_synthetic(tmp_path):
     assert seq.meta["intrinsics_source"] == "intrinsics.txt"
 
 
+def test_all_frames_keeps_the_rgb_frames_without_depth(tmp_path):
+    # a colour sequence with depth for its first frames only (RedKitchen whole: depth for 300 of 1000 frames)
+    root = write_tum_dir(tmp_path / "partial", n=8, intrinsics_txt=True)
+    lines = (root / "depth.txt").read_text().splitlines()
+    (root / "depth.txt").write_text("\n".join(lines[:4]) + "\n")  # header + 3 depth frames
+    entry = {"root": str(root), "format": "lab", "intrinsics": [F, F, 31.5, 23.5], "gt": "groundtruth.txt"}
+    paired = load_sequence("p", registry_path=spec_yaml(tmp_path, {"p": entry}))
+    assert len(paired) == 3
+    every = load_sequence("p", registry_path=spec_yaml(tmp_path, {"p": {**entry, "all_frames": True}}))
+    assert len(every) == 8
+    assert every.has_gt_poses
+    assert [f.depth_path is not None for f in every.frames] == [True] * 3 + [False] * 5
+    assert every.frames[1].depth_path == paired.frames[1].depth_path
+    with pytest.raises(DatasetError, match="all_frames = 'yes': expected true or false"):
+        load_sequence("p", registry_path=spec_yaml(tmp_path, {"p": {**entry, "all_frames": "yes"}}))
+
+
 def test_lab_folder_without_gt_has_no_poses(tmp_path):
     root = write_tum_dir(tmp_path / "mylab", gt=False, intrinsics_txt=True)
     (root / "intrinsics.txt").unlink()
