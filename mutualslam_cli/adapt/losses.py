@@ -218,9 +218,10 @@ def sparse_depth_loss(depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, ma
 @_fp32
 def label_scale(depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, mask: torch.Tensor,
                 pooled: bool = False) -> torch.Tensor:
-    """Per image, the median over its map points of ``D_sparse / D``: the map's units per unit of predicted depth.
+    """Per image (``pooled``: one for the batch, over all its points), the median over its map points of
+    ``D_sparse / D``: the map's units per unit of predicted depth.
 
-    ``adapt.scale: align`` multiplies each image's predicted depth by it before L_train and L_val, so the losses
+    ``adapt.scale: align`` / ``align_batch`` multiply the predicted depth by it before L_train and L_val, so the losses
     ask the network for the depth's shape in the map's units without asking it to move its own scale to the map's
     arbitrary one (README "Adapting without picking a rate"). The factor keeps its gradient: ``D·s`` is then
     exactly invariant to the network's global scale, which no loss can push. (Detached, the losses still pull

@@ -298,12 +298,12 @@ class OnlineAdapter:
             return depth
         if self.cfg.scale == "calibrate":  # the map's units once, from the first keyframe trained on; then learnt
             if newest and not self._calibrated:
-                self._unit_factor = float(losses.label_scale(depth[:1], uv[:1], d[:1], mask[:1])[0])
+                self._unit_factor = float(losses.label_scale(depth[:1], uv[:1], d[:1], mask[:1])[0].detach())
                 self._calibrated = True
             return depth if self._unit_factor is None else depth * self._unit_factor  # folded into unit at the end
         s = losses.label_scale(depth, uv, d, mask, pooled=self.cfg.scale == "align_batch")
         if newest:
-            self._unit_factor = float(s[0])
+            self._unit_factor = float(s[0].detach())
         return depth * s.view(-1, 1, 1, 1)
 
     def _l_val(self, kf_id: int) -> float:

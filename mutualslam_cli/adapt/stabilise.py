@@ -4,7 +4,8 @@ on each step, and a weight average that predicts while training goes on.
 The paper trains every weight with one Adam rate (1e-3). Adam moves each weight by about ``lr`` per step whatever
 the weight's size, so the same rate is a 1 % nudge to one layer and a 20 % rewrite of another, and a batch of one
 or two keyframes has nothing to say about most of them. All three settings are off in ``configs/paper.yaml``
-(the paper's method, unchanged) and on in ``configs/default.yaml`` (README "Adapting without picking a rate"):
+(the paper's method, unchanged); ``configs/default.yaml`` uses the trust region (README "Adapting without picking
+a rate", which also gives what the other two did on the shared windows):
 
 - ``adapt.encoder_lr``: the encoder's rate as a share of ``adapt.lr`` (two Adam parameter groups);
 - ``adapt.trust``: after each Adam step, a parameter tensor whose update ``Δ`` is longer than ``trust·‖θ‖`` is

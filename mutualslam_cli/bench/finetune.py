@@ -20,10 +20,11 @@ from mutualslam_cli.adapt.batch import TrainingBatch
 from mutualslam_cli.adapt.comoda import ComodaAdapter
 from mutualslam_cli.adapt.depthnet import DepthNet, fast_context, fast_path_supported, make_adam, prepare
 from mutualslam_cli.adapt.inference import openvino_predictor
-from mutualslam_cli.adapt.losses import train_loss
+from mutualslam_cli.adapt.losses import label_scale, train_loss
 from mutualslam_cli.adapt.networks.pose import PoseNet
+from mutualslam_cli.adapt.stabilise import TrustRegion
 from mutualslam_cli.allocator import retain_freed_memory
-from mutualslam_cli.config import AdaptConfig
+from mutualslam_cli.config import AdaptConfig, load_config
 from mutualslam_cli.device import grad_scaler, module_device, synchronize
 
 CPU = torch.device("cpu")
@@ -120,12 +121,16 @@ def make_step_batch(width: int, height: int, n_points: int = 500, seed: int = 0,
 
 def finetune_step(net: DepthNet, opt: torch.optim.Optimizer, batch: TrainingBatch, fast: bool,
                   lambda_sparse: float = 0.1, lambda_smooth: float = 0.1,
-                  scaler: torch.amp.GradScaler | None = None) -> dict[str, float]:
+                  scaler: torch.amp.GradScaler | None = None, trust: TrustRegion | None = None) -> dict[str, float]:
     """One Adam step of Eq. 8: network forward under :func:`fast_context` (on the network's device), loss in
-    fp32; ``scaler``: fp16 loss scaling (a GPU without bf16)."""
+    fp32; ``scaler``: fp16 loss scaling (a GPU without bf16); ``trust``: configs/default.yaml's step, the depth
+    aligned to the batch's points (``adapt.scale: align_batch``) and the step held in this trust region."""
     opt.zero_grad(set_to_none=True)
     with fast_context(fast, module_device(net)):
         depth = net.predict(batch.target)
+    if trust is not None:
+        depth = depth * label_scale(depth, batch.uv, batch.d, batch.mask, pooled=True).view(-1, 1, 1, 1)
+        trust.before()
     loss, parts = train_loss(depth, batch.target, batch.sources, batch.K, batch.T_t2s,
                              batch.uv, batch.d, batch.mask, lambda_sparse, lambda_smooth)
     if scaler is None:
@@ -135,14 +140,17 @@ def finetune_step(net: DepthNet, opt: torch.optim.Optimizer, batch: TrainingBatc
         scaler.scale(loss).backward()
         scaler.step(opt)
         scaler.update()
+    if trust is not None:
+        trust.after()
     return parts
 
 
 def bench_finetune_step(width: int = 640, height: int = 192, repeats: int = 5, fast: bool = False,
                         threads: int | None = None, warmup: int = 2, seed: int = 0,
                         train_mode: bool = True, channels_last: bool | None = None,
-                        device: torch.device | str = CPU) -> dict[str, Any]:
-    """Median time of one fine-tuning step on 2 keyframes (recent + replayed) × 2 neighbours.
+                        device: torch.device | str = CPU, trust: float = 0.0) -> dict[str, Any]:
+    """Median time of one fine-tuning step on 2 keyframes (recent + replayed) × 2 neighbours (``trust`` > 0: with
+    configs/default.yaml's scale alignment and a trust region of that radius, :func:`finetune_step`).
 
     The work is that of the online loop: one batched forward of the 2 targets, 4 warps
     (each neighbour once), photometric + sparse + smoothness losses, backward, Adam step.
@@ -156,7 +164,9 @@ def bench_finetune_step(width: int = 640, height: int = 192, repeats: int = 5, f
     opt = make_adam(net.parameters(), lr=1e-4)
     batch = make_step_batch(width, height, seed=seed, device=device)
     scaler = grad_scaler(device, fast)
-    ms, times = _median_ms(lambda: finetune_step(net, opt, batch, fast, scaler=scaler), repeats, warmup, device)
+    region = TrustRegion([p for p in net.parameters() if p.requires_grad], trust) if trust > 0 else None
+    ms, times = _median_ms(lambda: finetune_step(net, opt, batch, fast, scaler=scaler, trust=region), repeats,
+                           warmup, device)
     return {"ms": ms, "times_ms": times, "fast": fast, "width": width, "height": height,
             "threads": torch.get_num_threads(), "bf16_supported": fast_path_supported()}
 
@@ -212,6 +222,11 @@ def compare(width: int = 640, height: int = 192, repeats: int = 5, threads: int 
                                                       channels_last=cl)["ms"]
         out[f"finetune_{name}_ms"] = bench_finetune_step(width, height, repeats, fast, threads,
                                                          channels_last=cl)["ms"]
+    trust = load_config().adapt.trust  # configs/default.yaml's step (scale alignment + trust region), `auto`'s path
+    if trust > 0:
+        fast = fast_path_supported()
+        out[f"finetune_{'fast' if fast else 'fp32_cl'}_default_ms"] = bench_finetune_step(
+            width, height, repeats, fast, threads, channels_last=True, trust=trust)["ms"]
     out["bf16_rel_depth_diff"] = bf16_depth_difference(width, height)
     return out
 

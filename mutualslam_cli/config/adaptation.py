@@ -92,9 +92,12 @@ class AdaptConfig:
     freeze_stages: int = setting(0, between(0, 5, "encoder stages"))
     """Leading encoder stages kept fixed (0–5: conv1+bn1, layer1, …, layer4): no gradient, no backward."""
     scale: Literal["learn", "align", "align_batch", "calibrate"] = "learn"
-    """``learn`` (the paper): the network learns the map's units from L_sparse and L_photo, whatever they are;
-    ``align``: each image's predicted depth is scaled to its map points (median ratio, no gradient) before the
-    losses, so training asks for the depth's shape only, and the network carries the map's units as a factor
+    """How the network meets the map's arbitrary units. ``learn`` (the paper): it learns them from L_sparse and
+    L_photo. ``align_batch`` (configs/default.yaml): the batch's predicted depth is scaled by one factor, the median
+    ratio of its map points' depths to the prediction, before the losses, so training asks for the depth's shape
+    and the keyframes' relative scale, never for the map's unit; ``align``: one factor per image (the frames' scales
+    then drift apart); ``calibrate``: the factor of the first keyframe trained on, once, then ``learn``. The
+    network carries the factor as :attr:`DepthNet.unit`, so what reads its depth gets map units
     (:func:`~mutualslam_cli.adapt.losses.label_scale`; README "Adapting without picking a rate")."""
     encoder_lr: float = setting(1.0, above(0))
     """The encoder's learning rate as a fraction of ``lr`` (1 = the paper: one rate for the whole network). The

@@ -153,3 +153,18 @@ def test_align_keeps_the_maps_units_in_the_networks_unit():
     with torch.no_grad():
         before = label_scale(fresh.predict(s.image[None]), s.uv[None], s.depth[None], every)
     assert abs(float(before) - 1.0) > 0.5  # which it did not before
+
+
+def test_the_benchs_default_step_stays_in_its_trust_region():
+    from mutualslam_cli.adapt.depthnet import make_adam
+    from mutualslam_cli.bench.finetune import finetune_step, make_step_batch
+
+    torch.manual_seed(0)
+    net = DepthNet()
+    params = [q for q in net.parameters() if q.requires_grad]
+    before = [q.detach().clone() for q in params]
+    opt = make_adam(params, lr=1e-2)  # a rate whose steps the region must cut
+    finetune_step(net, opt, make_step_batch(96, 64), fast=False, trust=TrustRegion(params, 1e-3))
+    rel = [float((q - b).norm() / b.norm()) for q, b in zip(params, before) if float(b.norm()) > 0]
+    assert max(rel) <= 1e-3 * (1 + 1e-4)
+    assert max(rel) > 0.9e-3

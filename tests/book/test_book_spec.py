@@ -100,6 +100,7 @@ def test_the_full_book_reads_and_reports_no_preset_on_its_tuning_data():
         _check_tuning(g, preset_path(g.preset, spec.path))  # raises on a tuned preset's own data
     assert {"T1", "T3", "T4", "T5", "F4"} <= set(spec.findings)
     assert "tum_fr1_xyz" not in {s.name for s in spec.grids["tuned"].sequences}
+    assert {s.name for s in spec.grids["default"].sequences}.isdisjoint({"tum_fr1_xyz", "icl_lr_kt2"})
     assert [s.name for s in spec.grids["fast"].sequences] == ["redkitchen_7scenes"]
     assert len(spec.bounds) >= 10
     assert any(b.ci for b in spec.bounds)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from mutualslam_cli.config import load_config
+from mutualslam_cli.config import CONFIG_DIR, load_config  # figures measured with the paper's values
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.summary import flatten
 
@@ -16,7 +16,7 @@ pytestmark = [pytest.mark.data, pytest.mark.slow]
 
 
 def test_the_fisher_from_the_last_step_adapts_as_the_readme_says(shared_data, tmp_path):
-    cfg = load_config(None, ["threads=2", "seed=0", "adapt.fisher_at=last_step"])
+    cfg = load_config(CONFIG_DIR / "paper.yaml", ["threads=2", "seed=0", "adapt.fisher_at=last_step"])
     r = run_sequence(shared_data / "icl_lr_kt2", cfg, out=tmp_path, command=["test"])
     s = flatten(r.summary)
     assert s["scheme"] == "replay+ewc"
