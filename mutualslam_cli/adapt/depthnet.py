@@ -91,7 +91,7 @@ class DepthNet(nn.Module):
             self.decoder = DepthDecoder(self.encoder.num_ch_enc, scales=range(4))
         # map units per unit of the network's depth (adapt.scale = align keeps it; 1 otherwise): a constant, not a
         # weight, and not saved with them
-        self.register_buffer("unit", torch.ones(()), persistent=False)
+        self.register_buffer("unit", torch.ones((), device="cpu"), persistent=False)
         self.channels_last = False
         self.bf16_encoder = False  # :func:`prepare`: encoder gradients under mixed precision too (module docstring)
 
