@@ -68,8 +68,10 @@ class TrustRegion:
         if not cut:
             return
         f = factor.tolist()
-        old = [self._old[i] for i in cut]
-        torch._foreach_copy_([ps[i] for i in cut], torch._foreach_add(old, [delta[i] * f[i] for i in cut]))
+        moved = [delta[i] for i in cut]  # θ_old + f·Δ, in place in Δ's buffers
+        torch._foreach_mul_(moved, [f[i] for i in cut])
+        torch._foreach_add_(moved, [self._old[i] for i in cut])
+        torch._foreach_copy_([ps[i] for i in cut], moved)
 
 
 class WeightAverage:
