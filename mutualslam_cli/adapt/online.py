@@ -58,7 +58,7 @@ from mutualslam_cli.adapt.health import HealthMonitor
 from mutualslam_cli.adapt.keyframe_grads import KeyframeGrads
 from mutualslam_cli.adapt.regularizers import Regularizer, trainable
 from mutualslam_cli.adapt.schemes import get_scheme
-from mutualslam_cli.adapt.stabilise import TrustRegion, WeightAverage, param_groups
+from mutualslam_cli.adapt.stabilise import ScaleAlignment, TrustRegion, WeightAverage, param_groups
 from mutualslam_cli.adapt.state import (
     Action,
     FineTuneDone,
@@ -138,8 +138,7 @@ class OnlineAdapter:
         self.trust = TrustRegion(self.params, cfg.trust) if cfg.trust > 0 and self.scheme.trains else None
         self.average = WeightAverage(self.params, cfg.average) if cfg.average > 0 and self.scheme.trains else None
         self.health = HealthMonitor(net) if self.scheme.trains else None
-        self._calibrated = False
-        self._unit_factor: float | None = None  # adapt.scale = align: the newest keyframe's map units per net unit
+        self.scale = ScaleAlignment(cfg.scale)  # the map's units for the losses (adapt.scale)
         self.scaler = grad_scaler(self.device, self.fast)  # fp16 autocast only (a GPU without bf16)
         self.kf_grads = KeyframeGrads(net, self.params, self._predict, self._one_loss,  # for EWC's Fisher
                                       from_last_step=cfg.fisher_at == "last_step")
@@ -291,20 +290,8 @@ class OnlineAdapter:
 
     def _aligned(self, depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, mask: torch.Tensor,
                  newest: bool = False) -> torch.Tensor:
-        """``depth`` ``(B, 1, H, W)`` scaled to each image's map points when ``adapt.scale`` is ``align`` (else as it
-        is); ``newest``: the batch's first step, whose scale of the newest image the network's :attr:`unit`
-        takes at the batch's end."""
-        if self.cfg.scale == "learn":
-            return depth
-        if self.cfg.scale == "calibrate":  # the map's units once, from the first keyframe trained on; then learnt
-            if newest and not self._calibrated:
-                self._unit_factor = float(losses.label_scale(depth[:1], uv[:1], d[:1], mask[:1])[0].detach())
-                self._calibrated = True
-            return depth if self._unit_factor is None else depth * self._unit_factor  # folded into unit at the end
-        s = losses.label_scale(depth, uv, d, mask, pooled=self.cfg.scale == "align_batch")
-        if newest:
-            self._unit_factor = float(s[0].detach())
-        return depth * s.view(-1, 1, 1, 1)
+        """``depth`` ``(B, 1, H, W)`` in the map's units as ``adapt.scale`` asks (:class:`ScaleAlignment`)."""
+        return self.scale.apply(depth, uv, d, mask, newest)
 
     def _l_val(self, kf_id: int) -> float:
         """Alg. 1's L_val: mean per-keyframe L_sparse over the validation set (see module docstring)."""
@@ -415,10 +402,7 @@ class OnlineAdapter:
             reg.after_batch(self.net, batch.target[:1], per_kf)  # consolidate (Alg. 2 line 7)
         if self.health is not None:
             info.health.update(self.health.of_weights())
-        unit = getattr(self.net, "unit", None)
-        if self._unit_factor is not None and isinstance(unit, torch.Tensor):
-            unit.mul_(self._unit_factor)  # the network's depth in the map's units of its newest keyframe
-        self._unit_factor = None
+        self.scale.end_batch(self.net)  # the network's depth in the map's units of its newest keyframe
         if self.average is not None:
             self.average.to_average()  # the averaged weights predict until the next batch
         synchronize(self.device)

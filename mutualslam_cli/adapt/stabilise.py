@@ -1,5 +1,6 @@
-"""Keeping online fine-tuning inside what its labels can support: the encoder's share of the rate, a trust region
-on each step, and a weight average that predicts while training goes on.
+"""Keeping online fine-tuning inside what its labels can support: the map's units met without being learnt
+(:class:`ScaleAlignment`, ``adapt.scale``), the encoder's share of the rate, a trust region on each step, and a
+weight average that predicts while training goes on.
 
 The paper trains every weight with one Adam rate (1e-3). Adam moves each weight by about ``lr`` per step whatever
 the weight's size, so the same rate is a 1 % nudge to one layer and a 20 % rewrite of another, and a batch of one
@@ -20,6 +21,8 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+
+from mutualslam_cli.adapt.losses import label_scale
 
 
 def param_groups(net: nn.Module, params: list[torch.Tensor], lr: float, encoder_lr: float) -> list[dict]:
@@ -107,3 +110,42 @@ class WeightAverage:
         torch._foreach_lerp_(self.average, self.trained, 1.0 - self.decay)
         torch._foreach_copy_(ps, self.average)
         self.holds_average = True
+
+
+class ScaleAlignment:
+    """``adapt.scale``: how a batch's predicted depth meets the map's units before the losses
+    (:func:`~mutualslam_cli.adapt.losses.label_scale`).
+
+    ``learn``: as it is (the paper); ``align``: each image scaled to its map points; ``align_batch``: the batch by
+    one factor; ``calibrate``: by the first trained keyframe's factor while that batch lasts, then as it is. The
+    factor of a batch's newest image on its first step is folded into the network's ``unit`` at the batch's end,
+    so what reads the network's depth gets map units.
+    """
+
+    def __init__(self, mode: str) -> None:
+        self.mode = mode
+        self._factor: float | None = None  # the newest keyframe's map units per network unit, until end_batch
+        self._calibrated = False
+
+    def apply(self, depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, mask: torch.Tensor,
+              newest: bool = False) -> torch.Tensor:
+        """``depth`` ``(B, 1, H, W)`` scaled as the mode asks; ``newest``: a batch's first step."""
+        if self.mode == "learn":
+            return depth
+        if self.mode == "calibrate":
+            if newest and not self._calibrated:
+                self._factor = float(label_scale(depth[:1], uv[:1], d[:1], mask[:1])[0].detach())
+                self._calibrated = True
+            return depth if self._factor is None else depth * self._factor
+        s = label_scale(depth, uv, d, mask, pooled=self.mode == "align_batch")
+        if newest:
+            self._factor = float(s[0].detach())
+        return depth * s.view(-1, 1, 1, 1)
+
+    @torch.no_grad()
+    def end_batch(self, net: nn.Module) -> None:
+        """Fold the batch's factor into ``net.unit`` (a network without one keeps its units)."""
+        unit = getattr(net, "unit", None)
+        if self._factor is not None and isinstance(unit, torch.Tensor):
+            unit.mul_(self._factor)
+        self._factor = None
