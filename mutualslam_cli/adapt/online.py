@@ -277,7 +277,7 @@ class OnlineAdapter:
                     vals.append(torch.full((), float("nan"), dtype=torch.float64, device=dev))
                     continue
                 mask = torch.ones(1, s.uv.shape[0], dtype=torch.bool, device=dev)
-                one = self._aligned(depth[b:b + 1], s.uv[None].to(dev), s.depth[None].to(dev), mask)
+                one = self.scale.apply(depth[b:b + 1], s.uv[None].to(dev), s.depth[None].to(dev), mask)
                 vals.append(self.val_fn(one, s.uv[None].to(dev), s.depth[None].to(dev), mask).double())
             out.update(zip((s.kf_id for s in samples), torch.stack(vals).tolist()))  # one copy back per chunk
         return out
@@ -287,11 +287,6 @@ class OnlineAdapter:
         """Forward pass of ``x`` (on :attr:`device`), mixed precision when ``fast``; float32 depth ``(B, 1, H, W)``."""
         with fast_context(self.fast, self.device):
             return predictor(self.net)(x).float()
-
-    def _aligned(self, depth: torch.Tensor, uv: torch.Tensor, d: torch.Tensor, mask: torch.Tensor,
-                 newest: bool = False) -> torch.Tensor:
-        """``depth`` ``(B, 1, H, W)`` in the map's units as ``adapt.scale`` asks (:class:`ScaleAlignment`)."""
-        return self.scale.apply(depth, uv, d, mask, newest)
 
     def _l_val(self, kf_id: int) -> float:
         """Alg. 1's L_val: mean per-keyframe L_sparse over the validation set (see module docstring)."""
@@ -310,7 +305,7 @@ class OnlineAdapter:
     def _one_loss(self, batch: TrainingBatch, depth: torch.Tensor, b: int) -> torch.Tensor:
         """Keyframe ``b``'s own L_train from its depth ``(1, 1, H, W)`` and its slice of ``batch``."""
         cfg, one = self.cfg, slice(b, b + 1)
-        depth = self._aligned(depth, batch.uv[one], batch.d[one], batch.mask[one])
+        depth = self.scale.apply(depth, batch.uv[one], batch.d[one], batch.mask[one])
         loss, _ = self.loss_fn(depth, batch.target[one], [s[one] for s in batch.sources], batch.K[one],
                                [t[one] for t in batch.T_t2s], batch.uv[one], batch.d[one],
                                batch.mask[one], cfg.lambda_sparse, cfg.lambda_smooth, cfg.alpha)
@@ -345,7 +340,7 @@ class OnlineAdapter:
             depth = self._predict(batch.target)
         if first and self.health is not None:  # the first step sees the weights the keyframe arrived with
             info.health = self.health.of_prediction(depth[:1], batch.uv[:1], batch.d[:1], batch.mask[:1])
-        depth = self._aligned(depth, batch.uv, batch.d, batch.mask, newest=first)
+        depth = self.scale.apply(depth, batch.uv, batch.d, batch.mask, first)
         loss, parts = self.loss_fn(depth, batch.target, batch.sources, batch.K, batch.T_t2s,
                                    batch.uv, batch.d, batch.mask, cfg.lambda_sparse,
                                    cfg.lambda_smooth, cfg.alpha)
