@@ -11,7 +11,8 @@ Two families, told apart by what the CLI does with them:
     :class:`UnsafeMember`, :class:`ArchiveTooLarge`: a downloaded archive) are the datasets' own, caught
     where they are raised. :class:`UnsafeName` (a file name from a URL or a registry field that would
     not be one file in its folder) and :class:`DownloadLocked` (another process downloads the same file)
-    reach the user as they are. :class:`DamagedRecord`: a record beside the downloads of the wrong shape.
+    reach the user as they are. :class:`DamagedRecord`: a record beside the downloads, or a results book's job
+    record, of the wrong shape (or edited by hand).
   - :class:`ConfigError`: a setting (config file, ``--set``, a constructor argument that comes
     from one) is invalid.
   - :class:`GeometryError`: an alignment is degenerate (too few pairs, collinear positions).
@@ -84,8 +85,10 @@ class DownloadLocked(DatasetError):
 
 class DamagedRecord(DatasetError):
     """A record mslam keeps beside its downloads (``checksums.json``, ``NAME.partinfo``, ``NAME.lock``) is not of
-    the shape mslam writes, or is a symbolic link (:mod:`~mutualslam_cli.datasets.download.files`); the reader
-    names the field and either starts over or says how to fix it, and never trusts it."""
+    the shape mslam writes, or is a symbolic link (:mod:`~mutualslam_cli.datasets.download.files`); or a results
+    book's job record (:mod:`~mutualslam_cli.book.records`) is damaged or was not written by mslam (its digest does
+    not match). The reader names the file and the field and either starts over or says how to fix it, and never
+    trusts it."""
 
 
 class NotRefreshable(MslamError):

@@ -1,17 +1,17 @@
 """What the book publishes, from its runs: tables whose every cell carries its provenance, figures, and the cells
 its bounds rerun (:func:`build_tables`, :func:`build_figures`, :func:`build_bounds`).
 
-The runs of each (grid, variant) are read as ``mslam report`` reads them (:func:`~mutualslam_cli.report.runs.collect`)
-into one frame with ``book.grid`` and ``book.variant`` columns (:func:`collect_book`). A table's rows are its grid's
+The runs are read from the jobs' fresh records (:mod:`~mutualslam_cli.book.records`) into one frame, a row per run as
+``mslam report`` reads a run folder, with ``book.grid`` and ``book.variant`` columns (:func:`collect_book`). A table's rows are its grid's
 sequences and an ``Average`` (the mean of the sequence means, over the sequences that have every column, their
 count named when that is not all); a cell is the mean ± std over the seeds that have the value, with, in
 ``book.json``, every seed's value and run folder, the config hash, the commits and CPU kinds of those runs, and
-the schedule — a figure is never published without the runs it came from.
+the schedule — a figure is never published without the runs it came from. A cell whose seeds ran on more than
+one CPU kind is marked ``‡`` (:data:`MIXED`) and names the kinds.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,41 +19,53 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from mutualslam_cli.book.plan import Plan, part_of
+from mutualslam_cli.ablate import Job
+from mutualslam_cli.book.plan import Part, Plan, part_of
+from mutualslam_cli.book.records import CURVES, JobState
 from mutualslam_cli.book.spec import BookSpec, ColumnSpec, TableSpec
-from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.report.columns import numeric
 from mutualslam_cli.report.paper import cell
-from mutualslam_cli.report.runs import collect
+from mutualslam_cli.config import to_dict
+from mutualslam_cli.report.runs import config_labels
+from mutualslam_cli.results.run_folder import is_complete, run_dir
+from mutualslam_cli.results.summary import flatten
 
 
-def collect_book(plan: Plan, notes: list[str]) -> pd.DataFrame:
-    """Every complete run of the plan's parts, with ``book.grid``, ``book.variant``, ``book.commit`` (the run's
-    ``manifest.json`` ``git_revision``) and ``book.run`` (its folder relative to the book's ``runs/``)."""
-    frames = []
-    for p in plan.parts:
-        if not p.out.is_dir():
+def collect_book(plan: Plan, states: list[tuple[Part, Job, JobState]]) -> pd.DataFrame:
+    """One row per fresh record of the plan's jobs, as :func:`~mutualslam_cli.report.runs.collect` makes rows of
+    run folders: the flattened summary, ``config.<key>`` of the part's config, ``folder`` (the local run folder,
+    else the record), ``curve.<model>`` (the running-accuracy curves, for the figures), and ``book.grid``,
+    ``book.variant``, ``book.config_hash``, ``book.commit``, ``book.cpu_kind``, ``book.seconds`` and ``book.run``
+    (the run's place under the book's ``runs/``)."""
+    rows = []
+    for part, job, state in states:
+        rec = state.record
+        if state.status != "fresh" or rec is None or rec.sequence not in plan.sequences[part.grid]:
             continue
-        try:
-            runs = collect([p.out], notes)
-        except DatasetError as e:  # nothing complete yet (a book run with --only, a failed grid)
-            notes.append(f"{p.grid}/{p.variant}: {e}")
-            continue
-        runs = runs[runs["sequence.name"].astype(str).isin(plan.sequences[p.grid])]
-        frames.append(runs.assign(**{"book.grid": p.grid, "book.variant": p.variant,
-                                     "book.config_hash": p.config_hash,
-                                     "book.commit": [_commit(Path(f)) for f in runs["folder"]],
-                                     "book.run": [Path(f).relative_to(p.out.parent.parent).as_posix()
-                                                  for f in runs["folder"]]}))
-    return pd.concat(frames, ignore_index=True).copy() if frames else pd.DataFrame(
-        columns=["book.grid", "book.variant", "sequence.name", "scheme", "seed", "folder"])
+        folder = run_dir(part.out, rec.sequence, rec.scheme, rec.seed)
+        row: dict[str, Any] = dict(rec.summary)
+        row.update({f"config.{k}": v for k, v in flatten(to_dict(part.cfg)).items()})
+        row.update({"config.adapt.scheme": rec.scheme, "config.seed": rec.seed, "scheme": rec.scheme,
+                    "seed": rec.seed, "sequence.name": rec.sequence,
+                    "folder": str(folder if is_complete(folder) else folder.parent),
+                    "book.grid": part.grid, "book.variant": part.variant, "book.config_hash": rec.config_hash,
+                    "book.commit": rec.commit, "book.cpu_kind": rec.cpu_kind, "book.seconds": rec.seconds,
+                    "book.run": f"{part.grid}/{part.variant}/{rec.sequence}/{rec.scheme}/seed{rec.seed}"})
+        frames = rec.curves.get("frame")
+        for m in CURVES:
+            if frames and m in rec.curves:
+                row[f"curve.{m}"] = pd.Series(rec.curves[m], index=frames, dtype=float)
+        rows.append(row)
+    if not rows:
+        return pd.DataFrame(columns=["book.grid", "book.variant", "sequence.name", "scheme", "seed", "folder"])
+    runs = pd.DataFrame(rows)
+    runs["config.run_device"] = runs.get("run.device_label")
+    runs["config"] = config_labels(runs)
+    return runs
 
 
-def _commit(folder: Path) -> str | None:
-    try:
-        return json.loads((folder / "manifest.json").read_text()).get("git_revision")
-    except (OSError, ValueError, AttributeError):
-        return None
+#: The mark of a cell whose seeds ran on more than one CPU kind.
+MIXED = "‡"
 
 
 def arm_runs(runs: pd.DataFrame, grid: str, variant: str, scheme: str, sequence: str | None = None) -> pd.DataFrame:
@@ -101,8 +113,10 @@ def column_cell(runs: pd.DataFrame, col: ColumnSpec, sequence: str, digits: int,
               "values": [{"seed": int(s) if s == s else None, "value": float(x), "run": run}
                          for s, x, run in zip(have.get("seed", []), vals, have.get("book.run", []))],
               "commits": _sorted_unique(have["book.commit"]) if n else [],
-              "devices": _sorted_unique(have["run.device_label"]) if n and "run.device_label" in have else []}
-    return Cell(mean, std, n, cell(mean, std, n, digits), source)
+              "devices": _sorted_unique(have["run.device_label"]) if n and "run.device_label" in have else [],
+              "cpu_kinds": _sorted_unique(have["book.cpu_kind"]) if n and "book.cpu_kind" in have else []}
+    text = cell(mean, std, n, digits) + (f" {MIXED}" if len(source["cpu_kinds"]) > 1 else "")
+    return Cell(mean, std, n, text, source)
 
 
 @dataclass

@@ -17,16 +17,18 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import json
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mutualslam_cli.ablate import JobOutcome, run_grid
+from mutualslam_cli.ablate import Job, JobOutcome, run_grid
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.book.build import build_bounds, build_figures, build_tables, collect_book
 from mutualslam_cli.book.findings import judge, verdict_rows
-from mutualslam_cli.book.plan import Plan, describe, plan_book
+from mutualslam_cli.book.plan import Part, Plan, describe, plan_book
+from mutualslam_cli.book.records import JobState, job_state, record_from_run, write_record
 from mutualslam_cli.book.spec import BookSpec
 from mutualslam_cli.config import CONFIG_DIR
 from mutualslam_cli.machine import cpu_info
@@ -34,7 +36,8 @@ from mutualslam_cli.report.runs import config_labels
 from mutualslam_cli.report.tables import build_tables as report_tables
 from mutualslam_cli.report.tables import to_latex, to_markdown, write_report
 from mutualslam_cli.results.lock import hold_lock
-from mutualslam_cli.results.run_folder import git_revision
+from mutualslam_cli.results.fingerprint import code_fingerprint
+from mutualslam_cli.results.run_folder import git_revision, is_complete, run_dir
 from mutualslam_cli.results.summary import plain
 from mutualslam_cli.results.writable import check_output_folder
 
@@ -60,32 +63,108 @@ def total_jobs(plan: Plan) -> int:
     return sum(len(p.jobs) for p in plan.parts)
 
 
+def records_root(spec: BookSpec, records: str | Path | None = None) -> Path:
+    """Where the book's records live: ``records`` when given, else the book's ``records`` (relative to the
+    repository)."""
+    p = Path(records if records is not None else spec.records)
+    return p if p.is_absolute() or records is not None else CONFIG_DIR.parent / p
+
+
+def _label(job: Job) -> str:
+    return Path(job.sequence).name
+
+
+def job_states(spec: BookSpec, plan: Plan, root: Path) -> list[tuple[Part, Job, JobState]]:
+    """Every job of the plan with its standing in the records (:func:`~mutualslam_cli.book.records.job_state`).
+
+    Raises:
+        DamagedRecord: a record is damaged or was written by hand (one line naming it).
+    """
+    return [(p, j, job_state(root, spec.name, p.grid, p.variant, _label(j), j.scheme, j.seed, p.config_hash))
+            for p in plan.parts for j in p.jobs]
+
+
+def _set_aside(folder: Path) -> None:
+    """Move a stale run folder out of the grid's way (hidden beside it, replacing an older one set aside)."""
+    to = folder.with_name(f".{folder.name}.stale")
+    shutil.rmtree(to, ignore_errors=True)
+    folder.rename(to)
+
+
 def run_book(spec: BookSpec, out: Path, only: list[str] | None = None, workers: int = 1, executor: str = "local",
              scheduler: str | None = None, registry: str | None = None, data_root: str | None = None,
              overrides: list[str] | None = None, command: list[str] | None = None,
              on_plan: Callable[[Plan], None] | None = None,
-             on_done: Callable[[JobOutcome], None] | None = None) -> BookResult:
-    """Run the book (module docstring); ``only``: the entries (tables, figures, findings, grids) to run and write.
+             on_done: Callable[[JobOutcome], None] | None = None, records: str | Path | None = None) -> BookResult:
+    """Run the book (module docstring); ``only``: the entries (tables, figures, findings, grids) to run and write;
+    ``records``: where the job records are kept (default: the book's, :func:`records_root`).
+
+    A job whose record is fresh is complete (``skipped``); a complete run folder without one is recorded when this
+    checkout's code made it, else set aside and run again, as is a job whose record is stale. Each job that
+    finishes is recorded at once, so a killed book resumes from its records on any checkout.
 
     Raises:
-        ConfigError, DatasetError: before any work (:func:`~mutualslam_cli.book.plan.plan_book`).
+        ConfigError, DatasetError: before any work (:func:`~mutualslam_cli.book.plan.plan_book`); DamagedRecord
+            for a damaged or hand-written record.
         ResultsLocked: another book (or grid) works in ``out``.
-        KeyboardInterrupt: Ctrl-C; finished runs stay complete, nothing is published.
+        KeyboardInterrupt: Ctrl-C; finished runs stay complete and recorded, nothing is published.
     """
     out = check_output_folder(out)
+    root = records_root(spec, records)
     grids = spec.grids_for(only)
     res = BookResult()
+    code = code_fingerprint()  # before the workers fork: they stamp their runs with it
     with hold_lock(out, "mslam book"):
         plan = plan_book(spec, out, grids, registry, data_root, overrides)
+        states = job_states(spec, plan, root)
         if on_plan is not None:
             on_plan(plan)
+
+        def report(o: JobOutcome) -> None:
+            res.outcomes.append(o)
+            if on_done is not None:
+                on_done(o)
+
         for part in plan.parts:
-            res.outcomes += run_grid(part.cfg, part.jobs, part.out, workers=workers, command=command,
-                                     registry=registry, on_done=on_done, executor=executor, scheduler=scheduler)
+            todo = []
+            for p, job, state in states:
+                if p is not part:
+                    continue
+                folder = run_dir(part.out, _label(job), job.scheme, job.seed)
+                if state.status == "fresh":
+                    report(JobOutcome(job, "skipped", folder if is_complete(folder) else None))
+                    continue
+                if is_complete(folder):  # finished but not recorded (killed between the two), or stale
+                    rec = record_from_run(folder, spec.name, part.grid, part.variant, job.scheme, job.seed,
+                                          part.config_hash)
+                    if rec is not None and rec.code == code:
+                        write_record(root, rec)
+                        report(JobOutcome(job, "skipped", folder))
+                        continue
+                    _set_aside(folder)
+                todo.append(job)
+
+            def recorded(o: JobOutcome, part: Part = part) -> None:
+                if o.status == "done" and o.folder is not None:
+                    rec = record_from_run(o.folder, spec.name, part.grid, part.variant, o.job.scheme, o.job.seed,
+                                          part.config_hash)
+                    if rec is not None:
+                        write_record(root, rec)
+                report(o)
+
+            if todo:
+                run_grid(part.cfg, todo, part.out, workers=workers, command=command, registry=registry,
+                         on_done=recorded, executor=executor, scheduler=scheduler)
         if res.failed:
             res.notes.append(f"{len(res.failed)} job(s) failed: nothing published; run the book again to retry them")
             return res
-        write_book(spec, plan, out, set(grids), only, res)
+        states = job_states(spec, plan, root)
+        unfinished = [f"{p.grid}/{p.variant} {_label(j)} {j.scheme} seed{j.seed}: {s.status} {s.why}".rstrip()
+                      for p, j, s in states if s.status != "fresh"]
+        if unfinished:
+            res.notes.append(f"{len(unfinished)} job(s) have no fresh record (nothing published): {unfinished[0]}")
+            return res
+        write_book(spec, plan, out, set(grids), only, res, states)
     return res
 
 
@@ -101,10 +180,10 @@ def _relative(path: Path) -> str:
 
 
 def write_book(spec: BookSpec, plan: Plan, out: Path, grids: set[str], only: list[str] | None,
-               res: BookResult) -> None:
-    """Build and write every output (module docstring), ``book.json`` last."""
+               res: BookResult, states: list[tuple[Part, Job, JobState]]) -> None:
+    """Build and write every output (module docstring) from the jobs' fresh records, ``book.json`` last."""
     notes = res.notes
-    runs = collect_book(plan, notes)
+    runs = collect_book(plan, states)
 
     def wanted(name: str) -> bool:  # --only: the entries named, and every entry of a grid named
         return not only or name in only or bool(set(only) & grids & set(spec.grids))

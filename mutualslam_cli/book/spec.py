@@ -3,7 +3,9 @@
 A book file has five sections (the header of ``configs/book.yaml`` shows each in use):
 
 - ``book:`` its ``name``, the ``preset`` every grid starts from (a config file, relative to the repository),
-  ``sets`` (``key=value`` on every grid's config, e.g. ``threads=1``) and ``out`` (default ``results/book``);
+  ``sets`` (``key=value`` on every grid's config, e.g. ``threads=1``), ``out`` (default ``results/book``) and
+  ``records`` (where each finished job's record is kept, relative to the repository: default ``results/records``,
+  committed; :mod:`~mutualslam_cli.book.records`);
 - ``grids:`` what runs: per grid its ``sequences`` (required: a missing one is an error), ``when_present`` (the
   paper's whole sequences: run where their folder exists, else listed as skipped), ``schemes``, ``seeds``,
   ``one_seed`` (schemes run for the first seed only: those without replay give the same figures for every seed;
@@ -154,6 +156,7 @@ class BookSpec:
     figures: dict[str, FigureSpec] = field(default_factory=dict)
     findings: dict[str, FindingSpec] = field(default_factory=dict)
     bounds: tuple[BoundSpec, ...] = ()
+    records: str = "results/records"
 
     def grids_for(self, only: list[str] | None) -> list[str]:
         """The grids the entries ``only`` (tables, figures, findings or grids by name; ``None``: all) read.
@@ -301,6 +304,7 @@ def load_book(path: str | Path) -> BookSpec:
     head = _Reader(path, "book", top.get("book", dict))
     name, preset, out = head.get("name", str), head.get("preset", str, "configs/paper.yaml"), \
         head.get("out", str, "results/book")
+    records = head.get("records", str, "results/records")
     sets = _names(head, "sets", [])
     if not all("=" in x for x in sets):
         raise head.fail(f"'sets' = {list(sets)!r}: expected key=value overrides")
@@ -366,4 +370,4 @@ def load_book(path: str | Path) -> BookSpec:
             raise r.fail(f"factor {bound.factor}: expected > 1")
         bounds.append(bound)
     top.done()
-    return BookSpec(path, name, preset, out, grids, sets, tables, figures, findings, tuple(bounds))
+    return BookSpec(path, name, preset, out, grids, sets, tables, figures, findings, tuple(bounds), records)

@@ -27,7 +27,10 @@ def book(
     sets: list[str] | None = SetOpt,
     data_root: str | None = DataRootOpt,
     registry: Path | None = RegistryOpt,
-    dry_run: bool = typer.Option(False, "--dry-run", help="Only say what would run (jobs per grid, how many done)."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Only say what would run: jobs per grid, how many have a "
+                                                          "fresh record, how many a stale one and why."),
+    records: Path | None = typer.Option(None, "--records", help="Where each finished job's record is kept (default: "
+                                                                "the book's, results/records, committed)."),
     publish: bool = typer.Option(False, "--publish", help="Then copy book.json to results/book.json (the committed "
                                                           "copy) and rewrite the README's blocks from it."),
     render_readme: bool = typer.Option(False, "--render-readme", help="Run nothing: rewrite the README's blocks "
@@ -47,21 +50,32 @@ def book(
                              + (f": {', '.join(stale)}" if stale else ""))
         return
     from mutualslam_cli.book.plan import plan_book
-    from mutualslam_cli.book.run import run_book, total_jobs
+    from mutualslam_cli.book.run import job_states, records_root, run_book, total_jobs
     from mutualslam_cli.book.spec import load_book
-    from mutualslam_cli.results.run_folder import is_complete, run_dir
 
     spec = load_book(book_file)
     root = Path(out or spec.out)
     reg = str(registry) if registry else None
     if dry_run:
         plan = plan_book(spec, root, spec.grids_for(only), reg, data_root, sets, render=False)
+        rroot = records_root(spec, records)
+        states = job_states(spec, plan, rroot)
         for p in plan.parts:
-            done = sum(is_complete(run_dir(p.out, Path(j.sequence).name, j.scheme, j.seed)) for j in p.jobs)
-            common.console.print(f"{p.grid}/{p.variant}: {len(p.jobs)} jobs, {done} complete (config {p.config_hash})")
+            mine = [s for q, _, s in states if q is p]
+            n = {k: sum(s.status == k for s in mine) for k in ("fresh", "stale", "missing")}
+            kinds = sorted({s.record.cpu_kind for s in mine if s.status == "fresh" and s.record is not None})
+            common.console.print(f"{p.grid}/{p.variant}: {len(p.jobs)} jobs, {n['fresh']} complete"
+                                 + (f" ({', '.join(kinds)})" if kinds else "") + f", {n['stale']} stale, "
+                                 f"{n['missing']} to run (config {p.config_hash})")
+            why = next((s.why for s in mine if s.status == "stale"), "")
+            if why:
+                common.console.print(f"  stale: {escape(why)}", highlight=False)
         for g, names in plan.skipped.items():
             common.console.print(f"{g}: not on this machine, left out: {', '.join(names)}")
-        common.console.print(f"{total_jobs(plan)} jobs in all")
+        fresh = sum(s.status == "fresh" for _, _, s in states)
+        secs = sum(s.record.seconds or 0.0 for _, _, s in states if s.status == "fresh" and s.record is not None)
+        common.console.print(f"{total_jobs(plan)} jobs in all: {fresh} complete from the records in "
+                             f"{escape(str(rroot))} ({secs / 3600:.1f} h of runs), {total_jobs(plan) - fresh} to run")
         return
     with progress_bar() as bar:
         task = bar.add_task("book", total=None, info="")
@@ -74,7 +88,7 @@ def book(
 
         try:
             res = run_book(spec, root, list(only or []) or None, workers, executor, scheduler, reg, data_root,
-                           list(sets or []), sys.argv, on_plan=planned, on_done=job_done)
+                           list(sets or []), sys.argv, on_plan=planned, on_done=job_done, records=records)
         except KeyboardInterrupt:
             bar.stop()
             common.err_console.print("[yellow]interrupted[/]: complete runs stay; run the same command again to "
@@ -88,7 +102,7 @@ def book(
                                  f"{common.shown((o.error or '').splitlines()[0] if o.error else '')}")
     for n in res.notes:
         common.err_console.print(f"[yellow]note:[/] {common.shown(n)}", highlight=False, soft_wrap=True)
-    if res.failed:
+    if res.failed or res.book_json is None:
         raise typer.Exit(1)
     common.console.print(f"wrote {len(res.written)} files to {escape(str(root))} (book.json: {res.book_json})")
     if publish and res.book_json is not None:

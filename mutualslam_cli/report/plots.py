@@ -114,9 +114,13 @@ def with_config(runs: pd.DataFrame) -> pd.DataFrame:
 # --------------------------------------------------------------------------- accuracy over frames
 
 
-def _running(folder: Path, model: str) -> pd.Series | None:
-    """``<model>_pcd_lsq_running`` of a run's ``per_frame.csv`` indexed by frame (None without it)."""
-    f = Path(folder) / "per_frame.csv"
+def _running(run: pd.Series, model: str) -> pd.Series | None:
+    """``<model>_pcd_lsq_running`` of a run indexed by frame (None without it): its ``curve.<model>`` column where
+    the row carries one (a results book's record), else from its folder's ``per_frame.csv``."""
+    kept = run.get(f"curve.{model}")
+    if isinstance(kept, pd.Series):
+        return kept
+    f = Path(run["folder"]) / "per_frame.csv"
     if not f.is_file():
         return None
     pf = pd.read_csv(f)
@@ -136,7 +140,7 @@ def accuracy_figure(runs: pd.DataFrame) -> Any | None:
     """
     runs = with_config(runs)
     seqs = [s for s in sorted(runs["sequence.name"].unique())
-            if any(_running(f, "adapted") is not None for f in runs.loc[runs["sequence.name"] == s, "folder"])]
+            if any(_running(r, "adapted") is not None for _, r in runs[runs["sequence.name"] == s].iterrows())]
     if not seqs:
         return None
     plt = pyplot()
@@ -152,17 +156,17 @@ def accuracy_figure(runs: pd.DataFrame) -> Any | None:
         styles[(scheme, config)] = LINE_STYLES[sum(k[0] == scheme for k in styles) % len(LINE_STYLES)]
     for ax, seq in zip(axes.flat, seqs):
         sub = runs[runs["sequence.name"] == seq]
-        pre = [c for c in (_running(f, "pretrained") for f in sub["folder"]) if c is not None]
+        pre = [c for c in (_running(r, "pretrained") for _, r in sub.iterrows()) if c is not None]
         if pre:
             m = pd.concat(pre, axis=1).mean(axis=1)
             (h,) = ax.plot(m.index, m.to_numpy(), "--", color=PRETRAINED_COLOUR, lw=1.6, gid="pretrained",
                            label="pre-trained")
             handles.setdefault("pre-trained", h)
         for (scheme, config), g in by_scheme(sub):
-            online = [_running(f, "online") for f in g["folder"]]
+            online = [_running(r, "online") for _, r in g.iterrows()]
             curves = [c for c in online if c is not None]
             if not curves:
-                curves = [c for c in (_running(f, "adapted") for f in g["folder"]) if c is not None]
+                curves = [c for c in (_running(r, "adapted") for _, r in g.iterrows()) if c is not None]
                 drawn.add("final")
             else:
                 drawn.add("online")

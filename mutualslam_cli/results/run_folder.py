@@ -24,6 +24,7 @@ from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.machine import cpu_info
+from mutualslam_cli.results.fingerprint import code_fingerprint
 from mutualslam_cli.results.summary import plain
 from mutualslam_cli.types import Trajectory
 
@@ -80,6 +81,7 @@ def manifest(command: list[str] | None, seed: int, timings: dict[str, float], ex
         "seed": seed,
         "versions": versions(),
         "git_revision": git_revision(),
+        "code_fingerprint": code_fingerprint(),  # the results book's test of a stale record (:mod:`.fingerprint`)
         **cpu_info(),  # model, SIMD flags, kind (DESIGN §10), cores: results and timings depend on them
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "timings_s": timings,

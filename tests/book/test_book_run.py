@@ -4,17 +4,23 @@ runs it came from, and those runs hold its values."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
+from mutualslam_cli.book.build import MIXED
 from mutualslam_cli.book.plan import STAMP
+from mutualslam_cli.book.records import job_state, read_record, write_record
 from mutualslam_cli.book.run import read_book, run_book
 from mutualslam_cli.book.spec import load_book
 from mutualslam_cli.config import CONFIG_DIR
+from mutualslam_cli.errors import DamagedRecord
 from mutualslam_cli.report.paired import HOLDS, UNDECIDED
+from mutualslam_cli.results.fingerprint import code_fingerprint, code_manifest, fingerprint_of
 from mutualslam_cli.results.summary import flatten
 
 SMOKE = CONFIG_DIR / "book_smoke.yaml"
@@ -36,14 +42,14 @@ def book(tmp_path_factory):
             raise Killed
 
     with pytest.raises(Killed):
-        run_book(spec, out, on_done=kill_after_two)
+        run_book(spec, out, on_done=kill_after_two, records=out / "records")
     first = {"book": (out / "book.json").exists(),
              "complete": sorted(p.parent.relative_to(out).as_posix() for p in (out / "runs").rglob("summary.json"))}
     # a job killed while it ran leaves its staging folder beside its run folder; the resumed book redoes that job
     staging = out / "runs" / "slam" / "ba" / "room10" / "replay+ewc" / ".seed0.staging-killed"
     staging.mkdir(parents=True)
     (staging / "per_frame.csv").write_text("half")
-    res = run_book(spec, out)
+    res = run_book(spec, out, records=out / "records")
     return out, first, res, staging
 
 
@@ -115,3 +121,123 @@ def test_the_findings_are_judged_by_the_rule_on_paired_runs(book):
     (p,) = f["T4"]["comparisons"][0]["pairs"]
     assert "/ba/" in p["folder_a"]
     assert "/parts/" in p["folder_b"]
+
+
+# --------------------------------------------------------------------------- the records: a book across checkouts
+
+
+def _copy(book, tmp_path):
+    """The finished book's folder, copied (these tests change it)."""
+    out = tmp_path / "book"
+    shutil.copytree(book[0], out)
+    return out
+
+
+def _records(out):
+    return sorted((out / "records" / "smoke").rglob("seed*.json"))
+
+
+def test_every_job_leaves_a_record_that_holds_its_figures(book):
+    out = book[0]
+    recs = _records(out)
+    assert len(recs) == 6
+    for path in recs:
+        r = read_record(path)
+        assert r.code == code_fingerprint()
+        assert r.cpu_kind and r.seconds and r.seconds > 0
+        s = flatten(json.loads((out / "runs" / r.grid / r.variant / r.sequence / r.scheme / f"seed{r.seed}"
+                                / "summary.json").read_text()))
+        assert r.summary["depth.pcd.lsq.adapted"] == pytest.approx(s["depth.pcd.lsq.adapted"])
+        assert len(path.read_bytes()) < 40_000  # small enough to commit by the hundred
+    assert (out / "records" / "code" / f"{code_fingerprint()}.json").is_file()
+
+
+def test_a_fresh_checkout_resumes_from_the_records_alone_and_publishes_the_same_book(book, tmp_path):
+    out = _copy(book, tmp_path)
+    before = read_book(out / "book.json")
+    for d in ("runs", "tables", "figures", "reports"):
+        shutil.rmtree(out / d)
+    (out / "book.json").unlink()
+    res = run_book(load_book(SMOKE), out, records=out / "records")
+    assert [o.status for o in res.outcomes] == ["skipped"] * 6  # nothing ran again
+    after = read_book(out / "book.json")
+    assert after["tables"] == before["tables"]
+    assert after["findings"] == before["findings"]
+    assert (out / "figures" / "running_accuracy.png").is_file()  # drawn from the records' curves
+
+
+def test_a_record_of_other_code_is_stale_and_says_what_changed(book, tmp_path, monkeypatch):
+    out = _copy(book, tmp_path)
+    path = _records(out)[0]
+    r = read_record(path)
+    old = {**code_manifest(), "vo/tracker.py": "0" * 16}
+    fp = fingerprint_of(old)
+    (out / "records" / "code" / f"{fp}.json").write_text(json.dumps(old))
+    write_record(out / "records", dataclasses.replace(r, code=fp))
+    state = job_state(out / "records", "smoke", r.grid, r.variant, r.sequence, r.scheme, r.seed, r.config_hash)
+    assert state.status == "stale"
+    assert "vo/tracker.py" in state.why
+    other = job_state(out / "records", "smoke", r.grid, r.variant, r.sequence, r.scheme, r.seed, "f" * 16)
+    assert other.status in ("stale",)  # and under another config it is stale too
+
+
+def test_a_stale_record_is_run_again_and_replaced(book, tmp_path):
+    out = _copy(book, tmp_path)
+    path = next(p for p in _records(out) if "/parts/" in p.as_posix())
+    r = read_record(path)
+    write_record(out / "records", dataclasses.replace(r, code="0" * 16))
+    run = out / "runs" / r.grid / r.variant / r.sequence / r.scheme / f"seed{r.seed}"
+    man = json.loads((run / "manifest.json").read_text())
+    (run / "manifest.json").write_text(json.dumps({**man, "code_fingerprint": "0" * 16}))  # its folder: old code too
+    res = run_book(load_book(SMOKE), out, only=["slam"], records=out / "records")
+    assert sorted(o.status for o in res.outcomes) == ["done", "skipped"]
+    assert (run.parent / ".seed0.stale" / "summary.json").is_file()  # set aside, not deleted
+    again = read_record(path)
+    assert again.code == code_fingerprint()
+    assert again.summary["trajectory.credit.vo"] == pytest.approx(r.summary["trajectory.credit.vo"])  # deterministic
+    assert res.book_json is not None
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d["summary"].update({"depth.pcd.lsq.adapted": 99.0}), "digest does not match"),
+    (lambda d: d.pop("code"), "fields code missing"),
+    (lambda d: d.update(format=7), "not a book record of format 1"),
+])
+def test_a_damaged_or_hand_written_record_is_refused_naming_it(book, tmp_path, edit, match):
+    out = _copy(book, tmp_path)
+    path = _records(out)[0]
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(DamagedRecord, match=match) as e:
+        run_book(load_book(SMOKE), out, records=out / "records")
+    assert str(path) in str(e.value)
+    assert len(str(e.value).splitlines()) == 1
+
+
+def test_a_record_in_the_wrong_place_is_refused(book, tmp_path):
+    out = _copy(book, tmp_path)
+    a, b = _records(out)[:2]
+    shutil.copyfile(a, b)
+    with pytest.raises(DamagedRecord, match="not of this place"):
+        read_record(b)
+
+
+def test_a_finished_run_without_a_record_is_recorded_not_rerun(book, tmp_path):
+    out = _copy(book, tmp_path)
+    path = _records(out)[0]
+    path.unlink()  # killed between the run's end and its record
+    res = run_book(load_book(SMOKE), out, records=out / "records")
+    assert [o.status for o in res.outcomes] == ["skipped"] * 6
+    assert path.is_file()
+
+
+def test_cells_whose_seeds_ran_on_two_cpu_kinds_say_so(book, tmp_path):
+    out = _copy(book, tmp_path)
+    path = next(p for p in _records(out) if "/schemes/" in p.as_posix() and p.name == "seed1.json"
+                and "replay+ewc" in p.as_posix())
+    write_record(out / "records", dataclasses.replace(read_record(path), cpu_kind="AVX2"))
+    run_book(load_book(SMOKE), out, records=out / "records")
+    cell = read_book(out / "book.json")["tables"]["table1"]["rows"][0]["cells"][1]
+    assert len(cell["cpu_kinds"]) == 2 and "AVX2" in cell["cpu_kinds"]
+    assert cell["text"].endswith(MIXED)
