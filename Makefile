@@ -10,7 +10,7 @@ PYTEST_ARGS ?=
 # one (6 min 23 s -> 3 min 52 s on an AVX512-BF16 EPYC); 1 = in this process, as `make test-all` runs.
 TEST_WORKERS ?= 2
 
-.PHONY: install demo test test-all bench gpu-check lint typecheck clean weights book book-smoke
+.PHONY: install demo test test-all bench gpu-check lint typecheck clean weights book book-smoke redkitchen-whole
 
 install: $(VENV)/.installed
 
@@ -62,6 +62,17 @@ book: install
 # The book's machinery in a minute, on rendered rooms (what CI's tests/book run).
 book-smoke: install
 	$(MSLAM) book configs/book_smoke.yaml --out results/book_smoke
+
+# RedKitchen whole (the registry's redkitchen_whole, a sequence of the results book): the 1000-frame block assembled
+# from the two RedKitchen windows of the shared data by links, with the first window's depth (PCD is scored there).
+SHARED_DATA ?= ../shared/data
+RKW := _built/redkitchen_whole
+redkitchen-whole:
+	@test -x $(SHARED_DATA)/redkitchen_whole.sh || { echo "redkitchen-whole: $(SHARED_DATA)/redkitchen_whole.sh not found (set SHARED_DATA=...)"; exit 1; }
+	rm -rf $(RKW).tmp && $(SHARED_DATA)/redkitchen_whole.sh $(RKW).tmp
+	cp $(SHARED_DATA)/redkitchen_7scenes/depth.txt $(RKW).tmp/
+	ln -s "$$(cd $(SHARED_DATA)/redkitchen_7scenes && pwd)/depth" $(RKW).tmp/depth
+	rm -rf $(RKW) && mv $(RKW).tmp $(RKW)
 
 weights: install
 	$(MSLAM) pretrain

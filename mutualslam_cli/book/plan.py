@@ -54,6 +54,7 @@ class Plan:
     parts: list[Part] = field(default_factory=list)
     skipped: dict[str, list[str]] = field(default_factory=dict)  # grid → sequence labels
     sequences: dict[str, dict[str, SequenceRef]] = field(default_factory=dict)  # grid → label → ref
+    data: dict[str, str] = field(default_factory=dict)  # sequence label → digest of its files (:func:`data_digest`)
 
 
 def config_hash(cfg: RunConfig) -> str:
@@ -108,6 +109,28 @@ def render_synth(ref: SequenceRef, data_dir: Path) -> Path:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+#: The files whose content names a sequence's data: its indexes, trajectories and intrinsics.
+DATA_FILES = (".txt", ".freiburg")
+
+
+def data_digest(folder: Path) -> str:
+    """SHA-256 (16 hex digits) of the sequence folder's top-level index, trajectory and intrinsics files
+    (:data:`DATA_FILES`): which frames, times, poses and camera a run read. A record made on other data is stale."""
+    h = hashlib.sha256()
+    for f in sorted(p for p in Path(folder).iterdir() if p.suffix in DATA_FILES and p.is_file()):
+        h.update(f.name.encode() + b"\0" + f.read_bytes().replace(b"\r\n", b"\n") + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _folder(ref: SequenceRef, out: Path, registry: str | None, data_root: str | None) -> Path:
+    """Where a sequence's files are on this machine."""
+    if ref.synth is not None:
+        return out / "data" / ref.name
+    if Path(ref.name).is_dir():
+        return Path(ref.name)
+    return Path(get_spec(ref.name, registry, data_root).root)
 
 
 def _present(ref: SequenceRef, registry: str | None, data_root: str | None) -> bool:
@@ -180,6 +203,10 @@ def plan_book(spec: BookSpec, out: Path, grids: list[str], registry: str | None 
             else:
                 plan.skipped.setdefault(name, []).append(r.label)
         plan.sequences[name] = refs
+        for label, r in refs.items():
+            folder = _folder(r, out, registry, data_root)
+            if label not in plan.data and folder.is_dir():
+                plan.data[label] = data_digest(folder)
         seq_args = [str(out / "data" / r.name) if r.synth is not None else r.name for r in refs.values()]
         for variant, sets in g.variants.items():
             cfg = with_settings(base, list(sets))

@@ -7,8 +7,9 @@ the fingerprint of the code that made it (:mod:`~mutualslam_cli.results.fingerpr
 model, torch version, thread count, seed and the seconds the run took. It lives at
 ``<records>/<book>/<grid>/<variant>/<sequence>/<scheme>/seed<k>.json`` (``results/records/`` by default; a few
 kB each), and a book run on any checkout and any machine counts the job complete when its record is **fresh**:
-made under the grid's config hash by code of the checkout's fingerprint. A record of another fingerprint is
-**stale** — the code may have changed its results — and the job runs again; the files that changed are named when
+made under the grid's config hash, on the same sequence files, by code of the checkout's fingerprint. A record of
+another fingerprint is **stale** — the code may have changed its results — and the job runs again (so is one of
+another config or other data); the files that changed are named when
 ``<records>/code/<fingerprint>.json`` (each fingerprint's file hashes, written with its first record) is there.
 
 A record carries the SHA-256 of its content (``digest``). One whose digest, format, fields or place do not match
@@ -56,6 +57,7 @@ class Record:
     scheme: str
     seed: int
     config_hash: str
+    data: str | None
     code: str
     commit: str | None
     cpu_kind: str
@@ -102,7 +104,7 @@ def write_record(root: Path, rec: Record) -> Path:
 
 _TYPES: dict[str, tuple[type, ...]] = {
     "book": (str,), "grid": (str,), "variant": (str,), "sequence": (str,), "scheme": (str,), "seed": (int,),
-    "config_hash": (str,), "code": (str,), "commit": (str, type(None)), "cpu_kind": (str,),
+    "config_hash": (str,), "data": (str, type(None)), "code": (str,), "commit": (str, type(None)), "cpu_kind": (str,),
     "cpu_model": (str, type(None)), "torch": (str, type(None)), "threads": (int, type(None)),
     "seconds": (float, int, type(None)), "created_utc": (str,), "summary": (dict,), "curves": (dict,)}
 
@@ -169,8 +171,8 @@ def _curves(folder: Path) -> dict[str, list[float | None]]:
 
 
 def record_from_run(folder: Path, book: str, grid: str, variant: str, scheme: str, seed: int,
-                    config_hash: str) -> Record | None:
-    """The record of a complete run folder; ``None`` when its manifest has no code fingerprint (a run older than
+                    config_hash: str, data: str | None) -> Record | None:
+    """The record of a complete run folder (``data``: the digest of its sequence's files); ``None`` when its manifest has no code fingerprint (a run older than
     records: what code made it is not known, so it cannot be certified).
 
     Raises:
@@ -187,7 +189,7 @@ def record_from_run(folder: Path, book: str, grid: str, variant: str, scheme: st
     seconds = timings.get("total_s", flat.get("timing.total_s"))
     threads = _config_threads(folder)
     return Record(book=book, grid=grid, variant=variant, sequence=folder.parent.parent.name, scheme=scheme,
-                  seed=int(seed), config_hash=config_hash, code=code, commit=man.get("git_revision"),
+                  seed=int(seed), config_hash=config_hash, data=data, code=code, commit=man.get("git_revision"),
                   cpu_kind=str(man.get("cpu_kind") or "unknown"), cpu_model=man.get("cpu_model"),
                   torch=(man.get("versions") or {}).get("torch"),
                   threads=int(threads) if isinstance(threads, (int, float)) and not isinstance(threads, bool)
@@ -216,8 +218,9 @@ class JobState:
 
 
 def job_state(root: Path, book: str, grid: str, variant: str, sequence: str, scheme: str, seed: int,
-              config_hash: str) -> JobState:
-    """The job's state (module docstring).
+              config_hash: str, data: str | None = None) -> JobState:
+    """The job's state (module docstring); ``data``: the digest of the sequence's files on this machine (``None``:
+    not known here, not compared).
 
     Raises:
         DamagedRecord: its record is damaged or was written by hand.
@@ -228,6 +231,8 @@ def job_state(root: Path, book: str, grid: str, variant: str, sequence: str, sch
     rec = read_record(path)
     if rec.config_hash != config_hash:
         return JobState("stale", f"made under config {rec.config_hash}, the grid's is now {config_hash}", rec)
+    if data is not None and rec.data is not None and rec.data != data:
+        return JobState("stale", f"made on other data: the files of {sequence} differ ({rec.data} → {data})", rec)
     if rec.code != code_fingerprint():
         return JobState("stale", f"made by code {rec.code}, this checkout is {code_fingerprint()}"
                         + _changed(root, rec.code), rec)

@@ -80,8 +80,8 @@ def job_states(spec: BookSpec, plan: Plan, root: Path) -> list[tuple[Part, Job, 
     Raises:
         DamagedRecord: a record is damaged or was written by hand (one line naming it).
     """
-    return [(p, j, job_state(root, spec.name, p.grid, p.variant, _label(j), j.scheme, j.seed, p.config_hash))
-            for p in plan.parts for j in p.jobs]
+    return [(p, j, job_state(root, spec.name, p.grid, p.variant, _label(j), j.scheme, j.seed, p.config_hash,
+                             plan.data.get(_label(j)))) for p in plan.parts for j in p.jobs]
 
 
 def _set_aside(folder: Path) -> None:
@@ -136,7 +136,7 @@ def run_book(spec: BookSpec, out: Path, only: list[str] | None = None, workers: 
                     continue
                 if is_complete(folder):  # finished but not recorded (killed between the two), or stale
                     rec = record_from_run(folder, spec.name, part.grid, part.variant, job.scheme, job.seed,
-                                          part.config_hash)
+                                          part.config_hash, plan.data.get(_label(job)))
                     if rec is not None and rec.code == code:
                         write_record(root, rec)
                         report(JobOutcome(job, "skipped", folder))
@@ -147,7 +147,7 @@ def run_book(spec: BookSpec, out: Path, only: list[str] | None = None, workers: 
             def recorded(o: JobOutcome, part: Part = part) -> None:
                 if o.status == "done" and o.folder is not None:
                     rec = record_from_run(o.folder, spec.name, part.grid, part.variant, o.job.scheme, o.job.seed,
-                                          part.config_hash)
+                                          part.config_hash, plan.data.get(_label(o.job)))
                     if rec is not None:
                         write_record(root, rec)
                 report(o)

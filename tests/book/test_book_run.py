@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from mutualslam_cli.book.build import MIXED
-from mutualslam_cli.book.plan import STAMP
+from mutualslam_cli.book.plan import STAMP, data_digest
 from mutualslam_cli.book.records import job_state, read_record, write_record
 from mutualslam_cli.book.run import read_book, run_book
 from mutualslam_cli.book.spec import load_book
@@ -178,7 +178,16 @@ def test_a_record_of_other_code_is_stale_and_says_what_changed(book, tmp_path, m
     assert state.status == "stale"
     assert "vo/tracker.py" in state.why
     other = job_state(out / "records", "smoke", r.grid, r.variant, r.sequence, r.scheme, r.seed, "f" * 16)
-    assert other.status in ("stale",)  # and under another config it is stale too
+    assert other.status == "stale" and "config" in other.why  # and under another config it is stale too
+
+
+def test_a_record_made_on_other_sequence_files_is_stale(book, tmp_path):
+    out = _copy(book, tmp_path)
+    r = read_record(_records(out)[0])
+    assert r.data == data_digest(out / "data" / r.sequence)
+    state = job_state(out / "records", "smoke", r.grid, r.variant, r.sequence, r.scheme, r.seed, r.config_hash,
+                      data="0" * 16)
+    assert state.status == "stale" and "other data" in state.why
 
 
 def test_a_stale_record_is_run_again_and_replaced(book, tmp_path):
