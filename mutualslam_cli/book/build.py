@@ -22,9 +22,10 @@ import pandas as pd
 from mutualslam_cli.ablate import Job
 from mutualslam_cli.book.plan import Part, Plan, part_of
 from mutualslam_cli.book.records import CURVES, JobState
-from mutualslam_cli.book.spec import BookSpec, ColumnSpec, TableSpec
+from mutualslam_cli.book.spec import PAPER_TABLES, BookSpec, ColumnSpec, TableSpec
 from mutualslam_cli.report.columns import numeric
 from mutualslam_cli.report.paper import cell
+from mutualslam_cli.report.paper_numbers import paper_name
 from mutualslam_cli.config import to_dict
 from mutualslam_cli.report.runs import config_labels
 from mutualslam_cli.results.run_folder import is_complete, run_dir
@@ -171,7 +172,36 @@ def build_table(spec: TableSpec, runs: pd.DataFrame, plan: Plan) -> BookTable:
             if len(have) > 1:
                 best = (min if spec.better == "lower" else max)(m for m, _ in have)
                 bold |= {(i, lab) for m, lab in have if f"{m:.{spec.digits}f}" == f"{best:.{spec.digits}f}"}
+    rows += paper_rows(spec, seqs)
     return BookTable(spec, ["Sequence", *(c.label for c in spec.columns)], rows, bold)
+
+
+def _paper_cell(col: ColumnSpec, digits: int, sequences: list[str]) -> Cell:
+    """The paper's number of ``col`` (its ``paper:``), the mean over the paper's ``sequences`` that have it."""
+    if col.paper is None:
+        return Cell(float("nan"), float("nan"), 0, "—")
+    table, _, key = col.paper.partition(".")
+    have = [s for s in sequences if key in PAPER_TABLES[table].get(s, {})]
+    if not have:
+        return Cell(float("nan"), float("nan"), 0, "—")
+    v = float(np.mean([PAPER_TABLES[table][s][key] for s in have])) * col.scale
+    return Cell(v, float("nan"), 0, f"{v:.{digits}f}", {"paper": col.paper, "paper_sequences": have})
+
+
+def paper_rows(spec: TableSpec, sequences: list[str]) -> list[tuple[str, list[Cell]]]:
+    """The paper's own numbers beside ours: a row per sequence of ours that is one of the paper's (its window, not
+    the whole sequence) and a row of the paper's Average over all its sequences; none when no column names one."""
+    if not any(c.paper for c in spec.columns):
+        return []
+    out = []
+    for seq in sequences:
+        name = paper_name(seq)
+        if name is not None:
+            out.append((f"paper: {name}", [_paper_cell(c, _digits(spec, c), [name]) for c in spec.columns]))
+    every = sorted({s for c in spec.columns if c.paper for s in PAPER_TABLES[c.paper.partition(".")[0]]})
+    out.append((f"paper: Average ({len(every)} sequences)",
+                [_paper_cell(c, _digits(spec, c), every) for c in spec.columns]))
+    return out
 
 
 def _digits(spec: TableSpec, col: ColumnSpec) -> int:

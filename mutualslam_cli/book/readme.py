@@ -3,9 +3,11 @@
 hand-typed figure there can go stale — ``tests/book/test_readme_blocks.py`` fails when the README differs from
 what this makes of it.
 
-``NAME`` is a table of the book, ``findings`` (the verdicts) or ``figure:NAME`` (a figure's caption and file). Each
-block ends with a provenance line: the book's name and file, its commit, the commits and CPU kinds of the runs
-behind the block, so a reader sees what made every figure.
+``NAME`` is a table of the book, ``findings`` (the verdicts), ``figure:NAME`` (a figure, from its committed copy
+under ``results/figures/``) or ``time`` (the book's cost per grid). Each block ends with a provenance line: the
+book's name and file, its commit, the commits and CPU kinds of the runs behind the block, so a reader sees what
+made every figure. An entry the book file declares but the committed book does not hold yet (its grids have not
+all run) renders as a line saying how to make it; a name the book file does not declare is an error.
 
     python -m mutualslam_cli.book.readme [--check] [--book results/book.json] [--readme README.md]
 """
@@ -24,6 +26,8 @@ from mutualslam_cli.errors import ConfigError, MslamError
 REPO = CONFIG_DIR.parent
 #: The committed book the README is rendered from, and the README.
 BOOK_JSON = REPO / "results" / "book.json"
+#: The committed copies of the published book's figures (``--publish``).
+FIGURES = REPO / "results" / "figures"
 README = REPO / "README.md"
 #: A block: its opening and closing markers each on a line of their own (a marker quoted in prose is not one).
 _BLOCK = re.compile(r"^(<!-- book:(?P<name>\S+?) -->\n)(?P<body>.*?)^(<!-- /book:(?P=name) -->)$", re.S | re.M)
@@ -59,19 +63,42 @@ def _caption(book: dict[str, Any], commits: set[str], devices: set[str], extra: 
             f"{', '.join(sorted(devices)) or '—'}. `mslam book` regenerates it.</sub>\n")
 
 
+def _not_yet(name: str, book: dict[str, Any], kind: str) -> str:
+    """The text of a block the book file declares but the committed book does not hold yet (its grids have not
+    all run); a name the book file does not declare either is an error.
+
+    Raises:
+        ConfigError: ``name`` is no entry of the book file.
+    """
+    from mutualslam_cli.book.spec import load_book
+
+    spec = load_book(REPO / book["book"]["file"])
+    entry = name[7:] if name.startswith("figure:") else name
+    if entry not in ({"findings", "time"} | set(spec.tables) | set(spec.figures)):
+        have = ", ".join(book.get("tables", {})) or "none"
+        raise ConfigError(f"README block {name}: the book has no {kind} {entry!r} (tables: {have})")
+    return (f"*Not in the committed book yet: `mslam book {book['book']['file']} --only {entry} --publish` makes "
+            "it.*\n")
+
+
 def render_block(name: str, book: dict[str, Any]) -> str:
     """The Markdown of block ``name`` (module docstring).
 
     Raises:
         ConfigError: ``name`` is in no part of the book.
     """
+    if name == "time":
+        return _time(book)
+    if name == "findings" and not book.get("findings"):
+        return _not_yet(name, book, "findings")
     if name == "findings":
         rows, commits, devices = [], set(), set()
         for fname, f in book.get("findings", {}).items():
             for i, c in enumerate(f["comparisons"]):
                 lo, hi = c["ci95"]
                 mean, std = c["mean_diff"], c["std_diff"]
-                rows.append([f"**{fname}** {f['claim']}" if i == 0 else "", f"**{f['verdict']}**" if i == 0 else "",
+                rows.append([f"**{fname}** {f['claim']}" if i == 0 else "", f.get("paper", "") if i == 0 else "",
+                             f"**{f['verdict']}**" if i == 0 else "",
                              f"{c['a']} vs {c['b']}", f"{c['wins']} / {c['n']}",
                              "—" if mean is None else f"{mean:.3g}" + ("" if std is None else f" ± {std:.3g}"),
                              "—" if c["sign_p"] is None else f"{c['sign_p']:.3g}",
@@ -81,26 +108,40 @@ def render_block(name: str, book: dict[str, Any]) -> str:
                 devices |= set(c.get("devices", []))
         first: dict[str, Any] = next(iter(book.get("findings", {}).values()), {})
         rule = first.get("rule", "")
-        return (_md_table(["finding", "verdict", "comparison (a vs b)", "wins / N", "mean ± std of a − b", "sign p",
+        return (_md_table(["finding", "the paper", "verdict", "comparison (a vs b)", "wins / N", "mean ± std of a − b", "sign p",
                            "95 % CI", "comparison"], rows)
                 + f"\n<sub>Rule: {rule}.</sub>\n" + _caption(book, commits, devices))
     if name.startswith("figure:"):
         f = book.get("figures", {}).get(name[7:])
         if f is None:
-            raise ConfigError(f"README block {name}: the book has no figure {name[7:]!r}")
-        return (f"*{f['title']}* — `results/book/figures/{f['file']}`, drawn from {len(f['runs'])} runs "
-                f"(grid `{f['grid']}`, variant `{f['variant']}`, config `{f['config_hash']}`).\n"
+            return _not_yet(name, book, "figure")
+        return (f"![{f['title']}]({FIGURES.relative_to(REPO).as_posix()}/{f['file']})\n\n*{f['title']}*, drawn from "
+                f"{len(f['runs'])} runs (grid `{f['grid']}`, variant `{f['variant']}`, config `{f['config_hash']}`).\n"
                 + _caption(book, set(f["commits"]), set(f["devices"])))
     t = book.get("tables", {}).get(name)
     if t is None:
-        raise ConfigError(f"README block {name}: the book has no table {name!r} (tables: "
-                          f"{', '.join(book.get('tables', {})) or 'none'})")
+        return _not_yet(name, book, "table")
     rows = [[r["label"], *(c["text"] for c in r["cells"])] for r in t["rows"]]
     cells = [c for r in t["rows"] for c in r["cells"]]
     commits, devices, hashes = _cells_provenance(cells)
     bold = {(int(i), str(c)) for i, c in t.get("bold", [])}
     return (f"{t['title']}\n\n" + _md_table(t["columns"], rows, bold) + "\n"
             + _caption(book, commits, devices, f", config(s) {', '.join(sorted(hashes))}"))
+
+
+def _time(book: dict[str, Any]) -> str:
+    """The book's cost: per grid, its jobs, the runs' hours (one thread each) and their CPU kinds."""
+    rows, total, n = [], 0.0, 0
+    for g, d in book.get("grids", {}).items():
+        jobs = sum(v["jobs"] for v in d["variants"].values())
+        secs = d.get("seconds")
+        rows.append([g, str(jobs), "—" if secs is None else f"{secs / 3600:.2f}", ", ".join(d.get("cpu_kinds", []))
+                     or "—"])
+        total += secs or 0.0
+        n += jobs
+    rows.append(["all", str(n), f"{total / 3600:.2f}", ""])
+    return (_md_table(["grid", "jobs", "hours of runs (one thread each)", "CPU kinds"], rows)
+            + "\n" + _caption(book, set(book["book"].get("commits", [])), set(book["book"].get("devices", []))))
 
 
 def render(readme: str, book: dict[str, Any]) -> str:

@@ -224,12 +224,22 @@ def write_book(spec: BookSpec, plan: Plan, out: Path, grids: set[str], only: lis
                      "only": list(only or []), "runs": len(runs),
                      "commits": sorted({str(c) for c in runs.get("book.commit", []) if c}),
                      "devices": sorted({str(c) for c in runs.get("run.device_label", []) if c == c and c})},
-            "grids": describe(plan), "tables": {k: t.as_dict() for k, t in tables.items()},
+            "grids": _with_cost(describe(plan), runs), "tables": {k: t.as_dict() for k, t in tables.items()},
             "figures": figures, "findings": findings, "bounds": bounds, "notes": notes}
     path = out / "book.json"
     atomic_write_text(path, json.dumps(plain(book), indent=1, ensure_ascii=False, allow_nan=False) + "\n")
     res.written.append(path)
     res.book_json = path
+
+
+def _with_cost(grids: dict[str, Any], runs: Any) -> dict[str, Any]:
+    """``grids`` with each grid's ``seconds`` (the sum of its runs' times, from their records) and ``cpu_kinds``."""
+    for g, d in grids.items():
+        r = runs[runs["book.grid"] == g] if len(runs) else runs
+        secs = [float(x) for x in r.get("book.seconds", []) if x is not None and x == x]
+        d["seconds"] = sum(secs) if secs else None
+        d["cpu_kinds"] = sorted({str(k) for k in r.get("book.cpu_kind", []) if k})
+    return grids
 
 
 def read_book(path: str | Path) -> dict[str, Any]:

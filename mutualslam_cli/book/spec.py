@@ -15,7 +15,8 @@ A book file has five sections (the header of ``configs/book.yaml`` shows each in
   ``{synth: room, frames: 40, size: 128x96, seed: 0}`` (rendered once into ``<out>/data/``);
 - ``tables:`` what is published: rows = the grid's sequences (+ ``Average``), ``columns`` each a summary ``key``
   of one ``scheme`` (and ``variant``, and ``grid``) as mean ± std over seeds, ``scale`` (100: m → cm), ``digits``
-  (the table's, or a column's own), ``better`` (the best cell of a row in bold);
+  (the table's, or a column's own), ``paper`` (``table1.Ours``: the paper's own number of that column, shown in
+  rows of their own beside ours), ``better`` (the best cell of a row in bold);
 - ``figures:`` PNGs drawn from a grid's runs (``kind: accuracy_over_frames``), with their runs as provenance;
 - ``findings:`` the paper's claims, each one or more ``comparisons`` ``{a: ARM, b: ARM, better, broadcast}`` (an
   arm: ``grid``, ``variant``, ``scheme``, ``key``) judged by :mod:`mutualslam_cli.report.paired`'s rule;
@@ -35,6 +36,7 @@ from typing import Any
 
 from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.report import paper_numbers
 
 #: Figure kinds the book draws (:mod:`mutualslam_cli.book.build`).
 FIGURE_KINDS = ("accuracy_over_frames",)
@@ -81,6 +83,12 @@ class ColumnSpec:
     grid: str
     scale: float = 1.0
     digits: int | None = None
+    paper: str | None = None  # "table1.Ours": the paper's own number of that table and column
+
+
+#: The paper's tables a column may name in ``paper:`` (:mod:`mutualslam_cli.report.paper_numbers`).
+PAPER_TABLES = {"table1": paper_numbers.TABLE1, "table2": paper_numbers.TABLE2, "table3": paper_numbers.TABLE3,
+                "table4": paper_numbers.TABLE4}
 
 
 @dataclass(frozen=True)
@@ -321,11 +329,17 @@ def load_book(path: str | Path) -> BookSpec:
             cr = _Reader(path, f"tables.{t}.columns[{i}]", c)
             label, scale = cr.get("label", str), float(cr.get("scale", (int, float), 1.0))
             digits = cr.get("digits", int, None)
+            paper = cr.get("paper", str, None)
+            if paper is not None:
+                ptable, _, pcol = paper.partition(".")
+                if ptable not in PAPER_TABLES or pcol not in next(iter(PAPER_TABLES[ptable].values())):
+                    raise cr.fail(f"paper: {paper!r} is none of the paper's numbers (expected TABLE.COLUMN, e.g. "
+                                  f"table1.Ours; tables {', '.join(PAPER_TABLES)})")
             arm = _arm(path, f"tables.{t}.columns[{i}]",
-                       {k: v for k, v in c.items() if k not in ("label", "scale", "digits")}, grids, grid)
+                       {k: v for k, v in c.items() if k not in ("label", "scale", "digits", "paper")}, grids, grid)
             cr.used |= {"grid", "variant", "scheme", "key"}
             cr.done()
-            cols.append(ColumnSpec(label, arm.key, arm.scheme, arm.variant, arm.grid, scale, digits))
+            cols.append(ColumnSpec(label, arm.key, arm.scheme, arm.variant, arm.grid, scale, digits, paper))
         if len({c.label for c in cols}) != len(cols):
             raise r.fail("two columns share a label")
         tables[t] = TableSpec(t, r.get("title", str), grid, tuple(cols), r.get("digits", int, 2), _better(r, None))

@@ -107,5 +107,7 @@ def book(
     common.console.print(f"wrote {len(res.written)} files to {escape(str(root))} (book.json: {res.book_json})")
     if publish and res.book_json is not None:
         shutil.copyfile(res.book_json, readme.BOOK_JSON)
+        shutil.rmtree(readme.FIGURES, ignore_errors=True)  # the published book's figures, committed beside it
+        shutil.copytree(root / "figures", readme.FIGURES)
         stale = readme.render_file()
         common.console.print(f"published {escape(str(readme.BOOK_JSON))}; README: {len(stale)} block(s) rewritten")

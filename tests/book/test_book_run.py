@@ -20,6 +20,7 @@ from mutualslam_cli.book.spec import load_book
 from mutualslam_cli.config import CONFIG_DIR
 from mutualslam_cli.errors import DamagedRecord
 from mutualslam_cli.report.paired import HOLDS, UNDECIDED
+from mutualslam_cli.report.paper_numbers import TABLE1
 from mutualslam_cli.results.fingerprint import code_fingerprint, code_manifest, fingerprint_of
 from mutualslam_cli.results.summary import flatten
 
@@ -87,7 +88,7 @@ def test_each_published_cell_names_its_runs_and_they_hold_its_values(book):
     assert b["book"]["file"] == "configs/book_smoke.yaml"
     checked = 0
     for t in b["tables"].values():
-        for row in t["rows"][:-1]:  # the Average row averages the rows above
+        for row in [r for r in t["rows"] if not r["label"].startswith(("Average", "paper:"))]:
             for c in row["cells"]:
                 stamp = json.loads((out / "runs" / c["grid"] / c["variant"] / STAMP).read_text())
                 assert stamp["config_hash"] == c["config_hash"]
@@ -103,6 +104,15 @@ def test_each_published_cell_names_its_runs_and_they_hold_its_values(book):
     assert checked >= 20
     assert b["figures"]["running_accuracy"]["runs"]
     assert b["bounds"][0]["value"] > 0
+
+
+def test_the_papers_own_numbers_stand_beside_ours(book):
+    t = read_book(book[0] / "book.json")["tables"]["table1"]
+    label, cells = t["rows"][-1]["label"], t["rows"][-1]["cells"]
+    assert label == f"paper: Average ({len(TABLE1)} sequences)"
+    ours = cells[t["columns"].index("Ours") - 1]
+    assert ours["mean"] == pytest.approx(sum(v["Ours"] for v in TABLE1.values()) / len(TABLE1))
+    assert cells[0]["text"] == "—"  # a column without a paper number
 
 
 def test_the_findings_are_judged_by_the_rule_on_paired_runs(book):

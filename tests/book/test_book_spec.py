@@ -43,6 +43,7 @@ def test_the_smoke_book_reads():
     (lambda d: d["bounds"][0].update(column="Theirs"), "no column 'Theirs'"),
     (lambda d: d["grids"]["schemes"].update(seeds=[0, 0]), "seed 0 given twice"),
     (lambda d: d["grids"]["schemes"]["sequences"][0].update(size="big"), "expected WxH"),
+    (lambda d: d["tables"]["table1"]["columns"][0].update(paper="table1.Theirs"), "none of the paper's numbers"),
 ])
 def test_a_malformed_book_is_one_line_naming_the_place(tmp_path, edit, match):
     with pytest.raises(ConfigError, match=match):
