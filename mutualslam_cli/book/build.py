@@ -1,13 +1,13 @@
 """What the book publishes, from its runs: tables whose every cell carries its provenance, figures, and the cells
 its bounds rerun (:func:`build_tables`, :func:`build_figures`, :func:`build_bounds`).
 
-The runs are read from the jobs' fresh records (:mod:`~mutualslam_cli.book.records`) into one frame, a row per run as
-``mslam report`` reads a run folder, with ``book.grid`` and ``book.variant`` columns (:func:`collect_book`). A table's rows are its grid's
-sequences and an ``Average`` (the mean of the sequence means, over the sequences that have every column, their
-count named when that is not all); a cell is the mean ± std over the seeds that have the value, with, in
-``book.json``, every seed's value and run folder, the config hash, the commits and CPU kinds of those runs, and
-the schedule — a figure is never published without the runs it came from. A cell whose seeds ran on more than
-one CPU kind is marked ``‡`` (:data:`MIXED`) and names the kinds.
+The runs are read from the jobs' fresh records (:mod:`~mutualslam_cli.book.records`) into one frame, a row per run
+as ``mslam report`` reads a run folder, with ``book.grid`` and ``book.variant`` columns (:func:`collect_book`). A
+table's rows are its grid's sequences and an ``Average`` (the mean of the sequence means, over the sequences that
+have every column, their count named when that is not all); a cell is the mean ± std over the seeds that have
+the value, with, in ``book.json``, every seed's value and run folder, the config hash, the commits and CPU kinds
+of those runs, and the schedule — a figure is never published without the runs it came from. A cell whose seeds
+ran on more than one CPU kind is marked ``‡`` (:data:`MIXED`) and names the kinds.
 """
 
 from __future__ import annotations
@@ -23,10 +23,10 @@ from mutualslam_cli.ablate import Job
 from mutualslam_cli.book.plan import Part, Plan, part_of
 from mutualslam_cli.book.records import CURVES, JobState
 from mutualslam_cli.book.spec import PAPER_TABLES, BookSpec, ColumnSpec, TableSpec
+from mutualslam_cli.config import to_dict
 from mutualslam_cli.report.columns import numeric
 from mutualslam_cli.report.paper import cell
 from mutualslam_cli.report.paper_numbers import paper_name
-from mutualslam_cli.config import to_dict
 from mutualslam_cli.report.runs import config_labels
 from mutualslam_cli.results.run_folder import is_complete, run_dir
 from mutualslam_cli.results.summary import flatten
@@ -39,7 +39,7 @@ def collect_book(plan: Plan, states: list[tuple[Part, Job, JobState]]) -> pd.Dat
     ``book.variant``, ``book.config_hash``, ``book.commit``, ``book.cpu_kind``, ``book.seconds`` and ``book.run``
     (the run's place under the book's ``runs/``)."""
     rows = []
-    for part, job, state in states:
+    for part, _job, state in states:
         rec = state.record
         if state.status != "fresh" or rec is None or rec.sequence not in plan.sequences[part.grid]:
             continue
@@ -116,7 +116,8 @@ def column_cell(runs: pd.DataFrame, col: ColumnSpec, sequence: str, digits: int,
               "commits": _sorted_unique(have["book.commit"]) if n else [],
               "devices": _sorted_unique(have["run.device_label"]) if n and "run.device_label" in have else [],
               "cpu_kinds": _sorted_unique(have["book.cpu_kind"]) if n and "book.cpu_kind" in have else []}
-    text = cell(mean, std, n, digits) + (f" {MIXED}" if len(source["cpu_kinds"]) > 1 else "")
+    kinds = source["cpu_kinds"]
+    text = cell(mean, std, n, digits) + (f" {MIXED}" if isinstance(kinds, list) and len(kinds) > 1 else "")
     return Cell(mean, std, n, text, source)
 
 

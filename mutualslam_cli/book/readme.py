@@ -108,7 +108,8 @@ def render_block(name: str, book: dict[str, Any]) -> str:
                 devices |= set(c.get("devices", []))
         first: dict[str, Any] = next(iter(book.get("findings", {}).values()), {})
         rule = first.get("rule", "")
-        return (_md_table(["finding", "the paper", "verdict", "comparison (a vs b)", "wins / N", "mean ± std of a − b", "sign p",
+        return (_md_table(["finding", "the paper", "verdict", "comparison (a vs b)", "wins / N", "mean ± std of a − b",
+                           "sign p",
                            "95 % CI", "comparison"], rows)
                 + f"\n<sub>Rule: {rule}.</sub>\n" + _caption(book, commits, devices))
     if name.startswith("figure:"):

@@ -172,8 +172,9 @@ def _curves(folder: Path) -> dict[str, list[float | None]]:
 
 def record_from_run(folder: Path, book: str, grid: str, variant: str, scheme: str, seed: int,
                     config_hash: str, data: str | None) -> Record | None:
-    """The record of a complete run folder (``data``: the digest of its sequence's files); ``None`` when its manifest has no code fingerprint (a run older than
-    records: what code made it is not known, so it cannot be certified).
+    """The record of a complete run folder (``data``: the digest of its sequence's files); ``None`` when its
+    manifest has no code fingerprint (a run older than records: what code made it is not known, so it cannot be
+    certified).
 
     Raises:
         DatasetError: the run's ``summary.json`` or ``manifest.json`` cannot be read.
@@ -185,7 +186,7 @@ def record_from_run(folder: Path, book: str, grid: str, variant: str, scheme: st
         return None
     summary = read_summary(folder)
     flat = {k: _finite(v) for k, v in flatten(summary).items()} if isinstance(summary, dict) else {}
-    timings = man.get("timings_s") if isinstance(man.get("timings_s"), dict) else {}
+    timings: dict[str, Any] = man["timings_s"] if isinstance(man.get("timings_s"), dict) else {}
     seconds = timings.get("total_s", flat.get("timing.total_s"))
     threads = _config_threads(folder)
     return Record(book=book, grid=grid, variant=variant, sequence=folder.parent.parent.name, scheme=scheme,

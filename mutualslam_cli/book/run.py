@@ -35,8 +35,8 @@ from mutualslam_cli.machine import cpu_info
 from mutualslam_cli.report.runs import config_labels
 from mutualslam_cli.report.tables import build_tables as report_tables
 from mutualslam_cli.report.tables import to_latex, to_markdown, write_report
-from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.fingerprint import code_fingerprint
+from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import git_revision, is_complete, run_dir
 from mutualslam_cli.results.summary import plain
 from mutualslam_cli.results.writable import check_output_folder

@@ -17,7 +17,7 @@ from mutualslam_cli.cli.common import SetOpt, app
 from mutualslam_cli.config import CONFIG_DIR
 
 bench_app = typer.Typer(cls=common.Commands, no_args_is_help=True,
-                        help="Benchmarks: the speed figures of DESIGN §10 (make bench), the global BA, the CUDA "
+                        help="Benchmarks: the speed figures (make bench; docs/devices.md), the global BA, the CUDA "
                              "path against the CPU (make gpu-check), the regulariser calibration, the VO table.")
 app.add_typer(bench_app, name="bench")
 
@@ -34,7 +34,7 @@ def suite(
                                                                        "(default: every core)."),
     out: Path = typer.Option(Path("results/bench.json"), "--out", help="The JSON file of every figure."),
 ) -> None:
-    """The make bench suite: the speed figures of DESIGN §10 (medians measured in one run) against their
+    """The make bench suite: the speed figures (docs/devices.md; medians measured in one run) against their
     targets, as a Markdown table on stdout and every figure in a JSON file.
 
     Sections: synthetic rendering, loader and VO front end, depth network, global photometric BA; with --memory,

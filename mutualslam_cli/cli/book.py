@@ -62,11 +62,11 @@ def book(
         states = job_states(spec, plan, rroot)
         for p in plan.parts:
             mine = [s for q, _, s in states if q is p]
-            n = {k: sum(s.status == k for s in mine) for k in ("fresh", "stale", "missing")}
+            count = {k: sum(s.status == k for s in mine) for k in ("fresh", "stale", "missing")}
             kinds = sorted({s.record.cpu_kind for s in mine if s.status == "fresh" and s.record is not None})
-            common.console.print(f"{p.grid}/{p.variant}: {len(p.jobs)} jobs, {n['fresh']} complete"
-                                 + (f" ({', '.join(kinds)})" if kinds else "") + f", {n['stale']} stale, "
-                                 f"{n['missing']} to run (config {p.config_hash})")
+            common.console.print(f"{p.grid}/{p.variant}: {len(p.jobs)} jobs, {count['fresh']} complete"
+                                 + (f" ({', '.join(kinds)})" if kinds else "") + f", {count['stale']} stale, "
+                                 f"{count['missing']} to run (config {p.config_hash})")
             why = next((s.why for s in mine if s.status == "stale"), "")
             if why:
                 common.console.print(f"  stale: {escape(why)}", highlight=False)
