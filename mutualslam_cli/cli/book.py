@@ -77,6 +77,9 @@ def book(
         common.console.print(f"{total_jobs(plan)} jobs in all: {fresh} complete from the records in "
                              f"{escape(str(rroot))} ({secs / 3600:.1f} h of runs), {total_jobs(plan) - fresh} to run")
         return
+    # before the progress bar: a damaged record, a missing sequence, a bad setting is one line and nothing runs
+    job_states(spec, plan_book(spec, root, spec.grids_for(only), reg, data_root, sets, render=False),
+               records_root(spec, records))
     with progress_bar() as bar:
         task = bar.add_task("book", total=None, info="")
 

@@ -265,3 +265,37 @@ def test_cells_whose_seeds_ran_on_two_cpu_kinds_say_so(book, tmp_path):
     assert len(cell["cpu_kinds"]) == 2
     assert "AVX2" in cell["cpu_kinds"]
     assert cell["text"].endswith(MIXED)
+
+
+def test_the_dry_run_counts_the_records_and_says_why_one_is_stale(book, tmp_path):
+    from typer.testing import CliRunner
+
+    from mutualslam_cli.cli import app
+
+    out = _copy(book, tmp_path)
+    path = next(p for p in _records(out) if "/parts/" in p.as_posix())
+    write_record(out / "records", dataclasses.replace(read_record(path), config_hash="0" * 16))
+    r = CliRunner().invoke(app, ["book", str(SMOKE), "--out", str(out), "--records", str(out / "records"),
+                                 "--dry-run"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    assert "6 jobs in all: 5 complete from the records" in r.output
+    assert "slam/parts: 1 jobs, 0 complete, 1 stale, 0 to run" in r.output
+    assert "made under config 0000000000000000" in r.output
+
+
+def test_a_damaged_record_stops_the_command_in_one_line(book, tmp_path):
+    from typer.testing import CliRunner
+
+    from mutualslam_cli.cli import app
+
+    out = _copy(book, tmp_path)
+    path = _records(out)[0]
+    path.write_text(path.read_text()[:-40])
+    r = CliRunner().invoke(app, ["book", str(SMOKE), "--out", str(out), "--records", str(out / "records")],
+                           env={"COLUMNS": "300"})
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1, r.output
+    assert lines[0].startswith("error:")
+    assert path.name in lines[0]
+    assert "not a readable JSON record" in lines[0]
