@@ -116,7 +116,7 @@ def run_book(spec: BookSpec, out: Path, only: list[str] | None = None, workers: 
     code = code_fingerprint()  # before the workers fork: they stamp their runs with it
     with hold_lock(out, "mslam book"):
         plan = plan_book(spec, out, grids, registry, data_root, overrides)
-        states = job_states(spec, plan, root)
+        job_states(spec, plan, root)  # a damaged or hand-written record stops the book before any work
         if on_plan is not None:
             on_plan(plan)
 
@@ -127,9 +127,9 @@ def run_book(spec: BookSpec, out: Path, only: list[str] | None = None, workers: 
 
         for part in plan.parts:
             todo = []
-            for p, job, state in states:
-                if p is not part:
-                    continue
+            for job in part.jobs:  # read now, not at the start: another machine may have recorded it meanwhile
+                state = job_state(root, spec.name, part.grid, part.variant, _label(job), job.scheme, job.seed,
+                                  part.config_hash, plan.data.get(_label(job)))
                 folder = run_dir(part.out, _label(job), job.scheme, job.seed)
                 if state.status == "fresh":
                     report(JobOutcome(job, "skipped", folder if is_complete(folder) else None))

@@ -299,3 +299,23 @@ def test_a_damaged_record_stops_the_command_in_one_line(book, tmp_path):
     assert lines[0].startswith("error:")
     assert path.name in lines[0]
     assert "not a readable JSON record" in lines[0]
+
+
+def test_a_job_recorded_elsewhere_meanwhile_is_not_run_again(book, tmp_path):
+    out = _copy(book, tmp_path)
+    paths = {v: next(p for p in _records(out) if f"/slam/{v}/" in p.as_posix()) for v in ("parts", "ba")}
+    recs = {v: read_record(p) for v, p in paths.items()}
+    for v, p in paths.items():
+        p.unlink()
+        r = recs[v]
+        shutil.rmtree(out / "runs" / r.grid / r.variant / r.sequence / r.scheme / f"seed{r.seed}")
+    seen = []
+
+    def another_machine_finishes_ba(o) -> None:  # while this book runs the first variant
+        seen.append(o)
+        write_record(out / "records", recs["ba"])
+
+    res = run_book(load_book(SMOKE), out, only=["slam"], records=out / "records",
+                   on_done=another_machine_finishes_ba)
+    assert [(o.job.scheme, o.status) for o in res.outcomes] == [("replay+ewc", "done"), ("replay+ewc", "skipped")]
+    assert res.book_json is not None
