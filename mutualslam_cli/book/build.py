@@ -50,7 +50,8 @@ def collect_book(plan: Plan, states: list[tuple[Part, Job, JobState]]) -> pd.Dat
                     "seed": rec.seed, "sequence.name": rec.sequence,
                     "folder": str(folder if is_complete(folder) else folder.parent),
                     "book.grid": part.grid, "book.variant": part.variant, "book.config_hash": rec.config_hash,
-                    "book.commit": rec.commit, "book.cpu_kind": rec.cpu_kind, "book.seconds": rec.seconds,
+                    "book.commit": rec.commit, "book.code": rec.code, "book.cpu_kind": rec.cpu_kind,
+                    "book.seconds": rec.seconds,
                     "book.run": f"{part.grid}/{part.variant}/{rec.sequence}/{rec.scheme}/seed{rec.seed}"})
         frames = rec.curves.get("frame")
         for m in CURVES:
@@ -115,7 +116,8 @@ def column_cell(runs: pd.DataFrame, col: ColumnSpec, sequence: str, digits: int,
                          for s, x, run in zip(have.get("seed", []), vals, have.get("book.run", []))],
               "commits": _sorted_unique(have["book.commit"]) if n else [],
               "devices": _sorted_unique(have["run.device_label"]) if n and "run.device_label" in have else [],
-              "cpu_kinds": _sorted_unique(have["book.cpu_kind"]) if n and "book.cpu_kind" in have else []}
+              "cpu_kinds": _sorted_unique(have["book.cpu_kind"]) if n and "book.cpu_kind" in have else [],
+              "codes": _sorted_unique(have["book.code"]) if n and "book.code" in have else []}
     kinds = source["cpu_kinds"]
     text = cell(mean, std, n, digits) + (f" {MIXED}" if isinstance(kinds, list) and len(kinds) > 1 else "")
     return Cell(mean, std, n, text, source)

@@ -77,8 +77,8 @@ def _not_yet(name: str, book: dict[str, Any], kind: str) -> str:
     if entry not in ({"findings", "time"} | set(spec.tables) | set(spec.figures)):
         have = ", ".join(book.get("tables", {})) or "none"
         raise ConfigError(f"README block {name}: the book has no {kind} {entry!r} (tables: {have})")
-    return (f"*Not in the committed book yet: `mslam book {book['book']['file']} --only {entry} --publish` makes "
-            "it.*\n")
+    only = "" if entry in ("findings", "time") else f" --only {entry}"
+    return f"*Not in the committed book yet: `mslam book {book['book']['file']}{only} --publish` makes it.*\n"
 
 
 def render_block(name: str, book: dict[str, Any]) -> str:
@@ -125,22 +125,40 @@ def render_block(name: str, book: dict[str, Any]) -> str:
     rows = [[r["label"], *(c["text"] for c in r["cells"])] for r in t["rows"]]
     cells = [c for r in t["rows"] for c in r["cells"]]
     commits, devices, hashes = _cells_provenance(cells)
+    codes = sorted({x[:8] for c in cells for x in c.get("codes", [])})
     bold = {(int(i), str(c)) for i, c in t.get("bold", [])}
+    mixed = sorted({k for c in cells if len(c.get("cpu_kinds", [])) > 1 for k in c["cpu_kinds"]})
+    note = f"; ‡ seeds from more than one CPU kind ({', '.join(mixed)})" if mixed else ""
     return (f"{t['title']}\n\n" + _md_table(t["columns"], rows, bold) + "\n"
-            + _caption(book, commits, devices, f", config(s) {', '.join(sorted(hashes))}"))
+            + _caption(book, commits, devices, f", config(s) {', '.join(sorted(hashes))}"
+                       + (f", code {', '.join(codes)}" if codes else "") + note))
 
 
 def _time(book: dict[str, Any]) -> str:
-    """The book's cost: per grid, its jobs, the runs' hours (one thread each) and their CPU kinds."""
-    rows, total, n = [], 0.0, 0
-    for g, d in book.get("grids", {}).items():
+    """The book's cost: per grid of the book file, its jobs, the runs' hours (one thread each, from their records)
+    and their CPU kinds; a grid the committed book does not hold yet is named with its jobs on the required
+    sequences."""
+    from mutualslam_cli.book.spec import load_book
+
+    spec = load_book(REPO / book["book"]["file"])
+    rows, total, n, missing = [], 0.0, 0, 0
+    for g, grid in spec.grids.items():
+        d = book.get("grids", {}).get(g)
+        if d is None:
+            many = len([x for x in grid.schemes if x not in grid.one_seed])
+            per = (many * len(grid.seeds) + len(grid.one_seed)) * len(grid.variants)
+            jobs = len(grid.sequences) * per
+            rows.append([g, f"{jobs}" + (f" + {per} per whole sequence present" if grid.when_present else ""),
+                         "not run yet", "—"])
+            missing += jobs
+            continue
         jobs = sum(v["jobs"] for v in d["variants"].values())
         secs = d.get("seconds")
-        rows.append([g, str(jobs), "—" if secs is None else f"{secs / 3600:.2f}", ", ".join(d.get("cpu_kinds", []))
-                     or "—"])
+        rows.append([g, str(jobs), "—" if secs is None else f"{secs / 3600:.2f}",
+                     ", ".join(d.get("cpu_kinds", [])) or "—"])
         total += secs or 0.0
         n += jobs
-    rows.append(["all", str(n), f"{total / 3600:.2f}", ""])
+    rows.append(["all", f"{n} run" + (f", {missing} to run" if missing else ""), f"{total / 3600:.2f}", ""])
     return (_md_table(["grid", "jobs", "hours of runs (one thread each)", "CPU kinds"], rows)
             + "\n" + _caption(book, set(book["book"].get("commits", [])), set(book["book"].get("devices", []))))
 
