@@ -81,7 +81,7 @@ weights: install
 lint: install
 	$(PY) -m ruff check mutualslam_cli tests
 
-# mypy over the files pyproject.toml's [tool.mypy] names (the map package and the ground floor).
+# mypy over the files pyproject.toml's [tool.mypy] names (the whole package).
 typecheck: install
 	$(PY) -m mypy
 
