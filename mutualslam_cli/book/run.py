@@ -3,9 +3,10 @@ with its provenance (:func:`run_book`).
 
 The grids run as ``mslam ablate`` runs them (:func:`~mutualslam_cli.ablate.run_grid`: a local process pool or
 Dask; complete runs skipped, a killed job's staging folder redone), one (grid, variant) after another into
-``<out>/runs/<grid>/<variant>/``. A book killed at any point resumes when run again: what completed is reused,
-nothing else was published (``book.json`` is written last, and only when every job of the planned grids is
-complete — with failures it is not written and the command fails, naming them).
+``<out>/runs/<grid>/<variant>/``, each finished job recorded at once (:mod:`.records`). A book killed at any point
+resumes when run again, on any checkout that has the records: what has a fresh record is reused, nothing else was
+published (``book.json`` is written last, from the records, and only when every job of the planned grids has a
+fresh one — with failures it is not written and the command fails, naming them).
 
 ``<out>/`` then holds ``tables/<name>.{md,tex,csv}`` (and ``findings.*``, the verdicts), ``figures/<name>.png``,
 ``reports/<grid>/`` (``mslam report`` of each grid's runs: every table and figure of the report) and

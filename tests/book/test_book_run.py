@@ -309,10 +309,7 @@ def test_a_job_recorded_elsewhere_meanwhile_is_not_run_again(book, tmp_path):
         p.unlink()
         r = recs[v]
         shutil.rmtree(out / "runs" / r.grid / r.variant / r.sequence / r.scheme / f"seed{r.seed}")
-    seen = []
-
-    def another_machine_finishes_ba(o) -> None:  # while this book runs the first variant
-        seen.append(o)
+    def another_machine_finishes_ba(_o) -> None:  # while this book runs the first variant
         write_record(out / "records", recs["ba"])
 
     res = run_book(load_book(SMOKE), out, only=["slam"], records=out / "records",
