@@ -19,6 +19,11 @@ from mutualslam_cli.map.result import Keyframe, MapPoints, VOResult
 from mutualslam_cli.map.store import Map
 from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
 
+LOSS_REASONS = ("too_few_tracks", "failed_alignment", "failed_init")
+"""Why frames went untracked: KLT kept fewer usable tracks (map points, settled seeds) than ``vo.min_tracked``;
+the tracks left agreed on no pose; no segment could be initialised (at the start, or once the relocalisation
+window after a loss had passed)."""
+
 
 @dataclass(frozen=True)
 class RunStats:
@@ -39,6 +44,10 @@ class RunStats:
         ba_threaded: whether the windowed BA ran on a worker thread.
         relocalisations: one :class:`~mutualslam_cli.map.records.Relocalised` per accepted relocalisation.
         reloc_rejected: candidate poses the relocalisation's verification refuted.
+        losses: ``(frame, reason, why)`` of each tracking loss.
+        init_wait: frames after a loss during which relocalisation is tried before a new segment may start
+            (``vo.reloc_frames``; 0: relocalisation off).
+        rescued: frames whose weak pose was rescued, by how (:mod:`~mutualslam_cli.vo.rescue`).
     """
 
     segment: int
@@ -54,6 +63,9 @@ class RunStats:
     fused: int = 0
     old_share: float | None = None
     scale_check: dict[str, Any] | None = None
+    losses: Seq[tuple[int, str, str]] = ()
+    init_wait: int = 0
+    rescued: dict[str, int] | None = None
 
 
 def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
@@ -67,6 +79,21 @@ def _gaps(frame_seg: np.ndarray) -> list[list[int]]:
             start = None
     if start is not None:
         out.append([start, len(frame_seg) - 1])
+    return out
+
+
+def frames_lost(frame_seg: np.ndarray, losses: Seq[tuple[int, str, str]], init_wait: int) -> dict[str, int]:
+    """Untracked frames by :data:`LOSS_REASONS`: a stretch that starts at a loss counts as that loss's reason
+    for its first ``init_wait + 1`` frames (the loss's own and those relocalisation was tried on), the rest
+    and a stretch before the first segment as ``failed_init``."""
+    why = {f: r for f, r, _ in losses}
+    out = dict.fromkeys(LOSS_REASONS, 0)
+    for a, b in _gaps(frame_seg):
+        n = b - a + 1
+        head = min(n, init_wait + 1) if a in why else 0
+        if head:
+            out[why[a]] += head
+        out["failed_init"] += n - head
     return out
 
 
@@ -116,6 +143,9 @@ def build_result(m: Map, frames: Seq[FrameRef], frame_rel: dict[int, tuple[int, 
         "segments": len(stats.init_methods),
         "relocalisations": [r.to_json() for r in stats.relocalisations],
         "reloc_rejected": stats.reloc_rejected,
+        "losses": [{"frame": int(f), "reason": r, "why": w} for f, r, w in stats.losses],
+        "frames_lost": frames_lost(frame_seg, stats.losses, stats.init_wait),
+        "rescued": dict(stats.rescued or {}),
         "gaps": _gaps(frame_seg),
         "segment_starts": [{"segment": int(sg), "frame": int(i), "timestamp": float(frames[i].timestamp)}
                            for sg in sorted(set(frame_seg[frame_seg >= 0].tolist()))

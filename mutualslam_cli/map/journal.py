@@ -46,7 +46,7 @@ SCHEMA: dict[str, dict[str, Any]] = {
     # the frame records
     "frame": {"index": "i", "segment": "i", "ref": "i", "T_rel": (4, 4)},
     "segment": {"segment": "i", "index": "i", "method": "s"},
-    "lost": {"index": "i", "why": "s"},
+    "lost": {"index": "i", "reason": "s", "why": "s"},
     "reloc": {"index": "i", "t": "f", "keyframe": "i", "inliers": "i", "frames_lost": "i", "candidates_tried": "i"},
 }
 KINDS = tuple(SCHEMA)

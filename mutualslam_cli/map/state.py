@@ -42,7 +42,8 @@ class MapState:
         frame_seg: ``(N,)`` segment of each frame, −1 = not tracked.
         init_methods: how each segment was initialised, in order.
         relocalisations: one :class:`~mutualslam_cli.map.records.Relocalised` per accepted relocalisation.
-        losses: ``(frame, why)`` of each tracking loss.
+        losses: ``(frame, reason, why)`` of each tracking loss (``reason`` one of
+            :data:`~mutualslam_cli.map.assemble.LOSS_REASONS`).
         created_at: the front end's frame when each keyframe was created (replicas only: the clock of
             its :class:`~mutualslam_cli.map.journal.Event`).
         joined: ``{segment: onto}``: the segments a bridge joined to another (one map unit, :meth:`unit`).
@@ -56,7 +57,7 @@ class MapState:
         self.frame_seg = -np.ones(n_frames, np.int64)
         self.init_methods: list[str] = []
         self.relocalisations: list[Relocalised] = []
-        self.losses: list[tuple[int, str]] = []
+        self.losses: list[tuple[int, str, str]] = []
         self.created_at: list[int] = []
         self.joined: dict[int, int] = {}
 
@@ -134,10 +135,10 @@ class MapState:
         self.init_methods.append(method)
         self._emit("segment", segment=segment, index=frame, method=method)
 
-    def lose(self, frame: int, why: str) -> None:
-        """Tracking was lost at ``frame``."""
-        self.losses.append((frame, why))
-        self._emit("lost", index=frame, why=why)
+    def lose(self, frame: int, reason: str, why: str) -> None:
+        """Tracking was lost at ``frame``: ``reason`` a short code, ``why`` the detail."""
+        self.losses.append((frame, reason, why))
+        self._emit("lost", index=frame, reason=reason, why=why)
 
     def relocalise(self, r: Relocalised) -> None:
         """A relocalisation was accepted."""
@@ -212,7 +213,7 @@ class MapState:
         elif k == "segment":
             self.start_segment(e["segment"], e["index"], e["method"])
         elif k == "lost":
-            self.lose(e["index"], e["why"])
+            self.lose(e["index"], e["reason"], e["why"])
         elif k == "reloc":
             self.relocalise(Relocalised(e["index"], e["t"], e["keyframe"], e["inliers"], e["frames_lost"],
                                         e["candidates_tried"]))
@@ -298,7 +299,7 @@ class MapState:
         if stats is None:
             stats = RunStats(segment=len(self.init_methods) - 1, init_methods=list(self.init_methods), timing={},
                              total_s=0.0, reprojected=0, ba_stats=(), ba_threaded=False,
-                             relocalisations=list(self.relocalisations))
+                             relocalisations=list(self.relocalisations), losses=list(self.losses))
         units = {sg: self.unit(sg) for sg in set(self.map.kf_segment) if self.unit(sg) != sg}
         return build_result(self.map, frames, self.frame_rel, self.frame_seg, self.intr, stats, covisibility, units)
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.map.assemble import LOSS_REASONS
 from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics.slam import (
     esi_of_log_errors,
@@ -29,8 +30,10 @@ from mutualslam_cli.results.map_ply import write_ply
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.stages.ate_keys import set_ate
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.stages.loop_recall import RELOC_KEYS, summarise_relocalisations
 from mutualslam_cli.types import Progress
 from mutualslam_cli.vo.faults import inject_outliers
+from mutualslam_cli.vo.rescue import RESCUES
 from mutualslam_cli.vo.source import FrontEndSource
 
 log = logging.getLogger(__name__)
@@ -115,13 +118,20 @@ def run_stage(run: RunContext, vo: VOResult, replayed: int, injected: np.ndarray
     if mode == "svo":
         summary.set("vo.relocalisations", len(vo.meta.get("relocalisations", [])))
         summary.set("vo.relocalisations_rejected", int(vo.meta.get("reloc_rejected", 0)))
+        summarise_relocalisations(summary, seq, vo, cfg.eval.ate_max_dt)
+        summary.set("vo.losses", len(vo.meta.get("losses", [])))
+        for reason, n in vo.meta.get("frames_lost", {}).items():
+            summary.set(f"vo.frames_lost.{reason}", int(n))
+        for how in RESCUES:
+            summary.set(f"vo.rescued.{how}", int(vo.meta.get("rescued", {}).get(how, 0)))
         summary.set("vo.points_reused", int(vo.meta.get("reused", 0)))
         summary.set("vo.points_fused", int(vo.meta.get("fused", 0)))
         share = vo.meta.get("old_share")
         summary.set("vo.old_share", None if share is None else 100.0 * float(share), "no frame tracked a map point")
     else:
         for key in ("vo.relocalisations", "vo.relocalisations_rejected", "vo.points_reused", "vo.points_fused",
-                    "vo.old_share"):
+                    "vo.old_share", *RELOC_KEYS, "vo.losses", *(f"vo.frames_lost.{r}" for r in LOSS_REASONS),
+                    *(f"vo.rescued.{h}" for h in RESCUES)):
             summary.absent(key, f"oracle front end (--vo {mode}): GT poses, nothing to relocalise")
     summary.set("vo.from_cache", replayed == len(seq))
     summary.set("vo.frames_from_cache", replayed)

@@ -94,6 +94,38 @@ def summarise_loop_poses(summary: Summary, closer: LoopCloser, poses: np.ndarray
                                           f"{RIGHT_DIR_DEG:g}° (translation direction) of GT's relative pose")
 
 
+#: The keys of the accepted relocalisations against GT (:func:`summarise_relocalisations`).
+RELOC_KEYS = ("vo.relocalisations_right", "vo.relocalisations_wrong")
+
+
+def summarise_relocalisations(summary: Summary, seq: Sequence, vo: VOResult, max_dt: float) -> None:
+    """``vo.relocalisations_{right,wrong}``: each accepted relocalisation's frame (a keyframe) against the keyframe
+    it was found on, their relative pose in the final front-end map against GT's (:func:`loop_pose_errors`, the
+    loop rule: within :data:`RIGHT_ROT_DEG` in rotation and :data:`RIGHT_DIR_DEG` in translation direction)."""
+    relocs = vo.meta.get("relocalisations", [])
+    if seq.gt is None or len(seq.gt) == 0:
+        for k in RELOC_KEYS:
+            summary.absent(k, "sequence has no GT poses")
+        return
+    gt = keyframe_gt(seq, vo, max_dt)
+    row = {k.frame_index: j for j, k in enumerate(vo.keyframes)}
+    ids = {k.id: j for j, k in enumerate(vo.keyframes)}
+    right = wrong = 0
+    for r in relocs:
+        q, m = row.get(int(r["frame"])), ids.get(int(r["keyframe"]))
+        if q is None or m is None or not (np.isfinite(gt[q]).all() and np.isfinite(gt[m]).all()):
+            continue
+        rot, d = loop_pose_errors(np.linalg.inv(vo.keyframes[q].pose), np.linalg.inv(vo.keyframes[m].pose),
+                                  gt[q], gt[m])
+        ok = rot <= RIGHT_ROT_DEG and d <= RIGHT_DIR_DEG
+        right, wrong = right + ok, wrong + (not ok)
+    summary.set("vo.relocalisations_right", right)
+    summary.set("vo.relocalisations_wrong", wrong)
+    summary.notes["vo.relocalisations_wrong"] = (
+        f"of {len(relocs)} accepted, {right + wrong} with GT at both ends: wrong when the relative pose to the "
+        f"keyframe found is off GT's by more than {RIGHT_ROT_DEG:g}° or {RIGHT_DIR_DEG:g}° (translation direction)")
+
+
 def run_stage(run: RunContext, closer: LoopCloser, vo: VOResult) -> list[RecallRow] | None:
     """Loop recall of ``closer`` (:class:`~mutualslam_cli.backend.loop_closer.LoopCloser`) over the keyframes of
     ``vo`` (the run's live map, whose keyframe ids the closer used): keys and ``loop_recall.csv``.

@@ -46,7 +46,7 @@ def capture(fe: FrontEnd) -> dict[str, np.ndarray]:
         raise ValueError("the front end is not at a resumable frame")
     st, tr = fe.st, fe.st.tracks
     header: dict[str, Any] = {k: getattr(st, k) for k in _SCALARS}
-    header.update(timing=st.timing, ba_stats=fe.mapper.stats, kf_imgs=sorted(st.kf_imgs),
+    header.update(timing=st.timing, rescued=st.rescued, ba_stats=fe.mapper.stats, kf_imgs=sorted(st.kf_imgs),
                   reloc=None if fe.reloc is None else {"keyframes": sorted(fe.reloc.images),
                                                         "rejected": fe.reloc.rejected})
     out = {"header": np.frombuffer(json.dumps(header, default=float).encode("utf-8"), np.uint8),
@@ -82,6 +82,7 @@ def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: 
     for k in _SCALARS:
         setattr(st, k, type(getattr(st, k))(h[k]))
     st.timing = {k: float(v) for k, v in h["timing"].items()}
+    st.rescued = {k: int(v) for k, v in h["rescued"].items()}
     st.T_cw, st.vel = np.array(ckpt["T_cw"]), np.array(ckpt["vel"])
     fe.mapper.stats = list(h["ba_stats"])
     gray_of = {k: seq.load_gray(fe.state_map.map.kf_frame[k]) for k in set(h["kf_imgs"]) | set((h["reloc"] or {}).get(

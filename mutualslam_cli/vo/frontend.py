@@ -40,24 +40,19 @@ from mutualslam_cli.vo.local_map import OLD_AGE, LocalMapMixin
 from mutualslam_cli.vo.mapper import Mapper
 from mutualslam_cli.vo.recovery import RecoveryMixin
 from mutualslam_cli.vo.relocalise import RelocIndex
+from mutualslam_cli.vo.rescue import KEEP_FACTOR, WEAK_FACTOR, judge, loss_reason, rescue_pose, seed_points
 from mutualslam_cli.vo.scale_check import KeyframeRatio, ScaleCheck
 from mutualslam_cli.vo.state import TrackerState, Tracks
-from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track, reprojection_errors
+from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track
 
 log = logging.getLogger(__name__)
 
-FRONTEND_VERSION = 5
+FRONTEND_VERSION = 6
 """Bumped whenever the front end's output changes for the same config (invalidates VO caches)."""
 
 BA_LAG = 4
 """Frames after a keyframe at which its windowed BA (solved on a worker thread) is applied:
 enough for the worker to finish on a 2-core machine, so the tracker rarely waits for it."""
-
-KEEP_FACTOR = 2.0
-"""Map-point tracks farther than ``KEEP_FACTOR × ransac_threshold_px`` from their projection are dropped."""
-
-WEAK_FACTOR = 2
-"""Below ``WEAK_FACTOR × min_tracked`` PnP inliers, lost map points are re-projected and matched."""
 
 MAX_STEP_RATIO = 4.0
 """The motion prior stretches the last motion by at most this factor (or shrinks it by its inverse)."""
@@ -122,25 +117,35 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
         t1 = time.perf_counter()
         self.st.timing["track"] += t1 - t0
         pm = np.flatnonzero(tr.pid >= 0)
-        T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], [T_prior, self.st.T_cw], self.thr, seed=self.seed + i)
+        priors = [T_prior, self.st.T_cw]
+        T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], priors, self.thr, seed=self.seed + i)
         if T is None or inl.sum() < WEAK_FACTOR * cfg.min_tracked:
             # weak tracking: look for the window's lost map points before giving up
             tr = self._reproject(tr, gray, T_prior if T is None else T)
             pm = np.flatnonzero(tr.pid >= 0)
-            T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], [T_prior, self.st.T_cw], self.thr, seed=self.seed + i)
+            T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], priors, self.thr, seed=self.seed + i)
+        pose = judge(T, inl, m.Xw[tr.pid[pm]], tr.xn[pm], self.thr)
+        n_usable = len(pm)
+        if T is None or inl.sum() < WEAK_FACTOR * cfg.min_tracked:
+            Xs, rows = seed_points(tr, m.poses_wc())
+            n_usable += len(rows)
+            pose = rescue_pose(pose, m.Xw[tr.pid[pm]], tr.xn[pm], Xs, tr.xn[rows], priors, self.thr,
+                               cfg.min_tracked, self.seed + i)
         t2 = time.perf_counter()
         self.st.timing["pose"] += t2 - t1
         # tracks a few pixels off (rolling shutter, blur, a young map point) stay alive and
         # simply weigh less in the Huber refinement; only gross outliers are dropped, and
         # tracking is lost when too few tracks are within that looser bound
-        near = np.zeros(len(pm), bool)
-        if T is not None:
-            near = reprojection_errors(T, m.Xw[tr.pid[pm]], tr.xn[pm]) < KEEP_FACTOR * self.thr
-        if T is None or near.sum() < cfg.min_tracked:
-            self._lost(i, gray, f"{int(near.sum())} tracks within {KEEP_FACTOR * cfg.ransac_threshold_px:g} px")
+        if pose.T is None or pose.support < cfg.min_tracked:
+            self._lost(i, gray, loss_reason(n_usable, cfg.min_tracked),
+                       f"{pose.support} tracks within {KEEP_FACTOR * cfg.ransac_threshold_px:g} px "
+                       f"({n_usable} map points and settled seeds tracked)")
             return
+        if pose.how != "points":
+            self.st.rescued[pose.how] = self.st.rescued.get(pose.how, 0) + 1
+        T, inl = pose.T, pose.inl
         keep = np.ones(len(tr), bool)
-        keep[pm[~near]] = False
+        keep[pm[~pose.near]] = False
         tr = tr.select(keep)
         is_pt = tr.pid >= 0
         if is_pt.any():  # map reuse as a share: tracked points first seen long before
@@ -335,7 +340,8 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
         return RunStats(segment=self.st.segment, init_methods=list(self.state_map.init_methods), timing=self.st.timing,
                         total_s=self.st.wall_s, reprojected=self.st.n_reprojected, ba_stats=self.mapper.stats,
                         ba_threaded=self.mapper.pool is not None,
-                        relocalisations=list(self.state_map.relocalisations),
+                        relocalisations=list(self.state_map.relocalisations), losses=list(self.state_map.losses),
+                        init_wait=self.cfg.reloc_frames if self.reloc is not None else 0, rescued=dict(self.st.rescued),
                         reloc_rejected=self.reloc.rejected if self.reloc is not None else 0,
                         reused=self.st.n_reused, fused=self.st.n_fused,
                         old_share=(self.st.old_share_sum / self.st.old_share_frames

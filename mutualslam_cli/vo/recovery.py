@@ -19,11 +19,11 @@ log = logging.getLogger("mutualslam_cli.vo.frontend")
 class RecoveryMixin(FrontEndBase):
     """Methods of the front end (``_Frontend``) for a lost frame."""
 
-    def _lost(self, i: int, gray: np.ndarray, why: str) -> None:
+    def _lost(self, i: int, gray: np.ndarray, reason: str, why: str) -> None:
         if self._relocalise(i, gray):
             return
-        log.info("tracking lost at frame %d (%s)", i, why)
-        self.state_map.lose(i, why)
+        log.info("tracking lost at frame %d (%s: %s)", i, reason, why)
+        self.state_map.lose(i, reason, why)
         self._collect_ba()
         self.st.mode = "init"
         self.st.lost_at = i

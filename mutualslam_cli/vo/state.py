@@ -110,6 +110,7 @@ class TrackerState:
             of them, points from outside the newest keyframes, ``vo.reuse_map``).
         old_share_sum, old_share_frames: the sum over tracked frames of the share of their tracked map points first
             seen more than :data:`~mutualslam_cli.vo.frontend.OLD_AGE_KFS` keyframes before, and the frames summed.
+        rescued: weak frames whose pose :mod:`~mutualslam_cli.vo.rescue` found, by how (``seeds``, ``wide``).
         ba_due: the frame at which the windowed BA in flight is applied.
         lost_at: the frame of the last tracking loss (−1: none).
         kf_imgs: grey images of the newest ``core_kfs`` keyframes (reprojection sources).
@@ -131,6 +132,7 @@ class TrackerState:
     n_reprojected: int = 0
     n_reused: int = 0
     n_fused: int = 0
+    rescued: dict[str, int] = field(default_factory=dict)
     old_share_sum: float = 0.0
     old_share_frames: int = 0
     ba_due: int = 0
