@@ -9,7 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from mutualslam_cli.cli import app
 from mutualslam_cli.datasets.associate import read_list_file
 from mutualslam_cli.datasets.splice import splice_sequence
 from mutualslam_cli.errors import DatasetError
@@ -110,3 +112,21 @@ def test_a_folder_without_rgb_txt_is_refused(src: Path, tmp_path: Path):
     (src / "rgb.txt").unlink()
     with pytest.raises(DatasetError, match=r"rgb\.txt: not found"):
         splice_sequence(src, tmp_path / "out", [(0, 2)])
+
+
+def test_cli_prints_one_line(src: Path, tmp_path: Path):
+    r = CliRunner().invoke(app, ["datasets", "splice", str(src), str(tmp_path / "out"), "--keep", "0:3",
+                                 "--keep", "6:8"])
+    assert r.exit_code == 0, r.output
+    assert len(r.output.strip().splitlines()) == 1
+    assert "wrote 5 frames" in r.output
+
+
+@pytest.mark.parametrize("keep", ["5:99", "5-7"])
+def test_cli_bad_range_is_one_line_and_exit_1(src: Path, tmp_path: Path, keep: str):
+    r = CliRunner().invoke(app, ["datasets", "splice", str(src), str(tmp_path / "out"), "--keep", keep])
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1, r.output
+    assert lines[0].startswith("error:")
+    assert "keep" in lines[0]
