@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 from mutualslam_cli.cli import app
@@ -16,6 +18,7 @@ from mutualslam_cli.datasets.associate import read_list_file
 from mutualslam_cli.datasets.splice import splice_sequence
 from mutualslam_cli.errors import DatasetError
 
+REPO = Path(__file__).resolve().parents[2]
 N = 8
 T0 = 100.0  # source frame i at T0 + 0.1 i s
 DEPTH_FRAMES = range(5)  # depth for frames 0-4 only, 5 ms after the colour frame
@@ -130,3 +133,25 @@ def test_cli_bad_range_is_one_line_and_exit_1(src: Path, tmp_path: Path, keep: s
     assert len(lines) == 1, r.output
     assert lines[0].startswith("error:")
     assert "keep" in lines[0]
+
+
+@pytest.mark.data
+def test_redkitchen_cut_builds_and_loads_from_its_registry_entry(tmp_path: Path):
+    from mutualslam_cli.datasets.registry import load_sequence
+
+    whole = REPO / "_built" / "redkitchen_whole"
+    if not (whole / "rgb.txt").is_file():
+        pytest.skip("_built/redkitchen_whole not built (make redkitchen-whole)")
+    make = (REPO / "Makefile").read_text()
+    keep = [(int(a), int(b)) for a, b in re.findall(r"(\d+):(\d+)", re.search(r"RK_CUT_KEEP :=(.*)", make)[1])]
+    entry = yaml.safe_load((REPO / "datasets.yaml").read_text())["datasets"]["redkitchen_cut"]
+    (tmp_path / "datasets.yaml").write_text(yaml.safe_dump({"datasets": {"redkitchen_cut": entry}}))
+    splice_sequence(whole, tmp_path / entry["root"], keep)
+    seq = load_sequence("redkitchen_cut", registry_path=tmp_path / "datasets.yaml")
+    frames = sum(b - a for a, b in keep)
+    assert len(seq.frames) == frames == 820
+    assert sum(f.pose is not None for f in seq.frames) == frames
+    assert sum(f.depth_path is not None for f in seq.frames) == 300  # redkitchen_whole's depth: frames 0-299
+    j = keep[0][1] - keep[0][0]
+    before, after = seq.frames[j - 1].pose, seq.frames[j].pose
+    assert np.linalg.norm(before[:3, 3] - after[:3, 3]) > 0.4  # a jump tracking cannot bridge (1.42 m)
