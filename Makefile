@@ -10,7 +10,7 @@ PYTEST_ARGS ?=
 # one (6 min 23 s -> 3 min 52 s on an AVX512-BF16 EPYC); 1 = in this process, as `make test-all` runs.
 TEST_WORKERS ?= 2
 
-.PHONY: install demo test test-all bench gpu-check lint typecheck clean weights book book-smoke redkitchen-whole
+.PHONY: install demo test test-all bench gpu-check lint typecheck clean weights book book-smoke redkitchen-whole redkitchen-reentries
 
 install: $(VENV)/.installed
 
@@ -73,6 +73,17 @@ redkitchen-whole:
 	cp $(SHARED_DATA)/redkitchen_7scenes/depth.txt $(RKW).tmp/
 	ln -s "$$(cd $(SHARED_DATA)/redkitchen_7scenes && pwd)/depth" $(RKW).tmp/depth
 	rm -rf $(RKW) && mv $(RKW).tmp $(RKW)
+
+# Re-entry sequences of real images for relocalisation and map merging (the registry's redkitchen_cut and
+# redkitchen_kidnap), spliced from redkitchen_whole by links: the cut drops frames 450-629 (the camera jumps 1.42 m and
+# 27 degrees, onto a place it saw before the cut); the kidnap plays frames 400-839, then 140-399 (a jump of 0.51 m and
+# 97 degrees, onto a place the first part saw). Ranges chosen from the GT; tests/datasets/test_splice.py reads them here.
+RK_CUT_KEEP := --keep 0:450 --keep 630:1000
+RK_KIDNAP_KEEP := --keep 400:840 --keep 140:400
+redkitchen-reentries: install
+	@test -f $(RKW)/rgb.txt || { echo "redkitchen-reentries: $(RKW) not found; run 'make redkitchen-whole' first"; exit 1; }
+	$(MSLAM) datasets splice $(RKW) _built/redkitchen_cut $(RK_CUT_KEEP)
+	$(MSLAM) datasets splice $(RKW) _built/redkitchen_kidnap $(RK_KIDNAP_KEEP)
 
 weights: install
 	$(MSLAM) pretrain

@@ -270,7 +270,7 @@ def test_layers_hold():
 #: registry and the check (a name, folder or recording → a Sequence) above those; the download on top.
 DATASETS_FLOOR_OF = {
     "sequence": "formats", "associate": "formats", "layout": "formats", "image_files": "formats",
-    "fy_sign": "formats", "tum": "formats", "icl_nuim": "formats", "predictions": "formats",
+    "fy_sign": "formats", "tum": "formats", "icl_nuim": "formats", "predictions": "formats", "splice": "formats",
     "recordings": "recordings", "synthetic": "synthetic",
     "": "registry", "registry": "registry", "check": "registry",
     "download": "download",

@@ -23,7 +23,7 @@ from mutualslam_cli.cli.common import (
     progress_bar,
     shown,
 )
-from mutualslam_cli.errors import ConfigError, MslamError
+from mutualslam_cli.errors import ConfigError, DatasetError, MslamError
 
 # --------------------------------------------------------------------------- datasets
 
@@ -158,6 +158,33 @@ def download(
     and each is unpacked into its entry's folder within limits and checked as `mslam datasets check` does."""
     opts = _shared(ctx, registry, data_root, config, sets)
     _download(list(name or []), sample, base_url, force, opts.registry, opts.data_root_of(), max_unpack_gb)
+
+
+@datasets_app.command()
+def splice(
+    src: Path = typer.Argument(..., help="A TUM-layout folder (rgb.txt; depth.txt and groundtruth.txt if any)."),
+    out: Path = typer.Argument(..., help="The new folder (an earlier splice there is replaced)."),
+    keep: list[str] = typer.Option(..., "--keep", metavar="A:B", help="The colour frames A to B-1 (0-based, rgb.txt "
+                                   "order); repeat for more ranges, written in the order given."),
+    rate: float = typer.Option(30.0, "--rate", help="Frame rate of the new timestamps (Hz)."),
+) -> None:
+    """Cut and splice a sequence: the frames of each --keep range, one after the other, re-stamped at --rate.
+
+    A join where the camera jumps is a gap tracking cannot bridge (a cut, or a kidnap): real images for
+    relocalisation and map merging. Images are linked, not copied; depth and GT go with their frames;
+    splice.json names each frame's source frame."""
+    from mutualslam_cli.datasets.splice import splice_sequence
+
+    ranges = []
+    for text in keep:
+        a, _, b = text.partition(":")
+        try:
+            ranges.append((int(a), int(b)))
+        except ValueError:
+            raise DatasetError(f"--keep {text!r}: expected A:B, two frame indices (e.g. 0:450)") from None
+    info = splice_sequence(src, out, ranges, rate)
+    common.console.print(shown(f"wrote {len(info.sources)} frames ({info.depth} with depth, {info.gt} with GT, "
+                               f"joins at {info.joins or 'none'}) to {info.out}"), highlight=False)
 
 
 def _check_and_print(target: Any, sample: int, data_root: str | None, registry: Path | None) -> None:

@@ -4,7 +4,8 @@ The top level is what every run reads: the :class:`Sequence` type (:mod:`.sequen
 (:mod:`.associate`, :mod:`.layout`, :mod:`.image_files`), the loaders of each format (:mod:`.tum`,
 :mod:`.icl_nuim`, the fy sign: :mod:`.fy_sign`), another network's saved predictions (:mod:`.predictions`),
 the registry (:mod:`.registry`: a ``datasets.yaml`` name, folder or recording → :class:`Sequence`) and the
-check (:mod:`.check`). Three sub-packages own what only some commands need:
+check (:mod:`.check`); :mod:`.splice` cuts and splices a TUM folder into a new one (re-entry sequences).
+Three sub-packages own what only some commands need:
 
 - :mod:`.recordings`: the user's own bags, videos and image folders, converted to the TUM layout;
 - :mod:`.synthetic`: rendered rooms with exact depth and poses;
