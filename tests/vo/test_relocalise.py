@@ -10,7 +10,8 @@ from mutualslam_cli.geometry import se3_inv, to_normalized
 from mutualslam_cli.map.state import MapState
 from mutualslam_cli.map.store import Map
 from mutualslam_cli.vo.features import detect_grid
-from mutualslam_cli.vo.relocalise import RelocIndex
+from mutualslam_cli.vo.recovery import OLD_INLIER_PX, OLD_WITNESS_RATIO
+from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
 
 W, H = 320, 240
 THR = 2.0 / 250.0  # 2 px at the synthetic camera's focal length (~250 px at 320 px wide)
@@ -138,3 +139,36 @@ def test_images_decoded_again_relocalise_as_held_ones_and_are_not_kept(room):
     np.testing.assert_array_equal(a.pids, b.pids)
     with pytest.raises(TypeError):
         lazy.images[0] = _gray(room.rgb[1])
+
+
+def _old_map_settings() -> RelocSettings:
+    """The front end's second, old-map query (vo/recovery.py) at this test's 2 px threshold."""
+    return RelocSettings(inlier_factor=OLD_INLIER_PX / 2.0, witness_ratio=OLD_WITNESS_RATIO)
+
+
+def test_the_old_map_query_still_refuses_wrong_places(room):
+    """The old-map query's looser thresholds (the loop closure's) refuse what the tight ones refuse: a frame of
+    another scene, a planted wrong candidate with a witness, a wrong candidate no other keyframe can witness."""
+    old = _old_map_settings()
+    m, index = _map(room, [0, 10, 20, 30, 40, 50])
+    other = make_sequence("far", n=2, width=W, height=H, seed=1)
+    assert index.query(_gray(other.rgb[1]), m, THR, seed=0, newest=0, settings=old) is None
+    m, index = _map(room, [0, 30])
+    index.images[1], index.features[1], index.thumbs[1] = index.images[0], index.features[0], index.thumbs[0]
+    assert index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[1], settings=old) is None
+    m, index = _map(room, [30])
+    index.add_keyframe(0, _gray(room.rgb[0]))
+    assert index.query(_gray(room.rgb[31]), m, THR, seed=0, keyframes=[0], settings=old) is None
+    assert index.rejected == 1
+
+
+def test_the_old_map_query_finds_a_frame_by_appearance_alone(room):
+    """With no recency (``newest=0``) a frame is found among every keyframe by its thumbnail, at the old-map
+    thresholds, within 1 cm and 0.5°."""
+    m, index = _map(room, [0, 10, 20, 30, 40, 50])
+    r = index.query(_gray(room.rgb[12]), m, THR, seed=0, newest=0, settings=_old_map_settings())
+    assert r is not None
+    assert m.kf_frame[r.keyframe] in (10, 20)
+    dt, dr = _pose_error(r.T_cw, room.poses[12])
+    assert dt < 0.01
+    assert dr < 0.5
