@@ -3,10 +3,11 @@
 a new segment from a fresh reference frame (:mod:`~mutualslam_cli.vo.bootstrap`).
 
 A lost frame is looked for twice. First where the camera just was, at the front end's own threshold: the
-newest keyframes and the best thumbnail matches. Then anywhere in the map by appearance alone, at the
-thresholds a loop closure verifies an old place with (:data:`OLD_INLIER_PX`, :data:`OLD_WITNESS_RATIO`): a camera that re-enters a part of
-the map made long ago meets points that drifted since (RedKitchen's true revisits miss their own image by
-a median 2–3 px), so at 2 px most of a true re-entry's matches look like outliers and it would be refused."""
+newest keyframes and the best thumbnail matches. Then anywhere in the map by appearance alone (thumbnails,
+the best :data:`OLD_RERANK` ranked again by ORB matches), at the thresholds a loop closure verifies an old
+place with (:data:`OLD_INLIER_PX`, :data:`OLD_WITNESS_RATIO`): a camera that re-enters a part of the map
+made long ago meets points that drifted since (RedKitchen's true revisits miss their own image by a median
+2–3 px), so at 2 px most of a true re-entry's matches look like outliers and it would be refused."""
 
 from __future__ import annotations
 

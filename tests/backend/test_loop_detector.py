@@ -191,8 +191,9 @@ def test_a_true_loop_is_witnessed_by_the_old_map_not_by_the_drifted_new_one(fram
     assert loop is not None
     assert st.map.kf_frame[loop.match] in (45, 60, 75)
     T_true = se3_inv(frames[1273][2])
-    assert set(d.index._witnesses(T_true, loop.match, st.map, (H, W), d.index.settings, pool)) <= set(pool) - {loop.match}
-    assert set(d.index._witnesses(T_true, loop.match, st.map, (H, W), d.index.settings)) & {5, 6, 7, 8}  # the old rule took new ones
+    s = d.index.settings
+    assert set(d.index._witnesses(T_true, loop.match, st.map, (H, W), s, pool)) <= set(pool) - {loop.match}
+    assert set(d.index._witnesses(T_true, loop.match, st.map, (H, W), s)) & {5, 6, 7, 8}  # the old rule took new ones
     assert np.linalg.norm(se3_inv(loop.T_cw)[:3, 3] - frames[1273][2][:3, 3]) < 0.02
     assert d.queries[-1]["scale_from"] == "map"
     assert loop.scale == pytest.approx(1 / 1.25, rel=0.03)
