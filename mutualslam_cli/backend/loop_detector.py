@@ -41,7 +41,7 @@ from mutualslam_cli.map.state import MapState
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import focal_px, undistort_points
-from mutualslam_cli.vo.relocalise import RelocIndex, RelocSettings
+from mutualslam_cli.vo.relocalise import OLD_PLACE_RERANK, RelocIndex, RelocSettings
 
 #: A loop that moves its query keyframe less than this (degrees; relative to its median point depth, and in log
 #: scale) closes nothing new (:meth:`LoopDetector.already_closed`).
@@ -200,7 +200,7 @@ class LoopDetector:
         factor = self.settings.inlier_px / focal_px(intr) / thr  # the loop's inlier threshold over the front end's
         self.index = index if index is not None else RelocIndex(
             intr, RelocSettings(n_candidates=self.settings.n_candidates, inlier_factor=factor,
-                                witness_ratio=self.settings.witness_ratio), load)
+                                witness_ratio=self.settings.witness_ratio, rerank=OLD_PLACE_RERANK), load)
         self.tried = 0
         self.rejected: dict[str, int] = {}
         self.queries: list[dict] = []

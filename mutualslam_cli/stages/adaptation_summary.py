@@ -158,8 +158,9 @@ def summarise_no_loops(summary: Summary, why: str) -> None:
 
 def summarise_live_reuse(summary: Summary, live: VOResult, mode: str) -> None:
     """``vo.live.{points_reused,points_fused,old_share}``: map reuse by the run's front end — the one the back end
-    handed its loops, merges and BAs to (the ``vo.*`` keys are the front end's on its own)."""
-    keys = ("points_reused", "points_fused", "old_share")
+    handed its loops, merges and BAs to (the ``vo.*`` keys are the front end's on its own) — and
+    ``vo.live.map_units``: the map units its segments ended in (1: one map; a bridge or a merge joins two)."""
+    keys = ("points_reused", "points_fused", "old_share", "map_units")
     if mode != "svo" or not live.meta:
         for k in keys:
             summary.absent(f"vo.live.{k}", f"oracle front end (--vo {mode}) or no live front end (hindsight labels)")
@@ -168,3 +169,4 @@ def summarise_live_reuse(summary: Summary, live: VOResult, mode: str) -> None:
     summary.set("vo.live.points_reused", int(live.meta.get("reused", 0)))
     summary.set("vo.live.points_fused", int(live.meta.get("fused", 0)))
     summary.set("vo.live.old_share", None if share is None else 100.0 * float(share), "no frame tracked a map point")
+    summary.set("vo.live.map_units", len(set(live.unit_of_segment().values())))

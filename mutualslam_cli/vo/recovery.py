@@ -4,10 +4,11 @@ a new segment from a fresh reference frame (:mod:`~mutualslam_cli.vo.bootstrap`)
 
 A lost frame is looked for twice. First where the camera just was, at the front end's own threshold: the
 newest keyframes and the best thumbnail matches. Then anywhere in the map by appearance alone (thumbnails,
-the best :data:`OLD_RERANK` ranked again by ORB matches), at the thresholds a loop closure verifies an old
-place with (:data:`OLD_INLIER_PX`, :data:`OLD_WITNESS_RATIO`): a camera that re-enters a part of the map
-made long ago meets points that drifted since (RedKitchen's true revisits miss their own image by a median
-2–3 px), so at 2 px most of a true re-entry's matches look like outliers and it would be refused."""
+the best :data:`~mutualslam_cli.vo.relocalise.OLD_PLACE_RERANK` ranked again by ORB matches), at the
+thresholds a loop closure verifies an old place with (:data:`OLD_INLIER_PX`, :data:`OLD_WITNESS_RATIO`): a
+camera that re-enters a part of the map made long ago meets points that drifted since (RedKitchen's true
+revisits miss their own image by a median 2–3 px), so at 2 px most of a true re-entry's matches look like
+outliers and it would be refused."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ import numpy as np
 from mutualslam_cli.map.records import Relocalised
 from mutualslam_cli.vo import depth_filter as dfl
 from mutualslam_cli.vo.frontend_base import FrontEndBase
-from mutualslam_cli.vo.relocalise import RelocSettings
+from mutualslam_cli.vo.relocalise import OLD_PLACE_RERANK, RelocSettings
 from mutualslam_cli.vo.state import Tracks
 
 log = logging.getLogger("mutualslam_cli.vo.frontend")
@@ -26,10 +27,6 @@ log = logging.getLogger("mutualslam_cli.vo.frontend")
 OLD_INLIER_PX, OLD_WITNESS_RATIO = 4.0, 0.3
 """The old-map query's PnP inlier threshold (pixels) and witness ratio: the loop closure's defaults
 (``loop.inlier_px``, ``loop.witness_ratio``)."""
-
-OLD_RERANK = 16
-"""The old-map query ranks the best this many keyframes by thumbnail again by ORB matches
-(:attr:`~mutualslam_cli.vo.relocalise.RelocSettings.rerank`): ≈ 2 ms each, paid on lost frames only."""
 
 
 class RecoveryMixin(FrontEndBase):
@@ -54,7 +51,7 @@ class RecoveryMixin(FrontEndBase):
         r = self.reloc.query(gray, self.state_map.map, self.thr, seed=self.seed + i)
         if r is None:  # anywhere in the map, by appearance, at an old place's thresholds
             old = RelocSettings(inlier_factor=OLD_INLIER_PX / (self.f * self.thr), witness_ratio=OLD_WITNESS_RATIO,
-                                rerank=OLD_RERANK)
+                                rerank=OLD_PLACE_RERANK)
             r = self.reloc.query(gray, self.state_map.map, self.thr, seed=self.seed + i, newest=0, settings=old)
         if r is None:
             return False

@@ -51,6 +51,10 @@ THUMB = (40, 30)
 ORB_FEATURES = 1000
 #: RANSAC threshold of the coarse homography, pixels (it only has to bring KLT near).
 HOMOGRAPHY_PX = 8.0
+#: Queries for an old place (a lost frame's second look, a loop, a merge) rank the best this many keyframes by thumbnail
+#: again by their ORB matches with the frame (:attr:`RelocSettings.rerank`; ≈ 2 ms each). On RedKitchen's true
+#: revisits the thumbnails alone ranked the right keyframes 9th to 12th where ORB ranked them first.
+OLD_PLACE_RERANK = 16
 #: KLT of the relocalisation: window, pyramid levels above the prediction, forward-backward bound (px).
 KLT_WIN, KLT_LEVELS, KLT_FB_PX = 31, 2, 2.0
 
