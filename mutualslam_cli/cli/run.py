@@ -63,9 +63,10 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
     if not t2.row_count:
         t2.caption = escape(f"no ATE: {notes.get('trajectory.ate_rmse_m.vo', 'not computed')}")
     common.console.print(t2)
-    t3 = Table("tracked", "segments", "relocalised", "bridged", "keyframes", "map points", "map e_si", "depth ms",
-               "ms/step")
+    t3 = Table("tracked", "segments", "relocalised", "bridged", "merged", "map units", "keyframes", "map points",
+               "map e_si", "depth ms", "ms/step")
     cells = [("vo.tracked_fraction", 3), ("vo.segments", 0), ("vo.relocalisations", 0), ("vo.bridges", 0),
+             ("vo.merges", 0), ("vo.live.map_units", 0),
              ("vo.keyframes", 3), ("map.points.vo", 3), ("map.esi.vo", 3), ("timing.depth_ms", 1),
              ("timing.finetune_ms", 0)]
     t3.add_row(*(fmt_value(f.get(key), nd) for key, nd in cells))

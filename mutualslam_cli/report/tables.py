@@ -58,12 +58,15 @@ TABLES: dict[str, tuple[str, list[tuple[str, str]]]] = {
     **FORGETTING_TABLE,  # backward transfer by quarter
     "trajectory": ("ATE RMSE (m), one Sim(3) over the whole trajectory (KF: keyframes); 'per segment': each "
                    "tracking segment aligned on its own (a secondary figure); segments the front end started, "
-                   "relocalisations it made, segments the adaptation bridged", [
+                   "relocalisations it made, frames it lost by reason, segments the adaptation bridged or merged, "
+                   "the map units the run ended in", [
         ("KF, VO", "trajectory.ate_rmse_m.vo"), ("KF, bridged", "trajectory.ate_rmse_m.bridged"),
         ("KF, after BA", "trajectory.ate_rmse_m.ba"), ("all frames", "trajectory.ate_rmse_m.all_frames"),
         ("KF, VO per segment", "trajectory.ate_rmse_m_per_segment.vo"), ("tracked", "vo.tracked_fraction"),
-        ("segments", "vo.segments"), ("relocalised", "vo.relocalisations"), ("bridged", "vo.bridges"),
-        ("keyframes", "vo.keyframes"), ("scale max/min VO", "trajectory.local_scale.vo.max_over_min"),
+        ("segments", "vo.segments"), ("relocalised", "vo.relocalisations"),
+        ("lost: tracks", "vo.frames_lost.too_few_tracks"), ("lost: alignment", "vo.frames_lost.failed_alignment"),
+        ("lost: init", "vo.frames_lost.failed_init"), ("bridged", "vo.bridges"), ("merged", "vo.merges"),
+        ("map units", "vo.live.map_units"), ("keyframes", "vo.keyframes"), ("scale max/min VO", "trajectory.local_scale.vo.max_over_min"),
     ]),
     **SLAM_TABLES,  # scale drift, loop recall
     "map": ("Map points and their e_si", [
