@@ -66,7 +66,8 @@ TABLES: dict[str, tuple[str, list[tuple[str, str]]]] = {
         ("segments", "vo.segments"), ("relocalised", "vo.relocalisations"),
         ("lost: tracks", "vo.frames_lost.too_few_tracks"), ("lost: alignment", "vo.frames_lost.failed_alignment"),
         ("lost: init", "vo.frames_lost.failed_init"), ("bridged", "vo.bridges"), ("merged", "vo.merges"),
-        ("map units", "vo.live.map_units"), ("keyframes", "vo.keyframes"), ("scale max/min VO", "trajectory.local_scale.vo.max_over_min"),
+        ("map units", "vo.live.map_units"), ("keyframes", "vo.keyframes"),
+        ("scale max/min VO", "trajectory.local_scale.vo.max_over_min"),
     ]),
     **SLAM_TABLES,  # scale drift, loop recall
     "map": ("Map points and their e_si", [
