@@ -35,8 +35,7 @@ def test_a_loop_closed_over_2000_frames_lowers_the_ate(tmp_path: Path):
     assert off["loop"]["accepted"] is None
     # the same front end alone until the first loop: its correction reaches the live front end (causal feedback)
     assert c_on["vo"] == pytest.approx(c_off["vo"], rel=0.01)
-    # measured 2026-12-07: without loops the front end 2.94 cm and + BA 3.10 cm (it no longer loses track here: weak
-    # frames are rescued and a lost one is found in the whole map; before, 26.3 and 1.65 cm); with loops 2.51 cm
-    # (before, 12.8 cm: the loops made it worse), bounded within 1.5x
+    # measured 2026-12-07: without loops the front end 2.94 cm and + BA 3.10 cm (on the code before issue one-map3,
+    # 26.3 and 1.65 cm); with loops 2.51 cm (before, 12.8 cm: the loops made it worse), bounded within 1.5x
     assert c_on["ba"] < 0.9 * c_off["ba"]
     assert c_on["ba"] < 0.0377
