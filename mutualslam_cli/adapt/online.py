@@ -7,27 +7,18 @@ the scheme selects (newest keyframe first, e.g. + one replayed older keyframe).
 
 Choices the paper leaves open (documented here, DESIGN §5):
 
-- **Newest keyframe's photometric sources.** s ∈ {i−1, i+1} (Eq. 3), but K_{i+1} does not exist
-  yet when K_i arrives. We train on K_i immediately (Alg. 2: "get latest keyframe K_i … train on
-  K_i") with s = i−1 only; when K_i is later replayed (or is the second of a ``recent`` batch) it
-  has both neighbours. The first training keyframe has no neighbour and is not trained on.
-  (Scheme ``luo`` takes simulated stereo partners instead: :meth:`Scheme.sources`.)
-  Items of a batch with fewer sources than the others repeat one of theirs (the per-pixel minimum
-  over identical warps is unchanged), so the batch stays one forward pass.
-- **L_val** (Eq. 9) = L_sparse over *all validation keyframes so far* (``val_scope="all"``),
-  with the current model: early stopping (the paper's inspiration, §III-B) monitors a fixed
-  held-out set, the validation keyframes are exactly that set growing online, and the decision
-  gates global BA over the whole map, so forgetting of earlier places must raise L_val. Each
-  keyframe weighs equally. ``val_scope="current"`` uses only the arriving keyframe. Cost: one
-  forward pass per validation keyframe, every m keyframes.
+- **Newest keyframe's photometric sources.** s ∈ {i−1, i+1} (Eq. 3), but K_{i+1} does not exist yet when
+  K_i arrives: K_i trains at once with s = i−1 only, and with both when replayed; the first training keyframe
+  is not trained on (``luo``: simulated stereo partners, :meth:`Scheme.sources`). A batch item with fewer
+  sources repeats one of them, so the batch stays one forward pass.
+- **L_val** (Eq. 9) = L_sparse over all validation keyframes so far (``val_scope="all"``; ``"current"``: the
+  arriving one), with the current model, each weighing equally: the growing held-out set early stopping
+  monitors, so forgetting of earlier places raises it (docs/adaptation.md).
 - **BatchNorm** stays in eval mode (running statistics frozen) during fine-tuning: batches have
   1–2 images. Gradients still flow through every layer.
-- **Loss parts** in :class:`StepInfo` are those of the first optimiser step of the batch (the
-  loss at the parameters the keyframe arrived with); ``penalty`` is the regulariser's value at the
-  end of the batch (w.r.t. this batch's θ* and importance).
-- **Regulariser** (schemes ``ewc``, ``replay+ewc|mas|si``): applied as a proximal step in
-  after each Adam step by default (``reg_mode="prox"``), or added to the loss (``"penalty"``, the
-  paper's literal form); see :mod:`mutualslam_cli.adapt.regularizers` for why.
+- **Loss parts** in :class:`StepInfo` are the batch's first step's; ``penalty`` the regulariser's value at its end.
+- **Regulariser** (``ewc``, ``replay+ewc|mas|si``): a proximal step after each Adam step (``reg_mode="prox"``) or a
+  loss term (``"penalty"``, the paper's form): :mod:`mutualslam_cli.adapt.regularizers`.
 - Determinism: ``torch.manual_seed(seed)`` at construction, replay draws from a numpy Generator
   seeded with ``seed`` and buffer eviction from one seeded with ``seed + 1``.
 - Device (:mod:`~mutualslam_cli.device`): the network, the optimiser state and the regulariser's

@@ -126,7 +126,7 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
             T, inl = estimate_pose(m.Xw[tr.pid[pm]], tr.xn[pm], priors, self.thr, seed=self.seed + i)
         pose = judge(T, inl, m.Xw[tr.pid[pm]], tr.xn[pm], self.thr)
         n_usable = len(pm)
-        if T is None or inl.sum() < WEAK_FACTOR * cfg.min_tracked:
+        if pose.T is None or inl.sum() < WEAK_FACTOR * cfg.min_tracked:
             Xs, rows = seed_points(tr, m.poses_wc())
             n_usable += len(rows)
             pose = rescue_pose(pose, m.Xw[tr.pid[pm]], tr.xn[pm], Xs, tr.xn[rows], priors, self.thr,

@@ -14,7 +14,7 @@ although the pose is well determined. On a frame whose map-point inliers fall be
    ``WIDE_FACTOR``-fold, as a search that the residual says the prior failed calls for.
 
 A pose so found must be carried by at least ``vo.min_tracked`` tracks within ``KEEP_FACTOR`` of its
-threshold and by half of the tracks it was given; else the frame is lost, and why
+threshold (a widened one also by ``MIN_SHARE`` of the tracks it was given); else the frame is lost, and why
 (:func:`loss_reason`): too few tracks survived KLT, or the tracks left agree on no pose.
 """
 
@@ -56,7 +56,6 @@ class Pose:
         inl: ``(M,)`` inliers among the map-point tracks given.
         near: ``(M,)`` map-point tracks within ``KEEP_FACTOR × thr`` (kept).
         support: tracks within that bound, seeds included.
-        thr: the inlier threshold it was found with (normalised units).
         how: ``"points"``, ``"seeds"`` (seeds joined) or ``"wide"`` (widened threshold).
     """
 
@@ -64,7 +63,6 @@ class Pose:
     inl: np.ndarray
     near: np.ndarray
     support: int
-    thr: float
     how: str = "points"
 
 
@@ -73,7 +71,7 @@ def judge(T: np.ndarray | None, inl: np.ndarray, Xw: np.ndarray, xn: np.ndarray,
     near = np.zeros(len(Xw), bool)
     if T is not None:
         near = reprojection_errors(T, Xw, xn) < KEEP_FACTOR * thr
-    return Pose(T, inl, near, int(near.sum()), thr)
+    return Pose(T, inl, near, int(near.sum()))
 
 
 def seed_points(tr: Tracks, poses_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -118,7 +116,7 @@ def rescue_pose(best: Pose, Xw: np.ndarray, xn: np.ndarray, Xs: np.ndarray, xs: 
         if factor > 1.0 and near_all.sum() < MIN_SHARE * len(Xa):
             continue
         if int(near_all.sum()) > best.support:
-            best = Pose(T, inl[:m], near_all[:m], int(near_all.sum()), t, how)
+            best = Pose(T, inl[:m], near_all[:m], int(near_all.sum()), how)
     return best
 
 
