@@ -16,13 +16,22 @@ from collections.abc import Callable
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias, Union
 
 import numpy as np
 
 from mutualslam_cli.errors import ShapeError
 
-Progress = Callable[[str, dict[str, Any]], None]
+Scalar: TypeAlias = Union[str, int, float, bool, None]
+"""One JSON/YAML leaf value."""
+JSON: TypeAlias = Union[Scalar, list["JSON"], dict[str, "JSON"]]
+"""Any value ``json.loads`` can return (a parsed file before its fields are checked)."""
+JSONObject: TypeAlias = dict[str, JSON]
+"""A parsed JSON/YAML mapping (a manifest, a config section, a record) before it is read into a typed record."""
+Info: TypeAlias = dict[str, object]
+"""Free-form figures for logs and progress callbacks: read for display only, never for control."""
+
+Progress = Callable[[str, Info], None]
 """``progress(stage, info)``: a stage's name (``vo``, ``adapt``, ``eval``, ``dense``, ``decode``…) and a
 dict of figures (``done``, ``total``, …). The library reports through it; the CLI draws the bars."""
 
