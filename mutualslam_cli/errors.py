@@ -22,6 +22,8 @@ Two families, told apart by what the CLI does with them:
     (:func:`~mutualslam_cli.results.lock.hold_lock`).
   - :class:`OutputError`: a results or report folder cannot be written (read-only, the disk full, a file
     where a folder should be; :mod:`~mutualslam_cli.results.writable`).
+  - :class:`SchemaError`: a ``summary.json`` is not of a schema version mslam reads, or holds a key or value
+    its version does not (:mod:`~mutualslam_cli.results.schema`); a stage writing such a key raises it too.
 
 - Programming errors, deliberately *not* ``MslamError`` so that they keep their traceback:
 
@@ -125,6 +127,12 @@ class OutputError(MslamError):
     """A results or report folder cannot be written: read-only, the disk full (or a quota reached), a file in
     the way of a folder. The one-line message names the path, the reason and what to do, and what became of
     the run (nothing of it kept; a previous run in the folder as it was)."""
+
+
+class SchemaError(MslamError):
+    """A ``summary.json`` (read, or being written) does not fit its schema version: an unknown version, a key
+    the schema does not have, a value of the wrong kind (:mod:`~mutualslam_cli.results.schema`). The message
+    names the file (or the writer), the key and the version."""
 
 
 class ShapeError(ValueError):

@@ -45,9 +45,9 @@ from mutualslam_cli.errors import ConfigError, DatasetError
 from mutualslam_cli.metrics import depth as dm
 from mutualslam_cli.online.scores import eval_frames
 from mutualslam_cli.results.lock import hold_lock
-from mutualslam_cli.results.run_folder import is_complete, manifest, read_summary, run_dir, write_json, write_yaml
+from mutualslam_cli.results.run_folder import is_complete, manifest, run_dir, write_json, write_yaml
 from mutualslam_cli.results.staging import staged
-from mutualslam_cli.results.summary import SUMMARY_KEYS, Summary
+from mutualslam_cli.results.summary import SUMMARY_KEYS, RunSummary, Summary, read_summary
 from mutualslam_cli.results.writable import check_output_folder, write_errors
 from mutualslam_cli.stages.evaluation import depth_means
 from mutualslam_cli.vo.camera import Undistorter
@@ -62,7 +62,7 @@ class ExternalResult:
     """What :func:`eval_depth` returns: the result folder, its ``summary.json`` and whether it was skipped."""
 
     folder: Path
-    summary: dict
+    summary: RunSummary
     skipped: bool = False
 
 
@@ -213,9 +213,9 @@ def eval_depth(sequence: str | Path | Sequence, predictions: str | Path, name: s
             "sequence": {"name": seq.name, "root": str(seq.root), "frames": len(seq), "meta": seq.meta,
                          "intrinsics": seq.intrinsics.as_list()},
             "external": info}))
-        s = summary.to_dict()
-        write_json(stage / "summary.json", s)  # last: marks the result complete
-    return ExternalResult(folder, s)
+        data = summary.to_dict()
+        write_json(stage / "summary.json", data)  # last: marks the result complete
+    return ExternalResult(folder, RunSummary.parse(data, str(folder / "summary.json")))
 
 
 def _summary(table: pd.DataFrame, seq: Sequence, name: str, info: dict, cfg: RunConfig) -> Summary:

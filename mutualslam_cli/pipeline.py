@@ -14,7 +14,6 @@ import logging
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
 
 import torch
 from threadpoolctl import threadpool_limits
@@ -32,13 +31,12 @@ from mutualslam_cli.results.run_folder import (
     fuse_record,
     is_complete,
     read_manifest,
-    read_summary,
     run_dir,
     write_json,
     write_yaml,
 )
 from mutualslam_cli.results.staging import staged
-from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.results.summary import RunSummary, Summary, read_summary
 from mutualslam_cli.results.writable import check_output_folder, write_errors
 from mutualslam_cli.stages import adaptation, dense, depth_export, evaluation, frontend, scale_drift
 from mutualslam_cli.stages.ba import BAStage
@@ -55,13 +53,13 @@ class RunResult:
 
     Attributes:
         folder: the result folder.
-        summary: the ``summary.json`` content (nested dict).
+        summary: what ``summary.json`` holds.
         skipped: True when the run was already complete and nothing was recomputed.
         timings: seconds per stage (and ``load``, ``total``).
     """
 
     folder: Path
-    summary: dict[str, Any]
+    summary: RunSummary
     skipped: bool = False
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -130,7 +128,7 @@ def run_sequence(sequence: str | Path | Sequence, cfg: RunConfig, out: str | Pat
         return RunResult(folder, summary, timings=timings)
 
 
-def _run(run: RunContext, command: list[str] | None, t_start: float) -> tuple[dict[str, Any], dict[str, float]]:
+def _run(run: RunContext, command: list[str] | None, t_start: float) -> tuple[RunSummary, dict[str, float]]:
     """Algorithm 1 around a sequence, in its staging folder, under the run folder's lock; returns
     ``(summary, timings)`` (:func:`~mutualslam_cli.stages.run_record.write_record`)."""
     cfg = run.cfg
@@ -157,7 +155,7 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> tuple[di
 
 def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | None = None,
              progress: Progress | None = None, seq: Sequence | None = None,
-             command: list[str] | None = None) -> dict[str, Any]:
+             command: list[str] | None = None) -> RunSummary:
     """The dense stage on a finished run folder (``mslam fuse RUN_DIR``), with the run's setup: its
     config, sequence, front end (from the VO cache beside the results, recomputed if absent),
     pre-trained model and ``weights/``; updates ``summary.json`` (the ``dense.*`` keys),
@@ -169,7 +167,7 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         seq: use this sequence instead of loading the one the manifest names (tests).
 
     Returns:
-        The updated summary (nested dict).
+        What the updated ``summary.json`` holds.
 
     Raises:
         DatasetError: not a complete run folder, or no adapted weights (``--set eval.save_weights=true``).
@@ -199,7 +197,7 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         fast = use_fast_path(cfg.net, device)
         nets = {"pretrained": load_network(cfg.net, fast, device),
                 "adapted": load_saved_network(wdir, cfg.net, fast, device) if adapted else None}
-        summary = Summary.from_dict(old, drop_prefix="dense.")
+        summary = Summary.from_record(old, drop_prefix="dense.")
         dense.run_dense(stage, seq, vo, nets, cfg, fast, summary, progress)
         data = to_dict(cfg)
         data["dense"]["enabled"] = True  # the folder now holds the dense results of these settings
@@ -208,4 +206,4 @@ def fuse_run(folder: Path, overrides: list[str] | None = None, registry: Path | 
         write_json(stage / "manifest.json", record)
         out = summary.to_dict()
         write_json(stage / "summary.json", out)
-    return out
+    return RunSummary.parse(out, str(folder / "summary.json"))

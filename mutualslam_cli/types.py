@@ -16,15 +16,15 @@ from collections.abc import Callable
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, TypeAlias, Union
+from typing import Any, TypeAlias
 
 import numpy as np
 
 from mutualslam_cli.errors import ShapeError
 
-Scalar: TypeAlias = Union[str, int, float, bool, None]
+Scalar: TypeAlias = str | int | float | bool | None
 """One JSON/YAML leaf value."""
-JSON: TypeAlias = Union[Scalar, list["JSON"], dict[str, "JSON"]]
+JSON: TypeAlias = Scalar | list["JSON"] | dict[str, "JSON"]
 """Any value ``json.loads`` can return (a parsed file before its fields are checked)."""
 JSONObject: TypeAlias = dict[str, JSON]
 """A parsed JSON/YAML mapping (a manifest, a config section, a record) before it is read into a typed record."""

@@ -32,7 +32,6 @@ from mutualslam_cli.config import CONFIG_DIR, AdaptConfig, RunConfig, load_confi
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.report.tables import build_tables, collect
-from mutualslam_cli.results.summary import flatten
 
 LIBRARY = Path(__file__).resolve().parents[1] / "mutualslam_cli"
 
@@ -287,7 +286,7 @@ def runs_both_ways(tiny_run):
 
 def test_a_whole_run_threads_its_device_and_records_it(runs_both_ways):
     plain, threaded = runs_both_ways
-    a, b = flatten(plain.summary), flatten(threaded.summary)
+    a, b = plain.summary.flat(), threaded.summary.flat()
     for key in ("depth.pcd.lsq.adapted", "depth.pcd.lsq.pretrained", "depth.pcd_online.lsq", "map.points.ba",
                 "dense.fscore_5cm.adapted", "adaptation.steps"):
         assert a[key] == b[key], key
@@ -322,4 +321,4 @@ def test_a_comoda_run_threads_its_device(tiny_run):
     sets = [f"net.weights={tmp / 'weights'}", "device=cpu", "adapt.scheme=comoda"]
     with tensors_elsewhere_by_default():
         comoda = run_sequence(seq, load_config(CONFIG_DIR / "smoke.yaml", sets), out=tmp / "dev_comoda")
-    assert flatten(comoda.summary)["depth.pcd.lsq.adapted"] is not None
+    assert comoda.summary.flat()["depth.pcd.lsq.adapted"] is not None

@@ -21,6 +21,7 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.errors import ConfigError, DatasetError
 from mutualslam_cli.eval_depth import eval_depth
 from mutualslam_cli.metrics import depth as dm
+from mutualslam_cli.results.summary import read_summary
 from mutualslam_cli.vo.camera import Undistorter
 
 runner = CliRunner()
@@ -77,7 +78,7 @@ def relative_inverse(g: np.ndarray) -> np.ndarray:
 def test_gt_times_2_7_scores_100_under_lsq_and_median(far: Path, tmp_path: Path) -> None:
     preds = predict(far, tmp_path / "x2.7", lambda g: 2.7 * g)
     r = eval_depth(far, preds, "gtx2.7", "depth", out=tmp_path / "res")
-    d = r.summary["depth"]
+    d = r.summary.nested()["depth"]
     assert d["pcd"]["lsq"]["adapted"] == 100.0
     assert d["pcd"]["median"]["adapted"] == 100.0
     assert d["pcd"]["none"]["adapted"] == 0.0  # 2.7× is 170 % off without scaling: the scalings are what fixes it
@@ -89,10 +90,10 @@ def test_gt_times_2_7_scores_100_under_lsq_and_median(far: Path, tmp_path: Path)
 def test_relative_inverse_scores_100_with_scale_and_shift_and_clearly_less_without(far: Path,
                                                                                    tmp_path: Path) -> None:
     preds = predict(far, tmp_path / "midas", relative_inverse)
-    aligned = eval_depth(far, preds, "midas", "relative-inverse", out=tmp_path / "res").summary["depth"]
+    aligned = eval_depth(far, preds, "midas", "relative-inverse", out=tmp_path / "res").summary.nested()["depth"]
     for scaling in ("lsq", "median", "none"):  # aligned to 1/GT: metric depth, so even unscaled is exact
         assert aligned["pcd"][scaling]["adapted"] == pytest.approx(100.0)
-    plain = eval_depth(far, preds, "midas-noshift", "inverse", out=tmp_path / "res").summary["depth"]
+    plain = eval_depth(far, preds, "midas-noshift", "inverse", out=tmp_path / "res").summary.nested()["depth"]
     assert plain["pcd"]["lsq"]["adapted"] < 50.0
     assert plain["pcd"]["median"]["adapted"] < 50.0
     assert plain["esi"]["adapted"] > 0.05 > aligned["esi"]["adapted"]
@@ -123,8 +124,8 @@ def test_every_format_round_trips_and_scores_like_npy(far: Path, tmp_path: Path,
     fn = (lambda g: np.round(2.7 * g * 1000).astype(np.uint16)) if ext == ".png" else (lambda g: 2.7 * g)
     preds = predict(far, tmp_path / "p", fn, ext)
     s = eval_depth(far, preds, "m", scale=1e-3 if ext == ".png" else 1.0, out=tmp_path / "res").summary
-    assert s["depth"]["pcd"]["lsq"]["adapted"] == 100.0
-    assert s["external"]["ext"] == ext[1:]
+    assert s.get("depth.pcd.lsq.adapted") == 100.0
+    assert s.get("external.ext") == ext[1:]
 
 
 def test_pfm_byte_order_and_orientation_as_midas_writes_it(tmp_path: Path) -> None:
@@ -235,7 +236,7 @@ def test_distorted_camera_predictions_are_remapped_like_gt(far: Path, tmp_path: 
     seq = dataclasses.replace(seq, intrinsics=dataclasses.replace(seq.intrinsics, dist=(0.4, -0.2, 0.0, 0.0, 0.0)))
     preds = predict(far, tmp_path / "p", lambda g: 2.7 * g)
     s = eval_depth(seq, preds, "m", out=tmp_path / "res").summary
-    assert s["depth"]["pcd"]["lsq"]["adapted"] == 100.0
+    assert s.get("depth.pcd.lsq.adapted") == 100.0
     und, raw = Undistorter(seq.intrinsics), seq.load_depth(0)
     assert dm.percent_correct(2.7 * raw, und.depth(raw), "lsq") < 95.0  # left raw, the case would fail
 
@@ -248,14 +249,15 @@ def test_result_folder_reads_like_a_run(far: Path, tmp_path: Path) -> None:
     r = eval_depth(far, preds, "ext", out=tmp_path / "res", command=["mslam", "eval-depth"])
     names = {p.name for p in r.folder.iterdir()}
     assert {"config.yaml", "manifest.json", "per_frame.csv", "summary.json"} <= names
-    s = json.loads((r.folder / "summary.json").read_text())
-    assert s["scheme"] == "ext"
-    assert s["external"]["model"] == "ext"
-    assert s["external"]["kind"] == "depth"
-    assert s["depth"]["pcd"]["lsq"]["pretrained"] is None
-    assert "not adapted" in s["notes"]["depth.pcd.lsq.pretrained"]
-    assert s["trajectory"]["ate_rmse_m"]["vo"] is None
-    assert "depth predictions only" in s["notes"][
+    s = read_summary(r.folder)
+    assert s.version == 2
+    assert s.get("scheme") == "ext"
+    assert s.get("external.model") == "ext"
+    assert s.get("external.kind") == "depth"
+    assert s.get("depth.pcd.lsq.pretrained") is None
+    assert "not adapted" in s.notes["depth.pcd.lsq.pretrained"]
+    assert s.get("trajectory.ate_rmse_m.vo") is None
+    assert "depth predictions only" in s.notes[
         "trajectory.ate_rmse_m.vo"]
     pf = pd.read_csv(r.folder / "per_frame.csv")
     assert list(pf["frame"]) == list(range(6))
@@ -272,8 +274,8 @@ def test_max_frames_and_eval_stride_choose_the_frames_as_in_a_run(far: Path, tmp
     (preds / "0.166667.npy").unlink()  # frame 5: not scored with max_frames 4, so not needed
     cfg = load_config(None, ["data.max_frames=4", "eval.stride=2"])
     s = eval_depth(far, preds, "m", cfg=cfg, out=tmp_path / "res").summary
-    assert s["depth"]["frames_evaluated"] == 2
-    assert s["depth"]["eval_stride"] == 2
+    assert s.get("depth.frames_evaluated") == 2
+    assert s.get("depth.eval_stride") == 2
 
 
 def test_cli_eval_depth_then_report_shows_the_external_row(far: Path, tmp_path: Path) -> None:
@@ -335,5 +337,5 @@ def test_a_frame_without_a_fit_is_null_with_a_reason_not_zero(far: Path, tmp_pat
     r = eval_depth(far, preds, "m", "relative-inverse", out=tmp_path / "res")
     pf = pd.read_csv(r.folder / "per_frame.csv")
     assert pf.loc[1, ["adapted_pcd_lsq", "adapted_esi", "adapted_align_scale"]].isna().all()
-    assert r.summary["depth"]["pcd"]["lsq"]["adapted"] == pytest.approx(100.0)  # the mean of the other 5
-    assert r.summary["notes"]["depth.pcd.lsq.adapted"].startswith("1 of 6 frames have no score")
+    assert r.summary.get("depth.pcd.lsq.adapted") == pytest.approx(100.0)  # the mean of the other 5
+    assert r.summary.notes["depth.pcd.lsq.adapted"].startswith("1 of 6 frames have no score")

@@ -139,7 +139,7 @@ def test_final_ba_on_request_says_why_not(setup, default_run):
     figures, each null with Algorithm 1's reason in its own terms (L_val against τ)."""
     tmp, seq = setup
     r = run_sequence(seq, _cfg(tmp, "ba.d_max=0.2"), out=tmp / "onreq")
-    flat, notes = flatten(r.summary), r.summary["notes"]
+    flat, notes = r.summary.flat(), r.summary.notes
     assert flat["ba.requested"] == 0
     assert flat["ba.runs"] == 0
     for k in BA_KEYS:
@@ -153,7 +153,7 @@ def test_final_ba_on_request_says_why_not(setup, default_run):
     assert flat["adaptation.l_val.longest_below_tau"] < 3  # else Algorithm 1 would have requested
     assert not list(r.folder.glob("*_ba.*"))
     # the run before BA is the same run: every key outside the BA's equals the always-run's
-    on = flatten(default_run.summary)
+    on = default_run.summary.flat()
     same = [k for k in on if not k.startswith(("timing.", "ba.", "notes")) and k not in BA_KEYS
             and not k.endswith("_ba")]
     assert {k: flat[k] for k in same} == {k: on[k] for k in same}
@@ -161,13 +161,13 @@ def test_final_ba_on_request_says_why_not(setup, default_run):
 
 def test_ba_switches(setup, default_run):
     tmp, seq = setup
-    on = flatten(default_run.summary)
+    on = default_run.summary.flat()
     # ba.enabled=false: today's run without culling and BA, every BA key null with the reason
     off = run_sequence(seq, _cfg(tmp, "ba.enabled=false"), out=tmp / "off")
-    flat = flatten(off.summary)
+    flat = off.summary.flat()
     for k in BA_KEYS:
         assert flat[k] is None
-        assert off.summary["notes"][k] == "disabled (ba.enabled=false)"
+        assert off.summary.notes[k] == "disabled (ba.enabled=false)"
     assert not list(off.folder.glob("*_ba.*"))
     assert not (off.folder / "map_culled.ply").exists()
     same = [k for k in on if not k.startswith(("timing.", "ba.", "notes")) and k not in BA_KEYS
@@ -175,9 +175,9 @@ def test_ba_switches(setup, default_run):
     assert {k: flat[k] for k in same} == {k: on[k] for k in same}
     # ba.culling=false: BA of the whole front-end map, culled figures null with the reason
     nc = run_sequence(seq, _cfg(tmp, "ba.culling=false", "ba.final=always"), out=tmp / "nocull")
-    flat = flatten(nc.summary)
+    flat = nc.summary.flat()
     assert flat["map.points.culled"] is None
-    assert "ba.culling=false" in nc.summary["notes"]["map.points.culled"]
+    assert "ba.culling=false" in nc.summary.notes["map.points.culled"]
     assert flat["map.points.ba"] == flat["map.points.vo"] - flat["ba.points_dropped"]
     assert flat["map.esi.ba"] is not None
     assert (nc.folder / "map_ba.ply").exists()
@@ -194,7 +194,7 @@ def test_complete_run_is_skipped_and_deterministic(setup):
     b = run_sequence(seq, cfg, out=tmp / "det", force=True)
     assert not b.skipped
     for k in ("depth.pcd.lsq.adapted", "depth.pcd.median.adapted", "depth.esi.adapted"):
-        assert flatten(a.summary)[k] == flatten(b.summary)[k], k
+        assert a.summary.flat()[k] == b.summary.flat()[k], k
 
 
 def test_pretrained_rows_shared_across_seeds_without_fc(setup):
@@ -206,7 +206,7 @@ def test_pretrained_rows_shared_across_seeds_without_fc(setup):
     runs = [run_sequence(seq, _cfg(tmp, "adapt.scheme=none", f"seed={s}", f"net.weights={tmp / 'weights_nofc'}"),
                          out=tmp / "seeds") for s in (0, 1)]
     assert len(list((tmp / "seeds" / "_cache" / "pretrained").glob("*.csv"))) == 1
-    a, b = (flatten(r.summary)["depth.pcd.lsq.pretrained"] for r in runs)
+    a, b = (r.summary.flat()["depth.pcd.lsq.pretrained"] for r in runs)
     assert a == b
 
 
@@ -217,7 +217,7 @@ def test_scheme_none_and_report(setup):
     n_kf = len(np.loadtxt(r.folder / "traj_kf.txt", ndmin=2))
     assert list(kf["kf_id"]) == list(range(n_kf))
     assert set(kf["not_ticked"]) == {"scheme none"}
-    assert r.summary["adaptation"]["labels"] == "oracle"  # smoke.yaml's oracle front end re-triangulates later
+    assert r.summary.get("adaptation.labels") == "oracle"  # smoke.yaml's oracle front end re-triangulates later
     # settings the pre-trained rows do not depend on differ: the rows are still shared
     run_sequence(seq, _cfg(tmp, "adapt.scheme=recent", "eval.online=false", "eval.export_frames=1"), out=tmp / "rep")
     rep = build_tables(collect([tmp / "rep"]))
@@ -254,10 +254,10 @@ def test_ablate_grid_resumes(setup):
 @pytest.mark.slow  # ~20 s in CI: a hindsight-only diagnostic (vo.inject_outliers)
 def test_injected_outliers_are_counted(setup, default_run):
     tmp, seq = setup
-    on = flatten(default_run.summary)
+    on = default_run.summary.flat()
     r = run_sequence(seq, _cfg(tmp, "vo.inject_outliers=0.2", "adapt.labels=hindsight", "ba.final=always"),
                      out=tmp / "outl")
-    flat = flatten(r.summary)
+    flat = r.summary.flat()
     assert flat["map.outliers.injected"] == round(0.2 * on["map.points.vo"]) > 0
     assert flat["map.points.vo"] == on["map.points.vo"]
     assert flat["map.esi.vo"] > on["map.esi.vo"]
@@ -272,8 +272,8 @@ def test_injected_outliers_are_counted(setup, default_run):
                       out=tmp / "outl_nc")
     with pytest.raises(ConfigError, match=r"inject_outliers .* needs adapt.labels=hindsight"):
         _cfg(tmp, "vo.inject_outliers=0.2")
-    assert nc.summary["map"]["outliers"]["culled"] is None
-    assert "no culling" in nc.summary["notes"]["map.outliers.culled"]
+    assert nc.summary.get("map.outliers.culled") is None
+    assert "no culling" in nc.summary.notes["map.outliers.culled"]
 
 
 def test_batched_evaluation_matches_frame_by_frame(setup):

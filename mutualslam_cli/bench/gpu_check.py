@@ -32,7 +32,6 @@ from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.device import describe_device, resolve_device
 from mutualslam_cli.errors import MslamError
 from mutualslam_cli.pipeline import run_sequence
-from mutualslam_cli.results.summary import flatten
 
 #: DESIGN §10 on one H100-class GPU: bench key → (limit in ms, what).
 GPU_TARGETS = {"step_ms": (25.0, "fine-tuning step"), "predict_ms": (5.0, "depth prediction")}
@@ -67,7 +66,7 @@ def run_window(sequence: str, spec: str, out: Path, config: Path = CONFIG_DIR / 
     wall = time.perf_counter() - t0
     lines = (r.folder / "traj_kf.txt").read_text().splitlines()
     kf = [line.split()[0] for line in lines if line.strip() and not line.startswith("#")]  # their timestamps
-    return {"summary": flatten(r.summary), "keyframes": kf, "wall_s": wall}
+    return {"summary": r.summary.flat(), "keyframes": kf, "wall_s": wall}
 
 
 def compare(gpu: dict[str, Any], cpu: dict[str, Any]) -> list[tuple[str, bool, str]]:

@@ -40,7 +40,7 @@ def shrink_of(seq: Path, out: Path, scheme: str, sets: list[str]) -> float:
 
     cfg: RunConfig = load_config(None, [*RUN_SETTINGS, f"adapt.scheme={scheme}", *sets])
     res = run_sequence(seq, cfg, out)
-    value = res.summary.get("adaptation", {}).get("reg", {}).get("shrink", {}).get("mean")
+    value = res.summary.number("adaptation.reg.shrink.mean")
     if value is None:
         raise RuntimeError(f"{res.folder}: no adaptation.reg.shrink.mean")
     return float(value)

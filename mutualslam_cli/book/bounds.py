@@ -17,7 +17,6 @@ from mutualslam_cli.book.plan import part_of, plan_book, render_synth
 from mutualslam_cli.book.spec import BookSpec, SequenceRef
 from mutualslam_cli.config import with_overrides
 from mutualslam_cli.errors import ConfigError
-from mutualslam_cli.results.summary import flatten
 
 
 @dataclass
@@ -63,7 +62,7 @@ def rerun_bound(bound: dict[str, Any], spec: BookSpec, out: Path, registry: str 
     seq = str(render_synth(ref, out / "data")) if ref.synth is not None else ref.name
     cfg = with_overrides(part.cfg, adapt={"scheme": bound["scheme"]}, seed=int(bound["seed"]))  # type: ignore[arg-type]
     r = run_sequence(seq, cfg, out=out / "runs", command=["bound"], registry=Path(registry) if registry else None)
-    v = flatten(r.summary).get(bound["key"])
+    v = r.summary.number(bound["key"])
     now = None if v is None else float(v) * float(bound.get("scale", 1.0))
     lo, hi = interval(float(bound["value"]), float(bound["factor"]))
     return BoundCheck(float(bound["value"]), now, lo, hi)

@@ -33,8 +33,8 @@ import yaml
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.errors import DamagedRecord
 from mutualslam_cli.results.fingerprint import changed_files, code_fingerprint, code_manifest
-from mutualslam_cli.results.run_folder import read_manifest, read_summary
-from mutualslam_cli.results.summary import flatten
+from mutualslam_cli.results.run_folder import read_manifest
+from mutualslam_cli.results.summary import read_summary
 
 #: The records' format; a reader refuses another.
 FORMAT = 1
@@ -178,14 +178,14 @@ def record_from_run(folder: Path, book: str, grid: str, variant: str, scheme: st
 
     Raises:
         DatasetError: the run's ``summary.json`` or ``manifest.json`` cannot be read.
+        SchemaError: its ``summary.json`` is not of a schema version this mslam reads.
     """
     folder = Path(folder)
     man = read_manifest(folder)
     code = man.get("code_fingerprint")
     if not isinstance(code, str):
         return None
-    summary = read_summary(folder)
-    flat = {k: _finite(v) for k, v in flatten(summary).items()} if isinstance(summary, dict) else {}
+    flat = {k: _finite(v) for k, v in read_summary(folder).flat().items()}
     timings: dict[str, Any] = man["timings_s"] if isinstance(man.get("timings_s"), dict) else {}
     seconds = timings.get("total_s", flat.get("timing.total_s"))
     threads = _config_threads(folder)

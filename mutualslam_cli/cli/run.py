@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.markup import escape
@@ -29,13 +29,13 @@ from mutualslam_cli.config import with_overrides
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.results.writable import check_output_folder
 
+if TYPE_CHECKING:
+    from mutualslam_cli.results.summary import RunSummary
+
 # --------------------------------------------------------------------------- run
 
 
-def _render_summary(folder: Path, s: dict[str, Any]) -> None:
-    from mutualslam_cli.results.summary import flatten
-
-    f = flatten(s)
+def _render_summary(folder: Path, f: RunSummary) -> None:
     t = Table("metric", "pre-trained", "adapted",
               title=escape(f"{f.get('sequence.name')} · {f.get('scheme')} · seed {f.get('seed')}"))
     rows = [("PCD lsq (%)", "depth.pcd.lsq"), ("PCD median (%)", "depth.pcd.median"), ("e_si", "depth.esi")]
@@ -49,7 +49,7 @@ def _render_summary(folder: Path, s: dict[str, Any]) -> None:
         if f.get(f"depth.quarter_pcd_lsq.adapted.{q}") is not None:
             t.add_row(label, fmt_value(f.get(f"depth.quarter_pcd_lsq.pretrained.{q}"), 2),
                       fmt_value(f.get(f"depth.quarter_pcd_lsq.adapted.{q}"), 2))
-    notes = s.get("notes") or {}
+    notes = f.notes
     if notes.get("depth.bwt.vs_pretrained"):
         t.caption = escape(f"note: {notes['depth.bwt.vs_pretrained']}")
     if f.get("depth.pcd.lsq.adapted") is None and notes.get("depth.pcd.lsq.adapted"):
@@ -83,16 +83,17 @@ STAGE_COLUMNS = (("front end", "timing.stage_s.frontend"), ("adaptation", "timin
                  ("dense", "timing.stage_s.dense"), ("other", "timing.stage_s.other"), ("total", "timing.total_s"))
 
 
-def _stage_table(f: dict[str, Any]) -> Table:
+def _stage_table(f: RunSummary) -> Table:
     """Where a run's time went (seconds), on which device, and its cost beyond its optimiser steps."""
     cols = [(label, key) for label, key in STAGE_COLUMNS if f.get(key) is not None]
     t = Table(*(label for label, _ in cols), title="time (s)")
-    t.add_row(*(fmt_value(float(f[key]), 1) for _, key in cols))
+    t.add_row(*(fmt_value(f.number(key), 1) for _, key in cols))
     device = " · ".join(fmt for k, fmt in (("run.device", "{}"), ("run.device_name", "{}"),
                                             ("run.device_memory_gb", "{} GiB"), ("run.cuda_version", "CUDA {}"),
                                             ("run.cudnn_version", "cuDNN {}")) if f.get(k) is not None
-                        for fmt in [fmt.format(f[k])])
-    extra = f"; beyond the steps: +{100 * f['timing.beyond_steps']:.0f} %" if f.get("timing.beyond_steps") else ""
+                        for fmt in [fmt.format(f.get(k))])
+    beyond = f.number("timing.beyond_steps")
+    extra = f"; beyond the steps: +{100 * beyond:.0f} %" if beyond else ""
     t.caption = escape(f"device: {device or '?'}{extra}")
     return t
 
@@ -188,7 +189,6 @@ def fuse(
     """Dense reconstruction of a finished run: TSDF meshes of both models' depth, scored against GT depth
     fused with GT poses (needs the run's adapted weights: --set eval.save_weights=true)."""
     from mutualslam_cli.pipeline import fuse_run
-    from mutualslam_cli.results.summary import flatten
 
     with progress_bar() as p:
         tasks: list[Any] = []  # the bar appears with the first step: an error before it is one line
@@ -198,8 +198,7 @@ def fuse(
                 tasks[:] = tasks or [p.add_task("dense", total=info["total"], info="")]
                 p.update(tasks[0], completed=info["done"], total=info["total"], info=info.get("phase", ""))
 
-        s = fuse_run(run_dir, sets or [], registry, command=sys.argv, progress=cb)
-    f = flatten(s)
+        f = fuse_run(run_dir, sets or [], registry, command=sys.argv, progress=cb)
     t = Table("scale", "metric", "pre-trained", "adapted",
               title=escape(f"{f.get('sequence.name')} · dense ({f.get('dense.source')})"))
     for scale, prefix in (("sequence (VO)", "dense."), ("per frame (VO)", "dense.frame_scale."),
@@ -239,7 +238,6 @@ def eval_depth(
 ) -> None:
     """Score another network's depth predictions exactly as `run` scores ours → results/<seq>/<NAME>/seed0/."""
     from mutualslam_cli.eval_depth import eval_depth as score_external
-    from mutualslam_cli.results.summary import flatten
 
     cfg = config_from(config, sets, data_root)
     check_output_folder(out if out is not None else cfg.out)  # a file, read-only: one line, before the bar
@@ -250,7 +248,7 @@ def eval_depth(
                            progress=lambda done, total: p.update(task, completed=done, total=total))
     if r.skipped:
         common.console.print(f"[yellow]already complete[/] (use --force to rescore): {r.folder}")
-    f = flatten(r.summary)
+    f = r.summary
     t = Table("PCD lsq (%)", "PCD median (%)", "PCD none (%)", "e_si", "frames",
               title=escape(f"{f.get('sequence.name')} · {name} ({f.get('external.kind')}, external, no adaptation)"))
     t.add_row(*(fmt_value(f.get(f"depth.{k}.adapted"), 2) for k in ("pcd.lsq", "pcd.median", "pcd.none")),

@@ -17,9 +17,8 @@ from typing import Any
 import pandas as pd
 
 from mutualslam_cli.config.yaml_file import read_yaml_mapping
-from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.results.run_folder import read_summary
-from mutualslam_cli.results.summary import flatten
+from mutualslam_cli.errors import DatasetError, SchemaError
+from mutualslam_cli.results.summary import flatten, read_summary
 
 #: Config keys that do not make runs different experiments (``adapt.scheme`` has its own column).
 #: ``threads`` is not among them: the numbers follow the thread count (torch's reductions sum in
@@ -72,14 +71,11 @@ def _row(folder: Path, notes: list[str]) -> dict[str, Any]:
     """One run's row (module docstring).
 
     Raises:
-        DatasetError: the run is damaged: ``summary.json`` not valid JSON or not an object, ``config.yaml``
+        DatasetError: the run is damaged: ``summary.json`` not valid JSON, ``config.yaml``
             not a YAML mapping.
+        SchemaError: ``summary.json`` is not an object, or not of a schema version this mslam reads.
     """
-    summary = read_summary(folder)
-    if not isinstance(summary, dict):
-        raise DatasetError(f"{folder / 'summary.json'}: a JSON {type(summary).__name__}, not an object of metrics "
-                           "(the summary of mslam run)")
-    d = flatten(summary)
+    d: dict[str, Any] = read_summary(folder).flat()
     _finite(d, folder / "summary.json", notes)
     d["folder"] = str(folder)
     parts = folder.parts
@@ -110,7 +106,7 @@ def collect(paths: list[str | Path], notes: list[str] | None = None) -> pd.DataF
         for s in sorted(f for f in p.rglob("summary.json") if _searched(f, p)):
             try:
                 rows.append(_row(s.parent, notes))
-            except DatasetError as e:
+            except (DatasetError, SchemaError) as e:
                 skipped.append(str(e))
                 notes.append(f"skipped, damaged: {e}")
     if not rows:

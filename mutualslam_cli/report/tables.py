@@ -171,7 +171,8 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
     Returns:
         ``(table, title, bold)``; ``bold``: ``(row, column)`` of the lowest ATE of each row.
     """
-    looped = (runs["config.loop.enabled"].astype(str) == "True") if "config.loop.enabled" in runs else \
+    # config.yaml's flag as YAML read it: True, False, or NaN where a run's config has no loop section
+    looped = runs["config.loop.enabled"].eq(True) if "config.loop.enabled" in runs else \
         pd.Series(False, index=runs.index)
     labels = config_labels(runs, exclude=("loop.enabled",)) if any(c.startswith("config.") for c in runs) else \
         runs.get("config", pd.Series("", index=runs.index))

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import pandas as pd
 
-#: Summary keys (prefixes) that differ between two runs of the same code: times, machine, versions, paths.
+#: Summary keys (prefixes) that differ between two runs of the same code: times, machine, versions, paths; and the
+#: file's schema version (a result of the previous format compares by its values: it has none).
 VOLATILE = ("timing.", "notes.timing", "run.", "versions.", "git.", "vo.from_cache", "vo.frames_from_cache",
-            "machine.", "config_path")
+            "machine.", "config_path", "schema_version")
 #: Files compared byte for byte (when either run has them).
 FILES = ("traj_kf.txt", "traj_all.txt", "traj_kf_bridged.txt", "traj_all_bridged.txt", "traj_kf_ba.txt",
          "traj_all_ba.txt", "per_frame.csv")

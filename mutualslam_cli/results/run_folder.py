@@ -96,26 +96,6 @@ def fuse_record(command: list[str] | None, time_s: float, device: dict[str, Any]
             "git_revision": git_revision(), "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
 
-def read_summary(folder: Path) -> dict[str, Any]:
-    """Load ``summary.json`` of a result folder (what it holds is the caller's to check: JSON of any shape).
-
-    Raises:
-        DatasetError: missing, unreadable, not UTF-8 or not valid JSON (one line naming the file).
-    """
-    path = Path(folder) / "summary.json"
-    try:
-        return json.loads(path.read_bytes().decode("utf-8"))
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: no summary.json (run incomplete or not a result folder)") from None
-    except OSError as e:  # a folder of that name, unreadable
-        raise DatasetError(f"{path}: cannot be read ({e.strerror})") from None
-    except UnicodeDecodeError as e:
-        raise DatasetError(f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start})") from None
-    except ValueError as e:  # json.JSONDecodeError, and numbers too long for int()
-        raise DatasetError(f"{path}: not valid JSON ({e})") from None
-
-
-
 def read_manifest(folder: Path) -> dict[str, Any]:
     """Load ``manifest.json`` of a result folder (:func:`manifest`'s content)."""
     path = Path(folder) / "manifest.json"

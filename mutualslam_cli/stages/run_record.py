@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from mutualslam_cli.device import device_label
 from mutualslam_cli.results.run_folder import manifest, write_json
-from mutualslam_cli.results.summary import Summary
+from mutualslam_cli.results.summary import RunSummary, Summary
 from mutualslam_cli.stages.context import RunContext
 
 if TYPE_CHECKING:
@@ -21,9 +21,9 @@ if TYPE_CHECKING:
     from mutualslam_cli.stages.frontend import FrontEnd
 
 def write_record(run: RunContext, fe: FrontEnd, ba: BAStage, adapted: Adapted, command: list[str] | None,
-                 t_start: float) -> tuple[dict[str, Any], dict[str, float]]:
+                 t_start: float) -> tuple[RunSummary, dict[str, float]]:
     """The run's stage times and identity into its summary, ``manifest.json``, then ``summary.json`` (last:
-    the run is complete). Returns ``(summary, timings)``: the ``summary.json`` content and the seconds per
+    the run is complete). Returns ``(summary, timings)``: what ``summary.json`` holds, and the seconds per
     stage, ``load`` and ``total`` (``t_start``: :func:`time.perf_counter` when the run began)."""
     total = time.perf_counter() - t_start
     summarise_times(run.summary, run.timings, total, fe.cached)
@@ -32,7 +32,7 @@ def write_record(run: RunContext, fe: FrontEnd, ba: BAStage, adapted: Adapted, c
     write_json(run.folder / "manifest.json", manifest(command, run.cfg.seed, timings, run_facts(run, fe, ba, adapted)))
     summary = run.summary.to_dict()
     write_json(run.folder / "summary.json", summary)
-    return summary, timings
+    return RunSummary.parse(summary, str(run.folder / "summary.json")), timings
 
 
 #: The stages whose wall time ``timing.stage_s`` splits a run into (``other``: everything else).

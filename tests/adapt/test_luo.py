@@ -268,7 +268,6 @@ def test_run_summary_counts_luo_keyframes_with_a_stereo_partner(tiny_run):
 
     from mutualslam_cli.config import CONFIG_DIR, load_config
     from mutualslam_cli.pipeline import run_sequence
-    from mutualslam_cli.results.summary import flatten
 
     tmp, seq = tiny_run
     # a wide rule (any baseline, any rotation) so this toy sequence's keyframes find partners
@@ -276,7 +275,7 @@ def test_run_summary_counts_luo_keyframes_with_a_stereo_partner(tiny_run):
                                                   "adapt.luo_min_horizontal_ratio=0", "adapt.luo_max_rotation_deg=180",
                                                   "ba.enabled=false"])
     r = run_sequence(seq, cfg, out=tmp / "luo_count", command=["test"])
-    flat = flatten(r.summary)
+    flat = r.summary.flat()
     kf = pd.read_csv(r.folder / "keyframes.csv")
     training = kf[~kf["is_validation"]]
     assert flat["adaptation.training_keyframes"] == len(training)

@@ -245,9 +245,9 @@ def test_run_with_dense_stage_writes_meshes_picture_and_scores(dense_run):
     import open3d as o3d
 
     _, _, r = dense_run
-    flat = flatten(r.summary)
+    flat = r.summary.flat()
     for key in DENSE_KEYS:
-        assert isinstance(flat[key], float), (key, r.summary["notes"].get(key))
+        assert isinstance(flat[key], float), (key, r.summary.notes.get(key))
     assert 0 <= flat["dense.fscore_5cm.adapted"] <= 1
     assert flat["dense.accuracy_m.pretrained"] > 0
     # the oracle front end (gt-depth) has GT poses and a metric map: the Sim(3) is the identity
@@ -258,7 +258,7 @@ def test_run_with_dense_stage_writes_meshes_picture_and_scores(dense_run):
         assert len(mesh.triangles) > 0, name
         assert mesh.has_vertex_colors(), name
     assert (r.folder / "dense.png").stat().st_size > 10_000
-    stages = r.summary["timing"]["stage_s"]
+    stages = r.summary.nested()["timing"]["stage_s"]
     assert stages["dense"] > 0
     assert sum(stages.values()) == pytest.approx(flat["timing.total_s"])
     assert not list(r.folder.glob(".dense-*"))  # the prediction files are gone
@@ -270,10 +270,11 @@ def test_fuse_on_the_finished_run_gives_the_same_scores(dense_run, tmp_path):
     shutil.copytree(r.folder.parents[2], root)
     folder = root / r.folder.relative_to(r.folder.parents[2])
     out = flatten(fuse_run(folder, command=["test"]))
-    flat = flatten(r.summary)
+    flat = r.summary.flat()
     for key in DENSE_KEYS + ("dense.scale.pretrained", "dense.scale.adapted", "dense.frames"):
         assert out[key] == flat[key], key
-    assert json.loads((folder / "summary.json").read_text())["dense"]["fscore_5cm"] == r.summary["dense"]["fscore_5cm"]
+    written = json.loads((folder / "summary.json").read_text())
+    assert written["dense"]["fscore_5cm"] == r.summary.nested()["dense"]["fscore_5cm"]
     assert "fuse" in json.loads((folder / "manifest.json").read_text())
     # the CLI prints the table
     cli = CliRunner().invoke(app, ["fuse", str(folder)])
@@ -336,11 +337,11 @@ def test_report_shows_the_dense_table(dense_run, tmp_path):
     t = rep.tables["dense"]
     # one row per scaling, the headline (one VO scale per sequence) first
     assert list(t["scaling"]) == ["sequence (VO)", "per frame (VO)", "per frame to GT (oracle)"]
-    assert t.iloc[0]["F@5cm adapt"] == pytest.approx(r.summary["dense"]["fscore_5cm"]["adapted"])
-    assert t.iloc[0]["acc pre m"] == pytest.approx(r.summary["dense"]["accuracy_m"]["pretrained"])
+    assert t.iloc[0]["F@5cm adapt"] == pytest.approx(r.summary.get("dense.fscore_5cm.adapted"))
+    assert t.iloc[0]["acc pre m"] == pytest.approx(r.summary.get("dense.accuracy_m.pretrained"))
     for row, p in ((1, "frame_scale"), (2, "gt_scale")):
-        assert t.iloc[row]["F@5cm pre"] == pytest.approx(r.summary["dense"][p]["fscore_5cm"]["pretrained"])
-        assert t.iloc[row]["fallback frames"] == r.summary["dense"][p]["fallback_frames"]["adapted"]
+        assert t.iloc[row]["F@5cm pre"] == pytest.approx(r.summary.nested()["dense"][p]["fscore_5cm"]["pretrained"])
+        assert t.iloc[row]["fallback frames"] == r.summary.nested()["dense"][p]["fallback_frames"]["adapted"]
     assert "oracle" in rep.titles["dense"]
     assert "one scale per model and sequence" in rep.titles["dense"]
     files = write_report(rep, tmp_path / "rep")

@@ -10,7 +10,6 @@ import pytest
 
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.pipeline import run_sequence
-from mutualslam_cli.results.summary import flatten
 
 # slow: a whole adapted run of the window, 6.5 min on an AVX2-only CPU (one thread) -- beyond what CI can hold.
 pytestmark = [pytest.mark.data, pytest.mark.slow]
@@ -19,7 +18,7 @@ pytestmark = [pytest.mark.data, pytest.mark.slow]
 def test_the_default_run_adapts_causally_as_the_readme_says(shared_data, tmp_path):
     cfg = load_config(CONFIG_DIR / "tuned.yaml", ["threads=1", "seed=0"])
     r = run_sequence(shared_data / "icl_lr_kt2", cfg, out=tmp_path, command=["test"])
-    s = flatten(r.summary)
+    s = r.summary.flat()
     assert s["adaptation.labels"] == "causal"
     assert s["scheme"] == "replay+ewc"
     # the same network, the same frames; the CPU's kernels move it a little (22.55 on bf16 CPUs, 22.37 on AVX2 only)

@@ -14,7 +14,6 @@ import pytest
 
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.pipeline import run_sequence
-from mutualslam_cli.results.summary import flatten
 
 pytestmark = [pytest.mark.data, pytest.mark.slow]
 
@@ -23,7 +22,7 @@ def _run(shared_data, tmp_path, seq: str, preset: str) -> tuple[dict, pd.DataFra
     cfg = load_config(CONFIG_DIR / preset, ["threads=1", "seed=0"])
     r = run_sequence(shared_data / seq, cfg, out=tmp_path / preset, command=["test"])
     kf = pd.read_csv(r.folder / "keyframes.csv")
-    return flatten(r.summary), kf[kf["trained"] == True]  # noqa: E712 (a pandas column)
+    return r.summary.flat(), kf[kf["trained"] == True]  # noqa: E712 (a pandas column)
 
 
 def test_the_papers_first_batch_flattens_the_depth_and_the_defaults_does_not(shared_data, tmp_path):

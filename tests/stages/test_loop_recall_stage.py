@@ -125,7 +125,7 @@ def test_a_run_with_loop_closure_and_gt_writes_its_recall(tiny_run, tmp_path):
     cfg = load_config(CONFIG_DIR / "smoke.yaml", [f"net.weights={tmp / 'weights'}", "vo.mode=svo", "loop.enabled=true",
                                                   "loop.min_gap=2"])
     r = run_sequence(seq_dir, cfg, out=tmp_path / "out")
-    assert r.summary["vo"]["keyframes"] >= 2
+    assert r.summary.get("vo.keyframes") >= 2
     s = json.loads((r.folder / "summary.json").read_text())
     flat = flatten(s)
     for k in loop_recall.RECALL_KEYS:

@@ -20,7 +20,6 @@ from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.online import loop as online_loop
 from mutualslam_cli.pipeline import run_sequence
-from mutualslam_cli.results.summary import flatten
 from mutualslam_cli.stages import adaptation
 from mutualslam_cli.stages.frontend import run_frontend
 from mutualslam_cli.vo.journal_cache import cache_path, load_entry
@@ -77,7 +76,7 @@ def causal(lost):
 def test_a_lost_front_end_is_bridged_then_and_goes_on_in_that_unit(lost, causal):
     tmp, root = lost
     r, seen, loop = causal
-    flat = flatten(r.summary)
+    flat = r.summary.flat()
     assert flat["adaptation.labels"] == "causal"
     assert flat["vo.segments"] == 2
     assert flat["vo.bridges"] >= 1
@@ -137,7 +136,7 @@ def test_a_cached_run_is_the_uncached_run(lost, causal):
     first = tmp / "first"
     shutil.copytree(r.folder, first)
     again = run_sequence(root, _cfg(tmp), out=tmp / "a", command=["test"], force=True)
-    a, b = flatten(r.summary), flatten(again.summary)
+    a, b = r.summary.flat(), again.summary.flat()
     assert a["vo.frames_from_cache"] == 0
     assert min(entry.checkpoints) < b["vo.frames_from_cache"] < len(seq)
     skip = ("timing.", "vo.from_cache", "vo.frames_from_cache", "notes.timing")

@@ -16,7 +16,6 @@ import pytest
 from mutualslam_cli.adapt.depthnet import fast_path_supported
 from mutualslam_cli.config import CONFIG_DIR, load_config  # figures measured with the paper's values
 from mutualslam_cli.pipeline import run_sequence
-from mutualslam_cli.results.summary import flatten
 
 pytestmark = [pytest.mark.data, pytest.mark.slow,
               pytest.mark.skipif(not fast_path_supported(), reason="this CPU has no native bf16 (AMX / AVX512-BF16)")]
@@ -33,7 +32,7 @@ def test_the_default_bf16_path_learns_what_fp32_learns(shared_data, tmp_path):
     for name, sets in (("default", []), ("fp32", ["net.fast=off"])):
         cfg = load_config(CONFIG_DIR / "paper.yaml",
                           ["threads=1", "seed=0", f"adapt.scheme={SCHEME}", "adapt.lr=1e-4", *sets])
-        runs[name] = flatten(run_sequence(seq, cfg, out=tmp_path / name, command=["test"]).summary)
+        runs[name] = run_sequence(seq, cfg, out=tmp_path / name, command=["test"]).summary.flat()
     print({k: (round(runs["default"][k], 2), round(runs["fp32"][k], 2)) for k in KEYS})
     for k in KEYS:
         assert abs(runs["default"][k] - runs["fp32"][k]) <= 1.5, k

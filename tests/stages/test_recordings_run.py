@@ -89,7 +89,7 @@ def test_video_run_agrees_with_folder_run_within_compression(frames, tmp_path):
                                  "--set", "vo.mode=svo", "--out", str(tmp_path / "res")])
     assert r.exit_code == 0, r.output
     folder = tmp_path / "res" / "seq" / "replay+ewc" / "seed0"
-    v, f = flatten(json.loads((folder / "summary.json").read_text())), flatten(folder_run.summary)
+    v, f = flatten(json.loads((folder / "summary.json").read_text())), folder_run.summary.flat()
     assert v["sequence.frames"] == f["sequence.frames"] == N
     # no depth in a video: depth metrics null with the reason; poses from the GT file are scored
     assert v["depth.pcd.lsq.adapted"] is None
