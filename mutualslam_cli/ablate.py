@@ -50,7 +50,7 @@ from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import is_complete, run_dir
 from mutualslam_cli.results.writable import check_output_folder, write_errors
-from mutualslam_cli.stages.context import use_threads
+from mutualslam_cli.stages.context import resolve_threads, use_threads
 from mutualslam_cli.stages.frontend import run_frontend
 
 log = logging.getLogger(__name__)
@@ -253,7 +253,7 @@ def _dask_outcomes(cfg: RunConfig, todo: list[Job], out: str, command: list[str]
     if scheduler is None:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
                                resources=resources)
-        threads = cfg.threads if cfg.threads > 0 else max(1, (os.cpu_count() or 1) // max(1, workers))
+        threads = resolve_threads(cfg.threads, workers)
     else:
         threads = cfg.threads  # 0: every core of the worker's machine
     client = Client(cluster if cluster is not None else scheduler)
@@ -307,7 +307,7 @@ def run_grid(cfg: RunConfig, jobs: list[Job], out: str | Path, workers: int = 1,
         raise ConfigError(f"--executor {executor!r}: expected local or dask")
     out = str(check_output_folder(out))  # a file, read-only: one line before any work
     reg = str(registry) if registry else None
-    threads = cfg.threads if cfg.threads > 0 else max(1, (os.cpu_count() or 1) // max(1, workers))
+    threads = resolve_threads(cfg.threads, workers)
     outcomes: list[JobOutcome] = []
 
     def record(o: JobOutcome) -> None:

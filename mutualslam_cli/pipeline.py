@@ -138,10 +138,14 @@ def _run(run: RunContext, command: list[str] | None, t_start: float) -> tuple[Ru
     fast = use_fast_path(cfg.net, run.device)
     net0 = load_network(cfg.net, fast, run.device)  # the pre-trained model
     ba = BAStage(run)  # culling + global BA: at Algorithm 1's requests (the mutual loop) and at the end
-    adapted = adaptation.run_stage(run, net0, fast, ba.map_ba if cfg.ba.enabled else None)  # front end + Algorithm 1
-    assert adapted.frontend is not None  # always set: the front end's own result (stages/adaptation.py)
-    fe = frontend.run_stage(run, adapted.frontend, adapted.source.replayed, adapted.injected)  # its own map
-    ba.finish(adapted, fe, fast)
+    started = frontend.start_stage(run)  # the front end Algorithm 1 follows, and the front end on its own
+    if cfg.adapt.scheme == "comoda":  # the baseline: every frame, its own pose network, no keyframes
+        adapted = adaptation.run_comoda(run, started, net0, fast)
+    else:  # Algorithm 1, with culling + global BA at its requests
+        adapted = adaptation.run_algorithm1(run, started, net0, fast, ba.map_ba if cfg.ba.enabled else None)
+    adaptation.finish_stage(run, started, adapted)
+    fe = frontend.run_stage(run, started)  # the front end's own map: trajectories, map, vo.* keys
+    ba.finish(adapted, fe, fast)  # the back end: final culling + global BA
     scale_drift.run_stage(run, {"vo": fe.vo, "ba": ba.final}, {"ba": ba.why_no_final})  # local vs global Sim(3)
     evaluation.run_stage(run, fe, net0, adapted, fast)  # both models' depth on every frame with GT
     depth_export.run_stage(run, net0, adapted, fast)  # chosen frames' depth saved and pictured

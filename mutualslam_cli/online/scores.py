@@ -147,7 +147,7 @@ class OnlineScorer:
         if not todo:
             return
         predict, device = self._predictor(net)
-        bs = batch_size(device, torch.get_num_threads())
+        bs = batch_size(device, cfg.threads)  # the run's resolved count (stages/context.py: use_threads)
         for c in range(0, len(todo), bs):
             chunk = todo[c:c + bs]
             small = np.stack([resample(self._und.image(self.seq.load_rgb(i)), cfg.net.width, cfg.net.height)

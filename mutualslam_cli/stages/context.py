@@ -76,15 +76,20 @@ class RunContext:
             self.progress(stage, info)
 
 
+def resolve_threads(requested: int, workers: int = 1) -> int:
+    """The one rule for ``threads: 0``: the threads torch would use in this process (its cores), shared among
+    ``workers`` processes on the same machine, at least 1; a positive ``requested`` is kept as it is."""
+    return requested if requested > 0 else max(1, torch.get_num_threads() // max(1, workers))
+
+
 def use_threads(cfg: RunConfig) -> RunConfig:
-    """``cfg`` with ``threads`` resolved (0 → what torch would use), set for torch and OpenCV.
+    """``cfg`` with ``threads`` resolved (:func:`resolve_threads`), set for torch and OpenCV.
 
     Results follow the thread count (reductions sum in another order), so the count is resolved
     once, used alike by torch, OpenCV and BLAS (:func:`~mutualslam_cli.pipeline.run_sequence`), and
-    recorded in ``config.yaml`` like any setting.
+    recorded in ``config.yaml`` like any setting; the stages read ``cfg.threads``, never torch.
     """
-    # with_overrides takes plain values too (config/run.py annotates its **sections as dicts only)
-    cfg = with_overrides(cfg, threads=cfg.threads if cfg.threads > 0 else torch.get_num_threads())
+    cfg = with_overrides(cfg, threads=resolve_threads(cfg.threads))
     torch.set_num_threads(cfg.threads)
     cv2.setNumThreads(cfg.threads)
     return cfg

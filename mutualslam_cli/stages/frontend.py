@@ -1,9 +1,10 @@
-"""The front end's outputs of a run (:func:`run_stage`) and the front end on its own (:func:`run_frontend`).
+"""The front-end stage of a run: :func:`start_stage` opens the front end the adaptation follows and computes the
+front end on its own; :func:`run_stage` writes its outputs once the run has gone through the sequence.
 
-The front end runs inside the adaptation stage, on the loop's clock
-(:mod:`~mutualslam_cli.vo.source`); this stage writes what it made once the run has gone
-through the sequence: ``traj_kf.txt``, ``traj_all.txt``, ``map_vo.ply`` and the ``vo.*`` keys, from the
-front end's map with each segment in its own unit (:attr:`~mutualslam_cli.stages.adaptation.Adapted.frontend`).
+Hindsight labels (and CoMoDa) run the front end to the end in :func:`start_stage`; causal labels step it on the
+adaptation loop's clock (:mod:`~mutualslam_cli.vo.source`), so the network's depth can reach it, while the front end
+on its own comes from the per-sequence journal cache. :func:`run_stage` writes ``traj_kf.txt``, ``traj_all.txt``,
+``map_vo.ply`` and the ``vo.*`` keys, from the front end's own map with each segment in its own unit.
 :func:`run_frontend` runs the front end alone to the end, through the per-sequence journal cache
 (:mod:`~mutualslam_cli.vo.journal_cache`): what ``mslam ablate`` prepares for its jobs, and ``mslam fuse`` reads.
 """
@@ -11,6 +12,7 @@ front end's map with each segment in its own unit (:attr:`~mutualslam_cli.stages
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +28,7 @@ from mutualslam_cli.metrics.slam import (
     map_log_depth_errors,
     point_units,
 )
+from mutualslam_cli.online.credit import front_end_alone, segment_starts
 from mutualslam_cli.results.map_ply import write_ply
 from mutualslam_cli.results.run_folder import write_trajectories
 from mutualslam_cli.stages.ate_keys import set_ate
@@ -67,6 +70,50 @@ def load_frontend(seq: Sequence, cfg: RunConfig, cache_dir: Path | None = None,
 
 
 @dataclass
+class FrontEndRun:
+    """The front end as the adaptation stage gets it (:func:`start_stage`).
+
+    Attributes:
+        source: the event source Algorithm 1 follows (causal: live, not yet advanced; else at its end). Whoever
+            adapts closes it.
+        alone: the front end on its own (no bridge, no BA), each segment in its own unit: Table 4's "vo" column.
+        starts: frames where ``alone``'s segments start (where the "bridged" credit plans its bridges).
+        injected: ids of map points corrupted by ``vo.inject_outliers`` (hindsight only).
+        started: :func:`time.perf_counter` when the stage began; alone_s: seconds spent on ``alone`` apart from
+            ``source`` (causal runs).
+    """
+
+    source: FrontEndSource
+    alone: VOResult
+    starts: set[int]
+    injected: np.ndarray
+    started: float
+    alone_s: float
+
+
+def start_stage(run: RunContext) -> FrontEndRun:
+    """The front end for the adaptation: its source (causal labels: live, the network may reach it; hindsight and
+    ``comoda``: run to the end first, ``vo.inject_outliers`` applied) and the front end on its own."""
+    seq, cfg = run.seq, run.cfg
+    t = time.perf_counter()
+    causal = cfg.adapt.labels == "causal" and cfg.adapt.scheme != "comoda"
+    source = FrontEndSource(seq, cfg, run.cache / "vo", run.progress, live_feedback=causal)
+    try:
+        injected = np.zeros(0, np.int64)
+        if not causal:  # hindsight (or comoda): the front end on its own, to the end, first
+            source.run_all()
+            if cfg.vo.inject_outliers:  # the test knob corrupts the finished map (hindsight only)
+                injected = source.inject_outliers(cfg.vo.inject_outliers, cfg.seed)
+            return FrontEndRun(source, source.result(), segment_starts(source.state), injected, t, 0.0)
+        # causal: the front end on its own from the journal cache, which it fills
+        alone, starts = front_end_alone(seq, cfg, run.cache / "vo")
+        return FrontEndRun(source, alone, starts, injected, t, time.perf_counter() - t)
+    except BaseException:
+        source.close()
+        raise
+
+
+@dataclass
 class FrontEnd:
     """What the front-end stage hands on.
 
@@ -87,16 +134,12 @@ class FrontEnd:
     replayed: int = 0
 
 
-def run_stage(run: RunContext, vo: VOResult, replayed: int, injected: np.ndarray) -> FrontEnd:
-    """The front end's outputs: ``traj_kf.txt``, ``traj_all.txt``, ``map_vo.ply`` and the keys ``vo.*``,
-    ``timing.vo_fps``, ``map.points.vo``, ``map.esi.vo`` (each segment in its own unit) and
-    ``trajectory.ate_rmse_m.{vo,all_frames}``.
-
-    Args:
-        vo: the front end on its own (no bridge, no BA), each segment in its own unit.
-        replayed: frames the run's front end took from the journal cache.
-    """
+def run_stage(run: RunContext, fe: FrontEndRun) -> FrontEnd:
+    """The front end's outputs, once the adaptation has taken its source to the end: ``traj_kf.txt``,
+    ``traj_all.txt``, ``map_vo.ply`` and the keys ``vo.*``, ``timing.vo_fps``, ``map.points.vo``, ``map.esi.vo``
+    (each segment in its own unit) and ``trajectory.ate_rmse_m.{vo,all_frames}``, of the front end on its own."""
     seq, cfg, summary = run.seq, run.cfg, run.summary
+    vo, replayed, injected = fe.alone, fe.source.replayed, fe.injected
     write_trajectories(run.folder, vo.traj_kf, vo.traj_all)
     err = map_log_depth_errors(seq, vo)  # per point log z − log z*: the map's colours and its e_si
     write_ply(run.folder / "map_vo.ply", vo.points_world(), err)

@@ -20,7 +20,7 @@ from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.online import loop as online_loop
 from mutualslam_cli.pipeline import run_sequence
-from mutualslam_cli.stages import adaptation
+from mutualslam_cli.stages import adaptation, frontend
 from mutualslam_cli.stages.frontend import run_frontend
 from mutualslam_cli.vo.journal_cache import cache_path, load_entry
 
@@ -50,7 +50,7 @@ def causal(lost):
     tmp, root = lost
     seen, loops = [], []
     mp = pytest.MonkeyPatch()
-    plan, run_loop, alone = online_loop.plan_bridge, adaptation.OnlineLoop.run_loop, adaptation.front_end_alone
+    plan, run_loop, alone = online_loop.plan_bridge, adaptation.OnlineLoop.run_loop, frontend.front_end_alone
 
     def spy_loop(self):
         loops.append(self)
@@ -65,7 +65,7 @@ def causal(lost):
 
     mp.setattr(adaptation.OnlineLoop, "run_loop", spy_loop)
     mp.setattr(online_loop, "plan_bridge", spy_plan)
-    mp.setattr(adaptation, "front_end_alone", lambda seq, cfg, cache_dir=None: alone(seq, cfg, None))
+    mp.setattr(frontend, "front_end_alone", lambda seq, cfg, cache_dir=None: alone(seq, cfg, None))
     try:
         r = run_sequence(root, _cfg(tmp), out=tmp / "a", command=["test"])
     finally:
