@@ -28,15 +28,21 @@ JSON: TypeAlias = Scalar | list["JSON"] | dict[str, "JSON"]
 """Any value ``json.loads`` can return (a parsed file before its fields are checked)."""
 JSONObject: TypeAlias = dict[str, JSON]
 """A parsed JSON/YAML mapping (a manifest, a config section, a record) before it is read into a typed record."""
+Document: TypeAlias = dict[str, object]
+"""A mapping about to be written as JSON or YAML (a manifest, a record): any values ``results.summary.plain``
+makes JSON-safe on writing (numpy scalars and arrays, paths)."""
 Info: TypeAlias = dict[str, object]
 """Free-form figures for logs and progress callbacks: read for display only, never for control."""
+
+Predictor = Callable[[list[np.ndarray]], np.ndarray]
+"""A batched depth predictor: ``(H, W, 3)`` uint8 RGB frames → ``(B, h, w)`` float32 depth at the network's size."""
 
 Progress = Callable[[str, Info], None]
 """``progress(stage, info)``: a stage's name (``vo``, ``adapt``, ``eval``, ``dense``, ``decode``…) and a
 dict of figures (``done``, ``total``, …). The library reports through it; the CLI draws the bars."""
 
 
-def check_shape(x: Any, shape: Seq[str | int], name: str = "array") -> None:
+def check_shape(x: object, shape: Seq[str | int], name: str = "array") -> None:
     """Raise :class:`ShapeError` unless ``x.shape`` matches ``shape``.
 
     ``shape`` entries are ints (exact size), digit strings (exact size) or names (any size,

@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import typer
 from rich.markup import escape
+from rich.progress import TaskID
 from rich.table import Table
 
 from mutualslam_cli.cli import common
@@ -31,6 +32,7 @@ from mutualslam_cli.results.writable import check_output_folder
 
 if TYPE_CHECKING:
     from mutualslam_cli.results.summary import RunSummary
+    from mutualslam_cli.types import Info
 
 # --------------------------------------------------------------------------- run
 
@@ -98,6 +100,11 @@ def _stage_table(f: RunSummary) -> Table:
     return t
 
 
+def _count(v: object) -> float | None:
+    """A progress figure (frames done, a total) as a number; ``None`` when the stage gave none."""
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
 @app.command()
 def run(
     seq: str = typer.Argument(..., help="datasets.yaml name or sequence folder."),
@@ -139,14 +146,14 @@ def run(
     cfg = config_from(config, sets, data_root, device)
     over = {"adapt": {"scheme": scheme} if scheme else None, "vo": {"mode": vo} if vo else None,
             "net": {"weights": str(weights)} if weights else None, "seed": seed}
-    cfg = with_overrides(cfg, **{k: v for k, v in over.items() if v is not None})  # type: ignore[arg-type]
+    cfg = with_overrides(cfg, **{k: v for k, v in over.items() if v is not None})
     get_scheme(cfg.adapt.scheme, cfg.adapt)  # unknown name or bad setting → ConfigError, before any work
     check_output_folder(out if out is not None else cfg.out)  # a file, read-only: one line, before the bars
     with progress_bar() as p:
-        tasks: dict[str, Any] = {}
+        tasks: dict[str, TaskID] = {}
 
-        def cb(stage: str, info: dict[str, Any]) -> None:
-            total = info.get("total", info.get("n_frames"))
+        def cb(stage: str, info: Info) -> None:
+            total = _count(info.get("total", info.get("n_frames")))
             if stage not in tasks:
                 tasks[stage] = p.add_task({"convert": "convert recording", "vo": "front end", "adapt": "adapt",
                                            "eval": "evaluate", "dense": "dense"}.get(stage, stage),
@@ -154,7 +161,8 @@ def run(
             if stage != "convert" and "convert" in tasks:  # the conversion is over: its bar stops its clock
                 tid = tasks.pop("convert")
                 p.update(tid, total=next(t.completed for t in p.tasks if t.id == tid))
-            done = info.get("done", (info.get("frame", -1) + 1))
+            frame = _count(info.get("frame"))
+            done = _count(info["done"]) if "done" in info else (frame if frame is not None else -1.0) + 1
             if stage == "vo":
                 text = f"kf {info.get('keyframes', 0)} · pts {info.get('tracked', 0)} · {info.get('state', '')}"
                 if info.get("fps"):
@@ -166,7 +174,7 @@ def run(
                 text = (f"{what} · loss {fmt_value(info.get('loss_total'), 4)} · L_val {fmt_value(lv, 4)}"
                         f" · converged {info.get('n_converged', 0)}")
             else:
-                text = info.get("phase", "")
+                text = str(info.get("phase", ""))
             p.update(tasks[stage], completed=done, total=total, info=text)
 
         rec = RecordingOptions(rgb_topic, depth_topic, camera_info_topic, pose_topic, gt, camera, fps)
@@ -191,12 +199,13 @@ def fuse(
     from mutualslam_cli.pipeline import fuse_run
 
     with progress_bar() as p:
-        tasks: list[Any] = []  # the bar appears with the first step: an error before it is one line
+        tasks: list[TaskID] = []  # the bar appears with the first step: an error before it is one line
 
-        def cb(stage: str, info: dict[str, Any]) -> None:
+        def cb(stage: str, info: Info) -> None:
             if stage == "dense":  # a front end recomputed (no VO cache) reports as "vo": not this bar
-                tasks[:] = tasks or [p.add_task("dense", total=info["total"], info="")]
-                p.update(tasks[0], completed=info["done"], total=info["total"], info=info.get("phase", ""))
+                tasks[:] = tasks or [p.add_task("dense", total=_count(info["total"]), info="")]
+                p.update(tasks[0], completed=_count(info["done"]), total=_count(info["total"]),
+                         info=info.get("phase", ""))
 
         f = fuse_run(run_dir, sets or [], registry, command=sys.argv, progress=cb)
     t = Table("scale", "metric", "pre-trained", "adapted",

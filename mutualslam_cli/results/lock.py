@@ -47,9 +47,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime
 from pathlib import Path
-from typing import Any
 
 from mutualslam_cli.errors import ResultsLocked
+from mutualslam_cli.types import JSONObject
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def lock_path(folder: str | os.PathLike[str], beside: bool = False) -> Path:
     return folder.parent / f".{folder.name}{LOCK_NAME}" if beside else folder / LOCK_NAME
 
 
-def read_holder(folder: str | os.PathLike[str], beside: bool = False) -> dict[str, Any]:
+def read_holder(folder: str | os.PathLike[str], beside: bool = False) -> JSONObject:
     """What the current (or last) holder wrote into the lock file of ``folder`` (:func:`lock_path`): ``pid``,
     ``host``, ``since`` (ISO 8601 local time), ``what`` and ``argv``; ``{}`` when the file is absent, empty or
     unreadable."""
@@ -76,7 +76,7 @@ def read_holder(folder: str | os.PathLike[str], beside: bool = False) -> dict[st
     return info if isinstance(info, dict) else {}
 
 
-def _locked_message(folder: Path, what: str, holder: dict[str, Any]) -> str:
+def _locked_message(folder: Path, what: str, holder: JSONObject) -> str:
     if holder.get("pid") is not None:
         who = (f"{holder.get('what') or 'another process'} (pid {holder['pid']} on {holder.get('host', '?')}, "
                f"since {holder.get('since', '?')})")

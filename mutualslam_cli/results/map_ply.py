@@ -11,7 +11,7 @@ rides along as the scalar vertex property ``log_depth_error`` (NaN without GT).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from types import ModuleType
 
 import numpy as np
 
@@ -28,7 +28,7 @@ ERROR_FAR = (0.80, 0.13, 0.13)
 NO_GT = (0.86, 0.86, 0.86)
 
 
-def open3d() -> Any:
+def open3d() -> ModuleType:
     """The ``open3d`` module, imported on first use (heavy: ~1 s), untyped: its pybind stubs miss the defaults
     of ``core.Tensor(array, dtype=, device=)`` and type paths as ``os.PathLike`` where a ``str`` is taken."""
     import open3d as o3d

@@ -14,6 +14,7 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.machine import cpu_info
 from mutualslam_cli.results.fingerprint import code_fingerprint
 from mutualslam_cli.results.summary import plain
-from mutualslam_cli.types import Trajectory
+from mutualslam_cli.types import Document, Trajectory
 
 
 def run_dir(out: str | Path, sequence: str, scheme: str, seed: int) -> Path:
@@ -39,12 +40,12 @@ def is_complete(folder: Path) -> bool:
     return (Path(folder) / "summary.json").is_file()
 
 
-def write_json(path: Path, obj: Any) -> None:
+def write_json(path: Path, obj: object) -> None:
     """Atomic, indented JSON; NaN becomes ``null``."""
     atomic_write_text(path, json.dumps(plain(obj), indent=2, sort_keys=False) + "\n")
 
 
-def write_yaml(path: Path, obj: Any) -> None:
+def write_yaml(path: Path, obj: object) -> None:
     """Atomic YAML of plain values (``yaml.safe_dump``, never Python objects)."""
     atomic_write_text(path, yaml.safe_dump(plain(obj), sort_keys=False))
 
@@ -74,7 +75,8 @@ def versions() -> dict[str, str]:
     return out
 
 
-def manifest(command: list[str] | None, seed: int, timings: dict[str, float], extra: dict | None = None) -> dict:
+def manifest(command: list[str] | None, seed: int, timings: Mapping[str, float],
+             extra: Mapping[str, object] | None = None) -> Document:
     """The ``manifest.json`` content: command, versions, git revision, seed, timings, the CPU."""
     return {
         "command": command if command is not None else sys.argv,
@@ -89,7 +91,7 @@ def manifest(command: list[str] | None, seed: int, timings: dict[str, float], ex
     }
 
 
-def fuse_record(command: list[str] | None, time_s: float, device: dict[str, Any]) -> dict[str, Any]:
+def fuse_record(command: list[str] | None, time_s: float, device: Mapping[str, object]) -> Document:
     """The ``fuse`` entry of a run's ``manifest.json`` (``mslam fuse`` on the finished run): its command, seconds,
     versions, device (:func:`~mutualslam_cli.device.describe_device`), git revision and time."""
     return {"command": command, "time_s": time_s, "versions": versions(), "device": device,

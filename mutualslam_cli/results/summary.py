@@ -14,7 +14,6 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
 
 import numpy as np
 
@@ -43,14 +42,20 @@ SUMMARY_KEYS: tuple[str, ...] = (
 )
 
 
-def plain(x: Any) -> Any:
-    """numpy scalars/arrays and Paths → JSON-safe Python values; NaN/inf → None."""
+def plain(x: object) -> JSON:
+    """numpy scalars/arrays and Paths → JSON-safe Python values; NaN/inf → None.
+
+    Raises:
+        TypeError: a value JSON cannot hold (what ``json.dumps`` would refuse), named with its type.
+    """
     if isinstance(x, dict):
         return {str(k): plain(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [plain(v) for v in x]
     if isinstance(x, np.ndarray):
         return plain(x.tolist())
+    if isinstance(x, np.bool_):
+        return bool(x)
     if isinstance(x, (np.integer,)):
         return int(x)
     if isinstance(x, (np.floating, float)):
@@ -58,7 +63,9 @@ def plain(x: Any) -> Any:
         return v if math.isfinite(v) else None
     if isinstance(x, Path):
         return str(x)
-    return x
+    if x is None or isinstance(x, (str, int, bool)):
+        return x
+    raise TypeError(f"{type(x).__name__} is not JSON serializable: {x!r}")
 
 
 class Summary:
@@ -72,7 +79,7 @@ class Summary:
     """
 
     def __init__(self) -> None:
-        self.values: dict[str, Any] = {}
+        self.values: dict[str, JSON] = {}  # JSON-safe (plain) as set
         self.notes: dict[str, str] = {}
 
     @classmethod
@@ -85,7 +92,7 @@ class Summary:
         s.notes = {k: v for k, v in record.notes.items() if keep(k)}
         return s
 
-    def set(self, key: str, value: Any, reason_if_missing: str = "not computed") -> None:
+    def set(self, key: str, value: object, reason_if_missing: str = "not computed") -> None:
         """Set a dotted key; ``None``/NaN values are recorded as absent with the reason.
 
         Raises:
@@ -94,8 +101,9 @@ class Summary:
         if value is None or (isinstance(value, float) and not math.isfinite(value)):
             self.absent(key, reason_if_missing)
         else:
-            check(key, plain(value), "the run's summary")
-            self.values[key] = value
+            v = plain(value)
+            check(key, v, "the run's summary")
+            self.values[key] = v
             self.notes.pop(key, None)
 
     def absent(self, key: str, reason: str) -> None:
@@ -108,6 +116,11 @@ class Summary:
         self.values[key] = None
         self.notes[key] = reason
 
+    def number(self, key: str) -> float | None:
+        """A value set so far, as a number (``None``: unset, null or not a number)."""
+        v = self.values.get(key)
+        return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
     def to_dict(self, required: Iterable[str] = SUMMARY_KEYS) -> JSONObject:
         """Nested dict with ``schema_version``; required keys never set are ``null`` with reason "not computed"."""
         vals = dict(self.values)
@@ -116,22 +129,24 @@ class Summary:
             if k not in vals:
                 vals[k] = None
                 notes.setdefault(k, "not computed by this run")
-        nested: dict[str, Any] = {}
+        nested: JSONObject = {}
         for k, v in vals.items():
             node = nested
             parts = k.split(".")
             for p in parts[:-1]:
-                node = node.setdefault(p, {})
+                child = node.setdefault(p, {})
+                if not isinstance(child, dict):
+                    raise SchemaError(f"the run's summary: {p!r} of {k!r} holds a value, not a group of keys")
+                node = child
             node[parts[-1]] = v
         nested["notes"] = dict(sorted(notes.items()))
         nested["schema_version"] = SCHEMA_VERSION
-        out: JSONObject = plain(nested)
-        return out
+        return nested
 
 
-def flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten(d: Mapping[str, JSON], prefix: str = "") -> dict[str, JSON]:
     """Nested dict → ``{"a.b.c": value}`` (``notes`` kept as one entry)."""
-    out: dict[str, Any] = {}
+    out: dict[str, JSON] = {}
     for k, v in d.items():
         key = f"{prefix}.{k}" if prefix else k
         if isinstance(v, dict) and k != "notes":
@@ -170,7 +185,8 @@ class RunSummary:
                 schema does not hold; the message names ``where`` and the version.
         """
         if not isinstance(data, dict):
-            raise SchemaError(f"{where}: a JSON {type(data).__name__}, not an object of metrics (the summary of mslam run)")
+            raise SchemaError(f"{where}: a JSON {type(data).__name__}, not an object of metrics "
+                              "(the summary of mslam run)")
         version = data.get("schema_version", 1)
         if version not in READABLE or isinstance(version, bool):
             raise SchemaError(f"{where}: summary schema version {version!r}; this mslam reads versions "
@@ -178,12 +194,13 @@ class RunSummary:
         assert isinstance(version, int)
         flat = flatten({k: v for k, v in data.items() if k != "schema_version"})
         notes = flat.pop("notes", None) or {}
-        if not isinstance(notes, dict) or not all(isinstance(v, str) for v in notes.values()):
+        texts = {k: v for k, v in notes.items() if isinstance(v, str)} if isinstance(notes, dict) else {}
+        if not isinstance(notes, dict) or len(texts) != len(notes):
             raise SchemaError(f"{where}: 'notes' is not an object of texts (summary schema version {version})")
         if version >= 2:
             for k, v in flat.items():
                 check(k, v, f"{where} (version {version})")
-        return cls(version, MappingProxyType(flat), MappingProxyType(dict(notes)), where)
+        return cls(version, MappingProxyType(flat), MappingProxyType(texts), where)
 
     def get(self, key: str) -> JSON:
         """The value of a schema key, ``None`` when absent or null."""

@@ -83,7 +83,7 @@ class Adapted:
     loops: list[LoopRecord] = field(default_factory=list)
     merges: list[MergeRecord] = field(default_factory=list)
     credit: list[Bridge] = field(default_factory=list)
-    l_val: dict[str, float | int] = field(default_factory=dict)
+    l_val: dict[str, float | None] = field(default_factory=dict)
     online: pd.DataFrame | None = None
     keyframe_rows: list[KeyframeRow] = field(default_factory=list)
     frontend_s: float = 0.0

@@ -5,8 +5,6 @@ drove, the regulariser's strength (``adaptation.reg.*``) and the fine-tuning's c
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from mutualslam_cli.adapt.online import OnlineAdapter
@@ -26,7 +24,7 @@ from mutualslam_cli.stages.loop_recall import POSE_KEYS, RECALL_KEYS
 L_VAL_KEYS = ("validations", "min", "median", "longest_below_tau", "map_median_depth")
 
 
-def l_val_stats(rows: list[KeyframeRow], tau: float, vo: VOResult) -> dict[str, Any]:
+def l_val_stats(rows: list[KeyframeRow], tau: float, vo: VOResult) -> dict[str, float | None]:
     """Algorithm 1's validations from the keyframe rows: ``validations`` (with an L_val), ``min``,
     ``median`` (L_val, Eq. 9, inverse map units), ``longest_below_tau`` (most consecutive ones below τ)
     and ``map_median_depth`` (median depth of the map points in their hosts, map units). The front end

@@ -19,7 +19,6 @@ from __future__ import annotations
 import io
 import logging
 import time
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -35,7 +34,7 @@ from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import MslamError
 from mutualslam_cli.metrics import trajectory as tm
 from mutualslam_cli.stages.context import RunContext
-from mutualslam_cli.types import Trajectory
+from mutualslam_cli.types import Scalar, Trajectory
 from mutualslam_cli.vo.camera import Undistorter
 
 log = logging.getLogger(__name__)
@@ -46,9 +45,9 @@ POSENET_ATE_KEY = "trajectory.ate_rmse_m.posenet"
 POSE_NETWORK_KEY = "adaptation.pose_network"
 
 
-def frame_row(info: FrameStep) -> dict[str, Any]:
+def frame_row(info: FrameStep) -> dict[str, Scalar]:
     """A flat CSV row of one frame's step (loss parts as ``loss_<part>``)."""
-    row: dict[str, Any] = {"frame": info.frame, "target": info.target, "trained": info.trained,
+    row: dict[str, Scalar] = {"frame": info.frame, "target": info.target, "trained": info.trained,
                            "static": info.static, "batch": " ".join(map(str, info.batch)), "step_ms": info.step_ms}
     row.update({f"loss_{k}": v for k, v in info.loss.items()})
     return row
@@ -92,17 +91,20 @@ def run_stage(run: RunContext, net: DepthNet, fast: bool) -> DepthNet:
                             seq.intrinsics.scaled(w, h).K(), seed=cfg.seed, fast=fast, replay_bank=bank,
                             device=run.device)
     und = Undistorter(seq.intrinsics)
-    rows, t0 = [], time.perf_counter()
+    rows: list[dict[str, Scalar]] = []
+    per_frame: list[float] = []  # ms of each trained frame's update
+    t0 = time.perf_counter()
     for i in range(len(seq)):
         info = adapter.add_frame(to_net_image(und.image(seq.load_rgb(i)), w, h))
         rows.append(frame_row(info))
+        if info.trained:
+            per_frame.append(info.step_ms)
         run.report("adapt", {"done": i + 1, "total": len(seq), **rows[-1], "elapsed_s": time.perf_counter() - t0})
     atomic_write_text(folder / "frames.csv", pd.DataFrame(rows).to_csv(index=False))
     traj = Trajectory(np.array([f.timestamp for f in seq.frames]), adapter.trajectory())
     buf = io.StringIO()
     write_tum_trajectory(buf, traj)
     atomic_write_text(folder / "traj_posenet.txt", buf.getvalue())
-    per_frame = [r["step_ms"] for r in rows if r["trained"]]
     why = "no frame was trained on (fewer than 3 frames, or all static)"
     summary.set("timing.finetune_ms", float(np.median(adapter.step_ms)) / cfg.adapt.comoda_steps_per_frame
                 if adapter.step_ms else None, why)

@@ -9,7 +9,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import cv2
 import torch
@@ -19,7 +18,7 @@ from mutualslam_cli.datasets.recordings.recording import RecordingOptions
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.results.summary import Summary
-from mutualslam_cli.types import Progress
+from mutualslam_cli.types import Info, Predictor, Progress
 
 
 @dataclass
@@ -49,8 +48,8 @@ class RunContext:
     progress: Progress | None = None
     timings: dict[str, float] = field(default_factory=dict)
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
-    predictors: dict[tuple[str, int], Any] = field(default_factory=dict)
-    device_info: dict[str, Any] = field(default_factory=dict)
+    predictors: dict[tuple[str, int], Predictor] = field(default_factory=dict)
+    device_info: dict[str, object] = field(default_factory=dict)
 
     @property
     def cache(self) -> Path:
@@ -70,7 +69,7 @@ class RunContext:
         """Add ``seconds`` to ``timings[stage]``."""
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
 
-    def report(self, stage: str, info: dict[str, Any]) -> None:
+    def report(self, stage: str, info: Info) -> None:
         """Pass ``info`` to the progress callback, if any."""
         if self.progress is not None:
             self.progress(stage, info)

@@ -345,7 +345,7 @@ def _picture(path: Path, meshes: dict[str, tsdf.Mesh], fused: list[FusedFrame], 
     """``dense.png`` (:func:`~mutualslam_cli.dense.picture.dense_picture`) from the GT poses of the fused frames."""
     if meshes:
         gt = [pose for f in fused if (pose := seq.frames[f.frame].pose) is not None]
-        scores = {m: {k: summary.values.get(f"dense.{k}.{m}") for k in ("fscore_5cm", "accuracy_m", "completeness_m")}
+        scores = {m: {k: summary.number(f"dense.{k}.{m}") for k in ("fscore_5cm", "accuracy_m", "completeness_m")}
                   for m in meshes}
         dense_picture(path, meshes, np.stack(gt) if gt else np.stack([f.T_metric for f in fused]), scores,
                       f"{seq.name}: TSDF meshes ({cfg.dense.voxel_size * 100:g} cm voxels, "

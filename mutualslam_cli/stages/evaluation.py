@@ -36,6 +36,7 @@ from mutualslam_cli.stages.adaptation import Adapted
 from mutualslam_cli.stages.context import RunContext
 from mutualslam_cli.stages.forgetting import summarise_forgetting
 from mutualslam_cli.stages.frontend import FrontEnd
+from mutualslam_cli.types import Predictor
 from mutualslam_cli.vo.camera import Undistorter
 
 log = logging.getLogger(__name__)
@@ -52,8 +53,6 @@ _GROUP = 16
 #: Frames the int8 evaluation runtime calibrates its activation ranges on.
 CALIBRATION_FRAMES = 8
 
-Predictor = Callable[[list[np.ndarray]], np.ndarray]
-"""``B`` frames ``(H, W, 3)`` uint8 RGB (pinhole geometry) → ``(B, h, w)`` float32 depth at network resolution."""
 
 
 def eval_batch(cfg: RunConfig, device: torch.device) -> int:

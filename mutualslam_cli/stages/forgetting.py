@@ -76,7 +76,7 @@ def summarise_forgetting(summary: Summary, table: pd.DataFrame, n_frames: int, s
             summary.absent(key, no_depth or f"no {ref} and final score on the first quarter")
         else:
             summary.set(key, final - before)
-    vs_pre = summary.values.get("depth.bwt.vs_pretrained")
+    vs_pre = summary.number("depth.bwt.vs_pretrained")
     if vs_pre is not None and vs_pre < 0:
         summary.notes["depth.bwt.vs_pretrained"] = (
             f"the final model ends below the pre-trained model on the sequence's first quarter "

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from mutualslam_cli.device import device_label
 from mutualslam_cli.results.run_folder import manifest, write_json
 from mutualslam_cli.results.summary import RunSummary, Summary
 from mutualslam_cli.stages.context import RunContext
+from mutualslam_cli.types import Document
 
 if TYPE_CHECKING:
     from mutualslam_cli.stages.adaptation import Adapted
@@ -54,7 +55,7 @@ def summarise_times(summary: Summary, timings: dict[str, float], total_s: float,
     summary.set("timing.total_s", total_s)
     for k, v in parts.items():
         summary.set(f"timing.stage_s.{k}", float(v))
-    steps_s = summary.values.get("timing.finetune_steps_s")
+    steps_s = summary.number("timing.finetune_steps_s")
     summary.set("timing.beyond_steps", total_s / steps_s - 1.0 if steps_s else None,
                 "no optimiser step")  # DESIGN §10: a run costs its steps + at most 25 % (≤ 0.25)
     if vo_cached:
@@ -75,7 +76,7 @@ def record_identity(run: RunContext) -> None:
     summary.set("run.device_label", device_label(dev))  # what reports group by: never averaged across devices
 
 
-def run_facts(run: RunContext, fe: FrontEnd, ba: BAStage, adapted: Adapted) -> dict[str, Any]:
+def run_facts(run: RunContext, fe: FrontEnd, ba: BAStage, adapted: Adapted) -> Document:
     """What ``manifest.json`` keeps of the run beyond the command, versions and timings
     (:func:`~mutualslam_cli.results.run_folder.manifest`'s ``extra``)."""
     seq = run.seq
