@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 
@@ -171,6 +172,25 @@ def paired_scale(px_old: np.ndarray, z_old: np.ndarray, uv_new: np.ndarray,
     return float(np.exp(med)), 1.2533 * spread / np.sqrt(int(same.sum()))
 
 
+class _QueryRecord(TypedDict):
+    kf: int
+    pool: np.ndarray
+    candidates: list[int]
+    geometry: dict[int, str]
+    verified: int | None
+    outcome: str
+
+
+class LoopQuery(_QueryRecord, total=False):
+    """One record of :attr:`LoopDetector.queries` (its docstring says what each key holds); the keys below only
+    once the query got that far: ``spread_old``, ``spread_new`` the depth spreads of the old and new points,
+    ``scale_from`` ``"map"`` or ``"network"``."""
+
+    spread_old: float
+    spread_new: float
+    scale_from: str
+
+
 class LoopDetector:
     """Finds and verifies loops over a growing map (module docstring).
 
@@ -203,7 +223,7 @@ class LoopDetector:
                                 witness_ratio=self.settings.witness_ratio, rerank=OLD_PLACE_RERANK), load)
         self.tried = 0
         self.rejected: dict[str, int] = {}
-        self.queries: list[dict] = []
+        self.queries: list[LoopQuery] = []
 
     def sharing(self) -> LoopDetector:
         """A detector of the same camera and thresholds over this one's keyframe index (one ORB extraction per
@@ -252,8 +272,8 @@ class LoopDetector:
         unit = state.unit_of(kf)
         if pool is None:
             pool = [k for k in sorted(self.index.images) if k <= kf - s.min_gap and state.unit_of(k) == unit]
-        rec = {"kf": kf, "pool": np.array(pool, np.int64), "candidates": [], "geometry": {}, "verified": None,
-               "outcome": "no old keyframe in its map unit"}
+        rec: LoopQuery = {"kf": kf, "pool": np.array(pool, np.int64), "candidates": [], "geometry": {},
+                          "verified": None, "outcome": "no old keyframe in its map unit"}
         self.queries.append(rec)
         if not pool:
             return None

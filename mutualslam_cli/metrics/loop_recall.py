@@ -23,9 +23,14 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from mutualslam_cli.types import Scalar
+
+if TYPE_CHECKING:
+    from mutualslam_cli.backend.loop_detector import LoopQuery
 
 #: GT distance (m) and rotation angle (degrees) within which two keyframes see the same place.
 MAX_DIST_M, MAX_ANGLE_DEG = 0.30, 30.0
@@ -105,14 +110,14 @@ class RecallRow:
     verified_kf: int = -1
     closed_kf: int = -1
 
-    def record(self) -> dict[str, Any]:
+    def record(self) -> dict[str, Scalar]:
         """A CSV-ready dict (candidates as space-separated ids)."""
         d = asdict(self)
         d["candidates"] = " ".join(map(str, self.candidates))
         return d
 
 
-def _reason(q: Mapping[str, Any], partners: set[int], n_candidates: int, closed_kf: int) -> str:
+def _reason(q: LoopQuery, partners: set[int], n_candidates: int, closed_kf: int) -> str:
     """Why query ``q`` (a :attr:`LoopDetector.queries` record) did not close a loop onto a true partner."""
     if not partners & set(np.asarray(q["pool"]).tolist()):
         return "true partners outside its map unit (a segment no bridge joined)"
@@ -128,7 +133,7 @@ def _reason(q: Mapping[str, Any], partners: set[int], n_candidates: int, closed_
     return q["outcome"] if q["outcome"] != "loop" else "verified, not closed"
 
 
-def classify(revisits: Mapping[int, list[Partner]], queries: Mapping[int, Mapping[str, Any]],
+def classify(revisits: Mapping[int, list[Partner]], queries: Mapping[int, LoopQuery],
              closed: Mapping[int, int], skipped: Mapping[int, str], n_candidates: int) -> list[RecallRow]:
     """One :class:`RecallRow` per keyframe with a true partner, in keyframe order.
 
