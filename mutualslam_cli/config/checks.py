@@ -27,10 +27,7 @@ from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar, overload
 from mutualslam_cli.errors import ConfigError
 
 if TYPE_CHECKING:
-    from _typeshed import DataclassInstance
-
-    from mutualslam_cli.config.frontend import VOConfig
-    from mutualslam_cli.config.run import RunConfig
+    from _typeshed import DataclassInstance  # the section records import this module: they are typed as dataclasses
 
 T = TypeVar("T")
 #: The record a :class:`Relation` reads (a section record, :class:`~mutualslam_cli.config.run.RunConfig`).
@@ -229,11 +226,11 @@ def check_device_spec(spec: object) -> None:
         raise ConfigError(f"device = {spec!r}: expected {DEVICE.expected_text}")
 
 
-def check_vo(cfg: VOConfig) -> None:
+def check_vo(cfg: DataclassInstance) -> None:
     """Raise :class:`ConfigError` for options of a ``VOConfig`` the front end cannot work with."""
     check_config(cfg, "vo")
 
 
-def check_run(cfg: RunConfig) -> None:
+def check_run(cfg: DataclassInstance) -> None:
     """Raise :class:`ConfigError` naming the first value of a ``RunConfig`` the tool cannot work with."""
     check_config(cfg)
