@@ -32,13 +32,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypedDict
 
 import numpy as np
 
 from mutualslam_cli.backend.bridges import MIN_RATIO_POINTS
 from mutualslam_cli.config import LoopConfig
 from mutualslam_cli.map.state import MapState
+from mutualslam_cli.metrics.loop_recall import LoopQuery
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import focal_px, undistort_points
@@ -170,25 +170,6 @@ def paired_scale(px_old: np.ndarray, z_old: np.ndarray, uv_new: np.ndarray,
     med = float(np.median(lr))
     spread = 1.4826 * float(np.median(np.abs(lr - med)))
     return float(np.exp(med)), 1.2533 * spread / np.sqrt(int(same.sum()))
-
-
-class _QueryRecord(TypedDict):
-    kf: int
-    pool: np.ndarray
-    candidates: list[int]
-    geometry: dict[int, str]
-    verified: int | None
-    outcome: str
-
-
-class LoopQuery(_QueryRecord, total=False):
-    """One record of :attr:`LoopDetector.queries` (its docstring says what each key holds); the keys below only
-    once the query got that far: ``spread_old``, ``spread_new`` the depth spreads of the old and new points,
-    ``scale_from`` ``"map"`` or ``"network"``."""
-
-    spread_old: float
-    spread_new: float
-    scale_from: str
 
 
 class LoopDetector:

@@ -23,17 +23,34 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, TypedDict
 
 import numpy as np
 
 from mutualslam_cli.types import Scalar
 
-if TYPE_CHECKING:
-    from mutualslam_cli.backend.loop_detector import LoopQuery
-
 #: GT distance (m) and rotation angle (degrees) within which two keyframes see the same place.
 MAX_DIST_M, MAX_ANGLE_DEG = 0.30, 30.0
+
+
+class _QueryRecord(TypedDict):
+    kf: int
+    pool: np.ndarray
+    candidates: list[int]
+    geometry: dict[int, str]
+    verified: int | None
+    outcome: str
+
+
+class LoopQuery(_QueryRecord, total=False):
+    """One record of :attr:`~mutualslam_cli.backend.loop_detector.LoopDetector.queries` (its docstring says what
+    each key holds), defined here as loop recall reads it; the keys below only once the query got that far:
+    ``spread_old``, ``spread_new`` the depth spreads of the old and new points, ``scale_from`` ``"map"`` or
+    ``"network"``."""
+
+    spread_old: float
+    spread_new: float
+    scale_from: str
 
 
 @dataclass
