@@ -5,7 +5,7 @@ JSON only where ``manifest.json`` is written (``to_json``, the keys in the order
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, TypedDict
 
 from mutualslam_cli.backend.ba.global_ba import BAStats
 from mutualslam_cli.backend.loop_detector import LoopClosure
@@ -42,6 +42,16 @@ class LoopRecord:
         if self.ba_nearby_targets is not None:
             out["ba_nearby_targets"] = self.ba_nearby_targets
         return out
+
+
+class MergeSite(TypedDict):
+    """Where a merge happened, as :class:`MergeRecord`'s fields: the segment merged and the one it was found in,
+    the query keyframe's frame and time (s)."""
+
+    segment: int
+    onto: int
+    frame: int
+    timestamp: float
 
 
 @dataclass(frozen=True)

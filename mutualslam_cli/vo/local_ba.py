@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mutualslam_cli.geometry import left_update
+from mutualslam_cli.map.assemble import WindowStats
 
 
 @dataclass
@@ -111,7 +112,7 @@ def _apply(T: np.ndarray, fi: np.ndarray, dc: np.ndarray) -> np.ndarray:
     return left_update(T, fi, dc.reshape(-1, 6))
 
 
-def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np.ndarray, dict]:
+def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np.ndarray, WindowStats]:
     """Levenberg–Marquardt on the window with a Schur complement on the points.
 
     Args:
