@@ -59,7 +59,7 @@ def _prior(prob: BAProblem, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     return r, np.where(has, prob.prior_w / rho, 0.0), has
 
 
-def residuals(prob: BAProblem, T: np.ndarray, rho: np.ndarray, jac: bool = False):
+def residuals(prob: BAProblem, T: np.ndarray, rho: np.ndarray, jac: bool = False) -> tuple[np.ndarray, ...]:
     """Reprojection residuals ``(M, 2)`` and, with ``jac``, the Jacobians.
 
     Returns:
