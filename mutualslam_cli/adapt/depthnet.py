@@ -253,7 +253,7 @@ def predict_depth(net: nn.Module, images: np.ndarray | torch.Tensor, fast: bool 
 
 
 def make_adam(params: Iterable[torch.Tensor] | Iterable[dict[str, Any]], lr: float = 1e-3,
-              **kwargs) -> torch.optim.Adam:
+              **kwargs: Any) -> torch.optim.Adam:
     """Adam with the fused kernel (CPU or CUDA, where the parameters are) when available (≈4× faster step
     for the 15 M parameters on the CPU). ``params``: tensors, or parameter groups (dicts with their own ``lr``).
 

@@ -96,7 +96,7 @@ def load_network(settings: NetConfig, fast: bool = False, device: torch.device |
     ``mslam pretrain`` default, on ``device``, in the memory layout of the chosen path
     (:func:`~mutualslam_cli.adapt.depthnet.prepare`: channels-last with ``fast``, as the adapted model is; an
     unprepared model under bf16 autocast was 1.27× slower)."""
-    kw = {"min_depth": settings.min_depth, "max_depth": settings.max_depth}
+    kw: weights.DepthNetSettings = {"min_depth": settings.min_depth, "max_depth": settings.max_depth}
     net = weights.load_monodepth2(Path(settings.weights), **kw) if settings.weights else weights.load_default(**kw)
     return prepare(net, fast, device=device)
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import functools
 from collections.abc import Callable
+from typing import ParamSpec, TypeVar
 
 import torch
 import torch.nn.functional as F
@@ -27,15 +28,18 @@ from mutualslam_cli.adapt.warp import warp
 from mutualslam_cli.errors import ShapeError
 from mutualslam_cli.types import check_shape
 
+P = ParamSpec("P")
+R = TypeVar("R")
+
 _C1, _C2 = 0.01 ** 2, 0.03 ** 2  # SSIM constants for images in [0, 1] (Wang et al. 2004)
 
 
-def _fp32(fn: Callable) -> Callable:
+def _fp32(fn: Callable[P, R]) -> Callable[P, R]:
     """Run ``fn`` with autocast off on the CPU and, where it is on, on CUDA (the fast path keeps losses in
     full precision on every device)."""
 
     @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         with contextlib.ExitStack() as stack:
             stack.enter_context(torch.autocast("cpu", enabled=False))
             if torch.is_autocast_enabled("cuda"):

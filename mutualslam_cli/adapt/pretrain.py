@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal, TypedDict
 
 import numpy as np
 import torch
@@ -33,14 +33,70 @@ from mutualslam_cli.adapt.weights import save_monodepth2
 from mutualslam_cli.datasets.synthetic import iter_render
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.metrics.depth import percent_correct
+from mutualslam_cli.types import Info
 
 log = logging.getLogger(__name__)
 
-Progress = Callable[[dict[str, Any]], None]  # called with {"step", "steps", "loss"}
+Progress = Callable[[Info], None]  # called with {"step", "steps", "loss"}
 
 #: Tiny configuration for smoke tests and ``mslam pretrain --quick`` (seconds, not minutes).
-QUICK: dict[str, Any] = dict(steps=3, width=128, height=64, batch_size=2, pool_size=4, n_frames=2, frame_stride=1,
+QUICK: dict[str, int] = dict(steps=3, width=128, height=64, batch_size=2, pool_size=4, n_frames=2, frame_stride=1,
                              refresh_every=1, log_every=1, warmup=1, checkpoint_every=0)
+
+
+class LossPoint(TypedDict):
+    """One point of a ``loss_curve``: after optimiser step ``step``, the mean ``loss`` since the last point, at
+    ``t`` seconds of training."""
+
+    step: int
+    loss: float
+    t: float
+
+
+class PretrainEval(TypedDict):
+    """Median-scaled PCD (%) per scene and ``mean`` (:func:`evaluate_pcd`): ``eval_target`` of the trained and a
+    random-init net on target-domain frames, ``eval_source`` of the trained net on unseen source-domain frames."""
+
+    eval_target: dict[str, dict[str, float]]
+    eval_source: dict[str, float]
+
+
+class _Settings(TypedDict):
+    steps: int
+    steps_requested: int
+    seed: int
+    width: int
+    height: int
+    batch_size: int
+    crop: list[int] | None
+    lr: float
+    fast: bool
+    threads: int
+    scenes: list[str]
+    render_seed_base: int
+    n_sequences: int
+    n_frames: int
+    frame_stride: int
+    n_train_frames: int
+    pool_size: int
+    refresh_every: int
+    loss: str
+    loss_curve: list[LossPoint]
+    render_s: float
+    train_s: float
+    s_per_step: float
+    complete: bool
+    half: bool
+    drop_fc: bool
+
+
+class PretrainRecord(_Settings, total=False):
+    """``pretrain.json``: the settings and how training went (``steps``: those done), then, once the run is over,
+    :class:`PretrainEval`'s figures (with ``eval_frames``) and ``time_s``, the whole run's seconds."""
+
+    eval_target: dict[str, dict[str, float]]
+    eval_source: dict[str, float]
+    time_s: float
 
 
 @dataclass
@@ -168,7 +224,7 @@ def pretrain(out_dir: Path, steps: int, width: int = 640, height: int = 192, bat
              crop: tuple[int, int] | None = None,
              lr: float = 5e-4, warmup: int = 50, fast: str | bool = "auto", threads: int | None = None,
              augment: bool = True, half: bool = True, drop_fc: bool = False, max_minutes: float | None = None,
-             checkpoint_every: int = 200, eval_frames: int = 0, log_every: int = 10) -> dict[str, Any]:
+             checkpoint_every: int = 200, eval_frames: int = 0, log_every: int = 10) -> PretrainRecord:
     """Train a DepthNet from scratch on the synthetic source domain and save it.
 
     Args:
@@ -215,14 +271,12 @@ def pretrain(out_dir: Path, steps: int, width: int = 640, height: int = 192, bat
     rng = np.random.default_rng(seed)
     net = prepare(DepthNet(), use_fast).train()
     opt = make_adam(net.parameters(), lr=lr)
-    curve: list[dict[str, float]] = []
+    curve: list[LossPoint] = []
     acc, acc_n, done = 0.0, 0, 0
     t_train = time.perf_counter()
-    record: dict[str, Any] = {}
-
-    def save(final: bool) -> dict[str, Any]:
+    def save(final: bool) -> PretrainRecord:
         save_monodepth2(net, out_dir, height, width, half=half, drop_fc=drop_fc)
-        rec = {
+        rec: PretrainRecord = {
             "steps": done, "steps_requested": steps, "seed": seed, "width": width, "height": height,
             "batch_size": batch_size, "crop": list(crop) if crop else None, "lr": lr, "fast": use_fast,
             "threads": torch.get_num_threads(), "scenes": list(scenes), "render_seed_base": seed * 100000,
@@ -286,7 +340,7 @@ def _check_settings(steps: int, batch_size: int, width: int, height: int, crop: 
 
 
 def _evaluate(net: DepthNet, seed: int, width: int, height: int, n_frames: int, scenes: Sequence[str],
-              fast: bool) -> dict[str, Any]:
+              fast: bool) -> PretrainEval:
     """``eval_target`` (the trained and a random-init net on target-domain frames) and ``eval_source``
     (the trained net on unseen source-domain frames) of ``pretrain.json``."""
     torch.manual_seed(seed + 1)

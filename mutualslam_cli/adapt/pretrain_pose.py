@@ -38,7 +38,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, TypedDict, cast
 
 import numpy as np
 import torch
@@ -49,6 +49,10 @@ from mutualslam_cli.adapt.weights import save_pose
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.synthetic import iter_render
 from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.types import Info
+
+if TYPE_CHECKING:
+    from mutualslam_cli.adapt.pretrain import LossPoint
 
 log = logging.getLogger(__name__)
 
@@ -75,11 +79,34 @@ def pose_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return (dt + dr).mean()
 
 
+class PosePretrainRecord(TypedDict):
+    """``pretrain_pose.json``: the settings (``steps`` asked, ``steps_done``), the ``loss_curve`` (one point per step)
+    and ``time_s``, the training's seconds."""
+
+    steps: int
+    steps_done: int
+    max_minutes: float | None
+    width: int
+    height: int
+    batch_size: int
+    lr: float
+    seed: int
+    scenes: list[str]
+    render_seed_base: int
+    refresh: bool
+    init_from_depth_encoder: bool
+    half: bool
+    loss: str
+    loss_curve: list[LossPoint]
+    time_s: float
+    threads: int
+
+
 def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192, batch_size: int = 4,
                   lr: float = 1e-4, seed: int = 0, scenes: Sequence[str] = ("room", "planar", "far"),
                   render_seed_base: int = 0, refresh: bool = True, init: torch.nn.Module | None = None,
                   max_minutes: float | None = None, threads: int | None = None, half: bool = False,
-                  progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+                  progress: Callable[[Info], None] | None = None) -> PosePretrainRecord:
     """Train a pose network on source-domain relative poses; write it in Monodepth2's format.
 
     Args:
@@ -111,7 +138,8 @@ def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192
         net.encoder.init_from_single_image(cast(ResnetEncoder, init.encoder))  # a DepthNet's encoder
     net.train()  # BatchNorm in training mode, as Monodepth2 trains (statistics learnt from the source domain)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
-    curve, t0 = [], time.perf_counter()
+    curve: list[LossPoint] = []
+    t0 = time.perf_counter()
     for step in range(steps):
         k = step if refresh else 0
         first, second, T = pose_batch(scenes[k % len(scenes)], render_seed_base + k, batch_size, width, height)
@@ -126,7 +154,7 @@ def pretrain_pose(out_dir: Path, steps: int, width: int = 640, height: int = 192
             log.info("pose pre-training stopped after %d of %d steps (max %.1f min)", step + 1, steps, max_minutes)
             break
     save_pose(net.eval(), Path(out_dir), half=half)
-    record = {"steps": steps, "steps_done": len(curve), "max_minutes": max_minutes,
+    record: PosePretrainRecord = {"steps": steps, "steps_done": len(curve), "max_minutes": max_minutes,
               "width": width, "height": height, "batch_size": batch_size, "lr": lr, "seed": seed,
               "scenes": list(scenes), "render_seed_base": render_seed_base, "refresh": refresh,
               "init_from_depth_encoder": init is not None, "half": half, "loss": "L1(t) + L1(R)", "loss_curve": curve,

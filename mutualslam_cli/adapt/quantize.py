@@ -28,6 +28,7 @@ here (AVX512 with VNNI, 640×192, 2 threads): 52 ms against PyTorch fp32 ~110 ms
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -35,6 +36,9 @@ from torch import nn
 
 from mutualslam_cli.adapt.depthnet import predictor
 from mutualslam_cli.errors import ShapeError
+
+#: A forward pre-hook: the module and its positional inputs.
+_PreHook = Callable[[nn.Module, tuple[torch.Tensor, ...]], None]
 
 #: Convolutions (module-name prefixes of :class:`~mutualslam_cli.adapt.depthnet.DepthNet`) kept in fp32:
 #: the encoder's first layer; the decoder's upconv (3, 0), (2, 0), (2, 1), (1, 1) (modules 2, 4, 5, 7),
@@ -56,7 +60,7 @@ def calibrate(net: nn.Module, images: torch.Tensor) -> dict[str, tuple[float, fl
         raise ShapeError(f"calibrate: expected (N ≥ 1, 3, H, W) images, got {tuple(images.shape)}")
     ranges: dict[str, tuple[float, float]] = {}
 
-    def hook(name: str):
+    def hook(name: str) -> _PreHook:
         def record(_m: nn.Module, inputs: tuple[torch.Tensor, ...]) -> None:
             lo, hi = float(inputs[0].min()), float(inputs[0].max())
             old = ranges.get(name, (lo, hi))

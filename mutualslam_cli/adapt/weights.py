@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias, TypedDict
 
 import torch
 
@@ -27,12 +28,28 @@ from mutualslam_cli.adapt.networks.pose import PoseNet
 from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.errors import ConfigError
 
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
 log = logging.getLogger(__name__)
 
 ENCODER_FILE = "encoder.pth"
 DECODER_FILE = "depth.pth"
 EXTRA_KEYS = ("height", "width", "use_stereo")
 FC_KEYS = ("encoder.fc.weight", "encoder.fc.bias")
+
+StateFile: TypeAlias = dict[str, torch.Tensor | int | bool]
+"""A Monodepth2 ``.pth`` file: tensors by parameter name, and in an encoder file :data:`EXTRA_KEYS` (``height``,
+``width``: ints, ``use_stereo``: a bool)."""
+
+
+class DepthNetSettings(TypedDict, total=False):
+    """Keyword arguments of :class:`~mutualslam_cli.adapt.depthnet.DepthNet` a loader passes on."""
+
+    min_depth: float
+    max_depth: float
+    scales: Iterable[int]
+    num_layers: int
 
 
 def default_weights_dir() -> Path:
@@ -43,7 +60,7 @@ def default_weights_dir() -> Path:
     return Path(__file__).resolve().parents[1] / "weights" / "default"
 
 
-def _read(path: Path) -> dict[str, Any]:
+def _read(path: Path) -> StateFile:
     if not path.is_file():
         raise ConfigError(f"{path}: file not found (expected a Monodepth2 {path.name})")
     try:
@@ -93,7 +110,7 @@ def has_depth_files(folder: Path) -> bool:
     return (Path(folder) / ENCODER_FILE).is_file() and (Path(folder) / DECODER_FILE).is_file()
 
 
-def load_monodepth2(folder: Path, **net_kwargs: Any) -> DepthNet:
+def load_monodepth2(folder: Path, **net_kwargs: Unpack[DepthNetSettings]) -> DepthNet:
     """Build a :class:`DepthNet` from ``folder/encoder.pth`` and ``folder/depth.pth``.
 
     Args:
@@ -118,7 +135,7 @@ def load_monodepth2(folder: Path, **net_kwargs: Any) -> DepthNet:
     return net.eval()
 
 
-def _atomic_save(obj: dict[str, Any], path: Path) -> None:
+def _atomic_save(obj: Mapping[str, object], path: Path) -> None:
     with atomic_path(path) as tmp:
         torch.save(obj, tmp)
 
@@ -139,7 +156,7 @@ def save_monodepth2(net: DepthNet, folder: Path, height: int, width: int, *, hal
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
 
-    def conv(sd: dict[str, torch.Tensor]) -> dict[str, Any]:
+    def conv(sd: dict[str, torch.Tensor]) -> StateFile:
         return {k: (v.detach().half() if half and v.is_floating_point() else v.detach()).contiguous().clone()
                 for k, v in sd.items()}
 
@@ -152,7 +169,7 @@ def save_monodepth2(net: DepthNet, folder: Path, height: int, width: int, *, hal
     _atomic_save(conv(net.decoder.state_dict()), folder / DECODER_FILE)
 
 
-def load_default(**kw: Any) -> DepthNet:
+def load_default(**kw: Unpack[DepthNetSettings]) -> DepthNet:
     """Load the default model from :func:`default_weights_dir`.
 
     Raises:

@@ -30,7 +30,7 @@ from mutualslam_cli.geometry import to_normalized
 from mutualslam_cli.map.result import MapPoints, VOResult
 from mutualslam_cli.map.sim3 import Sim3
 from mutualslam_cli.pixels import lookup_nearest
-from mutualslam_cli.types import Trajectory
+from mutualslam_cli.types import Intrinsics, Trajectory
 from mutualslam_cli.vo.camera import undistort_points
 from mutualslam_cli.vo.features import orb_features, orb_matches
 
@@ -106,7 +106,7 @@ def depth_ratio(vo: VOResult, kf_id: int, depth: np.ndarray,
     return med, n, 1.2533 * spread / np.sqrt(n)
 
 
-def rotation_between(gray_a: np.ndarray, gray_b: np.ndarray, vo: VOResult, intr_raw) -> np.ndarray | None:
+def rotation_between(gray_a: np.ndarray, gray_b: np.ndarray, vo: VOResult, intr_raw: Intrinsics) -> np.ndarray | None:
     """Rotation ``R`` with ``bearing_a ≈ R · bearing_b`` of two raw grey images, when their ORB matches
     agree on one (``None`` otherwise). ``intr_raw``: the camera of the raw images (with distortion)."""
     (pa, da), (pb, db) = orb_features(gray_a), orb_features(gray_b)
@@ -133,7 +133,7 @@ def rotation_between(gray_a: np.ndarray, gray_b: np.ndarray, vo: VOResult, intr_
 
 
 def plan_bridge(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarray],
-                gray_of_frame: Callable[[int], np.ndarray], intr_raw, points_w: np.ndarray | None = None,
+                gray_of_frame: Callable[[int], np.ndarray], intr_raw: Intrinsics, points_w: np.ndarray | None = None,
                 ) -> Bridge | None:
     """How to join the segment that starts at keyframe ``first_kf`` to the map before it (module docstring).
 
@@ -198,7 +198,7 @@ def plan_bridge(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarra
 
 
 def bridge_segment(vo: VOResult, first_kf: int, depth_of: Callable[[int], np.ndarray],
-                   gray_of_frame: Callable[[int], np.ndarray], intr_raw, points_w: np.ndarray | None = None,
+                   gray_of_frame: Callable[[int], np.ndarray], intr_raw: Intrinsics, points_w: np.ndarray | None = None,
                    ) -> tuple[VOResult, Bridge] | None:
     """:func:`plan_bridge` and the move it plans applied to ``vo`` (:func:`move_segment`): ``(vo', bridge)``,
     or ``None`` when the segment stays apart."""

@@ -38,6 +38,7 @@ import numpy as np
 from mutualslam_cli.backend.bridges import MIN_RATIO_POINTS
 from mutualslam_cli.config import LoopConfig
 from mutualslam_cli.map.state import MapState
+from mutualslam_cli.metrics.loop_recall import LoopQuery
 from mutualslam_cli.pixels import lookup_nearest
 from mutualslam_cli.types import Intrinsics
 from mutualslam_cli.vo.camera import focal_px, undistort_points
@@ -203,7 +204,7 @@ class LoopDetector:
                                 witness_ratio=self.settings.witness_ratio, rerank=OLD_PLACE_RERANK), load)
         self.tried = 0
         self.rejected: dict[str, int] = {}
-        self.queries: list[dict] = []
+        self.queries: list[LoopQuery] = []
 
     def sharing(self) -> LoopDetector:
         """A detector of the same camera and thresholds over this one's keyframe index (one ORB extraction per
@@ -252,8 +253,8 @@ class LoopDetector:
         unit = state.unit_of(kf)
         if pool is None:
             pool = [k for k in sorted(self.index.images) if k <= kf - s.min_gap and state.unit_of(k) == unit]
-        rec = {"kf": kf, "pool": np.array(pool, np.int64), "candidates": [], "geometry": {}, "verified": None,
-               "outcome": "no old keyframe in its map unit"}
+        rec: LoopQuery = {"kf": kf, "pool": np.array(pool, np.int64), "candidates": [], "geometry": {},
+                          "verified": None, "outcome": "no old keyframe in its map unit"}
         self.queries.append(rec)
         if not pool:
             return None

@@ -27,13 +27,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
 
 import numpy as np
 
 from mutualslam_cli.backend.loop_closer import LoopCloser, close_on_graph
 from mutualslam_cli.backend.loop_detector import LoopClosure, LoopDetector
-from mutualslam_cli.backend.records import MergeRecord
+from mutualslam_cli.backend.records import MergeRecord, MergeSite
 from mutualslam_cli.backend.refine import MapTarget
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.map.sim3 import Sim3
@@ -105,8 +104,8 @@ class SegmentMerger:
         if loop is None:
             return time.perf_counter() - t
         onto = state.segment(loop.match)
-        where: dict[str, Any] = dict(segment=int(seg), onto=int(onto), frame=int(state.frame_of(kf)),
-                                     timestamp=float(state.time_of(kf)))
+        where = MergeSite(segment=int(seg), onto=int(onto), frame=int(state.frame_of(kf)),
+                          timestamp=float(state.time_of(kf)))
         if state.unit(seg) == state.unit(onto):  # bridged into that map already: the measured loop corrects it
             if self.detector.already_closed(state, loop):
                 return time.perf_counter() - t

@@ -5,10 +5,11 @@ JSON only where ``manifest.json`` is written (``to_json``, the keys in the order
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal, TypedDict
 
 from mutualslam_cli.backend.ba.global_ba import BAStats
 from mutualslam_cli.backend.loop_detector import LoopClosure
+from mutualslam_cli.types import JSONObject
 
 
 @dataclass(frozen=True)
@@ -35,12 +36,22 @@ class LoopRecord:
     def match(self) -> int:
         return self.loop.match
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> JSONObject:
         out = {**self.loop.record(), "frame": self.frame, "timestamp": self.timestamp,
                "match_timestamp": self.match_timestamp}
         if self.ba_nearby_targets is not None:
             out["ba_nearby_targets"] = self.ba_nearby_targets
         return out
+
+
+class MergeSite(TypedDict):
+    """Where a merge happened, as :class:`MergeRecord`'s fields: the segment merged and the one it was found in,
+    the query keyframe's frame and time (s)."""
+
+    segment: int
+    onto: int
+    frame: int
+    timestamp: float
 
 
 @dataclass(frozen=True)
@@ -67,7 +78,7 @@ class MergeRecord:
     def query(self) -> int:
         return self.loop.query
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> JSONObject:
         out = {**self.loop.record(), "segment": self.segment, "onto": self.onto, "frame": self.frame,
                "timestamp": self.timestamp}
         out.update(how=self.how, **(self.closed.to_json() if self.closed is not None else {}))
@@ -82,5 +93,5 @@ class BARun:
     kf_id: int
     stats: BAStats = field(default_factory=BAStats)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> JSONObject:
         return {"kf_id": self.kf_id, **self.stats.record()}

@@ -14,7 +14,7 @@ from mutualslam_cli.config.checks import FRACTION, NOT_EMPTY, Range, Relation, a
 class NetConfig:
     """The depth network's settings; each field's range is beside it, ``RELATIONS`` holds those between fields."""
 
-    RELATIONS: ClassVar[tuple[Relation, ...]] = (
+    RELATIONS: ClassVar[tuple[Relation[NetConfig], ...]] = (
         Relation("min_depth", lambda c: c.min_depth < c.max_depth, lambda c: f"< max_depth ({c.max_depth})"),
     )
 

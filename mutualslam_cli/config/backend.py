@@ -13,7 +13,7 @@ from mutualslam_cli.config.checks import Relation, above, at_least, between, set
 class BAConfig:
     """Culling + global BA; each field's range is beside it, ``RELATIONS`` holds those between fields."""
 
-    RELATIONS: ClassVar[tuple[Relation, ...]] = (
+    RELATIONS: ClassVar[tuple[Relation[BAConfig], ...]] = (
         Relation("nearby_slots", lambda c: c.nearby_slots < c.max_targets,
                  lambda c: f"in [0, max_targets) (max_targets = {c.max_targets})"),
         Relation("huber_grey", lambda c: c.huber_grey <= c.outlier_grey,

@@ -22,9 +22,16 @@ import types
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar, overload
 
 from mutualslam_cli.errors import ConfigError
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance  # the section records import this module: they are typed as dataclasses
+
+T = TypeVar("T")
+#: The record a :class:`Relation` reads (a section record, :class:`~mutualslam_cli.config.run.RunConfig`).
+R = TypeVar("R")
 
 #: Metadata key of a field's rule.
 RULE = "rule"
@@ -58,7 +65,7 @@ class Range:
     or_zero: bool = False
     unit: str = ""
 
-    def holds(self, v: Any) -> bool:
+    def holds(self, v: object) -> bool:
         """Whether the number ``v`` is inside (a non-number: not this rule's business, True)."""
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             return True
@@ -70,7 +77,7 @@ class Range:
                     or (hi is not None and (v >= hi if self.hi_open else v > hi))
                     or bool(self.multiple_of and v % self.multiple_of))
 
-    def expected(self, v: Any) -> str:
+    def expected(self, v: float) -> str:
         """What the rule asks of ``v``, in words: ``an integer ≥ 4 (pixels)``, ``a number in (0, 1]``."""
         integer = isinstance(v, int) and not isinstance(v, bool)
         if integer and self.hi is None and v > INT_MAX:
@@ -98,26 +105,34 @@ class Pattern:
     regex: str
     expected_text: str
 
-    def holds(self, v: Any) -> bool:
+    def holds(self, v: object) -> bool:
         return not isinstance(v, str) or re.fullmatch(self.regex, v) is not None
 
-    def expected(self, v: Any) -> str:
+    def expected(self, v: object) -> str:
         return self.expected_text
 
 
 @dataclass(frozen=True)
-class Relation:
-    """A rule between fields of one record: ``holds(record)``; the message names ``key`` (dotted, from the
-    record) and ``expected(record)``."""
+class Relation(Generic[R]):
+    """A rule between fields of one record of type ``R``: ``holds(record)``; the message names ``key`` (dotted,
+    from the record) and ``expected(record)``."""
 
     key: str
-    holds: Callable[[Any], bool]
-    expected: Callable[[Any], str]
+    holds: Callable[[R], bool]
+    expected: Callable[[R], str]
 
 
-def setting(default: Any = dataclasses.MISSING, rule: Range | Pattern | None = None, *,
-            factory: Callable[[], Any] | None = None) -> Any:
-    """A dataclass field with its rule: ``grid_size: int = setting(20, at_least(4, "pixels"))``."""
+@overload
+def setting(default: T, rule: Range | Pattern | None = None) -> T: ...
+@overload
+def setting(*, rule: Range | Pattern | None = None, factory: Callable[[], T]) -> T: ...
+def setting(default: object = dataclasses.MISSING, rule: Range | Pattern | None = None, *,
+            factory: Callable[[], object] | None = None) -> Any:
+    """A dataclass field with its rule: ``grid_size: int = setting(20, at_least(4, "pixels"))``.
+
+    Typed as the field's value (``T``), as :func:`dataclasses.field` is, so that the annotation of the field
+    is checked against its default; what it returns is the :class:`dataclasses.Field` (hence ``Any``).
+    """
     meta = {RULE: rule} if rule is not None else {}
     if factory is not None:
         return dataclasses.field(default_factory=factory, metadata=meta)
@@ -151,18 +166,18 @@ DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 DEVICE = Pattern(DEVICE_PATTERN.pattern[1:-1], "one of auto, cpu, cuda, cuda:N")
 
 
-def _value_text(v: Any) -> str:
+def _value_text(v: object) -> str:
     return _num(v) if isinstance(v, int) and not isinstance(v, bool) else repr(v)
 
 
-def _dotted(record: Any, key: str) -> Any:
+def _dotted(record: object, key: str) -> object:
     for part in key.split("."):
         record = getattr(record, part)
     return record
 
 
 @functools.cache
-def _choices(cls: type) -> dict[str, tuple[Any, ...]]:
+def _choices(cls: type) -> dict[str, tuple[object, ...]]:
     """Field name → the values its ``Literal`` annotation allows (alone or beside another type)."""
     out = {}
     for name, tp in typing.get_type_hints(cls).items():
@@ -174,7 +189,7 @@ def _choices(cls: type) -> dict[str, tuple[Any, ...]]:
     return out
 
 
-def check_config(record: Any, where: str = "") -> None:
+def check_config(record: DataclassInstance, where: str = "") -> None:
     """Raise :class:`ConfigError` naming the first value of the dataclass ``record`` (nested records
     included) outside its field's rule, its ``Literal`` choices (a record built in code, not read by
     :mod:`~mutualslam_cli.config.parse`) or breaking one of the record's ``RELATIONS``.
@@ -185,7 +200,7 @@ def check_config(record: Any, where: str = "") -> None:
     pre = f"{where}." if where else ""
     for f in dataclasses.fields(record):
         value = getattr(record, f.name)
-        if dataclasses.is_dataclass(value):
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):  # a nested record (never a class)
             check_config(value, pre + f.name)
             continue
         cls: type = type(record)
@@ -205,17 +220,17 @@ def check_config(record: Any, where: str = "") -> None:
                               f"expected {rel.expected(record)}")
 
 
-def check_device_spec(spec: Any) -> None:
+def check_device_spec(spec: object) -> None:
     """Raise :class:`ConfigError` unless ``spec`` is ``auto``, ``cpu``, ``cuda`` or ``cuda:N``."""
     if not isinstance(spec, str) or not DEVICE_PATTERN.match(spec):
         raise ConfigError(f"device = {spec!r}: expected {DEVICE.expected_text}")
 
 
-def check_vo(cfg: Any) -> None:
+def check_vo(cfg: DataclassInstance) -> None:
     """Raise :class:`ConfigError` for options of a ``VOConfig`` the front end cannot work with."""
     check_config(cfg, "vo")
 
 
-def check_run(cfg: Any) -> None:
+def check_run(cfg: DataclassInstance) -> None:
     """Raise :class:`ConfigError` naming the first value of a ``RunConfig`` the tool cannot work with."""
     check_config(cfg)

@@ -42,7 +42,7 @@ class DenseConfig:
     fusion of GT depth with GT poses. Defaults suit rooms. Each field's range is beside it, ``RELATIONS`` holds
     those between fields."""
 
-    RELATIONS: ClassVar[tuple[Relation, ...]] = (
+    RELATIONS: ClassVar[tuple[Relation[DenseConfig], ...]] = (
         Relation("depth_min", lambda c: c.depth_min < c.depth_max, lambda c: f"< depth_max ({c.depth_max})"),
         Relation("scalings", lambda c: "sequence" in c.scalings and len(set(c.scalings)) == len(c.scalings),
                  lambda c: "a list that holds 'sequence' (the headline scores) and no name twice"),

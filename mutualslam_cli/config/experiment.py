@@ -4,12 +4,12 @@ paper experiment and how the tables name it."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
 from mutualslam_cli.config.checks import NOT_EMPTY, SEED, Relation, setting
 
 
-def _usable_labels(variants: dict[str, Any]) -> bool:
+def _usable_labels(variants: dict[str, list[str]]) -> bool:
     """Every label names one folder of its own (``<out>/<label>/``): not empty, no ``/``, not hidden or ``_cache``."""
     return all(label and "/" not in label and not label.startswith((".", "_"))
                for label in variants)
@@ -20,7 +20,7 @@ class ExperimentConfig:
     """What a paper experiment runs (``mslam ablate --config configs/<experiment>.yaml``) and reports; each
     field's range is beside it, ``RELATIONS`` holds those of whole lists."""
 
-    RELATIONS: ClassVar[tuple[Relation, ...]] = (
+    RELATIONS: ClassVar[tuple[Relation[ExperimentConfig], ...]] = (
         Relation("schemes", lambda c: len(set(c.schemes)) == len(c.schemes), lambda c: "no scheme named twice"),
         Relation("seeds", lambda c: len(set(c.seeds)) == len(c.seeds), lambda c: "no seed named twice"),
         Relation("variants", lambda c: _usable_labels(c.variants),

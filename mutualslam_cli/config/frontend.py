@@ -13,7 +13,7 @@ from mutualslam_cli.config.checks import Relation, above, at_least, between, set
 class VOConfig:
     """The front end's settings; each field's range is beside it, ``RELATIONS`` holds those between fields."""
 
-    RELATIONS: ClassVar[tuple[Relation, ...]] = (
+    RELATIONS: ClassVar[tuple[Relation[VOConfig], ...]] = (
         Relation("max_fts", lambda c: c.max_fts >= c.min_tracked, lambda c: f"≥ min_tracked ({c.min_tracked})"),
     )
 

@@ -12,14 +12,22 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 from mutualslam_cli.config.yaml_file import parse_yaml
 from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.types import JSON, JSONObject
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+#: A record class :func:`build` makes.
+T = TypeVar("T", bound="DataclassInstance")
 
 
-def coerce(value: Any, tp: Any, where: str) -> Any:
-    """Check/convert one YAML value to the annotated type ``tp``."""
+def coerce(value: JSON, tp: object, where: str) -> object:
+    """Check/convert one YAML value to the annotated type ``tp`` (a type or a typing form such as
+    ``list[str]``, ``Literal[...]``, ``X | None``); the value returned is of that type."""
     origin = typing.get_origin(tp)
     if origin is Literal:
         if isinstance(value, bool) and {"on", "off"} <= set(typing.get_args(tp)):
@@ -81,7 +89,7 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
-def build(cls: type, data: Any, where: str) -> Any:
+def build(cls: type[T], data: JSON, where: str) -> T:
     """An instance of the dataclass ``cls`` from a mapping of plain values, nested dataclasses
     included; an unknown key or a value of the wrong type raises :class:`ConfigError` naming it."""
     if not isinstance(data, dict):
@@ -91,7 +99,7 @@ def build(cls: type, data: Any, where: str) -> Any:
     unknown = sorted(set(data) - names, key=str)
     if unknown:
         raise ConfigError(f"{where or 'top level'}: unknown key(s) {unknown}; valid keys: {sorted(names)}")
-    kwargs = {}
+    kwargs: dict[str, object] = {}
     for f in dataclasses.fields(cls):
         if f.name not in data:
             continue
@@ -104,7 +112,7 @@ def build(cls: type, data: Any, where: str) -> Any:
     return cls(**kwargs)
 
 
-def parse_override(text: str) -> tuple[list[str], Any]:
+def parse_override(text: str) -> tuple[list[str], JSON]:
     """``"adapt.lr=1e-4"`` → ``(["adapt", "lr"], 1e-4)``; the value is parsed as YAML."""
     if "=" not in text:
         raise ConfigError(f"--set {text!r}: expected key=value, e.g. adapt.lr=1e-4")
@@ -116,7 +124,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return parts, value
 
 
-def apply_overrides(data: dict[str, Any], overrides: list[str], create: bool) -> dict[str, Any]:
+def apply_overrides(data: JSONObject, overrides: list[str], create: bool) -> JSONObject:
     """Apply ``--set``-style ``key=value`` overrides to the nested mapping ``data`` in place.
 
     Args:
@@ -129,8 +137,9 @@ def apply_overrides(data: dict[str, Any], overrides: list[str], create: bool) ->
         for p in parts[:-1]:
             if create and p not in node:
                 node[p] = {}
-            if not isinstance(node.get(p), dict):
+            section = node.get(p)
+            if not isinstance(section, dict):
                 raise ConfigError(f"--set {ov!r}: {p} is not a config section")
-            node = node[p]
+            node = section
         node[parts[-1]] = value
     return data

@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from mutualslam_cli.config.adaptation import AdaptConfig, NetConfig
 from mutualslam_cli.config.backend import BAConfig, LoopConfig
@@ -19,6 +19,10 @@ from mutualslam_cli.config.frontend import VOConfig
 from mutualslam_cli.config.parse import apply_overrides, build
 from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.errors import ConfigError
+from mutualslam_cli.types import JSONObject, Scalar
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
 #: The preset a command reads without ``--config``: the paper's method made robust (its header says what chose it).
@@ -41,7 +45,7 @@ class RunConfig:
     """A run's whole configuration: the top-level settings (each with its range beside it) and one record per
     section; ``RELATIONS`` holds the rules between sections."""
 
-    RELATIONS: ClassVar[tuple[Relation, ...]] = (
+    RELATIONS: ClassVar[tuple[Relation[RunConfig], ...]] = (
         Relation("vo.inject_outliers", lambda c: c.vo.inject_outliers == 0 or c.adapt.labels == "hindsight",
                  lambda c: "0 (it corrupts the finished front end's map: it needs adapt.labels=hindsight)"),
         Relation("adapt.train_width", lambda c: c.adapt.train_width <= c.net.width,
@@ -73,8 +77,9 @@ class RunConfig:
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
 
 
-def to_dict(cfg: Any) -> dict[str, Any]:
-    """Plain nested dict of a config (safe for ``yaml.safe_dump`` and JSON)."""
+def to_dict(cfg: DataclassInstance) -> dict[str, Any]:
+    """Plain nested dict of a config or one of its sections (safe for ``yaml.safe_dump`` and JSON): a
+    :data:`~mutualslam_cli.types.JSONObject`, typed ``Any``-valued as callers write into its sections."""
     return dataclasses.asdict(cfg)
 
 
@@ -88,7 +93,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             unknown key, a wrong type, a value out of its range (:mod:`~mutualslam_cli.config.checks`).
     """
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    data: dict[str, Any] = {}
+    data: JSONObject = {}
     if path != CONFIG_DIR / "paper.yaml" or path.exists():
         data = read_yaml_mapping(path, ConfigError, "YAML config file")
     cfg = build(RunConfig, apply_overrides(data, overrides or [], create=True), "")
@@ -103,13 +108,16 @@ def with_settings(cfg: RunConfig, overrides: list[str]) -> RunConfig:
     return out
 
 
-def with_overrides(cfg: RunConfig, **sections: Any) -> RunConfig:
+def with_overrides(cfg: RunConfig, **sections: Scalar | JSONObject) -> RunConfig:
     """Return ``cfg`` with some fields replaced: ``with_overrides(cfg, adapt={"scheme": "none"})`` updates a
     section's fields, ``seed=0`` sets a top-level value."""
-    data = to_dict(cfg)
+    data: JSONObject = to_dict(cfg)
     for sec, vals in sections.items():
         if isinstance(vals, dict):
-            data[sec].update(vals)
+            section = data[sec]
+            if not isinstance(section, dict):
+                raise ConfigError(f"{sec} = {vals!r}: {sec} is not a config section")
+            section.update(vals)
         else:
             data[sec] = vals
     out = build(RunConfig, data, "")

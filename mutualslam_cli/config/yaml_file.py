@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import os
 import stat
+from collections.abc import Hashable
 from pathlib import Path
 from typing import Any, TypeGuard
 
 import yaml
 
 from mutualslam_cli.errors import ConfigError, MslamError
+from mutualslam_cli.types import JSON
 
 #: Aliases (``*name``) one document may hold. No settings file needs one; a handful keeps hand-written
 #: anchors working, and 16 of them can expand into at most a few hundred values.
@@ -30,7 +32,7 @@ MAX_BYTES = 4 << 20
 REFUSED = "refused by mslam's strict YAML reader"
 
 
-def refusal(reason: str, mark: Any) -> yaml.MarkedYAMLError:
+def refusal(reason: str, mark: yaml.Mark) -> yaml.MarkedYAMLError:
     """The YAML error of a refusal: ``reason`` at ``mark`` (the line), told apart by :func:`is_refusal`."""
     return yaml.MarkedYAMLError(problem=reason, problem_mark=mark, note=REFUSED)
 
@@ -44,11 +46,11 @@ class StrictLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` that refuses a key given twice in one mapping and more than :data:`ALIAS_BUDGET`
     aliases."""
 
-    def __init__(self, stream: Any) -> None:
+    def __init__(self, stream: str) -> None:
         super().__init__(stream)
         self.aliases = 0
 
-    def compose_node(self, parent: Any, index: Any) -> Any:
+    def compose_node(self, parent: yaml.Node | None, index: object) -> yaml.Node | None:
         if self.check_event(yaml.AliasEvent):
             self.aliases += 1
             if self.aliases > ALIAS_BUDGET:
@@ -56,9 +58,9 @@ class StrictLoader(yaml.SafeLoader):
                               "billions of values", self.peek_event().start_mark)
         return super().compose_node(parent, index)
 
-    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+    def construct_mapping(self, node: yaml.Node, deep: bool = False) -> dict[Hashable, object]:
         if isinstance(node, yaml.MappingNode):
-            first: dict[Any, int] = {}
+            first: dict[object, int] = {}
             for key_node, _ in node.value:
                 if key_node.tag == "tag:yaml.org,2002:merge":
                     continue  # `<<: *base` then own keys: overriding the merged ones is what a merge is for
@@ -84,8 +86,11 @@ def _problem(e: yaml.YAMLError) -> tuple[str, str]:
     return where, f"not valid YAML ({problem})"
 
 
-def parse_yaml(text: str, where: str, error: type[MslamError] = ConfigError) -> Any:
+def parse_yaml(text: str, where: str, error: type[MslamError] = ConfigError) -> JSON:
     """The value of one YAML document, read by :class:`StrictLoader`.
+
+    Typed as :data:`~mutualslam_cli.types.JSON`, what a settings file holds; YAML can also spell a date, a
+    binary or a set (``!!set``), which the readers of the value refuse as a wrong type.
 
     Args:
         where: what the text is (a file name, ``--set 'key=value'``), the start of any message.
@@ -133,7 +138,8 @@ def read_text_file(path: str | os.PathLike[str], error: type[MslamError] = Confi
 def read_yaml_mapping(path: str | os.PathLike[str], error: type[MslamError] = ConfigError,
                       what: str = "YAML file") -> dict[str, Any]:
     """The YAML mapping in the file ``path`` (``{}`` for an empty file), read by :func:`read_text_file` and
-    :func:`parse_yaml`.
+    :func:`parse_yaml`: a :data:`~mutualslam_cli.types.JSONObject` whose fields the caller checks (typed
+    ``Any``-valued as callers read it as their own shape).
 
     Raises:
         error: one line naming the file: every refusal of those two, or a top level that is not a mapping.

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass
 from itertools import combinations
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 
@@ -23,6 +23,20 @@ LOSS_REASONS = ("too_few_tracks", "failed_alignment", "failed_init")
 """Why frames went untracked: KLT kept fewer usable tracks (map points, settled seeds) than ``vo.min_tracked``;
 the tracks left agreed on no pose; no segment could be initialised (at the start, or once the relocalisation
 window after a loss had passed)."""
+
+
+class WindowStats(TypedDict, total=False):
+    """One windowed BA's figures (:attr:`FrontEndStats.ba_stats`): the initial and final robust cost of
+    :func:`~mutualslam_cli.vo.local_ba.solve` (``cost0``, ``cost``; ``iters`` only when there was nothing to solve),
+    then the mapper's ``solve_ms``, the window's keyframe ``kf``, its ``points`` and ``obs`` (observations)."""
+
+    cost0: float
+    cost: float
+    iters: int
+    solve_ms: float
+    kf: int
+    points: int
+    obs: int
 
 
 @dataclass(frozen=True)
@@ -55,14 +69,14 @@ class RunStats:
     timing: dict[str, float]
     total_s: float
     reprojected: int
-    ba_stats: Seq[dict[str, Any]]
+    ba_stats: Seq[WindowStats]
     ba_threaded: bool
     relocalisations: Seq[Relocalised] = ()
     reloc_rejected: int = 0
     reused: int = 0
     fused: int = 0
     old_share: float | None = None
-    scale_check: dict[str, Any] | None = None
+    scale_check: dict[str, float | int | None] | None = None
     losses: Seq[tuple[int, str, str]] = ()
     init_wait: int = 0
     rescued: dict[str, int] | None = None

@@ -20,14 +20,20 @@ tracking was lost) go into the JSON header.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, TypeAlias
 
 import numpy as np
 
-#: Kind → field → ``"i"`` (int scalar), ``"f"`` (float scalar), ``"s"`` (text) or the trailing shape
-#: of an array field (``()`` for a 1-D array, ``(2,)`` for ``(n, 2)``, ``(4, 4)`` for ``(n, 4, 4)``…).
-SCHEMA: dict[str, dict[str, Any]] = {
+FieldSpec: TypeAlias = Literal["i", "f", "s"] | tuple[int, ...]
+"""How one field of an event is stored: ``"i"`` (int scalar), ``"f"`` (float scalar), ``"s"`` (text) or the
+trailing shape of an array field (``()`` for a 1-D array, ``(2,)`` for ``(n, 2)``, ``(4, 4)`` for ``(n, 4, 4)``…)."""
+EventValue: TypeAlias = int | float | str | np.ndarray
+"""One field's value in :attr:`Event.data`, as its :data:`FieldSpec` says (int64/float64 arrays)."""
+
+#: Kind → field → its :data:`FieldSpec`.
+SCHEMA: dict[str, dict[str, FieldSpec]] = {
     # the map (map.store.Map)
     "keyframe": {"kf": "i", "frame": "i", "t": "f", "segment": "i", "T_wc": (4, 4)},
     "pose": {"kfs": (), "T_wc": (4, 4)},
@@ -65,9 +71,11 @@ class Event:
 
     kind: str
     frame: int
-    data: dict[str, Any] = field(default_factory=dict)
+    data: dict[str, EventValue] = field(default_factory=dict)
 
     def __getitem__(self, key: str) -> Any:
+        """The field ``key`` (:attr:`data`), typed ``Any``: which of :data:`EventValue` it is depends on the kind,
+        which the caller has dispatched on (``e["kf"]`` of a ``keyframe`` is an int, ``e["pids"]`` an array)."""
         return self.data[key]
 
     def same(self, other: Event) -> bool:
@@ -97,9 +105,10 @@ class Journal:
         self.frame = -1
 
     def emit(self, kind: str, **data: Any) -> None:
-        """Record one event of ``kind`` at the current frame (arrays are copied)."""
+        """Record one event of ``kind`` at the current frame (arrays are copied); ``data``: its fields as the
+        caller has them (numbers, array-likes), converted here by the kind's schema."""
         schema = SCHEMA[kind]
-        out: dict[str, Any] = {}
+        out: dict[str, EventValue] = {}
         for k, spec in schema.items():
             v = data[k]
             if spec == "i":
@@ -151,21 +160,21 @@ def journal_to_arrays(events: list[Event], prefix: str = "ev") -> dict[str, np.n
             if spec in ("i", "f"):
                 out[key] = np.array([e.data[f] for e in evs], np.int64 if spec == "i" else np.float64)
                 continue
-            parts = [e.data[f] for e in evs]
+            parts: list[np.ndarray] = [e[f] for e in evs]
             dtype = np.int64 if f in _INT else np.float64
             out[key] = np.concatenate(parts).astype(dtype) if parts else np.zeros((0, *spec), dtype)
             off = np.zeros(len(parts) + 1, np.int64)
             off[1:] = np.cumsum([len(p) for p in parts])
             out[key + ".off"] = off
     for e in events:
-        text = {f: e.data[f] for f, spec in SCHEMA[e.kind].items() if spec == "s"}
+        text: dict[str, str] = {f: e[f] for f, spec in SCHEMA[e.kind].items() if spec == "s"}
         if text:
             texts.append(text)
     out[f"{prefix}.text"] = np.frombuffer(json.dumps(texts).encode("utf-8"), np.uint8)
     return out
 
 
-def journal_from_arrays(a: Any, prefix: str = "ev") -> list[Event]:
+def journal_from_arrays(a: Mapping[str, np.ndarray], prefix: str = "ev") -> list[Event]:
     """Inverse of :func:`journal_to_arrays` (``a``: that dict or an open ``np.load`` archive).
 
     Raises:
@@ -177,11 +186,11 @@ def journal_from_arrays(a: Any, prefix: str = "ev") -> list[Event]:
     if kinds.shape != frames.shape or (len(kinds) and (kinds.min() < 0 or kinds.max() >= len(KINDS))):
         raise ValueError("invalid journal: event kinds and frames disagree")
     texts = iter(json.loads(bytes(np.asarray(a[f"{prefix}.text"], np.uint8)).decode("utf-8")))
-    columns: dict[str, dict[str, Any]] = {}
+    columns: dict[str, dict[str, np.ndarray | tuple[np.ndarray, np.ndarray]]] = {}  # (values, offsets): arrays
     counters = {k: 0 for k in KINDS}
     for kind, schema in SCHEMA.items():
         n = int(np.sum(kinds == KINDS.index(kind)))
-        cols: dict[str, Any] = {}
+        cols: dict[str, np.ndarray | tuple[np.ndarray, np.ndarray]] = {}
         for f, spec in schema.items():
             if spec == "s":
                 continue
@@ -202,18 +211,18 @@ def journal_from_arrays(a: Any, prefix: str = "ev") -> list[Event]:
         kind = KINDS[code]
         j = counters[kind]
         counters[kind] += 1
-        data: dict[str, Any] = {}
+        data: dict[str, EventValue] = {}
         for f, spec in SCHEMA[kind].items():
             if spec == "s":
                 continue
             c = columns[kind][f]
-            if spec == "i":
-                data[f] = int(c[j])
-            elif spec == "f":
-                data[f] = float(c[j])
-            else:
+            if isinstance(c, tuple):  # an array field
                 col, off = c
                 data[f] = col[off[j]:off[j + 1]]
+            elif spec == "i":
+                data[f] = int(c[j])
+            else:  # "f"
+                data[f] = float(c[j])
         if any(spec == "s" for spec in SCHEMA[kind].values()):
             data.update(next(texts))
         events.append(Event(kind, int(frame), data))

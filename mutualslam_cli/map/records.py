@@ -7,7 +7,8 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any
+
+from mutualslam_cli.types import JSONObject
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,6 @@ class Relocalised:
     frames_lost: int
     candidates_tried: int
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> JSONObject:
         """The row as the result's ``meta`` holds it (keys in field order)."""
         return asdict(self)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Container
-from typing import Any
 
 import numpy as np
 
@@ -21,7 +20,7 @@ from mutualslam_cli.geometry import project
 from mutualslam_cli.map.assemble import RunStats, build_result
 from mutualslam_cli.map.journal import Event, Journal
 from mutualslam_cli.map.records import Relocalised
-from mutualslam_cli.map.result import VOResult
+from mutualslam_cli.map.result import Keyframe, VOResult
 from mutualslam_cli.map.sim3 import Sim3, rescaled
 from mutualslam_cli.map.store import Map
 from mutualslam_cli.pixels import in_image
@@ -70,7 +69,7 @@ class MapState:
     def journal(self, journal: Journal | None) -> None:
         self._journal = self.map.journal = journal
 
-    def _emit(self, kind: str, **data: Any) -> None:
+    def _emit(self, kind: str, **data: object) -> None:
         if self._journal is not None:
             self._journal.emit(kind, **data)
 
@@ -322,14 +321,14 @@ def events_from_result(vo: VOResult, n_frames: int) -> list[Event]:
             if k != pts.host[p]:
                 seen_by.setdefault(k, []).append((p, px))
     tracked = np.flatnonzero(vo.frame_segment >= 0)
-    frames_at: dict[int, list[tuple[int, Any, np.ndarray]]] = {}
+    frames_at: dict[int, list[tuple[int, Keyframe, np.ndarray]]] = {}
     if len(tracked) == len(vo.traj_all.poses):
         for f, T in zip(tracked.tolist(), vo.traj_all.poses):
             cands = [k for k in kfs if k.segment == vo.frame_segment[f]]
             if cands:
                 ref = ([k for k in cands if k.frame_index <= f] or cands[:1])[-1]
                 frames_at.setdefault(max(f, ref.frame_index), []).append((f, ref, T))
-    kf_at: dict[int, list[Any]] = {}
+    kf_at: dict[int, list[Keyframe]] = {}
     for k in kfs:
         kf_at.setdefault(k.frame_index, []).append(k)
     local: dict[int, int] = {}

@@ -48,7 +48,7 @@ class Map:
     _cw: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     journal: Journal | None = field(default=None, repr=False, compare=False)
 
-    def _emit(self, kind: str, **data) -> None:
+    def _emit(self, kind: str, **data: object) -> None:
         if self.journal is not None:
             self.journal.emit(kind, **data)
 

@@ -31,10 +31,11 @@ then scored like any depth map.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any, Literal
+from typing import Literal, TypeAlias
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from mutualslam_cli.errors import ConfigError, ShapeError
 from mutualslam_cli.metrics.ratios import count_within, median, ratio_sketch
@@ -49,15 +50,19 @@ MAX_DEPTH = 10.0
 
 Scaling = Literal["lsq", "median", "none"]
 
+DepthLike: TypeAlias = npt.ArrayLike
+"""Depths as given: a numpy array, a torch tensor (it has ``__array__``; detached and moved to the CPU
+here), a pandas column, nested lists or a number."""
 
-def _as_array(x: Any) -> np.ndarray:
+
+def _as_array(x: DepthLike) -> np.ndarray:
     """numpy or torch → float64 numpy (detached, on CPU)."""
     if hasattr(x, "detach"):  # torch.Tensor, without importing torch here
         x = x.detach().cpu().numpy()
     return np.asarray(x, dtype=np.float64)
 
 
-def _as_map(x: Any, name: str) -> np.ndarray:
+def _as_map(x: DepthLike, name: str) -> np.ndarray:
     """float64 ``(H, W)`` map; leading size-1 dimensions are dropped."""
     a = _as_array(x)
     while a.ndim > 2 and a.shape[0] == 1:
@@ -71,7 +76,7 @@ def _check_scaling(scaling: str) -> None:
         raise ConfigError(f"unknown depth scaling {scaling!r}; valid: {', '.join(SCALINGS)}")
 
 
-def valid_mask(gt: Any, max_depth: float = MAX_DEPTH, pred: Any | None = None) -> np.ndarray:
+def valid_mask(gt: DepthLike, max_depth: float = MAX_DEPTH, pred: DepthLike | None = None) -> np.ndarray:
     """Pixels (or points) where the metrics are evaluated.
 
     Args:
@@ -93,7 +98,7 @@ def valid_mask(gt: Any, max_depth: float = MAX_DEPTH, pred: Any | None = None) -
     return m
 
 
-def resize_to(pred: Any, shape: tuple[int, int]) -> np.ndarray:
+def resize_to(pred: DepthLike, shape: tuple[int, int]) -> np.ndarray:
     """Bilinear resize of a depth map to ``shape = (H, W)`` (``cv2.INTER_LINEAR``), float64.
 
     Returned unchanged (as float64) when it already has that shape.
@@ -105,7 +110,7 @@ def resize_to(pred: Any, shape: tuple[int, int]) -> np.ndarray:
     return cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
-def scale_factor(pred: Any, gt: Any, mask: np.ndarray, scaling: Scaling) -> float:
+def scale_factor(pred: DepthLike, gt: DepthLike, mask: np.ndarray, scaling: Scaling) -> float:
     """Scale ``s`` applied to ``pred`` before comparing with ``gt``, over ``mask``.
 
     ``median``: ``median(gt)/median(pred)``; ``lsq``: ``Σ pred·gt / Σ pred²``; ``none``: 1.
@@ -138,8 +143,8 @@ def _pcd(p: np.ndarray, g: np.ndarray, s: float, threshold: float) -> float:
 
 
 def percent_correct(
-    pred: Any,
-    gt: Any,
+    pred: DepthLike,
+    gt: DepthLike,
     scaling: Scaling,
     threshold: float = PCD_THRESHOLD,
     max_depth: float = MAX_DEPTH,
@@ -164,7 +169,7 @@ def percent_correct(
     return _pcd(pv, gv, _scale(pv, gv, scaling), threshold)
 
 
-def esi(pred: Any, gt: Any, mask: np.ndarray | None = None) -> float:
+def esi(pred: DepthLike, gt: DepthLike, mask: np.ndarray | None = None) -> float:
     """Scale-invariant log error e_si (paper Eq. 13, §IV-D; Eigen et al. 2014, eq. 4 with λ = 1).
 
     ``e_si = sqrt(mean(d²) − mean(d)²)``, ``d = log z − log z*``; the same value as the
@@ -201,7 +206,7 @@ def _esi(p: np.ndarray, g: np.ndarray) -> float:
     return float(np.sqrt(np.mean((d - d.mean()) ** 2)))  # = sqrt(1/N Σd² − 1/N² (Σd)²), Eigen et al. 2014
 
 
-def abs_rel(pred: Any, gt: Any, mask: np.ndarray, scale: float = 1.0) -> float:
+def abs_rel(pred: DepthLike, gt: DepthLike, mask: np.ndarray, scale: float = 1.0) -> float:
     """Mean absolute relative error ``mean(|s·D − D_gt| / D_gt)`` (Eigen et al. 2014); NaN if empty."""
     return _abs_rel(_as_array(pred)[mask], _as_array(gt)[mask], scale)
 
@@ -212,7 +217,8 @@ def _abs_rel(p: np.ndarray, g: np.ndarray, scale: float) -> float:
     return float(np.mean(np.abs(scale * p - g) / g))  # abs_rel, Eigen et al. 2014 §4
 
 
-def align_inverse_depth(pred_inv: Any, gt: Any, max_depth: float = MAX_DEPTH) -> tuple[np.ndarray, float, float]:
+def align_inverse_depth(pred_inv: DepthLike, gt: DepthLike,
+                        max_depth: float = MAX_DEPTH) -> tuple[np.ndarray, float, float]:
     """Depth from a *relative* inverse-depth map (MiDaS-style: known only up to an affine map) by a
     per-frame least-squares scale and shift in inverse depth against the GT, as MiDaS is evaluated
     (Ranftl et al. 2022, "Towards Robust Monocular Depth Estimation", arXiv 1907.01341: alignment in
@@ -286,7 +292,7 @@ class DepthStats:
 
 
 def depth_stats(
-    pred: Any, gt: Any, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD, sketch: bool = False
+    pred: DepthLike, gt: DepthLike, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD, sketch: bool = False
 ) -> DepthStats:
     """All per-frame depth metrics of one prediction (resized to GT resolution first);
     ``sketch``: also keep :func:`ratio_sketch` of the frame (sequence-level scaling)."""
@@ -324,7 +330,7 @@ def depth_stats(
     )
 
 
-def sequence_lsq_scale(sum_pg: Any, sum_pp: Any) -> float:
+def sequence_lsq_scale(sum_pg: DepthLike, sum_pp: DepthLike) -> float:
     """One least-squares scale for a sequence from the frames' ``Σ D·D_gt`` and ``Σ D²`` (NaN if none)."""
     pg, pp = _as_array(sum_pg), _as_array(sum_pp)
     ok = np.isfinite(pg) & np.isfinite(pp)
@@ -332,7 +338,7 @@ def sequence_lsq_scale(sum_pg: Any, sum_pp: Any) -> float:
     return float(pg[ok].sum() / den) if den > 0 else float("nan")  # argmin_s Σ_frames Σ (s·p − g)²
 
 
-def pooled_mean(values: Any, n_valid: Any) -> float:
+def pooled_mean(values: DepthLike, n_valid: DepthLike) -> float:
     """Pixel-pooled mean of per-frame percentages: ``Σ v·n / Σ n`` over frames with a finite value."""
     v, n = _as_array(values), _as_array(n_valid)
     ok = np.isfinite(v) & (n > 0)
@@ -340,7 +346,7 @@ def pooled_mean(values: Any, n_valid: Any) -> float:
 
 
 def depth_frame_metrics(
-    pred: Any, gt: Any, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD
+    pred: DepthLike, gt: DepthLike, max_depth: float = MAX_DEPTH, threshold: float = PCD_THRESHOLD
 ) -> dict[str, float | int]:
     """:func:`depth_stats` as a plain dict (keys = :class:`DepthStats` fields but ``sketch``) for ``per_frame.csv``."""
     out = asdict(depth_stats(pred, gt, max_depth, threshold))
@@ -348,7 +354,7 @@ def depth_frame_metrics(
     return out
 
 
-def running_mean(values: Any) -> np.ndarray:
+def running_mean(values: DepthLike) -> np.ndarray:
     """Mean over frames ``0..t`` for every ``t``, ignoring NaN (and inf) (the paper's accuracy-over-frames figure).
 
     Returns:

@@ -23,12 +23,34 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
+from mutualslam_cli.types import Scalar
+
 #: GT distance (m) and rotation angle (degrees) within which two keyframes see the same place.
 MAX_DIST_M, MAX_ANGLE_DEG = 0.30, 30.0
+
+
+class _QueryRecord(TypedDict):
+    kf: int
+    pool: np.ndarray
+    candidates: list[int]
+    geometry: dict[int, str]
+    verified: int | None
+    outcome: str
+
+
+class LoopQuery(_QueryRecord, total=False):
+    """One record of :attr:`~mutualslam_cli.backend.loop_detector.LoopDetector.queries` (its docstring says what
+    each key holds), defined here as loop recall reads it; the keys below only once the query got that far:
+    ``spread_old``, ``spread_new`` the depth spreads of the old and new points, ``scale_from`` ``"map"`` or
+    ``"network"``."""
+
+    spread_old: float
+    spread_new: float
+    scale_from: str
 
 
 @dataclass
@@ -105,14 +127,14 @@ class RecallRow:
     verified_kf: int = -1
     closed_kf: int = -1
 
-    def record(self) -> dict[str, Any]:
+    def record(self) -> dict[str, Scalar]:
         """A CSV-ready dict (candidates as space-separated ids)."""
         d = asdict(self)
         d["candidates"] = " ".join(map(str, self.candidates))
         return d
 
 
-def _reason(q: Mapping[str, Any], partners: set[int], n_candidates: int, closed_kf: int) -> str:
+def _reason(q: LoopQuery, partners: set[int], n_candidates: int, closed_kf: int) -> str:
     """Why query ``q`` (a :attr:`LoopDetector.queries` record) did not close a loop onto a true partner."""
     if not partners & set(np.asarray(q["pool"]).tolist()):
         return "true partners outside its map unit (a segment no bridge joined)"
@@ -128,7 +150,7 @@ def _reason(q: Mapping[str, Any], partners: set[int], n_candidates: int, closed_
     return q["outcome"] if q["outcome"] != "loop" else "verified, not closed"
 
 
-def classify(revisits: Mapping[int, list[Partner]], queries: Mapping[int, Mapping[str, Any]],
+def classify(revisits: Mapping[int, list[Partner]], queries: Mapping[int, LoopQuery],
              closed: Mapping[int, int], skipped: Mapping[int, str], n_candidates: int) -> list[RecallRow]:
     """One :class:`RecallRow` per keyframe with a true partner, in keyframe order.
 

@@ -33,7 +33,7 @@ the run; 1 for a map that holds its scale), and the median local ATE over window
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -41,7 +41,7 @@ from mutualslam_cli.datasets.associate import MAX_DT
 from mutualslam_cli.errors import DatasetError, GeometryError
 from mutualslam_cli.metrics.alignment import align_positions
 from mutualslam_cli.metrics.trajectory import associate_indices
-from mutualslam_cli.types import Trajectory, check_shape
+from mutualslam_cli.types import JSONObject, Trajectory, check_shape
 
 #: Keyframes per window (the issue's default: long enough to fix a Sim(3), short enough to see the drift).
 WINDOW = 15
@@ -102,7 +102,7 @@ class ScaleDrift:
         """Median over windows of the window RMSE after its own Sim(3), metres."""
         return float(np.median(self.local_rmse))
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> JSONObject:
         """Plain values for ``summary.json`` (no arrays)."""
         return {"max": self.max, "min": self.min, "max_over_min": self.max_over_min, "local_ate_m": self.local_ate,
                 "global_scale": self.global_scale, "global_ate_m": self.global_rmse, "windows": len(self.rel_scale),

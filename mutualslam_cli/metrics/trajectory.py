@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypedDict
+from typing import Literal, TypedDict
 
 import numpy as np
 
@@ -31,7 +31,7 @@ from mutualslam_cli.metrics.alignment import (  # noqa: F401  (ALIGNMENTS, umeya
     check_alignment,
     umeyama,
 )
-from mutualslam_cli.types import Trajectory, check_shape
+from mutualslam_cli.types import JSONObject, Trajectory, check_shape
 
 logger = logging.getLogger(__name__)
 
@@ -176,7 +176,7 @@ class AteResult:
     n_ref: int = 0
     n_est: int = 0
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> JSONObject:
         """Plain-value dict (no arrays) for ``summary.json``."""
         keys = ("rmse", "mean", "median", "max", "min", "std", "n_pairs", "scale", "align", "max_dt", "n_ref", "n_est")
         return {k: getattr(self, k) for k in keys}
@@ -293,7 +293,7 @@ class SegmentedAteResult:
     note: str = ""
     per_segment_alignment: bool = field(default=True)
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> JSONObject:
         """Plain-value dict for ``summary.json``."""
         keys = ("rmse", "mean", "median", "max", "min", "std", "n_pairs", "n_pairs_skipped", "n_segments",
                 "n_skipped", "align", "note", "per_segment_alignment")

@@ -118,23 +118,23 @@ class DeferredMap:
     at its end and :meth:`apply_due` hands them to the live source once the sequence's time reaches it.
     """
 
-    def __init__(self, source: Any) -> None:
+    def __init__(self, source: MapTarget) -> None:
         self.source = source
-        self._copy: Any | None = None
+        self._copy: MapState | None = None
         self._last_kf = -1  # the newest keyframe when the copy was made
         self._ops: list[tuple[str, tuple]] = []
         self.due: list[tuple[float, int, list[tuple[str, tuple]]]] = []  # (time, newest keyframe, changes)
         self.applied: list[tuple[int, float, str]] = []  # (source frame when applied, due time, kind)
 
     @property
-    def state(self) -> Any:
+    def state(self) -> MapState:
         return self._copy if self._copy is not None else self.source.state
 
     def settle(self) -> None:
         if self._copy is None:  # the front end's own windowed BA, in the live map
             self.source.settle()
 
-    def _shadow(self) -> Any:
+    def _shadow(self) -> MapState:
         if self._copy is None:
             self._copy = self.source.state.fork()
             self._last_kf = self._copy.n_keyframes - 1

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field, fields
-from typing import Any
 
 import pandas as pd
 
 from mutualslam_cli.adapt.step_info import StepInfo
+from mutualslam_cli.types import Scalar
 
 #: The back end's work on a keyframe, ``keyframes.csv`` columns in seconds (wall time on this machine).
 WORK_SECONDS = ("bridge_s", "merge_s", "ba_s", "loop_s")
@@ -22,10 +22,10 @@ COLUMNS = ("kf_id", "not_ticked", *(f.name for f in fields(StepInfo) if f.name n
            "n_sparse", *WORK_SECONDS, "rt_start_ms", "rt_end_ms")
 
 
-def step_columns(info: StepInfo) -> dict[str, Any]:
+def step_columns(info: StepInfo) -> dict[str, Scalar]:
     """The adapter's step info as flat CSV columns: lists space-joined, enums by value, the loss parts as
     ``loss_<part>`` columns."""
-    row: dict[str, Any] = {}
+    row: dict[str, Scalar] = {}
     for k, v in dict(vars(info)).items():
         if isinstance(v, dict):
             row.update({f"{k}_{p}": x for p, x in v.items()})
@@ -90,9 +90,9 @@ class KeyframeRow:
             return int(self.steps)
         return int(self.info.steps) if self.info is not None else 0
 
-    def to_row(self) -> dict[str, Any]:
+    def to_row(self) -> dict[str, Scalar]:
         """The ``keyframes.csv`` row: the columns it has, in :data:`COLUMNS` order (loss parts after ``ms``)."""
-        row: dict[str, Any] = {"kf_id": self.kf_id}
+        row: dict[str, Scalar] = {"kf_id": self.kf_id}
         if self.not_ticked is not None:
             row["not_ticked"] = self.not_ticked
         if self.info is not None:

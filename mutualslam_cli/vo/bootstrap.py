@@ -20,7 +20,7 @@ from mutualslam_cli.vo.features import detect_grid
 from mutualslam_cli.vo.frontend_base import FrontEndBase
 from mutualslam_cli.vo.initialization import InitResult, initialize
 from mutualslam_cli.vo.state import InitReference, Tracks
-from mutualslam_cli.vo.tracking import estimate_pose, klt_track
+from mutualslam_cli.vo.tracking import Pyramid, estimate_pose, klt_track
 
 log = logging.getLogger("mutualslam_cli.vo.frontend")
 
@@ -39,7 +39,7 @@ class InitMixin(FrontEndBase):
         pts = detect_grid(gray, self.cfg.grid_size, self.cfg.max_fts)
         self.st.ref = InitReference(i, gray, pts, pts, np.arange(len(pts)))
 
-    def _init_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
+    def _init_step(self, i: int, gray: np.ndarray, pyr: Pyramid, prev_pyr: Pyramid | None) -> None:
         cfg = self.cfg
         if self._relocalise(i, gray):
             return

@@ -14,8 +14,8 @@ features recomputed (deterministic), the previous frame's pyramid rebuilt. Plain
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import fields
-from typing import Any
 
 import numpy as np
 
@@ -45,7 +45,7 @@ def capture(fe: FrontEnd) -> dict[str, np.ndarray]:
     if not resumable(fe):
         raise ValueError("the front end is not at a resumable frame")
     st, tr = fe.st, fe.st.tracks
-    header: dict[str, Any] = {k: getattr(st, k) for k in _SCALARS}
+    header: dict[str, object] = {k: getattr(st, k) for k in _SCALARS}  # written as JSON (numpy scalars as floats)
     header.update(timing=st.timing, rescued=st.rescued, ba_stats=fe.mapper.stats, kf_imgs=sorted(st.kf_imgs),
                   reloc=None if fe.reloc is None else {"keyframes": sorted(fe.reloc.images),
                                                         "rejected": fe.reloc.rejected})
@@ -68,7 +68,7 @@ def capture(fe: FrontEnd) -> dict[str, np.ndarray]:
     return out
 
 
-def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: Any) -> FrontEnd:
+def restore(seq: Sequence, cfg: VOConfig, seed: int, events: list[Event], ckpt: Mapping[str, np.ndarray]) -> FrontEnd:
     """A front end in the state ``ckpt`` (a :func:`capture`) describes, with its map rebuilt from
     ``events`` (the journal up to the captured frame). New events go to a fresh journal."""
     fe = FrontEnd(seq, cfg, seed)

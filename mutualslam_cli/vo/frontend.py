@@ -43,7 +43,7 @@ from mutualslam_cli.vo.relocalise import RelocIndex
 from mutualslam_cli.vo.rescue import KEEP_FACTOR, WEAK_FACTOR, judge, loss_reason, rescue_pose, seed_points
 from mutualslam_cli.vo.scale_check import KeyframeRatio, ScaleCheck
 from mutualslam_cli.vo.state import TrackerState, Tracks
-from mutualslam_cli.vo.tracking import build_pyramid, estimate_pose, klt_track
+from mutualslam_cli.vo.tracking import Pyramid, build_pyramid, estimate_pose, klt_track
 
 log = logging.getLogger(__name__)
 
@@ -102,13 +102,14 @@ class FrontEnd(InitMixin, RecoveryMixin, FeedbackMixin, LocalMapMixin, NetworkMi
         sm.track_frame(i, self.st.segment, self.st.last_kf, sm.map.poses_cw()[self.st.last_kf] @ T_wc)
 
     # ---------------------------------------------------------------- tracking
-    def _track_step(self, i: int, gray: np.ndarray, pyr, prev_pyr) -> None:
+    def _track_step(self, i: int, gray: np.ndarray, pyr: Pyramid, prev_pyr: Pyramid | None) -> None:
         cfg, m = self.cfg, self.state_map.map
         if self.mapper.pending is not None and i >= self.st.ba_due:
             self._collect_ba()
         t0 = time.perf_counter()
         T_prior = self._motion_prior(i) @ self.st.T_cw
         pred = self._predict(self.st.tracks, T_prior)
+        assert prev_pyr is not None, "tracking follows a frame"
         raw, ok = klt_track(prev_pyr, pyr, self.st.tracks.raw, cfg.klt_window, cfg.klt_levels, cfg.fb_threshold_px,
                             pred=pred)
         tr = self.st.tracks.select(ok)

@@ -60,7 +60,7 @@ class InitResult:
 
 
 def _score_h(H: np.ndarray, x0: np.ndarray, x1: np.ndarray, sigma: float) -> float:
-    def transfer(M, a):
+    def transfer(M: np.ndarray, a: np.ndarray) -> np.ndarray:
         p = np.c_[a, np.ones(len(a))] @ M.T
         return p[:, :2] / p[:, 2:3]
 
@@ -94,8 +94,9 @@ def triangulate(x0: np.ndarray, x1: np.ndarray, T_10: np.ndarray) -> np.ndarray:
         return (X[:3] / X[3]).T
 
 
-def _check(x0, x1, T_10, thr):
-    """Points, good mask and median parallax (deg) of a motion hypothesis."""
+def _check(x0: np.ndarray, x1: np.ndarray, T_10: np.ndarray,
+           thr: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Points, good mask and median parallax (deg) of a motion hypothesis, and each point's parallax (deg)."""
     X = triangulate(x0, x1, T_10)
     X1 = X @ T_10[:3, :3].T + T_10[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -110,7 +111,8 @@ def _check(x0, x1, T_10, thr):
     return X, good, med, par
 
 
-def _two_view_ba(x0, x1, T_10, X, good, thr) -> np.ndarray:
+def _two_view_ba(x0: np.ndarray, x1: np.ndarray, T_10: np.ndarray, X: np.ndarray, good: np.ndarray,
+                 thr: float) -> np.ndarray:
     """Joint LM refinement of the second pose and the points' inverse depths (first view fixed)."""
     idx = np.flatnonzero(good & (X[:, 2] > 0))
     if len(idx) < 8:

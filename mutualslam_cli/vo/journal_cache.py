@@ -29,6 +29,7 @@ from mutualslam_cli.atomic import atomic_path
 from mutualslam_cli.config import RunConfig, to_dict
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.map.journal import JOURNAL_VERSION, Event, journal_from_arrays, journal_to_arrays
+from mutualslam_cli.types import JSON
 from mutualslam_cli.vo.frontend import FRONTEND_VERSION
 
 log = logging.getLogger(__name__)
@@ -120,7 +121,8 @@ def load_entry(path: Path) -> JournalEntry | None:
     return JournalEntry(events, int(header["until"]), int(header["n_frames"]), cks, header.get("meta") or {})
 
 
-def _plain(x: Any) -> Any:
+def _plain(x: object) -> JSON:
+    """``json.dumps``'s ``default``: a numpy scalar or array as plain values (anything else is refused)."""
     if isinstance(x, np.generic):
         return x.item()
     if isinstance(x, np.ndarray):

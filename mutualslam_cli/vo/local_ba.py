@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mutualslam_cli.geometry import left_update
+from mutualslam_cli.map.assemble import WindowStats
 
 
 @dataclass
@@ -58,7 +59,7 @@ def _prior(prob: BAProblem, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     return r, np.where(has, prob.prior_w / rho, 0.0), has
 
 
-def residuals(prob: BAProblem, T: np.ndarray, rho: np.ndarray, jac: bool = False):
+def residuals(prob: BAProblem, T: np.ndarray, rho: np.ndarray, jac: bool = False) -> tuple[np.ndarray, ...]:
     """Reprojection residuals ``(M, 2)`` and, with ``jac``, the Jacobians.
 
     Returns:
@@ -111,7 +112,7 @@ def _apply(T: np.ndarray, fi: np.ndarray, dc: np.ndarray) -> np.ndarray:
     return left_update(T, fi, dc.reshape(-1, 6))
 
 
-def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np.ndarray, dict]:
+def solve(prob: BAProblem, huber: float, iters: int = 6) -> tuple[np.ndarray, np.ndarray, WindowStats]:
     """Levenberg–Marquardt on the window with a Schur complement on the points.
 
     Args:

@@ -16,17 +16,21 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TypeAlias
 
 import numpy as np
 
 from mutualslam_cli.geometry import se3_inv, to_normalized
 from mutualslam_cli.map.state import MapState
-from mutualslam_cli.vo.local_ba import BAProblem, residuals, solve
+from mutualslam_cli.vo.local_ba import BAProblem, WindowStats, residuals, solve
 
 log = logging.getLogger(__name__)
 
 OUTLIER_FACTOR = 3.0
 """Observations with reprojection error above ``OUTLIER_FACTOR × threshold`` after BA are removed."""
+
+#: A windowed BA's result: new ``T_cw`` ``(K, 4, 4)``, new ``rho`` ``(P,)`` and its figures.
+_Solved: TypeAlias = tuple[np.ndarray, np.ndarray, WindowStats]
 
 
 @dataclass
@@ -37,7 +41,7 @@ class _Job:
     pids: list[int]
     o_id: list[tuple[int, int]]
     prob: BAProblem
-    result: Future | tuple | None = None
+    result: Future[_Solved] | _Solved  # in flight on the worker thread, or solved
 
 
 class Mapper:
@@ -49,7 +53,7 @@ class Mapper:
         self.state, self.K, self.core_kfs, self.thr, self.iters = state, K, core_kfs, thr, iters
         self.pool = ThreadPoolExecutor(max_workers=1) if threaded else None
         self.job: _Job | None = None
-        self.stats: list[dict] = []
+        self.stats: list[WindowStats] = []
         self.prior_of: Callable[[np.ndarray], np.ndarray] | None = None  # vo.scale_prior: points' prior ρ (NaN: none)
         self.prior_w = 0.0
 
@@ -98,23 +102,18 @@ class Mapper:
             # a keyframe's n priors weigh as one measurement of its scale: each 1/√n of the keyframe's weight
             n_h = np.bincount(host[np.isfinite(prob.prior_rho)], minlength=len(kfs))
             prob.prior_w = self.prior_w / np.sqrt(np.maximum(n_h[host], 1))
-        job = _Job(kf, kfs, free, pids, o_id, prob)
-        if threaded and self.pool is not None:
-            job.result = self.pool.submit(self._solve, prob)
-        else:
-            job.result = self._solve(prob)
-        self.job = job
+        result = self.pool.submit(self._solve, prob) if threaded and self.pool is not None else self._solve(prob)
+        self.job = _Job(kf, kfs, free, pids, o_id, prob, result)
 
     def resume(self, kf: int, kfs: list[int], free: np.ndarray, pids: list[int], o_id: list[tuple[int, int]],
                prob: BAProblem) -> None:
         """Put back a job a checkpoint captured in flight (:mod:`~mutualslam_cli.vo.checkpoint`): solved again
         from its problem, so its result is the one the captured front end would have applied."""
         assert self.job is None, "collect() the pending BA before resuming another"
-        job = _Job(kf, kfs, free, pids, o_id, prob)
-        job.result = self.pool.submit(self._solve, prob) if self.pool is not None else self._solve(prob)
-        self.job = job
+        result = self.pool.submit(self._solve, prob) if self.pool is not None else self._solve(prob)
+        self.job = _Job(kf, kfs, free, pids, o_id, prob, result)
 
-    def _solve(self, prob: BAProblem) -> tuple:
+    def _solve(self, prob: BAProblem) -> _Solved:
         t0 = time.perf_counter()
         T_new, rho_new, ba_stats = solve(prob, self.thr, iters=self.iters)
         ba_stats["solve_ms"] = 1000.0 * (time.perf_counter() - t0)
@@ -133,8 +132,8 @@ class Mapper:
             return np.zeros(0, np.int64)
         self.job = None
         res = job.result.result() if isinstance(job.result, Future) else job.result
-        T_new, rho_new, ba_stats = res  # type: ignore[misc]
-        ba_stats.update(kf=job.kf, points=len(job.pids), obs=len(job.o_id))
+        T_new, rho_new, ba_stats = res
+        ba_stats["kf"], ba_stats["points"], ba_stats["obs"] = job.kf, len(job.pids), len(job.o_id)
         self.stats.append(ba_stats)
         free = np.flatnonzero(job.free)
         st.set_poses(np.array(job.kfs, np.int64)[free], np.array([se3_inv(T) for T in T_new[free]]).reshape(-1, 4, 4))

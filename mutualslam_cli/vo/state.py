@@ -138,7 +138,7 @@ class TrackerState:
     ba_due: int = 0
     lost_at: int = -1
     kf_imgs: dict[int, np.ndarray] = field(default_factory=dict)
-    prev_pyr: object = None
+    prev_pyr: np.ndarray | None = None  # a tracking.Pyramid
     frame: int = -1
     timing: dict[str, float] = field(default_factory=dict)
     wall_s: float = 0.0

@@ -62,7 +62,7 @@ class DepthDecoder(nn.Module):
         super().__init__()
         self.num_ch_enc = [int(c) for c in num_ch_enc]
         self.scales = tuple(scales)
-        self._index: dict[tuple, int] = {}
+        self._index: dict[tuple[str | int, ...], int] = {}
         mods: list[nn.Module] = []
         for i in range(4, -1, -1):
             c_in = self.num_ch_enc[-1] if i == 4 else NUM_CH_DEC[i + 1]
@@ -76,7 +76,7 @@ class DepthDecoder(nn.Module):
             mods.append(Conv3x3(NUM_CH_DEC[s], 1))
         self.decoder = nn.ModuleList(mods)
 
-    def _m(self, *key) -> nn.Module:
+    def _m(self, *key: str | int) -> nn.Module:
         return self.decoder[self._index[key]]
 
     def forward(self, features: Sequence[torch.Tensor], scales: Iterable[int] | None = None) -> dict[int, torch.Tensor]:

@@ -114,7 +114,10 @@ def extent(T: np.ndarray, anchor: np.ndarray | None = None) -> float:
     return float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1))))
 
 
-def apply_step(T, ab, rho, dc, dp, fidx):
+def apply_step(T: np.ndarray, ab: np.ndarray, rho: np.ndarray, dc: np.ndarray, dp: np.ndarray,
+               fidx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The LM step ``(dc (8K,), dp (P,))`` applied to the free keyframes ``fidx``: new poses ``T`` ``(K, 4, 4)``,
+    affine brightness ``ab`` ``(K, 2)`` and inverse depths ``rho`` ``(P,)`` (kept ≥ 1e-6)."""
     ab = ab.copy()
     d = dc.reshape(-1, NP)[fidx]
     T = left_update(T, fidx, d[:, :6])

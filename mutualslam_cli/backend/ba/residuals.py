@@ -91,7 +91,7 @@ class PatchData:
         self.host_ok = hv[self.p]
         self.structure = BlockStructure(np.asarray(prob.host), self.p, self.t, self.nk)
 
-    def sample(self, kf: np.ndarray, u: np.ndarray, v: np.ndarray):
+    def sample(self, kf: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bilinear intensity at ``(u, v)`` (clamped inside the image) and its exact
         derivatives ``∂I/∂u``, ``∂I/∂v`` (those of the bilinear interpolant itself, so the
         Jacobians are consistent with the cost being minimised)."""

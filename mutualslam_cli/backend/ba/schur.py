@@ -32,7 +32,7 @@ class BlockStructure:
         idx = (kf[:, None] * NP + np.arange(NP)).ravel()
         return np.bincount(idx, V.ravel(), minlength=self.nk * NP)
 
-    def camera_system(self, Jc: np.ndarray, Jw: np.ndarray, bblk: np.ndarray):
+    def camera_system(self, Jc: np.ndarray, Jw: np.ndarray, bblk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Dense ``H_cc`` ``(8K, 8K)`` and ``b_c`` ``(8K,)``: every residual of one (host,
         target) pair adds to the same 16×16 block, so each pair is one small matrix product
         (a loop over keyframe pairs, not over points)."""
@@ -99,7 +99,8 @@ class BlockStructure:
 class NormalEquations:
     """Gauss–Newton normal equations in Schur form (point block diagonal)."""
 
-    def __init__(self, structure: BlockStructure, Hcc, bc, A, Ct, Hpp, bp):
+    def __init__(self, structure: BlockStructure, Hcc: np.ndarray, bc: np.ndarray, A: np.ndarray, Ct: np.ndarray,
+                 Hpp: np.ndarray, bp: np.ndarray) -> None:
         self.structure, self.Hcc, self.bc, self.A, self.Ct, self.Hpp, self.bp = structure, Hcc, bc, A, Ct, Hpp, bp
 
     def step(self, lam: float, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
