@@ -123,7 +123,7 @@ def config_from(config: Path | None, sets: list[str] | None, data_root: str | No
     if data_root:
         cfg = with_overrides(cfg, data={"data_root": data_root})
     if device:
-        cfg = with_overrides(cfg, device=device)  # type: ignore[arg-type]
+        cfg = with_overrides(cfg, device=device)
     return cfg
 
 

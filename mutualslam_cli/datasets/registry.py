@@ -158,7 +158,8 @@ def spec_from_folder(folder: str | os.PathLike) -> SequenceSpec:
     return SequenceSpec(name, root, fmt, None, 5000.0, None, extra)
 
 
-def _registered_folder(folder: str, registry_path, data_root) -> SequenceSpec:
+def _registered_folder(folder: str, registry_path: str | os.PathLike | None,
+                       data_root: str | os.PathLike | None) -> SequenceSpec:
     """The registry entry whose root is ``folder`` (keeps its depth scale etc.), else autodetect."""
     root = Path(folder).expanduser().resolve()
     try:
