@@ -17,18 +17,16 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import Any, Literal
 
 import cv2
 import numpy as np
 
 from mutualslam_cli.datasets.recordings.conversion import RecordingOptions, TumWriter
+from mutualslam_cli.datasets.recordings.messages import Header, RawImage, Stamped
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import pose_from_tq
 from mutualslam_cli.types import JSON, Intrinsics, JSONObject, Trajectory
-
-if TYPE_CHECKING:
-    from typing_extensions import Buffer
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -44,37 +42,6 @@ _JPEG = b"\xff\xd8\xff"
 #: Raw ``Image`` colour encodings: (channels, channel order to RGB, or None for grey).
 _COLOR = {"rgb8": (3, [0, 1, 2]), "bgr8": (3, [2, 1, 0]), "rgba8": (4, [0, 1, 2]), "bgra8": (4, [2, 1, 0]),
           "mono8": (1, None)}
-
-
-class Time(Protocol):
-    """``builtin_interfaces/Time`` (ROS 1 ``time``, as rosbags reads it): whole seconds and nanoseconds."""
-
-    sec: int
-    nanosec: int
-
-
-class Header(Protocol):
-    """``std_msgs/Header``: the sensor time of a message."""
-
-    stamp: Time
-
-
-class Stamped(Protocol):
-    """A message with a ``header`` (every type this module reads). Messages are rosbags' deserialised classes,
-    made per bag from its type store: the functions taking ``Any`` below tell them apart by their type name."""
-
-    header: Header
-
-
-class RawImage(Stamped, Protocol):
-    """``sensor_msgs/Image``: ``height × width`` pixels, rows ``step`` bytes apart, in ``encoding``."""
-
-    height: int
-    width: int
-    step: int
-    encoding: str
-    is_bigendian: int
-    data: Buffer  # rosbags: a uint8 array
 
 
 def bag_source(path: Path) -> Path:
