@@ -34,17 +34,16 @@ import signal
 import threading
 import traceback
 from collections.abc import Callable, Iterator
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from threadpoolctl import threadpool_limits
 
 from mutualslam_cli.config import RunConfig, with_overrides
 from mutualslam_cli.datasets.registry import load_sequence
-from mutualslam_cli.device import claim_gpu, gpu_slots
+from mutualslam_cli.device import Slots, claim_gpu, gpu_slots
 from mutualslam_cli.errors import ConfigError, MslamError
 from mutualslam_cli.pipeline import run_sequence
 from mutualslam_cli.results.lock import hold_lock
@@ -81,11 +80,11 @@ def expand(sequences: list[str], schemes: list[str], seeds: list[int]) -> list[J
 
 
 def _job_config(cfg: RunConfig, job: Job, threads: int) -> RunConfig:
-    return with_overrides(cfg, adapt={"scheme": job.scheme}, seed=job.seed, threads=threads)  # type: ignore[arg-type]
+    return with_overrides(cfg, adapt={"scheme": job.scheme}, seed=job.seed, threads=threads)
 
 
 def _run_job(cfg: RunConfig, job: Job, out: str, command: list[str] | None, registry: str | None,
-             threads: int, *after: Any) -> JobOutcome:
+             threads: int, *after: object) -> JobOutcome:
     """Worker body: run one job; library errors become a ``failed`` outcome, not a crash of the grid.
 
     ``after``: ignored; Dask passes the job's front-end task result here so the job waits for it.
@@ -104,7 +103,7 @@ def _prepare_one(cfg: RunConfig, sequence: str, seed: int, out: str, registry: s
     """Run one (sequence, seed) front end into ``<out>/_cache/vo``; the error message if it failed
     (the sequence's jobs then fail with it themselves, and the other sequences go on)."""
     # the jobs' thread count, set for OpenCV, torch and BLAS as a job sets it: the front end's output follows it
-    c = use_threads(with_overrides(cfg, seed=seed, threads=threads))  # type: ignore[arg-type]
+    c = use_threads(with_overrides(cfg, seed=seed, threads=threads))
     try:
         seq = load_sequence(sequence, data_root=c.data.data_root, registry_path=registry,
                             max_frames=c.data.max_frames, stride=c.data.stride)
@@ -142,7 +141,7 @@ def _die_with_parent() -> None:
         os._exit(1)
 
 
-def _init_worker(slots: Any = None) -> None:
+def _init_worker(slots: Slots | None = None) -> None:
     """Pool worker initialiser: :func:`_die_with_parent`, then a GPU of its own when the grid places them."""
     _die_with_parent()
     if slots is not None:
@@ -226,7 +225,7 @@ def _ctrl_c_as_flag() -> Iterator[threading.Event]:
         signal.signal(signal.SIGINT, previous)
 
 
-def _wait_all(futures: list[Any], stop: threading.Event) -> None:
+def _wait_all(futures: list[Future[None]], stop: threading.Event) -> None:
     """Wait for every future; ``KeyboardInterrupt`` as soon as ``stop`` is set."""
     pending = set(futures)
     while pending:

@@ -40,14 +40,15 @@ import contextlib
 import logging
 import os
 import queue
-from collections.abc import Iterator
-from typing import Any
+from collections.abc import Iterator, Mapping
+from typing import Protocol
 
 import torch
 
 from mutualslam_cli.config.checks import check_device_spec
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.machine import cpu_info, memory_gb
+from mutualslam_cli.types import Scalar
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +121,7 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def configure(device: torch.device, deterministic: bool = True) -> dict[str, Any]:
+def configure(device: torch.device, deterministic: bool = True) -> dict[str, bool]:
     """Set the cuDNN flags of a run on ``device`` (module docstring); returns what was set (for the manifest)."""
     if device.type != "cuda":
         return {}
@@ -130,7 +131,7 @@ def configure(device: torch.device, deterministic: bool = True) -> dict[str, Any
     return {"cudnn_deterministic": cudnn.deterministic, "cudnn_benchmark": cudnn.benchmark}
 
 
-def describe_device(device: torch.device) -> dict[str, Any]:
+def describe_device(device: torch.device) -> dict[str, Scalar]:
     """What a result records about the device it came from: ``device`` (``cpu`` / ``cuda:0``), ``device_type``,
     ``device_name`` (GPU name or CPU model), ``device_memory_gb`` and, on CUDA, ``cuda_version``,
     ``cudnn_version``, ``compute_capability``."""
@@ -145,7 +146,7 @@ def describe_device(device: torch.device) -> dict[str, Any]:
             "cudnn_version": None}
 
 
-def device_label(info: dict[str, Any]) -> str:
+def device_label(info: Mapping[str, object]) -> str:
     """Short name of a device for tables and averaging keys: ``cuda · NVIDIA H100 80GB HBM3``, ``cpu · AVX2``."""
     if info.get("device_type") == "cuda":
         return f"cuda · {info.get('device_name')}"
@@ -179,7 +180,13 @@ def gpu_slots(spec: str, workers: int) -> list[str]:
     return [gpus[k % len(gpus)] for k in range(workers)] if gpus else []
 
 
-def claim_gpu(slots: Any) -> None:
+class Slots(Protocol):
+    """The queue of ``CUDA_VISIBLE_DEVICES`` values a grid's workers take theirs from (a ``multiprocessing`` queue)."""
+
+    def get(self, block: bool = True, timeout: float | None = None) -> str: ...
+
+
+def claim_gpu(slots: Slots) -> None:
     """Grid worker initialiser: take one ``CUDA_VISIBLE_DEVICES`` value from the ``slots`` queue (before this
     process initialises CUDA, which reads it then); an empty queue leaves the environment alone. A blocking
     get with a timeout: ``get_nowait`` also fails while the other worker holds the queue's reader lock."""

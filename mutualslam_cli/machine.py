@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 #: SIMD flags of /proc/cpuinfo worth naming next to timings (numpy, OpenCV and torch pick kernels by them).
 SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl", "avx512_vnni", "avx512_bf16",
@@ -15,7 +15,16 @@ SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl",
 KINDS = (("AMX", ("amx_bf16",)), ("AVX512-BF16", ("avx512_bf16",)), ("AVX2", ("avx2",)))
 
 
-def cpu_info(cpuinfo: str | None = None) -> dict[str, Any]:
+class CpuInfo(TypedDict):
+    """:func:`cpu_info`: the model and flags (``None`` where unknown), the kind and the core count."""
+
+    cpu_model: str | None
+    cpu_flags: list[str] | None
+    cpu_kind: str
+    cpu_count: int | None
+
+
+def cpu_info(cpuinfo: str | None = None) -> CpuInfo:
     """``cpu_model``, ``cpu_flags`` (those of :data:`SIMD_FLAGS` the CPU has), ``cpu_kind``
     (:func:`cpu_kind`) and ``cpu_count``; model and flags ``None`` where /proc/cpuinfo cannot be read.
 

@@ -11,9 +11,15 @@ torch alike.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+Coords = TypeVar("Coords", "np.ndarray", "torch.Tensor")
+"""Pixel coordinates and the mask of them: all numpy or all torch (torch is not imported here)."""
 
 #: Positions up to this far (px) outside the span still count as inside. Measured: float32 round
 #: trips ``p → d·K⁻¹p → T → T⁻¹ → K`` of border pixels (random intrinsics up to 640 px with |fx|,
@@ -22,7 +28,7 @@ import numpy as np
 PIXEL_TOL = 5e-4
 
 
-def in_image(uv: Any, width: int, height: int, margin: float = 0.0, tol: float = PIXEL_TOL) -> Any:
+def in_image(uv: Coords, width: int, height: int, margin: float = 0.0, tol: float = PIXEL_TOL) -> Coords:
     """Whether pixel positions lie inside the image (the bounds rule of the module docstring).
 
     ``margin − tol ≤ u ≤ W − 1 − margin + tol`` and the same for ``v`` with ``H``.
@@ -39,7 +45,8 @@ def in_image(uv: Any, width: int, height: int, margin: float = 0.0, tol: float =
     return in_image_uv(uv[..., 0], uv[..., 1], width, height, margin, tol)
 
 
-def in_image_uv(u: Any, v: Any, width: int, height: int, margin: float = 0.0, tol: float = PIXEL_TOL) -> Any:
+def in_image_uv(u: Coords, v: Coords, width: int, height: int, margin: float = 0.0,
+                tol: float = PIXEL_TOL) -> Coords:
     """:func:`in_image` for coordinates held apart: ``u`` and ``v`` of one shape (numpy or torch)."""
     lo = margin - tol
     return (u >= lo) & (u <= width - 1 - margin + tol) & (v >= lo) & (v <= height - 1 - margin + tol)

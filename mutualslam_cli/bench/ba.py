@@ -40,8 +40,8 @@ and the classification per round.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import TypedDict, TypeGuard
 
 import cv2
 import numpy as np
@@ -131,7 +131,8 @@ def _loop_poses(n: int, length: float) -> np.ndarray:
 
 def synthetic_problem(n_kf: int = 6, n_points: int = 600, hw: tuple[int, int] = (120, 160),
                       max_targets: int = 5, fy_sign: float = 1.0, extent: float = 0.4,
-                      seed: int = 0, path: str = "compact", cells: int = 24):
+                      seed: int = 0, path: str = "compact", cells: int = 24,
+                      ) -> tuple[PhotoBAProblem, np.ndarray]:
     """True-state problem on a plane scene.
 
     ``path="compact"`` (default, the unit tests' scene): camera centres within about
@@ -241,6 +242,52 @@ BENCH_PROBLEM = {"n_kf": 100, "n_points": 10_000, "hw": (480, 640), "path": "loo
 BENCH_PERTURBATION = {"trans": 0.002, "rot_deg": 0.05, "rho_rel": 0.03}
 
 
+class ProblemInfo(TypedDict):
+    """:func:`problem_info`: counts, the image ``WxH`` and the geometry (cm, px)."""
+
+    keyframes: int
+    points: int
+    observations: int
+    residuals: int
+    image: str
+    spacing_cm_min: float
+    spacing_cm_median: float
+    baseline_cm_median: float
+    baseline_cm_max: float
+    parallax_px_median: float
+    parallax_px_p10: float
+    targets_per_point: float
+
+
+class BenchProblem(ProblemInfo):
+    """``ba_problem`` of :func:`bench_ba`: the problem, the perturbation of its start and the solver's settings."""
+
+    perturbation: dict[str, float]
+    iterations: int
+    levels: int
+
+
+class BABench(TypedDict):
+    """:func:`bench_ba`'s figures (seconds, costs, counts; see there)."""
+
+    ba_s: float
+    ba_s_runs: list[float]
+    ba_build_s: float
+    ba_problem: BenchProblem
+    ba_before: dict[str, float]  # accuracy()'s errors
+    ba_after: dict[str, float]
+    ba_cost0: float
+    ba_cost: float
+    ba_cost_truth: float
+    ba_iterations: int
+    ba_accepted: int
+
+
+def holds_ba(figures: Mapping[str, object]) -> TypeGuard[BABench]:
+    """Whether a bag of bench figures (``mslam bench suite``'s) holds :func:`bench_ba`'s (it was merged in)."""
+    return "ba_before" in figures
+
+
 def accuracy(truth: PhotoBAProblem, T_cw: np.ndarray, inv_depth: np.ndarray) -> dict[str, float]:
     """Errors of a state ``T_cw`` ``(K, 4, 4)``, ``inv_depth`` ``(P,)`` against ``truth``.
 
@@ -253,7 +300,7 @@ def accuracy(truth: PhotoBAProblem, T_cw: np.ndarray, inv_depth: np.ndarray) -> 
         ``centre_sim3_mm_rms``; over every point ``rho_rel_median``/``rho_rel_p95``
         (``|ρ/ρ_true − 1|``).
     """
-    def centres(T):
+    def centres(T: np.ndarray) -> np.ndarray:
         return np.einsum("kji,kj->ki", T[:, :3, :3], -T[:, :3, 3])
 
     c, ct = centres(T_cw), centres(truth.T_cw)
@@ -270,7 +317,7 @@ def accuracy(truth: PhotoBAProblem, T_cw: np.ndarray, inv_depth: np.ndarray) -> 
             "rho_rel_median": float(np.median(rel)), "rho_rel_p95": float(np.quantile(rel, 0.95))}
 
 
-def problem_info(prob: PhotoBAProblem) -> dict[str, Any]:
+def problem_info(prob: PhotoBAProblem) -> ProblemInfo:
     """Size and geometry of a problem: keyframes, points, observations, residuals (3×3 patch),
     image ``H×W``, keyframe spacing (cm, min/median), host–target baseline (cm, median/max),
     parallax ``f·baseline·ρ`` (px, median/p10) and the mean number of targets per point."""
@@ -289,7 +336,7 @@ def problem_info(prob: PhotoBAProblem) -> dict[str, Any]:
 
 def bench_ba(runs: int = 3, iterations: int = 10, levels: int = 1, coarse_iterations: int = 5,
              problem: dict | None = None, perturbation: dict | None = None,
-             log: Callable[[str], None] | None = None) -> dict[str, Any]:
+             log: Callable[[str], None] | None = None) -> BABench:
     """Median wall time of ``runs`` :func:`solve` calls from the perturbed start, and accuracy.
 
     Args:
@@ -327,7 +374,7 @@ def bench_ba(runs: int = 3, iterations: int = 10, levels: int = 1, coarse_iterat
             "ba_iterations": st["iterations"], "ba_accepted": st["accepted"]}
 
 
-def report(r: dict[str, Any]) -> str:
+def report(r: BABench) -> str:
     """Markdown table of :func:`bench_ba`'s accuracy, before → after."""
     rows = [("keyframe centre error, max (mm)", "centre_mm_max", 1.0),
             ("keyframe centre error, RMS (mm)", "centre_mm_rms", 1.0),
@@ -344,7 +391,7 @@ def report(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def ba_bench(iterations: int = 10, runs: int = 3, levels: int = 1, coarse_iterations: int = 5) -> dict[str, Any]:
+def ba_bench(iterations: int = 10, runs: int = 3, levels: int = 1, coarse_iterations: int = 5) -> BABench:
     """:func:`bench_ba` with a line per run, the problem, the median time (s) and :func:`report` printed to
     stdout; returns :func:`bench_ba`'s result. ``levels``: pyramid levels (1: full resolution)."""
     r = bench_ba(runs, iterations, levels, coarse_iterations, log=print)

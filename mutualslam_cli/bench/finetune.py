@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import TypedDict
 
 import torch
 
@@ -26,8 +27,38 @@ from mutualslam_cli.adapt.stabilise import TrustRegion
 from mutualslam_cli.allocator import retain_freed_memory
 from mutualslam_cli.config import AdaptConfig, load_config
 from mutualslam_cli.device import grad_scaler, module_device, synchronize
+from mutualslam_cli.types import Info
 
 CPU = torch.device("cpu")
+
+
+class Timing(TypedDict):
+    """A median wall time (ms) of ``times_ms`` (every repeat, ms) at ``threads`` torch threads."""
+
+    ms: float
+    times_ms: list[float]
+    threads: int
+
+
+class StepTiming(Timing):
+    """:func:`bench_inference`'s and :func:`bench_finetune_step`'s: the timing, the path and the image size."""
+
+    fast: bool
+    width: int
+    height: int
+    bf16_supported: bool
+
+
+class ComodaTiming(StepTiming):
+    """:func:`bench_comoda_step`'s: also the targets per step."""
+
+    batch: int
+
+
+class OpenVinoTiming(Timing):
+    """:func:`bench_inference_openvino`'s: also the conversion and compilation time (s)."""
+
+    convert_s: float
 
 
 def _setup(threads: int | None, seed: int) -> None:
@@ -37,7 +68,8 @@ def _setup(threads: int | None, seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def _median_ms(fn, repeats: int, warmup: int, device: torch.device = CPU) -> tuple[float, list[float]]:
+def _median_ms(fn: Callable[[], object], repeats: int, warmup: int,
+               device: torch.device = CPU) -> tuple[float, list[float]]:
     for _ in range(warmup):
         fn()
     synchronize(device)
@@ -57,7 +89,7 @@ def _rand(*shape: int, generator: torch.Generator | None = None, device: torch.d
 
 def bench_inference(width: int = 640, height: int = 192, repeats: int = 10, fast: bool = False,
                     threads: int | None = None, batch: int = 1, warmup: int = 2, seed: int = 0,
-                    channels_last: bool | None = None, device: torch.device | str = CPU) -> dict[str, Any]:
+                    channels_last: bool | None = None, device: torch.device | str = CPU) -> StepTiming:
     """Median time of one depth prediction (eval mode, no grad) on ``device``.
 
     Returns:
@@ -78,7 +110,7 @@ def bench_inference(width: int = 640, height: int = 192, repeats: int = 10, fast
 
 
 def bench_inference_openvino(width: int = 640, height: int = 192, repeats: int = 10, threads: int | None = None,
-                             warmup: int = 2, seed: int = 0, int8: bool = False) -> dict[str, Any]:
+                             warmup: int = 2, seed: int = 0, int8: bool = False) -> OpenVinoTiming:
     """Median time of one depth prediction through the evaluation's OpenVINO runtime
     (:mod:`mutualslam_cli.adapt.inference`: bf16 where the CPU has it, else fp32; or int8 calibrated
     on 4 random frames, whose values do not change the speed), conversion timed apart.
@@ -148,7 +180,7 @@ def finetune_step(net: DepthNet, opt: torch.optim.Optimizer, batch: TrainingBatc
 def bench_finetune_step(width: int = 640, height: int = 192, repeats: int = 5, fast: bool = False,
                         threads: int | None = None, warmup: int = 2, seed: int = 0,
                         train_mode: bool = True, channels_last: bool | None = None,
-                        device: torch.device | str = CPU, trust: float = 0.0) -> dict[str, Any]:
+                        device: torch.device | str = CPU, trust: float = 0.0) -> StepTiming:
     """Median time of one fine-tuning step on 2 keyframes (recent + replayed) × 2 neighbours (``trust`` > 0: with
     configs/default.yaml's scale alignment and a trust region of that radius, :func:`finetune_step`).
 
@@ -173,7 +205,7 @@ def bench_finetune_step(width: int = 640, height: int = 192, repeats: int = 5, f
 
 def bench_comoda_step(width: int = 640, height: int = 192, repeats: int = 5, fast: bool = False,
                       threads: int | None = None, warmup: int = 2, seed: int = 0,
-                      replay: int | None = None, device: torch.device | str = CPU) -> dict[str, Any]:
+                      replay: int | None = None, device: torch.device | str = CPU) -> ComodaTiming:
     """Median time of one CoMoDa-style update step (scheme ``comoda``, :mod:`mutualslam_cli.adapt.comoda`).
 
     The work of one frame's update: the current triplet + ``replay`` replayed triplets (default
@@ -207,14 +239,14 @@ def bench_comoda_step(width: int = 640, height: int = 192, repeats: int = 5, fas
             "bf16_supported": fast_path_supported()}
 
 
-def compare(width: int = 640, height: int = 192, repeats: int = 5, threads: int | None = 1) -> dict[str, Any]:
+def compare(width: int = 640, height: int = 192, repeats: int = 5, threads: int | None = 1) -> Info:
     """fp32 (NCHW), fp32 + channels-last and the fast path side by side, plus bf16 accuracy.
 
     ``threads=1`` by default: on a shared 2-core machine two OpenMP threads competing with
     other processes are several times *slower* than one (measured; see the report).
     """
     variants = {"fp32": (False, False), "fp32_cl": (False, True), "fast": (True, True)}
-    out: dict[str, Any] = {"threads": threads, "bf16_supported": fast_path_supported()}
+    out: Info = {"threads": threads, "bf16_supported": fast_path_supported()}
     for name, (fast, cl) in variants.items():
         if fast and not fast_path_supported():
             continue

@@ -20,13 +20,14 @@ from __future__ import annotations
 import json
 import tempfile
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Literal, TypedDict
 
 import torch
 
 from mutualslam_cli.adapt.inputs import use_fast_path
+from mutualslam_cli.bench import figure
 from mutualslam_cli.bench.finetune import bench_finetune_step, bench_inference
 from mutualslam_cli.config import CONFIG_DIR, load_config
 from mutualslam_cli.device import describe_device, resolve_device
@@ -34,7 +35,8 @@ from mutualslam_cli.errors import MslamError
 from mutualslam_cli.pipeline import run_sequence
 
 #: DESIGN §10 on one H100-class GPU: bench key → (limit in ms, what).
-GPU_TARGETS = {"step_ms": (25.0, "fine-tuning step"), "predict_ms": (5.0, "depth prediction")}
+GPU_TARGETS: dict[Literal["step_ms", "predict_ms"], tuple[float, str]] = {
+    "step_ms": (25.0, "fine-tuning step"), "predict_ms": (5.0, "depth prediction")}
 #: The CUDA run may differ from the CPU run by this much PCD (points, lsq, final model).
 PCD_TOLERANCE = 1.0
 
@@ -49,7 +51,23 @@ def no_cuda_reason() -> str | None:
     return f"torch {torch.__version__} (CUDA {torch.version.cuda}) sees no usable GPU or driver"
 
 
-def bench_gpu(device: torch.device, repeats: int = 20) -> dict[str, Any]:
+class GpuBench(TypedDict):
+    """:func:`bench_gpu`'s medians (ms) and whether they ran in mixed precision."""
+
+    step_ms: float
+    predict_ms: float
+    mixed_precision: bool
+
+
+class Window(TypedDict):
+    """:func:`run_window`'s: the run's flat summary (``a.b.c`` → value), its keyframe timestamps and wall time (s)."""
+
+    summary: Mapping[str, object]
+    keyframes: list[str]
+    wall_s: float
+
+
+def bench_gpu(device: torch.device, repeats: int = 20) -> GpuBench:
     """Median fine-tuning step and prediction on ``device`` in the precision a run would use there."""
     fast = use_fast_path(load_config().net, device)
     step = bench_finetune_step(640, 192, repeats, fast, warmup=5, device=device)["ms"]
@@ -58,7 +76,7 @@ def bench_gpu(device: torch.device, repeats: int = 20) -> dict[str, Any]:
 
 
 def run_window(sequence: str, spec: str, out: Path, config: Path = CONFIG_DIR / "paper.yaml",
-               sets: list[str] | None = None) -> dict[str, Any]:
+               sets: list[str] | None = None) -> Window:
     """One window end to end on ``spec``; its flat summary, its keyframes (timestamps) and wall time."""
     cfg = load_config(config, [*(sets or []), f"device={spec}"])
     t0 = time.perf_counter()
@@ -69,16 +87,16 @@ def run_window(sequence: str, spec: str, out: Path, config: Path = CONFIG_DIR / 
     return {"summary": r.summary.flat(), "keyframes": kf, "wall_s": wall}
 
 
-def compare(gpu: dict[str, Any], cpu: dict[str, Any]) -> list[tuple[str, bool, str]]:
+def compare(gpu: Window, cpu: Window) -> list[tuple[str, bool, str]]:
     """The checks of the CUDA run against the CPU run: ``(what, passed, detail)``."""
-    pg, pc = gpu["summary"].get("depth.pcd.lsq.adapted"), cpu["summary"].get("depth.pcd.lsq.adapted")
+    pg, pc = figure(gpu["summary"], "depth.pcd.lsq.adapted"), figure(cpu["summary"], "depth.pcd.lsq.adapted")
     same_pcd = pg is not None and pc is not None and abs(pg - pc) <= PCD_TOLERANCE
     return [("same keyframes", gpu["keyframes"] == cpu["keyframes"],
              f"{len(gpu['keyframes'])} on cuda, {len(cpu['keyframes'])} on cpu"),
             (f"PCD lsq within {PCD_TOLERANCE:g} point", same_pcd, f"cuda {pg}, cpu {pc}")]
 
 
-def _fmt(v: Any, nd: int = 1) -> str:
+def _fmt(v: object, nd: int = 1) -> str:
     return "—" if v is None else f"{v:.{nd}f}" if isinstance(v, float) else str(v)
 
 

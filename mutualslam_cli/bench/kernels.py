@@ -14,7 +14,7 @@ import contextlib
 import os
 import subprocess
 import sys
-from typing import Any
+from typing import TypedDict
 
 _STEP = """
 import torch
@@ -30,7 +30,22 @@ finetune_step(net, opt, batch, {fast})
 """
 
 
-def parse_verbose(lines: list[str]) -> dict[str, Any]:
+class KernelCounts(TypedDict):
+    """:func:`parse_verbose`'s counts and summed times (ms)."""
+
+    convolutions: dict[str, int]
+    convolution_dtypes: dict[str, int]
+    convolution_ms: float
+    reorder_ms: float
+
+
+class KernelNote(TypedDict):
+    """Why :func:`step_kernels` has no counts."""
+
+    note: str
+
+
+def parse_verbose(lines: list[str]) -> KernelCounts:
     """Counts from ``onednn_verbose`` ``exec`` lines: ``convolutions`` {implementation: n},
     ``convolution_dtypes`` {source dtype: n}, ``convolution_ms`` and ``reorder_ms`` (their summed time)."""
     impl: collections.Counter[str] = collections.Counter()
@@ -53,7 +68,7 @@ def parse_verbose(lines: list[str]) -> dict[str, Any]:
             "convolution_ms": ms["convolution"], "reorder_ms": ms["reorder"]}
 
 
-def step_kernels(fast: bool = True, timeout_s: float = 300.0) -> dict[str, Any]:
+def step_kernels(fast: bool = True, timeout_s: float = 300.0) -> KernelCounts | KernelNote:
     """:func:`parse_verbose` of the second of two fine-tuning steps (the first creates the primitives), one
     thread; ``{"note": …}`` when the child fails or oneDNN logs nothing (a build without verbose mode)."""
     env = {**os.environ, "ONEDNN_VERBOSE": "1", "DNNL_VERBOSE": "1"}

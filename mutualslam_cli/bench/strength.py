@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 from mutualslam_cli.config import RunConfig, load_config
 from mutualslam_cli.datasets import synthetic
@@ -32,6 +32,24 @@ from mutualslam_cli.datasets import synthetic
 CALIBRATED = {"replay+mas": "adapt.mas_lambda", "replay+si": "adapt.si_lambda"}
 #: settings of every calibration run: the adaptation is what is measured; BA and dense evaluation are not
 RUN_SETTINGS = ["ba.enabled=false", "eval.stride=1000", "eval.online=false", "threads=1"]
+
+
+class Trial(TypedDict):
+    """One calibration run: the coefficient tried and the mean shrink it gave."""
+
+    value: float
+    shrink: float
+
+
+class Calibrated(Trial):
+    """A scheme's calibration: the config key, the chosen :class:`Trial` and every trial in order."""
+
+    key: str
+    runs: list[Trial]
+
+
+Calibration = dict[str, "float | Calibrated"]
+""":func:`calibrate`'s result: ``"target"`` → the EWC shrink, each calibrated scheme → :class:`Calibrated`."""
 
 
 def shrink_of(seq: Path, out: Path, scheme: str, sets: list[str]) -> float:
@@ -46,16 +64,16 @@ def shrink_of(seq: Path, out: Path, scheme: str, sets: list[str]) -> float:
     return float(value)
 
 
-def calibrate(seq: Path, out: Path, tol: float = 0.1, max_runs: int = 5) -> dict[str, Any]:
+def calibrate(seq: Path, out: Path, tol: float = 0.1, max_runs: int = 5) -> Calibration:
     """Steps 1–2 of the module docstring; returns ``{"target": shrink, scheme: {key, value, shrink, runs}}``."""
     target = shrink_of(seq, out / "ewc", "replay+ewc", [])
     print(f"replay+ewc (paper β, max_F): shrink {target:.4g}", flush=True)
-    result: dict[str, Any] = {"target": target}
+    result: Calibration = {"target": target}
     base = load_config(None, [])
     for scheme, key in CALIBRATED.items():
         section, name = key.split(".")
         value = float(getattr(getattr(base, section), name))
-        runs = []
+        runs: list[Trial] = []
         for _ in range(max_runs):
             s = shrink_of(seq, out / f"{scheme}-{value:.6g}", scheme, [f"{key}={value:.6g}"])
             runs.append({"value": value, "shrink": s})
@@ -64,12 +82,12 @@ def calibrate(seq: Path, out: Path, tol: float = 0.1, max_runs: int = 5) -> dict
                 break
             value = float(f"{value * target / s:.2g}")  # two significant digits: a value a person can read
         best = min(runs, key=lambda r: abs(r["shrink"] - target))
-        result[scheme] = {"key": key, **best, "runs": runs}
+        result[scheme] = {"key": key, "value": best["value"], "shrink": best["shrink"], "runs": runs}
     return result
 
 
 def run_strength(out: Path = Path("results/strength"), sequence: Path | None = None, frames: int = 200,
-                 seed: int = 3) -> dict[str, Any]:
+                 seed: int = 3) -> Calibration:
     """The whole procedure: renders the room (``frames`` frames, 640×480, rendering seed ``seed``) into
     ``out/room<frames>-seed<seed>`` unless ``sequence`` is given or it is there already, :func:`calibrate`s on it
     under ``out``, writes ``out/strength.json`` and prints the chosen coefficients; returns :func:`calibrate`'s
@@ -82,6 +100,7 @@ def run_strength(out: Path = Path("results/strength"), sequence: Path | None = N
             synthetic.write_tum(synthetic.iter_render("room", frames, 640, 480, seed, "target"), seq)
     result = calibrate(seq, out)
     (out / "strength.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps({k: (v if k == "target" else {"key": v["key"], "value": v["value"], "shrink": v["shrink"]})
+    print(json.dumps({k: (v if not isinstance(v, dict) else {"key": v["key"], "value": v["value"],
+                                                               "shrink": v["shrink"]})
                       for k, v in result.items()}, indent=2))
     return result

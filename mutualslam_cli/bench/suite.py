@@ -27,14 +27,16 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 import torch
 
 from mutualslam_cli.adapt.depthnet import fast_path_supported
 from mutualslam_cli.adapt.inference import openvino_available
-from mutualslam_cli.bench.ba import bench_ba, report
+from mutualslam_cli.bench import figure
+from mutualslam_cli.bench.ba import BABench, bench_ba, holds_ba, report
 from mutualslam_cli.bench.finetune import (
     bench_comoda_step,
     bench_finetune_step,
@@ -50,6 +52,7 @@ from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.synthetic import bench_render
 from mutualslam_cli.errors import MslamError
 from mutualslam_cli.machine import cpu_info
+from mutualslam_cli.types import Info
 
 
 def reference_ms(repeats: int = 7) -> float:
@@ -69,13 +72,22 @@ def reference_ms(repeats: int = 7) -> float:
     return statistics.median(times)
 
 
-def _render(quick: bool) -> dict[str, Any]:
+class RunTiming(TypedDict):
+    """:func:`_ba_share`'s figures of one ``mslam run`` (seconds; ``None`` where the summary has none)."""
+
+    total_s: float | None
+    ba_s: float | None
+    ba_share: float | None
+    finetune_ms: float | None
+
+
+def _render(quick: bool) -> Info:
     runs = [bench_render(640, 480, n=10 if quick else 30, scene=s) for s in ("room", "planar", "far")]
     return {"render_fps": statistics.median(r["fps"] for r in runs),
             "render_fps_by_scene": {s: r["fps"] for s, r in zip(("room", "planar", "far"), runs)}}
 
 
-def _loader_and_vo(quick: bool) -> dict[str, Any]:
+def _loader_and_vo(quick: bool) -> Info:
     try:
         seq = load_sequence("tum_fr1_xyz")
     except MslamError as e:
@@ -86,34 +98,38 @@ def _loader_and_vo(quick: bool) -> dict[str, Any]:
             "vo_ms_per_frame": vo["ms_per_frame"], "vo_keyframes": vo["keyframes"]}
 
 
-def _network(quick: bool, threads: int) -> dict[str, Any]:
-    out: dict[str, Any] = {"threads": threads, "bf16_supported": fast_path_supported()}
+def _network(quick: bool, threads: int) -> Info:
+    out: Info = {"threads": threads, "bf16_supported": fast_path_supported()}
+    predict: dict[str, float] = {}  # ms by path, as in out
+    finetune: dict[str, float] = {}
     reps = 3 if quick else 10
     for name, fast, cl in (("fp32", False, False), ("fast", True, True)):
         if fast and not fast_path_supported():
             out["fast_note"] = "bf16 not supported on this CPU"
             continue
-        out[f"predict_{name}_ms"] = bench_inference(640, 192, 2 * reps, fast, threads, channels_last=cl)["ms"]
-        out[f"finetune_{name}_ms"] = bench_finetune_step(640, 192, reps, fast, threads, channels_last=cl)["ms"]
+        out[f"predict_{name}_ms"] = predict[name] = bench_inference(640, 192, 2 * reps, fast, threads,
+                                                                    channels_last=cl)["ms"]
+        out[f"finetune_{name}_ms"] = finetune[name] = bench_finetune_step(640, 192, reps, fast, threads,
+                                                                          channels_last=cl)["ms"]
     out["comoda_step_ms"] = bench_comoda_step(640, 192, reps, fast_path_supported(), threads)["ms"]
     if openvino_available():  # the evaluation's runtime (net.runtime auto: bf16 where the CPU has it, else fp32), int8
         for name, int8 in (("openvino", False), ("openvino_int8", True)):
             ov = bench_inference_openvino(640, 192, 2 * reps, threads, int8=int8)
             out[f"predict_{name}_ms"], out[f"{name}_convert_s"] = ov["ms"], ov["convert_s"]
-            out[f"predict_{name}_speedup"] = out["predict_fp32_ms"] / ov["ms"]
-    if "predict_fast_ms" in out:
-        out["predict_speedup"] = out["predict_fp32_ms"] / out["predict_fast_ms"]
-        out["finetune_speedup"] = out["finetune_fp32_ms"] / out["finetune_fast_ms"]
+            out[f"predict_{name}_speedup"] = predict["fp32"] / ov["ms"]
+    if "fast" in predict:
+        out["predict_speedup"] = predict["fp32"] / predict["fast"]
+        out["finetune_speedup"] = finetune["fp32"] / finetune["fast"]
         out["bf16_rel_depth_diff"] = bf16_depth_difference(640, 192)
         out["step_kernels"] = step_kernels(fast=True)
     return out
 
 
-def _ba(quick: bool) -> dict[str, Any]:
+def _ba(quick: bool) -> BABench:
     return bench_ba(runs=2 if quick else 5)
 
 
-def _ba_share(out: Path) -> dict[str, Any]:
+def _ba_share(out: Path) -> RunTiming | Info:
     """``timing.total_s``, ``timing.ba_s``, their ratio and ``timing.finetune_ms`` (the median fine-tuning
     step inside the run) from the ``summary.json`` under ``out``."""
     found = sorted(out.rglob("summary.json"))
@@ -125,11 +141,13 @@ def _ba_share(out: Path) -> dict[str, Any]:
             "finetune_ms": timing.get("finetune_ms")}
 
 
-def _memory(frames: int, threads: int) -> dict[str, Any]:
+def _memory(frames: int, threads: int) -> Info:
     """Peak RSS of ``mslam run`` (oracle front end, replay+ewc) on a synthetic sequence of N and 2N frames,
     and the global BA's share of each run's wall time. The runs use the bench's ``threads`` (their median
     step is compared with the bench's step, which is only meaningful at one thread count)."""
-    out: dict[str, Any] = {}
+    out: Info = {}
+    peaks: dict[int, float | None] = {}  # GB by frames, as in out
+    steps: list[object] = []  # the median step of each run (ms), as in out
     with tempfile.TemporaryDirectory() as tmp:
         for n in (frames, 2 * frames):
             seq = Path(tmp) / f"room{n}"
@@ -143,23 +161,25 @@ def _memory(frames: int, threads: int) -> dict[str, Any]:
                                 str(Path(tmp) / f"res{n}"), "--force", "--set", f"threads={threads}"],
                                capture_output=True, text=True)
             peak_kb = int(r.stdout.rsplit("PEAK", 1)[1].split()[0]) if "PEAK" in r.stdout else None
-            out[f"peak_rss_gb_{n}_frames"] = peak_kb / 1024**2 if peak_kb else None
+            out[f"peak_rss_gb_{n}_frames"] = peaks[n] = peak_kb / 1024**2 if peak_kb else None
             out[f"run_s_{n}_frames"] = time.perf_counter() - t0
-            out[f"run_timing_{n}_frames"] = _ba_share(Path(tmp) / f"res{n}")
-    a, b = out.get(f"peak_rss_gb_{frames}_frames"), out.get(f"peak_rss_gb_{2 * frames}_frames")
+            out[f"run_timing_{n}_frames"] = timing = _ba_share(Path(tmp) / f"res{n}")
+            steps.append(timing.get("finetune_ms"))
+    a, b = peaks[frames], peaks[2 * frames]
     if a and b:
         out["peak_rss_gb"] = max(a, b)
         out["peak_rss_ratio_2x"] = b / a
-    steps = [out[f"run_timing_{n}_frames"].get("finetune_ms") for n in (frames, 2 * frames)]
-    if all(steps):
-        out["finetune_run_ms"] = statistics.median(steps)
+    step_ms = [ms for ms in steps if ms and isinstance(ms, (int, float))]
+    if len(step_ms) == len(steps):
+        out["finetune_run_ms"] = statistics.median(step_ms)
     return out
 
 
-def step_in_run(res: dict[str, Any]) -> dict[str, Any]:
+def step_in_run(res: Mapping[str, object]) -> dict[str, float]:
     """The run's median step over the bench's step of the same path (fast where the CPU has it, as the run)."""
-    bench = res.get("finetune_fast_ms") or res.get("finetune_fp32_ms")
-    return {"finetune_run_vs_bench": res["finetune_run_ms"] / bench} if bench and res.get("finetune_run_ms") else {}
+    bench = figure(res, "finetune_fast_ms") or figure(res, "finetune_fp32_ms")
+    run = figure(res, "finetune_run_ms")
+    return {"finetune_run_vs_bench": run / bench} if bench and run else {}
 
 
 #: The grid of the scaling benchmark: 4 jobs (schemes) on one synthetic sequence, a smaller network
@@ -169,10 +189,11 @@ GRID_SETS = ["vo.mode=gt-depth", "net.width=320", "net.height=96", "adapt.steps_
 GRID_SCHEMES = "recent,replay,replay+ewc,replay+mas"
 
 
-def _grid(frames: int = 96) -> dict[str, Any]:
+def _grid(frames: int = 96) -> Info:
     """Wall time of ``mslam ablate`` on a 4-job grid with 1 worker (all cores), 1 worker with one
     thread, and 2 workers (one thread each); speed-ups of 2 workers over each."""
-    out: dict[str, Any] = {}
+    out: Info = {}
+    wall: dict[str, float] = {}  # s by grid, as in out
     with tempfile.TemporaryDirectory() as tmp:
         seq = Path(tmp) / "room"
         subprocess.run([sys.executable, "-m", "mutualslam_cli.cli", "synth", str(seq), "--frames", str(frames),
@@ -184,12 +205,12 @@ def _grid(frames: int = 96) -> dict[str, Any]:
                 cmd += ["--set", s]
             t0 = time.perf_counter()
             r = subprocess.run(cmd, capture_output=True, text=True)
-            out[f"grid_{name}_s"] = time.perf_counter() - t0
+            out[f"grid_{name}_s"] = wall[name] = time.perf_counter() - t0
             if r.returncode != 0:
                 out[f"grid_{name}_error"] = r.stderr[-500:]
-    if "grid_2w_s" in out:
-        out["grid_speedup_2w_vs_1w"] = out["grid_1w_s"] / out["grid_2w_s"]
-        out["grid_speedup_2w_vs_1w1t"] = out["grid_1w1t_s"] / out["grid_2w_s"]
+    if "2w" in wall:
+        out["grid_speedup_2w_vs_1w"] = wall["1w"] / wall["2w"]
+        out["grid_speedup_2w_vs_1w1t"] = wall["1w1t"] / wall["2w"]
     return out
 
 
@@ -250,12 +271,12 @@ def _target_text(target: tuple[str, float] | None, value: float) -> tuple[str, s
     return f"{'≥' if op == '>=' else '≤'} {bound:g}", "yes" if met else "**no**"
 
 
-def _table(res: dict[str, Any]) -> str:
-    kind = res.get("cpu_kind", "unknown")
+def _table(res: Info) -> str:
+    kind = str(res.get("cpu_kind", "unknown"))
     goal = targets(kind)
     lines = [f"targets for CPU kind {kind} (DESIGN §10)\n", "| what | median | target | met |", "|---|---|---|---|"]
     for what, key, target_key in ROWS:
-        v = res.get(key)
+        v = figure(res, key)
         if v is not None:
             text, met = _target_text(goal.get(target_key) if target_key else None, v)
             lines.append(f"| {what} | {v:.3g} | {text} | {met} |")
@@ -263,7 +284,7 @@ def _table(res: dict[str, Any]) -> str:
         lines.append("\nmachine yardstick (fixed Python loop, ms; lower = faster): "
                      f"{res['reference_ms_start']:.0f} at the "
                      f"start, {res.get('reference_ms_end', float('nan')):.0f} at the end")
-    if "ba_before" in res:
+    if holds_ba(res):
         p = res["ba_problem"]
         runs = ", ".join(f"{t:.2f}" for t in res["ba_s_runs"])
         lines.append(f"\nglobal BA problem: {p['keyframes']} keyframes {p['image']}, {p['points']} points, "
@@ -271,16 +292,17 @@ def _table(res: dict[str, Any]) -> str:
                      f"baseline median {p['baseline_cm_median']:.1f} cm, parallax median "
                      f"{p['parallax_px_median']:.0f} px; start {p['perturbation']}; runs (s): {runs}\n")
         lines.append(report(res))
-    timings = {int(k.split("_")[2]): v for k, v in res.items() if k.startswith("run_timing_")}
+    timings = {int(k.split("_")[2]): v for k, v in res.items() if k.startswith("run_timing_") and isinstance(v, dict)}
     for n, t in sorted(timings.items()):
         if t.get("ba_share") is not None:
             lines.append(f"\nmslam run ({n} frames, --vo gt-depth): total {t['total_s']:.1f} s, "
                          f"global BA {t['ba_s']:.1f} s ({100 * t['ba_share']:.0f} %)")
-    if res.get("cpu_flags") is not None:
+    flags = res.get("cpu_flags")
+    if isinstance(flags, list):
         lines.append(f"\nCPU: {res['cpu_model']} ({kind}), {res['cpu_count']} cores; SIMD flags: "
-                     f"{' '.join(res['cpu_flags'])}")
-    k = res.get("step_kernels") or {}
-    if k.get("convolutions"):
+                     f"{' '.join(flags)}")
+    k = res.get("step_kernels")
+    if isinstance(k, dict) and k.get("convolutions"):
         isa: collections.Counter[str] = collections.Counter()
         for name, n in k["convolutions"].items():
             isa[name.split(":")[-1]] += n
@@ -289,15 +311,16 @@ def _table(res: dict[str, Any]) -> str:
                      f"{', '.join(f'{d} ×{n}' for d, n in k['convolution_dtypes'].items())} (f32: the loss's box "
                      f"filter); reorders {k['reorder_ms']:.0f} ms beside {k['convolution_ms']:.0f} ms of convolutions")
     lines += table_lines(res)
-    if "vo_ms_per_frame" in res:
-        stages = ", ".join(f"{k} {v:.2f}" for k, v in res["vo_ms_per_frame"].items())
+    vo_ms = res.get("vo_ms_per_frame")
+    if isinstance(vo_ms, dict):
+        stages = ", ".join(f"{k} {v:.2f}" for k, v in vo_ms.items())
         lines.append(f"\nVO per-stage ms/frame: {stages}")
     return "\n".join(lines)
 
 
 def run_suite(quick: bool = False, memory: bool = False, grid: bool = False, only_grid: bool = False,
               whole_run: bool = False, threads: int | None = None,
-              out: Path | str = Path("results/bench.json")) -> dict[str, Any]:
+              out: Path | str = Path("results/bench.json")) -> Info:
     """The whole suite: each section's figures, its table's last line to stderr as it completes, then the
     Markdown table to stdout and every figure to ``out`` (JSON).
 
@@ -317,10 +340,10 @@ def run_suite(quick: bool = False, memory: bool = False, grid: bool = False, onl
     """
     threads = threads if threads is not None else os.cpu_count() or 1
     torch.set_num_threads(threads)
-    res: dict[str, Any] = {**cpu_info(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+    res: Info = {**cpu_info(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "reference_ms_start": reference_ms()}
-    parts = [] if only_grid else [lambda: _render(quick), lambda: _loader_and_vo(quick),
-                                  lambda: _network(quick, threads), lambda: _ba(quick)]
+    parts: list[Callable[[], Mapping[str, object]]] = [] if only_grid else [
+        lambda: _render(quick), lambda: _loader_and_vo(quick), lambda: _network(quick, threads), lambda: _ba(quick)]
     for part in parts + ([_grid] if grid or only_grid else []):
         res.update(part())
         print(_table(res).splitlines()[-1], file=sys.stderr, flush=True)

@@ -8,16 +8,43 @@ from __future__ import annotations
 
 import statistics
 from collections.abc import Iterable
-from typing import Any
+from typing import TypedDict
 
 from mutualslam_cli.config import VOConfig
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.map.result import VOResult
 from mutualslam_cli.metrics.slam import evaluate_trajectory, map_esi
 from mutualslam_cli.vo.frontend import STAGES, run_vo
 
 
-def bench_vo(seq: Sequence, cfg: VOConfig | None = None, repeats: int = 3, seed: int = 0) -> dict[str, Any]:
+class VOBench(TypedDict):
+    """:func:`bench_vo`'s figures (see there)."""
+
+    fps: float
+    fps_runs: list[float]
+    ms_per_frame: dict[str, float]
+    frames: int
+    keyframes: int
+    points: int
+    tracked_fraction: float
+    repeats: int
+
+
+class VOAccuracy(TypedDict):
+    """:func:`vo_accuracy`'s facts (see there)."""
+
+    frames: int
+    tracked: float
+    keyframes: int
+    points: int
+    segments: int
+    ate_kf: float | None
+    ate_all: float | None
+    esi: float
+
+
+def bench_vo(seq: Sequence, cfg: VOConfig | None = None, repeats: int = 3, seed: int = 0) -> VOBench:
     """Run the front end ``repeats`` times over ``seq`` and report medians.
 
     Args:
@@ -48,7 +75,7 @@ def bench_vo(seq: Sequence, cfg: VOConfig | None = None, repeats: int = 3, seed:
     }
 
 
-def vo_accuracy(seq: Sequence, vo: Any) -> dict[str, Any]:
+def vo_accuracy(seq: Sequence, vo: VOResult) -> VOAccuracy:
     """Accuracy facts of one front-end run against the sequence's GT (the pipeline's metrics).
 
     Returns:

@@ -22,20 +22,51 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
+
+from mutualslam_cli.bench import figure
+from mutualslam_cli.types import JSON, Info, JSONObject
 
 #: The stages of :func:`split_by_stage`, in the order of a run.
 STAGES = ("frontend", "steps", "consolidation", "adaptation_other", "online_scoring", "final_eval", "ba", "other")
 
 
-def split_by_stage(timing: dict[str, Any]) -> dict[str, float]:
-    """Seconds of each of :data:`STAGES` from a summary's ``timing`` block (missing parts count 0)."""
-    stage = timing.get("stage_s") or {}
+class WholeRunFigures(TypedDict):
+    """:func:`whole_run_figures`'s (seconds, ms, shares; see there)."""
 
-    def get(d: dict[str, Any], k: str) -> float:
-        v = d.get(k)
-        return float(v) if v is not None else 0.0
+    frames: int
+    total_s: float
+    stage_s: dict[str, float]
+    stage_s_per_frame: dict[str, float]
+    steps: int
+    median_step_ms: JSON
+    total_vs_steps: float | None
+    evaluation_share: float | None
+    pcd_lsq_adapted: JSON
+
+
+def _block(d: JSONObject, key: str) -> JSONObject:
+    """The sub-mapping ``d[key]`` of a parsed summary (missing or empty: ``{}``)."""
+    v = d.get(key) or {}
+    if not isinstance(v, dict):
+        raise TypeError(f"summary block {key!r} is not a mapping: {v!r}")
+    return v
+
+
+def _number(v: JSON) -> float:
+    if isinstance(v, (list, dict)):
+        raise TypeError(f"not a number: {v!r}")
+    return float(v) if v is not None else 0.0
+
+
+def split_by_stage(timing: JSONObject) -> dict[str, float]:
+    """Seconds of each of :data:`STAGES` from a summary's ``timing`` block (missing parts count 0)."""
+    stage = _block(timing, "stage_s")
+
+    def get(d: JSONObject, k: str) -> float:
+        return _number(d.get(k))
 
     steps, cons, online = get(timing, "finetune_steps_s"), get(timing, "finetune_consolidate_s"), \
         get(timing, "online_scoring_s")
@@ -45,20 +76,20 @@ def split_by_stage(timing: dict[str, Any]) -> dict[str, float]:
             "other": get(stage, "other")}
 
 
-def whole_run_figures(summary: dict[str, Any], frames: int) -> dict[str, Any]:
+def whole_run_figures(summary: JSONObject, frames: int) -> WholeRunFigures:
     """The bench's figures of one run's ``summary.json`` on a sequence of ``frames`` frames.
 
     Returns:
         ``{"frames", "total_s", "stage_s": {stage: s}, "stage_s_per_frame": {stage: s}, "steps",
         "median_step_ms", "total_vs_steps", "evaluation_share", "pcd_lsq_adapted"}``.
     """
-    timing = summary.get("timing", {})
+    timing = _block(summary, "timing")
     stages = split_by_stage(timing)
-    total = float(timing.get("total_s") or sum(stages.values()))
-    steps = int((summary.get("adaptation") or {}).get("steps") or 0)
+    total = _number(timing.get("total_s")) or sum(stages.values())
+    steps = int(_number(_block(summary, "adaptation").get("steps")))
     step_ms = timing.get("finetune_ms")
-    cost = steps * float(step_ms) / 1000.0 if steps and step_ms else None
-    pcd = ((summary.get("depth") or {}).get("pcd") or {}).get("lsq") or {}
+    cost = steps * _number(step_ms) / 1000.0 if steps and step_ms else None
+    pcd = _block(_block(_block(summary, "depth"), "pcd"), "lsq")
     return {"frames": frames, "total_s": total, "stage_s": stages,
             "stage_s_per_frame": {k: v / frames for k, v in stages.items()} if frames else {},
             "steps": steps, "median_step_ms": step_ms, "total_vs_steps": total / cost if cost else None,
@@ -66,7 +97,7 @@ def whole_run_figures(summary: dict[str, Any], frames: int) -> dict[str, Any]:
             "pcd_lsq_adapted": pcd.get("adapted")}
 
 
-def bench_whole_run(seq: str = "tum_fr1_xyz", threads: int = 1, sets: list[str] | None = None) -> dict[str, Any]:
+def bench_whole_run(seq: str = "tum_fr1_xyz", threads: int = 1, sets: list[str] | None = None) -> Info:
     """Time one default ``mslam run`` of ``seq`` (a datasets.yaml name) with ``threads`` torch threads, in a
     temporary results folder (nothing cached from before: the pre-trained evaluation and the front end's
     journal are computed too, as in a first run); :func:`whole_run_figures` of it, prefixed ``whole_run_``."""
@@ -88,17 +119,19 @@ def bench_whole_run(seq: str = "tum_fr1_xyz", threads: int = 1, sets: list[str] 
             **{f"whole_run_{k}": v for k, v in figures.items()}}
 
 
-def table_lines(res: dict[str, Any]) -> list[str]:
+def table_lines(res: Mapping[str, object]) -> list[str]:
     """Markdown lines of the whole-run figures in ``res`` (empty without them)."""
     if "whole_run_stage_s" not in res:
         return [f"\nwhole run: {res['whole_run_note']}"] if "whole_run_note" in res else []
-    n, stages = res["whole_run_frames"], res["whole_run_stage_s"]
+    n, stages, total_s = figure(res, "whole_run_frames"), res["whole_run_stage_s"], figure(res, "whole_run_total_s")
+    if n is None or total_s is None or not isinstance(stages, dict):
+        raise TypeError("whole-run figures without their frames, total or stages")
     lines = [f"\nwhole `mslam run {res['whole_run_seq']}` (default config, {res['whole_run_threads']} thread(s), "
-             f"{n} frames, CPU kind {res.get('cpu_kind', 'unknown')}): total {res['whole_run_total_s']:.1f} s = "
-             f"{res['whole_run_total_s'] / n:.2f} s/frame; total ÷ (steps × median step) = "
+             f"{n} frames, CPU kind {res.get('cpu_kind', 'unknown')}): total {total_s:.1f} s = "
+             f"{total_s / n:.2f} s/frame; total ÷ (steps × median step) = "
              + (f"{res['whole_run_total_vs_steps']:.2f}" if res.get("whole_run_total_vs_steps") else "—")
              + " (target ≤ 1.25)\n", "| stage | s | s/frame | share |", "|---|---|---|---|"]
-    total = res["whole_run_total_s"] or 1.0
+    total = total_s or 1.0
     for k in STAGES:
         lines.append(f"| {k} | {stages[k]:.1f} | {stages[k] / n:.3f} | {100 * stages[k] / total:.0f} % |")
     return lines

@@ -123,7 +123,7 @@ def config_from(config: Path | None, sets: list[str] | None, data_root: str | No
     if data_root:
         cfg = with_overrides(cfg, data={"data_root": data_root})
     if device:
-        cfg = with_overrides(cfg, device=device)  # type: ignore[arg-type]
+        cfg = with_overrides(cfg, device=device)
     return cfg
 
 
@@ -133,7 +133,7 @@ def progress_bar() -> Progress:
                     TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console, transient=False)
 
 
-def fmt_value(v: Any, nd: int = 3) -> str:
+def fmt_value(v: object, nd: int = 3) -> str:
     """A value of a run's summary for the terminal: ``—`` for none, a float with ``nd`` decimals."""
     if v is None:
         return "—"

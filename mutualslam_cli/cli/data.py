@@ -6,7 +6,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, cast
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import typer
 from rich.table import Table
@@ -24,6 +24,15 @@ from mutualslam_cli.cli.common import (
     shown,
 )
 from mutualslam_cli.errors import ConfigError, DatasetError, MslamError
+
+if TYPE_CHECKING:
+    import numpy as np
+    from rich.progress import TaskID
+
+    from mutualslam_cli.config import RunConfig
+    from mutualslam_cli.datasets.check import CheckReport
+    from mutualslam_cli.datasets.download.limits import UnpackLimits
+    from mutualslam_cli.types import Info, SequenceSpec
 
 # --------------------------------------------------------------------------- datasets
 
@@ -187,7 +196,7 @@ def splice(
                                f"joins at {info.joins or 'none'}) to {info.out}"), highlight=False)
 
 
-def _check_and_print(target: Any, sample: int, data_root: str | None, registry: Path | None) -> None:
+def _check_and_print(target: SequenceSpec | str, sample: int, data_root: str | None, registry: Path | None) -> None:
     """``check_sequence`` of ``target`` (a name, folder or spec) with a decode bar, then its table."""
     from mutualslam_cli.datasets.check import check_sequence
 
@@ -197,17 +206,25 @@ def _check_and_print(target: Any, sample: int, data_root: str | None, registry: 
     _print_report(r)
 
 
+def _bar_number(info: Info, key: str) -> float | None:
+    """Figure ``key`` of a progress callback's ``info`` as a bar takes it (``None``: not said; the bar keeps its
+    own)."""
+    v = info.get(key)
+    return v if isinstance(v, (int, float)) else None
+
+
 @contextmanager
-def _decode_bar(label: str) -> Iterator[Callable[[str, dict[str, Any]], None]]:
+def _decode_bar(label: str) -> Iterator[Callable[[str, Info], None]]:
     """A progress bar for the images a sequence check decodes; yields its callback, removed at the end (the
     table replaces the bar; an error is one line, not a bar and a line)."""
     with progress_bar() as p:
-        tasks: list[Any] = []  # added at the first image
+        tasks: list[TaskID] = []  # added at the first image
 
-        def cb(stage: str, info: dict[str, Any]) -> None:
+        def cb(stage: str, info: Info) -> None:
             if not tasks:
                 tasks.append(p.add_task(shown(f"decode {label}"), total=None, info=""))
-            p.update(tasks[0], completed=info["done"], total=info["total"], info=shown(Path(info["file"]).name))
+            p.update(tasks[0], completed=_bar_number(info, "done"), total=_bar_number(info, "total"),
+                     info=shown(Path(str(info["file"])).name))
 
         try:
             yield cb
@@ -216,7 +233,7 @@ def _decode_bar(label: str) -> Iterator[Callable[[str, dict[str, Any]], None]]:
                 p.remove_task(task)
 
 
-def _print_report(r: Any) -> None:
+def _print_report(r: CheckReport) -> None:
     """The table of a :class:`~mutualslam_cli.datasets.check.CheckReport`."""
     t = Table("check", "value", title=shown(f"{r.name} ({r.format})"), title_justify="left")
     intr = " ".join(f"{v:g}" for v in r.intrinsics[:4])
@@ -256,7 +273,8 @@ def _download(names: list[str], sample: int, base_url: str | None, force: bool, 
             _print_report(report)
 
 
-def _download_one(spec: Any, folder: Path, base_url: str | None, force: bool, limits: Any, sample: int) -> Any:
+def _download_one(spec: SequenceSpec, folder: Path, base_url: str | None, force: bool, limits: UnpackLimits,
+                  sample: int) -> CheckReport | None:
     """One entry's download, unpacking and check, with a bar (size, speed) per file; the bars go when it is done.
     Returns the check's report (``None``: skipped)."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
@@ -265,18 +283,18 @@ def _download_one(spec: Any, folder: Path, base_url: str | None, force: bool, li
 
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
                   TimeRemainingColumn(), console=common.console, transient=True) as p:
-        tasks: dict[tuple[str, str], Any] = {}
+        tasks: dict[tuple[str, str], TaskID] = {}
 
-        def cb(stage: str, info: dict[str, Any]) -> None:
-            key = (stage, info["file"])
+        def cb(stage: str, info: Info) -> None:
+            key = (stage, str(info["file"]))
             if key not in tasks:
-                tasks[key] = p.add_task(shown(f"{stage} {info['file']}"), total=info["total"])
-            p.update(tasks[key], completed=info["done"], total=info["total"])
+                tasks[key] = p.add_task(shown(f"{stage} {info['file']}"), total=_bar_number(info, "total"))
+            p.update(tasks[key], completed=_bar_number(info, "done"), total=_bar_number(info, "total"))
 
         def say(msg: str) -> None:
             p.console.print(shown(msg), highlight=False, soft_wrap=True)
 
-        def check_cb(stage: str, info: dict[str, Any]) -> None:  # the staged folder's check, in the same display
+        def check_cb(stage: str, info: Info) -> None:  # the staged folder's check, in the same display
             cb("check", {"done": info["done"], "total": info["total"], "file": f"{spec.name} (images)"})
 
         return download_sequence(spec, folder, base_url=base_url, force=force, progress=cb, on_message=say,
@@ -313,7 +331,7 @@ def synth(
         task = p.add_task(f"render {scene}", total=frames, info="")
         it = synthetic.iter_render(scene, frames, w, h, seed, cast(Literal["target", "source"], domain))  # checked
 
-        def tracked():
+        def tracked() -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
             for item in it:
                 yield item
                 p.advance(task)
@@ -366,7 +384,7 @@ def pretrain(
                   f"{summary.get('steps_done', summary.get('steps'))} steps)")
 
 
-def _pretrain_pose(cfg: Any, out: Path, steps: int, batch_size: int, seed: int, threads: int,
+def _pretrain_pose(cfg: RunConfig, out: Path, steps: int, batch_size: int, seed: int, threads: int,
                    max_minutes: float | None, quick: bool) -> None:
     """``mslam pretrain --pose``: the pose network, initialised from the depth encoder found in ``out``."""
     from mutualslam_cli.adapt.pretrain_pose import pretrain_pose

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import typer
 from rich.markup import escape
@@ -23,6 +23,9 @@ from mutualslam_cli.cli.common import (
     progress_bar,
 )
 from mutualslam_cli.results.writable import check_output_folder, write_errors
+
+if TYPE_CHECKING:
+    from mutualslam_cli.ablate import JobOutcome
 
 # --------------------------------------------------------------------------- ablate
 
@@ -66,7 +69,7 @@ def ablate(
     with progress_bar() as p:
         task = p.add_task("grid", total=total, info="")
 
-        def done(o: Any) -> None:
+        def done(o: JobOutcome) -> None:
             if o.status == "failed":
                 failed.append(o)
             p.update(task, advance=1, info=f"{o.job.sequence} {o.job.scheme} seed{o.job.seed}: {o.status}")

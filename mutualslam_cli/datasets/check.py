@@ -23,7 +23,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -32,7 +31,7 @@ from mutualslam_cli.datasets.image_files import image_file_problem, jpeg_problem
 from mutualslam_cli.datasets.registry import get_spec, list_datasets, load_sequence, load_spec
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.types import SequenceSpec
+from mutualslam_cli.types import Info, Progress, SequenceSpec
 
 __all__ = ["CheckReport", "bench_loader", "check_all", "check_sequence", "image_file_problem", "jpeg_problem",
            "png_problem"]
@@ -42,7 +41,7 @@ PLAUSIBLE_DEPTH_M = (0.2, 20.0)
 
 #: ``progress("decode", info)`` after each decoded image; ``info``: ``done`` and ``total`` (images),
 #: ``file`` (the image just decoded), ``sequence`` (its name). The pipeline's callback style.
-CheckProgress = Callable[[str, dict[str, Any]], None]
+CheckProgress = Progress
 
 @dataclass
 class CheckReport:
@@ -75,12 +74,13 @@ class CheckReport:
         """True when no warning was raised."""
         return not self.warnings
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> Info:
         """Plain values for JSON/YAML and tables."""
         return dataclasses.asdict(self)
 
 
-def _as_sequence(seq_or_spec: Sequence | SequenceSpec | str | os.PathLike, registry_path, data_root) -> Sequence:
+def _as_sequence(seq_or_spec: Sequence | SequenceSpec | str | os.PathLike, registry_path: str | os.PathLike | None,
+                 data_root: str | os.PathLike | None) -> Sequence:
     if isinstance(seq_or_spec, Sequence):
         return seq_or_spec
     if isinstance(seq_or_spec, SequenceSpec):

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import Any
 
 import cv2
 import numpy as np
@@ -94,7 +93,7 @@ def decide_fy_sign(seq: Sequence, n_pairs: int = 3, gap: int = 5, step: int = 4)
     return (1 if means["+"] < means["-"] else -1), means
 
 
-def apply_fy_sign(seq: Sequence, mode: Any = "auto", fallback: int = -1) -> Sequence:
+def apply_fy_sign(seq: Sequence, mode: str | float = "auto", fallback: int = -1) -> Sequence:
     """Set ``seq.intrinsics.fy`` sign in place: ``auto`` decides from the data, else ±1.
 
     Records ``fy_sign``, ``fy_sign_errors`` and ``fy_sign_source`` in ``seq.meta``.
@@ -118,5 +117,5 @@ def apply_fy_sign(seq: Sequence, mode: Any = "auto", fallback: int = -1) -> Sequ
             raise DatasetError(f"{seq.root}: fy_sign must be 'auto', 1 or -1, got {mode!r}") from None
         errors, source = None, "spec"
     seq.intrinsics = replace(seq.intrinsics, fy=sign * fy_abs)
-    seq.meta.update(fy_sign=sign, fy_sign_errors=errors, fy_sign_source=source)
+    seq.meta.update({"fy_sign": sign, "fy_sign_errors": errors, "fy_sign_source": source})
     return seq

@@ -24,13 +24,12 @@ import logging
 import re
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from mutualslam_cli.datasets.fy_sign import apply_fy_sign
 from mutualslam_cli.datasets.layout import attach_gt, frames_from_associations, image_size, load_gt, make_frames
-from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.datasets.sequence import Sequence, SequenceMeta
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import Intrinsics, SequenceSpec, Trajectory
 
@@ -81,8 +80,8 @@ def load_icl(spec: SequenceSpec) -> Sequence:
     gt, gt_name = load_gt(spec, default=None)
     poses = attach_gt(times, gt, gt_name, root, max_gap=0.0)  # frame numbers: exact match only
     intr = _icl_intrinsics(spec, image_size(rgb[0]))
-    meta: dict[str, Any] = {"format": "icl", "association": assoc, "gt_file": gt_name, "intrinsics_source":
-                            "spec" if spec.intrinsics is not None else "ICL-NUIM default"}
+    meta: SequenceMeta = {"format": "icl", "association": assoc, "gt_file": gt_name, "intrinsics_source":
+                          "spec" if spec.intrinsics is not None else "ICL-NUIM default"}
     frames = make_frames(times, rgb, list(depth), poses)
     seq = Sequence(spec.name, root, intr, float(spec.depth_scale), frames, gt, meta)
     return apply_fy_sign(seq, spec.extra.get("fy_sign", "auto"), fallback=_spec_sign(spec))
@@ -186,7 +185,7 @@ def load_icl_loop(spec: SequenceSpec) -> Sequence:
     else:
         poses = [None] * len(rgb)
     intr = _icl_intrinsics(spec, image_size(rgb[0]))
-    meta: dict[str, Any] = {"format": "icl_loop", "gt_file": gt_name, "depth_unit_m": unit,
-                            "depth": "ray length → z-depth", "association": {"source": "file names", "pairs": len(rgb)}}
+    meta: SequenceMeta = {"format": "icl_loop", "gt_file": gt_name, "depth_unit_m": unit,
+                          "depth": "ray length → z-depth", "association": {"source": "file names", "pairs": len(rgb)}}
     seq = IclLoopSequence(spec.name, root, intr, 1.0, make_frames(times, rgb, depth, poses), gt, meta)
     return apply_fy_sign(seq, spec.extra.get("fy_sign", "auto"), fallback=_spec_sign(spec))

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from mutualslam_cli.datasets.associate import ListFile, poses_at, read_list_file, read_tum_trajectory
+from mutualslam_cli.datasets.sequence import Association
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import FrameRef, SequenceSpec, Trajectory
 
@@ -94,7 +95,7 @@ def _associations_columns(listing: ListFile, depth_first: bool) -> tuple[list[in
     return list(range(len(listing))), depth_first
 
 
-def frames_from_associations(root: Path, depth_first: bool) -> tuple[np.ndarray, list[Path], list[Path], dict]:
+def frames_from_associations(root: Path, depth_first: bool) -> tuple[np.ndarray, list[Path], list[Path], Association]:
     """Frames from ``associations.txt`` (``t_a path_a t_b path_b``)."""
     path = root / "associations.txt"
     listing = read_list_file(path, min_fields=4)
@@ -115,5 +116,5 @@ def frames_from_associations(root: Path, depth_first: bool) -> tuple[np.ndarray,
         rgb_rel, depth_rel, times = pa, pb, ta
     rgb = check_files(root, listing, rgb_rel, entries)
     depth = check_files(root, listing, depth_rel, entries)
-    meta = {"source": "associations.txt", "pairs": len(listing), "depth_first": depth_first}
+    meta: Association = {"source": "associations.txt", "pairs": len(listing), "depth_first": depth_first}
     return np.asarray(times, dtype=np.float64), rgb, depth, meta

@@ -22,7 +22,7 @@ from mutualslam_cli.datasets.recordings.recording import RecordingOptions, open_
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.datasets.tum import load_tum, tum_family
 from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.types import Intrinsics, SequenceSpec
+from mutualslam_cli.types import Intrinsics, JSONObject, SequenceSpec
 
 log = logging.getLogger(__name__)
 
@@ -154,11 +154,12 @@ def spec_from_folder(folder: str | os.PathLike) -> SequenceSpec:
     root = Path(folder).expanduser().resolve()
     fmt = detect_format(root)
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", root.name) or "sequence"
-    extra: dict[str, Any] = {"fy_sign": "auto"} if fmt in ("icl", "icl_loop") else {}
+    extra: JSONObject = {"fy_sign": "auto"} if fmt in ("icl", "icl_loop") else {}
     return SequenceSpec(name, root, fmt, None, 5000.0, None, extra)
 
 
-def _registered_folder(folder: str, registry_path, data_root) -> SequenceSpec:
+def _registered_folder(folder: str, registry_path: str | os.PathLike | None,
+                       data_root: str | os.PathLike | None) -> SequenceSpec:
     """The registry entry whose root is ``folder`` (keeps its depth scale etc.), else autodetect."""
     root = Path(folder).expanduser().resolve()
     try:

@@ -11,20 +11,53 @@ from collections.abc import Generator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 import cv2
 import numpy as np
 
 from mutualslam_cli.datasets.image_files import image_file_problem
 from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.types import FrameRef, Intrinsics, Trajectory
+from mutualslam_cli.types import FrameRef, Intrinsics, JSONObject, Trajectory
 
 log = logging.getLogger(__name__)
 
 
 #: Frames per second of ICL-NUIM's renderings, whose timestamps are frame numbers (Handa et al. 2014).
 ICL_FPS = 30.0
+
+
+class Association(TypedDict, total=False):
+    """How a loader paired images: from which listing (``source``), the counts of each side and of the pairs, the
+    largest time gap of a pair (s), and whether ``associations.txt`` lists depth first."""
+
+    source: str
+    rgb: int
+    depth: int
+    pairs: int
+    max_dt: float
+    depth_first: bool
+
+
+class SequenceMeta(TypedDict, total=False):
+    """:attr:`Sequence.meta`: the facts a loader decided, written into manifests. Each loader sets its own part:
+    ``format`` always; TUM-layout folders ``association``, ``intrinsics_source``, ``gt_file`` and ``warnings``;
+    ICL-NUIM ``depth_unit_m`` (metres per raw unit) and ``depth`` (what the raw values are); the fy sign's
+    decision (:func:`~mutualslam_cli.datasets.fy_sign.apply_fy_sign`); a subset's ``stride``/``max_frames``/
+    ``frames``; a converted recording's ``source.json``."""
+
+    format: str
+    association: Association
+    gt_file: str | None
+    intrinsics_source: str
+    depth_unit_m: float
+    depth: str
+    fy_sign: int
+    fy_sign_errors: dict[str, float] | None
+    fy_sign_source: str
+    subset: dict[str, int]
+    recording: JSONObject
+    warnings: list[str]
 
 
 @dataclass
@@ -38,7 +71,7 @@ class Sequence:
         depth_scale: raw depth units per metre; ``load_depth`` divides by it.
         frames: associated frames in time order.
         gt: full ground-truth trajectory as stored (not only at image times), or ``None``.
-        meta: facts decided while loading (``fy_sign``, ``fy_sign_errors``, ``format`` …),
+        meta: facts decided while loading (:class:`SequenceMeta`: ``format``, ``fy_sign`` …),
             written into manifests.
     """
 
@@ -48,7 +81,7 @@ class Sequence:
     depth_scale: float
     frames: list[FrameRef]
     gt: Trajectory | None = None
-    meta: dict[str, Any] = field(default_factory=dict)
+    meta: SequenceMeta = field(default_factory=lambda: SequenceMeta())
 
     def seconds(self, i: int) -> float:
         """Time of frame ``i`` in seconds: its timestamp, except ICL-NUIM's, which are frame numbers of a

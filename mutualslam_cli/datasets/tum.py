@@ -17,7 +17,6 @@ import logging
 import re
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -31,7 +30,7 @@ from mutualslam_cli.datasets.layout import (
     load_gt,
     make_frames,
 )
-from mutualslam_cli.datasets.sequence import Sequence
+from mutualslam_cli.datasets.sequence import Sequence, SequenceMeta
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.types import Intrinsics, SequenceSpec
 
@@ -142,7 +141,7 @@ def load_tum(spec: SequenceSpec) -> Sequence:
     max_dt = float(spec.extra.get("max_dt", MAX_DT))
     if not isinstance(spec.extra.get("all_frames", False), bool):
         raise DatasetError(f"{spec.name}: all_frames = {spec.extra['all_frames']!r}: expected true or false")
-    meta: dict[str, Any] = {"format": spec.format}
+    meta: SequenceMeta = {"format": spec.format}
     rgb_txt, depth_txt = root / "rgb.txt", root / "depth.txt"
     if rgb_txt.is_file() and (depth_txt.is_file() or spec.format in ("lab", "synthetic")):
         rgb_l = read_list_file(rgb_txt)
@@ -184,7 +183,8 @@ def load_tum(spec: SequenceSpec) -> Sequence:
     poses = attach_gt(times, gt, gt_name, root, float(spec.extra.get("max_gt_gap", 0.1)))
     intr, source = resolve_intrinsics(spec, image_size(rgb[0]))
     frames = make_frames(times, rgb, depth, poses)
-    meta.update(intrinsics_source=source, gt_file=gt_name, fy_sign=1 if intr.fy > 0 else -1, fy_sign_errors=None)
+    meta.update({"intrinsics_source": source, "gt_file": gt_name, "fy_sign": 1 if intr.fy > 0 else -1,
+                 "fy_sign_errors": None})
     seq = Sequence(spec.name, root, intr, float(spec.depth_scale), frames, gt, meta)
     if str(spec.extra.get("fy_sign", "")).lower() == "auto":
         apply_fy_sign(seq, "auto", fallback=1 if intr.fy > 0 else -1)

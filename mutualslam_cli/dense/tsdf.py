@@ -319,7 +319,8 @@ class SurfaceScores:
     n_pred: int
     n_ref: int
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, float]:
+        """The scores by name (metres, fractions, counts)."""
         return dict(vars(self))
 
 

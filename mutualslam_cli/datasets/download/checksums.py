@@ -23,7 +23,6 @@ import json
 import os
 from datetime import date
 from pathlib import Path
-from typing import Any
 
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.download.fetch import Entity
@@ -34,11 +33,14 @@ from mutualslam_cli.datasets.download.files import (
     TEXT,
     Schema,
     check_record,
+    count_field,
     open_no_follow,
     read_text_no_follow,
+    text_field,
 )
 from mutualslam_cli.datasets.download.lock import locked_update
 from mutualslam_cli.errors import DamagedRecord, DatasetError
+from mutualslam_cli.types import JSONObject
 
 CHECKSUMS_FILE = "checksums.json"
 ALGORITHMS = ("sha256", "md5")
@@ -53,9 +55,9 @@ class ChecksumStore:
 
     def __init__(self, path: Path):
         self.path = path
-        self.data: dict[str, dict[str, Any]] = self._load()
+        self.data: JSONObject = self._load()  # entries unchecked until read (get)
 
-    def _load(self) -> dict[str, dict[str, Any]]:
+    def _load(self) -> JSONObject:
         text = read_text_no_follow(self.path, limit=64 << 20)
         if text is None:
             return {}
@@ -68,7 +70,7 @@ class ChecksumStore:
                                "(delete it to record the checksums anew)") from None
         return data
 
-    def get(self, name: str) -> dict[str, Any] | None:
+    def get(self, name: str) -> JSONObject | None:
         """The record of file ``name``, if any.
 
         Raises:
@@ -83,9 +85,9 @@ class ChecksumStore:
             raise DamagedRecord(f"{e}; the record is not trusted: delete the entry {name!r} (or the whole "
                                 f"{self.path.name}) and run the command again to record the checksum anew") from None
 
-    def put(self, name: str, sha256: str, size: int, entity: Entity) -> dict[str, Any]:
+    def put(self, name: str, sha256: str, size: int, entity: Entity) -> JSONObject:
         """Record file ``name`` (merged into the file as it is now on disk, saved atomically); returns the record."""
-        record = {"sha256": sha256, "bytes": size, "url": entity.url, "etag": entity.etag,
+        record: JSONObject = {"sha256": sha256, "bytes": size, "url": entity.url, "etag": entity.etag,
                   "last_modified": entity.last_modified, "recorded": date.today().isoformat()}
         with locked_update(self.path):
             self.data = self._load()
@@ -128,7 +130,8 @@ def verify(path: Path, name: str, url: str, entity: Entity | None, published: tu
         label = {"sha256": "SHA-256", "md5": "MD5"}[published[0]]
         problem = f"{label} {got[published[0]]} does not match the published {published[1]} (datasets.yaml)"
     elif (rec := store.get(name)) is not None and rec.get("sha256") != got["sha256"]:
-        before = Entity(str(rec.get("url")), rec.get("etag"), rec.get("last_modified"), rec.get("bytes"))
+        before = Entity(str(rec.get("url")), text_field(rec, "etag"), text_field(rec, "last_modified"),
+                        count_field(rec, "bytes"))
         now = entity or Entity(url, total=size)
         changed = before.changes(Entity(now.url, now.etag, now.last_modified, size))
         if before.url != now.url:

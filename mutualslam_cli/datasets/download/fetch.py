@@ -30,10 +30,11 @@ import re
 import urllib.error
 import urllib.parse
 import urllib.request
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from email.message import Message
 from pathlib import Path
-from typing import Any
+from types import TracebackType
+from typing import IO, Protocol
 
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.download.files import (
@@ -41,11 +42,14 @@ from mutualslam_cli.datasets.download.files import (
     OPTIONAL_TEXT,
     TEXT,
     Schema,
+    count_field,
     open_no_follow,
     read_record,
     refuse_link,
+    text_field,
 )
 from mutualslam_cli.errors import DamagedRecord, DatasetError
+from mutualslam_cli.types import Progress
 
 TIMEOUT_S = 60.0
 """Seconds to wait for a connection or for the next bytes of a response."""
@@ -53,7 +57,7 @@ TIMEOUT_S = 60.0
 #: ``progress(stage, info)``: stage ``"download"`` with ``done``/``total`` bytes (``total`` None when the
 #: server does not say), ``file`` and ``url``; stage ``"unpack"`` with ``done``/``total`` bytes of the archive
 #: and ``file``.
-DownloadProgress = Callable[[str, dict[str, Any]], None]
+DownloadProgress = Progress
 
 _CHUNK = 1 << 20
 _CONTENT_RANGE = re.compile(r"bytes\s+(\d+)-(\d+)/(\d+|\*)")
@@ -103,11 +107,29 @@ def _mb(n: int | None) -> str:
     return "?" if n is None else f"{n / 1e6:.{1 if n >= 1e6 else 3}f}"
 
 
+class Response(Protocol):
+    """An HTTP answer as urllib gives it: ``http.client.HTTPResponse``, or the ``HTTPError`` of a 416."""
+
+    @property
+    def headers(self) -> Message: ...
+
+    def getcode(self) -> int | None: ...
+
+    def read(self, amt: int, /) -> bytes: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Response: ...
+
+    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
+                 traceback: TracebackType | None, /) -> None: ...
+
+
 class _NoDowngrade(urllib.request.HTTPRedirectHandler):
     """Follows redirects, except from https to anything else."""
 
-    def redirect_request(self, req: urllib.request.Request, fp: Any, code: int, msg: str, headers: Any,
-                         newurl: str) -> urllib.request.Request | None:
+    def redirect_request(self, req: urllib.request.Request, fp: IO[bytes], code: int, msg: str,
+                         headers: http.client.HTTPMessage, newurl: str) -> urllib.request.Request | None:
         if urllib.parse.urlsplit(req.full_url).scheme == "https" and urllib.parse.urlsplit(newurl).scheme != "https":
             raise DatasetError(f"{req.full_url}: the server redirects to {newurl}, which is not https; refused "
                                "(the file would arrive unauthenticated)")
@@ -118,7 +140,7 @@ _OPENER = urllib.request.build_opener(_NoDowngrade)
 _OPENER_MAX_REDIRECTS = _NoDowngrade.max_redirections
 
 
-def _open(url: str, timeout: float, start: int = 0, if_range: str | None = None) -> Any:
+def _open(url: str, timeout: float, start: int = 0, if_range: str | None = None) -> Response:
     """The response to GET ``url`` (``Range: bytes=start-`` and ``If-Range`` when resuming); a 416 answer to a
     resume is returned, not raised."""
     headers = {"User-Agent": "mslam-datasets-download"}
@@ -144,7 +166,7 @@ def _open(url: str, timeout: float, start: int = 0, if_range: str | None = None)
         raise DatasetError(f"{url}: expected an http:// or https:// URL") from None
 
 
-def _entity(url: str, resp: Any) -> Entity:
+def _entity(url: str, resp: Response) -> Entity:
     h = resp.headers
     m = _CONTENT_RANGE.match(h.get("Content-Range", ""))
     length = h.get("Content-Length")
@@ -160,10 +182,12 @@ def read_partinfo(path: Path) -> Entity | None:
         DamagedRecord: a link, or a record of another shape than :data:`PARTINFO_SCHEMA`.
     """
     rec = read_record(path, PARTINFO_SCHEMA)
-    return None if rec is None else Entity(*(rec.get(k) for k in PARTINFO_SCHEMA))  # type: ignore[arg-type]
+    if rec is None:
+        return None
+    return Entity(str(rec["url"]), text_field(rec, "etag"), text_field(rec, "last_modified"), count_field(rec, "total"))
 
 
-def _fresh_range_ok(url: str, resp: Any) -> None:
+def _fresh_range_ok(url: str, resp: Response) -> None:
     """Refuse an answer to a request without ``Range`` that is not the file from byte 0."""
     code = resp.getcode()
     m = _CONTENT_RANGE.match(resp.headers.get("Content-Range", ""))
@@ -183,7 +207,7 @@ def _exact_range(m: re.Match[str] | None, have: int, rec: Entity) -> bool:
     return int(m.group(2)) == total - 1 and rec.total in (None, total)
 
 
-def _begin(url: str, part: Path, info: Path, timeout: float) -> tuple[Any, int, Entity, str | None]:
+def _begin(url: str, part: Path, info: Path, timeout: float) -> tuple[Response | None, int, Entity, str | None]:
     """Open ``url`` for the rest of ``part``: ``(response or None, start byte, entity, note)``; ``None`` as the
     response: ``part`` is already complete. A fresh start records its entity in ``info`` first."""
     refuse_link(part)

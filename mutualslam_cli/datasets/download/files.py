@@ -24,17 +24,17 @@ import os
 import re
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from mutualslam_cli.errors import DamagedRecord
+from mutualslam_cli.types import JSON, JSONObject
 
 #: A field's rule: what the message says is expected, and the test of a value (a missing field is ``None``).
-Rule = tuple[str, Callable[[Any], bool]]
+Rule = tuple[str, Callable[[JSON], bool]]
 #: Field name → rule.
 Schema = dict[str, Rule]
 
 
-def _count(v: Any) -> bool:
+def _count(v: JSON) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
@@ -48,7 +48,7 @@ SHA256: Rule = ("64 lower-case hex digits", lambda v: isinstance(v, str) and re.
 _LINK = "is a symbolic link; mslam opens its own files here only directly (remove the link; nothing was written)"
 
 
-def _short(value: Any) -> str:
+def _short(value: JSON) -> str:
     text = json.dumps(value, ensure_ascii=True)
     return text if len(text) <= 60 else text[:57] + "..."
 
@@ -89,7 +89,7 @@ def read_text_no_follow(path: Path, limit: int = 1 << 20) -> str | None:
         raise DamagedRecord(f"{path}: not UTF-8 text; expected a small JSON record") from None
 
 
-def check_record(data: Any, schema: Schema, where: str) -> dict[str, Any]:
+def check_record(data: JSON, schema: Schema, where: str) -> JSONObject:
     """``data`` when it is a JSON object whose fields follow ``schema`` (other fields are kept, unchecked).
 
     Raises:
@@ -104,7 +104,7 @@ def check_record(data: Any, schema: Schema, where: str) -> dict[str, Any]:
     return data
 
 
-def read_record(path: Path, schema: Schema) -> dict[str, Any] | None:
+def read_record(path: Path, schema: Schema) -> JSONObject | None:
     """The JSON object in ``path`` checked against ``schema``, or ``None`` when ``path`` does not exist.
 
     Raises:
@@ -118,3 +118,17 @@ def read_record(path: Path, schema: Schema) -> dict[str, Any] | None:
     except json.JSONDecodeError as e:  # what json.loads of a str raises (a ValueError)
         raise DamagedRecord(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
     return check_record(data, schema, str(path))
+
+
+def text_field(record: JSONObject, name: str) -> str | None:
+    """Field ``name`` of a record checked by :func:`check_record` whose schema says ``TEXT`` or ``OPTIONAL_TEXT``
+    (``None``: null, or absent)."""
+    v = record.get(name)
+    return v if isinstance(v, str) else None
+
+
+def count_field(record: JSONObject, name: str) -> int | None:
+    """Field ``name`` of a record checked by :func:`check_record` whose schema says ``COUNT`` or
+    ``OPTIONAL_COUNT`` (``None``: null, or absent)."""
+    v = record.get(name)
+    return v if isinstance(v, int) and not isinstance(v, bool) else None

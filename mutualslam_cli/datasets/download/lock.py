@@ -53,9 +53,9 @@ def _holder(path: Path) -> str:
     """Who holds the lock ``path``, from its record (read through :data:`LOCK_SCHEMA`)."""
     try:
         text = read_text_no_follow(path)
-        if not (text or "").strip():  # the holder has not written its record yet
+        if text is None or not text.strip():  # the holder has not written its record yet
             return "a process that is just starting"
-        info = check_record(json.loads(text), LOCK_SCHEMA, str(path))  # type: ignore[arg-type]
+        info = check_record(json.loads(text), LOCK_SCHEMA, str(path))
     except ValueError as e:
         return f"holder unknown: {path}: damaged record (not valid JSON: {e})"
     except DamagedRecord as e:

@@ -20,13 +20,22 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypeAlias
 
 import numpy as np
 
 from mutualslam_cli.config.yaml_file import StrictLoader, is_refusal
 from mutualslam_cli.errors import CameraFileError, DatasetError
-from mutualslam_cli.types import Intrinsics
+from mutualslam_cli.types import Intrinsics, Scalar
+
+if TYPE_CHECKING:
+    import cv2
+
+FileValue: TypeAlias = Scalar | np.ndarray | list["FileValue"] | dict[str, "FileValue"]
+"""A value of a camera file as parsed, before it is checked: YAML's (JSON-like) or OpenCV FileStorage's (matrices as
+``float64`` arrays)."""
+FileMapping: TypeAlias = dict[str, FileValue]
+"""A camera file's top-level mapping (or a Kalibr camera's), as parsed."""
 
 EXPECTED = ("expected an OpenCV calibration YAML/XML (camera_matrix, distortion_coefficients), a ROS "
             "camera_calibration YAML, or a text line 'fx fy cx cy [k1 k2 p1 p2 [k3]]'")
@@ -78,7 +87,7 @@ def read_camera_file(path: Path) -> Intrinsics:
 
 # --- OpenCV FileStorage -------------------------------------------------------------------------------------------
 
-def _read_filestorage(path: Path) -> dict[str, Any]:
+def _read_filestorage(path: Path) -> FileMapping:
     """The top level of a ``cv2.FileStorage`` file as plain Python (matrices as arrays)."""
     import cv2
 
@@ -96,7 +105,7 @@ def _read_filestorage(path: Path) -> dict[str, Any]:
         fs.release()
 
 
-def _fs_value(node: Any) -> Any:
+def _fs_value(node: cv2.FileNode) -> FileValue:
     if node.isMap():
         keys = node.keys()
         if "dt" in keys and "data" in keys:
@@ -116,7 +125,7 @@ def _fs_value(node: Any) -> Any:
 
 # --- YAML mappings (ROS, Kalibr, OpenCV key names) ---------------------------------------------------------------
 
-def _yaml_mapping(text: str) -> dict[str, Any] | None:
+def _yaml_mapping(text: str) -> FileMapping | None:
     """The file as a YAML mapping, or ``None`` when it is not one (then it is read as plain text); read strictly
     (:class:`~mutualslam_cli.config.yaml_file.StrictLoader`): a key given twice or an alias bomb is refused."""
     import yaml
@@ -130,15 +139,16 @@ def _yaml_mapping(text: str) -> dict[str, Any] | None:
     return data if isinstance(data, dict) else None
 
 
-def _first(mapping: dict[str, Any], keys: tuple[str, ...]) -> tuple[str, Any] | None:
+def _first(mapping: FileMapping, keys: tuple[str, ...]) -> tuple[str, FileValue] | None:
     for k in keys:
         if k in mapping and mapping[k] is not None:
             return k, mapping[k]
     return None
 
 
-def _numbers(name: str, value: Any) -> np.ndarray:
-    """A matrix value (array, nested or flat list, or ``{rows, cols, data}``) as a 2-D float array."""
+def _numbers(name: str, value: FileValue) -> np.ndarray:
+    """A matrix value (array, nested or flat list, or ``{rows, cols, data}``) as a 2-D float array; anything else
+    raises :class:`CameraFileError`."""
     try:
         if isinstance(value, dict):
             if "data" not in value:
@@ -147,17 +157,17 @@ def _numbers(name: str, value: Any) -> np.ndarray:
             rows, cols = value.get("rows"), value.get("cols")
             if rows is None or cols is None:
                 return data[None, :]
-            rows, cols = int(rows), int(cols)
-            if rows * cols != data.size:
-                raise CameraFileError(f"{name} says {rows}×{cols} but holds {data.size} numbers")
-            return data.reshape(rows, cols)
+            n_rows, n_cols = _whole(rows), _whole(cols)
+            if n_rows * n_cols != data.size:
+                raise CameraFileError(f"{name} says {n_rows}×{n_cols} but holds {data.size} numbers")
+            return data.reshape(n_rows, n_cols)
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise CameraFileError(f"{name} is not a list of numbers") from None
     return arr.reshape(1, -1) if arr.ndim < 2 else arr
 
 
-def _camera_matrix(name: str, value: Any) -> tuple[float, float, float, float]:
+def _camera_matrix(name: str, value: FileValue) -> tuple[float, float, float, float]:
     K = _numbers(name, value)
     if K.size == 9 and K.shape[0] == 1:  # a flat list of 9 (ROS 'K: [...]')
         K = K.reshape(3, 3)
@@ -168,7 +178,7 @@ def _camera_matrix(name: str, value: Any) -> tuple[float, float, float, float]:
     return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
 
 
-def _dist(name: str, value: Any) -> tuple[float, ...] | None:
+def _dist(name: str, value: FileValue) -> tuple[float, ...] | None:
     d = _numbers(name, value).ravel() if value is not None else np.zeros(0)
     if d.size not in _DIST_LENGTHS:
         raise CameraFileError(f"{name} has {d.size} coefficients; expected 4, 5, 8, 12 or 14 "
@@ -183,11 +193,20 @@ def _radtan(d: np.ndarray) -> tuple[float, ...] | None:
     return None if d5.size == 0 or not np.any(d5) else tuple(float(x) for x in d5)
 
 
-def _size(mapping: dict[str, Any], keys: tuple[str, ...]) -> int:
+def _whole(value: FileValue) -> int:
+    """``int(value)`` of a scalar; ``TypeError`` for a list, a mapping or ``None`` (as ``int`` raises)."""
+    if value is None or isinstance(value, (list, dict)):
+        raise TypeError(f"not a number: {value!r}")
+    return int(value)
+
+
+def _size(mapping: FileMapping, keys: tuple[str, ...]) -> int:
     hit = _first(mapping, keys)
     if hit is None:
         return 0
     try:
+        if hit[1] is None or isinstance(hit[1], (list, dict)):
+            raise TypeError
         v = float(hit[1])
         if v < 0 or v != int(v):
             raise ValueError
@@ -196,7 +215,7 @@ def _size(mapping: dict[str, Any], keys: tuple[str, ...]) -> int:
     return int(v)
 
 
-def _from_mapping(mapping: dict[str, Any], kind: str) -> Intrinsics:
+def _from_mapping(mapping: FileMapping, kind: str) -> Intrinsics:
     cams = [v for k, v in mapping.items() if re.fullmatch(r"cam\d+", str(k)) and isinstance(v, dict)]
     if _first(mapping, _MATRIX_KEYS) is None and cams:  # Kalibr camchain: the first camera
         return _from_kalibr(cams[0])
@@ -214,7 +233,7 @@ def _from_mapping(mapping: dict[str, Any], kind: str) -> Intrinsics:
     return _checked(fx, fy, cx, cy, _size(mapping, _WIDTH_KEYS), _size(mapping, _HEIGHT_KEYS), dist)
 
 
-def _from_kalibr(cam: dict[str, Any]) -> Intrinsics:
+def _from_kalibr(cam: FileMapping) -> Intrinsics:
     model = str(cam.get("camera_model", "pinhole")).lower()
     dmodel = str(cam.get("distortion_model", "radtan")).lower()
     if model != "pinhole" or dmodel not in _RADTAN_MODELS:
@@ -243,7 +262,7 @@ def _from_text(text: str) -> Intrinsics:
         except ValueError:
             raise CameraFileError(f"line {k} is {s[:40]!r}, not numbers") from None
     if len(rows) == 3 and all(len(r) == 3 for r in rows):  # a 3×3 camera matrix
-        return _checked(*_camera_matrix("the camera matrix", rows), 0, 0, None)
+        return _checked(*_camera_matrix("the camera matrix", np.asarray(rows, dtype=np.float64)), 0, 0, None)
     if len(rows) != 1:
         raise CameraFileError(f"{len(rows)} lines of numbers; expected one line")
     v = rows[0]

@@ -11,7 +11,6 @@ import shutil
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -20,7 +19,7 @@ from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.datasets.associate import write_tum_trajectory
 from mutualslam_cli.datasets.image_files import decode_frame
 from mutualslam_cli.errors import DatasetError
-from mutualslam_cli.types import Intrinsics, Trajectory
+from mutualslam_cli.types import Intrinsics, JSONObject, Trajectory
 
 #: File suffixes read as videos (whatever OpenCV's FFmpeg backend decodes).
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
@@ -59,8 +58,8 @@ class RecordingOptions:
     fps: float | None = None
     cache: Path | None = None
 
-    def key_fields(self) -> dict[str, Any]:
-        """The fields that change a conversion's result (not where it is cached)."""
+    def key_fields(self) -> JSONObject:
+        """The fields that change a conversion's result (not where it is cached): strings, numbers or ``None``."""
         d = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self).items() if k != "cache"}
         for k in ("gt", "camera"):  # an edited GT or camera file converts anew
             if getattr(self, k) is not None:
@@ -183,8 +182,9 @@ class TumWriter:
         """GT poses (camera-to-world), written as ``groundtruth.txt``."""
         self.gt = traj
 
-    def finish(self, intrinsics: Intrinsics, depth_scale: float, meta: dict[str, Any]) -> Path:
-        """Write the lists, ``intrinsics.txt`` and ``source.json``, then rename into place."""
+    def finish(self, intrinsics: Intrinsics, depth_scale: float, meta: JSONObject) -> Path:
+        """Write the lists, ``intrinsics.txt`` and ``source.json`` (``meta``: how the recording was read, with
+        ``source``, ``kind`` and ``options``; the counts and the scale are added), then rename into place."""
         if not self.rgb:
             shutil.rmtree(self.tmp, ignore_errors=True)
             raise DatasetError(f"{meta.get('source', self.folder)}: no colour frame found "

@@ -23,9 +23,10 @@ import cv2
 import numpy as np
 
 from mutualslam_cli.datasets.recordings.conversion import RecordingOptions, TumWriter
+from mutualslam_cli.datasets.recordings.messages import Header, RawImage, Stamped
 from mutualslam_cli.errors import DatasetError
 from mutualslam_cli.geometry import pose_from_tq
-from mutualslam_cli.types import Intrinsics, Trajectory
+from mutualslam_cli.types import JSON, Intrinsics, JSONObject, Trajectory
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -57,12 +58,12 @@ def _one_line(err: BaseException) -> str:
     return text[0] if text else type(err).__name__
 
 
-def stamp_seconds(header: Any) -> float:
+def stamp_seconds(header: Header) -> float:
     """``header.stamp`` as float64 seconds: ``sec + nanosec / 1e9``."""
     return float(np.float64(header.stamp.sec) + np.float64(header.stamp.nanosec) / 1e9)
 
 
-def _raw_pixels(msg: Any, where: str, dtype: str, channels: int) -> np.ndarray:
+def _raw_pixels(msg: RawImage, where: str, dtype: str, channels: int) -> np.ndarray:
     """``(H, W, C)`` pixels of a raw ``Image`` in native byte order (``step`` padding dropped)."""
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     item = np.dtype(dtype).itemsize
@@ -269,7 +270,7 @@ class _Converter:
         self.info_changed = 0
         self.poses: list[tuple[float, list[float]]] = []
 
-    def _time(self, topic: str, msg: Any) -> float:
+    def _time(self, topic: str, msg: Stamped) -> float:
         t = stamp_seconds(msg.header)
         if t == 0.0 and self.last_t.get(topic) == 0.0:  # one zero stamp may be a time origin, two are unset
             raise DatasetError(f"{self.name}: messages on '{topic}' have zero header stamps; expected sensor "
@@ -309,8 +310,8 @@ class _Converter:
                                    "expected a unit rotation")
             self.poses.append((t, tq))
 
-    def finish(self) -> tuple[Intrinsics | None, float, dict[str, Any]]:
-        notes: list[str] = []
+    def finish(self) -> tuple[Intrinsics | None, float, JSONObject]:
+        notes: list[JSON] = []
         if self.depth_scale == FLOAT_SCALE:
             notes.append("depth 32FC1 (metres) quantised to 0.2 mm: uint16 at 5000/m; NaN, inf, ≤ 0 and depths "
                          f"beyond 13.107 m set to 0 (invalid; {self.far} pixels were beyond)")
@@ -329,11 +330,11 @@ class _Converter:
                 notes.append(f"{int((~keep).sum())} GT poses with repeated stamps dropped")
             tq = np.array([p[1] for p in self.poses])[keep]
             self.writer.set_gt(Trajectory(times[keep], pose_from_tq(tq[:, :3], tq[:, 3:])))
-        meta: dict[str, Any] = {
+        meta: JSONObject = {
             "what": f"expected image messages on {self.sel['rgb']}",
             "topics": dict(self.sel),
             "messages": dict(self.counts),
-            "encodings": {t: sorted(e) for t, e in self.encodings.items() if e},
+            "encodings": {t: list[JSON](sorted(e)) for t, e in self.encodings.items() if e},
             "notes": notes,
         }
         if self.intr is not None:
@@ -341,7 +342,7 @@ class _Converter:
         return self.intr, self.depth_scale if self.depth_scale is not None else FLOAT_SCALE, meta
 
 
-def convert_bag(path: Path, opts: RecordingOptions, writer: TumWriter) -> tuple[Intrinsics | None, float, dict]:
+def convert_bag(path: Path, opts: RecordingOptions, writer: TumWriter) -> tuple[Intrinsics | None, float, JSONObject]:
     """Convert a ROS bag's colour, depth, CameraInfo and pose topics into ``writer`` in one pass.
 
     Args:

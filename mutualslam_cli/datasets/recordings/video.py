@@ -21,12 +21,13 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from mutualslam_cli.errors import DatasetError
+from mutualslam_cli.types import JSON, JSONObject
 
 if TYPE_CHECKING:
     from mutualslam_cli.datasets.recordings.conversion import RecordingOptions, TumWriter
@@ -49,7 +50,7 @@ def _rate(value: float) -> float | None:
     return float(value) if math.isfinite(value) and 0 < value < 1000 else None
 
 
-def convert_video(path: Path, opts: RecordingOptions, writer: TumWriter) -> dict[str, Any]:
+def convert_video(path: Path, opts: RecordingOptions, writer: TumWriter) -> JSONObject:
     """Decode a video frame by frame into ``writer`` (``(H, W, 3)`` uint8 RGB frames, times in s).
 
     Args:
@@ -90,12 +91,12 @@ class _Frames:
         self.last, self.n = float(t), self.n + 1
 
 
-def _decode(path: Path, cap: cv2.VideoCapture, opts: RecordingOptions, writer: TumWriter) -> dict[str, Any]:
+def _decode(path: Path, cap: cv2.VideoCapture, opts: RecordingOptions, writer: TumWriter) -> JSONObject:
     container_fps = _rate(cap.get(cv2.CAP_PROP_FPS))
     reported = cap.get(cv2.CAP_PROP_FRAME_COUNT)
     fps = float(opts.fps) if opts.fps else (container_fps or DEFAULT_FPS)
-    notes: list[str] = []
-    meta: dict[str, Any] = {"codec": _fourcc(cap), "fps": container_fps, "notes": notes}
+    notes: list[JSON] = []  # lines, appended to until the end
+    meta: JSONObject = {"codec": _fourcc(cap), "fps": container_fps, "notes": notes}
     rotation = cap.get(cv2.CAP_PROP_ORIENTATION_META)
     if math.isfinite(rotation) and rotation % 360:
         notes.append(f"the container asks for a {rotation:g}° rotation, which OpenCV applied: "
@@ -150,7 +151,7 @@ def _decode(path: Path, cap: cv2.VideoCapture, opts: RecordingOptions, writer: T
 
 # --- image folders ------------------------------------------------------------------------------------------------
 
-def natural_key(name: str) -> tuple[list[Any], str]:
+def natural_key(name: str) -> tuple[list[int | str], str]:
     """Sort key that orders digit runs by value, ignoring case: ``frame_2`` before ``frame_10``."""
     parts = re.split(r"(\d+)", name)  # text, digits, text, …: every odd part is a digit run
     return [int(p) if i % 2 else p.lower() for i, p in enumerate(parts)], name
@@ -168,7 +169,7 @@ def _stem_times(files: list[Path]) -> tuple[list[float], str] | None:
     return None
 
 
-def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) -> dict[str, Any]:
+def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) -> JSONObject:
     """List a folder of images (``conversion.IMAGE_SUFFIXES``) as the colour frames of ``writer``.
 
     The images stay where they are (listed by absolute path); each is decoded once here, so that a
@@ -197,7 +198,8 @@ def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) 
         raise DatasetError(f"{path}: no image found; expected files ending in {', '.join(IMAGE_SUFFIXES)}")
     fps = float(opts.fps) if opts.fps else DEFAULT_FPS
     stamped = _stem_times(files)
-    meta: dict[str, Any] = {"images": len(files), "notes": []}
+    notes: list[JSON] = []
+    meta: JSONObject = {"images": len(files), "notes": notes}
     if stamped is not None and stamped[1] == "frame numbers in the file names":
         order = sorted(range(len(files)), key=lambda i: stamped[0][i])
         times = [stamped[0][i] / fps for i in order]
@@ -207,7 +209,7 @@ def convert_image_folder(path: Path, opts: RecordingOptions, writer: TumWriter) 
         times = [stamped[0][i] for i in order]
         meta.update(times=stamped[1], fps_used=None)
         if opts.fps:
-            meta["notes"].append(f"--fps {fps:g} ignored: the file names are times")
+            notes.append(f"--fps {fps:g} ignored: the file names are times")
     else:
         order = sorted(range(len(files)), key=lambda i: natural_key(files[i].name))
         times = [i / fps for i in range(len(files))]

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 SCENES = ("room", "planar", "far")
 _INPLANE = ((1, 2), (0, 2), (0, 1))
@@ -98,8 +99,13 @@ def camera_pose(path: PathSpec, t: float) -> np.ndarray:
     return T
 
 
-def _path(rng: np.random.Generator, base, rate, amp, freq) -> PathSpec:
-    """Jitter frequencies by ±15 % and draw phases uniformly (seed-dependent path)."""
+XY = tuple[float, float] | np.ndarray
+"""A point of the floor plan ``(x, y)`` in metres: a pair or a ``(2,)`` array."""
+
+
+def _path(rng: np.random.Generator, base: ArrayLike, rate: ArrayLike, amp: ArrayLike, freq: ArrayLike) -> PathSpec:
+    """Jitter frequencies by ±15 % and draw phases uniformly (seed-dependent path): ``base``, ``rate`` ``(6,)``,
+    ``amp``, ``freq`` ``(6, 2)`` as :class:`PathSpec` holds them."""
     amp, freq = np.asarray(amp, float), np.asarray(freq, float)
     freq = freq * rng.uniform(0.85, 1.15, freq.shape)
     phase = rng.uniform(0, 2 * np.pi, amp.shape)
@@ -111,10 +117,11 @@ def _reach(path: PathSpec) -> np.ndarray:
     return np.abs(path.amp[:3]).sum(axis=1)
 
 
-def _place(rng: np.random.Generator, boxes: list[Box], n: int, region_lo, region_hi, size_lo, size_hi,
-           keepout_lo, keepout_hi, ppm: float, z0: float = 0.0) -> None:
+def _place(rng: np.random.Generator, boxes: list[Box], n: int, region_lo: XY, region_hi: XY,
+           size_lo: tuple[float, float, float], size_hi: tuple[float, float, float], keepout_lo: XY, keepout_hi: XY,
+           ppm: float, z0: float = 0.0) -> None:
     """Append up to ``n`` floor-standing boxes inside ``region`` (xy), avoiding the camera
-    keep-out rectangle and each other (rejection sampling)."""
+    keep-out rectangle and each other (rejection sampling). Corners in metres; sizes ``(x, y, z)``."""
     placed: list[tuple[np.ndarray, np.ndarray]] = []
     for _ in range(400):
         if len(placed) == n:
