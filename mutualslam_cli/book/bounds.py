@@ -60,7 +60,7 @@ def rerun_bound(bound: dict[str, Any], spec: BookSpec, out: Path, registry: str 
     s = bound["sequence"]
     ref = SequenceRef(s["name"], s.get("synth"))
     seq = str(render_synth(ref, out / "data")) if ref.synth is not None else ref.name
-    cfg = with_overrides(part.cfg, adapt={"scheme": bound["scheme"]}, seed=int(bound["seed"]))  # type: ignore[arg-type]
+    cfg = with_overrides(part.cfg, adapt={"scheme": bound["scheme"]}, seed=int(bound["seed"]))
     r = run_sequence(seq, cfg, out=out / "runs", command=["bound"], registry=Path(registry) if registry else None)
     v = r.summary.number(bound["key"])
     now = None if v is None else float(v) * float(bound.get("scale", 1.0))

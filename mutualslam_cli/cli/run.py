@@ -32,7 +32,7 @@ from mutualslam_cli.results.writable import check_output_folder
 
 if TYPE_CHECKING:
     from mutualslam_cli.results.summary import RunSummary
-    from mutualslam_cli.types import Info
+    from mutualslam_cli.types import Info, JSONObject
 
 # --------------------------------------------------------------------------- run
 
@@ -144,8 +144,9 @@ def run(
     from mutualslam_cli.pipeline import run_sequence
 
     cfg = config_from(config, sets, data_root, device)
-    over = {"adapt": {"scheme": scheme} if scheme else None, "vo": {"mode": vo} if vo else None,
-            "net": {"weights": str(weights)} if weights else None, "seed": seed}
+    over: dict[str, JSONObject | int | None] = {"adapt": {"scheme": scheme} if scheme else None,
+                             "vo": {"mode": vo} if vo else None,
+                             "net": {"weights": str(weights)} if weights else None, "seed": seed}
     cfg = with_overrides(cfg, **{k: v for k, v in over.items() if v is not None})
     get_scheme(cfg.adapt.scheme, cfg.adapt)  # unknown name or bad setting → ConfigError, before any work
     check_output_folder(out if out is not None else cfg.out)  # a file, read-only: one line, before the bars
