@@ -42,6 +42,20 @@ def default_run(setup):
     return run_sequence(seq, _cfg(tmp, "ba.d_max=0.2", "ba.final=always"), out=tmp / "res", command=["test"])
 
 
+def test_run_records_every_optimiser_step(default_run):
+    """steps.csv: one row per step, its keyframe and the work before it; the summary's distribution from it."""
+    steps = pd.read_csv(default_run.folder / "steps.csv")
+    s = default_run.summary
+    assert len(steps) == s.integer("adaptation.steps") > 0
+    assert list(steps["step"]) == list(range(len(steps)))
+    assert s.number("timing.step_ms.median") == pytest.approx(float(steps["ms"].median()))
+    assert s.number("timing.step_ms.max") == pytest.approx(float(steps["ms"].max()))
+    n_median = len(steps) * steps["ms"].median()
+    assert s.number("timing.steps_over_median") == pytest.approx(steps["ms"].sum() / n_median)
+    first = steps.groupby("kf_id")["after"].first().fillna("")
+    assert all("tick" in a for a in first)  # each keyframe's first step follows its tick
+
+
 def test_run_writes_complete_result(setup, default_run):
     tmp, seq = setup
     r = default_run

@@ -14,18 +14,14 @@ Choices the paper leaves open (documented here, DESIGN §5):
 - **L_val** (Eq. 9) = L_sparse over all validation keyframes so far (``val_scope="all"``; ``"current"``: the
   arriving one), with the current model, each weighing equally: the growing held-out set early stopping
   monitors, so forgetting of earlier places raises it (docs/adaptation.md).
-- **BatchNorm** stays in eval mode (running statistics frozen) during fine-tuning: batches have
-  1–2 images. Gradients still flow through every layer.
+- **BatchNorm** stays in eval mode (running statistics frozen): batches have 1–2 images; gradients flow through it.
 - **Loss parts** in :class:`StepInfo` are the batch's first step's; ``penalty`` the regulariser's value at its end.
 - **Regulariser** (``ewc``, ``replay+ewc|mas|si``): a proximal step after each Adam step (``reg_mode="prox"``) or a
   loss term (``"penalty"``, the paper's form): :mod:`mutualslam_cli.adapt.regularizers`.
 - Determinism: ``torch.manual_seed(seed)`` at construction, replay draws from a numpy Generator
   seeded with ``seed`` and buffer eviction from one seeded with ``seed + 1``.
-- Device (:mod:`~mutualslam_cli.device`): the network, the optimiser state and the regulariser's
-  tensors live on the adapter's ``device``; the buffer keeps images on the CPU and each batch (images
-  as uint8, poses, intrinsics, sparse points) is sent there when it is assembled. fp16 mixed precision
-  (CUDA GPUs without bf16) scales the loss (a ``GradScaler``); the importance's gradients (EWC's Fisher)
-  are taken at the same scale and unscaled.
+- Device (:mod:`~mutualslam_cli.device`): network, optimiser and regulariser tensors on ``device``; images stay on the
+  CPU until a batch is assembled. fp16 (GPUs without bf16) scales the loss; EWC's Fisher gradients are unscaled.
 """
 
 from __future__ import annotations
@@ -60,7 +56,7 @@ from mutualslam_cli.adapt.state import (
     is_validation_index,
     step,
 )
-from mutualslam_cli.adapt.step_info import StepInfo  # what add_keyframe returns; still importable from here
+from mutualslam_cli.adapt.step_info import StepInfo, StepLog  # StepInfo: what add_keyframe returns
 from mutualslam_cli.config import AdaptConfig
 from mutualslam_cli.device import grad_scaler, module_device, synchronize
 from mutualslam_cli.errors import ConfigError, TransitionError
@@ -138,6 +134,7 @@ class OnlineAdapter:
         self.fsm = FsmState()
         self.finetune_ms: list[float] = []
         self.step_ms: list[float] = []
+        self.step_log = StepLog()  # every step's time beside the work around it (steps.csv)
         self.batch_ms: list[float] = []  # per trained keyframe: assembling the batch (replay decode, resampling)
         self.consolidate_ms: list[float] = []  # … and the regulariser's end of batch (Fisher, importance)
         self.history: list[StepInfo] = []
@@ -185,6 +182,7 @@ class OnlineAdapter:
             if batch is not None:
                 self._pending = (info, batch, 1000.0 * (time.perf_counter() - t_batch))
             self.fsm, _ = step(self.fsm, FineTuneDone(), self.fsm_params)
+        self.step_log.mark("l_val" if info.is_validation else "tick")
         info.state = self.fsm.mode.value
         info.n_converged = self.fsm.n_converged
         info.ms = 1000.0 * (time.perf_counter() - t0)
@@ -233,6 +231,7 @@ class OnlineAdapter:
             t = time.perf_counter()
             self._close_batch(batch, info, self._opened[1], self._opened[0], batch_ms)
             info.ms += 1000.0 * (time.perf_counter() - t)
+            self.step_log.mark("consolidate")
         self._opened = None
         return info
 
@@ -375,6 +374,7 @@ class OnlineAdapter:
             info.loss = {k: float(v) for k, v in parts.items()}
         synchronize(self.device)  # CUDA runs ahead of the host: the step is over when the device is done
         self.step_ms.append(1000.0 * (time.perf_counter() - ts))
+        self.step_log.step(info.kf_id, self.step_ms[-1], len(batch.ids))
 
     def _close_batch(self, batch: TrainingBatch, info: StepInfo, steps: int, t0: float, batch_ms: float) -> None:
         """After a batch's last step: the regulariser's consolidation (Alg. 2 line 7) and the keyframe's record."""

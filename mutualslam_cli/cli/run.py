@@ -96,6 +96,10 @@ def _stage_table(f: RunSummary) -> Table:
                         for fmt in [fmt.format(f.get(k))])
     beyond = f.number("timing.beyond_steps")
     extra = f"; beyond the steps: +{100 * beyond:.0f} %" if beyond else ""
+    med, p99, top, over = (f.number(k) for k in ("timing.step_ms.median", "timing.step_ms.p99", "timing.step_ms.max",
+                                                  "timing.steps_over_median"))
+    if med is not None and p99 is not None and top is not None and over is not None:
+        extra += f"; a step: median {med:.0f} ms, p99 {p99:.0f}, max {top:.0f} (steps' sum = {over:.2f} × n × median)"
     t.caption = escape(f"device: {device or '?'}{extra}")
     return t
 

@@ -98,6 +98,8 @@ class OnlineLoop:
         self.weights_at = WeightsAt(set())  # the weights at the frames where the credit bridges are planned
         self.row_of: dict[int, KeyframeRow] = {}
         self._segments: set[int] = set()
+        if scorer is not None and self.adapter is not None:
+            scorer.log = self.adapter.step_log
 
     # ------------------------------------------------------------------ Algorithm 1
     def run_loop(self) -> None:
@@ -107,6 +109,7 @@ class OnlineLoop:
         schedule = RealtimeSchedule(self) if self.clock is not None else self.in_order
         t0 = time.perf_counter()
         for frame, keyframes in self.source.timeline():
+            self._mark("frontend")
             self.weights_at.at_frame(frame, self.net)  # the weights the front end has at this frame
             for kf in schedule(frame, keyframes):
                 self._report(kf, t0)
@@ -219,6 +222,7 @@ class OnlineLoop:
         """``seconds`` of work on keyframe ``kf`` (a bridge, a BA): into its row and onto the clock, where the
         map changes it made take hold when it ends."""
         self.row(kf).add_seconds(key, seconds)
+        self._mark(key[:-2])
         if self.clock is not None:
             self.clock.charge(1000.0 * seconds, key[:-2])
             assert isinstance(self.writer, DeferredMap)  # the realtime schedule's
@@ -236,7 +240,14 @@ class OnlineLoop:
     def score_before(self, frame: int, kf: int) -> None:
         """Online scores of the frames before ``frame`` not scored yet, with the weights now (after ``kf``'s steps)."""
         if self.scorer is not None:
+            done = self.scorer.seconds
             self.scorer.score_until(self.net, frame, kf)
+            if self.scorer.seconds > done:  # it scored frames (and may have refreshed its weights)
+                self._mark("score")
+
+    def _mark(self, kind: str) -> None:
+        if self.adapter is not None:
+            self.adapter.step_log.mark(kind)
 
     def _report(self, kf: int, t0: float) -> None:
         if self.run.progress is not None:

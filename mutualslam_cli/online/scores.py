@@ -69,6 +69,7 @@ from mutualslam_cli.adapt.depthnet import DepthNet, predict_depth, prepare
 from mutualslam_cli.adapt.inference import resolve_runtime
 from mutualslam_cli.adapt.inputs import resample, to_net_image
 from mutualslam_cli.adapt.ov_refresh import NotRefreshable, RefreshablePredictor
+from mutualslam_cli.adapt.step_info import StepLog
 from mutualslam_cli.config import RunConfig
 from mutualslam_cli.datasets.sequence import Sequence
 from mutualslam_cli.device import module_device
@@ -134,6 +135,7 @@ class OnlineScorer:
         self._twin: torch.nn.Module | None = None  # channels-last copy of an NCHW network on the CPU
         self._ov: RefreshablePredictor | Literal[False] | None = None  # None: not decided yet; False: the torch path
         self.seconds = 0.0
+        self.log: StepLog | None = None  # the adaptation's step log: scoring and refreshes marked between steps
 
     def score_until(self, net: torch.nn.Module, frame_index: int, kf_id: int) -> None:
         """Score, with ``net`` (the model after keyframe ``kf_id``; -1 = pre-trained), every pending
@@ -181,6 +183,8 @@ class OnlineScorer:
         if self._ov:
             if not fresh:
                 self._ov.refresh(net)
+                if self.log is not None:
+                    self.log.mark("refresh")
             ov = self._ov
             return (lambda small: ov(torch.from_numpy(small).permute(0, 3, 1, 2).float() / 255.0)), device
         twin = self._scoring_net(net)

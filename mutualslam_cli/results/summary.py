@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
@@ -173,7 +173,7 @@ class RunSummary:
     version: int
     values: Mapping[str, JSON]
     notes: Mapping[str, str]
-    source: str = "summary.json"
+    source: str = field(default="summary.json", compare=False)
 
     @classmethod
     def parse(cls, data: JSON, where: str) -> RunSummary:

@@ -36,6 +36,7 @@ from mutualslam_cli.stages.adaptation_summary import (
     summarise_loops,
     summarise_merges,
     summarise_no_loops,
+    summarise_steps,
     summarise_strength,
 )
 from mutualslam_cli.stages.context import RunContext
@@ -189,6 +190,7 @@ def finish_stage(run: RunContext, fe: FrontEndRun, adapted: Adapted) -> None:
                 "no online scores through OpenVINO (the torch path, eval.online false, or no GT depth)")
     if adapted.keyframe_rows:
         atomic_write_text(run.folder / "keyframes.csv", keyframes_table(adapted.keyframe_rows).to_csv(index=False))
+    summarise_steps(run, adapted.adapter.step_log if adapted.adapter is not None else None, cfg.adapt.scheme)
     assert adapted.bridged is not None  # comoda: the front end's own map; else run_algorithm1's credit
     summarise_bridges(run, adapted.bridged, adapted.bridges, adapted.credit)
     check = adapted.map.meta.get("scale_check") if adapted.map is not None else None

@@ -6,8 +6,11 @@ drove, the regulariser's strength (``adaptation.reg.*``) and the fine-tuning's c
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
 from mutualslam_cli.adapt.online import OnlineAdapter
+from mutualslam_cli.adapt.step_info import StepLog
+from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.backend.bridges import Bridge
 from mutualslam_cli.backend.loop_closer import LoopCloser
 from mutualslam_cli.backend.merge import SegmentMerger
@@ -168,3 +171,21 @@ def summarise_live_reuse(summary: Summary, live: VOResult, mode: str) -> None:
     summary.set("vo.live.points_fused", int(live.meta.get("fused", 0)))
     summary.set("vo.live.old_share", None if share is None else 100.0 * float(share), "no frame tracked a map point")
     summary.set("vo.live.map_units", len(set(live.unit_of_segment().values())))
+
+
+#: ``timing.step_ms.*``: the distribution of the optimiser steps' wall times (:meth:`StepLog.stats`).
+STEP_STATS = ("median", "p90", "p99", "max")
+
+
+def summarise_steps(run: RunContext, steps: StepLog | None, scheme: str) -> None:
+    """``steps.csv`` (one row per optimiser step: its keyframe, ms, batch and the work done since the step before;
+    :class:`~mutualslam_cli.adapt.step_info.StepLog`) and the keys ``timing.step_ms.{median,p90,p99,max}`` and
+    ``timing.steps_over_median`` (the steps' sum over steps × median: 1.0 without a stall)."""
+    stats = steps.stats() if steps is not None else {}
+    why = ("scheme 'comoda' updates per frame (frames.csv)" if scheme == "comoda" else
+           "no optimiser step" if steps is not None else f"scheme {scheme!r} does not train")
+    for k in STEP_STATS:
+        run.summary.set(f"timing.step_ms.{k}", stats.get(k), why)
+    run.summary.set("timing.steps_over_median", stats.get("sum_over_median"), why)
+    if steps is not None and steps.steps:
+        atomic_write_text(run.folder / "steps.csv", pd.DataFrame(steps.rows()).to_csv(index=False))

@@ -19,7 +19,6 @@ from mutualslam_cli.dense import tsdf
 from mutualslam_cli.dense.picture import fit_view, look_from_cameras
 from mutualslam_cli.errors import ConfigError, GeometryError
 from mutualslam_cli.pipeline import fuse_run
-from mutualslam_cli.results.summary import flatten
 from mutualslam_cli.stages.dense import DENSE_KEYS
 
 VOXEL = 0.02
@@ -269,7 +268,7 @@ def test_fuse_on_the_finished_run_gives_the_same_scores(dense_run, tmp_path):
     root = tmp_path / "copy"
     shutil.copytree(r.folder.parents[2], root)
     folder = root / r.folder.relative_to(r.folder.parents[2])
-    out = flatten(fuse_run(folder, command=["test"]))
+    out = fuse_run(folder, command=["test"]).flat()
     flat = r.summary.flat()
     for key in DENSE_KEYS + ("dense.scale.pretrained", "dense.scale.adapted", "dense.frames"):
         assert out[key] == flat[key], key
@@ -288,7 +287,7 @@ def test_fuse_every_frame(dense_run, tmp_path):
     _, _, r = dense_run
     root = tmp_path / "every"
     shutil.copytree(r.folder.parents[2], root)
-    s = flatten(fuse_run(root / r.folder.relative_to(r.folder.parents[2]), ["dense.every=1"]))
+    s = fuse_run(root / r.folder.relative_to(r.folder.parents[2]), ["dense.every=1"]).flat()
     assert s["dense.frames"] == 12
     assert s["dense.source"].startswith("every k-th frame (k = 1)")
     assert all(isinstance(s[k], float) for k in DENSE_KEYS)
@@ -305,10 +304,10 @@ def test_sequence_without_gt_depth_gives_null_scores_with_the_reason(dense_run, 
     seq = load_sequence(seq_dir)
     seq.frames = [dataclasses.replace(f, depth_path=None, pose=f.pose) for f in seq.frames]
     s = fuse_run(folder, seq=seq)
-    flat = flatten(s)
+    flat = s.flat()
     for key in DENSE_KEYS:
         assert flat[key] is None, key
-        assert "no GT depth" in s["notes"][key], key
+        assert "no GT depth" in s.notes[key], key
     # the predictions are still fused (metric by the Sim(3) to the GT poses); there is no reference mesh
     assert (folder / "mesh_adapted.ply").is_file()
     assert not (folder / "mesh_gt.ply").exists()
@@ -392,7 +391,7 @@ def test_per_frame_scalings_tell_scale_jitter_from_shape(dense_run, tmp_path, mo
     root = tmp_path / "scalings"
     shutil.copytree(r.folder.parents[2], root)
     folder = root / r.folder.relative_to(r.folder.parents[2])
-    s = flatten(fuse_run(folder))
+    s = fuse_run(folder).flat()
     F = {p: {m: s[f"dense.{p}fscore_5cm.{m}"] for m in ("pretrained", "adapted")}
          for p in ("", "frame_scale.", "gt_scale.")}
     assert F[""]["adapted"] > 0.9
@@ -419,13 +418,13 @@ def test_per_frame_scalings_tell_scale_jitter_from_shape(dense_run, tmp_path, mo
     # factor (counted); the GT scaling's keys are null with the reason, and the sequence keys are unchanged
     _gt_predictors(monkeypatch, seq_dir, {"pretrained": jitter, "adapted": np.full(12, 1.7)})
     e = fuse_run(folder, ["dense.every=1", "dense.scalings=[sequence, frame]"])
-    f = flatten(e)
+    f = e.flat()
     assert f["dense.frames"] == 12
     assert f["dense.frame_scale.fallback_frames.pretrained"] == 12 - 6
     assert f["dense.frame_scale.fscore_5cm.pretrained"] > f["dense.fscore_5cm.pretrained"]
     for key in ("dense.gt_scale.fscore_5cm.adapted", "dense.gt_scale.fallback_frames.pretrained"):
         assert f[key] is None
-        assert "dense.scalings leaves out 'gt'" in e["notes"][key]
+        assert "dense.scalings leaves out 'gt'" in e.notes[key]
 
 
 def test_fuse_prints_every_scaling_it_scored(dense_run, tmp_path):

@@ -21,16 +21,17 @@ from mutualslam_cli.datasets.recordings.recording import RecordingOptions
 from mutualslam_cli.datasets.registry import load_sequence
 from mutualslam_cli.datasets.tum import read_intrinsics_txt
 from mutualslam_cli.pipeline import run_sequence
-from mutualslam_cli.results.summary import flatten
+from mutualslam_cli.results.summary import RunSummary, flatten
 
 N, W, H, FPS = 30, 320, 240, 30.0
 #: Keys that describe the run rather than its results (where the sequence came from, how long it took).
 NOT_RESULTS = ("timing.", "vo.from_cache", "sequence.name", "vo.fps")
 
 
-def results(summary: dict) -> dict:
-    """The result values of a summary (:data:`NOT_RESULTS` left out)."""
-    return {k: v for k, v in flatten(summary).items() if not k.startswith(NOT_RESULTS) and not k.startswith("notes.")}
+def results(summary: RunSummary) -> dict:
+    """The result values of a summary and the notes on them (:data:`NOT_RESULTS` left out)."""
+    keep = {k: v for k, v in summary.flat().items() if not k.startswith(NOT_RESULTS)}
+    return {**keep, "notes": {k: v for k, v in summary.notes.items() if not k.startswith(NOT_RESULTS)}}
 
 
 def exported(folder: Path) -> list[np.ndarray]:
