@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
+from mutualslam_cli.book.entries import BoundEntry
 from mutualslam_cli.book.plan import part_of, plan_book, render_synth
 from mutualslam_cli.book.spec import BookSpec, SequenceRef
 from mutualslam_cli.config import with_overrides
@@ -39,7 +39,7 @@ def interval(value: float, factor: float) -> tuple[float, float]:
     return (min(a, b), max(a, b))
 
 
-def rerun_bound(bound: dict[str, Any], spec: BookSpec, out: Path, registry: str | None = None,
+def rerun_bound(bound: BoundEntry, spec: BookSpec, out: Path, registry: str | None = None,
                 data_root: str | None = None) -> BoundCheck:
     """Make the run of ``bound`` again under ``out`` and compare (module docstring).
 
@@ -60,7 +60,7 @@ def rerun_bound(bound: dict[str, Any], spec: BookSpec, out: Path, registry: str 
     s = bound["sequence"]
     ref = SequenceRef(s["name"], s.get("synth"))
     seq = str(render_synth(ref, out / "data")) if ref.synth is not None else ref.name
-    cfg = with_overrides(part.cfg, adapt={"scheme": bound["scheme"]}, seed=int(bound["seed"]))  # type: ignore[arg-type]
+    cfg = with_overrides(part.cfg, adapt={"scheme": bound["scheme"]}, seed=int(bound["seed"]))
     r = run_sequence(seq, cfg, out=out / "runs", command=["bound"], registry=Path(registry) if registry else None)
     v = r.summary.number(bound["key"])
     now = None if v is None else float(v) * float(bound.get("scale", 1.0))
