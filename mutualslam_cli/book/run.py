@@ -222,15 +222,16 @@ def write_book(spec: BookSpec, plan: Plan, out: Path, grids: set[str], only: lis
                                         out / "reports" / grid)
     bounds = build_bounds(spec, tables, plan, notes)
     cpu = cpu_info()
-    book: BookJSON = {"format": FORMAT,
-            "book": {"name": spec.name, "file": _relative(spec.path), "file_sha256": _sha256(spec.path),
-                     "commit": git_revision(), "created_utc": dt.datetime.now(dt.timezone.utc).isoformat(
-                         timespec="seconds"), "cpu_kind": cpu.get("cpu_kind"), "cpu_model": cpu.get("cpu_model"),
-                     "only": list(only or []), "runs": len(runs),
-                     "commits": sorted({str(c) for c in runs.get("book.commit", []) if c}),
-                     "devices": sorted({str(c) for c in runs.get("run.device_label", []) if c == c and c})},
-            "grids": _with_cost(describe(plan), runs), "tables": {k: t.as_dict() for k, t in tables.items()},
-            "figures": figures, "findings": findings, "bounds": bounds, "notes": notes}
+    book: BookJSON = {
+        "format": FORMAT,
+        "book": {"name": spec.name, "file": _relative(spec.path), "file_sha256": _sha256(spec.path),
+                 "commit": git_revision(), "created_utc": dt.datetime.now(dt.timezone.utc).isoformat(
+                     timespec="seconds"), "cpu_kind": cpu.get("cpu_kind"), "cpu_model": cpu.get("cpu_model"),
+                 "only": list(only or []), "runs": len(runs),
+                 "commits": sorted({str(c) for c in runs.get("book.commit", []) if c}),
+                 "devices": sorted({str(c) for c in runs.get("run.device_label", []) if c == c and c})},
+        "grids": _with_cost(describe(plan), runs), "tables": {k: t.as_dict() for k, t in tables.items()},
+        "figures": figures, "findings": findings, "bounds": bounds, "notes": notes}
     path = out / "book.json"
     atomic_write_text(path, json.dumps(plain(book), indent=1, ensure_ascii=False, allow_nan=False) + "\n")
     res.written.append(path)

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
 #: A map as :func:`~mutualslam_cli.results.map_ply.read_ply` reads it: ``(P, 3)`` points, ``(P, 3)`` colours in
-#: [0, 1] (``None``: an xyz-only map) and the third array it returns.
+#: [0, 1] and ``(P,)`` log-depth errors (each ``None`` in an xyz-only map).
 Map = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
 
 #: (file, summary stage, panel title) of the panels, left to right.

@@ -26,6 +26,7 @@ from mutualslam_cli.atomic import atomic_path
 
 if TYPE_CHECKING:  # matplotlib is imported when a figure is drawn (:func:`pyplot`)
     from matplotlib.artist import Artist
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.typing import LineStyleType
 
@@ -79,10 +80,9 @@ TEXT_WIDTH_SHARE = 0.96
 def text_width(fig: Figure, text: str, fontsize: float) -> float:
     """Width of ``text``'s widest line at ``fontsize`` points, in pixels of ``fig`` at its dpi (as its
     ``bbox``), measured by the figure's renderer."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.font_manager import FontProperties
 
-    canvas = cast(FigureCanvasAgg, fig.canvas)  # every figure is drawn on Agg (:func:`pyplot`); stubs say only Base
+    canvas = cast("FigureCanvasAgg", fig.canvas)  # every figure is drawn on Agg (:func:`pyplot`); stubs say only Base
     renderer, font = canvas.get_renderer(), FontProperties(size=fontsize)
     return max(renderer.get_text_width_height_descent(line, font, ismath=False)[0] for line in text.split("\n"))
 
