@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
+from mutualslam_cli.book.entries import BoundEntry
 from mutualslam_cli.book.plan import part_of, plan_book, render_synth
 from mutualslam_cli.book.spec import BookSpec, SequenceRef
 from mutualslam_cli.config import with_overrides
@@ -39,7 +39,7 @@ def interval(value: float, factor: float) -> tuple[float, float]:
     return (min(a, b), max(a, b))
 
 
-def rerun_bound(bound: dict[str, Any], spec: BookSpec, out: Path, registry: str | None = None,
+def rerun_bound(bound: BoundEntry, spec: BookSpec, out: Path, registry: str | None = None,
                 data_root: str | None = None) -> BoundCheck:
     """Make the run of ``bound`` again under ``out`` and compare (module docstring).
 

@@ -14,12 +14,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from mutualslam_cli.ablate import Job
+from mutualslam_cli.book.entries import BoundEntry, CellEntry, CellSource, FigureEntry, TableEntry, ValueEntry
 from mutualslam_cli.book.plan import Part, Plan, part_of
 from mutualslam_cli.book.records import CURVES, JobState
 from mutualslam_cli.book.spec import PAPER_TABLES, BookSpec, ColumnSpec, TableSpec
@@ -30,6 +30,7 @@ from mutualslam_cli.report.paper_numbers import paper_name
 from mutualslam_cli.report.runs import config_labels
 from mutualslam_cli.results.run_folder import is_complete, run_dir
 from mutualslam_cli.results.summary import flatten
+from mutualslam_cli.types import Scalar
 
 
 def collect_book(plan: Plan, states: list[tuple[Part, Job, JobState]]) -> pd.DataFrame:
@@ -44,7 +45,7 @@ def collect_book(plan: Plan, states: list[tuple[Part, Job, JobState]]) -> pd.Dat
         if state.status != "fresh" or rec is None or rec.sequence not in plan.sequences[part.grid]:
             continue
         folder = run_dir(part.out, rec.sequence, rec.scheme, rec.seed)
-        row: dict[str, Any] = dict(rec.summary)
+        row: dict[str, Scalar | pd.Series] = dict(rec.summary)
         row.update({f"config.{k}": v for k, v in flatten(to_dict(part.cfg)).items()})
         row.update({"config.adapt.scheme": rec.scheme, "config.seed": rec.seed, "scheme": rec.scheme,
                     "seed": rec.seed, "sequence.name": rec.sequence,
@@ -92,9 +93,9 @@ class Cell:
     std: float
     n: int
     text: str
-    source: dict[str, Any] = field(default_factory=dict)
+    source: CellSource = field(default_factory=CellSource)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> CellEntry:
         def f(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
         return {"mean": f(self.mean), "std": f(self.std), "n": self.n, "text": self.text, **self.source}
@@ -110,14 +111,15 @@ def column_cell(runs: pd.DataFrame, col: ColumnSpec, sequence: str, digits: int,
     n = len(vals)
     mean = float(vals.mean()) if n else float("nan")
     std = float(vals.std(ddof=1)) if n > 1 else float("nan")
-    source = {"grid": col.grid, "variant": col.variant, "scheme": col.scheme, "key": col.key, "scale": col.scale,
-              "sequence": sequence, "config_hash": config_hash, "schedule": schedule,
-              "values": [{"seed": int(s) if s == s else None, "value": float(x), "run": run}
-                         for s, x, run in zip(have.get("seed", []), vals, have.get("book.run", []))],
-              "commits": _sorted_unique(have["book.commit"]) if n else [],
-              "devices": _sorted_unique(have["run.device_label"]) if n and "run.device_label" in have else [],
-              "cpu_kinds": _sorted_unique(have["book.cpu_kind"]) if n and "book.cpu_kind" in have else [],
-              "codes": _sorted_unique(have["book.code"]) if n and "book.code" in have else []}
+    values: list[ValueEntry] = [{"seed": int(s) if s == s else None, "value": float(x), "run": run}
+                                for s, x, run in zip(have.get("seed", []), vals, have.get("book.run", []))]
+    source: CellSource = {"grid": col.grid, "variant": col.variant, "scheme": col.scheme, "key": col.key,
+                          "scale": col.scale, "sequence": sequence, "config_hash": config_hash, "schedule": schedule,
+                          "values": values, "commits": _sorted_unique(have["book.commit"]) if n else [],
+                          "devices": _sorted_unique(have["run.device_label"]) if n and "run.device_label" in have
+                          else [],
+                          "cpu_kinds": _sorted_unique(have["book.cpu_kind"]) if n and "book.cpu_kind" in have else [],
+                          "codes": _sorted_unique(have["book.code"]) if n and "book.code" in have else []}
     kinds = source["cpu_kinds"]
     text = cell(mean, std, n, digits) + (f" {MIXED}" if isinstance(kinds, list) and len(kinds) > 1 else "")
     return Cell(mean, std, n, text, source)
@@ -138,13 +140,13 @@ class BookTable:
     def numeric(self) -> pd.DataFrame:
         recs = []
         for label, cells in self.rows:
-            d: dict[str, Any] = {"sequence": label}
+            d: dict[str, Scalar] = {"sequence": label}
             for c, x in zip(self.columns[1:], cells):
                 d.update({f"{c} mean": x.mean, f"{c} std": x.std, f"{c} n": x.n})
             recs.append(d)
         return pd.DataFrame(recs)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> TableEntry:
         return {"title": self.spec.title, "grid": self.spec.grid, "columns": self.columns,
                 "rows": [{"label": label, "cells": [c.as_dict() for c in cells]} for label, cells in self.rows],
                 "bold": sorted([i, c] for i, c in self.bold)}
@@ -218,11 +220,11 @@ def build_tables(spec: BookSpec, runs: pd.DataFrame, plan: Plan, only_grids: set
 
 
 def build_figures(spec: BookSpec, runs: pd.DataFrame, plan: Plan, out: Path, only_grids: set[str],
-                  notes: list[str]) -> dict[str, dict[str, Any]]:
+                  notes: list[str]) -> dict[str, FigureEntry]:
     """Every figure whose grid ran: its PNG under ``out`` and its provenance (the runs, config hash, schemes)."""
     from mutualslam_cli.report.plots import plot_accuracy
 
-    figs: dict[str, dict[str, Any]] = {}
+    figs: dict[str, FigureEntry] = {}
     for name, f in spec.figures.items():
         if f.grid not in only_grids:
             continue
@@ -241,9 +243,9 @@ def build_figures(spec: BookSpec, runs: pd.DataFrame, plan: Plan, out: Path, onl
     return figs
 
 
-def build_bounds(spec: BookSpec, tables: dict[str, BookTable], plan: Plan, notes: list[str]) -> list[dict[str, Any]]:
+def build_bounds(spec: BookSpec, tables: dict[str, BookTable], plan: Plan, notes: list[str]) -> list[BoundEntry]:
     """The cells the bounds rerun: the seed's value, and everything a test needs to make that one run again."""
-    out = []
+    out: list[BoundEntry] = []
     for b in spec.bounds:
         t = tables.get(b.table)
         if t is None:
@@ -251,15 +253,15 @@ def build_bounds(spec: BookSpec, tables: dict[str, BookTable], plan: Plan, notes
         row = next((cells for label, cells in t.rows if label == b.row), None)
         j = t.columns.index(b.column) - 1
         col = t.spec.columns[j]
-        value = None
-        run = None
+        hit: ValueEntry | None = None  # the seed's value (the last one, were a seed there twice)
         if row is not None:
             for v in row[j].source.get("values", []):
                 if v["seed"] == b.seed:
-                    value, run = v["value"], v["run"]
-        if value is None:
+                    hit = v
+        if hit is None:
             notes.append(f"bound {b.table} / {b.row} / {b.column} seed {b.seed}: no such value in the book")
             continue
+        value, run = hit["value"], hit["run"]
         part = part_of(plan, col.grid, col.variant)
         out.append({"table": b.table, "row": b.row, "column": b.column, "seed": b.seed, "value": value,
                     "factor": b.factor, "ci": b.ci, "grid": col.grid, "variant": col.variant, "scheme": col.scheme,

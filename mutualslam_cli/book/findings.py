@@ -4,11 +4,10 @@ holds, **does not hold** when any does not, else it is **undecided**."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import pandas as pd
 
 from mutualslam_cli.book.build import arm_runs
+from mutualslam_cli.book.entries import ArmEntry, ComparisonEntry, FindingEntry
 from mutualslam_cli.book.spec import ArmSpec, BookSpec, FindingSpec
 from mutualslam_cli.report.columns import numeric
 from mutualslam_cli.report.paired import DOES_NOT_HOLD, HOLDS, RULE, UNDECIDED, pair_values, paired_stats
@@ -31,29 +30,31 @@ def overall(verdicts: list[str]) -> str:
     return UNDECIDED
 
 
-def judge_one(f: FindingSpec, runs: pd.DataFrame) -> dict[str, Any]:
+def _arm(a: ArmSpec) -> ArmEntry:
+    return {"grid": a.grid, "variant": a.variant, "scheme": a.scheme, "key": a.key}
+
+
+def judge_one(f: FindingSpec, runs: pd.DataFrame) -> FindingEntry:
     """One finding: its comparisons' statistics (every pair with its two runs) and the overall verdict."""
-    comps = []
+    comps: list[ComparisonEntry] = []
     for c in f.comparisons:
         pairs = pair_values(_side(runs, c.a, "a"), _side(runs, c.b, "b"), c.broadcast)
         res = paired_stats(pairs, c.better, c.a.label, c.b.label)
-        d = res.as_dict()
-        d["arms"] = {"a": vars(c.a), "b": vars(c.b)}
         used = pd.concat([arm_runs(runs, x.grid, x.variant, x.scheme) for x in (c.a, c.b)])
-        d["commits"] = sorted({str(v) for v in used.get("book.commit", []) if v})
-        d["devices"] = sorted({str(v) for v in used.get("run.device_label", []) if v == v and v})
-        comps.append(d)
+        comps.append({**res.as_dict(), "arms": {"a": _arm(c.a), "b": _arm(c.b)},
+                      "commits": sorted({str(v) for v in used.get("book.commit", []) if v}),
+                      "devices": sorted({str(v) for v in used.get("run.device_label", []) if v == v and v})})
     return {"claim": f.claim, "paper": f.paper, "verdict": overall([c["verdict"] for c in comps]),
             "comparisons": comps, "rule": RULE}
 
 
-def judge(spec: BookSpec, runs: pd.DataFrame, only_grids: set[str]) -> dict[str, dict[str, Any]]:
+def judge(spec: BookSpec, runs: pd.DataFrame, only_grids: set[str]) -> dict[str, FindingEntry]:
     """Every finding whose arms' grids ran in this book."""
     return {name: judge_one(f, runs) for name, f in spec.findings.items()
             if {a.grid for c in f.comparisons for a in (c.a, c.b)} <= only_grids}
 
 
-def verdict_rows(findings: dict[str, dict[str, Any]]) -> pd.DataFrame:
+def verdict_rows(findings: dict[str, FindingEntry]) -> pd.DataFrame:
     """The verdict table: one row per comparison (the finding's name and overall verdict on its first)."""
     rows = []
     for name, f in findings.items():

@@ -17,10 +17,10 @@ import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from mutualslam_cli.ablate import Job, expand
 from mutualslam_cli.adapt.schemes import get_scheme
+from mutualslam_cli.book.entries import GridEntry
 from mutualslam_cli.book.spec import BookSpec, GridSpec, SequenceRef
 from mutualslam_cli.config import CONFIG_DIR, RunConfig, load_config, to_dict, tuned_on, with_settings
 from mutualslam_cli.datasets.registry import get_spec
@@ -229,9 +229,9 @@ def part_of(plan: Plan, grid: str, variant: str) -> Part:
     raise KeyError((grid, variant))
 
 
-def describe(plan: Plan) -> dict[str, Any]:
+def describe(plan: Plan) -> dict[str, GridEntry]:
     """Per grid and variant, the config hash, overrides and job count (for ``book.json``)."""
-    out: dict[str, Any] = {}
+    out: dict[str, GridEntry] = {}
     for p in plan.parts:
         g = out.setdefault(p.grid, {"preset": p.preset, "variants": {}, "skipped": plan.skipped.get(p.grid, []),
                                     "sequences": [r.as_dict() for r in plan.sequences[p.grid].values()]})

@@ -18,8 +18,8 @@ import argparse
 import re
 import sys
 from pathlib import Path
-from typing import Any
 
+from mutualslam_cli.book.entries import BookJSON, CellEntry
 from mutualslam_cli.config import CONFIG_DIR
 from mutualslam_cli.errors import ConfigError, MslamError
 
@@ -42,7 +42,7 @@ def _md_table(columns: list[str], rows: list[list[str]], bold: set[tuple[int, st
     return head + body
 
 
-def _cells_provenance(cells: list[dict[str, Any]]) -> tuple[set[str], set[str], set[str]]:
+def _cells_provenance(cells: list[CellEntry]) -> tuple[set[str], set[str], set[str]]:
     commits, devices, hashes = set(), set(), set()
     for c in cells:
         commits |= set(c.get("commits", []))
@@ -56,14 +56,15 @@ def _short(commits: set[str]) -> str:
     return ", ".join(sorted(c[:7] + ("-dirty" if c.endswith("-dirty") else "") for c in commits)) or "—"
 
 
-def _caption(book: dict[str, Any], commits: set[str], devices: set[str], extra: str = "") -> str:
+def _caption(book: BookJSON, commits: set[str], devices: set[str], extra: str = "") -> str:
     b = book["book"]
+    commit = b.get("commit")
     return (f"<sub>From the results book `{b['name']}` (`{b['file']}`, written {b['created_utc'][:10]} at "
-            f"{_short({b['commit']} if b.get('commit') else set())}){extra}; runs of commit(s) {_short(commits)} on "
+            f"{_short({commit} if commit else set())}){extra}; runs of commit(s) {_short(commits)} on "
             f"{', '.join(sorted(devices)) or '—'}. `mslam book` regenerates it.</sub>\n")
 
 
-def _not_yet(name: str, book: dict[str, Any], kind: str) -> str:
+def _not_yet(name: str, book: BookJSON, kind: str) -> str:
     """The text of a block the book file declares but the committed book does not hold yet (its grids have not
     all run); a name the book file does not declare either is an error.
 
@@ -81,7 +82,7 @@ def _not_yet(name: str, book: dict[str, Any], kind: str) -> str:
     return f"*Not in the committed book yet: `mslam book {book['book']['file']}{only} --publish` makes it.*\n"
 
 
-def render_block(name: str, book: dict[str, Any]) -> str:
+def render_block(name: str, book: BookJSON) -> str:
     """The Markdown of block ``name`` (module docstring).
 
     Raises:
@@ -106,19 +107,19 @@ def render_block(name: str, book: dict[str, Any]) -> str:
             for c in f["comparisons"]:
                 commits |= set(c.get("commits", []))
                 devices |= set(c.get("devices", []))
-        first: dict[str, Any] = next(iter(book.get("findings", {}).values()), {})
-        rule = first.get("rule", "")
+        first = next(iter(book.get("findings", {}).values()), None)
+        rule = first.get("rule", "") if first is not None else ""
         return (_md_table(["finding", "the paper", "verdict", "comparison (a vs b)", "wins / N", "mean ± std of a − b",
                            "sign p",
                            "95 % CI", "comparison"], rows)
                 + f"\n<sub>Rule: {rule}.</sub>\n" + _caption(book, commits, devices))
     if name.startswith("figure:"):
-        f = book.get("figures", {}).get(name[7:])
-        if f is None:
+        fig = book.get("figures", {}).get(name[7:])
+        if fig is None:
             return _not_yet(name, book, "figure")
-        return (f"![{f['title']}]({FIGURES.relative_to(REPO).as_posix()}/{f['file']})\n\n*{f['title']}*, drawn from "
-                f"{len(f['runs'])} runs (grid `{f['grid']}`, variant `{f['variant']}`, config `{f['config_hash']}`).\n"
-                + _caption(book, set(f["commits"]), set(f["devices"])))
+        return (f"![{fig['title']}]({FIGURES.relative_to(REPO).as_posix()}/{fig['file']})\n\n*{fig['title']}*, drawn "
+                f"from {len(fig['runs'])} runs (grid `{fig['grid']}`, variant `{fig['variant']}`, config "
+                f"`{fig['config_hash']}`).\n" + _caption(book, set(fig["commits"]), set(fig["devices"])))
     t = book.get("tables", {}).get(name)
     if t is None:
         return _not_yet(name, book, "table")
@@ -134,7 +135,7 @@ def render_block(name: str, book: dict[str, Any]) -> str:
                        + (f", code {', '.join(codes)}" if codes else "") + note))
 
 
-def _time(book: dict[str, Any]) -> str:
+def _time(book: BookJSON) -> str:
     """The book's cost: per grid of the book file, its jobs, the runs' hours (one thread each, from their records)
     and their CPU kinds; a grid the committed book does not hold yet is named with its jobs on the required
     sequences."""
@@ -163,7 +164,7 @@ def _time(book: dict[str, Any]) -> str:
             + "\n" + _caption(book, set(book["book"].get("commits", [])), set(book["book"].get("devices", []))))
 
 
-def render(readme: str, book: dict[str, Any]) -> str:
+def render(readme: str, book: BookJSON) -> str:
     """``readme`` with every marked block rendered from ``book``.
 
     Raises:
@@ -177,7 +178,7 @@ def render(readme: str, book: dict[str, Any]) -> str:
     return _BLOCK.sub(lambda m: m.group(1) + "\n" + render_block(m.group("name"), book) + "\n" + m.group(4), readme)
 
 
-def stale_blocks(readme: str, book: dict[str, Any]) -> list[str]:
+def stale_blocks(readme: str, book: BookJSON) -> list[str]:
     """The names of the blocks whose text differs from what :func:`render` makes of ``book``."""
     want = {m.group("name"): m.group("body") for m in _BLOCK.finditer(render(readme, book))}
     return [m.group("name") for m in _BLOCK.finditer(readme) if m.group("body") != want[m.group("name")]]

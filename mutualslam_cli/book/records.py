@@ -25,7 +25,6 @@ import json
 import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
 
 import pandas as pd
 import yaml
@@ -35,13 +34,13 @@ from mutualslam_cli.errors import DamagedRecord
 from mutualslam_cli.results.fingerprint import changed_files, code_fingerprint, code_manifest
 from mutualslam_cli.results.run_folder import read_manifest
 from mutualslam_cli.results.summary import read_summary
+from mutualslam_cli.types import JSON, JSONObject, Scalar
 
 #: The records' format; a reader refuses another.
 FORMAT = 1
 KIND = "mslam-book-record"
 #: The running-accuracy curves a record keeps (``per_frame.csv``'s ``<model>_pcd_lsq_running``, %).
 CURVES = ("pretrained", "adapted", "online")
-Scalar = str | int | float | bool | None
 
 
 @dataclass(frozen=True)
@@ -74,7 +73,7 @@ class Record:
         return self.grid, self.variant, self.sequence, self.scheme, self.seed
 
 
-def _canonical(body: dict[str, Any]) -> bytes:
+def _canonical(body: JSONObject) -> bytes:
     return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode()
 
 
@@ -149,7 +148,7 @@ def read_record(path: Path) -> Record:
     return rec
 
 
-def _finite(v: Any) -> Scalar:
+def _finite(v: JSON) -> Scalar:
     if isinstance(v, float) and not math.isfinite(v):
         return None
     return v if isinstance(v, (str, int, float, bool, type(None))) else str(v)
@@ -186,7 +185,7 @@ def record_from_run(folder: Path, book: str, grid: str, variant: str, scheme: st
     if not isinstance(code, str):
         return None
     flat = {k: _finite(v) for k, v in read_summary(folder).flat().items()}
-    timings: dict[str, Any] = man["timings_s"] if isinstance(man.get("timings_s"), dict) else {}
+    timings: JSONObject = man["timings_s"] if isinstance(man.get("timings_s"), dict) else {}
     seconds = timings.get("total_s", flat.get("timing.total_s"))
     threads = _config_threads(folder)
     return Record(book=book, grid=grid, variant=variant, sequence=folder.parent.parent.name, scheme=scheme,
@@ -200,7 +199,7 @@ def record_from_run(folder: Path, book: str, grid: str, variant: str, scheme: st
                   summary=flat, curves=_curves(folder))
 
 
-def _config_threads(folder: Path) -> Any:
+def _config_threads(folder: Path) -> object:
     """``threads`` of the run's ``config.yaml`` (``None`` where it cannot be read)."""
     try:
         cfg = yaml.safe_load((folder / "config.yaml").read_text())

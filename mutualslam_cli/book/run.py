@@ -22,11 +22,14 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import cast
+
+import pandas as pd
 
 from mutualslam_cli.ablate import Job, JobOutcome, run_grid
 from mutualslam_cli.atomic import atomic_write_text
 from mutualslam_cli.book.build import build_bounds, build_figures, build_tables, collect_book
+from mutualslam_cli.book.entries import BookJSON, GridEntry
 from mutualslam_cli.book.findings import judge, verdict_rows
 from mutualslam_cli.book.plan import Part, Plan, describe, plan_book
 from mutualslam_cli.book.records import JobState, job_state, record_from_run, write_record
@@ -41,6 +44,7 @@ from mutualslam_cli.results.lock import hold_lock
 from mutualslam_cli.results.run_folder import git_revision, is_complete, run_dir
 from mutualslam_cli.results.summary import plain
 from mutualslam_cli.results.writable import check_output_folder
+from mutualslam_cli.types import JSON
 
 #: ``book.json``'s format; a reader refuses another.
 FORMAT = 1
@@ -218,22 +222,23 @@ def write_book(spec: BookSpec, plan: Plan, out: Path, grids: set[str], only: lis
                                         out / "reports" / grid)
     bounds = build_bounds(spec, tables, plan, notes)
     cpu = cpu_info()
-    book = {"format": FORMAT,
-            "book": {"name": spec.name, "file": _relative(spec.path), "file_sha256": _sha256(spec.path),
-                     "commit": git_revision(), "created_utc": dt.datetime.now(dt.timezone.utc).isoformat(
-                         timespec="seconds"), "cpu_kind": cpu.get("cpu_kind"), "cpu_model": cpu.get("cpu_model"),
-                     "only": list(only or []), "runs": len(runs),
-                     "commits": sorted({str(c) for c in runs.get("book.commit", []) if c}),
-                     "devices": sorted({str(c) for c in runs.get("run.device_label", []) if c == c and c})},
-            "grids": _with_cost(describe(plan), runs), "tables": {k: t.as_dict() for k, t in tables.items()},
-            "figures": figures, "findings": findings, "bounds": bounds, "notes": notes}
+    book: BookJSON = {
+        "format": FORMAT,
+        "book": {"name": spec.name, "file": _relative(spec.path), "file_sha256": _sha256(spec.path),
+                 "commit": git_revision(), "created_utc": dt.datetime.now(dt.timezone.utc).isoformat(
+                     timespec="seconds"), "cpu_kind": cpu.get("cpu_kind"), "cpu_model": cpu.get("cpu_model"),
+                 "only": list(only or []), "runs": len(runs),
+                 "commits": sorted({str(c) for c in runs.get("book.commit", []) if c}),
+                 "devices": sorted({str(c) for c in runs.get("run.device_label", []) if c == c and c})},
+        "grids": _with_cost(describe(plan), runs), "tables": {k: t.as_dict() for k, t in tables.items()},
+        "figures": figures, "findings": findings, "bounds": bounds, "notes": notes}
     path = out / "book.json"
     atomic_write_text(path, json.dumps(plain(book), indent=1, ensure_ascii=False, allow_nan=False) + "\n")
     res.written.append(path)
     res.book_json = path
 
 
-def _with_cost(grids: dict[str, Any], runs: Any) -> dict[str, Any]:
+def _with_cost(grids: dict[str, GridEntry], runs: pd.DataFrame) -> dict[str, GridEntry]:
     """``grids`` with each grid's ``seconds`` (the sum of its runs' times, from their records) and ``cpu_kinds``."""
     for g, d in grids.items():
         r = runs[runs["book.grid"] == g] if len(runs) else runs
@@ -243,8 +248,9 @@ def _with_cost(grids: dict[str, Any], runs: Any) -> dict[str, Any]:
     return grids
 
 
-def read_book(path: str | Path) -> dict[str, Any]:
-    """A ``book.json`` (:func:`write_book`).
+def read_book(path: str | Path) -> BookJSON:
+    """A ``book.json`` (:func:`write_book`), its format checked (its entries are taken as :func:`write_book` wrote
+    them: the committed book is written only by ``mslam book --publish``).
 
     Raises:
         ConfigError: not readable, not JSON, or another format.
@@ -253,9 +259,9 @@ def read_book(path: str | Path) -> dict[str, Any]:
 
     path = Path(path)
     try:
-        book = json.loads(path.read_text(encoding="utf-8"))
+        book: JSON = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
         raise ConfigError(f"{path}: not a readable book.json ({e})") from None
     if not isinstance(book, dict) or book.get("format") != FORMAT:
         raise ConfigError(f"{path}: not a book.json of format {FORMAT} (written by mslam book)")
-    return book
+    return cast(BookJSON, book)  # a JSON object of the format write_book writes: its shape, unchecked

@@ -30,13 +30,16 @@ does not exist is one :class:`~mutualslam_cli.errors.ConfigError` line naming th
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TypedDict, TypeGuard, TypeVar
 
+from mutualslam_cli.book.reader import Reader, names, texts
 from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.report import paper_numbers
+from mutualslam_cli.types import JSON
 
 #: Figure kinds the book draws (:mod:`mutualslam_cli.book.build`).
 FIGURE_KINDS = ("accuracy_over_frames",)
@@ -45,20 +48,42 @@ BASE = "base"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
+class SynthSpec(TypedDict):
+    """A rendered room of a grid (``{synth: room, frames: 40, size: 128x96, seed: 0}``; ``size``: ``WxH`` pixels)."""
+
+    scene: str
+    frames: int
+    size: str
+    seed: int
+
+
+class _Named(TypedDict):
+    name: str
+
+
+class SequenceEntry(_Named, total=False):
+    """A grid's sequence as ``book.json`` names it: its ``name``, and ``synth`` for a rendered room."""
+
+    synth: SynthSpec
+
+
 @dataclass(frozen=True)
 class SequenceRef:
     """A sequence of a grid: ``name`` (a ``datasets.yaml`` name or a folder), or a rendered room (``synth``)."""
 
     name: str
-    synth: dict[str, Any] | None = None
+    synth: SynthSpec | None = None
 
     @property
     def label(self) -> str:
         """The name its runs are filed under (a folder's last part)."""
         return Path(self.name).name if "/" in self.name else self.name
 
-    def as_dict(self) -> dict[str, Any]:
-        return {"name": self.name, **({"synth": dict(self.synth)} if self.synth else {})}
+    def as_dict(self) -> SequenceEntry:
+        entry: SequenceEntry = {"name": self.name}
+        if self.synth:
+            entry["synth"] = self.synth.copy()
+        return entry
 
 
 @dataclass(frozen=True)
@@ -190,47 +215,10 @@ class BookSpec:
         return [g for g in self.grids if g in need]
 
 
-class _Reader:
-    """Strict access to one mapping of the book file, every error naming the file and the place."""
-
-    def __init__(self, path: Path, where: str, data: Any) -> None:
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: {where}: expected a mapping, got {data!r}")
-        self.path, self.where, self.data = path, where, data
-        self.used: set[str] = set()
-
-    def fail(self, msg: str) -> ConfigError:
-        return ConfigError(f"{self.path}: {self.where}: {msg}")
-
-    def get(self, key: str, kind: type | tuple[type, ...], default: Any = ..., ) -> Any:
-        self.used.add(key)
-        if key not in self.data:
-            if default is ...:
-                raise self.fail(f"'{key}' is missing")
-            return default
-        v = self.data[key]
-        if not isinstance(v, kind) or (isinstance(v, bool) and bool not in (kind if isinstance(kind, tuple)
-                                                                                else (kind,))):
-            raise self.fail(f"'{key}' = {v!r}: expected {getattr(kind, '__name__', kind)}")
-        return v
-
-    def done(self) -> None:
-        extra = sorted(set(self.data) - self.used)
-        if extra:
-            raise self.fail(f"unknown key(s) {', '.join(map(str, extra))}")
-
-
-def _names(r: _Reader, key: str, default: Any = ...) -> tuple[str, ...]:
-    v = r.get(key, list, default)
-    if not all(isinstance(x, str) and x for x in v):
-        raise r.fail(f"'{key}': expected a list of names, got {v!r}")
-    return tuple(v)
-
-
-def _sequence(path: Path, where: str, v: Any) -> SequenceRef:
+def _sequence(path: Path, where: str, v: JSON) -> SequenceRef:
     if isinstance(v, str) and v:
         return SequenceRef(v)
-    r = _Reader(path, where, v)
+    r = Reader(path, where, v)
     scene = r.get("synth", str)
     frames, seed = r.get("frames", int, 40), r.get("seed", int, 0)
     size = r.get("size", str, "128x96")
@@ -243,47 +231,53 @@ def _sequence(path: Path, where: str, v: Any) -> SequenceRef:
     return SequenceRef(name, {"scene": scene, "frames": frames, "size": size, "seed": seed})
 
 
-def _grid(path: Path, name: str, data: Any, preset: str) -> GridSpec:
-    r = _Reader(path, f"grids.{name}", data)
+def _seeds(v: list[JSON]) -> TypeGuard[list[int]]:
+    return bool(v) and all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in v)
+
+
+def _grid(path: Path, name: str, data: JSON, preset: str) -> GridSpec:
+    r = Reader(path, f"grids.{name}", data)
     seqs = tuple(_sequence(path, f"grids.{name}.sequences[{i}]", v)
                  for i, v in enumerate(r.get("sequences", list, [])))
     present = tuple(_sequence(path, f"grids.{name}.when_present[{i}]", v)
                     for i, v in enumerate(r.get("when_present", list, [])))
-    schemes = _names(r, "schemes")
+    schemes = names(r, "schemes")
     seeds = r.get("seeds", list, [0])
-    if not seeds or not all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in seeds):
+    if not _seeds(seeds):
         raise r.fail(f"'seeds' = {seeds!r}: expected a list of seeds ≥ 0")
     variants_raw = r.get("variants", dict, {BASE: []})
-    variants = {}
+    variants: dict[str, tuple[str, ...]] = {}
     for label, sets in variants_raw.items():
         if not isinstance(label, str) or not _NAME.match(label):
             raise r.fail(f"variant {label!r}: expected a folder name")
-        if not isinstance(sets, list) or not all(isinstance(s, str) and "=" in s for s in sets):
+        if not texts(sets, lambda s: "=" in s):
             raise r.fail(f"variant {label}: expected a list of key=value overrides, got {sets!r}")
         variants[label] = tuple(sets)
-    one_seed = _names(r, "one_seed", [])
+    one_seed = names(r, "one_seed", [])
     if set(one_seed) - set(schemes):
         raise r.fail(f"'one_seed': {', '.join(sorted(set(one_seed) - set(schemes)))} not among its schemes")
-    g = GridSpec(name, seqs, present, schemes, tuple(seeds), r.get("preset", str, preset), _names(r, "sets", []),
+    g = GridSpec(name, seqs, present, schemes, tuple(seeds), r.get("preset", str, preset), names(r, "sets", []),
                  variants, one_seed)
     r.done()
     labels = [s.label for s in seqs + present]
     if not labels:
         raise r.fail("no sequence: give 'sequences' or 'when_present'")
-    for what, items in (("sequence", labels), ("scheme", list(schemes)), ("seed", list(seeds))):
+    unique: tuple[tuple[str, Sequence[object]], ...] = (("sequence", labels), ("scheme", list(schemes)),
+                                                         ("seed", list(seeds)))
+    for what, items in unique:
         twice = sorted({str(x) for x in items if items.count(x) > 1})
         if twice:
             raise r.fail(f"{what} {twice[0]} given twice (each is one run folder)")
     return g
 
 
-def _arm(path: Path, where: str, data: Any, grids: dict[str, GridSpec], grid: str | None = None) -> ArmSpec:
-    r = _Reader(path, where, data)
-    g = r.get("grid", str, grid if grid is not None else ...)
+def _arm(path: Path, where: str, data: JSON, grids: dict[str, GridSpec], grid: str | None = None) -> ArmSpec:
+    r = Reader(path, where, data)
+    g = r.get("grid", str) if grid is None else r.get("grid", str, grid)
     if g not in grids:
         raise r.fail(f"grid {g!r} is not in grids: ({', '.join(grids)})")
     variants = grids[g].variants
-    v = r.get("variant", str, next(iter(variants)) if len(variants) == 1 else ...)
+    v = r.get("variant", str, next(iter(variants))) if len(variants) == 1 else r.get("variant", str)
     if v not in variants:
         raise r.fail(f"variant {v!r} is not one of grid {g}'s ({', '.join(variants)})")
     scheme = r.get("scheme", str)
@@ -294,8 +288,11 @@ def _arm(path: Path, where: str, data: Any, grids: dict[str, GridSpec], grid: st
     return arm
 
 
-def _better(r: _Reader, default: Any = ...) -> Any:
-    b = r.get("better", str, default)
+_Better = TypeVar("_Better", str, str | None)
+
+
+def _better(r: Reader, b: _Better) -> _Better:
+    """``b`` (``better`` as read) when it is ``higher``, ``lower`` (or ``None``, not given)."""
     if b is not None and b not in ("higher", "lower"):
         raise r.fail(f"'better' = {b!r}: expected higher or lower")
     return b
@@ -308,12 +305,12 @@ def load_book(path: str | Path) -> BookSpec:
         ConfigError: the file cannot be read, or anything in it is malformed or refers to nothing.
     """
     path = Path(path)
-    top = _Reader(path, "top level", read_yaml_mapping(path, ConfigError, "book file (configs/book.yaml)"))
-    head = _Reader(path, "book", top.get("book", dict))
+    top = Reader(path, "top level", read_yaml_mapping(path, ConfigError, "book file (configs/book.yaml)"))
+    head = Reader(path, "book", top.get("book", dict))
     name, preset, out = head.get("name", str), head.get("preset", str, "configs/paper.yaml"), \
         head.get("out", str, "results/book")
     records = head.get("records", str, "results/records")
-    sets = _names(head, "sets", [])
+    sets = names(head, "sets", [])
     if not all("=" in x for x in sets):
         raise head.fail(f"'sets' = {list(sets)!r}: expected key=value overrides")
     head.done()
@@ -322,11 +319,11 @@ def load_book(path: str | Path) -> BookSpec:
         raise top.fail("'grids' is empty: a book runs at least one grid")
     tables = {}
     for t, d in top.get("tables", dict, {}).items():
-        r = _Reader(path, f"tables.{t}", d)
+        r = Reader(path, f"tables.{t}", d)
         grid = r.get("grid", str)
         cols = []
         for i, c in enumerate(r.get("columns", list)):
-            cr = _Reader(path, f"tables.{t}.columns[{i}]", c)
+            cr = Reader(path, f"tables.{t}.columns[{i}]", c)
             label, scale = cr.get("label", str), float(cr.get("scale", (int, float), 1.0))
             digits = cr.get("digits", int, None)
             paper = cr.get("paper", str, None)
@@ -336,17 +333,19 @@ def load_book(path: str | Path) -> BookSpec:
                     raise cr.fail(f"paper: {paper!r} is none of the paper's numbers (expected TABLE.COLUMN, e.g. "
                                   f"table1.Ours; tables {', '.join(PAPER_TABLES)})")
             arm = _arm(path, f"tables.{t}.columns[{i}]",
-                       {k: v for k, v in c.items() if k not in ("label", "scale", "digits", "paper")}, grids, grid)
+                       {k: v for k, v in cr.data.items() if k not in ("label", "scale", "digits", "paper")}, grids,
+                       grid)
             cr.used |= {"grid", "variant", "scheme", "key"}
             cr.done()
             cols.append(ColumnSpec(label, arm.key, arm.scheme, arm.variant, arm.grid, scale, digits, paper))
         if len({c.label for c in cols}) != len(cols):
             raise r.fail("two columns share a label")
-        tables[t] = TableSpec(t, r.get("title", str), grid, tuple(cols), r.get("digits", int, 2), _better(r, None))
+        tables[t] = TableSpec(t, r.get("title", str), grid, tuple(cols), r.get("digits", int, 2),
+                              _better(r, r.get("better", str, None)))
         r.done()
     figures = {}
     for f, d in top.get("figures", dict, {}).items():
-        r = _Reader(path, f"figures.{f}", d)
+        r = Reader(path, f"figures.{f}", d)
         grid = r.get("grid", str)
         if grid not in grids:
             raise r.fail(f"grid {grid!r} is not in grids:")
@@ -357,24 +356,24 @@ def load_book(path: str | Path) -> BookSpec:
         variant = r.get("variant", str, next(iter(variants)))
         if variant not in variants:
             raise r.fail(f"variant {variant!r} is not one of grid {grid}'s")
-        schemes = _names(r, "schemes", list(grids[grid].schemes))
+        schemes = names(r, "schemes", list(grids[grid].schemes))
         figures[f] = FigureSpec(f, r.get("title", str), grid, variant, kind, schemes)
         r.done()
     findings = {}
     for name_, d in top.get("findings", dict, {}).items():
-        r = _Reader(path, f"findings.{name_}", d)
+        r = Reader(path, f"findings.{name_}", d)
         comps = []
         for i, c in enumerate(r.get("comparisons", list)):
-            cr = _Reader(path, f"findings.{name_}.comparisons[{i}]", c)
+            cr = Reader(path, f"findings.{name_}.comparisons[{i}]", c)
             a = _arm(path, f"findings.{name_}.comparisons[{i}].a", cr.get("a", dict), grids)
             b = _arm(path, f"findings.{name_}.comparisons[{i}].b", cr.get("b", dict), grids)
-            comps.append(ComparisonSpec(a, b, _better(cr), cr.get("broadcast", bool, False)))
+            comps.append(ComparisonSpec(a, b, _better(cr, cr.get("better", str)), cr.get("broadcast", bool, False)))
             cr.done()
         findings[name_] = FindingSpec(name_, r.get("claim", str), r.get("paper", str, ""), tuple(comps))
         r.done()
     bounds = []
     for i, d in enumerate(top.get("bounds", list, [])):
-        r = _Reader(path, f"bounds[{i}]", d)
+        r = Reader(path, f"bounds[{i}]", d)
         bound = BoundSpec(r.get("table", str), r.get("row", str), r.get("column", str), r.get("seed", int, 0),
                           float(r.get("factor", (int, float), 1.5)), r.get("ci", bool, False))
         r.done()

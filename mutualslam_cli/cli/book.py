@@ -6,13 +6,17 @@ from __future__ import annotations
 import shutil
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import typer
 from rich.markup import escape
 
 from mutualslam_cli.cli import common
 from mutualslam_cli.cli.common import DataRootOpt, RegistryOpt, SetOpt, app, progress_bar
+
+if TYPE_CHECKING:  # imported where the command runs (the CLI starts without the book's modules)
+    from mutualslam_cli.ablate import JobOutcome
+    from mutualslam_cli.book.plan import Plan
 
 
 @app.command()
@@ -83,10 +87,10 @@ def book(
     with progress_bar() as bar:
         task = bar.add_task("book", total=None, info="")
 
-        def planned(plan: Any) -> None:
+        def planned(plan: Plan) -> None:
             bar.update(task, total=total_jobs(plan))
 
-        def job_done(o: Any) -> None:
+        def job_done(o: JobOutcome) -> None:
             bar.update(task, advance=1, info=f"{Path(o.job.sequence).name} {o.job.scheme} seed{o.job.seed}: {o.status}")
 
         try:

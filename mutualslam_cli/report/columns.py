@@ -4,7 +4,6 @@ a label as a file name, a value as table text."""
 from __future__ import annotations
 
 import re
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -20,7 +19,7 @@ def slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9.+=-]+", "_", text).strip("_")
 
 
-def cell_text(v: Any) -> str:
+def cell_text(v: object) -> str:
     """A table cell: ``—`` for a missing value, 4 significant digits for a float (whole numbers from
     10,000 up), anything else as ``str``."""
     if v is None or (isinstance(v, (float, np.floating)) and not np.isfinite(v)):

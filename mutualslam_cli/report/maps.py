@@ -11,8 +11,9 @@ figure per (sequence, scheme, config) with the lowest seed.
 from __future__ import annotations
 
 import textwrap
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -22,6 +23,13 @@ from mutualslam_cli.datasets.associate import read_tum_trajectory
 from mutualslam_cli.report.columns import slug
 from mutualslam_cli.report.plots import fit_width
 from mutualslam_cli.results import map_ply
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+#: A map as :func:`~mutualslam_cli.results.map_ply.read_ply` reads it: ``(P, 3)`` points, ``(P, 3)`` colours in
+#: [0, 1] and ``(P,)`` log-depth errors (each ``None`` in an xyz-only map).
+Map = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
 
 #: (file, summary stage, panel title) of the panels, left to right.
 PANELS = (("map_vo.ply", "vo", "front-end map (no culling, no BA)"),
@@ -65,7 +73,7 @@ def _limits(xy: np.ndarray, cams: np.ndarray, margin: float = 0.12) -> tuple[tup
     return (lo[0] - pad[0], hi[0] + pad[0]), (lo[1] - pad[1], hi[1] + pad[1])
 
 
-def _get(flat: dict[str, Any], key: str) -> float | None:
+def _get(flat: Mapping[str, object], key: str) -> float | None:
     """A number of the flattened summary; None when absent, null or NaN."""
     v = flat.get(key)
     return float(v) if isinstance(v, (int, float, np.number)) and np.isfinite(v) else None
@@ -81,13 +89,13 @@ def _fit(x: tuple[float, float], y: tuple[float, float], ratio: float) -> tuple[
     return (c - w / 2, c + w / 2), y
 
 
-def _title(stage: str, label: str, flat: dict[str, Any], n_read: int) -> str:
+def _title(stage: str, label: str, flat: Mapping[str, object], n_read: int) -> str:
     n, e = _get(flat, f"map.points.{stage}"), _get(flat, f"map.esi.{stage}")
     esi = f"e_si {e:.3f}" if e is not None else "e_si —"
     return f"{label}\n{int(n) if n is not None else n_read} points, {esi}"
 
 
-def _removed(vo: tuple | None, kept: tuple | None) -> np.ndarray:
+def _removed(vo: Map | None, kept: Map | None) -> np.ndarray:
     """``(M, 3)`` points of the VO map that the culled map no longer has (same coordinates: the
     culled map is a subset of the front end's); empty without a culled map."""
     if vo is None or kept is None:
@@ -96,7 +104,7 @@ def _removed(vo: tuple | None, kept: tuple | None) -> np.ndarray:
     return vo[0][np.array([tuple(r) not in have for r in vo[0]], dtype=bool).reshape(-1)]
 
 
-def _panel(ax: Any, data: tuple, stage: str, label: str, flat: dict[str, Any], basis: np.ndarray,
+def _panel(ax: Axes, data: Map, stage: str, label: str, flat: Mapping[str, object], basis: np.ndarray,
            hv: tuple[int, int], cams: np.ndarray | None, removed: np.ndarray | None) -> str:
     """Draw one map (``read_ply``'s result) in one view; return its title."""
     h, v = hv
@@ -125,7 +133,7 @@ def _panel(ax: Any, data: tuple, stage: str, label: str, flat: dict[str, Any], b
     return title
 
 
-def plot_maps(folder: Path, path: Path, flat: dict[str, Any], heading: str) -> bool:
+def plot_maps(folder: Path, path: Path, flat: Mapping[str, object], heading: str) -> bool:
     """Front and top view of a run's maps (one column per file of :data:`PANELS`) as a PNG.
 
     Args:

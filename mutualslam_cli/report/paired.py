@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 import pandas as pd
@@ -33,6 +33,7 @@ import pandas as pd
 from mutualslam_cli.errors import ConfigError
 from mutualslam_cli.report.columns import numeric
 from mutualslam_cli.report.runs import config_labels
+from mutualslam_cli.types import Scalar
 
 #: The verdict rule (module docstring): the sign test's level, the fewest pairs for any verdict, the CI.
 ALPHA = 0.05
@@ -185,6 +186,29 @@ def bootstrap_ci(d: np.ndarray, seed: int = BOOTSTRAP_SEED, resamples: int = RES
     return float(lo), float(hi)
 
 
+class PairedDict(TypedDict):
+    """:meth:`PairedResult.as_dict`: the statistics as plain values (``None`` for a number that is not finite;
+    ``ci95``: ``[low, high]``), the rule, and every pair as a record (``sequence``, ``seed``, ``a``, ``b``,
+    ``diff``, the folders, ``broadcast``)."""
+
+    a: str
+    b: str
+    better: str
+    n: int
+    wins: int
+    ties: int
+    losses: int
+    mean_diff: float | None
+    std_diff: float | None
+    sign_p: float | None
+    ci95: list[float | None]
+    verdict: str
+    collapsed: int
+    broadcast: int
+    rule: str
+    pairs: list[dict[str, Scalar]]
+
+
 @dataclass
 class PairedResult:
     """The statistics of one comparison (module docstring); ``diff`` = a − b in the key's unit."""
@@ -205,7 +229,7 @@ class PairedResult:
     broadcast: int = 0
     pairs: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> PairedDict:
         """Plain values for JSON (the pairs as records)."""
         return {"a": self.a, "b": self.b, "better": self.better, "n": self.n, "wins": self.wins, "ties": self.ties,
                 "losses": self.losses, "mean_diff": _f(self.mean), "std_diff": _f(self.std),
@@ -224,7 +248,8 @@ def _f(v: float) -> float | None:
     return float(v) if v is not None and np.isfinite(v) else None
 
 
-def _plain(v: Any) -> Any:
+def _plain(v: Scalar | np.floating | np.integer | np.bool_) -> Scalar:
+    """A cell of a pair's record as a JSON value (numpy scalars as Python's; NaN as ``None``)."""
     if isinstance(v, (np.floating, float)):
         return _f(float(v))
     if isinstance(v, (np.integer,)):

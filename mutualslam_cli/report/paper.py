@@ -19,13 +19,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from mutualslam_cli.report import paper_numbers as paper
 from mutualslam_cli.report.columns import numeric
+from mutualslam_cli.types import Scalar
 
 #: Scheme columns of Table 3: the paper's (a), (b), (c), then the other schemes of ours.
 SCHEME_COLUMNS = (("(a) recent", "recent"), ("(b) replay", "replay"), ("(c) replay+ewc", "replay+ewc"),
@@ -77,16 +77,17 @@ def _ours(runs: pd.DataFrame) -> str:
 Column = tuple[str, Callable[[pd.DataFrame], pd.Series]]  # label, runs of one sequence -> values over seeds
 
 
-def _by_sequence(name: str, title: str, runs: pd.DataFrame, columns: list[Column], paper_table: dict | None,
-                 paper_columns: list[tuple[str, str]], digits: int, lower_is_better: bool) -> PaperTable:
+def _by_sequence(name: str, title: str, runs: pd.DataFrame, columns: list[Column],
+                 paper_table: dict[str, dict[str, float]] | None, paper_columns: list[tuple[str, str]], digits: int,
+                 lower_is_better: bool) -> PaperTable:
     """Rows = sequences + Average; our columns, then ``paper: <label>`` columns where known."""
     disp_rows, num_rows, bold = [], [], set()
     means: dict[str, dict[str, float]] = {label: {} for label, _ in columns}
     seqs = sorted(runs["sequence.name"].astype(str).unique())
     for i, seq in enumerate(seqs):
         sub = runs[runs["sequence.name"].astype(str) == seq]
-        d: dict[str, Any] = {"Sequence": seq_label(seq)}
-        n_row: dict[str, Any] = {"sequence": seq, "paper_sequence": paper.paper_name(seq)}
+        d: dict[str, str] = {"Sequence": seq_label(seq)}
+        n_row: dict[str, Scalar] = {"sequence": seq, "paper_sequence": paper.paper_name(seq)}
         best, best_col = None, None
         for label, get in columns:
             m, s, n = _stat(get(sub))
@@ -111,7 +112,7 @@ def _by_sequence(name: str, title: str, runs: pd.DataFrame, columns: list[Column
     k = len(common)
     name_avg = "Average" if k == len(seqs) else f"Average ({k} of {len(seqs)} sequences)"
     avg = {"Sequence": name_avg}
-    avg_num: dict[str, Any] = {"sequence": name_avg, "paper_sequence": None}
+    avg_num: dict[str, Scalar] = {"sequence": name_avg, "paper_sequence": None}
     best, best_col = None, None
     for label, _ in columns:
         m = float(np.mean([means[label][q] for q in common])) if common else float("nan")
@@ -267,8 +268,8 @@ def table6(runs: pd.DataFrame) -> PaperTable:
     disp, num, bold = [], [], set()
     best: dict[str, tuple[float, int]] = {}
     for i, (label, get) in enumerate(rows):
-        d: dict[str, Any] = {"Method": label}
-        n_row: dict[str, Any] = {"method": label}
+        d: dict[str, str] = {"Method": label}
+        n_row: dict[str, Scalar] = {"method": label}
         for seq in seqs:
             m, s, n = _stat(get(runs[runs["sequence.name"].astype(str) == seq]))
             d[seq_label(seq)] = cell(m, s, n, 3)
@@ -287,7 +288,7 @@ def table6(runs: pd.DataFrame) -> PaperTable:
                       f"{ours}); mean ± std over seeds", pd.DataFrame(disp), pd.DataFrame(num), bold)
 
 
-def _flag(runs: pd.DataFrame, key: str, default: Any) -> pd.Series:
+def _flag(runs: pd.DataFrame, key: str, default: Scalar) -> pd.Series:
     return runs[key].where(runs[key].notna(), default) if key in runs else pd.Series(default, index=runs.index)
 
 
@@ -315,8 +316,8 @@ def table5(runs: pd.DataFrame) -> PaperTable | None:
             sub = r[sel]
             if not len(sub):
                 continue
-            d: dict[str, Any] = {"BA": "✓" if ba else "", "MP culling": "✓" if cull else "", "max_fts": f}
-            n_row: dict[str, Any] = {"ba": ba, "culling": cull, "max_fts": f}
+            d: dict[str, str] = {"BA": "✓" if ba else "", "MP culling": "✓" if cull else "", "max_fts": f}
+            n_row: dict[str, Scalar] = {"ba": ba, "culling": cull, "max_fts": f}
             for seq in seqs:
                 s = sub[sub["sequence.name"].astype(str) == seq]
                 for what, key, digits in (("points", f"map.points.{part}", 0), ("e_si", f"map.esi.{part}", 3)):

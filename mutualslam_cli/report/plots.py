@@ -17,12 +17,18 @@ from __future__ import annotations
 import hashlib
 import textwrap
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import pandas as pd
 
 from mutualslam_cli.atomic import atomic_path
+
+if TYPE_CHECKING:  # matplotlib is imported when a figure is drawn (:func:`pyplot`)
+    from matplotlib.artist import Artist
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.typing import LineStyleType
 
 #: Fixed colour of each scheme (paper Fig. ablation_err: methods 1-4 are recent, replay, ewc, replay+ewc).
 SCHEME_COLOURS: dict[str, str] = {
@@ -33,7 +39,7 @@ SCHEME_COLOURS: dict[str, str] = {
 EXTRA_COLOURS = ("#e377c2", "#17becf", "#bcbd22", "#393b79", "#ad494a", "#637939")
 PRETRAINED_COLOUR = "#7f7f7f"
 #: Line styles of the configs of one scheme (first config solid); the pre-trained model is dashed.
-LINE_STYLES: tuple[Any, ...] = ("-", "-.", ":", (0, (3, 1, 1, 1, 1, 1)))
+LINE_STYLES: tuple[LineStyleType, ...] = ("-", "-.", ":", (0, (3, 1, 1, 1, 1, 1)))
 
 
 def scheme_colour(name: str) -> str:
@@ -52,6 +58,7 @@ def by_scheme(runs: pd.DataFrame) -> list[tuple[tuple[str, str], pd.DataFrame]]:
 
 
 def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the Agg backend (imported on the first figure; a module has no type to name)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -60,7 +67,7 @@ def pyplot() -> Any:
     return plt
 
 
-def save_png(fig: Any, path: Path) -> None:
+def save_png(fig: Figure, path: Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
     pyplot().close(fig)
@@ -70,16 +77,17 @@ def save_png(fig: Any, path: Path) -> None:
 TEXT_WIDTH_SHARE = 0.96
 
 
-def text_width(fig: Any, text: str, fontsize: float) -> float:
+def text_width(fig: Figure, text: str, fontsize: float) -> float:
     """Width of ``text``'s widest line at ``fontsize`` points, in pixels of ``fig`` at its dpi (as its
     ``bbox``), measured by the figure's renderer."""
     from matplotlib.font_manager import FontProperties
 
-    renderer, font = fig.canvas.get_renderer(), FontProperties(size=fontsize)
+    canvas = cast("FigureCanvasAgg", fig.canvas)  # every figure is drawn on Agg (:func:`pyplot`); stubs say only Base
+    renderer, font = canvas.get_renderer(), FontProperties(size=fontsize)
     return max(renderer.get_text_width_height_descent(line, font, ismath=False)[0] for line in text.split("\n"))
 
 
-def fit_width(fig: Any, text: str, fontsize: float, share: float = TEXT_WIDTH_SHARE) -> str:
+def fit_width(fig: Figure, text: str, fontsize: float, share: float = TEXT_WIDTH_SHARE) -> str:
     """``text`` re-wrapped at its spaces so that every line fits in ``share`` of ``fig``'s width at ``fontsize``
     (a word longer than that stays whole on its own line). The ratio of text to figure width does not change
     with the dpi, so a caption fitted here fits in the PNG saved at any dpi."""
@@ -93,7 +101,7 @@ def fit_width(fig: Any, text: str, fontsize: float, share: float = TEXT_WIDTH_SH
     return "\n".join(lines)
 
 
-def legend_columns(fig: Any, labels: list[str], fontsize: float, most: int,
+def legend_columns(fig: Figure, labels: list[str], fontsize: float, most: int,
                    share: float = TEXT_WIDTH_SHARE) -> int:
     """How many columns (at most ``most``) a figure legend of ``labels`` at ``fontsize`` may have so that a
     row fits in ``share`` of ``fig``'s width: every column as wide as the widest entry, with matplotlib's
@@ -130,7 +138,7 @@ def _running(run: pd.Series, model: str) -> pd.Series | None:
     return pd.Series(pd.to_numeric(pf[col], errors="coerce").to_numpy(), index=pf["frame"].to_numpy())
 
 
-def accuracy_figure(runs: pd.DataFrame) -> Any | None:
+def accuracy_figure(runs: pd.DataFrame) -> Figure | None:
     """The running-accuracy figure of :func:`collect`'s runs (see the module docstring).
 
     Returns:
@@ -148,10 +156,10 @@ def accuracy_figure(runs: pd.DataFrame) -> Any | None:
     nrows = -(-len(seqs) // ncols)
     fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.7 * nrows + 1.0), squeeze=False,
                              layout="constrained")
-    handles: dict[str, Any] = {}
+    handles: dict[str, Artist] = {}
     drawn: set[str] = set()  # "online" (model of each frame's time) and/or "final" (runs without online scores)
     max_seeds = 1
-    styles: dict[tuple[str, str], Any] = {}  # one line style per (scheme, config) in every panel
+    styles: dict[tuple[str, str], LineStyleType] = {}  # one line style per (scheme, config) in every panel
     for (scheme, config), _ in by_scheme(runs):
         styles[(scheme, config)] = LINE_STYLES[sum(k[0] == scheme for k in styles) % len(LINE_STYLES)]
     for ax, seq in zip(axes.flat, seqs):

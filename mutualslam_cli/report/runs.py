@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
 import pandas as pd
 
 from mutualslam_cli.config.yaml_file import read_yaml_mapping
 from mutualslam_cli.errors import DatasetError, SchemaError
 from mutualslam_cli.results.summary import flatten, read_summary
+from mutualslam_cli.types import JSON
 
 #: Config keys that do not make runs different experiments (``adapt.scheme`` has its own column).
 #: ``threads`` is not among them: the numbers follow the thread count (torch's reductions sum in
@@ -27,7 +27,7 @@ from mutualslam_cli.results.summary import flatten, read_summary
 IGNORED_CONFIG = ("seed", "out", "adapt.scheme", "data.data_root", "eval.save_weights", "device")
 
 
-def _read_config(folder: Path) -> dict[str, Any]:
+def _read_config(folder: Path) -> dict[str, JSON]:
     """``config.*`` columns of a run's ``config.yaml`` (empty when the run has none); read strictly.
 
     Raises:
@@ -59,7 +59,7 @@ def _searched(path: Path, root: Path) -> bool:
     return not any(part.startswith(".") or part == "_cache" for part in path.relative_to(root).parts[:-1])
 
 
-def _finite(row: dict[str, Any], summary: Path, notes: list[str]) -> None:
+def _finite(row: dict[str, JSON], summary: Path, notes: list[str]) -> None:
     """Numbers of ``row`` that are not finite become ``None`` (an empty cell), each with a note."""
     for key, v in row.items():
         if isinstance(v, float) and not math.isfinite(v):
@@ -67,7 +67,7 @@ def _finite(row: dict[str, Any], summary: Path, notes: list[str]) -> None:
             notes.append(f"{summary}: {key} is {v}, not a finite number; its cells are left empty")
 
 
-def _row(folder: Path, notes: list[str]) -> dict[str, Any]:
+def _row(folder: Path, notes: list[str]) -> dict[str, JSON]:
     """One run's row (module docstring).
 
     Raises:
@@ -75,7 +75,7 @@ def _row(folder: Path, notes: list[str]) -> dict[str, Any]:
             not a YAML mapping.
         SchemaError: ``summary.json`` is not an object, or not of a schema version this mslam reads.
     """
-    d: dict[str, Any] = read_summary(folder).flat()
+    d = read_summary(folder).flat()
     _finite(d, folder / "summary.json", notes)
     d["folder"] = str(folder)
     parts = folder.parts
@@ -98,7 +98,7 @@ def collect(paths: list[str | Path], notes: list[str] | None = None) -> pd.DataF
         DatasetError: a path does not exist, or no run could be read (the message says why each was skipped).
     """
     notes = notes if notes is not None else []
-    rows: list[dict[str, Any]] = []
+    rows: list[dict[str, JSON]] = []
     skipped: list[str] = []
     for p in map(Path, paths):
         if not p.exists():

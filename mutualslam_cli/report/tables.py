@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -40,6 +40,10 @@ from mutualslam_cli.report.plots import plot_accuracy
 from mutualslam_cli.report.runs import IGNORED_CONFIG, collect, config_labels  # noqa: F401 - collect: re-exported
 from mutualslam_cli.report.slam_tables import SLAM_TABLES, shown
 from mutualslam_cli.report.trajectories import trajectory_figures
+from mutualslam_cli.types import Scalar
+
+if TYPE_CHECKING:
+    from mutualslam_cli.report.paired import PairedResult
 
 log = logging.getLogger(__name__)
 
@@ -178,9 +182,9 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
         runs.get("config", pd.Series("", index=runs.index))
     runs = runs.assign(config=labels.values)
     cols = [c for c, _ in CREDIT] + ([LOOP_COLUMN] if looped.any() else [])
-    rows: list[dict[str, Any]] = []
+    rows: list[dict[str, Scalar]] = []
     for (scheme, config), b in runs.groupby(["scheme", "config"], sort=True):
-        first = len(rows)
+        seqs: list[dict[str, float]] = []  # per sequence of the block: column → mean
         for seq, r in b.groupby("sequence.name", sort=True):
             on = looped.loc[r.index]
             base = r[~on] if (~on).any() else r
@@ -190,11 +194,10 @@ def table_ate_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
                     else vals.assign(**{LOOP_COLUMN: np.nan})
             paired = vals.dropna()
             use = paired if len(paired) else vals.dropna(subset=["VO", "bridged"])
-            rows.append({"Sequence": seq, "scheme": scheme, "config": config, "n": len(use),
-                         **{c: _mean(use[c]) for c in cols}})
-        seqs = rows[first:]
+            seqs.append({c: _mean(use[c]) for c in cols})
+            rows.append({"Sequence": seq, "scheme": scheme, "config": config, "n": len(use), **seqs[-1]})
         full = [x for x in seqs if all(np.isfinite(x[c]) for c in cols)]
-        avg: dict[str, Any] = {"scheme": scheme, "config": config, "n": ""}
+        avg: dict[str, Scalar] = {"scheme": scheme, "config": config, "n": ""}
         for c in cols:  # no sequence with every value: each column over its own
             have = full or [x for x in seqs if np.isfinite(x[c])]
             avg[c] = float(np.mean([x[c] for x in have])) if have else float("nan")
@@ -223,7 +226,7 @@ MAP_ROWS = (("", "", "vo", "all"), ("", "✓", "culled", "culled"), ("✓", "", 
             ("✓", "✓", "ba", "ba_culled"))
 
 
-def _fts_key(v: Any) -> tuple[int, float, str]:
+def _fts_key(v: str) -> tuple[int, float, str]:
     try:
         return (0, float(v), "")
     except (TypeError, ValueError):
@@ -257,7 +260,7 @@ def table_map_ba(runs: pd.DataFrame) -> tuple[pd.DataFrame, str, set[tuple[int, 
         b = runs[(runs["scheme"] == scheme) & (runs["_rest"] == rest) & (runs["_fts"] == f)]
         for ba_mark, cull_mark, stage, who in MAP_ROWS:
             sel = b[member[who].loc[b.index]]
-            row: dict[str, Any] = {"scheme": scheme, "config": rest, "BA": ba_mark, "MP culling": cull_mark,
+            row: dict[str, Scalar] = {"scheme": scheme, "config": rest, "BA": ba_mark, "MP culling": cull_mark,
                                    "max_fts": f}
             ns = []
             for seq in seqs:
@@ -361,7 +364,7 @@ def write_report(rep: Report, out_dir: Path) -> list[Path]:
 
 
 def add_paired(rep: Report, comparisons: list[str], metric: str, better: str | None = None,
-               broadcast: bool = False) -> list[Any]:
+               broadcast: bool = False) -> list[PairedResult]:
     """``mslam report --pair``: the paired comparisons (:mod:`~mutualslam_cli.report.paired`, ``"A vs B"`` each)
     as table ``paired`` and every pair as ``paired_pairs.csv``; returns the results.
 

@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import json
 import textwrap
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -28,6 +27,12 @@ from mutualslam_cli.metrics.trajectory import ate
 from mutualslam_cli.report.columns import slug
 from mutualslam_cli.report.plots import by_scheme, legend_columns, pyplot, save_png, with_config
 from mutualslam_cli.types import Trajectory
+
+if TYPE_CHECKING:
+    from matplotlib.artist import Artist
+    from matplotlib.figure import Figure
+
+_T = TypeVar("_T")
 
 #: Rows (runs) of one trajectory figure; further runs of the sequence go on more pages.
 MAX_ROWS = 6
@@ -52,11 +57,12 @@ class Reference:
     time_label: str
 
 
-def _plain(v: Any) -> Any:
+def _plain(v: _T) -> _T | None:
+    """``v``, ``None`` for NaN (an empty cell of the runs' table)."""
     return None if v is None or (isinstance(v, float) and v != v) else v
 
 
-def load_reference(run: Mapping[str, Any]) -> Reference:
+def load_reference(run: pd.Series) -> Reference:
     """GT poses of a run's sequence, read where the run found them.
 
     Tries the ``sequence.root`` folder of the run's ``manifest.json``, then the ``sequence.name`` of
@@ -199,7 +205,7 @@ def unaligned_row(folder: Path, title: str = "") -> TrackRow:
 
 
 def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, float], time_label: str,
-                      aligned: bool = True) -> Any:
+                      aligned: bool = True) -> Figure:
     """One row per run: top view (equal aspect) and height over time, metres.
 
     Args:
@@ -217,7 +223,7 @@ def trajectory_figure(rows: list[TrackRow], heading: str, vertical: tuple[int, f
     h, v = [i for i in range(3) if i != k]
     fig = plt.figure(figsize=(12.0, 3.5 * len(rows) + 1.0), layout="constrained")
     subs = np.atleast_1d(fig.subfigures(len(rows), 1))
-    handles: dict[str, Any] = {}  # legend label → its first matplotlib artist
+    handles: dict[str, Artist] = {}  # legend label → its first matplotlib artist
     for sf, row in zip(subs, rows):
         top, height = sf.subplots(1, 2, width_ratios=[1.0, 1.9])
         ate_line = ("ATE RMSE (m), keyframes / all frames: " + ", ".join(row.ate_text)) if row.ate_text else ""
