@@ -108,6 +108,17 @@ def vo(
 
 
 @bench_app.command()
+def contention(
+    threads: int = typer.Option(0, "--threads", min=0, help="Torch threads (0: every core)."),
+) -> None:
+    """The fine-tuning step alone and beside one busy process (ms), as JSON: a ratio far above 'fair' is the
+    OpenMP spin stall back (docs/devices.md)."""
+    from mutualslam_cli.bench.contention import contention as measure
+
+    print(json.dumps(measure(threads or None), indent=1))
+
+
+@bench_app.command()
 def finetune(
     threads: int = typer.Option(1, "--threads", min=1, help="Torch threads."),
 ) -> None:

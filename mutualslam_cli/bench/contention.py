@@ -1,0 +1,57 @@
+"""The optimiser step on a shared machine: a step's time alone and beside one CPU-bound process
+(``mslam bench contention``).
+
+With as many torch threads as cores, another busy process takes one of them: fair sharing would make a step
+about ``cores / (cores − 1)`` times slower (2× on 2 cores), but OpenMP threads that spin while they wait at a
+barrier lose far more (8–9× with GNU OpenMP's default spin count on a 2-core AMX Xeon: the stalls of a default
+run, one keyframe's steps at 5 s). mslam sets a short spin (:data:`mutualslam_cli.OMP_SPINCOUNT`) before torch is
+loaded; this benchmark shows the stall if it comes back: ``ratio`` well above ``fair``.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from typing import TypedDict
+
+from mutualslam_cli.bench.finetune import bench_finetune_step
+from mutualslam_cli.machine import cpu_info
+
+
+class Contention(TypedDict):
+    """:func:`contention`'s figures: the median step alone and beside a busy process (ms), their ratio, the fair
+    ratio, the OpenMP wait settings in force and the CPU."""
+
+    threads: int
+    quiet_ms: float
+    contended_ms: float
+    ratio: float
+    fair: float
+    gomp_spincount: str | None
+    omp_wait_policy: str | None
+    cpu_kind: str
+    cpu_flags: list[str] | None
+
+
+def contention(threads: int | None = None, repeats: int = 5, width: int = 640, height: int = 192) -> Contention:
+    """The default fast path's fine-tuning step (:func:`~mutualslam_cli.bench.finetune.bench_finetune_step` with
+    the default trust region) alone, then while one busy-looping Python process runs beside it."""
+    cores = len(os.sched_getaffinity(0))
+    threads = threads or cores
+
+    def step() -> float:
+        return bench_finetune_step(width, height, repeats, fast=True, threads=threads, trust=3e-3)["ms"]
+
+    quiet = step()
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        contended = step()
+    finally:
+        busy.kill()
+        busy.wait()
+    cpu = cpu_info()
+    return {"threads": threads, "quiet_ms": quiet, "contended_ms": contended, "ratio": contended / quiet,
+            "fair": threads / max(1, min(threads, cores - 1)) if cores > 1 else 2.0,
+            "gomp_spincount": os.environ.get("GOMP_SPINCOUNT"), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "cpu_kind": cpu["cpu_kind"], "cpu_flags": cpu["cpu_flags"]}
