@@ -12,9 +12,9 @@ import os
 from mutualslam_cli.errors import ConfigError, DatasetError, MslamError, ShapeError  # no torch: before the setting
 
 #: How long an idle OpenMP thread spins before it sleeps (GNU OpenMP, torch's CPU runtime), set before torch is
-#: loaded unless the environment sets it. The default (300 000) makes a step ~8× slower whenever another process
-#: takes one of the cores torch's threads run on (every barrier waits on a descheduled spinner), where 10 000
-#: costs ~2.7× and nothing measurable on a quiet machine (``mslam bench contention``; docs/devices.md).
+#: loaded unless the environment sets it. The default (300 000) makes a step several times slower whenever another
+#: process takes one of the cores torch's threads run on (every barrier waits on a descheduled spinner); 10 000
+#: stays near the fair share there and changes nothing measurable on a quiet machine (``mslam bench contention``).
 OMP_SPINCOUNT = "10000"
 os.environ.setdefault("GOMP_SPINCOUNT", OMP_SPINCOUNT)
 

@@ -3,9 +3,9 @@
 
 With as many torch threads as cores, another busy process takes one of them: fair sharing would make a step
 about ``cores / (cores − 1)`` times slower (2× on 2 cores), but OpenMP threads that spin while they wait at a
-barrier lose far more (8–9× with GNU OpenMP's default spin count on a 2-core AMX Xeon: the stalls of a default
-run, one keyframe's steps at 5 s). mslam sets a short spin (:data:`mutualslam_cli.OMP_SPINCOUNT`) before torch is
-loaded; this benchmark shows the stall if it comes back: ``ratio`` well above ``fair``.
+barrier lose far more with GNU OpenMP's default spin count (the tail of a run's steps: one keyframe's steps several
+times the median). mslam sets a short spin (:data:`mutualslam_cli.OMP_SPINCOUNT`) before torch is loaded; this
+benchmark shows the stall if it comes back: ``ratio`` well above ``fair``.
 """
 
 from __future__ import annotations
