@@ -1,11 +1,10 @@
 """Synthetic photometric-BA problems and the global-BA benchmark (DESIGN §10).
 
-``mslam bench ba`` (:func:`ba_bench`; and the ``ba`` section of ``make bench``,
-:func:`bench_ba`) times :func:`~mutualslam_cli.backend.ba.photometric.solve` with 10 LM iterations on
-100 keyframes × 10 000 points (≤ 5 targets, 3×3 patch; design target ≤ 5 s) and reports what it
-recovers, before and after: keyframe centre error (mm, max and RMS; also the map's scale error
-and the centre error after a Sim(3) alignment), rotation error (deg), inverse-depth relative
-error (median, p95), cost and accepted steps (:func:`accuracy`, :func:`report`).
+``mslam bench ba`` (:func:`ba_bench`; and the ``ba`` section of ``make bench``, :func:`bench_ba`) times
+:func:`~mutualslam_cli.backend.ba.photometric.solve` with 10 LM iterations on 100 keyframes × 10 000 points
+(≤ 5 targets, 3×3 patch; design target ≤ 5 s) and reports what it recovers, before and after: keyframe centre
+error (mm, max and RMS; also the map's scale error and the centre error after a Sim(3) alignment), rotation
+error (deg), inverse-depth relative error (median, p95), cost and accepted steps (:func:`accuracy`, :func:`report`).
 
 **The problem** (:data:`BENCH_PROBLEM`): 640×480 images (f = 576 px) of a back wall, five
 vertical panels at staggered depths and a shelf, 1.1–2.2 m away, rendered by analytic
@@ -15,9 +14,8 @@ closed loop of about 3.5 m: 1.7 m across the panels and back up to 8 cm higher, 
 them, yawing ±5°, pitching ±3°, rolling ±2°. A point's targets are the nearest keyframes by
 camera centre (of the 10 nearest) that see its patch unoccluded, so the two passes and the loop's
 ends are linked (about a quarter of the observations are more than 10 keyframes from their host):
-baselines 3.5–17 cm (median 5.8), parallax median 19 px (p10 11 px). On a 3 m open sweep linked
-by keyframe index instead (640×192, panels at 2–3.6 m), scale and bending drift along the chain
-were so weakly determined that LM started 0.1 mm from the truth settled 5 mm away from it.
+baselines 3.5–17 cm (median 5.8), parallax median 19 px (p10 11 px). (An open sweep linked by keyframe
+index determined scale and bending too weakly: LM started 0.1 mm from the truth settled 5 mm away.)
 
 **The perturbation** (:data:`BENCH_PERTURBATION`, :func:`perturb`, rng seed 1): every keyframe
 but the gauge 2 mm and 0.05° off, then the centres rescaled about keyframe 0 to the true extent of
@@ -30,11 +28,8 @@ outlier handling (Huber at 0.1, no gradient weights, a prior on the first baseli
 ended 5.6 mm (max) from the true centres, mostly scale (−0.32 %; 0.37 mm after a Sim(3) alignment);
 the robust BA (Huber at 5 grey levels, gradient weights, two rounds of outlier classification, the
 extent anchor) takes 3.5 s and ends 0.24 mm (max) from them, 0.06 mm RMS after Sim(3), inverse
-depths 0.03 % (median) off; the cost at the true state is 0.0026, after BA 0.0082. The time went
-up with the second residual evaluation of a rejected point step (:mod:`mutualslam_cli.backend.ba.lm`)
-and the classification per round.
-
-``path="compact"`` (the default of :func:`synthetic_problem`) is the unit tests' small scene.
+depths 0.03 % (median) off; the cost at the true state is 0.0026, after BA 0.0082. ``path="compact"``
+(the default of :func:`synthetic_problem`) is the unit tests' small scene.
 """
 
 from __future__ import annotations
@@ -260,7 +255,7 @@ class ProblemInfo(TypedDict):
 
 
 class BenchProblem(ProblemInfo):
-    """``ba_problem`` of :func:`bench_ba`: the problem, the perturbation of its start and the solver's settings."""
+    """``ba_problem`` of :func:`bench_ba`: the problem, its start's perturbation, the solver's settings."""
 
     perturbation: dict[str, float]
     iterations: int
@@ -284,7 +279,7 @@ class BABench(TypedDict):
 
 
 def holds_ba(figures: Mapping[str, object]) -> TypeGuard[BABench]:
-    """Whether a bag of bench figures (``mslam bench suite``'s) holds :func:`bench_ba`'s (it was merged in)."""
+    """Whether ``mslam bench suite``'s figures hold :func:`bench_ba`'s."""
     return "ba_before" in figures
 
 

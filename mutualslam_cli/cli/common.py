@@ -133,6 +133,12 @@ def progress_bar() -> Progress:
                     TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console, transient=False)
 
 
+def progress_figure(v: object) -> float | None:
+    """A progress callback's figure (frames done, a total) as a bar takes it; ``None`` where the stage gave none
+    (the bar keeps its own)."""
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
 def fmt_value(v: object, nd: int = 3) -> str:
     """A value of a run's summary for the terminal: ``—`` for none, a float with ``nd`` decimals."""
     if v is None:

@@ -21,6 +21,7 @@ from mutualslam_cli.cli.common import (
     config_from,
     fmt_value,
     progress_bar,
+    progress_figure,
     shown,
 )
 from mutualslam_cli.errors import ConfigError, DatasetError, MslamError
@@ -206,13 +207,6 @@ def _check_and_print(target: SequenceSpec | str, sample: int, data_root: str | N
     _print_report(r)
 
 
-def _bar_number(info: Info, key: str) -> float | None:
-    """Figure ``key`` of a progress callback's ``info`` as a bar takes it (``None``: not said; the bar keeps its
-    own)."""
-    v = info.get(key)
-    return v if isinstance(v, (int, float)) else None
-
-
 @contextmanager
 def _decode_bar(label: str) -> Iterator[Callable[[str, Info], None]]:
     """A progress bar for the images a sequence check decodes; yields its callback, removed at the end (the
@@ -223,7 +217,7 @@ def _decode_bar(label: str) -> Iterator[Callable[[str, Info], None]]:
         def cb(stage: str, info: Info) -> None:
             if not tasks:
                 tasks.append(p.add_task(shown(f"decode {label}"), total=None, info=""))
-            p.update(tasks[0], completed=_bar_number(info, "done"), total=_bar_number(info, "total"),
+            p.update(tasks[0], completed=progress_figure(info.get("done")), total=progress_figure(info.get("total")),
                      info=shown(Path(str(info["file"])).name))
 
         try:
@@ -288,8 +282,8 @@ def _download_one(spec: SequenceSpec, folder: Path, base_url: str | None, force:
         def cb(stage: str, info: Info) -> None:
             key = (stage, str(info["file"]))
             if key not in tasks:
-                tasks[key] = p.add_task(shown(f"{stage} {info['file']}"), total=_bar_number(info, "total"))
-            p.update(tasks[key], completed=_bar_number(info, "done"), total=_bar_number(info, "total"))
+                tasks[key] = p.add_task(shown(f"{stage} {info['file']}"), total=progress_figure(info.get("total")))
+            p.update(tasks[key], completed=progress_figure(info.get("done")), total=progress_figure(info.get("total")))
 
         def say(msg: str) -> None:
             p.console.print(shown(msg), highlight=False, soft_wrap=True)

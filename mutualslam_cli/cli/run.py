@@ -25,6 +25,7 @@ from mutualslam_cli.cli.common import (
     config_from,
     fmt_value,
     progress_bar,
+    progress_figure,
 )
 from mutualslam_cli.config import with_overrides
 from mutualslam_cli.errors import ConfigError
@@ -104,11 +105,6 @@ def _stage_table(f: RunSummary) -> Table:
     return t
 
 
-def _count(v: object) -> float | None:
-    """A progress figure (frames done, a total) as a number; ``None`` when the stage gave none."""
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-
-
 @app.command()
 def run(
     seq: str = typer.Argument(..., help="datasets.yaml name or sequence folder."),
@@ -158,7 +154,7 @@ def run(
         tasks: dict[str, TaskID] = {}
 
         def cb(stage: str, info: Info) -> None:
-            total = _count(info.get("total", info.get("n_frames")))
+            total = progress_figure(info.get("total", info.get("n_frames")))
             if stage not in tasks:
                 tasks[stage] = p.add_task({"convert": "convert recording", "vo": "front end", "adapt": "adapt",
                                            "eval": "evaluate", "dense": "dense"}.get(stage, stage),
@@ -166,8 +162,8 @@ def run(
             if stage != "convert" and "convert" in tasks:  # the conversion is over: its bar stops its clock
                 tid = tasks.pop("convert")
                 p.update(tid, total=next(t.completed for t in p.tasks if t.id == tid))
-            frame = _count(info.get("frame"))
-            done = _count(info["done"]) if "done" in info else (frame if frame is not None else -1.0) + 1
+            frame = progress_figure(info.get("frame"))
+            done = progress_figure(info["done"]) if "done" in info else (frame if frame is not None else -1.0) + 1
             if stage == "vo":
                 text = f"kf {info.get('keyframes', 0)} · pts {info.get('tracked', 0)} · {info.get('state', '')}"
                 if info.get("fps"):
@@ -208,8 +204,8 @@ def fuse(
 
         def cb(stage: str, info: Info) -> None:
             if stage == "dense":  # a front end recomputed (no VO cache) reports as "vo": not this bar
-                tasks[:] = tasks or [p.add_task("dense", total=_count(info["total"]), info="")]
-                p.update(tasks[0], completed=_count(info["done"]), total=_count(info["total"]),
+                tasks[:] = tasks or [p.add_task("dense", total=progress_figure(info["total"]), info="")]
+                p.update(tasks[0], completed=progress_figure(info["done"]), total=progress_figure(info["total"]),
                          info=info.get("phase", ""))
 
         f = fuse_run(run_dir, sets or [], registry, command=sys.argv, progress=cb)

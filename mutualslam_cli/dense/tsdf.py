@@ -16,9 +16,8 @@ integration). Everything here takes plain arrays in metres and returns plain arr
 - :func:`render_mesh`: a headless ray-cast picture of a mesh (``open3d.t.geometry.RaycastingScene``),
   Lambertian shading from the triangle normals.
 
-Meshes are canonical (vertices sorted by position, triangles by their vertices), so the same
-inputs give the same files and scores whatever the thread scheduling inside open3d.
-open3d is imported inside the functions (it costs ~1 s), as :mod:`~mutualslam_cli.results.map_ply` does.
+Meshes are canonical (vertices sorted by position, triangles by their vertices), so the same inputs give the
+same files and scores whatever open3d's threads do. open3d is imported inside the functions (~1 s).
 """
 
 from __future__ import annotations

@@ -240,6 +240,8 @@ def _index() -> tuple[dict[str, Field], list[tuple[re.Pattern[str], Field]]]:
         keys = f.keys()
         if keys:
             exact.update((k, f) for k in keys if k not in exact)
+        elif "." in f.pattern.partition("{")[2]:
+            raise SchemaError(f"summary schema: the open family {f.pattern!r} must be one level deep")
         else:
             open_.append((re.compile(f.regex()), f))
     return exact, open_
@@ -313,19 +315,14 @@ def json_schema() -> JSONObject:
         props = parent["properties"]
         assert isinstance(props, dict)
         props[last] = leaf(f)
-    for rx, f in open_:
-        head, _, rest = f.pattern.partition("{")
-        *path, _ = head.split(".")
+    for rx, f in open_:  # one level deep (_index): a pattern of the last part of the key
+        *path, _ = f.pattern.partition("{")[0].split(".")
         parent = root
         for p in path:
             parent = node(parent, p)
-        tail = rx.pattern[len(re.escape(".".join(path) + ".")) if path else 0:]
         pats = parent.setdefault("patternProperties", {})
         assert isinstance(pats, dict)
-        if "." in rest:  # a family deeper than one level: its first level open, the rest checked by the writer
-            pats[f"^{tail.split(chr(92) + '.', 1)[0]}$"] = {"type": "object"}
-        else:
-            pats[f"^{tail}$"] = leaf(f)
+        pats[f"^{rx.pattern[len(re.escape('.'.join(path) + '.')) if path else 0:]}$"] = leaf(f)
     props = root["properties"]
     assert isinstance(props, dict)
     props["schema_version"] = {"const": SCHEMA_VERSION}
