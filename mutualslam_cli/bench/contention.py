@@ -15,7 +15,9 @@ import subprocess
 import sys
 from typing import TypedDict
 
+from mutualslam_cli.adapt.depthnet import fast_path_supported
 from mutualslam_cli.bench.finetune import bench_finetune_step
+from mutualslam_cli.config import load_config
 from mutualslam_cli.machine import cpu_info
 
 
@@ -35,13 +37,15 @@ class Contention(TypedDict):
 
 
 def contention(threads: int | None = None, repeats: int = 5, width: int = 640, height: int = 192) -> Contention:
-    """The default fast path's fine-tuning step (:func:`~mutualslam_cli.bench.finetune.bench_finetune_step` with
-    the default trust region) alone, then while one busy-looping Python process runs beside it."""
+    """The default config's fine-tuning step (:func:`~mutualslam_cli.bench.finetune.bench_finetune_step`: the fast
+    path where the CPU has it, the default trust region) alone, then while one busy-looping Python process runs
+    beside it."""
     cores = len(os.sched_getaffinity(0))
     threads = threads or cores
+    fast, trust = fast_path_supported(), load_config().adapt.trust
 
     def step() -> float:
-        return bench_finetune_step(width, height, repeats, fast=True, threads=threads, trust=3e-3)["ms"]
+        return bench_finetune_step(width, height, repeats, fast=fast, threads=threads, trust=trust)["ms"]
 
     quiet = step()
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
